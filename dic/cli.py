@@ -1,0 +1,59 @@
+"""The ``specula`` command line.
+
+Each subcommand lives in its own module under ``dic/commands/`` and is imported only when it is
+invoked, so ``specula --help`` stays fast and one broken command cannot take the others down.
+"""
+from __future__ import annotations
+
+import importlib
+
+import click
+
+# name -> "module:attribute" of a click command or group
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "track": ("dic.commands.track:track", "2D DIC: track a reference image into one or more current images"),
+    "lab": ("dic.commands.lab:lab", "Virtual lab: render scenes of cameras, mirrors, monitors and speckle"),
+    "target": ("dic.commands.target:target", "Calibration targets: write phase-fringe / dot / checkerboard images"),
+    "calibrate": ("dic.commands.calibrate:calibrate", "Calibrate intrinsics, mirror extrinsics or a stereo rig"),
+    "stereo": ("dic.commands.stereo:stereo", "Stereo-DIC: 3D shape, displacement and strain"),
+}
+
+
+class LazyGroup(click.Group):
+    """A click group whose subcommands are imported on first use."""
+
+    def list_commands(self, ctx):
+        return sorted(SUBCOMMANDS)
+
+    def get_command(self, ctx, name):
+        if name not in SUBCOMMANDS:
+            return None
+        target, short_help = SUBCOMMANDS[name]
+        module_name, attr = target.split(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+
+            @click.command(name=name, help=short_help + " (not available in this version)")
+            def unavailable():
+                raise click.ClickException(f"'specula {name}' is not available in this version")
+
+            return unavailable
+        return getattr(module, attr)
+
+    def format_commands(self, ctx, formatter):
+        rows = [(name, SUBCOMMANDS[name][1]) for name in self.list_commands(ctx)]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="specula")
+def main():
+    """Specula: stereo digital image correlation on Warp kernels."""
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

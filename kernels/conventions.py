@@ -1,0 +1,36 @@
+"""Named constants shared by all layers: shape-function parameter order and per-POI status.
+
+See docs/conventions.md.
+"""
+from __future__ import annotations
+
+from enum import IntEnum
+
+#: 1st-order shape function parameters, in storage order (u, v in px; gradients dimensionless).
+PARAMS_1ST: tuple[str, ...] = ("u", "ux", "uy", "v", "vx", "vy")
+#: 2nd-order shape function parameters, in storage order (second derivatives in 1/px).
+PARAMS_2ND: tuple[str, ...] = (
+    "u", "ux", "uy", "uxx", "uxy", "uyy",
+    "v", "vx", "vy", "vxx", "vxy", "vyy",
+)
+
+
+def param_names(order: int) -> tuple[str, ...]:
+    """Parameter names for shape-function ``order`` 1 or 2."""
+    if order == 1:
+        return PARAMS_1ST
+    if order == 2:
+        return PARAMS_2ND
+    raise ValueError(f"shape-function order must be 1 or 2, got {order!r}")
+
+
+class Status(IntEnum):
+    """Outcome of subset tracking for one point of interest (stored as int8/int32)."""
+
+    CONVERGED = 0        #: norm of the parameter update fell below tol
+    MAX_ITERATIONS = 1   #: max_iter reached without convergence (result still usable, check ZNCC)
+    OUT_OF_BOUNDS = 2    #: the subset (reference or warped) leaves the image
+    FLAT_SUBSET = 3      #: no texture: subset grey-level standard deviation ~ 0
+    SINGULAR_HESSIAN = 4 #: the Gauss-Newton Hessian cannot be inverted
+    DIVERGED = 5         #: the update grew without bound or the correlation collapsed
+    NOT_COMPUTED = 6     #: not processed (e.g. masked out, or its guess failed)
