@@ -1,14 +1,42 @@
-"""Pinhole camera with OpenCV's lens distortion model (float64, NumPy).
+"""Pinhole camera with OpenCV's lens distortion model (float64, NumPy), pose helpers and the
+camera JSON file.
 
 Frames and units (docs/conventions.md): camera frame x right, y down, z forward; millimetres;
 pixel (0, 0) is the centre of the top-left pixel. Distortion coefficients follow OpenCV's order
 ``k1, k2, p1, p2[, k3[, k4, k5, k6]]`` (the rational model when 8 are given).
+
+Camera file (JSON, ``Camera.save`` / ``Camera.load``)::
+
+    {"schema": "specula.camera", "schema_version": 1,
+     "units": {...}, "conventions": {...},          # written for the reader, checked on load
+     "name": "left", "size": [width, height],
+     "K": [[fx, skew, cx], [0, fy, cy], [0, 0, 1]],  # px
+     "dist": [k1, k2, p1, p2, k3, ...],              # OpenCV order, normalised coordinates
+     "metadata": {...}}                              # free, e.g. calibration report
+
+A file with another ``schema`` or ``schema_version`` is refused with a ``ValueError``.
 """
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+
+#: Name and version of the camera JSON schema written by :meth:`Camera.save`.
+CAMERA_SCHEMA = "specula.camera"
+CAMERA_SCHEMA_VERSION = 1
+
+#: Conventions written into every camera / rig file so that a reader needs no other document.
+FRAME_CONVENTIONS: dict[str, str] = {
+    "camera_frame": "x right, y down, z forward (OpenCV); right-handed",
+    "pixel_origin": "pixel (0, 0) is the centre of the top-left pixel; x = column, y = row",
+    "distortion_model": "OpenCV: k1 k2 p1 p2 k3 k4 k5 k6 applied to normalised coordinates x/z, y/z",
+    "pose_naming": "R_a_b, t_a_b map frame-b coordinates into frame a: x_a = R_a_b @ x_b + t_a_b",
+}
+CAMERA_UNITS: dict[str, str] = {"K": "px", "size": "px", "dist": "dimensionless", "lengths": "mm"}
 
 
 def _as_points(points, ncols: int, name: str) -> np.ndarray:
@@ -20,6 +48,86 @@ def _as_points(points, ncols: int, name: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or infinite values")
     return arr
+
+
+def _as_matrix3(R, name: str) -> np.ndarray:
+    arr = np.asarray(R, dtype=np.float64)
+    if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a finite 3x3 matrix, got shape {np.shape(R)}")
+    return arr
+
+
+def _as_vector3(t, name: str) -> np.ndarray:
+    arr = np.asarray(t, dtype=np.float64).reshape(-1)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a finite 3-vector, got shape {np.shape(t)}")
+    return arr
+
+
+# -- rotations -----------------------------------------------------------------------------------
+def rotation_from_vector(rvec) -> np.ndarray:
+    """Rotation vector (axis * angle, rad) -> rotation matrix (3, 3), Rodrigues' formula."""
+    w = _as_vector3(rvec, "rvec")
+    theta = float(np.linalg.norm(w))
+    if theta < 1e-12:
+        W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        return np.eye(3) + W + 0.5 * W @ W
+    k = w / theta
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * Kx @ Kx
+
+
+def vector_from_rotation(R) -> np.ndarray:
+    """Rotation matrix (3, 3) -> rotation vector (axis * angle, rad); inverse of :func:`rotation_from_vector`."""
+    from scipy.spatial.transform import Rotation
+
+    R = _as_matrix3(R, "R")
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def rotation_angle_deg(R_a, R_b=None) -> float:
+    """Angle in degrees of the rotation ``R_a`` (or of ``R_a @ R_b.T`` when ``R_b`` is given)."""
+    R = _as_matrix3(R_a, "R_a")
+    if R_b is not None:
+        R = R @ _as_matrix3(R_b, "R_b").T
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    # arccos loses precision near 0: use the skew part for small angles
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.degrees(np.arctan2(s, c)))
+
+
+def nearest_rotation(M) -> np.ndarray:
+    """Closest proper rotation (Frobenius norm) to a 3x3 matrix, by SVD."""
+    M = _as_matrix3(M, "M")
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def rigid_fit(points_from, points_to) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid transform (Kabsch / Umeyama without scale): ``to ≈ R @ from + t``.
+
+    points_from, points_to : (N, 3) float64, N >= 3, not collinear. Returns ``R`` (3, 3) proper
+    rotation and ``t`` (3,).
+    """
+    A = _as_points(points_from, 3, "points_from")
+    B = _as_points(points_to, 3, "points_to")
+    if A.shape != B.shape or A.shape[0] < 3:
+        raise ValueError(f"rigid_fit needs two (N, 3) arrays with N >= 3 of equal shape, got {A.shape} and {B.shape}")
+    ca, cb = A.mean(axis=0), B.mean(axis=0)
+    H = (A - ca).T @ (B - cb)
+    U, s, Vt = np.linalg.svd(H)
+    if s[1] <= 1e-12 * max(s[0], 1e-300):
+        raise ValueError("rigid_fit: the points are collinear, the rotation about their line is undetermined")
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cb - R @ ca
+
+
+def transform_points(R, t, points) -> np.ndarray:
+    """``R @ p + t`` for every row p of ``points`` (N, 3)."""
+    p = _as_points(points, 3, "points")
+    return p @ _as_matrix3(R, "R").T + _as_vector3(t, "t")
 
 
 @dataclass
@@ -157,3 +265,134 @@ class Camera:
         xy = self.undistort_normalized(self.pixels_to_normalized(uv))
         d = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def project_points(self, points, R_cam_obj=None, t_cam_obj=None) -> np.ndarray:
+        """Project points (N, 3) given in an object frame to distorted pixels (N, 2).
+
+        ``x_cam = R_cam_obj @ x_obj + t_cam_obj`` (identity / zero when omitted), then :meth:`project`.
+        """
+        p = _as_points(points, 3, "points")
+        if R_cam_obj is not None or t_cam_obj is not None:
+            R = np.eye(3) if R_cam_obj is None else R_cam_obj
+            t = np.zeros(3) if t_cam_obj is None else t_cam_obj
+            p = transform_points(R, t, p)
+        return self.project(p)
+
+    @property
+    def skew(self) -> float:
+        """``K[0, 1]`` in pixels (0 for OpenCV calibrations)."""
+        return float(self.K[0, 1])
+
+    # -- images ----------------------------------------------------------------------------------
+    def undistortion_maps(self, K_new=None, size=None) -> tuple[np.ndarray, np.ndarray]:
+        """Maps for ``cv2.remap`` that undistort an image of this camera.
+
+        Returns ``(map_x, map_y)``, float32 arrays of shape (height, width): for each pixel of the
+        undistorted image (camera matrix ``K_new``, default ``K``) the distorted pixel to sample,
+        i.e. :meth:`project` of its ray. Computed with this model (skew included; OpenCV's
+        ``initUndistortRectifyMap`` ignores ``K[0, 1]``), pixel centres as in docs/conventions.md.
+        """
+        w, h = self.size if size is None else (int(size[0]), int(size[1]))
+        if w <= 0 or h <= 0:
+            raise ValueError(f"undistortion_maps needs the image size, got size={(w, h)}; set Camera.size or pass size=")
+        new = Camera(self.K if K_new is None else _as_matrix3(K_new, "K_new"))
+        map_x = np.empty((h, w), dtype=np.float32)
+        map_y = np.empty((h, w), dtype=np.float32)
+        u = np.arange(w, dtype=np.float64)
+        rows = max(1, 262144 // w)
+        for y0 in range(0, h, rows):
+            yy, xx = np.meshgrid(np.arange(y0, min(h, y0 + rows), dtype=np.float64), u, indexing="ij")
+            xy = new.pixels_to_normalized(np.stack([xx.ravel(), yy.ravel()], axis=1))
+            uv = self.normalized_to_pixels(self.distort_normalized(xy))
+            map_x[y0:y0 + yy.shape[0]] = uv[:, 0].reshape(yy.shape)
+            map_y[y0:y0 + yy.shape[0]] = uv[:, 1].reshape(yy.shape)
+        return map_x, map_y
+
+    def undistort_image(self, image, K_new=None, interpolation: str = "cubic") -> np.ndarray:
+        """Undistort an image (H, W) or (H, W, C) of this camera with ``cv2.remap``.
+
+        ``interpolation`` is ``"linear"`` or ``"cubic"``; pixels that map outside the input are 0.
+        The output has the input's dtype and the size of ``Camera.size`` (which must match the image).
+        """
+        import cv2
+
+        img = np.asarray(image)
+        if img.ndim not in (2, 3) or img.size == 0:
+            raise ValueError(f"image must be a non-empty (H, W) or (H, W, C) array, got shape {img.shape}")
+        h, w = img.shape[:2]
+        if self.size != (0, 0) and self.size != (w, h):
+            raise ValueError(f"image is {w}x{h} px but the camera was calibrated for {self.size[0]}x{self.size[1]} px")
+        modes = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
+        if interpolation not in modes:
+            raise ValueError(f"interpolation must be one of {sorted(modes)}, got {interpolation!r}")
+        map_x, map_y = self.undistortion_maps(K_new=K_new, size=(w, h))
+        return cv2.remap(img, map_x, map_y, modes[interpolation], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    # -- files -----------------------------------------------------------------------------------
+    def to_dict(self, metadata: dict | None = None) -> dict[str, Any]:
+        """JSON-ready dictionary with schema, version, units and conventions (see module docstring)."""
+        out: dict[str, Any] = {
+            "schema": CAMERA_SCHEMA,
+            "schema_version": CAMERA_SCHEMA_VERSION,
+            "units": dict(CAMERA_UNITS),
+            "conventions": dict(FRAME_CONVENTIONS),
+            "name": self.name,
+            "size": [int(self.size[0]), int(self.size[1])],
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+        }
+        if metadata:
+            out["metadata"] = metadata
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Camera":
+        """Inverse of :meth:`to_dict`; refuses another schema or schema version with ``ValueError``."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a camera description must be a dict, got {type(data).__name__}")
+        _check_schema(data, CAMERA_SCHEMA, CAMERA_SCHEMA_VERSION, "camera")
+        missing = [k for k in ("K", "dist", "size") if k not in data]
+        if missing:
+            raise ValueError(f"camera description lacks the keys {missing}")
+        return cls(K=data["K"], dist=data["dist"], size=tuple(data["size"]), name=str(data.get("name", "")))
+
+    def save(self, path, metadata: dict | None = None) -> None:
+        """Write the camera as JSON (see module docstring); ``metadata`` is stored as given."""
+        _write_json(path, self.to_dict(metadata))
+
+    @classmethod
+    def load(cls, path) -> "Camera":
+        """Read a camera JSON file written by :meth:`save`."""
+        return cls.from_dict(_read_json(path, "camera"))
+
+
+def _check_schema(data: dict, schema: str, version: int, what: str) -> None:
+    got = data.get("schema")
+    if got != schema:
+        raise ValueError(f"not a Specula {what} file: schema is {got!r}, expected {schema!r}")
+    v = data.get("schema_version")
+    if v != version:
+        raise ValueError(
+            f"{what} file has schema_version {v!r} but this version of Specula reads version {version}; "
+            f"convert the file or use the matching Specula version"
+        )
+
+
+def _write_json(path, data: dict) -> None:
+    path = os.fspath(path)
+    tmp = path + ".tmp"
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=2)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+def _read_json(path, what: str) -> dict:
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise ValueError(f"{what} file {path!r} does not exist") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{what} file {path!r} is not valid JSON ({exc}); is it truncated?") from None

@@ -15,7 +15,17 @@ def _ensure_init() -> None:
     """Initialise Warp once, quietly (importing our packages does not do this)."""
     global _initialised
     if not _initialised:
-        wp.config.quiet = True
+        import logging
+
+        # Warp >= 1.10 replaced ``config.quiet`` with ``config.log_level``; silence the banner
+        # either way (errors still print).
+        if hasattr(wp.config, "log_level"):
+            wp.config.log_level = max(wp.config.log_level, logging.WARNING)
+        else:  # pragma: no cover - older Warp
+            wp.config.quiet = True
+        # Specula never differentiates through its kernels: skipping adjoint code generation
+        # cuts CPU compile time about threefold.
+        wp.config.enable_backward = False
         wp.init()
         _initialised = True
 

@@ -47,6 +47,8 @@ def launch_1d(kernel, n: int, inputs: list, device: str, offset_index: int, min_
         inputs[offset_index] = 0
         wp.launch(kernel, dim=n, inputs=inputs, device=device)
         return
+    # Compile/load the module once here: otherwise every pool thread races to build it.
+    wp.load_module(kernel.module, device=device)
     # a few chunks per thread balance uneven per-item cost (e.g. POIs that iterate longer)
     n_chunks = min(threads * 4, max(1, n // min_chunk))
     bounds = [round(k * n / n_chunks) for k in range(n_chunks + 1)]

@@ -1,0 +1,1016 @@
+"""Feature extraction for calibration: phase-target dot centres, dense phase decoding, and the
+conventional checkerboard / circle-grid detectors of OpenCV.
+
+Dot centres (:func:`detect_dots`). The recorded phase-shifted images are demodulated
+(:func:`kernels.phase.demodulate`) into a wrapped phase ``phi`` and a modulation ``M``. The
+defocus blur of a camera attenuates the fringes but leaves the phase of slowly curved fringes in
+place, so the phase map stays sharp where intensity images are a blur (the paper behind Specula,
+Optics Express 27(6), 9040, 2019, doi:10.1364/OE.27.009040; Bell, Xu, Zhang, "Method for
+out-of-focus camera calibration", Applied Optics 55(9), 2016, doi:10.1364/AO.55.002346).
+
+1. Candidates: the phase gradient of a dot points away from its centre; the divergence of the
+   unit gradient field peaks at dot centres (and is negative on cell borders).
+2. Lattice: candidates are linked to their grid neighbours (4-neighbour growth with
+   extrapolated steps, so perspective is followed), giving each a lattice index.
+3. Centre: around each dot, the projectively mapped radial phase model
+   ``phi(x) = 2 pi |s(x)| / period + phi0``, ``s = H^-1 x`` (``H`` a local homography from the
+   target cell, centred on the dot, to the image) is fitted to the wrapped phase by Gauss-Newton
+   on the wrapped residual, weighted by the modulation. The image point is ``H (0, 0)``: the image
+   of the dot centre itself, free of the eccentricity bias of ellipse or intensity centroids
+   (Heikkilä, "Geometric camera calibration using circular control points", IEEE TPAMI 22(10),
+   2000, doi:10.1109/34.879788). Pixels near the cone tip and near cell borders, where defocus
+   mixes neighbouring cells, are left out with margins that grow with the measured blur.
+4. Ids: each dot's fitted ``phi0`` reads its code symbol; the lattice is matched to the target's
+   code over all 8 rotations/reflections and translations. A view whose target-to-image mapping
+   is orientation-reversing (a mirror view) is flagged ``mirrored``; ids follow the reflected
+   target, so ``object_points[ids]`` stay the right correspondences.
+
+Conventions: docs/conventions.md (pixel (0, 0) is the centre of the top-left pixel, points are
+(x, y)); target frame: :mod:`calibration.targets`.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .targets import CheckerboardTarget, CircleGridTarget, PhaseTarget
+
+__all__ = [
+    "DotDetection",
+    "DenseDecoding",
+    "DetectionError",
+    "demodulate_images",
+    "detect_dots",
+    "detect_dots_in_images",
+    "decode_dense",
+    "dense_correspondences",
+    "detect_checkerboard",
+    "detect_circle_grid",
+]
+
+TWO_PI = 2.0 * math.pi
+
+
+class DetectionError(RuntimeError):
+    """The target could not be found or identified in a view (the message says why)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# results
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class DotDetection:
+    """Dot centres found in one view of a :class:`~calibration.targets.PhaseTarget`.
+
+    Attributes
+    ----------
+    image_points : (N, 2) float64
+        Sub-pixel image position (x, y) of each found dot centre (px).
+    ids : (N,) int64
+        Target dot id of each point (``target.object_points[ids]`` are the matching object points).
+    object_points : (N, 3) float64
+        Target-frame dot centres (mm) matching ``image_points``.
+    residual_rms : (N,) float64
+        RMS of the wrapped-phase residual of each dot's fit (rad).
+    sigma_px : (N,) float64
+        Standard deviation of each centre from the fit covariance (px, noise only).
+    modulation : (N,) float64
+        Median fringe modulation around each dot (grey levels).
+    n_pixels : (N,) int64
+        Pixels used in each dot's fit.
+    mirrored : bool
+        True when the target appears left-handed (seen through a mirror).
+    blur_sigma : float
+        Gaussian blur estimated from the fringe modulation (px); 0 when sharp.
+    """
+
+    image_points: np.ndarray
+    ids: np.ndarray
+    object_points: np.ndarray
+    residual_rms: np.ndarray
+    sigma_px: np.ndarray
+    modulation: np.ndarray
+    n_pixels: np.ndarray
+    mirrored: bool
+    blur_sigma: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def quality(self) -> np.ndarray:
+        """Per-point quality figure: the centre standard deviation (px) from the fit."""
+        return self.sigma_px
+
+
+@dataclass
+class DenseDecoding:
+    """Per-pixel screen coordinates decoded from the dense fringe sequence.
+
+    Attributes
+    ----------
+    screen_xy : (H, W, 2) float64
+        Screen position (x, y) in screen px seen by each camera pixel (NaN where invalid).
+    mask : (H, W) bool
+        Pixels with enough modulation at every level and a consistent unwrapping.
+    modulation : (H, W) float64
+        Modulation of the finest level (mean of both axes), grey levels.
+    mirrored : bool or None
+        Orientation of the image-to-screen mapping (None when too few pixels are valid).
+    """
+
+    screen_xy: np.ndarray
+    mask: np.ndarray
+    modulation: np.ndarray
+    pixel_pitch: float
+    mirrored: bool | None = None
+
+    @property
+    def target_xy(self) -> np.ndarray:
+        """(H, W, 2) float64 target-frame coordinates (mm) of each pixel (NaN where invalid)."""
+        return self.screen_xy * self.pixel_pitch
+
+
+# ------------------------------------------------------------------------------------------------
+# input handling
+# ------------------------------------------------------------------------------------------------
+def _check_target(target, kind=PhaseTarget):
+    if not isinstance(target, kind):
+        raise ValueError(f"target must be a {kind.__name__}, got {type(target).__name__}")
+
+
+def demodulate_images(images, target: PhaseTarget | None = None, *, min_modulation: float = 3.0, device=None):
+    """Demodulate an (N, H, W) stack into float64 NumPy ``(phase, modulation, background, valid)``.
+
+    ``valid`` is bool: modulation >= ``min_modulation`` grey levels and no saturated sample.
+    ``target`` (optional) checks that N matches ``target.steps``.
+    """
+    from kernels.phase import demodulate
+
+    n = len(images) if isinstance(images, (list, tuple)) else np.shape(images)[0] if np.ndim(images) == 3 else None
+    if n is None:
+        raise ValueError(f"images must be a stack (N, H, W) of phase-shifted images, got shape {np.shape(images)}")
+    if target is not None and n != target.steps:
+        raise ValueError(f"the target shows {target.steps} phase steps but {n} images were given")
+    phase, mod, bg, valid = demodulate(images, min_modulation=min_modulation, device=device)
+    return (phase.numpy().astype(np.float64), mod.numpy().astype(np.float64),
+            bg.numpy().astype(np.float64), valid.numpy().astype(bool))
+
+
+def _check_maps(phase, modulation, mask):
+    phase = np.asarray(phase, dtype=np.float64)
+    modulation = np.asarray(modulation, dtype=np.float64)
+    if phase.ndim != 2 or phase.size == 0:
+        raise ValueError(f"phase must be a 2-D map (H, W), got shape {phase.shape}")
+    if modulation.shape != phase.shape:
+        raise ValueError(f"modulation must have the phase map's shape {phase.shape}, got {modulation.shape}")
+    if mask is None:
+        mask = np.ones(phase.shape, dtype=bool)
+    mask = np.asarray(mask)
+    if mask.shape != phase.shape:
+        raise ValueError(f"mask must have the phase map's shape {phase.shape}, got {mask.shape}")
+    finite = np.isfinite(phase) & np.isfinite(modulation)
+    return np.where(finite, phase, 0.0), np.where(finite, modulation, 0.0), mask.astype(bool) & finite
+
+
+def _wrap(a):
+    return (a + np.pi) % TWO_PI - np.pi
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. candidates
+# ------------------------------------------------------------------------------------------------
+def _phase_gradient(phase, modulation, mask):
+    """Wrapped central-difference phase gradient (rad/px) and a weight map."""
+    z = modulation * np.exp(1j * phase) * mask
+    gx = np.zeros(phase.shape)
+    gy = np.zeros(phase.shape)
+    gx[:, 1:-1] = np.angle(z[:, 2:] * np.conj(z[:, :-2])) / 2
+    gy[1:-1, :] = np.angle(z[2:, :] * np.conj(z[:-2, :])) / 2
+    ok = mask.copy()
+    ok[:, 1:-1] &= mask[:, 2:] & mask[:, :-2]
+    ok[1:-1, :] &= mask[2:, :] & mask[:-2, :]
+    ok[:, [0, -1]] = False
+    ok[[0, -1], :] = False
+    return gx, gy, ok
+
+
+def _find_candidates(phase, modulation, mask, period_img: float):
+    """Dot-centre candidates (K, 2) from the divergence of the unit phase-gradient field."""
+    from scipy import ndimage
+
+    gx, gy, ok = _phase_gradient(phase, modulation, mask)
+    norm = np.hypot(gx, gy)
+    ok &= norm > 1e-6
+    w = np.where(ok, np.minimum(modulation / (np.median(modulation[ok]) + 1e-9), 1.0), 0.0)
+    nx = np.where(ok, gx / np.maximum(norm, 1e-12), 0.0) * w
+    ny = np.where(ok, gy / np.maximum(norm, 1e-12), 0.0) * w
+    div = np.zeros(phase.shape)
+    div[:, 1:-1] += (nx[:, 2:] - nx[:, :-2]) / 2
+    div[1:-1, :] += (ny[2:, :] - ny[:-2, :]) / 2
+    s = max(1.0, period_img / 12)
+    div = ndimage.gaussian_filter(div, s)
+    cover = ndimage.gaussian_filter(w, s)
+    size = int(max(3, round(period_img / 3))) | 1
+    peaks = (div == ndimage.maximum_filter(div, size=size)) & (cover > 0.5)
+    # a dot's divergence integrates to ~2 pi over a disk: peak height ~ 1 / s
+    peaks &= div > 0.15 / s
+    ys, xs = np.nonzero(peaks)
+    strength = div[ys, xs]
+    order = np.argsort(-strength)
+    return np.stack([xs[order], ys[order]], axis=1).astype(np.float64), strength[order]
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. lattice
+# ------------------------------------------------------------------------------------------------
+_STEPS = ((1, 0), (-1, 0), (0, 1), (0, -1))
+
+
+def _grow_lattice(points: np.ndarray, max_points: int):
+    """Assign integer lattice indices to candidate points by 4-neighbour growth.
+
+    Returns (labels (K, 2) int, labelled bool mask)."""
+    from scipy.spatial import cKDTree
+
+    k = len(points)
+    if k < 4:
+        raise DetectionError(f"found {k} dot candidates; at least 4 are needed to set up the grid")
+    tree = cKDTree(points)
+    centre = np.median(points, axis=0)
+    # seed: a candidate near the middle with 4 neighbours in a plausible cross
+    seed_order = np.argsort(np.linalg.norm(points - centre, axis=1))
+    best = None
+    for seed in seed_order[: min(k, 12)]:
+        d, nb = tree.query(points[seed], k=min(k, 9))
+        vecs = points[nb[1:]] - points[seed]
+        if len(vecs) < 2:
+            continue
+        e1 = vecs[0]
+        # second axis: the nearest vector far from parallel to e1
+        cosang = np.abs(vecs @ e1) / (np.linalg.norm(vecs, axis=1) * np.linalg.norm(e1) + 1e-12)
+        cand = np.flatnonzero(cosang < 0.5)
+        if cand.size == 0:
+            continue
+        e2 = vecs[cand[0]]
+        best = (seed, e1, e2)
+        break
+    if best is None:
+        raise DetectionError("the dot candidates do not form a 2-D grid (no two independent neighbour directions)")
+    seed, e1, e2 = best
+    labels = np.zeros((k, 2), dtype=np.int64)
+    done = np.zeros(k, dtype=bool)
+    where: dict[tuple[int, int], int] = {(0, 0): int(seed)}
+    done[seed] = True
+    queue = [(0, 0)]
+    basis = {(1, 0): e1, (-1, 0): -e1, (0, 1): e2, (0, -1): -e2}
+    while queue:
+        ij = queue.pop(0)
+        p = points[where[ij]]
+        for step in _STEPS:
+            nij = (ij[0] + step[0], ij[1] + step[1])
+            if nij in where:
+                continue
+            back = (ij[0] - step[0], ij[1] - step[1])
+            if back in where:
+                v = p - points[where[back]]
+            else:
+                # the step along the same axis seen from a labelled side neighbour, else the seed basis
+                v = basis[step]
+                for side in ((step[1], step[0]), (-step[1], -step[0])):
+                    a = (ij[0] + side[0], ij[1] + side[1])
+                    b = (a[0] + step[0], a[1] + step[1])
+                    if a in where and b in where:
+                        v = points[where[b]] - points[where[a]]
+                        break
+            pred = p + v
+            d, nb = tree.query(pred)
+            if d < 0.3 * np.linalg.norm(v) and not done[nb]:
+                where[nij] = int(nb)
+                done[nb] = True
+                labels[nb] = nij
+                queue.append(nij)
+        if len(where) > max_points:
+            break
+    return labels, done
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. per-dot fit of the projective radial phase model
+# ------------------------------------------------------------------------------------------------
+def _homography(src, dst):
+    import cv2
+
+    H, _ = cv2.findHomography(np.asarray(src, np.float64), np.asarray(dst, np.float64), 0)
+    if H is None:
+        raise DetectionError("could not estimate a local homography (degenerate neighbour layout)")
+    return H / H[2, 2]
+
+
+def _apply_h(H, xy):
+    q = np.c_[xy, np.ones(len(xy))] @ H.T
+    return q[:, :2] / q[:, 2:3]
+
+
+@dataclass
+class _DotFit:
+    centre: np.ndarray
+    A: np.ndarray          # image -> cell-centred screen px (3x3)
+    phi0: float
+    rms: float
+    sigma: float
+    n: int
+    modulation: float
+    ok: bool
+    g: np.ndarray | None = None
+
+
+def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterations=15):
+    """Pass 1: fit ``phi = 2 pi |s| / period + phi0 + g . s``, ``s = dehom(A x)``, on one cell.
+
+    ``A0`` maps image (x, y, 1) to cell-centred screen px (lattice frame). ``g`` (rad per screen
+    px) takes up the local gradient of the target's code phase. Pixels with ``|s| < rho_in`` or
+    within ``border`` of the cell edge are left out. Gauss-Newton on the wrapped residual,
+    modulation-weighted. Returns a :class:`_DotFit` (``g`` in ``.g``) or None."""
+    h, w = phase.shape
+    half = pitch / 2 - border
+    Ainv = np.linalg.inv(A0)
+    corners = _apply_h(Ainv, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * (pitch / 2))
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
+    if x1 - x0 < 4 or y1 - y0 < 4:
+        return None
+    ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+    sel = mask[y0:y1 + 1, x0:x1 + 1].ravel()
+    xs = xs.ravel()[sel]
+    ys = ys.ravel()[sel]
+    if xs.size < 30:
+        return None
+    X = np.stack([xs, ys, np.ones(xs.size)], axis=1).astype(np.float64)
+    phi = phase[ys, xs]
+    wts = modulation[ys, xs]
+    k = TWO_PI / period
+    A = A0 / A0[2, 2]
+    gvec = np.zeros(2)
+    s0 = _apply_h(A, X[:, :2])
+    rho0 = np.hypot(s0[:, 0], s0[:, 1])
+    use0 = (rho0 > rho_in) & (np.abs(s0) < half).all(axis=1)
+    if use0.sum() < 30:
+        return None
+    phi0 = float(np.angle(np.sum(wts[use0] * np.exp(1j * (phi[use0] - k * rho0[use0])))))
+    use = None
+    Hm = None
+    for it in range(iterations):
+        u = X @ A.T
+        s = u[:, :2] / u[:, 2:3]
+        rho = np.hypot(s[:, 0], s[:, 1])
+        if it in (0, 3):  # pixel selection from the current local map
+            use = (rho > rho_in) & (np.abs(s) < half).all(axis=1)
+            if use.sum() < 30:
+                return None
+        uu, ss, rr, pp, ww = u[use], s[use], rho[use], phi[use], wts[use]
+        res = _wrap(pp - (k * rr + phi0 + ss @ gvec))
+        q2 = uu[:, 2]
+        sx, sy = ss[:, 0], ss[:, 1]
+        dpx = k * sx / np.maximum(rr, 1e-9) + gvec[0]   # d phi / d s
+        dpy = k * sy / np.maximum(rr, 1e-9) + gvec[1]
+        g0, g1 = dpx / q2, dpy / q2
+        g2 = -(dpx * sx + dpy * sy) / q2
+        u0, u1, u2 = uu[:, 0], uu[:, 1], uu[:, 2]
+        # A <- (I + D) A, D = [[a, b, c], [b, e, f], [g, h, 0]] (rotation gauge removed)
+        J = np.stack([g0 * u0, g0 * u1 + g1 * u0, g0 * u2, g1 * u1, g1 * u2, g2 * u0, g2 * u1,
+                      np.ones_like(u0), sx, sy], axis=1)
+        Jw = J * ww[:, None]
+        Hm = Jw.T @ Jw
+        try:
+            delta = np.linalg.solve(Hm + 1e-9 * np.diag(np.diag(Hm)), Jw.T @ (res * ww))
+        except np.linalg.LinAlgError:
+            return None
+        a, b, c, e, f, g, hh, dphi, dgx, dgy = delta
+        D = np.array([[a, b, c], [b, e, f], [g, hh, 0.0]])
+        A = (np.eye(3) + D) @ A
+        A = A / A[2, 2]
+        phi0 = float(_wrap(phi0 + dphi))
+        gvec = gvec + (dgx, dgy)
+        if np.abs(delta[:7]).max() < 1e-11 and abs(dphi) < 1e-10:
+            break
+    u = X[use] @ A.T
+    s = u[:, :2] / u[:, 2:3]
+    rr = np.hypot(s[:, 0], s[:, 1])
+    res = _wrap(phi[use] - (k * rr + phi0 + s @ gvec))
+    n = int(use.sum())
+    centre = _apply_h(np.linalg.inv(A), np.zeros((1, 2)))[0]
+    fit = _DotFit(centre, A, phi0, float(np.sqrt(np.mean(res ** 2))), float("nan"), n,
+                  float(np.median(wts[use])), True)
+    fit.g = gvec
+    return fit
+
+
+def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0: float, iterations: int = 10):
+    """Analysis-by-synthesis refinement of one dot on the complex fringe field ``Z = M exp(i phi)``.
+
+    Model, on the pixels of the dot's cell: ``Z(x) = (g0 + g1 dx + g2 dy) [K_v * E](x)`` with
+    ``E(x) = exp(i Phi(s(x)))`` the target's emitted complex fringe field (all cells, codes and
+    the edge of the fringe area) at ``s = dehom(A x)`` (``A``: image -> screen px, a local
+    homography), ``K_v`` a Gaussian of variance ``v`` (the blur) times the pixel-area box, and a
+    complex gain with a linear trend (eliminated by variable projection). Levenberg-Marquardt over
+    the 8 homography parameters and ``v``. The centre is ``dehom(A^-1 c)``.
+    """
+    from scipy import fft as sfft
+
+    h, w = Z.shape
+    k = TWO_PI / target.period
+    half = target.pitch / 2
+    Tc = np.array([[1, 0, -c_screen[0]], [0, 1, -c_screen[1]], [0, 0, 1.0]])
+    Ac = Tc @ A_abs  # image -> cell-centred screen px
+    Ac = Ac / Ac[2, 2]
+    v = max(sigma0, 0.3) ** 2
+    sig_pad = max(sigma0, 1.0)
+    Jl = _jacobian_h(np.linalg.inv(Ac), np.zeros(2))  # image px per screen px at the dot
+    screen_per_image = 1.0 / math.sqrt(abs(np.linalg.det(Jl)))
+    edge_band = (3.0 * sig_pad + 2.0) * screen_per_image
+
+    def region(Ac_):
+        Ainv = np.linalg.inv(Ac_)
+        corners = _apply_h(Ainv, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half)
+        x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
+        if x1 - x0 < 4 or y1 - y0 < 4:
+            return None
+        ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+        u = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], axis=1) @ Ac_.T
+        s_ = u[:, :2] / u[:, 2:3]
+        inside = (np.abs(s_) <= half).all(axis=1) & fitmask[ys.ravel(), xs.ravel()]
+        # stay off the edge of the fringe area (its motion is not in the Jacobian)
+        sa_ = s_ + c_screen
+        d_edge = np.minimum(np.minimum(sa_[:, 0] - target._lit_lo[0], target._lit_hi[0] - sa_[:, 0]),
+                            np.minimum(sa_[:, 1] - target._lit_lo[1], target._lit_hi[1] - sa_[:, 1]))
+        inside &= d_edge > edge_band
+        if inside.sum() < 50:
+            return None
+        return xs.ravel()[inside], ys.ravel()[inside]
+
+    reg = region(Ac)
+    if reg is None:
+        return None
+    fx_pts, fy_pts = reg
+    pad = int(math.ceil(4.5 * max(sig_pad, 2.0))) + 2
+    bx0, by0 = fx_pts.min() - pad, fy_pts.min() - pad
+    bx1, by1 = fx_pts.max() + pad, fy_pts.max() + pad
+    nyb, nxb = sfft.next_fast_len(by1 - by0 + 1), sfft.next_fast_len(bx1 - bx0 + 1)
+    gy, gx = np.mgrid[by0:by0 + nyb, bx0:bx0 + nxb].astype(np.float64)
+    Xb = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
+    fyv = sfft.fftfreq(nyb)[:, None]
+    fxv = sfft.fftfreq(nxb)[None, :]
+    f2 = fxv ** 2 + fyv ** 2
+    box = np.sinc(fxv) * np.sinc(fyv)
+    rows = fy_pts - by0
+    cols = fx_pts - bx0
+    z = Z[fy_pts, fx_pts]
+    dx = (fx_pts - fx_pts.mean()) / max(1.0, np.ptp(fx_pts))
+    dy = (fy_pts - fy_pts.mean()) / max(1.0, np.ptp(fy_pts))
+
+    sub_offsets = (np.arange(4) + 0.5) / 4 - 0.5
+
+    def emitted(sa):
+        phi = target.phase(sa[:, 0], sa[:, 1])
+        lit = np.isfinite(phi)
+        return np.where(lit, np.exp(1j * np.where(lit, phi, 0.0)), 0.0), lit
+
+    def evaluate(Ac_, v_, jac: bool):
+        u = Xb @ Ac_.T
+        sc = u[:, :2] / u[:, 2:3]
+        sa = sc + c_screen
+        E, lit = emitted(sa)
+        # pixels crossed by the edge of the fringe area: 4x4 sub-samples (E jumps to 0 there)
+        litg = lit.reshape(nyb, nxb)
+        edge = np.zeros((nyb, nxb), dtype=bool)
+        dxe = litg[:, 1:] != litg[:, :-1]
+        dye = litg[1:, :] != litg[:-1, :]
+        edge[:, 1:] |= dxe
+        edge[:, :-1] |= dxe
+        edge[1:, :] |= dye
+        edge[:-1, :] |= dye
+        idx = np.flatnonzero(edge.ravel())
+        if idx.size:
+            acc = np.zeros(idx.size, dtype=complex)
+            for oy in sub_offsets:
+                for ox in sub_offsets:
+                    us = (Xb[idx] + (ox, oy, 0.0)) @ Ac_.T
+                    acc += emitted(us[:, :2] / us[:, 2:3] + c_screen)[0]
+            E[idx] = acc / sub_offsets.size ** 2
+        fields = [E]
+        if jac:
+            gphx, gphy = target.phase_gradient(sa[:, 0], sa[:, 1])
+            q2 = u[:, 2]
+            g0 = gphx / q2
+            g1 = gphy / q2
+            g2 = -(gphx * sc[:, 0] + gphy * sc[:, 1]) / q2
+            u0, u1, u2 = u[:, 0], u[:, 1], u[:, 2]
+            iE = 1j * E
+            for col in (g0 * u0, g0 * u1, g0 * u2, g1 * u0, g1 * u1, g1 * u2, g2 * u0, g2 * u1):
+                fields.append(iE * col)
+        stack = np.stack(fields).reshape(len(fields), nyb, nxb)
+        T = np.exp(-2 * np.pi ** 2 * v_ * f2)
+        spec = sfft.fft2(stack, axes=(1, 2), workers=-1)
+        out = sfft.ifft2(spec * T, axes=(1, 2), workers=-1)
+        F = out[0][rows, cols]
+        if not jac:
+            return F, None
+        Jc = [o[rows, cols] for o in out[1:]]
+        Fv = sfft.ifft2(spec[0] * T * (-2 * np.pi ** 2 * f2), workers=-1)[rows, cols]
+        Jc.append(Fv)
+        return F, np.stack(Jc, axis=1)
+
+    def solve_gain(F):
+        B = np.stack([F, F * dx, F * dy], axis=1)
+        g, *_ = np.linalg.lstsq(B, z, rcond=None)
+        return B, g, z - B @ g
+
+    def apply(Ac_, delta):
+        a, b, c, d, e, f, g, hh, dv = delta
+        D = np.array([[a, b, c], [d, e, f], [g, hh, 0.0]])
+        An = (np.eye(3) + D) @ Ac_
+        return An / An[2, 2], max(v + dv, 0.0)
+
+    F, J = evaluate(Ac, v, True)
+    B, gain, r = solve_gain(F)
+    cost = float(np.vdot(r, r).real)
+    lam = 1e-3
+    for it in range(iterations):
+        # variable projection (Kaufman): d r / d p = -(I - P_B) (gain * dF/dp)
+        Jm = -(gain[0] + gain[1] * dx + gain[2] * dy)[:, None] * J
+        coef, *_ = np.linalg.lstsq(B, Jm, rcond=None)
+        Jm = Jm - B @ coef
+        Jr = np.concatenate([Jm.real, Jm.imag])
+        rr = np.concatenate([r.real, r.imag])
+        Hm = Jr.T @ Jr
+        grad = Jr.T @ rr
+        accepted = False
+        for _ in range(6):
+            try:
+                delta = -np.linalg.solve(Hm + lam * np.diag(np.diag(Hm) + 1e-12), grad)
+            except np.linalg.LinAlgError:
+                return None
+            An, vn = apply(Ac, delta)
+            Fn, Jn = evaluate(An, vn, True)
+            Bn, gn, rn = solve_gain(Fn)
+            cn = float(np.vdot(rn, rn).real)
+            if cn <= cost:
+                old_c = _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0]
+                Ac, v, F, J, B, gain, r = An, vn, Fn, Jn, Bn, gn, rn
+                step = np.linalg.norm(_apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0] - old_c)
+                cost, lam, accepted = cn, max(lam / 10, 1e-7), True
+                break
+            lam *= 10
+            if os.environ.get("SPECULA_DEBUG"): print("   it", it, "cost", cost, "lam", lam, "acc", accepted, "v", v)
+        if not accepted or step < 1e-5:
+            break
+    centre = _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0]
+    n = len(z)
+    s2 = cost / max(2 * n - 12, 1)
+    try:
+        cov = s2 * np.linalg.inv(Hm)
+        Jc = np.zeros((2, 9))
+        for p in range(8):
+            dp = np.zeros(9)
+            dp[p] = 1e-7
+            An, _ = apply(Ac, dp)
+            Jc[:, p] = (_apply_h(np.linalg.inv(An), np.zeros((1, 2)))[0] - centre) / 1e-7
+        ccov = Jc @ cov @ Jc.T
+        sigma = float(np.sqrt(max(np.trace(ccov), 0.0) / 2))
+    except np.linalg.LinAlgError:
+        sigma = float("inf")
+    amp = np.abs(gain[0])
+    rms_phase = float(np.sqrt(cost / n) / max(amp, 1e-9))  # residual relative to the fringe amplitude (~ rad)
+    A_abs_new = np.linalg.inv(Tc) @ Ac
+    return _DotFit(centre, A_abs_new, float(np.angle(gain[0])), rms_phase, sigma, n, float(amp), True), math.sqrt(v)
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. ids from the code
+# ------------------------------------------------------------------------------------------------
+_DIHEDRAL = [np.array(m) for m in (
+    [[1, 0], [0, 1]], [[0, -1], [1, 0]], [[-1, 0], [0, -1]], [[0, 1], [-1, 0]],
+    [[-1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, -1], [-1, 0]],
+)]
+
+
+def _match_code(labels: np.ndarray, grads: np.ndarray, phi0: np.ndarray, target: PhaseTarget):
+    """Score every placement (T, offset) of the lattice on the target grid.
+
+    ``grads`` (K, 2) are the measured code-phase gradients (rad per cell, lattice frame). For a
+    placement mapping lattice index ``l`` to cell ``T l + o`` the expected gradient in the lattice
+    frame is ``T^T grad psi``. Returns [(rms gradient mismatch, T, offset), ...] best first."""
+    nx, ny = target.grid
+    out = []
+    for T in _DIHEDRAL:
+        L = labels @ T.T
+        lo = L.min(axis=0)
+        hi = L.max(axis=0)
+        for ox in range(-lo[0], nx - hi[0]):
+            for oy in range(-lo[1], ny - hi[1]):
+                ij = L + (ox, oy)
+                sx, sy = (target._first + ij * target.pitch).T
+                gx, gy = target.code_gradient(sx, sy)
+                pred = np.stack([gx, gy], axis=1) * target.pitch @ T  # rows: T^T g
+                rms = float(np.sqrt(np.mean(np.sum((grads - pred) ** 2, axis=1))))
+                out.append((rms, T, (ox, oy)))
+    out.sort(key=lambda r: r[0])
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# public: dots
+# ------------------------------------------------------------------------------------------------
+def _estimate_period(phase, modulation, mask):
+    gx, gy, ok = _phase_gradient(phase, modulation, mask)
+    g = np.hypot(gx, gy)[ok]
+    if g.size < 100:
+        raise DetectionError(f"only {g.size} pixels show fringes with enough modulation; is the target in view?")
+    return float(TWO_PI / np.median(g))
+
+
+def _blur_from_fits(fits, period):
+    """Not used for detection; kept for API symmetry."""
+    return 0.0
+
+
+def detect_dots(
+    phase,
+    modulation,
+    target: PhaseTarget,
+    *,
+    mask=None,
+    min_modulation: float = 3.0,
+    blur_sigma: float | None = None,
+    mirrored: bool | None = None,
+    refine: bool = True,
+) -> DotDetection:
+    """Find the dots of a phase target in a demodulated view and their centres.
+
+    Parameters
+    ----------
+    phase, modulation : (H, W) float
+        Wrapped phase (rad) and modulation (grey levels) from :func:`kernels.phase.demodulate`.
+    target : PhaseTarget
+        The displayed target (grid, pitch, period, code).
+    mask : (H, W) bool, optional
+        Pixels to use (e.g. the ``valid`` output of the demodulation); combined with
+        ``modulation >= min_modulation``.
+    blur_sigma : float, optional
+        Camera blur (Gaussian sigma, px) if known; by default it is estimated from the drop of
+        the modulation at cell borders. It sets how far from the cone tip and the cell borders
+        pixels must be to enter the fit.
+    mirrored : bool, optional
+        Only for targets without a code: whether the view is through a mirror (a plain grid
+        cannot tell). Ignored for coded targets, which report it.
+
+    Returns
+    -------
+    DotDetection
+        Raises :class:`DetectionError` when no grid can be found or identified.
+    """
+    _check_target(target)
+    phase, modulation, mask = _check_maps(phase, modulation, mask)
+    mask = mask & (modulation >= min_modulation)
+    period_img = _estimate_period(phase, modulation, mask)
+    cands, _ = _find_candidates(phase, modulation, mask, period_img * target.pitch / target.period)
+    labels, found = _grow_lattice(cands, 4 * target.n_dots)
+    pts = cands[found]
+    lab = labels[found]
+    if len(pts) < 4:
+        raise DetectionError(f"only {len(pts)} dots could be linked into a grid; at least 4 are needed")
+    # local homographies from the lattice (cell units) to the image
+    where = {tuple(l): n for n, l in enumerate(lab)}
+    ncell = np.array(target.grid)
+    span = lab.max(axis=0) - lab.min(axis=0) + 1
+    if np.any(span > ncell.max()) or len(pts) > target.n_dots:
+        raise DetectionError(
+            f"found a grid of {span[0]}x{span[1]} dots ({len(pts)} dots) but the target has {ncell[0]}x{ncell[1]}; "
+            "check grid/pitch/period of the target"
+        )
+    pitch = target.pitch
+    if blur_sigma is None:
+        blur_sigma = _estimate_blur(phase, modulation, mask, period_img)
+    # pass 1: radial phase model on the wrapped phase, margins a fixed fraction of the cell
+    fits = []
+    for n, ij in enumerate(lab):
+        src, dst = [], []
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                m = where.get((ij[0] + di, ij[1] + dj))
+                if m is not None:
+                    src.append((di * pitch, dj * pitch))
+                    dst.append(pts[m])
+        src, dst = np.array(src), np.array(dst)
+        if len(src) < 4 or np.linalg.matrix_rank(src - src.mean(axis=0)) < 2:
+            fits.append(None)
+            continue
+        A0 = np.linalg.inv(_homography(src, dst))
+        fits.append(_fit_dot(phase, modulation, mask, A0, target.period, pitch, 0.1 * target.period, 0.1 * pitch))
+    keep = np.array([f is not None for f in fits])
+    if keep.sum() < 4:
+        raise DetectionError(f"only {int(keep.sum())} dot fits succeeded; at least 4 are needed")
+    fits_k = [f for f in fits if f is not None]
+    lab_k = lab[keep]
+    centres = np.array([f.centre for f in fits_k])
+    # ids
+    if target.coded:
+        grads = np.array([f.g for f in fits_k]) * pitch  # rad per cell, lattice frame
+        phi0 = np.array([f.phi0 for f in fits_k])
+        placements = _match_code(lab_k, grads, phi0, target)
+        best, second = placements[0], (placements[1] if len(placements) > 1 else None)
+        a_cell = min(target.code_coefficients[0], target.code_coefficients[1])
+        # the code gradients of two placements differ by >= a (rad/cell) at every dot (see
+        # PhaseTarget._code_coefficients); accept a match within a/3 whose runner-up is 2x worse
+        if best[0] > a_cell / 3 or (second is not None and second[0] < 2 * best[0]):
+            raise DetectionError(
+                f"the target's orientation code does not identify the dots in this view (best match "
+                f"{best[0]:.3f} rad/cell, runner-up {second[0] if second else float('nan'):.3f}, code step {a_cell:.3f}); "
+                f"{len(lab_k)} dots seen"
+            )
+        T, off = best[1], np.array(best[2])
+        ij = lab_k @ T.T + off
+        good = np.ones(len(ij), dtype=bool)
+    else:
+        if len(lab_k) != target.n_dots:
+            raise DetectionError(
+                f"an uncoded target must be fully visible: found {len(lab_k)} of {target.n_dots} dots"
+            )
+        ij, good = _uncoded_ids(lab_k, centres, target, mirrored)
+    ids = ij[:, 1] * target.grid[0] + ij[:, 0]
+    # pass 2: blur-aware refinement on the complex fringe field
+    screen_c = target.dot_centres_px
+    sigmas = np.full(len(ids), float(blur_sigma))
+    if refine:
+        Z = modulation * np.exp(1j * phase)
+        by_id = {int(d): n for n, d in enumerate(ids) if good[n]}
+        new_fits = list(fits_k)
+        for n, d in enumerate(ids):
+            if not good[n]:
+                continue
+            i0, j0 = ij[n]
+            src, dst = [], []
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    ii, jj = i0 + di, j0 + dj
+                    if 0 <= ii < target.grid[0] and 0 <= jj < target.grid[1]:
+                        m = by_id.get(int(jj * target.grid[0] + ii))
+                        if m is not None:
+                            src.append(screen_c[int(jj * target.grid[0] + ii)])
+                            dst.append(centres[m])
+            src, dst = np.array(src), np.array(dst)
+            if len(src) >= 4 and np.linalg.matrix_rank(src - src.mean(axis=0)) == 2:
+                A_abs = np.linalg.inv(_homography(src, dst))
+            else:
+                Tc = np.array([[1, 0, screen_c[d][0]], [0, 1, screen_c[d][1]], [0, 0, 1.0]])
+                A_abs = Tc @ fits_k[n].A
+            res = _refine_dot_blurred(Z, mask, target, A_abs, screen_c[d], float(blur_sigma))
+            if res is None:
+                good[n] = False
+                continue
+            new_fits[n], sigmas[n] = res
+        fits_k = new_fits
+        centres = np.array([f.centre for f in fits_k])
+    # handedness of the target -> image mapping
+    gsel = np.flatnonzero(good)
+    if gsel.size < 4:
+        raise DetectionError(f"only {gsel.size} dots were identified; at least 4 are needed")
+    Hg = _homography(screen_c[ids[gsel]], centres[gsel])
+    Jm = _jacobian_h(Hg, screen_c[ids[gsel]].mean(axis=0))
+    is_mirrored = bool(np.linalg.det(Jm) < 0)
+    sel = gsel[np.argsort(ids[gsel])]
+    return DotDetection(
+        image_points=centres[sel],
+        ids=ids[sel].astype(np.int64),
+        object_points=target.object_points[ids[sel]],
+        residual_rms=np.array([fits_k[i].rms for i in sel]),
+        sigma_px=np.array([fits_k[i].sigma for i in sel]),
+        modulation=np.array([fits_k[i].modulation for i in sel]),
+        n_pixels=np.array([fits_k[i].n for i in sel], dtype=np.int64),
+        mirrored=is_mirrored,
+        blur_sigma=float(np.median(sigmas[sel])) if refine else float(blur_sigma),
+    )
+
+
+def _jacobian_h(H, xy):
+    x, y = xy
+    q = H @ np.array([x, y, 1.0])
+    J = np.zeros((2, 2))
+    for c in range(2):
+        J[0, c] = (H[0, c] * q[2] - q[0] * H[2, c]) / q[2] ** 2
+        J[1, c] = (H[1, c] * q[2] - q[1] * H[2, c]) / q[2] ** 2
+    return J
+
+
+def _uncoded_ids(lab, centres, target, mirrored):
+    """Ids for a plain (uncoded) grid: the placement whose handedness matches ``mirrored`` and
+    whose target x axis points closest to the image +x axis."""
+    nx, ny = target.grid
+    want_mirror = bool(mirrored)
+    best = None
+    for T in _DIHEDRAL:
+        L = lab @ T.T
+        L = L - L.min(axis=0)
+        if L[:, 0].max() != nx - 1 or L[:, 1].max() != ny - 1:
+            continue
+        ids = L[:, 1] * nx + L[:, 0]
+        H = _homography(target.dot_centres_px[ids], centres)
+        J = _jacobian_h(H, target.dot_centres_px.mean(axis=0))
+        if (np.linalg.det(J) < 0) != want_mirror:
+            continue
+        ex = J[:, 0] / np.linalg.norm(J[:, 0])
+        score = ex[0]
+        if best is None or score > best[0]:
+            best = (score, L)
+    if best is None:
+        raise DetectionError("no placement of the plain grid matches the requested handedness")
+    return best[1], np.ones(len(lab), dtype=bool)
+
+
+def _estimate_blur(phase, modulation, mask, period_img):
+    """Rough Gaussian blur (px) from the width of the modulation drop at the fringe-area edge.
+
+    The modulation across a straight edge of the fringe area is ``M0 * Phi(d / sigma)``; its
+    10-90 % width is 2.56 sigma. Measured along image rows and columns, median over edges."""
+    from scipy import ndimage
+
+    valid = modulation * mask
+    top = np.percentile(valid[mask], 90) if mask.any() else 0.0
+    if top <= 0:
+        return 0.0
+    lo_t, hi_t = 0.1 * top, 0.9 * top
+    widths = []
+    for arr in (valid, valid.T):
+        for row in arr[:: max(1, arr.shape[0] // 64)]:
+            above_hi = row >= hi_t
+            if not above_hi.any():
+                continue
+            first_hi = int(np.argmax(above_hi))
+            last_hi = len(row) - 1 - int(np.argmax(above_hi[::-1]))
+            # rising edge before first_hi
+            lo_idx = np.flatnonzero(row[:first_hi] <= lo_t)
+            if lo_idx.size:
+                widths.append(first_hi - lo_idx[-1])
+            lo_idx = np.flatnonzero(row[last_hi:] <= lo_t)
+            if lo_idx.size:
+                widths.append(lo_idx[0])
+    if not widths:
+        return 0.0
+    wdt = float(np.median(widths))
+    return max(0.0, (wdt - 1.0) / 2.56)
+
+
+def detect_dots_in_images(images, target: PhaseTarget, *, min_modulation: float = 3.0, device=None, **kwargs) -> DotDetection:
+    """Demodulate a recorded (steps, H, W) stack and run :func:`detect_dots` on it."""
+    _check_target(target)
+    phase, mod, _, valid = demodulate_images(images, target, min_modulation=min_modulation, device=device)
+    return detect_dots(phase, mod, target, mask=valid, min_modulation=min_modulation, **kwargs)
+
+
+# ------------------------------------------------------------------------------------------------
+# dense mode
+# ------------------------------------------------------------------------------------------------
+def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, max_step_error: float = 0.5 * math.pi,
+                 erode: int = 0, device=None) -> DenseDecoding:
+    """Decode the dense sequence (``target.dense_images()`` as recorded) into screen coordinates.
+
+    Each level is demodulated; the coarsest level's phase is absolute (its period exceeds the
+    screen), and each finer level is unwrapped with the scaled coarser one,
+    ``Phi_f = phi_f + 2 pi round((Phi_c P_c / P_f - phi_f) / 2 pi)``. A pixel is valid when
+    every level has ``modulation >= min_modulation``, nothing saturates and every unwrapping step
+    is consistent to ``max_step_error`` rad. ``erode`` shrinks the valid mask by that many pixels
+    (away from the edge of the screen, where blur mixes in the bezel).
+
+    Returns a :class:`DenseDecoding` with the screen position (px) seen by every valid pixel.
+    """
+    _check_target(target)
+    n = len(images) if isinstance(images, (list, tuple)) else (np.shape(images)[0] if np.ndim(images) == 3 else None)
+    if n != target.n_dense_images:
+        raise ValueError(
+            f"the dense sequence of this target has {target.n_dense_images} images "
+            f"({len(target.dense_levels)} levels x {target.steps} steps), got {n if n is not None else np.shape(images)}"
+        )
+    coords = []
+    mask = None
+    fine_mod = []
+    for axis in (0, 1):
+        levels = [lv for lv in target.dense_levels if lv.axis == axis]
+        unwrapped = None
+        prev_period = None
+        for lv in reversed(levels):  # coarse to fine
+            stack = images[lv.first: lv.first + target.steps]
+            ph, mod, _, ok = demodulate_images(stack, min_modulation=min_modulation, device=device)
+            mask = ok if mask is None else (mask & ok)
+            if unwrapped is None:
+                unwrapped = ph
+            else:
+                scaled = unwrapped * prev_period / lv.period
+                kk = np.rint((scaled - ph) / TWO_PI)
+                err = scaled - ph - TWO_PI * kk
+                mask &= np.abs(err) <= max_step_error
+                unwrapped = ph + TWO_PI * kk
+            prev_period = lv.period
+        coords.append(target.centre[axis] + unwrapped * prev_period / TWO_PI)
+        fine_mod.append(mod)
+    screen = np.stack(coords, axis=-1)
+    w, h = target.screen
+    mask &= (screen[..., 0] >= -0.5) & (screen[..., 0] <= w - 0.5) & (screen[..., 1] >= -0.5) & (screen[..., 1] <= h - 0.5)
+    if erode > 0:
+        from scipy import ndimage
+
+        mask = ndimage.binary_erosion(mask, iterations=int(erode), border_value=0)
+    screen = np.where(mask[..., None], screen, np.nan)
+    mirrored = None
+    if mask.sum() > 100:
+        gxx = np.gradient(screen[..., 0], axis=1)
+        gxy = np.gradient(screen[..., 0], axis=0)
+        gyx = np.gradient(screen[..., 1], axis=1)
+        gyy = np.gradient(screen[..., 1], axis=0)
+        det = gxx * gyy - gxy * gyx
+        det = det[np.isfinite(det)]
+        if det.size:
+            mirrored = bool(np.median(det) < 0)
+    return DenseDecoding(screen, mask, 0.5 * (fine_mod[0] + fine_mod[1]), target.pixel_pitch, mirrored)
+
+
+def dense_correspondences(decoding: DenseDecoding, step: int = 8, *, max_points: int | None = None):
+    """Sample a :class:`DenseDecoding` on a regular pixel grid.
+
+    Returns ``(image_points (N, 2) px, object_points (N, 3) mm)`` for the valid pixels of every
+    ``step``-th row and column (optionally thinned to ``max_points``)."""
+    if not isinstance(decoding, DenseDecoding):
+        raise ValueError(f"decoding must be a DenseDecoding from decode_dense, got {type(decoding).__name__}")
+    if not isinstance(step, (int, np.integer)) or step < 1:
+        raise ValueError(f"step must be an integer >= 1, got {step!r}")
+    h, w = decoding.mask.shape
+    ys, xs = np.mgrid[0:h:step, 0:w:step]
+    ok = decoding.mask[ys, xs]
+    img = np.stack([xs[ok], ys[ok]], axis=1).astype(np.float64)
+    obj = decoding.target_xy[ys[ok], xs[ok]]
+    obj = np.concatenate([obj, np.zeros((len(obj), 1))], axis=1)
+    if max_points is not None and len(img) > max_points:
+        pick = np.linspace(0, len(img) - 1, int(max_points)).astype(int)
+        img, obj = img[pick], obj[pick]
+    return img, obj
+
+
+# ------------------------------------------------------------------------------------------------
+# conventional targets (OpenCV)
+# ------------------------------------------------------------------------------------------------
+def _gray_u8(image):
+    from kernels._device import as_float32_image
+
+    arr = np.asarray(image)
+    if arr.ndim == 3 and arr.shape[0] == 1:
+        arr = arr[0]
+    f = as_float32_image(arr)
+    if arr.dtype == np.uint8:
+        return arr
+    lo, hi = float(f.min()), float(f.max())
+    return np.clip(np.rint((f - lo) / max(hi - lo, 1e-9) * 255), 0, 255).astype(np.uint8)
+
+
+def detect_checkerboard(image, target: CheckerboardTarget, *, flags=None):
+    """Inner corners of a checkerboard with ``cv2.findChessboardCornersSB`` (sub-pixel).
+
+    Returns ``(image_points (N, 2), ids (N,))`` in OpenCV's order mapped to the target's ids up to
+    the board's symmetry (OpenCV's ordering is kept; ids assume its first corner is id 0), or
+    ``None`` when OpenCV does not find the board."""
+    import cv2
+
+    _check_target(target, CheckerboardTarget)
+    gray = _gray_u8(image)
+    if flags is None:
+        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    ok, corners = cv2.findChessboardCornersSB(gray, tuple(target.corners), flags=flags)
+    if not ok or corners is None:
+        return None
+    pts = corners.reshape(-1, 2).astype(np.float64)
+    return pts, np.arange(len(pts))
+
+
+def detect_circle_grid(image, target: CircleGridTarget, *, blob_detector=None):
+    """Circle centres of a symmetric circle grid with ``cv2.findCirclesGrid``.
+
+    Returns ``(image_points (N, 2), ids (N,))`` in OpenCV's order, or ``None`` when not found."""
+    import cv2
+
+    _check_target(target, CircleGridTarget)
+    gray = _gray_u8(image)
+    if blob_detector is None:
+        params = cv2.SimpleBlobDetector_Params()
+        params.maxArea = float(gray.size)
+        params.minArea = 10.0
+        blob_detector = cv2.SimpleBlobDetector_create(params)
+    ok, centres = cv2.findCirclesGrid(gray, tuple(target.grid), flags=cv2.CALIB_CB_SYMMETRIC_GRID, blobDetector=blob_detector)
+    if not ok or centres is None:
+        return None
+    pts = centres.reshape(-1, 2).astype(np.float64)
+    return pts, np.arange(len(pts))

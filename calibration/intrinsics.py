@@ -1,0 +1,330 @@
+"""Intrinsic calibration (Zhang's method through OpenCV) from direct and mirrored views.
+
+Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 2000,
+doi:10.1109/34.888718 — closed-form initialisation from plane homographies, then a bundle
+adjustment of intrinsics, distortion and one pose per view (``cv2.calibrateCameraExtended``).
+
+Mirrored views (the paper behind Specula, Optics Express 2019: "Stereo-camera calibration for
+large-scale DIC measurements with active phase targets and planar mirrors", Step 4) enter the
+same bundle. A target seen in a plane mirror is a *left-handed* copy of the target: its image
+points are the projection of ``H (R X + t)`` with ``H`` a Householder reflection (det −1), so
+no proper rotation maps the target frame onto the virtual target. Flipping the object points,
+``X' = F X`` with ``F = diag(−1, 1, 1)`` (x → −x in the target frame), turns the virtual target
+into an ordinary right-handed target with pose ``x_cam = R' (F X) + t'``, ``R'`` a proper
+rotation; a planar target stays planar (z = 0). The reflection has no effect on the intrinsics.
+
+Per-view poses are returned for the object points *as given*: for a direct view
+``x_cam = R_cam_target @ X + t_cam_target``; for a mirrored view the same formula with the flipped
+points, i.e. ``x_cam = R_cam_target @ (F @ X) + t_cam_target`` where ``R_cam_target`` is proper
+(``IntrinsicsResult.flip`` holds ``F``). ``R_cam_target @ F`` is the left-handed pose of the virtual
+target.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera import Camera, rotation_from_vector
+
+#: The flip applied to the object points of mirrored views (x -> -x in the target frame).
+MIRROR_FLIP = np.diag([-1.0, 1.0, 1.0])
+
+#: Names of the OpenCV intrinsic standard deviations, in the order of ``stdDeviationsIntrinsics``.
+STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
+             "s1", "s2", "s3", "s4", "tau_x", "tau_y")
+
+
+def _model_flags():
+    import cv2
+
+    tang0 = cv2.CALIB_ZERO_TANGENT_DIST
+    return {
+        # name: (flags, number of distortion coefficients kept in Camera.dist)
+        "none": (tang0 | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3, 0),
+        "radial1": (tang0 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3, 5),
+        "radial2": (tang0 | cv2.CALIB_FIX_K3, 5),
+        "radial3": (tang0, 5),
+        "radial2+tangential": (cv2.CALIB_FIX_K3, 5),
+        "opencv5": (0, 5),
+        "rational": (cv2.CALIB_RATIONAL_MODEL, 8),
+    }
+
+
+#: Distortion models accepted by :func:`calibrate_intrinsics` (``model=``):
+#: ``none``, ``radial1`` (k1), ``radial2`` (k1 k2), ``radial3`` (k1 k2 k3),
+#: ``radial2+tangential`` (k1 k2 p1 p2), ``opencv5`` (k1 k2 p1 p2 k3), ``rational`` (8 coefficients).
+DISTORTION_MODELS = ("none", "radial1", "radial2", "radial3", "radial2+tangential", "opencv5", "rational")
+
+
+@dataclass
+class DroppedView:
+    """A view removed by outlier rejection: its index in the input, its RMS (px) and why."""
+
+    index: int
+    rms: float
+    reason: str
+
+
+@dataclass
+class IntrinsicsResult:
+    """Result of :func:`calibrate_intrinsics`.
+
+    Attributes
+    ----------
+    camera : Camera
+        Calibrated intrinsics (``K``, ``dist`` in the chosen model, ``size``).
+    rms : float
+        Reprojection RMS over all kept points (px): ``sqrt(mean(|q_obs − q_proj|²))``.
+    per_view_rms : (V,) float64
+        RMS per kept view (px), same definition.
+    std : dict[str, float]
+        One standard deviation of each estimated intrinsic parameter (``fx fy cx cy`` in px,
+        distortion coefficients dimensionless), from OpenCV's ``stdDeviationsIntrinsics`` (the
+        Gauss–Newton covariance scaled by the residual variance). Fixed parameters are left out.
+    poses : list[tuple[(3, 3), (3,)]]
+        ``(R_cam_target, t_cam_target)`` per kept view (mm); for mirrored views see the module
+        docstring (pose of the flipped object points, a proper rotation).
+    view_indices : (V,) int
+        Index in the input lists of each kept view.
+    mirrored : (V,) bool
+        Whether each kept view was a mirrored view.
+    dropped : list[DroppedView]
+        Views removed by outlier rejection, with the reason.
+    residuals : list[(N_v, 2)]
+        Observed minus reprojected image points per kept view (px).
+    model, flags : str, int
+        Distortion model name and the OpenCV flags used.
+    """
+
+    camera: Camera
+    rms: float
+    per_view_rms: np.ndarray
+    std: dict
+    poses: list
+    view_indices: np.ndarray
+    mirrored: np.ndarray
+    dropped: list = field(default_factory=list)
+    residuals: list = field(default_factory=list)
+    model: str = "opencv5"
+    flags: int = 0
+    flip: np.ndarray = field(default_factory=lambda: MIRROR_FLIP.copy())
+
+    def report(self) -> str:
+        """A short readable report: parameters ± σ, RMS per view, dropped views."""
+        cam = self.camera
+        lines = [f"intrinsics ({self.model}), {len(self.view_indices)} views, RMS {self.rms:.4f} px"]
+        values = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}
+        for i, name in enumerate(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")):
+            if i < cam.dist.size:
+                values[name] = float(cam.dist[i])
+        for name, value in values.items():
+            if name in self.std:
+                lines.append(f"  {name:>3} = {value: .6g} ± {self.std[name]:.2g}")
+        for idx, rms, m in zip(self.view_indices, self.per_view_rms, self.mirrored):
+            lines.append(f"  view {idx:3d}{' (mirrored)' if m else ''}: RMS {rms:.4f} px")
+        for d in self.dropped:
+            lines.append(f"  dropped view {d.index}: RMS {d.rms:.4f} px — {d.reason}")
+        return "\n".join(lines)
+
+
+def _validate_views(object_points, image_points, mirrored):
+    if not isinstance(object_points, (list, tuple)) or not isinstance(image_points, (list, tuple)):
+        raise ValueError("object_points and image_points must be lists with one (N, 3) / (N, 2) array per view")
+    if len(object_points) != len(image_points):
+        raise ValueError(f"got {len(object_points)} object-point arrays but {len(image_points)} image-point arrays")
+    if mirrored is None:
+        mirrored = [False] * len(object_points)
+    mirrored = [bool(m) for m in mirrored]
+    if len(mirrored) != len(object_points):
+        raise ValueError(f"mirrored must have one flag per view ({len(object_points)}), got {len(mirrored)}")
+    objs, imgs = [], []
+    for v, (o, q) in enumerate(zip(object_points, image_points)):
+        o = np.asarray(o, dtype=np.float64)
+        q = np.asarray(q, dtype=np.float64)
+        if o.ndim != 2 or o.shape[1] != 3:
+            raise ValueError(f"object_points[{v}] must have shape (N, 3) in mm, got {o.shape}")
+        if q.ndim != 2 or q.shape[1] != 2:
+            raise ValueError(f"image_points[{v}] must have shape (N, 2) in px, got {q.shape}")
+        if o.shape[0] != q.shape[0]:
+            raise ValueError(f"view {v}: {o.shape[0]} object points but {q.shape[0]} image points (rows must correspond)")
+        if o.shape[0] < 6:
+            raise ValueError(f"view {v} has {o.shape[0]} points; intrinsic calibration needs at least 6 per view")
+        if not (np.all(np.isfinite(o)) and np.all(np.isfinite(q))):
+            raise ValueError(f"view {v} contains NaN or infinite coordinates; drop undetected points first")
+        objs.append(o)
+        imgs.append(q)
+    return objs, imgs, mirrored
+
+
+def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=None, model: str = "opencv5",
+                         reject: float | None = 3.0, max_view_rms: float | None = None,
+                         extra_flags: int = 0, min_views: int = 3, name: str = "") -> IntrinsicsResult:
+    """Zhang calibration (``cv2.calibrateCameraExtended``) of one camera, direct and mirrored views in one bundle.
+
+    Parameters
+    ----------
+    object_points : list of (N_v, 3) float64
+        Target coordinates (mm, target frame) of the points seen in each view. The initialisation
+        (Zhang 2000) needs planar targets with z = 0.
+    image_points : list of (N_v, 2) float64
+        Their image points (px, distorted, docs/conventions.md), rows aligned with ``object_points``.
+    image_size : (width, height)
+        Image size in pixels.
+    mirrored : list of bool, optional
+        True for views of the target seen through a mirror; their object points are flipped
+        (x → −x, module docstring) so that the bundle sees a right-handed target.
+    model : str
+        Distortion model, one of :data:`DISTORTION_MODELS`.
+    reject : float or None
+        Outlier rejection: after each calibration, views with a per-view RMS above
+        ``reject × median(per-view RMS)`` are dropped (the worst one at a time, then recalibrate).
+        None disables it.
+    max_view_rms : float or None
+        Also drop views whose RMS exceeds this absolute value (px).
+    extra_flags : int
+        More OpenCV ``CALIB_*`` flags (e.g. ``cv2.CALIB_FIX_ASPECT_RATIO``).
+    min_views : int
+        Fewest views allowed after rejection (at least 3).
+
+    Returns
+    -------
+    IntrinsicsResult
+
+    Raises
+    ------
+    ValueError
+        Mismatched/invalid inputs, unknown model, too few views (before or after rejection), or a
+        non-planar target.
+    """
+    import cv2
+
+    flags_by_model = _model_flags()
+    if model not in flags_by_model:
+        raise ValueError(f"model must be one of {DISTORTION_MODELS}, got {model!r}")
+    objs, imgs, mirrored = _validate_views(object_points, image_points, mirrored)
+    try:
+        w, h = (int(image_size[0]), int(image_size[1]))
+    except (TypeError, IndexError, ValueError):
+        raise ValueError(f"image_size must be (width, height) in pixels, got {image_size!r}") from None
+    if w <= 0 or h <= 0:
+        raise ValueError(f"image_size must be positive (width, height), got {image_size!r}")
+    if min_views < 3:
+        raise ValueError(f"min_views must be at least 3, got {min_views}")
+    if len(objs) < min_views:
+        raise ValueError(f"intrinsic calibration needs at least {min_views} views, got {len(objs)}")
+    for v, o in enumerate(objs):
+        if np.max(np.abs(o[:, 2])) > 1e-9 * max(1.0, np.max(np.abs(o))):
+            raise ValueError(
+                f"object_points[{v}] is not planar with z = 0; Zhang's initialisation needs a planar target "
+                "in its own frame (z = 0)"
+            )
+    if reject is not None and not reject > 1.0:
+        raise ValueError(f"reject must be > 1 (a multiple of the median per-view RMS) or None, got {reject!r}")
+
+    flags, ndist = flags_by_model[model]
+    flags |= int(extra_flags)
+    used_objs = [(MIRROR_FLIP @ o.T).T if m else o for o, m in zip(objs, mirrored)]
+
+    keep = list(range(len(objs)))
+    dropped: list[DroppedView] = []
+    while True:
+        sol = _calibrate(cv2, [used_objs[i] for i in keep], [imgs[i] for i in keep], (w, h), flags)
+        per_view = sol["per_view_rms"]
+        worst = int(np.argmax(per_view))
+        med = float(np.median(per_view))
+        reason = None
+        if max_view_rms is not None and per_view[worst] > max_view_rms:
+            reason = f"RMS {per_view[worst]:.4f} px > max_view_rms {max_view_rms:.4f} px"
+        elif reject is not None and per_view[worst] > reject * med:
+            reason = f"RMS {per_view[worst]:.4f} px > {reject:g} × median per-view RMS ({med:.4f} px)"
+        if reason is None:
+            break
+        if len(keep) - 1 < min_views:
+            raise ValueError(
+                f"outlier rejection would leave fewer than {min_views} views (view {keep[worst]}: {reason}); "
+                "check the detections or relax reject/max_view_rms"
+            )
+        dropped.append(DroppedView(index=keep[worst], rms=float(per_view[worst]), reason=reason))
+        del keep[worst]
+
+    K = sol["K"]
+    dist = sol["dist"][:ndist] if ndist else np.zeros(0)
+    camera = Camera(K=K, dist=dist, size=(w, h), name=name)
+    std = {}
+    std_raw = sol["std"]
+    estimated = _estimated_parameters(flags, ndist)
+    for i, nm in enumerate(STD_NAMES):
+        if nm in estimated and i < std_raw.size:
+            std[nm] = float(std_raw[i])
+    return IntrinsicsResult(
+        camera=camera,
+        rms=sol["rms"],
+        per_view_rms=per_view,
+        std=std,
+        poses=sol["poses"],
+        view_indices=np.asarray(keep, dtype=int),
+        mirrored=np.asarray([mirrored[i] for i in keep], dtype=bool),
+        dropped=dropped,
+        residuals=sol["residuals"],
+        model=model,
+        flags=flags,
+    )
+
+
+def _estimated_parameters(flags: int, ndist: int) -> set:
+    import cv2
+
+    est = {"fx", "fy", "cx", "cy"}
+    if flags & cv2.CALIB_FIX_PRINCIPAL_POINT:
+        est -= {"cx", "cy"}
+    if flags & cv2.CALIB_FIX_FOCAL_LENGTH and flags & cv2.CALIB_USE_INTRINSIC_GUESS:
+        est -= {"fx", "fy"}
+    if flags & cv2.CALIB_FIX_ASPECT_RATIO:
+        est -= {"fx"}  # OpenCV estimates fy and keeps fx/fy fixed
+    if ndist:
+        for nm, fl in (("k1", cv2.CALIB_FIX_K1), ("k2", cv2.CALIB_FIX_K2), ("k3", cv2.CALIB_FIX_K3)):
+            if not flags & fl:
+                est.add(nm)
+        if not flags & (cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_TANGENT_DIST):
+            est |= {"p1", "p2"}
+        if flags & cv2.CALIB_RATIONAL_MODEL:
+            for nm, fl in (("k4", cv2.CALIB_FIX_K4), ("k5", cv2.CALIB_FIX_K5), ("k6", cv2.CALIB_FIX_K6)):
+                if not flags & fl:
+                    est.add(nm)
+    return est
+
+
+def _calibrate(cv2, objs, imgs, size, flags):
+    obj32 = [np.ascontiguousarray(o, dtype=np.float32).reshape(-1, 1, 3) for o in objs]
+    img32 = [np.ascontiguousarray(q, dtype=np.float32).reshape(-1, 1, 2) for q in imgs]
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    try:
+        out = cv2.calibrateCameraExtended(obj32, img32, size, None, None, flags=flags, criteria=criteria)
+    except cv2.error as exc:
+        raise ValueError(f"OpenCV calibration failed: {exc.err}; check that the views are not all parallel "
+                         "and that image and object points correspond") from None
+    _, K, dist, rvecs, tvecs, std_int, _, _ = out
+    K = np.asarray(K, dtype=np.float64)
+    dist = np.asarray(dist, dtype=np.float64).ravel()
+    poses, residuals, per_view, sq_total, n_total = [], [], [], 0.0, 0
+    for o, q, rv, tv in zip(objs, imgs, rvecs, tvecs):
+        rv = np.asarray(rv, dtype=np.float64).ravel()
+        tv = np.asarray(tv, dtype=np.float64).ravel()
+        proj, _ = cv2.projectPoints(o.reshape(-1, 1, 3), rv, tv, K, dist)
+        r = q - proj.reshape(-1, 2)
+        sq = np.sum(r * r, axis=1)
+        residuals.append(r)
+        per_view.append(np.sqrt(np.mean(sq)))
+        sq_total += float(np.sum(sq))
+        n_total += sq.size
+        poses.append((rotation_from_vector(rv), tv))
+    return {
+        "K": K,
+        "dist": np.concatenate([dist, np.zeros(max(0, 8 - dist.size))]),
+        "std": np.asarray(std_int, dtype=np.float64).ravel(),
+        "poses": poses,
+        "residuals": residuals,
+        "per_view_rms": np.asarray(per_view),
+        "rms": float(np.sqrt(sq_total / n_total)),
+    }

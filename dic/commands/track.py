@@ -1,0 +1,134 @@
+"""``specula track``: 2-D DIC of a reference image against one or more current images.
+
+Results go to an HDF5 file (layout: docs/results_format.md), one group per frame, flushed as
+each frame finishes; rerunning the same command resumes after the last finished frame.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+
+def _fail(exc: Exception) -> click.ClickException:
+    return click.ClickException(str(exc))
+
+
+@click.command(name="track", context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("reference", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("current", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="HDF5 result file (.h5); an existing compatible file is resumed.")
+@click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
+@click.option("--step", default=5, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
+@click.option("--order", default="1", show_default=True, type=click.Choice(["1", "2"]),
+              help="Shape function: 1 (affine, 6 parameters) or 2 (quadratic, 12 parameters).")
+@click.option("--search", default=None, type=click.FloatRange(min=0), help="Integer-pixel search radius (px) for displacements larger than about a third of the subset.")
+@click.option("--max-iter", default=None, type=click.IntRange(min=1), help="IC-GN iteration limit per point.")
+@click.option("--tol", default=None, type=click.FloatRange(min=0, min_open=True), help="Convergence threshold on the parameter update norm.")
+@click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=0),
+              help="Strain fit window in grid points (odd, >= 3); 0 skips strain.")
+@click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
+@click.option("--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Also write a displacement/strain figure per frame (PNG) into this folder.")
+@click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+def track(reference, current, output, subset, step, order, search, max_iter, tol, strain_window, device,
+          figure_dir, overwrite, quiet):
+    """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
+
+    Frames are numbered 1, 2, ... in the order given. Per point the file holds u, v, the shape
+    function parameters, ZNCC, iterations, a status code and a validity flag, plus strain.
+    """
+    from tqdm import tqdm
+
+    from dic.io import read_image
+    from dic.store import ResultWriter, image_digest
+
+    order = int(order)
+    if subset < 5 or subset % 2 == 0:
+        raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
+    if strain_window and (strain_window < 3 or strain_window % 2 == 0):
+        raise click.BadParameter(f"must be 0 or an odd number >= 3, got {strain_window}", param_hint="--strain-window")
+    if output.suffix.lower() not in (".h5", ".hdf5"):
+        raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
+    try:
+        ref = read_image(reference)
+    except ValueError as exc:
+        raise _fail(exc) from None
+    settings = {"subset": subset, "step": step, "order": order, "search": search, "max_iter": max_iter, "tol": tol,
+                "strain_window": strain_window}
+    try:
+        tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search, max_iter=max_iter,
+                                tol=tol, device=device)
+    except ValueError as exc:
+        raise _fail(exc) from None
+    try:
+        writer = ResultWriter(output, reference_path=str(reference), reference_shape=ref.shape,
+                              reference_sha256=image_digest(ref), settings=settings,
+                              mode="overwrite" if overwrite else "resume")
+    except ValueError as exc:
+        raise _fail(exc) from None
+
+    done_before = 0
+    summary = []
+    with writer, tqdm(total=len(current), unit="frame", disable=quiet, desc="track") as bar:
+        for k, cur_path in enumerate(current):
+            index = k + 1
+            if writer.is_done(index):
+                done_before += 1
+                bar.update(1)
+                continue
+            t0 = time.perf_counter()
+            try:
+                cur = read_image(cur_path)
+                if cur.shape != ref.shape:
+                    raise ValueError(
+                        f"{cur_path} is {cur.shape[1]}x{cur.shape[0]} px but the reference {reference} is "
+                        f"{ref.shape[1]}x{ref.shape[0]} px; all images must have the same size")
+                field = tracker(cur)
+                strain = None
+                if strain_window:
+                    from dic.strain import strain as compute_strain
+
+                    strain = compute_strain(field, window=strain_window)
+            except ValueError as exc:
+                raise click.ClickException(
+                    f"frame {index} ({cur_path}): {exc}" + (f"; frames before it are saved in {output}" if index > 1 else "")
+                ) from None
+            seconds = time.perf_counter() - t0
+            writer.write_frame(index, field, strain=strain, path=str(cur_path), attrs={"seconds": seconds})
+            if figure_dir is not None:
+                from dic.figures import write_field_figure
+
+                write_field_figure(figure_dir / f"frame_{index:06d}.png", ref, field, strain,
+                                   title=f"frame {index}: {Path(cur_path).name}")
+            import numpy as np
+
+            valid = np.asarray(field.valid, bool)
+            summary.append((index, int(valid.sum()), valid.size, seconds))
+            bar.update(1)
+    if not quiet:
+        for index, n_valid, n, seconds in summary:
+            click.echo(f"frame {index}: {n_valid}/{n} valid points, {seconds:.2f} s")
+        if done_before:
+            click.echo(f"{done_before} frame(s) were already in {output} and were skipped")
+        click.echo(f"results: {output}")
+
+
+def _make_tracker(reference, *, subset, step, order, search, max_iter, tol, device):
+    """A callable ``current -> Field2D`` built on dic.track (reference-side work done once)."""
+    import dic.track as dt
+
+    kwargs = {"step": step, "subset": subset, "order": order, "device": device}
+    if search is not None:
+        kwargs["search"] = search
+    if max_iter is not None:
+        kwargs["max_iter"] = max_iter
+    if tol is not None:
+        kwargs["tol"] = tol
+    if hasattr(dt, "Tracker"):
+        tracker = dt.Tracker(reference, **kwargs)
+        return tracker.track
+    return lambda current: dt.track(reference, current, **kwargs)

@@ -1,0 +1,423 @@
+"""3-D stereo-DIC results: the :class:`Field3D` container, object frames and surface strains.
+
+Frames and units follow docs/conventions.md: 3-D coordinates in millimetres, by default in the
+**left camera frame** (x right, y down, z forward); a :class:`Field3D` can be expressed in any
+object frame ``x_obj = R_obj_left @ x_left + t_obj_left`` (:func:`plane_frame` gives the frame of
+the best-fit plane of a shape, as in Section 3 of the paper behind Specula). Image positions are
+``(x, y)`` pixels of the **left reference image**.
+
+Surface strain
+--------------
+The Green-Lagrange strain of the surface is computed pointwise (Pan, Asundi, Xie & Gao, "Digital
+image correlation using iterative least squares and pointwise least squares for displacement
+field and strain field measurements", Optics and Lasers in Engineering 47, 2009,
+doi:10.1016/j.optlaseng.2008.10.014), extended to a surface in 3-D as in Sutton, Orteu & Schreier,
+*Image Correlation for Shape, Motion and Deformation Measurements*, Springer 2009, Sec. 7.x:
+
+1. the tangent plane at each point is the least-squares plane of the reference positions of its
+   neighbours (the eigenvector of the smallest eigenvalue of their scatter matrix), with the
+   unit normal ``n`` turned towards the left camera; the in-plane basis ``e1`` is the object
+   frame's x axis projected onto the plane, ``e2 = n × e1``;
+2. the 3-D displacement of the neighbours is fitted by least squares as an affine function of
+   their tangent-plane coordinates ``(a, b)``: ``U ≈ U0 + G_a a + G_b b``;
+3. the deformed tangent vectors are ``f_a = e1 + G_a``, ``f_b = e2 + G_b`` and the strain is
+   ``E = ½ (Fᵀ F − I)`` in the ``(e1, e2)`` basis: ``exx = ½(f_a·f_a − 1)``,
+   ``eyy = ½(f_b·f_b − 1)``, ``exy = ½ f_a·f_b`` (tensor component; the engineering shear is
+   ``2 exy``).
+
+Rigid-body motions give exactly zero strain in this formulation (it is the exact Green-Lagrange
+strain of the fitted affine map, not a small-strain approximation).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from enum import IntEnum
+
+import numpy as np
+
+__all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "grid_neighbours", "scattered_neighbours",
+           "as_frame", "tangent_axis"]
+
+
+class StereoStatus(IntEnum):
+    """Outcome of stereo DIC for one point (int8 in results); the first failing stage is reported.
+
+    Stages run in the order of the codes from the top: the reference subset (left image), the
+    initial guess of the stereo match, the stereo match, the temporal tracking in the left and
+    right images, the epipolar check, the triangulation and the correlation threshold.
+    """
+
+    OK = 0                   #: matched, tracked, epipolar-consistent, triangulated, ZNCC above threshold
+    NOT_COMPUTED = 1         #: outside the ROI, or the left reference subset leaves the image / is flat
+    NO_GUESS = 2             #: no feature match nearby, no converged neighbour and no epipolar-search hit
+    MATCH_FAILED = 3         #: left -> right IC-GN did not converge (out of bounds, diverged, singular...)
+    TRACK_LEFT_FAILED = 4    #: left reference -> left current IC-GN failed
+    TRACK_RIGHT_FAILED = 5   #: right reference -> right current IC-GN failed
+    EPIPOLAR_VIOLATION = 6   #: the matched pair is farther than ``epipolar_tol_px`` from its epipolar line
+    TRIANGULATION_FAILED = 7 #: a triangulation status other than OK (behind a camera, degenerate rays,
+    #:                          outside an image, lens model not invertible, not converged)
+    LOW_ZNCC = 8             #: a match or track has ZNCC below ``min_zncc``
+
+
+# ------------------------------------------------------------------------------------------------
+# frames
+
+
+def as_frame(frame) -> tuple[np.ndarray, np.ndarray]:
+    """Validate an object frame ``(R_obj_left (3, 3), t_obj_left (3,))`` and return it as float64."""
+    try:
+        R, t = frame
+    except (TypeError, ValueError):
+        raise ValueError(f"a frame must be a pair (R_obj_left (3, 3), t_obj_left (3,) mm), got {frame!r}") from None
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise ValueError(f"R_obj_left must be a finite 3x3 rotation, got shape {R.shape}")
+    if np.max(np.abs(R @ R.T - np.eye(3))) > 1e-6 or np.linalg.det(R) < 0:
+        raise ValueError("R_obj_left must be a proper rotation (orthonormal, det +1)")
+    if t.shape != (3,) or not np.all(np.isfinite(t)):
+        raise ValueError(f"t_obj_left must be a finite 3-vector (mm), got shape {t.shape}")
+    return R, t
+
+
+def plane_frame(points, valid=None) -> tuple[np.ndarray, np.ndarray]:
+    """Frame of the least-squares plane of 3-D points (left camera frame, mm).
+
+    Returns ``(R_obj_left, t_obj_left)`` with ``x_obj = R_obj_left @ x_left + t_obj_left``: origin
+    at the centroid of the points, z along the plane normal turned towards the left camera (so
+    positive out-of-plane displacements move towards the cameras), x along the left camera's x
+    axis projected onto the plane, y = z × x. ``points`` (N, 3); ``valid`` (N,) bool selects the
+    points used (at least 3, not collinear).
+    """
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {P.shape}")
+    m = np.all(np.isfinite(P), axis=1)
+    if valid is not None:
+        m &= np.asarray(valid, dtype=bool)
+    P = P[m]
+    if P.shape[0] < 3:
+        raise ValueError(f"plane_frame needs at least 3 valid points, got {P.shape[0]}")
+    c = P.mean(axis=0)
+    _, s, Vt = np.linalg.svd(P - c, full_matrices=False)
+    if s[1] <= 1e-9 * max(s[0], 1e-300):
+        raise ValueError("plane_frame: the points are collinear; the plane is undetermined")
+    n = Vt[2]
+    if n @ (-c) < 0:  # towards the camera centre (origin of the left frame)
+        n = -n
+    x = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(x) < 1e-6:
+        x = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    x /= np.linalg.norm(x)
+    y = np.cross(n, x)
+    R = np.stack([x, y, n])
+    return R, -R @ c
+
+
+# ------------------------------------------------------------------------------------------------
+# neighbourhoods and strain
+
+
+def grid_neighbours(grid_shape, window: int) -> np.ndarray:
+    """Indices (N, window²) of the ``window × window`` grid neighbours of each point of a grid.
+
+    Points are numbered row-major over ``grid_shape = (ny, nx)``; neighbours outside the grid
+    are -1. ``window`` is odd (the point itself is the centre).
+    """
+    ny, nx = (int(v) for v in grid_shape)
+    if isinstance(window, bool) or int(window) != window or window < 3 or window % 2 == 0:
+        raise ValueError(f"strain window must be an odd integer >= 3 (grid points), got {window!r}")
+    h = int(window) // 2
+    jj, ii = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+    off = np.arange(-h, h + 1)
+    dj, di = np.meshgrid(off, off, indexing="ij")
+    J = jj.reshape(-1, 1) + dj.reshape(1, -1)
+    I = ii.reshape(-1, 1) + di.reshape(1, -1)
+    inside = (J >= 0) & (J < ny) & (I >= 0) & (I < nx)
+    return np.where(inside, J * nx + I, -1)
+
+
+def scattered_neighbours(points, k: int, max_distance: float = np.inf) -> np.ndarray:
+    """Indices (N, k) of the k nearest points (itself included) of scattered 2-D or 3-D points; -1 beyond ``max_distance``."""
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(points, dtype=np.float64)
+    k = int(min(k, P.shape[0]))
+    _, idx = cKDTree(P).query(P, k=k, distance_upper_bound=max_distance)
+    idx = np.asarray(idx).reshape(P.shape[0], k)
+    return np.where(idx >= P.shape[0], -1, idx)
+
+
+def tangent_axis(normals, x_axis, y_axis=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """Unit in-plane axes ``e1`` (N, 3): ``x_axis`` projected onto the planes of unit ``normals`` (N, 3).
+
+    Where ``x_axis`` is (nearly) normal to the plane, ``y_axis`` is projected instead.
+    """
+    nrm = np.asarray(normals, dtype=np.float64)
+    ax = np.asarray(x_axis, dtype=np.float64)
+    e1 = ax[None, :] - (nrm @ ax)[:, None] * nrm
+    alt = np.asarray(y_axis, dtype=np.float64)
+    weak = np.linalg.norm(e1, axis=1) < 1e-6
+    e1[weak] = alt - (nrm[weak] @ alt)[:, None] * nrm[weak]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return e1 / np.linalg.norm(e1, axis=1, keepdims=True)
+
+
+def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_axis=(1.0, 0.0, 0.0),
+                   min_neighbours: int = 6):
+    """Green-Lagrange strain in the local tangent plane by pointwise least squares (module docstring).
+
+    Parameters
+    ----------
+    X : (N, 3) float64
+        Reference positions (mm) in some frame.
+    U : (N, 3) float64
+        Displacements (mm) in the same frame.
+    valid : (N,) bool
+        Points that may be used (as centres and as neighbours).
+    neighbours : (N, k) int
+        Neighbour indices per point (-1 = none), e.g. from :func:`grid_neighbours`.
+    camera_center : (3,)
+        Position of the (left) camera in the same frame; normals are turned towards it.
+    x_axis : (3,)
+        Direction whose projection onto the tangent plane is ``e1``.
+    min_neighbours : int
+        A point needs this many valid neighbours (itself included), not all on a line.
+
+    Returns
+    -------
+    dict of (N,) float64 ``exx``, ``eyy``, ``exy`` (tensor components in ``(e1, e2)``),
+    ``normal`` (N, 3), and ``strain_valid`` (N,) bool. Strains and normals are NaN exactly where
+    ``strain_valid`` is False.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    U = np.asarray(U, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(U), axis=1)
+    nb = np.asarray(neighbours, dtype=np.int64)
+    n_pts = X.shape[0]
+    if X.shape != (n_pts, 3) or U.shape != (n_pts, 3) or valid.shape != (n_pts,) or nb.ndim != 2 or nb.shape[0] != n_pts:
+        raise ValueError(f"surface_strain: X, U must be (N, 3), valid (N,), neighbours (N, k); got {X.shape}, "
+                         f"{U.shape}, {valid.shape}, {nb.shape}")
+    out = {k: np.full(n_pts, np.nan) for k in ("exx", "eyy", "exy")}
+    out["normal"] = np.full((n_pts, 3), np.nan)
+    out["strain_valid"] = np.zeros(n_pts, dtype=bool)
+    if n_pts == 0:
+        return out
+    safe = np.where(nb >= 0, nb, 0)
+    w = ((nb >= 0) & valid[safe]).astype(np.float64)            # (N, k)
+    w[~valid] = 0.0
+    count = w.sum(axis=1)
+    Xn = X[safe]                                                  # (N, k, 3)
+    Un = U[safe]
+    Xn = np.where(w[..., None] > 0, Xn, 0.0)
+    Un = np.where(w[..., None] > 0, Un, 0.0)
+    cnt = np.maximum(count, 1.0)[:, None]
+    mean = (w[..., None] * Xn).sum(axis=1) / cnt
+    d = (Xn - mean[:, None, :]) * w[..., None]
+    scatter = np.einsum("nki,nkj->nij", d, Xn - mean[:, None, :])
+    ok = valid & (count >= min_neighbours)
+    normal = np.full((n_pts, 3), np.nan)
+    if not np.any(ok):
+        return out
+    evals, evecs = np.linalg.eigh(scatter[ok])
+    nrm = evecs[:, :, 0]
+    # in-plane spread: the two largest eigenvalues must both be significant (not collinear)
+    planar = evals[:, 1] > 1e-6 * np.maximum(evals[:, 2], 1e-300)
+    to_cam = np.asarray(camera_center, dtype=np.float64) - X[ok]
+    nrm = np.where((np.sum(nrm * to_cam, axis=1) < 0)[:, None], -nrm, nrm)
+    e1 = tangent_axis(nrm, x_axis)
+    e2 = np.cross(nrm, e1)
+    idx = np.flatnonzero(ok)
+    rel = Xn[idx] - X[idx][:, None, :]                            # about the point itself
+    a = np.einsum("nki,ni->nk", rel, e1)
+    b = np.einsum("nki,ni->nk", rel, e2)
+    ww = w[idx]
+    # weighted LS for U = c0 + ga a + gb b, per component (same design for x, y, z)
+    A = np.stack([np.ones_like(a), a, b], axis=2)                 # (n, k, 3)
+    AtA = np.einsum("nk,nki,nkj->nij", ww, A, A)
+    AtU = np.einsum("nk,nki,nkc->nic", ww, A, Un[idx])            # (n, 3 coeffs, 3 comps)
+    det = np.linalg.det(AtA)
+    scale = np.einsum("nii->n", AtA) ** 3
+    solvable = planar & (np.abs(det) > 1e-12 * np.maximum(scale, 1e-300))
+    coef = np.full_like(AtU, np.nan)
+    if np.any(solvable):
+        coef[solvable] = np.linalg.solve(AtA[solvable], AtU[solvable])
+    ga, gb = coef[:, 1, :], coef[:, 2, :]
+    fa = e1 + ga
+    fb = e2 + gb
+    exx = 0.5 * (np.sum(fa * fa, axis=1) - 1.0)
+    eyy = 0.5 * (np.sum(fb * fb, axis=1) - 1.0)
+    exy = 0.5 * np.sum(fa * fb, axis=1)
+    good = solvable & np.isfinite(exx) & np.isfinite(eyy) & np.isfinite(exy)
+    sel = idx[good]
+    out["exx"][sel], out["eyy"][sel], out["exy"][sel] = exx[good], eyy[good], exy[good]
+    normal[sel] = nrm[good]
+    out["normal"] = normal
+    out["strain_valid"][sel] = True
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# the result container
+
+#: (N,) per-point float fields of a Field3D, in export order
+SCALAR_FIELDS = ("X", "Y", "Z", "U", "V", "W", "exx", "eyy", "exy", "zncc_stereo", "zncc_left", "zncc_right",
+                 "epipolar_ref_px", "epipolar_px", "reprojection_ref_px", "reprojection_px")
+
+
+@dataclass
+class Field3D:
+    """Stereo-DIC result for one state: shape, 3-D displacement and surface strain at every point.
+
+    All per-point arrays have length N and follow the order of ``points`` (row-major over
+    ``grid_shape`` when the points form a grid). Coordinates are in mm in the frame
+    ``x_frame = R_frame_left @ x_left + t_frame_left`` (identity: the left camera frame).
+
+    Attributes
+    ----------
+    points : (N, 2) float64
+        POIs ``(x, y)`` in the left reference image (px).
+    grid_shape : (ny, nx) or None
+        Set when ``points`` is a regular grid, row-major.
+    X, Y, Z : (N,) float64
+        Reference (undeformed) positions, mm.
+    U, V, W : (N,) float64
+        Displacements from the reference to the current state, mm (0 for the reference itself).
+    exx, eyy, exy : (N,) float64
+        Green-Lagrange surface strain in the local tangent basis ``(e1, e2)`` (dimensionless,
+        tensor shear). NaN exactly where ``strain_valid`` is False.
+    normal : (N, 3) float64
+        Unit surface normal (towards the left camera), NaN where ``strain_valid`` is False.
+    zncc_stereo, zncc_left, zncc_right : (N,) float64
+        ZNCC of the left -> right reference match and of the temporal tracks (1 for the reference state).
+    epipolar_ref_px, epipolar_px : (N,) float64
+        Distance (px, undistorted right image) of the right point from the epipolar line of the
+        left point, reference and current state.
+    reprojection_ref_px, reprojection_px : (N,) float64
+        RMS reprojection residual of the triangulation (px), reference and current.
+    status : (N,) int8
+        :class:`StereoStatus`. Quantities of points whose status is not OK may be NaN.
+    strain_valid : (N,) bool
+    R_frame_left, t_frame_left : (3, 3), (3,)
+        The frame of the coordinates.
+    frame_name : str
+        ``"left"`` (left camera), ``"plane"`` (best-fit plane of the reference shape) or ``"custom"``.
+    index : int
+        State index in a sequence (0 = reference).
+    details : dict
+        Stage-by-stage codes: ``match_status``, ``track_left_status``, ``track_right_status``
+        (:class:`kernels.conventions.Status`), ``triangulation_ref_status``,
+        ``triangulation_status`` (:class:`dic.triangulate.TriangulationStatus`), ``guess_source``
+        (0 features, 1 neighbour propagation, 2 epipolar search, -1 none), and the matched
+        image positions ``points_right_ref``, ``points_left_cur``, ``points_right_cur`` (N, 2) float64.
+    """
+
+    points: np.ndarray
+    grid_shape: tuple[int, int] | None
+    X: np.ndarray
+    Y: np.ndarray
+    Z: np.ndarray
+    U: np.ndarray
+    V: np.ndarray
+    W: np.ndarray
+    exx: np.ndarray
+    eyy: np.ndarray
+    exy: np.ndarray
+    normal: np.ndarray
+    zncc_stereo: np.ndarray
+    zncc_left: np.ndarray
+    zncc_right: np.ndarray
+    epipolar_ref_px: np.ndarray
+    epipolar_px: np.ndarray
+    reprojection_ref_px: np.ndarray
+    reprojection_px: np.ndarray
+    status: np.ndarray
+    strain_valid: np.ndarray
+    R_frame_left: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_frame_left: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    frame_name: str = "left"
+    index: int = 0
+    details: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(N,) bool: ``status == OK``."""
+        return self.status == StereoStatus.OK
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """(N, 3) reference positions (mm)."""
+        return np.stack([self.X, self.Y, self.Z], axis=1)
+
+    @property
+    def uvw(self) -> np.ndarray:
+        """(N, 3) displacements (mm)."""
+        return np.stack([self.U, self.V, self.W], axis=1)
+
+    @property
+    def xyz_current(self) -> np.ndarray:
+        """(N, 3) current (deformed) positions ``xyz + uvw`` (mm)."""
+        return self.xyz + self.uvw
+
+    def grid(self, name: str) -> np.ndarray:
+        """A per-point field reshaped to ``grid_shape`` (``ValueError`` when the points are not a grid)."""
+        if self.grid_shape is None:
+            raise ValueError("this Field3D's points are not a regular grid (grid_shape is None)")
+        arr = np.asarray(getattr(self, name))
+        return arr.reshape(tuple(self.grid_shape) + arr.shape[1:])
+
+    def counts(self) -> dict[str, int]:
+        """Number of points per :class:`StereoStatus` name."""
+        codes, counts = np.unique(self.status, return_counts=True)
+        return {StereoStatus(int(c)).name: int(n) for c, n in zip(codes, counts)}
+
+    def in_frame(self, frame, name: str = "custom") -> "Field3D":
+        """The same result with coordinates in another frame.
+
+        ``frame`` is ``"left"``, ``"plane"`` (best-fit plane of the valid reference points, see
+        :func:`plane_frame`) or ``(R_obj_left, t_obj_left)``. Strains are frame-independent
+        except for the in-plane axis ``e1`` (the new frame's x axis projected on the surface), so
+        the tensor is rotated about each point's normal into the new basis (exact).
+        """
+        if isinstance(frame, str):
+            if frame == "left":
+                R, t = np.eye(3), np.zeros(3)
+            elif frame == "plane":
+                R, t = plane_frame(self._xyz_left(), self.valid)
+            else:
+                raise ValueError(f"frame must be 'left', 'plane' or (R_obj_left, t_obj_left), got {frame!r}")
+            name = frame
+        else:
+            R, t = as_frame(frame)
+        xyz_left = self._xyz_left()
+        uvw_left = self.uvw @ self.R_frame_left  # R_frame_left.T @ u
+        n_left = self.normal @ self.R_frame_left
+        xyz = xyz_left @ R.T + t
+        uvw = uvw_left @ R.T
+        # rotate the strain tensor from the old in-plane basis to the new one (angle about the normal)
+        e1_old = tangent_axis(n_left, self.R_frame_left[0], self.R_frame_left[1])
+        e1_new = tangent_axis(n_left, R[0], R[1])
+        c = np.sum(e1_new * e1_old, axis=1)
+        s = np.sum(e1_new * np.cross(n_left, e1_old), axis=1)
+        exx, eyy, exy = self.exx, self.eyy, self.exy
+        new_exx = c * c * exx + 2 * c * s * exy + s * s * eyy
+        new_eyy = s * s * exx - 2 * c * s * exy + c * c * eyy
+        new_exy = -c * s * exx + (c * c - s * s) * exy + c * s * eyy
+        return replace(self, X=xyz[:, 0], Y=xyz[:, 1], Z=xyz[:, 2], U=uvw[:, 0], V=uvw[:, 1], W=uvw[:, 2],
+                       exx=new_exx, eyy=new_eyy, exy=new_exy, normal=n_left @ R.T,
+                       R_frame_left=R, t_frame_left=t, frame_name=name)
+
+    def _xyz_left(self) -> np.ndarray:
+        return (self.xyz - self.t_frame_left) @ self.R_frame_left
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every per-point array by name (for stores and exports)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)
+               if isinstance(getattr(self, f.name), np.ndarray) and f.name not in ("R_frame_left", "t_frame_left")}
+        for k, v in self.details.items():
+            if isinstance(v, np.ndarray):
+                out[k] = v
+        return out

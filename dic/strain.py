@@ -1,0 +1,228 @@
+"""Pointwise least-squares strain of a 2-D displacement field on a grid of points.
+
+Pan, Asundi, Xie & Gao, "Digital image correlation using iterative least squares and pointwise
+least squares for displacement field and strain field measurements", Optics and Lasers in
+Engineering 47 (2009), doi:10.1016/j.optlaseng.2008.10.014: at each grid point, planes
+``u ≈ a0 + a1 Δx + a2 Δy`` and ``v ≈ b0 + b1 Δx + b2 Δy`` are fitted by least squares to the valid
+points of a ``window × window`` neighbourhood (fewer at the edges of the grid or next to invalid
+points); the slopes are the displacement gradients at that point. For a full, symmetric window
+the slopes are exact for any quadratic field (the quadratic terms are orthogonal to the plane's
+basis), so the truncation error is third order.
+
+Strains (x right, y down, displacements in px, gradients dimensionless; docs/conventions.md):
+
+* small strain: ``exx = ∂u/∂x``, ``eyy = ∂v/∂y``, ``exy = ½(∂u/∂y + ∂v/∂x)``;
+* Green-Lagrange: ``Exx = ∂u/∂x + ½((∂u/∂x)² + (∂v/∂x)²)``, ``Eyy = ∂v/∂y + ½((∂u/∂y)² + (∂v/∂y)²)``,
+  ``Exy = ½(∂u/∂y + ∂v/∂x + ∂u/∂x ∂u/∂y + ∂v/∂x ∂v/∂y)``.
+
+Shears are tensor components (the engineering shear strain is ``2 exy``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["StrainField", "strain", "grid_layout"]
+
+
+@dataclass
+class StrainField:
+    """Strain at the points of a 2-D DIC result.
+
+    All per-point arrays are float64 of shape (N,), aligned with ``points``; entries where
+    ``valid`` is False are NaN.
+
+    Attributes
+    ----------
+    points : (N, 2) float64
+        Reference positions ``(x, y)`` px (those of the displacement field).
+    dudx, dudy, dvdx, dvdy :
+        Displacement gradients (dimensionless).
+    exx, eyy, exy :
+        Small (infinitesimal) strain; ``exy`` is the tensor shear.
+    Exx, Eyy, Exy :
+        Green-Lagrange strain; ``Exy`` is the tensor shear.
+    valid : (N,) bool
+        The point and at least ``min_points`` non-collinear neighbours were valid.
+    n_fit : (N,) int
+        Number of points in each fit.
+    window : int
+        Fit window side in grid points.
+    step : (2,) float
+        Grid spacing ``(dx, dy)`` px.
+    grid_index : (N, 2) int
+        Column and row of each point in the grid (see :meth:`to_grid`).
+    grid_shape : (rows, cols)
+    """
+
+    points: np.ndarray
+    dudx: np.ndarray
+    dudy: np.ndarray
+    dvdx: np.ndarray
+    dvdy: np.ndarray
+    exx: np.ndarray
+    eyy: np.ndarray
+    exy: np.ndarray
+    Exx: np.ndarray
+    Eyy: np.ndarray
+    Exy: np.ndarray
+    valid: np.ndarray
+    n_fit: np.ndarray
+    window: int
+    step: tuple[float, float]
+    grid_index: np.ndarray
+    grid_shape: tuple[int, int]
+
+    #: names of the per-point strain/gradient components
+    COMPONENTS = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy")
+
+    def to_grid(self, name: str) -> np.ndarray:
+        """The component ``name`` as a (rows, cols) map, NaN where absent or invalid."""
+        if name not in self.COMPONENTS:
+            raise ValueError(f"unknown strain component {name!r}; choose one of {', '.join(self.COMPONENTS)}")
+        out = np.full(self.grid_shape, np.nan)
+        out[self.grid_index[:, 1], self.grid_index[:, 0]] = getattr(self, name)
+        return out
+
+    def grid_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """x (cols,) and y (rows,) coordinates of the grid lines, px."""
+        x0 = self.points[:, 0].min() - self.grid_index[:, 0].min() * self.step[0] if len(self.points) else 0.0
+        y0 = self.points[:, 1].min() - self.grid_index[:, 1].min() * self.step[1] if len(self.points) else 0.0
+        return (x0 + self.step[0] * np.arange(self.grid_shape[1]), y0 + self.step[1] * np.arange(self.grid_shape[0]))
+
+
+def grid_layout(points, *, rtol: float = 1e-6):
+    """Recover the regular grid of ``points`` (N, 2): per-point (col, row), the shape and the step.
+
+    Points may be any subset of a regular lattice ``(x0 + i dx, y0 + j dy)`` (an ROI, a masked
+    grid). Raises ``ValueError`` when they are not on one.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must have shape (N, 2) of (x, y), got {pts.shape}")
+    if pts.shape[0] == 0:
+        raise ValueError("the field has no points")
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("points contain NaN or infinite values")
+    index = np.empty(pts.shape, dtype=np.int64)
+    shape, step = [0, 0], [1.0, 1.0]
+    for axis in range(2):
+        vals = np.unique(pts[:, axis])
+        if vals.size == 1:
+            d = 1.0
+        else:
+            d = float(np.min(np.diff(vals)))
+        k = (pts[:, axis] - vals[0]) / d
+        ki = np.rint(k)
+        tol = max(rtol * max(1.0, np.abs(vals).max() / d), 1e-9)
+        if np.max(np.abs(k - ki)) > tol:
+            raise ValueError(
+                "points are not on a regular grid (strain needs the grid of dic.grid or a subset of it); "
+                f"{'xy'[axis]} coordinates are not multiples of the spacing {d:g} px")
+        index[:, axis] = ki.astype(np.int64)
+        shape[1 - axis] = int(ki.max()) + 1
+        step[axis] = d
+    flat = index[:, 1] * shape[1] + index[:, 0]
+    if np.unique(flat).size != flat.size:
+        raise ValueError("points contain duplicates; each grid node may appear once")
+    return index, (shape[0], shape[1]), (step[0], step[1])
+
+
+def _field_arrays(field):
+    try:
+        points = np.asarray(field.points, dtype=np.float64)
+        u = np.asarray(field.u, dtype=np.float64).reshape(-1)
+        v = np.asarray(field.v, dtype=np.float64).reshape(-1)
+    except AttributeError:
+        raise ValueError(
+            f"strain() needs a displacement field with points, u, v (and valid), e.g. a dic.track.Field2D; "
+            f"got {type(field).__name__}") from None
+    n = points.shape[0] if points.ndim == 2 else -1
+    if u.shape != (n,) or v.shape != (n,):
+        raise ValueError(f"u and v must have shape ({n},) to match points {points.shape}, got {u.shape}, {v.shape}")
+    valid = getattr(field, "valid", None)
+    valid = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool).reshape(-1)
+    if valid.shape != (n,):
+        raise ValueError(f"valid must have shape ({n},), got {valid.shape}")
+    return points, u, v, valid & np.isfinite(u) & np.isfinite(v)
+
+
+def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainField:
+    """Pointwise least-squares strain (small and Green-Lagrange) of a displacement field.
+
+    Parameters
+    ----------
+    field : Field2D-like
+        Has ``points`` (N, 2) px on a regular grid (or a subset of one), ``u``, ``v`` (N,) px, and
+        optionally ``valid`` (N,) bool. Invalid and non-finite points are left out of every fit.
+    window : int
+        Side of the square fit window in grid points (odd, >= 3). The strain's spatial resolution
+        is about ``(window - 1) · step + subset`` px.
+    min_points : int, optional
+        Fewest valid points a fit needs (default ``(window // 2 + 1)²``, what a grid corner has).
+
+    Returns
+    -------
+    StrainField
+    """
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
+        raise ValueError(f"window must be an odd integer >= 3 (grid points per side), got {window!r}")
+    window = int(window)
+    if min_points is None:
+        min_points = max(3, (window // 2 + 1) ** 2)  # a corner of the grid: a quarter window
+    if min_points < 3 or min_points > window * window:
+        raise ValueError(f"min_points must be in [3, {window * window}] for window {window}, got {min_points}")
+    points, u, v, valid = _field_arrays(field)
+    index, shape, step = grid_layout(points)
+
+    mask = np.zeros(shape)
+    ug = np.zeros(shape)
+    vg = np.zeros(shape)
+    sel = valid
+    mask[index[sel, 1], index[sel, 0]] = 1.0
+    ug[index[sel, 1], index[sel, 0]] = u[sel]
+    vg[index[sel, 1], index[sel, 0]] = v[sel]
+
+    h = window // 2
+    off = np.arange(-h, h + 1, dtype=np.float64)
+    kx = np.broadcast_to(off[None, :], (window, window))  # Δcol
+    ky = np.broadcast_to(off[:, None], (window, window))  # Δrow
+    ones = np.ones((window, window))
+
+    def corr(a, k):  # Σ over the window centred on each node of a * k (zeros outside the grid)
+        return ndimage.correlate(a, k, mode="constant", cval=0.0)
+
+    s0, sx, sy = corr(mask, ones), corr(mask, kx), corr(mask, ky)
+    sxx, sxy, syy = corr(mask, kx * kx), corr(mask, kx * ky), corr(mask, ky * ky)
+    M = np.stack([np.stack([s0, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)], -2)
+    rhs_u = np.stack([corr(ug, ones), corr(ug, kx), corr(ug, ky)], -1)
+    rhs_v = np.stack([corr(vg, ones), corr(vg, kx), corr(vg, ky)], -1)
+
+    r, c = index[:, 1], index[:, 0]
+    Mp = M[r, c]
+    n_fit = np.rint(s0[r, c]).astype(np.int64)
+    # a fit needs enough points that are not all on one line: the centred second moments'
+    # determinant is 0 for collinear points (in grid units, so the threshold is scale-free)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cxx = sxx[r, c] - sx[r, c] ** 2 / s0[r, c]
+        cyy = syy[r, c] - sy[r, c] ** 2 / s0[r, c]
+        cxy = sxy[r, c] - sx[r, c] * sy[r, c] / s0[r, c]
+        det = cxx * cyy - cxy**2
+    ok = valid & (n_fit >= min_points) & (det > 1e-6 * np.maximum(s0[r, c], 1.0) ** 2)
+    grads = np.full((points.shape[0], 4), np.nan)
+    if np.any(ok):
+        rhs = np.stack([rhs_u[r[ok], c[ok]], rhs_v[r[ok], c[ok]]], -1)  # (n, 3, 2)
+        sol = np.linalg.solve(Mp[ok], rhs)
+        grads[ok] = np.stack([sol[:, 1, 0] / step[0], sol[:, 2, 0] / step[1],
+                              sol[:, 1, 1] / step[0], sol[:, 2, 1] / step[1]], -1)
+    ux, uy, vx, vy = grads.T
+    return StrainField(
+        points=points.copy(), dudx=ux, dudy=uy, dvdx=vx, dvdy=vy,
+        exx=ux.copy(), eyy=vy.copy(), exy=0.5 * (uy + vx),
+        Exx=ux + 0.5 * (ux * ux + vx * vx),
+        Eyy=vy + 0.5 * (uy * uy + vy * vy),
+        Exy=0.5 * (uy + vx + ux * uy + vx * vy),
+        valid=ok, n_fit=n_fit, window=window, step=step, grid_index=index, grid_shape=shape,
+    )

@@ -1,0 +1,1039 @@
+"""IC-GN subset tracking with the ZNSSD criterion, 1st- and 2nd-order shape functions.
+
+Inverse compositional Gauss-Newton (IC-GN) as in Pan, Li & Tong, "Fast, robust and accurate digital
+image correlation calculation without redundant computations", Experimental Mechanics 53, 2013,
+doi:10.1007/s11340-012-9640-x, with the 2nd-order shape function and its compositional update of
+Gao, Cheng, Su & Wu, "High-efficiency and high-accuracy digital image correlation for
+three-dimensional measurement", Optics and Lasers in Engineering 65, 2015,
+doi:10.1016/j.optlaseng.2014.04.002. Current images are interpolated with cubic B-splines
+(:mod:`kernels.interp`).
+
+Conventions (docs/conventions.md): points ``(x, y)`` in reference-image pixels; parameters in the
+order of :data:`kernels.conventions.PARAMS_1ST` / ``PARAMS_2ND`` (``u, v`` in px, gradients
+dimensionless, 2nd derivatives in 1/px); per-POI outcome :class:`kernels.conventions.Status`.
+
+Subsets
+    A subset of odd size ``S = 2r + 1`` around the POI ``(cx, cy)`` is the square of integer pixels
+    centred on ``(round(cx), round(cy))``. Its offsets from the POI are ``dx = i + (round(cx) - cx)``,
+    ``i = -r..r`` (likewise ``dy``), so the shape function is expanded about the POI itself and
+    ``u, v`` are the displacement *at the POI*; for integer POIs the subset is exactly centred. The
+    reference subset uses pixel values and B-spline gradients at integer pixels, so nothing of the
+    reference is interpolated during tracking.
+
+Criterion and update
+    ZNSSD ``C = sum [(f - fm)/df - (g - gm)/dg]^2`` (``df = sqrt(sum (f - fm)^2)``, likewise ``dg``).
+    With the steepest-descent images ``J = grad f . dW/dq`` of the reference and the constant
+    Hessian ``H = sum J^T J``, each iteration solves
+    ``dq = -H^-1 [sum J^T (f - fm) - (df/dg) sum J^T (g - gm)]`` and updates the warp
+    ``W(p) <- W(p) o W(dp)^-1`` (1st order: 3x3 affine matrices; 2nd order: Gao's 6x6 matrices on
+    ``(x^2, xy, y^2, x, y, 1)``). The warped subset is never stored: one pass over it per iteration
+    accumulates ``sum g``, ``sum g^2``, ``sum (f - fm) g`` and ``sum J^T g``, while
+    ``sum J^T (f - fm)``, ``sum J`` and ``H^-1`` are precomputed once per reference
+    (:func:`prepare_subsets`).
+
+Scaled parameters and convergence norm
+    Internally the gradients are scaled by the subset half-width ``r`` (``q = (u, r ux, r uy, v, ...)``
+    and ``r^2 uxx`` ...), which conditions the Hessian and makes every component read in pixels
+    (the displacement it causes at the subset edge). Convergence: ``|dq| < tol`` with
+    ``|dq|^2 = du^2 + dv^2 + r^2 (dux^2 + duy^2 + dvx^2 + dvy^2)
+    + r^4 (duxx^2 + duxy^2 + duyy^2 + dvxx^2 + dvxy^2 + dvyy^2)`` (px).
+
+Statuses
+    ``CONVERGED`` (norm < tol), ``MAX_ITERATIONS``, ``OUT_OF_BOUNDS`` (the reference subset, or a
+    warped subset at any iteration, leaves ``[0, W-1] x [0, H-1]``), ``FLAT_SUBSET`` (reference
+    grey-level standard deviation <= ``flat_std``), ``SINGULAR_HESSIAN`` (a Cholesky pivot keeps
+    less than 1e-7 of its diagonal), ``DIVERGED`` (non-finite values, an update longer than the
+    subset size, or a warped subset with no grey-level variation).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from ._device import as_float32_image, resolve_device
+from ._launch import launch_1d
+from .conventions import Status
+from .interp import (
+    PaddedImage, bspline3_value_grad, bspline3_weights_fast, bspline_coefficients, expand_rows4, stencil_dot_rows4,
+)
+
+# FMA contraction across statements: ~15% faster CPU passes, and FMA only improves rounding.
+wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast"})
+
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
+vec12 = wp.types.vector(length=12, dtype=wp.float32)
+mat66 = wp.types.matrix(shape=(6, 6), dtype=wp.float32)
+mat1212 = wp.types.matrix(shape=(12, 12), dtype=wp.float32)
+vec12d = wp.types.vector(length=12, dtype=wp.float64)
+mat1212d = wp.types.matrix(shape=(12, 12), dtype=wp.float64)
+vec5 = wp.types.vector(length=5, dtype=wp.float32)
+mat55d = wp.types.matrix(shape=(5, 5), dtype=wp.float64)
+
+ST_CONVERGED = wp.constant(int(Status.CONVERGED))
+ST_MAX_ITERATIONS = wp.constant(int(Status.MAX_ITERATIONS))
+ST_OUT_OF_BOUNDS = wp.constant(int(Status.OUT_OF_BOUNDS))
+ST_FLAT = wp.constant(int(Status.FLAT_SUBSET))
+ST_SINGULAR = wp.constant(int(Status.SINGULAR_HESSIAN))
+ST_DIVERGED = wp.constant(int(Status.DIVERGED))
+ST_NOT_COMPUTED = wp.constant(int(Status.NOT_COMPUTED))
+
+#: Relative Cholesky pivot below which the Hessian counts as singular (float32 solves lose it).
+PIVOT_RTOL = 1e-7
+
+
+def n_params(order: int) -> int:
+    """Number of shape-function parameters of ``order`` (6 or 12)."""
+    return 6 if order == 1 else 12
+
+
+def refdata_width(order: int) -> int:
+    """Floats stored per POI: packed H^-1, H^-1 sum J(f - fm), H^-1 sum J, fm, df."""
+    k = n_params(order)
+    return k * (k + 1) // 2 + 2 * k + 2
+
+
+# ----------------------------------------------------------------------------------------------
+# @wp.func helpers
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def cholesky_inverse(h: mat1212d, k: int):
+    """Inverse of the symmetric positive-definite top-left k x k block of h; ok = 0 if singular."""
+    lo = mat1212d()
+    ok = int(1)
+    for j in range(k):
+        s = h[j, j]
+        for m in range(j):
+            s -= lo[j, m] * lo[j, m]
+        if not (s > wp.float64(PIVOT_RTOL) * h[j, j]):
+            ok = 0
+            s = wp.float64(1.0)
+        d = wp.sqrt(s)
+        lo[j, j] = d
+        for i in range(j + 1, k):
+            t = h[i, j]
+            for m in range(j):
+                t -= lo[i, m] * lo[j, m]
+            lo[i, j] = t / d
+    inv = mat1212d()
+    for col in range(k):  # solve L L^T x = e_col
+        y = vec12d()
+        for i in range(k):
+            t = wp.float64(0.0)
+            if i == col:
+                t = wp.float64(1.0)
+            for m in range(i):
+                t -= lo[i, m] * y[m]
+            y[i] = t / lo[i, i]
+        for ii in range(k):
+            i = k - 1 - ii
+            t = y[i]
+            for m in range(i + 1, k):
+                t -= lo[m, i] * inv[m, col]
+            inv[i, col] = t / lo[i, i]
+    return inv, ok
+
+
+@wp.func
+def quad_range_1d(c0: float, c1: float, c2: float, lo: float, hi: float):
+    """(min, max) of c0 + c1 t + c2 t^2 over t in [lo, hi]."""
+    a = c0 + lo * (c1 + lo * c2)
+    b = c0 + hi * (c1 + hi * c2)
+    mn = wp.min(a, b)
+    mx = wp.max(a, b)
+    if c2 != 0.0:
+        t = -c1 / (2.0 * c2)
+        if t > lo and t < hi:
+            v = c0 + t * (c1 + t * c2)
+            mn = wp.min(mn, v)
+            mx = wp.max(mx, v)
+    return mn, mx
+
+
+@wp.func
+def quad_range_2d(a: float, bx: float, by: float, cxx: float, cxy: float, cyy: float, lo: wp.vec2, hi: wp.vec2):
+    """(min, max) of a + bx x + by y + cxx x^2/2 + cxy x y + cyy y^2/2 over the box [lo, hi]."""
+    # edges x = lo/hi (quadratic in y) and y = lo/hi (quadratic in x) contain all corners
+    m0, n0 = quad_range_1d(a + lo[0] * (bx + 0.5 * cxx * lo[0]), by + cxy * lo[0], 0.5 * cyy, lo[1], hi[1])
+    m1, n1 = quad_range_1d(a + hi[0] * (bx + 0.5 * cxx * hi[0]), by + cxy * hi[0], 0.5 * cyy, lo[1], hi[1])
+    m2, n2 = quad_range_1d(a + lo[1] * (by + 0.5 * cyy * lo[1]), bx + cxy * lo[1], 0.5 * cxx, lo[0], hi[0])
+    m3, n3 = quad_range_1d(a + hi[1] * (by + 0.5 * cyy * hi[1]), bx + cxy * hi[1], 0.5 * cxx, lo[0], hi[0])
+    mn = wp.min(wp.min(m0, m1), wp.min(m2, m3))
+    mx = wp.max(wp.max(n0, n1), wp.max(n2, n3))
+    det = cxx * cyy - cxy * cxy
+    if det != 0.0:  # interior critical point
+        x = (-bx * cyy + by * cxy) / det
+        y = (-by * cxx + bx * cxy) / det
+        if x > lo[0] and x < hi[0] and y > lo[1] and y < hi[1]:
+            v = a + bx * x + by * y + 0.5 * cxx * x * x + cxy * x * y + 0.5 * cyy * y * y
+            mn = wp.min(mn, v)
+            mx = wp.max(mx, v)
+    return mn, mx
+
+
+@wp.func
+def warped_inside(
+    cx0: int, cy0: int, r: int, dl: wp.vec2, width: int, height: int,
+    u: float, ux: float, uy: float, uxx: float, uxy: float, uyy: float,
+    v: float, vx: float, vy: float, vxx: float, vxy: float, vyy: float,
+):
+    """1 if every warped subset point X = cx0 + i + U(dx, dy) lies in [0, W-1] x [0, H-1]."""
+    lo = wp.vec2(float(-r) + dl[0], float(-r) + dl[1])
+    hi = wp.vec2(float(r) + dl[0], float(r) + dl[1])
+    # X - cx0 = dx - dlx + U(dx, dy)
+    xmn, xmx = quad_range_2d(u - dl[0], 1.0 + ux, uy, uxx, uxy, uyy, lo, hi)
+    ymn, ymx = quad_range_2d(v - dl[1], vx, 1.0 + vy, vxx, vxy, vyy, lo, hi)
+    ok = int(0)
+    if xmn >= -float(cx0) and xmx <= float(width - 1 - cx0) and ymn >= -float(cy0) and ymx <= float(height - 1 - cy0):
+        ok = 1
+    return ok
+
+
+@wp.func
+def warped_value(coef: wp.array(dtype=wp.vec4), pitch: int, x0: int, y0: int, du: float, dv: float):
+    """B-spline value at integer pixel (x0, y0) displaced by (du, dv), splitting integer/fraction."""
+    fu = wp.floor(du)
+    fv = wp.floor(dv)
+    return stencil_dot_rows4(coef, pitch, x0 + int(fu), y0 + int(fv), bspline3_weights_fast(du - fu),
+                             bspline3_weights_fast(dv - fv))
+
+
+@wp.func
+def subset_pass_1st(
+    fgrad: wp.array(dtype=wp.vec3), width: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    cx0: int, cy0: int, r: int, dl: wp.vec2, inv_s: float, p: vec6, fmean: float,
+):
+    """One pass over the warped subset: (sum J^T g', (sum g', sum g'^2, sum (f - fm) g')), g' = g - fm."""
+    b = vec6()
+    sg = float(0.0)
+    sgg = float(0.0)
+    sfg = float(0.0)
+    for j in range(-r, r + 1):
+        dy = float(j) + dl[1]
+        u0 = p[0] + p[2] * dy
+        v0 = p[3] + p[5] * dy
+        row = (cy0 + j) * width + cx0
+        sx0 = float(0.0)
+        sx1 = float(0.0)
+        sy0 = float(0.0)
+        sy1 = float(0.0)
+        for i in range(-r, r + 1):
+            dx = float(i) + dl[0]
+            g = warped_value(coef, pitch, cx0 + i, cy0 + j, u0 + p[1] * dx, v0 + p[4] * dx) - fmean
+            fg = fgrad[row + i]
+            sg += g
+            sgg += g * g
+            sfg += (fg[0] - fmean) * g
+            gx = fg[1] * g
+            gy = fg[2] * g
+            xi = dx * inv_s
+            sx0 += gx
+            sx1 += gx * xi
+            sy0 += gy
+            sy1 += gy * xi
+        eta = dy * inv_s
+        b[0] += sx0
+        b[1] += sx1
+        b[2] += sx0 * eta
+        b[3] += sy0
+        b[4] += sy1
+        b[5] += sy0 * eta
+    return b, wp.vec3(sg, sgg, sfg)
+
+
+@wp.func
+def subset_pass_2nd(
+    fgrad: wp.array(dtype=wp.vec3), width: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    cx0: int, cy0: int, r: int, dl: wp.vec2, inv_s: float, p: vec12, fmean: float,
+):
+    """2nd-order version of :func:`subset_pass_1st` (p physical, PARAMS_2ND order)."""
+    b = vec12()
+    sg = float(0.0)
+    sgg = float(0.0)
+    sfg = float(0.0)
+    for j in range(-r, r + 1):
+        dy = float(j) + dl[1]
+        # U = u0 + dx (u1 + dx u2), V likewise
+        u0 = p[0] + dy * (p[2] + 0.5 * p[5] * dy)
+        u1 = p[1] + p[4] * dy
+        u2 = 0.5 * p[3]
+        v0 = p[6] + dy * (p[8] + 0.5 * p[11] * dy)
+        v1 = p[7] + p[10] * dy
+        v2 = 0.5 * p[9]
+        row = (cy0 + j) * width + cx0
+        sx0 = float(0.0)
+        sx1 = float(0.0)
+        sx2 = float(0.0)
+        sy0 = float(0.0)
+        sy1 = float(0.0)
+        sy2 = float(0.0)
+        for i in range(-r, r + 1):
+            dx = float(i) + dl[0]
+            g = warped_value(coef, pitch, cx0 + i, cy0 + j, u0 + dx * (u1 + dx * u2), v0 + dx * (v1 + dx * v2)) - fmean
+            fg = fgrad[row + i]
+            sg += g
+            sgg += g * g
+            sfg += (fg[0] - fmean) * g
+            xi = dx * inv_s
+            gx = fg[1] * g
+            gy = fg[2] * g
+            gxx = gx * xi
+            gyx = gy * xi
+            sx0 += gx
+            sx1 += gxx
+            sx2 += gxx * xi
+            sy0 += gy
+            sy1 += gyx
+            sy2 += gyx * xi
+        eta = dy * inv_s
+        b[0] += sx0
+        b[1] += sx1
+        b[2] += sx0 * eta
+        b[3] += 0.5 * sx2
+        b[4] += sx1 * eta
+        b[5] += 0.5 * sx0 * eta * eta
+        b[6] += sy0
+        b[7] += sy1
+        b[8] += sy0 * eta
+        b[9] += 0.5 * sy2
+        b[10] += sy1 * eta
+        b[11] += 0.5 * sy0 * eta * eta
+    return b, wp.vec3(sg, sgg, sfg)
+
+
+@wp.func
+def compose_1st(p: vec6, dp: vec6):
+    """Warp composition W(p) o W(dp)^-1 for affine warps (PARAMS_1ST order, physical units)."""
+    a = wp.mat22(1.0 + p[1], p[2], p[4], 1.0 + p[5])
+    d = wp.mat22(1.0 + dp[1], dp[2], dp[4], 1.0 + dp[5])
+    dinv = wp.inverse(d)
+    m = a * dinv
+    t = wp.vec2(p[0], p[3]) - m * wp.vec2(dp[0], dp[3])
+    return vec6(t[0], m[0, 0] - 1.0, m[0, 1], t[1], m[1, 0], m[1, 1] - 1.0)
+
+
+@wp.func
+def quad_warp_matrix(p: vec12):
+    """Gao et al. (2015) 6x6 matrix of a 2nd-order warp acting on (x^2, xy, y^2, x, y, 1)."""
+    a1 = 1.0 + p[1]
+    a2 = p[2]
+    a3 = p[0]
+    b1 = p[7]
+    b2 = 1.0 + p[8]
+    b3 = p[6]
+    uxx = p[3]
+    uxy = p[4]
+    uyy = p[5]
+    vxx = p[9]
+    vxy = p[10]
+    vyy = p[11]
+    m = mat66()
+    m[0] = vec6(a1 * a1 + a3 * uxx, 2.0 * (a1 * a2 + a3 * uxy), a2 * a2 + a3 * uyy, 2.0 * a3 * a1, 2.0 * a3 * a2, a3 * a3)
+    m[1] = vec6(
+        a1 * b1 + 0.5 * (a3 * vxx + b3 * uxx), a1 * b2 + a2 * b1 + a3 * vxy + b3 * uxy,
+        a2 * b2 + 0.5 * (a3 * vyy + b3 * uyy), a3 * b1 + a1 * b3, a3 * b2 + a2 * b3, a3 * b3,
+    )
+    m[2] = vec6(b1 * b1 + b3 * vxx, 2.0 * (b1 * b2 + b3 * vxy), b2 * b2 + b3 * vyy, 2.0 * b3 * b1, 2.0 * b3 * b2, b3 * b3)
+    m[3] = vec6(0.5 * uxx, uxy, 0.5 * uyy, a1, a2, a3)
+    m[4] = vec6(0.5 * vxx, vxy, 0.5 * vyy, b1, b2, b3)
+    m[5] = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    return m
+
+
+@wp.func
+def solve_transposed6(m: mat66, rhs: vec6):
+    """x with x^T m = rhs^T, i.e. m^T x = rhs (Gaussian elimination with partial pivoting)."""
+    a = wp.transpose(m)
+    x = rhs
+    for c in range(6):
+        piv = c
+        for rr in range(c + 1, 6):
+            if wp.abs(a[rr, c]) > wp.abs(a[piv, c]):
+                piv = rr
+        if piv != c:
+            tmp = a[c]
+            a[c] = a[piv]
+            a[piv] = tmp
+            t = x[c]
+            x[c] = x[piv]
+            x[piv] = t
+        for rr in range(c + 1, 6):
+            f = a[rr, c] / a[c, c]
+            a[rr] = a[rr] - f * a[c]
+            x[rr] = x[rr] - f * x[c]
+    for cc in range(6):
+        c = 5 - cc
+        t = x[c]
+        for k in range(c + 1, 6):
+            t -= a[c, k] * x[k]
+        x[c] = t / a[c, c]
+    return x
+
+
+@wp.func
+def compose_2nd(p: vec12, dp: vec12, s: float):
+    """W(p) o W(dp)^-1 for 2nd-order warps (Gao et al. 2015), composed in coordinates scaled by s."""
+    pn = vec12(p[0] / s, p[1], p[2], p[3] * s, p[4] * s, p[5] * s, p[6] / s, p[7], p[8], p[9] * s, p[10] * s, p[11] * s)
+    dn = vec12(dp[0] / s, dp[1], dp[2], dp[3] * s, dp[4] * s, dp[5] * s,
+               dp[6] / s, dp[7], dp[8], dp[9] * s, dp[10] * s, dp[11] * s)
+    mp = quad_warp_matrix(pn)
+    md = quad_warp_matrix(dn)
+    # rows 3 and 4 of mp * md^-1
+    rx = solve_transposed6(md, mp[3])
+    ry = solve_transposed6(md, mp[4])
+    return vec12(
+        rx[5] * s, rx[3] - 1.0, rx[4], 2.0 * rx[0] / s, rx[1] / s, 2.0 * rx[2] / s,
+        ry[5] * s, ry[3], ry[4] - 1.0, 2.0 * ry[0] / s, ry[1] / s, 2.0 * ry[2] / s,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# kernels
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def _reference_gradients(offset: int, image: wp.array2d(dtype=float), coef: wp.array(dtype=float), pitch: int,
+                         width: int, fgrad: wp.array(dtype=wp.vec3)):
+    k = wp.tid() + offset
+    y = k // width
+    x = k - y * width
+    vg = bspline3_value_grad(coef, pitch, float(x), float(y))
+    fgrad[k] = wp.vec3(image[y, x], vg[1], vg[2])
+
+
+@wp.func
+def mono_exponents(k: int):
+    """(power of xi, power of eta, coefficient) of the k-th term of (1, xi, eta, xi^2/2, xi*eta, eta^2/2)."""
+    if k == 0:
+        return 0, 0, 1.0
+    if k == 1:
+        return 1, 0, 1.0
+    if k == 2:
+        return 0, 1, 1.0
+    if k == 3:
+        return 2, 0, 0.5
+    if k == 4:
+        return 1, 1, 1.0
+    return 0, 2, 0.5
+
+
+@wp.func
+def _row_to_moments(m: mat55d, row: vec5, eta: wp.float64, deg: int):
+    """m[alpha, beta] += row[alpha] * eta^beta for alpha + beta <= deg."""
+    eb = wp.float64(1.0)
+    for beta in range(deg + 1):
+        for alpha in range(deg + 1 - beta):
+            m[alpha, beta] = m[alpha, beta] + wp.float64(row[alpha]) * eb
+        eb = eb * eta
+    return m
+
+
+@wp.func
+def mono_exponents(k: int):
+    """(power of xi, power of eta, coefficient) of the k-th term of (1, xi, eta, xi^2/2, xi*eta, eta^2/2)."""
+    if k == 0:
+        return 0, 0, 1.0
+    if k == 1:
+        return 1, 0, 1.0
+    if k == 2:
+        return 0, 1, 1.0
+    if k == 3:
+        return 2, 0, 0.5
+    if k == 4:
+        return 1, 1, 1.0
+    return 0, 2, 0.5
+
+
+@wp.func
+def _row_to_moments(m: mat55d, row: vec5, eta: wp.float64, deg: int):
+    """m[alpha, beta] += row[alpha] * eta^beta for alpha + beta <= deg."""
+    eb = wp.float64(1.0)
+    for beta in range(deg + 1):
+        for alpha in range(deg + 1 - beta):
+            m[alpha, beta] = m[alpha, beta] + wp.float64(row[alpha]) * eb
+        eb = eb * eta
+    return m
+
+
+@wp.func
+def _subset_hessian(fgrad: wp.array(dtype=wp.vec3), width: int, cx0: int, cy0: int, r: int, dl: wp.vec2,
+                    k: int, fmean: wp.float64):
+    """Centred H = sum (J - Jm)^T (J - Jm), a = sum J^T (f - fm), c = sum J, ss = sum (f - fm)^2.
+
+    J are the steepest-descent images of the scaled parameters. The sums are assembled from
+    row-separable moments sum G xi^alpha eta^beta (G = fx^2, fx fy, fy^2, fx, fy, fx (f-fm),
+    fy (f-fm)): about 40 multiply-adds per pixel instead of K(K+1)/2 + 2K (float32 within a row,
+    float64 across rows). Centring J gives the exact Gauss-Newton Hessian of the offset-invariant
+    criterion (sum (J - Jm)^T e = sum J^T e because sum e = 0); it makes IC-GN converge in about 3
+    iterations where the uncentred Hessian of Pan et al. (2013) needs about 5 (2nd order).
+    """
+    dj = k // 6  # highest total degree of the shape-function monomials (1 or 2)
+    inv_s = 1.0 / float(r)
+    fm = float(fmean)
+    mxx = mat55d()
+    mxy = mat55d()
+    myy = mat55d()
+    mx = mat55d()
+    my = mat55d()
+    mxf = mat55d()
+    myf = mat55d()
+    ss = wp.float64(0.0)
+    for j in range(-r, r + 1):
+        eta = wp.float64((float(j) + dl[1]) * inv_s)
+        rxx = vec5()
+        rxy = vec5()
+        ryy = vec5()
+        rx = vec5()
+        ry = vec5()
+        rxf = vec5()
+        ryf = vec5()
+        rss = float(0.0)
+        for i in range(-r, r + 1):
+            xi = (float(i) + dl[0]) * inv_s
+            fg = fgrad[(cy0 + j) * width + cx0 + i]
+            fd = fg[0] - fm
+            x2 = xi * xi
+            pw = vec5(1.0, xi, x2, x2 * xi, x2 * x2)
+            rxx += (fg[1] * fg[1]) * pw
+            rxy += (fg[1] * fg[2]) * pw
+            ryy += (fg[2] * fg[2]) * pw
+            rx += fg[1] * pw
+            ry += fg[2] * pw
+            rxf += (fg[1] * fd) * pw
+            ryf += (fg[2] * fd) * pw
+            rss += fd * fd
+        ss += wp.float64(rss)
+        mxx = _row_to_moments(mxx, rxx, eta, 2 * dj)
+        mxy = _row_to_moments(mxy, rxy, eta, 2 * dj)
+        myy = _row_to_moments(myy, ryy, eta, 2 * dj)
+        mx = _row_to_moments(mx, rx, eta, dj)
+        my = _row_to_moments(my, ry, eta, dj)
+        mxf = _row_to_moments(mxf, rxf, eta, dj)
+        myf = _row_to_moments(myf, ryf, eta, dj)
+    h = mat1212d()
+    a = vec12d()
+    c = vec12d()
+    m = k // 2
+    npx = wp.float64((2 * r + 1) * (2 * r + 1))
+    for i in range(k):
+        ai, bi, wi = mono_exponents(i % m)
+        if i < m:
+            a[i] = wp.float64(wi) * mxf[ai, bi]
+            c[i] = wp.float64(wi) * mx[ai, bi]
+        else:
+            a[i] = wp.float64(wi) * myf[ai, bi]
+            c[i] = wp.float64(wi) * my[ai, bi]
+    for i in range(k):
+        ai, bi, wi = mono_exponents(i % m)
+        for jj in range(i, k):
+            aj, bj, wj = mono_exponents(jj % m)
+            g = mxy[ai + aj, bi + bj]
+            if i < m and jj < m:
+                g = mxx[ai + aj, bi + bj]
+            if i >= m and jj >= m:
+                g = myy[ai + aj, bi + bj]
+            h[i, jj] = wp.float64(wi * wj) * g - c[i] * c[jj] / npx
+            h[jj, i] = h[i, jj]
+    return h, a, c, ss
+
+
+@wp.func
+def _store_refdata(refdata: wp.array2d(dtype=float), n: int, hinv: mat1212d, a: vec12d, c: vec12d, k: int,
+                   fmean: wp.float64, fnorm: wp.float64):
+    """Row layout: packed upper H^-1 (row-major), H^-1 a, H^-1 c, fm, df."""
+    col = int(0)
+    for i in range(k):
+        for j in range(i, k):
+            refdata[n, col] = float(hinv[i, j])
+            col += 1
+    for i in range(k):
+        ha = wp.float64(0.0)
+        hc = wp.float64(0.0)
+        for j in range(k):
+            ha += hinv[i, j] * a[j]
+            hc += hinv[i, j] * c[j]
+        refdata[n, col + i] = float(ha)
+        refdata[n, col + k + i] = float(hc)
+    refdata[n, col + 2 * k] = float(fmean)
+    refdata[n, col + 2 * k + 1] = float(fnorm)
+
+
+@wp.kernel
+def _prepare_subsets(
+    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, points: wp.array(dtype=wp.vec2d),
+    r: int, k: int, flat_var: float,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    status: wp.array(dtype=wp.int32),
+):
+    n = wp.tid() + offset
+    pt = points[n]
+    cx0 = int(wp.round(pt[0]))
+    cy0 = int(wp.round(pt[1]))
+    dl = wp.vec2(float(wp.float64(cx0) - pt[0]), float(wp.float64(cy0) - pt[1]))
+    centres[n] = wp.vec2i(cx0, cy0)
+    deltas[n] = dl
+    if cx0 - r < 0 or cy0 - r < 0 or cx0 + r > width - 1 or cy0 + r > height - 1:
+        status[n] = ST_OUT_OF_BOUNDS
+        return
+    npx = (2 * r + 1) * (2 * r + 1)
+    fsum = wp.float64(0.0)
+    for j in range(-r, r + 1):
+        for i in range(-r, r + 1):
+            fsum += wp.float64(fgrad[(cy0 + j) * width + cx0 + i][0])
+    fmean = fsum / wp.float64(npx)
+    h, a, c, ss = _subset_hessian(fgrad, width, cx0, cy0, r, dl, k, fmean)
+    if not (ss > wp.float64(npx) * wp.float64(flat_var)):
+        status[n] = ST_FLAT
+        return
+    hinv, ok = cholesky_inverse(h, k)
+    if ok == 0:
+        status[n] = ST_SINGULAR
+        return
+    _store_refdata(refdata, n, hinv, a, c, k, fmean, wp.sqrt(ss))
+    status[n] = ST_CONVERGED  # "ready"
+
+
+@wp.func
+def load_hinv6(refdata: wp.array2d(dtype=float), n: int):
+    m = mat66()
+    col = int(0)
+    for i in range(6):
+        for j in range(i, 6):
+            m[i, j] = refdata[n, col]
+            m[j, i] = refdata[n, col]
+            col += 1
+    a = vec6()
+    c = vec6()
+    for i in range(6):
+        a[i] = refdata[n, 21 + i]
+        c[i] = refdata[n, 27 + i]
+    return m, a, c, refdata[n, 33], refdata[n, 34]
+
+
+@wp.func
+def load_hinv12(refdata: wp.array2d(dtype=float), n: int):
+    m = mat1212()
+    col = int(0)
+    for i in range(12):
+        for j in range(i, 12):
+            m[i, j] = refdata[n, col]
+            m[j, i] = refdata[n, col]
+            col += 1
+    a = vec12()
+    c = vec12()
+    for i in range(12):
+        a[i] = refdata[n, 78 + i]
+        c[i] = refdata[n, 90 + i]
+    return m, a, c, refdata[n, 102], refdata[n, 103]
+
+
+@wp.func
+def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float):
+    """(gm', df/dg, zncc) from (sum g', sum g'^2, sum (f-fm) g'); df/dg = 0 flags a flat warped subset."""
+    gmean = sums[0] / float(npx)
+    dg2 = sums[1] - sums[0] * gmean
+    if not (dg2 > 1e-12 * sums[1]) or not (dg2 > 0.0):
+        return gmean, 0.0, 0.0
+    dg = wp.sqrt(dg2)
+    return gmean, fnorm / dg, sums[2] / (fnorm * dg)
+
+
+@wp.kernel
+def _icgn_1st(
+    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    n = wp.tid() + offset
+    p = vec6(guess[n, 0], guess[n, 1], guess[n, 2], guess[n, 3], guess[n, 4], guess[n, 5])
+    st = ref_status[n]
+    cc = float(wp.nan)
+    it = int(0)
+    if st == ST_CONVERGED:
+        hinv, a, c, fmean, fnorm = load_hinv6(refdata, n)
+        ctr = centres[n]
+        dl = deltas[n]
+        s = float(r)
+        st = ST_MAX_ITERATIONS
+        while it < max_iter:
+            if warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], 0.0, 0.0, 0.0,
+                             p[3], p[4], p[5], 0.0, 0.0, 0.0) == 0:
+                st = ST_OUT_OF_BOUNDS
+                break
+            b, sums = subset_pass_1st(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean)
+            it += 1
+            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm)
+            dq = ratio * (hinv * b - gmean * c) - a
+            norm = wp.length(dq)
+            if ratio == 0.0 or not (norm <= float(2 * r + 1)):
+                st = ST_DIVERGED
+                break
+            p = compose_1st(p, vec6(dq[0], dq[1] / s, dq[2] / s, dq[3], dq[4] / s, dq[5] / s))
+            if norm < tol:
+                st = ST_CONVERGED
+                break
+    for i in range(6):
+        params[n, i] = p[i]
+    zncc[n] = cc
+    iterations[n] = it
+    status[n] = st
+
+
+@wp.kernel
+def _icgn_2nd(
+    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    n = wp.tid() + offset
+    p = vec12()
+    for i in range(12):
+        p[i] = guess[n, i]
+    st = ref_status[n]
+    cc = float(wp.nan)
+    it = int(0)
+    if st == ST_CONVERGED:
+        hinv, a, c, fmean, fnorm = load_hinv12(refdata, n)
+        ctr = centres[n]
+        dl = deltas[n]
+        s = float(r)
+        s2 = s * s
+        st = ST_MAX_ITERATIONS
+        while it < max_iter:
+            if warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], p[3], p[4], p[5],
+                             p[6], p[7], p[8], p[9], p[10], p[11]) == 0:
+                st = ST_OUT_OF_BOUNDS
+                break
+            b, sums = subset_pass_2nd(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean)
+            it += 1
+            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm)
+            dq = ratio * (hinv * b - gmean * c) - a
+            norm = wp.length(dq)
+            if ratio == 0.0 or not (norm <= float(2 * r + 1)):
+                st = ST_DIVERGED
+                break
+            dp = vec12(dq[0], dq[1] / s, dq[2] / s, dq[3] / s2, dq[4] / s2, dq[5] / s2,
+                       dq[6], dq[7] / s, dq[8] / s, dq[9] / s2, dq[10] / s2, dq[11] / s2)
+            p = compose_2nd(p, dp, s)
+            if norm < tol:
+                st = ST_CONVERGED
+                break
+    for i in range(12):
+        params[n, i] = p[i]
+    zncc[n] = cc
+    iterations[n] = it
+    status[n] = st
+
+
+# ----------------------------------------------------------------------------------------------
+# launchers
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReferenceImage:
+    """Reference-image quantities computed once per reference (:func:`prepare_reference`).
+
+    Attributes
+    ----------
+    fgrad : wp.array of wp.vec3, shape (H*W,)
+        ``(f, df/dx, df/dy)`` at every pixel, row-major (index ``y*W + x``); the gradients are
+        those of the cubic B-spline interpolant (grey levels per pixel).
+    shape : (H, W)
+    grey_range : float
+        ``max(f) - min(f)``, used for the default flat-subset threshold.
+    device : str
+    """
+
+    fgrad: wp.array
+    shape: tuple[int, int]
+    grey_range: float
+    device: str
+
+
+@dataclass(frozen=True)
+class ReferenceSubsets:
+    """Per-POI reference-side IC-GN quantities (:func:`prepare_subsets`), reused for every current image.
+
+    Attributes
+    ----------
+    reference : ReferenceImage
+    points : np.ndarray float64 (N, 2)
+        POIs ``(x, y)`` in reference pixels.
+    subset : int
+        Odd subset size S (the subset is S x S pixels).
+    order : int
+        1 or 2.
+    centres : wp.array of wp.vec2i (N,)   integer subset centres ``(round(x), round(y))``.
+    deltas : wp.array of wp.vec2 (N,)     ``centre - point`` (px, in [-0.5, 0.5]).
+    refdata : wp.array2d float32 (N, :func:`refdata_width`)   packed ``H^-1`` and friends.
+    status : wp.array int32 (N,)          ``CONVERGED`` (= ready) or why the POI cannot be tracked
+                                          (``OUT_OF_BOUNDS``, ``FLAT_SUBSET``, ``SINGULAR_HESSIAN``).
+    """
+
+    reference: ReferenceImage
+    points: np.ndarray
+    subset: int
+    order: int
+    centres: wp.array
+    deltas: wp.array
+    refdata: wp.array
+    status: wp.array
+
+    @property
+    def device(self) -> str:
+        return self.reference.device
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass(frozen=True)
+class CurrentImage:
+    """A current (deformed) image prepared for IC-GN (:func:`prepare_current`), once per image.
+
+    Attributes
+    ----------
+    rows4 : wp.array of wp.vec4, shape ((H + 4) * (W + 4),)
+        Cubic B-spline coefficients with a 2-pixel mirrored border, row-expanded
+        (:func:`kernels.interp.expand_rows4`).
+    shape : (H, W)
+    device : str
+    """
+
+    rows4: wp.array
+    shape: tuple[int, int]
+    device: str
+
+    @property
+    def pitch(self) -> int:
+        return self.shape[1] + 4
+
+
+@dataclass
+class IcgnResult:
+    """Per-POI IC-GN output, on the device (call :meth:`numpy` for host arrays).
+
+    ``params`` (N, 6|12) float32 in PARAMS_1ST/PARAMS_2ND order; ``zncc`` (N,) float32 (NaN where
+    not computed); ``iterations`` (N,) int32; ``status`` (N,) int32 (:class:`Status`).
+    """
+
+    params: wp.array
+    zncc: wp.array
+    iterations: wp.array
+    status: wp.array
+
+    def numpy(self) -> dict[str, np.ndarray]:
+        return {
+            "params": self.params.numpy(),
+            "zncc": self.zncc.numpy(),
+            "iterations": self.iterations.numpy(),
+            "status": self.status.numpy(),
+        }
+
+
+def check_subset_order(subset, order) -> tuple[int, int]:
+    """Validate the subset size (odd int >= 3) and the shape-function order (1 or 2)."""
+    if isinstance(subset, bool) or not isinstance(subset, (int, np.integer)) or subset < 3 or subset % 2 == 0:
+        raise ValueError(f"subset must be an odd integer >= 3 (e.g. 21), got {subset!r}")
+    if isinstance(order, bool) or order not in (1, 2):
+        raise ValueError(f"order must be 1 (affine, 6 parameters) or 2 (quadratic, 12 parameters), got {order!r}")
+    return int(subset), int(order)
+
+
+def prepare_reference(image, device=None) -> ReferenceImage:
+    """Precompute the reference image's values and B-spline gradients (once per reference).
+
+    Parameters
+    ----------
+    image : array-like (H, W) grey image (any real dtype; grey levels kept on their scale), H, W >= 4.
+    device : None or str
+    """
+    device = resolve_device(device)
+    arr = as_float32_image(image, "reference")
+    coef = bspline_coefficients(arr, device=device)
+    h, w = arr.shape
+    img_wp = wp.array(arr, dtype=wp.float32, device=device)
+    fgrad = wp.empty(h * w, dtype=wp.vec3, device=device)
+    launch_1d(_reference_gradients, h * w, [0, img_wp, coef.flat, coef.pitch, w, fgrad], device, offset_index=0,
+              min_chunk=1 << 15)
+    return ReferenceImage(fgrad, (h, w), float(arr.max() - arr.min()), device)
+
+
+def prepare_current(image, device=None, out: CurrentImage | None = None) -> CurrentImage:
+    """B-spline coefficients of a current image, in the layout IC-GN reads (once per image).
+
+    Parameters
+    ----------
+    image : array-like (H, W) grey image, or a :class:`kernels.interp.PaddedImage` of kind
+        ``"bspline"`` from :func:`kernels.interp.bspline_coefficients`.
+    device : None or str
+    out : CurrentImage, optional
+        A previous result of the same shape and device whose buffer is reused.
+    """
+    if isinstance(image, PaddedImage):
+        if image.kind != "bspline":
+            raise ValueError(f"current must hold B-spline coefficients, got a PaddedImage of kind {image.kind!r}")
+        coef = image
+        device = coef.device if device is None else resolve_device(device)
+        if device != coef.device:
+            raise ValueError(f"coefficients are on {coef.device} but device={device!r}")
+    else:
+        device = resolve_device(device)
+        coef = bspline_coefficients(as_float32_image(image, "current"), device=device)
+    buf = None
+    if out is not None:
+        if not isinstance(out, CurrentImage) or out.shape != coef.shape or out.device != device:
+            raise ValueError("out must be a CurrentImage of the same shape and device")
+        buf = out.rows4
+    return CurrentImage(expand_rows4(coef, out=buf), coef.shape, device)
+
+
+def _as_points64(points) -> np.ndarray:
+    if isinstance(points, wp.array):
+        points = points.numpy()
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must be an (N, 2) array of (x, y) positions, got shape {pts.shape}")
+    if pts.shape[0] == 0:
+        raise ValueError("points is empty: at least one POI is needed")
+    if not np.issubdtype(pts.dtype, np.number):
+        raise ValueError(f"points must be numeric, got dtype {pts.dtype}")
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("points contain NaN or infinite values")
+    return pts
+
+
+def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: int = 1,
+                    flat_std: float | None = None) -> ReferenceSubsets:
+    """Precompute the per-POI reference quantities of IC-GN (Pan et al. 2013, doi:10.1007/s11340-012-9640-x).
+
+    Parameters
+    ----------
+    reference : ReferenceImage from :func:`prepare_reference`.
+    points : array-like (N, 2)
+        POIs ``(x, y)`` in reference pixels, integer or sub-pixel.
+    subset : odd int >= 3
+        Subset size S (S x S pixels).
+    order : 1 or 2
+    flat_std : float, optional
+        A subset whose grey-level standard deviation is <= this is ``FLAT_SUBSET``.
+        Default: 1e-3 of the reference image's grey-level range.
+
+    Returns
+    -------
+    ReferenceSubsets
+        ``status`` is ``OUT_OF_BOUNDS`` where the subset leaves the image, ``FLAT_SUBSET``,
+        ``SINGULAR_HESSIAN``, else ``CONVERGED`` (ready to track).
+    """
+    if not isinstance(reference, ReferenceImage):
+        raise ValueError(f"reference must be a ReferenceImage from prepare_reference(), got {type(reference).__name__}")
+    subset, order = check_subset_order(subset, order)
+    pts = _as_points64(points)
+    if flat_std is None:
+        flat_std = 1e-3 * reference.grey_range
+    if not np.isfinite(flat_std) or flat_std < 0:
+        raise ValueError(f"flat_std must be a finite non-negative grey level, got {flat_std!r}")
+    device = reference.device
+    n = pts.shape[0]
+    h, w = reference.shape
+    k = n_params(order)
+    centres = wp.empty(n, dtype=wp.vec2i, device=device)
+    deltas = wp.empty(n, dtype=wp.vec2, device=device)
+    refdata = wp.zeros((n, refdata_width(order)), dtype=wp.float32, device=device)
+    status = wp.empty(n, dtype=wp.int32, device=device)
+    pts_wp = wp.array(pts, dtype=wp.vec2d, device=device)
+    launch_1d(
+        _prepare_subsets, n,
+        [0, reference.fgrad, w, h, pts_wp, subset // 2, k, float(flat_std) ** 2, centres, deltas, refdata, status],
+        device, offset_index=0, min_chunk=64,
+    )
+    return ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status)
+
+
+def _as_guess(guess, n: int, k: int, device: str) -> wp.array:
+    if guess is None:
+        return wp.zeros((n, k), dtype=wp.float32, device=device)
+    if isinstance(guess, wp.array):
+        if guess.shape != (n, k) or guess.dtype != wp.float32:
+            raise ValueError(f"guess must be float32 of shape {(n, k)}, got {guess.shape} {guess.dtype}")
+        if str(guess.device) != device:
+            raise ValueError(f"guess is on {guess.device} but the subsets are on {device}")
+        return guess
+    g = np.asarray(guess, dtype=np.float64)
+    if g.shape != (n, k):
+        raise ValueError(f"guess must have shape {(n, k)} (one row of parameters per POI), got {g.shape}")
+    if not np.all(np.isfinite(g)):
+        raise ValueError("guess contains NaN or infinite values; give a finite guess or mask those POIs out")
+    return wp.array(g.astype(np.float32), dtype=wp.float32, device=device)
+
+
+def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol: float = 1e-3,
+         out: IcgnResult | None = None) -> IcgnResult:
+    """Track every POI of ``subsets`` into a current image with IC-GN / ZNSSD.
+
+    Parameters
+    ----------
+    subsets : ReferenceSubsets from :func:`prepare_subsets` (fixes device, subset size and order).
+    current : CurrentImage from :func:`prepare_current` (prepare it once per image), or a grey
+        image array of the reference's shape.
+    guess : array-like (N, 6|12), optional
+        Initial parameters (PARAMS_1ST/PARAMS_2ND order, physical units); default zeros. IC-GN
+        converges from guesses within a few pixels; use :mod:`kernels.search` for larger motion.
+    max_iter : int >= 1
+    tol : float > 0
+        Convergence threshold on the scaled update norm (px, see the module doc).
+    out : IcgnResult, optional
+        Preallocated outputs (reused across frames).
+
+    Returns
+    -------
+    IcgnResult (device arrays).
+    """
+    if not isinstance(subsets, ReferenceSubsets):
+        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
+    device = subsets.device
+    h, w = subsets.reference.shape
+    if isinstance(current, CurrentImage):
+        if current.device != device:
+            raise ValueError(f"current is on {current.device} but the subsets are on {device}")
+        cur = current
+    else:
+        cur = prepare_current(current, device=device)
+    if cur.shape != (h, w):
+        raise ValueError(f"current image has shape {cur.shape} but the reference has shape {(h, w)}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    if not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be a positive number of pixels, got {tol!r}")
+    n = subsets.n_points
+    k = n_params(subsets.order)
+    g = _as_guess(guess, n, k, device)
+    if out is None:
+        out = IcgnResult(
+            wp.empty((n, k), dtype=wp.float32, device=device),
+            wp.empty(n, dtype=wp.float32, device=device),
+            wp.empty(n, dtype=wp.int32, device=device),
+            wp.empty(n, dtype=wp.int32, device=device),
+        )
+    elif out.params.shape != (n, k) or out.zncc.shape != (n,):
+        raise ValueError(f"out was allocated for {out.params.shape}, expected params of shape {(n, k)}")
+    kernel = _icgn_1st if subsets.order == 1 else _icgn_2nd
+    launch_1d(
+        kernel, n,
+        [0, subsets.reference.fgrad, w, h, cur.rows4, cur.pitch, subsets.centres, subsets.deltas, subsets.refdata,
+         subsets.status, g, subsets.subset // 2, int(max_iter), float(tol),
+         out.params, out.zncc, out.iterations, out.status],
+        device, offset_index=0, min_chunk=64,
+    )
+    return out

@@ -1,0 +1,478 @@
+"""Image interpolation: cubic B-spline (prefilter + evaluation) and Keys bicubic.
+
+Cubic B-spline interpolation follows Unser, "Splines: a perfect fit for signal and image
+processing", IEEE Signal Processing Magazine 16(6), 1999, doi:10.1109/79.799930: the image is
+prefiltered into B-spline coefficients ``c`` (a causal then an anti-causal first-order recursive
+filter with pole ``z1 = sqrt(3) - 2`` and gain 6, along rows then along columns) so that the
+interpolant ``f(x, y) = sum_kl c[l, k] b3(x - k) b3(y - l)`` passes through every pixel value.
+Keys bicubic convolution (Keys, "Cubic convolution interpolation for digital image processing",
+IEEE TASSP 29(6), 1981, doi:10.1109/TASSP.1981.1163711) uses ``a = -0.5`` on the raw image.
+
+Conventions (docs/conventions.md): images are indexed ``[row, col] = [y, x]``; pixel (0, 0) is the
+centre of the top-left pixel; points are ``(x, y)`` in pixels.
+
+Border handling (explicit):
+
+* The signal is extended **mirror-symmetrically about the first and last pixel centres**
+  (``... s2 s1 s0 s1 s2 ...``), the same boundary condition as ``scipy.ndimage`` ``mode="mirror"``;
+  the B-spline prefilter uses it (exact mirror initialisation of the recursive filters), so values
+  near the border equal ``scipy.ndimage.map_coordinates(image, ..., order=3, mode="mirror")``.
+* Coefficients (and, for Keys, raw samples) are stored with a 2-pixel mirrored border
+  (:data:`PAD`), so the 4x4 stencil of any position with ``-1 <= x < W`` and ``-1 <= y < H`` reads
+  inside the array. The ``@wp.func`` evaluators do not check positions: callers guarantee that
+  range (IC-GN checks every warped subset against the valid domain before reading).
+* The **valid domain** is ``0 <= x <= W - 1``, ``0 <= y <= H - 1``. The public :func:`interpolate`
+  returns NaN for points outside it; IC-GN reports subsets that leave it as ``OUT_OF_BOUNDS``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from ._device import as_float32_image, resolve_device
+from ._launch import launch_1d
+
+wp.set_module_options({"enable_backward": False})
+
+#: Width of the mirrored border stored around coefficient / sample arrays (pixels).
+PAD = 2
+#: Pole of the cubic B-spline prefilter (Unser 1999, eq. 10).
+Z1 = float(np.sqrt(3.0) - 2.0)
+#: Length of the truncated sum initialising the causal filter (|z1|**32 ~ 5e-19).
+_HORIZON = 32
+
+# ----------------------------------------------------------------------------------------------
+# @wp.func helpers
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def bspline3_weights(t: float):
+    """Cubic B-spline weights of the 4 taps at offsets -1, 0, 1, 2 for fractional position t in [0, 1)."""
+    t2 = t * t
+    t3 = t2 * t
+    s = 1.0 - t
+    return wp.vec4(
+        s * s * s * (1.0 / 6.0),
+        0.5 * t3 - t2 + (2.0 / 3.0),
+        -0.5 * t3 + 0.5 * t2 + 0.5 * t + (1.0 / 6.0),
+        t3 * (1.0 / 6.0),
+    )
+
+
+@wp.func
+def bspline3_weights_fast(t: float):
+    """Same as :func:`bspline3_weights` with fewer operations (partition of unity gives w2)."""
+    t2 = t * t
+    t3 = t2 * t
+    w3 = t3 * (1.0 / 6.0)
+    w0 = (1.0 / 6.0) + 0.5 * (t2 - t) - w3
+    w1 = (2.0 / 3.0) + 0.5 * t3 - t2
+    return wp.vec4(w0, w1, 1.0 - w0 - w1 - w3, w3)
+
+
+@wp.func
+def bspline3_dweights(t: float):
+    """Derivatives d/dt of :func:`bspline3_weights`."""
+    t2 = t * t
+    s = 1.0 - t
+    return wp.vec4(-0.5 * s * s, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, 0.5 * t2)
+
+
+@wp.func
+def keys_weights(t: float):
+    """Keys cubic-convolution weights (a = -0.5) of the taps at offsets -1, 0, 1, 2, t in [0, 1)."""
+    t2 = t * t
+    t3 = t2 * t
+    return wp.vec4(
+        -0.5 * t3 + t2 - 0.5 * t,
+        1.5 * t3 - 2.5 * t2 + 1.0,
+        -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+        0.5 * t3 - 0.5 * t2,
+    )
+
+
+@wp.func
+def keys_dweights(t: float):
+    """Derivatives d/dt of :func:`keys_weights`."""
+    t2 = t * t
+    return wp.vec4(
+        -1.5 * t2 + 2.0 * t - 0.5,
+        4.5 * t2 - 5.0 * t,
+        -4.5 * t2 + 4.0 * t + 0.5,
+        1.5 * t2 - t,
+    )
+
+
+@wp.func
+def stencil_dot(c: wp.array(dtype=float), pitch: int, ix: int, iy: int, wx: wp.vec4, wy: wp.vec4):
+    """sum_{k,l} c[iy-1+l, ix-1+k] wx[k] wy[l] on a padded flat array (``pitch`` = W + 2*PAD).
+
+    ``(ix, iy)`` are unpadded integer pixel indices (the floor of the position).
+    """
+    base = (iy + 1) * pitch + ix + 1  # padded index of (iy - 1, ix - 1) with PAD = 2
+    r0 = c[base] * wx[0] + c[base + 1] * wx[1] + c[base + 2] * wx[2] + c[base + 3] * wx[3]
+    base += pitch
+    r1 = c[base] * wx[0] + c[base + 1] * wx[1] + c[base + 2] * wx[2] + c[base + 3] * wx[3]
+    base += pitch
+    r2 = c[base] * wx[0] + c[base + 1] * wx[1] + c[base + 2] * wx[2] + c[base + 3] * wx[3]
+    base += pitch
+    r3 = c[base] * wx[0] + c[base + 1] * wx[1] + c[base + 2] * wx[2] + c[base + 3] * wx[3]
+    return r0 * wy[0] + r1 * wy[1] + r2 * wy[2] + r3 * wy[3]
+
+
+@wp.func
+def stencil_dot_rows4(c4: wp.array(dtype=wp.vec4), pitch: int, ix: int, iy: int, wx: wp.vec4, wy: wp.vec4):
+    """Same as :func:`stencil_dot` on row-expanded coefficients (:func:`expand_rows4`).
+
+    ``c4[k]`` holds the 4 horizontal taps ``c[k-1 .. k+2]`` of the padded flat array, so a 4x4
+    stencil is 4 vector loads; combining the rows first (vertical) vectorises well on the CPU.
+    """
+    base = (iy + 1) * pitch + ix + 2  # padded index of (iy - 1, ix) with PAD = 2
+    col = wy[0] * c4[base] + wy[1] * c4[base + pitch] + wy[2] * c4[base + 2 * pitch] + wy[3] * c4[base + 3 * pitch]
+    return wp.dot(col, wx)
+
+
+@wp.func
+def bspline3_value(c: wp.array(dtype=float), pitch: int, x: float, y: float):
+    """Cubic B-spline interpolant at (x, y) from padded flat coefficients (no bounds check)."""
+    fx = wp.floor(x)
+    fy = wp.floor(y)
+    return stencil_dot(c, pitch, int(fx), int(fy), bspline3_weights(x - fx), bspline3_weights(y - fy))
+
+
+@wp.func
+def bspline3_value_grad(c: wp.array(dtype=float), pitch: int, x: float, y: float):
+    """(value, d/dx, d/dy) of the cubic B-spline interpolant at (x, y) (no bounds check)."""
+    fx = wp.floor(x)
+    fy = wp.floor(y)
+    ix = int(fx)
+    iy = int(fy)
+    wx = bspline3_weights(x - fx)
+    wy = bspline3_weights(y - fy)
+    dwx = bspline3_dweights(x - fx)
+    dwy = bspline3_dweights(y - fy)
+    return wp.vec3(
+        stencil_dot(c, pitch, ix, iy, wx, wy),
+        stencil_dot(c, pitch, ix, iy, dwx, wy),
+        stencil_dot(c, pitch, ix, iy, wx, dwy),
+    )
+
+
+@wp.func
+def keys_value_grad(s: wp.array(dtype=float), pitch: int, x: float, y: float):
+    """(value, d/dx, d/dy) of Keys bicubic convolution (a = -0.5) on padded flat samples."""
+    fx = wp.floor(x)
+    fy = wp.floor(y)
+    ix = int(fx)
+    iy = int(fy)
+    wx = keys_weights(x - fx)
+    wy = keys_weights(y - fy)
+    dwx = keys_dweights(x - fx)
+    dwy = keys_dweights(y - fy)
+    return wp.vec3(
+        stencil_dot(s, pitch, ix, iy, wx, wy),
+        stencil_dot(s, pitch, ix, iy, dwx, wy),
+        stencil_dot(s, pitch, ix, iy, wx, dwy),
+    )
+
+
+@wp.func
+def causal_init(c: wp.array2d(dtype=float), row: int, col: int, drow: int, dcol: int, n: int, z: float):
+    """Initial value of the causal filter for mirror boundaries (Unser 1999, exact for n <= horizon)."""
+    if n > 32:  # truncated sum, error |z|**32
+        acc = float(0.0)
+        zk = float(1.0)
+        for k in range(32):
+            acc += zk * c[row + k * drow, col + k * dcol]
+            zk *= z
+        return acc
+    # exact: (s0 + z^(n-1) s_{n-1} + sum_{k=1}^{n-2} (z^k + z^(2n-2-k)) s_k) / (1 - z^(2n-2))
+    zn = float(1.0)
+    for k in range(n - 1):
+        zn *= z  # z^(n-1)
+    z2n = zn * zn  # divided by z in the loop: z^(2n-2-k)
+    acc = c[row, col] + zn * c[row + (n - 1) * drow, col + (n - 1) * dcol]
+    zk = z
+    for k in range(1, n - 1):
+        z2n /= z  # z^(2n-2-k)
+        acc += (zk + z2n) * c[row + k * drow, col + k * dcol]
+        zk *= z
+    return acc / (1.0 - zn * zn)
+
+
+@wp.func
+def filter_line(c: wp.array2d(dtype=float), row: int, col: int, drow: int, dcol: int, n: int):
+    """In-place cubic B-spline prefilter of n samples c[row + k*drow, col + k*dcol] (gain 6)."""
+    z = float(-0.2679491924311228)  # sqrt(3) - 2
+    c0 = causal_init(c, row, col, drow, dcol, n, z)
+    c[row, col] = c0
+    prev = c0
+    for k in range(1, n):
+        cur = c[row + k * drow, col + k * dcol] + z * prev
+        c[row + k * drow, col + k * dcol] = cur
+        prev = cur
+    last = row + (n - 1) * drow
+    lastc = col + (n - 1) * dcol
+    # anti-causal initial value for mirror boundaries
+    cm = (z / (z * z - 1.0)) * (c[last, lastc] + z * c[last - drow, lastc - dcol])
+    c[last, lastc] = 6.0 * cm
+    for kk in range(1, n):
+        k = n - 1 - kk
+        cm = z * (cm - c[row + k * drow, col + k * dcol])
+        c[row + k * drow, col + k * dcol] = 6.0 * cm
+
+
+# ----------------------------------------------------------------------------------------------
+# kernels
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def _expand_rows4(offset: int, c: wp.array(dtype=float), c4: wp.array(dtype=wp.vec4), pitch: int, n: int):
+    k = wp.tid() + offset
+    x = k % pitch
+    if x >= 1 and x + 2 < pitch:
+        c4[k] = wp.vec4(c[k - 1], c[k], c[k + 1], c[k + 2])
+    else:
+        c4[k] = wp.vec4(0.0)
+
+
+@wp.kernel
+def _prefilter_rows(offset: int, image: wp.array2d(dtype=float), coef: wp.array2d(dtype=float), width: int):
+    y = wp.tid() + offset
+    r = y + 2
+    for x in range(width):
+        coef[r, x + 2] = image[y, x]
+    filter_line(coef, r, 2, 0, 1, width)
+    # mirrored coefficient border: c[-1] = c[1], c[-2] = c[2], c[W] = c[W-2], c[W+1] = c[W-3]
+    coef[r, 1] = coef[r, 3]
+    coef[r, 0] = coef[r, 4]
+    coef[r, width + 2] = coef[r, width]
+    coef[r, width + 3] = coef[r, width - 1]
+
+
+@wp.kernel
+def _prefilter_cols(offset: int, coef: wp.array2d(dtype=float), height: int):
+    x = wp.tid() + offset
+    filter_line(coef, 2, x, 1, 0, height)
+    coef[1, x] = coef[3, x]
+    coef[0, x] = coef[4, x]
+    coef[height + 2, x] = coef[height, x]
+    coef[height + 3, x] = coef[height - 1, x]
+
+
+@wp.func
+def split_position(p: wp.vec2d, width: int, height: int):
+    """Split a float64 (x, y) into integer floor and float32 fraction: (ix, iy, tx, ty, inside).
+
+    ``inside`` is 1 when the point lies in the valid domain [0, W-1] x [0, H-1], else 0.
+    Keeping the fraction separate preserves sub-pixel precision far from the origin.
+    """
+    x = p[0]
+    y = p[1]
+    inside = 0
+    if x >= wp.float64(0.0) and x <= wp.float64(width - 1) and y >= wp.float64(0.0) and y <= wp.float64(height - 1):
+        inside = 1
+    fx = wp.floor(x)
+    fy = wp.floor(y)
+    return wp.vec4i(int(fx), int(fy), inside, 0), wp.vec2(float(x - fx), float(y - fy))
+
+
+@wp.kernel
+def _interp_kernel(
+    c: wp.array(dtype=float), pitch: int, width: int, height: int,
+    points: wp.array(dtype=wp.vec2d), keys: int, gradient: int, out: wp.array2d(dtype=float),
+):
+    i = wp.tid()
+    idx, t = split_position(points[i], width, height)
+    if idx[2] == 0:
+        for k in range(out.shape[1]):
+            out[i, k] = wp.nan
+        return
+    wx = bspline3_weights(t[0])
+    wy = bspline3_weights(t[1])
+    dwx = bspline3_dweights(t[0])
+    dwy = bspline3_dweights(t[1])
+    if keys != 0:
+        wx = keys_weights(t[0])
+        wy = keys_weights(t[1])
+        dwx = keys_dweights(t[0])
+        dwy = keys_dweights(t[1])
+    out[i, 0] = stencil_dot(c, pitch, idx[0], idx[1], wx, wy)
+    if gradient != 0:
+        out[i, 1] = stencil_dot(c, pitch, idx[0], idx[1], dwx, wy)
+        out[i, 2] = stencil_dot(c, pitch, idx[0], idx[1], wx, dwy)
+
+
+# ----------------------------------------------------------------------------------------------
+# launchers
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PaddedImage:
+    """A device image stored with a :data:`PAD`-pixel mirrored border.
+
+    Attributes
+    ----------
+    data : wp.array2d of float32, shape (H + 2*PAD, W + 2*PAD)
+        ``data[y + PAD, x + PAD]`` holds pixel (x, y).
+    kind : str
+        ``"bspline"`` (cubic B-spline coefficients) or ``"samples"`` (raw grey levels, for Keys).
+    shape : (H, W) of the unpadded image.
+    device : Warp device name.
+    """
+
+    data: wp.array
+    kind: str
+    shape: tuple[int, int]
+    device: str
+
+    @property
+    def pitch(self) -> int:
+        """Row length of the padded array (W + 2*PAD)."""
+        return self.shape[1] + 2 * PAD
+
+    @property
+    def flat(self) -> wp.array:
+        """The padded array as a flat 1-D view (index ``(y + PAD) * pitch + x + PAD``)."""
+        return self.data.flatten()
+
+
+def _check_min_size(arr: np.ndarray, name: str) -> None:
+    if arr.shape[0] < 4 or arr.shape[1] < 4:
+        raise ValueError(f"{name} must be at least 4x4 pixels for cubic interpolation, got shape {arr.shape}")
+
+
+def bspline_coefficients(image, device=None, out: wp.array | None = None) -> PaddedImage:
+    """Cubic B-spline coefficients of a grey image (Unser 1999, doi:10.1109/79.799930).
+
+    Parameters
+    ----------
+    image : array-like (H, W), any real dtype, or a float32 ``wp.array2d`` on ``device``
+        Grey levels (kept on their original scale). H, W >= 4.
+    device : None or str
+        Warp device (``None``: ``cuda:0`` if present, else ``cpu``).
+    out : wp.array2d of float32, shape (H + 4, W + 4), optional
+        Destination (reused across frames to avoid reallocation).
+
+    Returns
+    -------
+    PaddedImage
+        ``kind="bspline"``; coefficients with a 2-pixel mirrored border such that
+        ``scipy.ndimage.map_coordinates(image, (y, x), order=3, mode="mirror")`` equals the
+        interpolant inside ``[0, W-1] x [0, H-1]``.
+    """
+    device = resolve_device(device)
+    if isinstance(image, wp.array):
+        if image.ndim != 2 or image.dtype != wp.float32:
+            raise ValueError(f"image as a wp.array must be 2-D float32, got ndim={image.ndim}, dtype={image.dtype}")
+        if str(image.device) != device:
+            raise ValueError(f"image is on {image.device} but device={device!r}")
+        img_wp = image
+        h, w = image.shape
+        if h < 4 or w < 4:
+            raise ValueError(f"image must be at least 4x4 pixels for cubic interpolation, got shape {image.shape}")
+    else:
+        arr = as_float32_image(image, "image")
+        _check_min_size(arr, "image")
+        h, w = arr.shape
+        img_wp = wp.array(arr, dtype=wp.float32, device=device)
+    shape_p = (h + 2 * PAD, w + 2 * PAD)
+    if out is None:
+        out = wp.empty(shape_p, dtype=wp.float32, device=device)
+    elif out.shape != shape_p or out.dtype != wp.float32 or str(out.device) != device:
+        raise ValueError(
+            f"out must be a float32 wp.array of shape {shape_p} on {device}, "
+            f"got shape {out.shape}, dtype {out.dtype}, device {out.device}"
+        )
+    launch_1d(_prefilter_rows, h, [0, img_wp, out, w], device, offset_index=0, min_chunk=64)
+    launch_1d(_prefilter_cols, w + 2 * PAD, [0, out, h], device, offset_index=0, min_chunk=64)
+    return PaddedImage(out, "bspline", (h, w), device)
+
+
+def expand_rows4(coeffs: PaddedImage, out: wp.array | None = None) -> wp.array:
+    """Row-expanded copy of padded coefficients for fast 4x4 stencils (:func:`stencil_dot_rows4`).
+
+    Returns a flat ``wp.array`` of ``wp.vec4`` with ``(H + 4) * (W + 4)`` entries where entry
+    ``k`` holds ``flat[k-1 : k+3]`` of ``coeffs`` (4x the memory of the coefficients).
+    """
+    if not isinstance(coeffs, PaddedImage):
+        raise ValueError(f"coeffs must be a PaddedImage, got {type(coeffs).__name__}")
+    n = coeffs.data.shape[0] * coeffs.data.shape[1]
+    if out is None:
+        out = wp.empty(n, dtype=wp.vec4, device=coeffs.device)
+    elif out.shape != (n,) or out.dtype != wp.vec4 or str(out.device) != coeffs.device:
+        raise ValueError(f"out must be a vec4 wp.array of shape {(n,)} on {coeffs.device}, got {out.shape} {out.dtype}")
+    launch_1d(_expand_rows4, n, [0, coeffs.flat, out, coeffs.pitch, n], coeffs.device, offset_index=0,
+              min_chunk=1 << 16)
+    return out
+
+
+def padded_samples(image, device=None) -> PaddedImage:
+    """Raw grey levels with a 2-pixel mirrored border (input of Keys bicubic interpolation)."""
+    device = resolve_device(device)
+    arr = as_float32_image(image, "image")
+    _check_min_size(arr, "image")
+    padded = np.pad(arr, PAD, mode="reflect")  # numpy 'reflect' == scipy 'mirror' (about pixel centres)
+    return PaddedImage(wp.array(padded, dtype=wp.float32, device=device), "samples", arr.shape, device)
+
+
+def _as_points(points, device: str) -> wp.array:
+    if isinstance(points, wp.array):
+        points = points.numpy()
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must be an (N, 2) array of (x, y), got shape {pts.shape}")
+    if not np.issubdtype(pts.dtype, np.number):
+        raise ValueError(f"points must be numeric, got dtype {pts.dtype}")
+    return wp.array(np.ascontiguousarray(pts, dtype=np.float64), dtype=wp.vec2d, device=device)
+
+
+def interpolate(image_or_coeffs, points, method: str = "bspline", gradient: bool = False, device=None) -> np.ndarray:
+    """Interpolate a grey image at arbitrary sub-pixel points.
+
+    Parameters
+    ----------
+    image_or_coeffs : array-like (H, W) or PaddedImage
+        A grey image, or the result of :func:`bspline_coefficients` (``method="bspline"``) or
+        :func:`padded_samples` (``method="keys"``) to skip the preparation.
+    points : array-like (N, 2)
+        Positions ``(x, y)`` in pixels (x along columns, y along rows).
+    method : ``"bspline"`` (cubic B-spline, Unser 1999) or ``"keys"`` (Keys bicubic, a = -0.5).
+    gradient : bool
+        Also return the spatial derivatives of the interpolant (grey levels per pixel).
+    device : None or str
+
+    Returns
+    -------
+    np.ndarray, float32, shape (N,) or, with ``gradient=True``, (N, 3) holding
+    ``(value, d/dx, d/dy)``. Points outside ``[0, W-1] x [0, H-1]`` give NaN (see module doc).
+    """
+    if method not in ("bspline", "keys"):
+        raise ValueError(f"method must be 'bspline' or 'keys', got {method!r}")
+    if isinstance(image_or_coeffs, PaddedImage):
+        prepared = image_or_coeffs
+        expected = "bspline" if method == "bspline" else "samples"
+        if prepared.kind != expected:
+            raise ValueError(f"method={method!r} needs a PaddedImage of kind {expected!r}, got {prepared.kind!r}")
+        device = prepared.device if device is None else resolve_device(device)
+        if device != prepared.device:
+            raise ValueError(f"prepared image is on {prepared.device} but device={device!r}")
+    else:
+        device = resolve_device(device)
+        prepared = (bspline_coefficients if method == "bspline" else padded_samples)(image_or_coeffs, device=device)
+    pts = _as_points(points, device)
+    n = pts.shape[0]
+    ncol = 3 if gradient else 1
+    out = wp.empty((max(n, 1), ncol), dtype=wp.float32, device=device)
+    if n > 0:
+        h, w = prepared.shape
+        keys = int(method == "keys")
+        wp.launch(_interp_kernel, dim=n, inputs=[prepared.flat, prepared.pitch, w, h, pts, keys, int(gradient), out],
+                  device=device)
+    res = out.numpy()[:n]
+    return res if gradient else res[:, 0]

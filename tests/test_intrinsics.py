@@ -1,0 +1,148 @@
+"""Zhang intrinsics through OpenCV with direct and mirrored views, on exact synthetic geometry."""
+import numpy as np
+import pytest
+
+from calibration.camera import Camera, rotation_from_vector, transform_points
+from calibration.intrinsics import MIRROR_FLIP, calibrate_intrinsics
+from calibration.uncertainty import grid_points
+
+NOISE = 0.03  # px per coordinate, the issue's noise level
+TRUE = Camera(K=[[4050.0, 0, 1172.8], [0, 4050.8, 868.1], [0, 0, 1]], dist=[-0.06, 0.09, 2e-4, -1e-4, 0.0],
+              size=(2352, 1728))
+X = grid_points(6, 3, 93.3)  # the paper's 6x3 dots, 93.3 mm pitch
+
+
+def _poses(n_views=15, n_mirrored=3, seed=4):
+    """Monitor poses spanning 0.9-3.5 m (the paper's Fig. 6 depth range) with ±35° tilts; the first
+    ``n_mirrored`` are views through a mirror (reflection x -> -x of the camera frame)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for v in range(n_views):
+        z = rng.uniform(900, 3500)
+        ang = np.radians([rng.uniform(-35, 35), rng.uniform(-35, 35), rng.uniform(-10, 10)])
+        half = z * np.array([1176.0, 864.0]) / 4050.0
+        t = np.array([rng.uniform(-0.45, 0.45) * half[0], rng.uniform(-0.45, 0.45) * half[1], z])
+        out.append((rotation_from_vector(ang), t, v < n_mirrored))
+    return out
+
+
+def _views(poses, rng, noise=NOISE):
+    imgs = []
+    for R, t, mirrored in poses:
+        P = transform_points(R, t, X)
+        if mirrored:
+            P = P * [-1.0, 1.0, 1.0]  # the virtual target: a left-handed copy
+        q = TRUE.project(P)
+        assert np.all(q > 0) and np.all(q < [2351, 1727])
+        imgs.append(q + rng.normal(0, noise, q.shape))
+    return [X] * len(poses), imgs, [m for _, _, m in poses]
+
+
+def _values(cam):
+    return dict(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, **dict(zip(("k1", "k2", "p1", "p2", "k3"), cam.dist)))
+
+
+def test_recovers_truth_within_reported_sigma(rng):
+    objs, imgs, mirrored = _views(_poses(), rng)
+    res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored)
+    assert len(res.view_indices) == 15 and not res.dropped
+    # acceptance: focal length within 0.1 %
+    assert abs(res.camera.fx / TRUE.fx - 1) < 1e-3 and abs(res.camera.fy / TRUE.fy - 1) < 1e-3
+    est, true = _values(res.camera), _values(TRUE)
+    for name in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"):
+        # acceptance: every parameter within 3 reported standard deviations
+        assert abs(est[name] - true[name]) < 3 * res.std[name], name
+    # residual of a 2-D point with σ = 0.03 px per axis: RMS distance 0.03·√2·√(1 − p/2N) ≈ 0.041 px
+    assert 0.035 < res.rms < 0.047
+    assert res.rms <= 0.05  # acceptance bound
+    # mirrored views are handled as right-handed targets: proper rotations, residuals like the others
+    for (R, _), m in zip(res.poses, res.mirrored):
+        assert np.linalg.det(R) > 0.999999
+    assert np.max(res.per_view_rms) < 2.5 * np.median(res.per_view_rms)
+
+
+def test_mirrored_pose_reproduces_the_virtual_target(rng):
+    poses = _poses(n_views=12, n_mirrored=4)
+    objs, imgs, mirrored = _views(poses, rng, noise=0.0)
+    res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored)
+    for (R, t), (R0, t0, m) in zip(res.poses, poses):
+        pts = transform_points(R, t, X @ MIRROR_FLIP.T if m else X)
+        truth = transform_points(R0, t0, X) * ([-1.0, 1.0, 1.0] if m else 1.0)
+        # noise-free data; OpenCV takes float32 image points (~6e-5 px rounding), i.e. ~1e-3 mm at 3 m
+        assert np.max(np.abs(pts - truth)) < 1e-2
+
+
+def test_reported_sigma_matches_monte_carlo():
+    """The reported standard deviations match the spread of the estimates over noise draws."""
+    poses = _poses()
+    rng = np.random.default_rng(11)
+    est, std = [], []
+    for _ in range(30):
+        objs, imgs, mirrored = _views(poses, rng)
+        res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None)
+        v = _values(res.camera)
+        est.append([v[k] for k in ("fx", "cx", "cy", "k1", "p1")])
+        std.append([res.std[k] for k in ("fx", "cx", "cy", "k1", "p1")])
+    ratio = np.std(est, axis=0, ddof=1) / np.mean(std, axis=0)
+    # 30 draws: the sample standard deviation is known to ±13 % (1σ); accept 0.6–1.5
+    assert np.all(ratio > 0.6) and np.all(ratio < 1.5), ratio
+
+
+def test_outlier_view_is_dropped_with_a_reason(rng):
+    objs, imgs, mirrored = _views(_poses(), rng)
+    imgs[7] = imgs[7] + rng.normal(0, 1.0, imgs[7].shape)  # a bad detection: 1 px noise
+    res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=3.0)
+    assert [d.index for d in res.dropped] == [7]
+    assert "median" in res.dropped[0].reason and res.dropped[0].rms > 0.5
+    assert 7 not in res.view_indices
+    assert abs(res.camera.fx / TRUE.fx - 1) < 1e-3
+    kept = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None)
+    assert 7 in kept.view_indices and kept.rms > res.rms
+    absolute = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None, max_view_rms=0.2)
+    assert [d.index for d in absolute.dropped] == [7] and "max_view_rms" in absolute.dropped[0].reason
+    assert "dropped view 7" in res.report()
+
+
+def test_distortion_models(rng):
+    objs, imgs, mirrored = _views(_poses(), rng)
+    res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, model="radial2")
+    assert np.all(res.camera.dist[2:] == 0) and "p1" not in res.std and "k2" in res.std
+    rat = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, model="rational")
+    assert rat.camera.dist.size == 8 and "k4" in rat.std
+    none = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, model="none")
+    # the true lens distorts by ~10 px at the corners: without a distortion model the residuals
+    # cannot reach the noise level
+    assert none.camera.dist.size == 0 and none.rms > 3 * res.rms
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(model="fisheye"), "model must be one of"),
+    (dict(mirrored=[True]), "one flag per view"),
+    (dict(image_size=(0, 10)), "image_size must be positive"),
+    (dict(reject=0.5), "reject must be > 1"),
+])
+def test_bad_arguments(rng, kwargs, message):
+    objs, imgs, mirrored = _views(_poses(n_views=4), rng)
+    args = dict(mirrored=mirrored)
+    args.update(kwargs)
+    size = args.pop("image_size", TRUE.size)
+    with pytest.raises(ValueError, match=message):
+        calibrate_intrinsics(objs, imgs, size, **args)
+
+
+def test_bad_views(rng):
+    objs, imgs, _ = _views(_poses(n_views=4), rng)
+    with pytest.raises(ValueError, match="at least 3 views"):
+        calibrate_intrinsics(objs[:2], imgs[:2], TRUE.size)
+    with pytest.raises(ValueError, match="object-point arrays but"):
+        calibrate_intrinsics(objs, imgs[:3], TRUE.size)
+    with pytest.raises(ValueError, match="rows must correspond"):
+        calibrate_intrinsics(objs, [imgs[0][:-1]] + imgs[1:], TRUE.size)
+    bad = [q.copy() for q in imgs]
+    bad[1][0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        calibrate_intrinsics(objs, bad, TRUE.size)
+    with pytest.raises(ValueError, match="not planar"):
+        calibrate_intrinsics([X + [0, 0, 1.0] * np.arange(18)[:, None]] * 4, imgs, TRUE.size)
+    with pytest.raises(ValueError, match=r"shape \(N, 2\)"):
+        calibrate_intrinsics(objs, [q[:, :1] for q in imgs], TRUE.size)
