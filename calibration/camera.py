@@ -313,6 +313,8 @@ class Camera:
 
         ``interpolation`` is ``"linear"`` or ``"cubic"``; pixels that map outside the input are 0.
         The output has the input's dtype and the size of ``Camera.size`` (which must match the image).
+        For display and checks: ``cv2.remap`` quantises sub-pixel positions to 1/32 px, so measure on
+        the original images and undistort *points* (:meth:`undistort_points`) instead.
         """
         import cv2
 

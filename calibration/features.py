@@ -329,12 +329,11 @@ class _DotFit:
 
 
 def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterations=15):
-    """Pass 1: fit ``phi = 2 pi |s| / period + phi0 + g . s``, ``s = dehom(A x)``, on one cell.
+    """Pass 1: fit ``phi = 2 pi |s| / period + phi0``, ``s = dehom(A x)``, on one cell.
 
-    ``A0`` maps image (x, y, 1) to cell-centred screen px (lattice frame). ``g`` (rad per screen
-    px) takes up the local gradient of the target's code phase. Pixels with ``|s| < rho_in`` or
-    within ``border`` of the cell edge are left out. Gauss-Newton on the wrapped residual,
-    modulation-weighted. Returns a :class:`_DotFit` (``g`` in ``.g``) or None."""
+    ``A0`` maps image (x, y, 1) to cell-centred screen px (lattice frame). Pixels with
+    ``|s| < rho_in`` or within ``border`` of the cell edge are left out. Gauss-Newton on the
+    wrapped residual, modulation-weighted. Returns a :class:`_DotFit` or None."""
     h, w = phase.shape
     half = pitch / 2 - border
     Ainv = np.linalg.inv(A0)
@@ -383,19 +382,18 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
         u0, u1, u2 = uu[:, 0], uu[:, 1], uu[:, 2]
         # A <- (I + D) A, D = [[a, b, c], [b, e, f], [g, h, 0]] (rotation gauge removed)
         J = np.stack([g0 * u0, g0 * u1 + g1 * u0, g0 * u2, g1 * u1, g1 * u2, g2 * u0, g2 * u1,
-                      np.ones_like(u0), sx, sy], axis=1)
+                      np.ones_like(u0)], axis=1)
         Jw = J * ww[:, None]
         Hm = Jw.T @ Jw
         try:
             delta = np.linalg.solve(Hm + 1e-9 * np.diag(np.diag(Hm)), Jw.T @ (res * ww))
         except np.linalg.LinAlgError:
             return None
-        a, b, c, e, f, g, hh, dphi, dgx, dgy = delta
+        a, b, c, e, f, g, hh, dphi = delta
         D = np.array([[a, b, c], [b, e, f], [g, hh, 0.0]])
         A = (np.eye(3) + D) @ A
         A = A / A[2, 2]
         phi0 = float(_wrap(phi0 + dphi))
-        gvec = gvec + (dgx, dgy)
         if np.abs(delta[:7]).max() < 1e-11 and abs(dphi) < 1e-10:
             break
     u = X[use] @ A.T
@@ -408,6 +406,105 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
                   float(np.median(wts[use])), True)
     fit.g = gvec
     return fit
+
+
+def _edge_cdf(d, a, b):
+    """Fraction of a unit pixel on the inner side of a straight edge, and its derivative.
+
+    ``d`` (px) is the signed distance of the pixel centre from the edge (positive inside), the
+    edge normal is ``(a, b) = (|n_x|, |n_y|)``. The projection of the pixel area on the normal is
+    the sum of two uniform variables of widths ``a`` and ``b``: the fraction is their CDF at ``d``
+    (piecewise quadratic), the derivative their (trapezoidal) density."""
+    hi = np.maximum(a, b)
+    lo = np.maximum(np.minimum(a, b), 1e-6)
+    e1 = (hi - lo) / 2
+    e2 = (hi + lo) / 2
+    frac = np.where(d <= -e2, 0.0, np.where(d >= e2, 1.0, 0.5 + d / hi))
+    q1 = (d > -e2) & (d < -e1)
+    q2 = (d > e1) & (d < e2)
+    frac = np.where(q1, (d + e2) ** 2 / (2 * hi * lo), frac)
+    frac = np.where(q2, 1 - (e2 - d) ** 2 / (2 * hi * lo), frac)
+    dens = np.where((d > -e1) & (d < e1), 1.0 / hi, 0.0)
+    dens = np.where(q1, (d + e2) / (hi * lo), dens)
+    dens = np.where(q2, (e2 - d) / (hi * lo), dens)
+    return frac, dens
+
+
+def _pixel_field(target: PhaseTarget, Ac, u, c_screen, jac: bool):
+    """The complex fringe field ``exp(i Phi)`` a camera pixel integrates, and its derivatives.
+
+    ``u = Ac (x, y, 1)`` per pixel (``Ac``: image -> screen px relative to ``c_screen``). The
+    radial phase is evaluated at the pixel centre; the code's jumps at cell borders and the edge
+    of the fringe area are area-weighted over the pixel footprint (straight edges, exact
+    box-filter fractions), so the field and its derivatives with respect to the 8 parameters of
+    ``A <- (I + D) A`` are smooth. Returns ``E`` (N,) and ``dE`` (N, 8) (or None)."""
+    q2 = u[:, 2]
+    sc = u[:, :2] / q2[:, None]
+    sa = sc + c_screen
+    k = TWO_PI / target.period
+    nx, ny = target.grid
+    first = target._first
+    pitch = target.pitch
+    i, j = target.cell_of(sa[:, 0], sa[:, 1])
+    rel = sa - (first + np.stack([i, j], axis=1) * pitch)
+    rho = np.maximum(np.hypot(rel[:, 0], rel[:, 1]), 1e-12)
+    radial = np.exp(1j * k * rho)
+    # image-space gradients of s_x and s_y: the normals of the screen's vertical/horizontal lines
+    gxx = (Ac[0, 0] - sc[:, 0] * Ac[2, 0]) / q2
+    gxy = (Ac[0, 1] - sc[:, 0] * Ac[2, 1]) / q2
+    gyx = (Ac[1, 0] - sc[:, 1] * Ac[2, 0]) / q2
+    gyy = (Ac[1, 1] - sc[:, 1] * Ac[2, 1]) / q2
+    nsx = np.maximum(np.hypot(gxx, gxy), 1e-12)
+    nsy = np.maximum(np.hypot(gyx, gyy), 1e-12)
+    ax_, bx_ = np.abs(gxx) / nsx, np.abs(gxy) / nsx
+    ay_, by_ = np.abs(gyx) / nsy, np.abs(gyy) / nsy
+    # nearest cell border along x and y, and the neighbour across it
+    sgx = np.where(rel[:, 0] >= 0, 1, -1)
+    sgy = np.where(rel[:, 1] >= 0, 1, -1)
+    i2 = np.clip(i + sgx, 0, nx - 1)
+    j2 = np.clip(j + sgy, 0, ny - 1)
+    dx_in = (pitch / 2 - np.abs(rel[:, 0])) * nsx  # image px from the border, inside the cell
+    dy_in = (pitch / 2 - np.abs(rel[:, 1])) * nsy
+    Fx, px_ = _edge_cdf(dx_in, ax_, bx_)
+    Fy, py_ = _edge_cdf(dy_in, ay_, by_)
+    fx = np.where(i2 != i, 1 - Fx, 0.0)  # area fraction across the border
+    fy = np.where(j2 != j, 1 - Fy, 0.0)
+    off = target.code_offsets
+    e00 = np.exp(1j * off[j, i])
+    e10 = np.exp(1j * off[j, i2])
+    e01 = np.exp(1j * off[j2, i])
+    e11 = np.exp(1j * off[j2, i2])
+    C = (1 - fx) * (1 - fy) * e00 + fx * (1 - fy) * e10 + (1 - fx) * fy * e01 + fx * fy * e11
+    # edge of the fringe area
+    lo, hi = target._lit_lo, target._lit_hi
+    d_lx = (sa[:, 0] - lo[0]) * nsx
+    d_hx = (hi[0] - sa[:, 0]) * nsx
+    d_ly = (sa[:, 1] - lo[1]) * nsy
+    d_hy = (hi[1] - sa[:, 1]) * nsy
+    Flx, plx = _edge_cdf(d_lx, ax_, bx_)
+    Fhx, phx = _edge_cdf(d_hx, ax_, bx_)
+    Fly, ply = _edge_cdf(d_ly, ay_, by_)
+    Fhy, phy = _edge_cdf(d_hy, ay_, by_)
+    L = Flx * Fhx * Fly * Fhy
+    E = L * radial * C
+    if not jac:
+        return E, None
+    z = np.zeros_like(q2)
+    u0, u1, u2 = u[:, 0] / q2, u[:, 1] / q2, u[:, 2] / q2
+    dsx = np.stack([u0, u1, u2, z, z, z, -sc[:, 0] * u0, -sc[:, 0] * u1], axis=1)
+    dsy = np.stack([z, z, z, u0, u1, u2, -sc[:, 1] * u0, -sc[:, 1] * u1], axis=1)
+    drho = (rel[:, 0] / rho)[:, None] * dsx + (rel[:, 1] / rho)[:, None] * dsy
+    # d fx / d p: moving s_x towards the border (sign sgx) grows the fraction across it
+    dfx = np.where(i2 != i, px_ * nsx, 0.0)[:, None] * (sgx[:, None] * dsx)
+    dfy = np.where(j2 != j, py_ * nsy, 0.0)[:, None] * (sgy[:, None] * dsy)
+    dC_dfx = (1 - fy) * (e10 - e00) + fy * (e11 - e01)
+    dC_dfy = (1 - fx) * (e01 - e00) + fx * (e11 - e10)
+    dC = dC_dfx[:, None] * dfx + dC_dfy[:, None] * dfy
+    dLx = (plx * nsx * Fhx - Flx * phx * nsx)[:, None] * dsx
+    dLy = (ply * nsy * Fhy - Fly * phy * nsy)[:, None] * dsy
+    dL = (Fly * Fhy)[:, None] * dLx + (Flx * Fhx)[:, None] * dLy
+    dE = (1j * k * E)[:, None] * drho + (radial * C)[:, None] * dL + (L * radial)[:, None] * dC
+    return E, dE
 
 
 def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0: float, iterations: int = 10):
@@ -430,9 +527,6 @@ def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0
     Ac = Ac / Ac[2, 2]
     v = max(sigma0, 0.3) ** 2
     sig_pad = max(sigma0, 1.0)
-    Jl = _jacobian_h(np.linalg.inv(Ac), np.zeros(2))  # image px per screen px at the dot
-    screen_per_image = 1.0 / math.sqrt(abs(np.linalg.det(Jl)))
-    edge_band = (3.0 * sig_pad + 2.0) * screen_per_image
 
     def region(Ac_):
         Ainv = np.linalg.inv(Ac_)
@@ -446,11 +540,6 @@ def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0
         u = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], axis=1) @ Ac_.T
         s_ = u[:, :2] / u[:, 2:3]
         inside = (np.abs(s_) <= half).all(axis=1) & fitmask[ys.ravel(), xs.ravel()]
-        # stay off the edge of the fringe area (its motion is not in the Jacobian)
-        sa_ = s_ + c_screen
-        d_edge = np.minimum(np.minimum(sa_[:, 0] - target._lit_lo[0], target._lit_hi[0] - sa_[:, 0]),
-                            np.minimum(sa_[:, 1] - target._lit_lo[1], target._lit_hi[1] - sa_[:, 1]))
-        inside &= d_edge > edge_band
         if inside.sum() < 50:
             return None
         return xs.ravel()[inside], ys.ravel()[inside]
@@ -475,46 +564,10 @@ def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0
     dx = (fx_pts - fx_pts.mean()) / max(1.0, np.ptp(fx_pts))
     dy = (fy_pts - fy_pts.mean()) / max(1.0, np.ptp(fy_pts))
 
-    sub_offsets = (np.arange(4) + 0.5) / 4 - 0.5
-
-    def emitted(sa):
-        phi = target.phase(sa[:, 0], sa[:, 1])
-        lit = np.isfinite(phi)
-        return np.where(lit, np.exp(1j * np.where(lit, phi, 0.0)), 0.0), lit
-
     def evaluate(Ac_, v_, jac: bool):
         u = Xb @ Ac_.T
-        sc = u[:, :2] / u[:, 2:3]
-        sa = sc + c_screen
-        E, lit = emitted(sa)
-        # pixels crossed by the edge of the fringe area: 4x4 sub-samples (E jumps to 0 there)
-        litg = lit.reshape(nyb, nxb)
-        edge = np.zeros((nyb, nxb), dtype=bool)
-        dxe = litg[:, 1:] != litg[:, :-1]
-        dye = litg[1:, :] != litg[:-1, :]
-        edge[:, 1:] |= dxe
-        edge[:, :-1] |= dxe
-        edge[1:, :] |= dye
-        edge[:-1, :] |= dye
-        idx = np.flatnonzero(edge.ravel())
-        if idx.size:
-            acc = np.zeros(idx.size, dtype=complex)
-            for oy in sub_offsets:
-                for ox in sub_offsets:
-                    us = (Xb[idx] + (ox, oy, 0.0)) @ Ac_.T
-                    acc += emitted(us[:, :2] / us[:, 2:3] + c_screen)[0]
-            E[idx] = acc / sub_offsets.size ** 2
-        fields = [E]
-        if jac:
-            gphx, gphy = target.phase_gradient(sa[:, 0], sa[:, 1])
-            q2 = u[:, 2]
-            g0 = gphx / q2
-            g1 = gphy / q2
-            g2 = -(gphx * sc[:, 0] + gphy * sc[:, 1]) / q2
-            u0, u1, u2 = u[:, 0], u[:, 1], u[:, 2]
-            iE = 1j * E
-            for col in (g0 * u0, g0 * u1, g0 * u2, g1 * u0, g1 * u1, g1 * u2, g2 * u0, g2 * u1):
-                fields.append(iE * col)
+        E, dE = _pixel_field(target, Ac_, u, c_screen, jac)
+        fields = [E] if not jac else [E] + [dE[:, m] for m in range(8)]
         stack = np.stack(fields).reshape(len(fields), nyb, nxb)
         T = np.exp(-2 * np.pi ** 2 * v_ * f2)
         spec = sfft.fft2(stack, axes=(1, 2), workers=-1)
@@ -552,7 +605,7 @@ def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0
         Hm = Jr.T @ Jr
         grad = Jr.T @ rr
         accepted = False
-        for _ in range(6):
+        for _ in range(12):
             try:
                 delta = -np.linalg.solve(Hm + lam * np.diag(np.diag(Hm) + 1e-12), grad)
             except np.linalg.LinAlgError:
@@ -568,7 +621,16 @@ def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0
                 cost, lam, accepted = cn, max(lam / 10, 1e-7), True
                 break
             lam *= 10
-            if os.environ.get("SPECULA_DEBUG"): print("   it", it, "cost", cost, "lam", lam, "acc", accepted, "v", v)
+            if os.environ.get("SPECULA_DEBUG") and not accepted:
+                ng = np.zeros(9)
+                for m in range(9):
+                    hstep = [1e-7, 1e-7, 1e-5, 1e-7, 1e-7, 1e-5, 1e-10, 1e-10, 1e-4][m]
+                    dp = np.zeros(9); dp[m] = hstep
+                    A1, v1 = apply(Ac, dp); F1, _ = evaluate(A1, v1, False); r1 = solve_gain(F1)[2]
+                    dp[m] = -hstep
+                    A2, v2 = apply(Ac, dp); F2, _ = evaluate(A2, v2, False); r2 = solve_gain(F2)[2]
+                    ng[m] = (np.vdot(r1, r1).real - np.vdot(r2, r2).real) / (2 * hstep)
+                print("   num grad", ng, "\n   J grad", 2 * grad)
         if not accepted or step < 1e-5:
             break
     centre = _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0]
@@ -601,12 +663,9 @@ _DIHEDRAL = [np.array(m) for m in (
 )]
 
 
-def _match_code(labels: np.ndarray, grads: np.ndarray, phi0: np.ndarray, target: PhaseTarget):
-    """Score every placement (T, offset) of the lattice on the target grid.
-
-    ``grads`` (K, 2) are the measured code-phase gradients (rad per cell, lattice frame). For a
-    placement mapping lattice index ``l`` to cell ``T l + o`` the expected gradient in the lattice
-    frame is ``T^T grad psi``. Returns [(rms gradient mismatch, T, offset), ...] best first."""
+def _match_code(labels: np.ndarray, symbols: np.ndarray, target: PhaseTarget):
+    """All placements (mismatches, T, offset) of the lattice labels on the target grid, best first:
+    lattice index ``l`` goes to cell ``T l + offset`` (T one of the 8 rotations/reflections)."""
     nx, ny = target.grid
     out = []
     for T in _DIHEDRAL:
@@ -616,11 +675,7 @@ def _match_code(labels: np.ndarray, grads: np.ndarray, phi0: np.ndarray, target:
         for ox in range(-lo[0], nx - hi[0]):
             for oy in range(-lo[1], ny - hi[1]):
                 ij = L + (ox, oy)
-                sx, sy = (target._first + ij * target.pitch).T
-                gx, gy = target.code_gradient(sx, sy)
-                pred = np.stack([gx, gy], axis=1) * target.pitch @ T  # rows: T^T g
-                rms = float(np.sqrt(np.mean(np.sum((grads - pred) ** 2, axis=1))))
-                out.append((rms, T, (ox, oy)))
+                out.append((int(np.sum(target.code[ij[:, 1], ij[:, 0]] != symbols)), T, (ox, oy)))
     out.sort(key=lambda r: r[0])
     return out
 
@@ -713,7 +768,7 @@ def detect_dots(
             fits.append(None)
             continue
         A0 = np.linalg.inv(_homography(src, dst))
-        fits.append(_fit_dot(phase, modulation, mask, A0, target.period, pitch, 0.1 * target.period, 0.1 * pitch))
+        fits.append(_fit_dot(phase, modulation, mask, A0, target.period, pitch, float(os.environ.get("RIN", 0.1)) * target.period, float(os.environ.get("BRD", 0.1)) * pitch))
     keep = np.array([f is not None for f in fits])
     if keep.sum() < 4:
         raise DetectionError(f"only {int(keep.sum())} dot fits succeeded; at least 4 are needed")
@@ -721,23 +776,21 @@ def detect_dots(
     lab_k = lab[keep]
     centres = np.array([f.centre for f in fits_k])
     # ids
+    phi0 = np.array([f.phi0 for f in fits_k])
+    sym = np.mod(np.rint(phi0 / (TWO_PI / target.levels)), target.levels).astype(np.int64)
     if target.coded:
-        grads = np.array([f.g for f in fits_k]) * pitch  # rad per cell, lattice frame
-        phi0 = np.array([f.phi0 for f in fits_k])
-        placements = _match_code(lab_k, grads, phi0, target)
-        best, second = placements[0], (placements[1] if len(placements) > 1 else None)
-        a_cell = min(target.code_coefficients[0], target.code_coefficients[1])
-        # the code gradients of two placements differ by >= a (rad/cell) at every dot (see
-        # PhaseTarget._code_coefficients); accept a match within a/3 whose runner-up is 2x worse
-        if best[0] > a_cell / 3 or (second is not None and second[0] < 2 * best[0]):
+        placements = _match_code(lab_k, sym, target)
+        best = placements[0]
+        second = placements[1][0] if len(placements) > 1 else 10 ** 6
+        # the code guarantees >= 2 differing cells between placements of a full window
+        if best[0] > 1 or second - best[0] < 2:
             raise DetectionError(
-                f"the target's orientation code does not identify the dots in this view (best match "
-                f"{best[0]:.3f} rad/cell, runner-up {second[0] if second else float('nan'):.3f}, code step {a_cell:.3f}); "
-                f"{len(lab_k)} dots seen"
+                f"the dot code is ambiguous in this view (best placement {best[0]} mismatches, next {second}); "
+                f"{len(lab_k)} dots seen - show more of the target"
             )
         T, off = best[1], np.array(best[2])
         ij = lab_k @ T.T + off
-        good = np.ones(len(ij), dtype=bool)
+        good = target.code[ij[:, 1], ij[:, 0]] == sym
     else:
         if len(lab_k) != target.n_dots:
             raise DetectionError(

@@ -31,7 +31,7 @@ camera's side). Poses: docs/conventions.md.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -120,7 +120,7 @@ class MirrorExtrinsicsResult:
         return np.sqrt(np.diag(self.pose_covariance)[3:])
 
     def report(self) -> str:
-        R, t = self.R_cam_target, self.t_cam_target
+        t = self.t_cam_target
         lines = [f"mirror extrinsics: {len(self.mirrors)} mirror poses x {self.n_points} points, "
                  f"RMS {self.rms:.4f} px (closed form {self.closed_form_rms:.4f} px)",
                  f"  t_cam_target = {np.array2string(t, precision=3)} mm ± {np.array2string(self.std_translation_mm, precision=3)}",
@@ -333,7 +333,6 @@ class _RigBundle:
         self.R_target0, self.R_rig0 = (target0[0] if target0 else None), (rig0[0] if rig0 else None)
         self.mirror_bases = [[(m.normal.copy(), *_tangent_basis(m.normal)) for m in ms] for ms in (mirrors_left, mirrors_right)]
         self.R_far0 = [R for R, _ in far0]
-        blocks = []
         o = 0
         self.sl = {}
 
@@ -358,7 +357,6 @@ class _RigBundle:
             x0.append(np.concatenate([np.zeros(3), t]))
         self.n_params = o
         self.x0 = np.concatenate(x0) if x0 else np.zeros(0)
-        del blocks
         self.obs = np.concatenate([q.ravel() for q in left_obs] + [q.ravel() for q in right_obs]
                                   + [np.concatenate([ql.ravel(), qr.ravel()]) for _, ql, qr in far])
         self._cache_x = None
@@ -429,7 +427,7 @@ class _RigBundle:
         def block(J_full, name, J_part):
             J_full[:, self.sl[name]] = J_part
 
-        def mirror_rows(camera, P, dP_dtarget, side, j, q_obs, extra):
+        def mirror_rows(camera, P, dP_dtarget, side, j, extra):
             n, d, dn = self._plane(x, side, j)
             Pm = _reflect(P, n, d)
             q, G = _project(camera, Pm, jacobian=True)
@@ -447,7 +445,7 @@ class _RigBundle:
             rows_J.append(J)
 
         for j in range(len(self.left_obs)):
-            mirror_rows(self.left, PL, dPL, "L", j, self.left_obs[j], [])
+            mirror_rows(self.left, PL, dPL, "L", j, [])
         if self.right_obs:
             PR = PL @ R_r.T + t_r
             dPR_dt = np.einsum("ij,njk->nik", R_r, dPL)
@@ -455,7 +453,7 @@ class _RigBundle:
             dPR_drig[:, :, :3] = -_skew(PL @ R_r.T) @ Jl_r
             dPR_drig[:, :, 3:] = np.eye(3)
             for j in range(len(self.right_obs)):
-                mirror_rows(self.right, PR, dPR_dt, "R", j, self.right_obs[j], [("rig", dPR_drig)])
+                mirror_rows(self.right, PR, dPR_dt, "R", j, [("rig", dPR_drig)])
         for i, (Xf, _, _) in enumerate(self.far):
             M = Xf.shape[0]
             R_f, t_f, w_f = self._pose(x, f"far{i}", self.R_far0[i])

@@ -21,7 +21,7 @@ import numpy as np
 
 from .camera import (Camera, FRAME_CONVENTIONS, _check_schema, _read_json, _write_json, nearest_rotation, rigid_fit,
                      rotation_angle_deg, rotation_from_vector, transform_points, vector_from_rotation)
-from .uncertainty import covariance_from_jacobian, propagate
+from .uncertainty import propagate
 
 RIG_SCHEMA = "specula.stereo_rig"
 RIG_SCHEMA_VERSION = 1
@@ -250,6 +250,13 @@ class StereoCalibrationResult:
     poses_left: list
     opencv_rms: float
     bootstrap_samples: np.ndarray | None = None
+
+    def report(self) -> str:
+        lines = [f"stereo calibration: {len(self.per_view_rms)} views, RMS {self.rms:.4f} px (OpenCV {self.opencv_rms:.4f} px)",
+                 self.rig.report()]
+        for v, (l, r) in enumerate(self.per_view_rms):
+            lines.append(f"  view {v:3d}: RMS left {l:.4f} px, right {r:.4f} px")
+        return "\n".join(lines)
 
 
 def _validate_stereo_views(object_points, left_points, right_points):

@@ -12,18 +12,16 @@ Phase target (the paper behind Specula: "Stereo-camera calibration for large-sca
 measurements with active phase targets and planar mirrors", Optics Express 27(6), 9040, 2019,
 doi:10.1364/OE.27.009040, Section 2 and Fig. 3): the screen shows ``N`` phase-shifted images
 
-    I_k(x, y) = B + A sin(Phi(x, y) + 2 pi k / N),   Phi = 2 pi r / period + psi(x, y)
+    I_k(x, y) = B + A sin(Phi(x, y) + 2 pi k / N),   Phi = 2 pi r / period + 2 pi code[j, i] / levels
 
-with ``r`` the distance to the nearest dot centre (the centre of the grid cell the point lies in)
-and ``period`` the fringe period (default: one period per cell, ``period = pitch``, as in the
-paper). Without ``psi`` the wrapped phase jumps at ``r = period / 2``, which draws the paper's
-"dots" of diameter ``period``. Beyond the paper, ``psi`` is an orientation code: a smooth global
-quadratic phase ``psi = a u^2 + b v^2 + c u + d v`` (``u, v`` the screen position in cells from
-the grid centre) with ``a != b`` and ``c / a``, ``d / b`` half-integers, so that its gradient at
-each dot, which the centre fit measures, tells the dot's cell and the target's orientation under
-any rotation, in mirrored (left-handed) views and in partial views. Being smooth, the code keeps
-the fringe field continuous across cell borders (no blurred code edges to model), and it is small
-(its gradient stays below ``code_strength`` times the radial fringe frequency).
+with ``r`` the distance to the nearest dot centre (the centre of the grid cell (i, j) the point
+lies in) and ``period`` the fringe period (default: one period per cell, ``period = pitch``, as in
+the paper). The wrapped phase of a code-0 cell jumps at ``r = period / 2``, which draws the paper's
+"dots" of diameter ``period``. Beyond the paper, each cell carries a phase offset
+``2 pi code / levels`` (``levels = 4``) from a pseudo-random code in which every window of
+``code_window`` cells differs from every other placement of the same window on the grid, rotated
+or mirrored, in at least two cells: ids are unambiguous under any rotation, in mirrored
+(left-handed) views and in partial views that show one such window.
 
 Dense mode: two orthogonal sets of N-step linear fringes ``Phi = 2 pi (s - s_c) / P_l`` (s = x or
 y in screen px, ``s_c`` the screen centre) at several periods ``P_l`` from fine to coarse; the
@@ -51,6 +49,7 @@ __all__ = [
     "CheckerboardTarget",
     "CircleGridTarget",
     "DenseLevel",
+    "make_cell_code",
     "render_view",
     "load_target",
     "TARGET_SCHEMA",
@@ -111,6 +110,109 @@ def _screen_xy(x, y):
     if x.shape != y.shape:
         raise ValueError(f"x and y must have the same shape, got {x.shape} and {y.shape}")
     return x, y
+
+
+# ------------------------------------------------------------------------------------------------
+# the cell code
+# ------------------------------------------------------------------------------------------------
+def _dihedral_views(block: np.ndarray) -> list[np.ndarray]:
+    """The 8 rotations/reflections of a 2-D array."""
+    out = []
+    for b in (block, block.T):
+        for k in range(4):
+            out.append(np.rot90(b, k))
+    return out
+
+
+def _oriented_blocks(code: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """All windows of shape (h, w) read from ``code`` in any of the 8 orientations.
+
+    Returns (blocks (M, h*w), is_identity (M,)): identity blocks are windows read in the
+    target's own orientation."""
+    ny, nx = code.shape
+    blocks, ident = [], []
+    for hh, ww in {(h, w), (w, h)}:
+        for j in range(ny - hh + 1):
+            for i in range(nx - ww + 1):
+                sub = code[j:j + hh, i:i + ww]
+                for t, view in enumerate(_dihedral_views(sub)):
+                    if view.shape != (h, w):
+                        continue
+                    blocks.append(view.ravel())
+                    ident.append((hh, ww) == (h, w) and t == 0)
+    return np.array(blocks), np.array(ident)
+
+
+def _code_conflicts(code: np.ndarray, windows: list[tuple[int, int]], min_distance: int) -> int:
+    """Number of (window, other placement) pairs closer than ``min_distance`` (Hamming)."""
+    total = 0
+    for h, w in windows:
+        blocks, ident = _oriented_blocks(code, h, w)
+        if blocks.size == 0:
+            continue
+        ids = np.flatnonzero(ident)
+        d = (blocks[ids][:, None, :] != blocks[None, :, :]).sum(axis=2)
+        d[np.arange(ids.size), ids] = 10 ** 6  # a window against its own true placement
+        total += int((d < min_distance).sum())
+    return total
+
+
+def _windows_for(grid: tuple[int, int], window: tuple[int, int]) -> list[tuple[int, int]]:
+    """Window shapes (h, w) to check for ``window = (a, b)`` cells on a grid (nx, ny)."""
+    nx, ny = grid
+    a, b = window
+    shapes = [(h, w) for h, w in {(a, b), (b, a)} if h <= ny and w <= nx]
+    return shapes or [(ny, nx)]  # a grid smaller than the window: the whole grid is the window
+
+
+def _search_code(grid: tuple[int, int], levels: int, window: tuple[int, int], seed: int, iterations: int):
+    nx, ny = grid
+    rng = np.random.default_rng(seed)
+    windows = _windows_for(grid, window)
+    code = rng.integers(0, levels, size=(ny, nx))
+    cost = _code_conflicts(code, windows, 2)
+    for _ in range(iterations):
+        if cost == 0:
+            return code
+        j, i = rng.integers(0, ny), rng.integers(0, nx)
+        old = code[j, i]
+        code[j, i] = (old + rng.integers(1, levels)) % levels
+        new = _code_conflicts(code, windows, 2)
+        if new <= cost:
+            cost = new
+        else:
+            code[j, i] = old
+    return code if cost == 0 else None
+
+
+_CODE_CACHE: dict = {}
+
+
+def make_cell_code(grid, levels: int = 4, window=None, seed: int = 2019) -> tuple[np.ndarray, tuple[int, int]]:
+    """Search a cell code for a dot grid: an (ny, nx) int array of symbols in ``[0, levels)``.
+
+    Every window of ``window = (a, b)`` cells (either orientation) differs from every other
+    placement of the same cells on the grid, in any of the 8 rotations/reflections, in at least
+    two symbols (one misread symbol is detected, never mistaken). ``window=None`` tries (2, 3),
+    (3, 3), (3, 4), (4, 4), (4, 5) and returns the first that a seeded local search solves.
+    Returns ``(code, window)``; deterministic for a given ``seed`` (the code is also stored in the
+    target's JSON file).
+    """
+    nx, ny = _pair(grid, "grid", integer=True, minimum=2)
+    if not isinstance(levels, (int, np.integer)) or isinstance(levels, bool) or levels < 2:
+        raise ValueError(f"levels must be an integer >= 2, got {levels!r}")
+    candidates = [tuple(window)] if window is not None else [(2, 3), (3, 3), (3, 4), (4, 4), (4, 5)]
+    for win in candidates:
+        key = (nx, ny, int(levels), int(win[0]), int(win[1]), int(seed))
+        if key not in _CODE_CACHE:
+            _CODE_CACHE[key] = _search_code((nx, ny), int(levels), (int(win[0]), int(win[1])), int(seed), 4000)
+        code = _CODE_CACHE[key]
+        if code is not None:
+            return code.copy(), (int(win[0]), int(win[1]))
+    raise ValueError(
+        f"no {levels}-level code with windows {candidates} found for a {nx}x{ny} grid; "
+        "pass code=False (no orientation code) or another window"
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -215,12 +317,12 @@ class PhaseTarget(_ScreenTarget):
         borders (kept on the screen); the rest of the screen shows the uniform background ``B``.
         A guard band keeps the blurred edge of the fringe area away from the outer dots. Default:
         ``pitch / 2`` clipped to the screen; ``guard=0`` gives the paper's layout.
-    code : bool
-        Add the orientation code ``psi`` (default). ``False`` shows the paper's plain target (ids
-        then rely on a fully visible grid and a known handedness).
-    code_strength : float
-        Largest gradient of ``psi`` over the fringe area, as a fraction of the radial fringe
-        frequency ``2 pi / period`` (default 0.2: the local fringe spacing varies by +-20 %).
+    code : True, False or (ny, nx) int array
+        Orientation/identity code: cell (i, j) gets the phase offset ``2 pi code[j, i] / levels``.
+        ``True`` searches one (:func:`make_cell_code`); ``False`` shows the paper's plain target
+        (ids then rely on a fully visible grid and a known handedness).
+    levels : int
+        Number of code symbols (phase offsets), default 4.
     background, amplitude : float
         ``B`` and ``A`` in grey levels (displayed values stay in [0, 255]).
     gamma : float
@@ -243,8 +345,8 @@ class PhaseTarget(_ScreenTarget):
         period: float | None = None,
         centre=None,
         guard: float | None = None,
-        code: bool = True,
-        code_strength: float = 0.2,
+        code=True,
+        levels: int = 4,
         background: float = 127.5,
         amplitude: float = 127.0,
         gamma: float = 1.0,
@@ -287,52 +389,39 @@ class PhaseTarget(_ScreenTarget):
         self.guard = float(min(guard, self.pitch / 2))
         self._lit_lo = np.maximum(lo - self.guard, -0.5)
         self._lit_hi = np.minimum(hi + self.guard, np.array([w - 0.5, h - 0.5]))
-        if not isinstance(code, (bool, np.bool_)):
-            raise ValueError(f"code must be True (orientation code) or False (plain paper target), got {code!r}")
-        self.code_strength = _positive(code_strength, "code_strength")
-        if self.code_strength >= 0.5:
-            raise ValueError(f"code_strength must be < 0.5 (the radial phase must stay monotonic), got {code_strength}")
-        self.code_coefficients = self._code_coefficients() if code else (0.0, 0.0, 0.0, 0.0)
+        if not isinstance(levels, (int, np.integer)) or isinstance(levels, bool) or levels < 2:
+            raise ValueError(f"levels must be an integer >= 2, got {levels!r}")
+        self.levels = int(levels)
+        if code is True:
+            self.code, self.code_window = make_cell_code(self.grid, self.levels)
+        elif code is False or code is None:
+            self.code, self.code_window = np.zeros((ny, nx), dtype=np.int64), None
+        else:
+            arr = np.asarray(code)
+            if arr.shape != (ny, nx) or not np.issubdtype(arr.dtype, np.integer) or arr.min() < 0 or arr.max() >= self.levels:
+                raise ValueError(
+                    f"code must be an ({ny}, {nx}) integer array with symbols in [0, {self.levels}), "
+                    f"got shape {arr.shape}, dtype {arr.dtype}"
+                )
+            self.code, self.code_window = arr.astype(np.int64), (2, 3)
         self.dense_levels = self._dense_levels(dense_periods, _positive(dense_fine_period, "dense_fine_period"),
                                                _positive(dense_max_ratio, "dense_max_ratio"))
 
     # -- orientation code -----------------------------------------------------------------------
-    def _code_coefficients(self) -> tuple[float, float, float, float]:
-        """(a, b, c, d) of ``psi = a u^2 + b v^2 + c u + d v`` (rad, u and v in cells).
-
-        ``b = 1.6 a`` (tells x from y), ``c = a / 2`` and ``d = -b / 2`` (a flip plus any whole-cell
-        shift changes the gradient by at least ``a`` per cell), ``a`` as large as the gradient
-        budget ``code_strength * 2 pi pitch / period`` (rad per cell) allows over the fringe area."""
-        k_cell = 2 * np.pi * self.pitch / self.period
-        U = max(abs(self._lit_lo[0] - self.centre[0]), abs(self._lit_hi[0] - self.centre[0])) / self.pitch
-        V = max(abs(self._lit_lo[1] - self.centre[1]), abs(self._lit_hi[1] - self.centre[1])) / self.pitch
-        gx = 2 * U + 0.5      # |d psi / du| <= a (2U + 1/2)
-        gy = 1.6 * (2 * V + 0.5)
-        a = self.code_strength * k_cell / math.hypot(gx, gy)
-        b = 1.6 * a
-        return float(a), float(b), float(a / 2), float(-b / 2)
-
     @property
     def coded(self) -> bool:
-        """True when the target carries the orientation code ``psi``."""
-        return any(v != 0 for v in self.code_coefficients)
+        """True when the target carries an orientation code."""
+        return self.code_window is not None
 
-    def _uv(self, x, y):
-        return (x - self.centre[0]) / self.pitch, (y - self.centre[1]) / self.pitch
+    @property
+    def dot_codes(self) -> np.ndarray:
+        """(n_dots,) int: code symbol of each dot, in id order."""
+        return self.code.ravel().copy()
 
-    def code_phase(self, x, y) -> np.ndarray:
-        """The orientation-code phase ``psi`` (rad) at screen points (x, y) px."""
-        x, y = _screen_xy(x, y)
-        a, b, c, d = self.code_coefficients
-        u, v = self._uv(x, y)
-        return a * u * u + b * v * v + c * u + d * v
-
-    def code_gradient(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Gradient of ``psi`` (rad per screen px) at screen points (x, y)."""
-        x, y = _screen_xy(x, y)
-        a, b, c, d = self.code_coefficients
-        u, v = self._uv(x, y)
-        return (2 * a * u + c) / self.pitch, (2 * b * v + d) / self.pitch
+    @property
+    def code_offsets(self) -> np.ndarray:
+        """(ny, nx) float64: the phase offset ``2 pi code / levels`` (rad) of each cell."""
+        return 2 * np.pi * self.code / self.levels
 
     # -- geometry -------------------------------------------------------------------------------
     @property
@@ -384,20 +473,19 @@ class PhaseTarget(_ScreenTarget):
         cx = self._first[0] + i * self.pitch
         cy = self._first[1] + j * self.pitch
         r = np.hypot(x - cx, y - cy)
-        phi = 2 * np.pi * r / self.period + self.code_phase(x, y)
+        phi = 2 * np.pi * r / self.period + self.code_offsets[j, i]
         return np.where(self.lit(x, y), phi, np.nan)
 
     def phase_gradient(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Gradient of the displayed phase (rad per screen px) at screen points (x, y): the radial
-        term ``2 pi / period`` along the direction from the cell's dot centre, plus the code's."""
+        """Gradient of the displayed phase (rad per screen px) at screen points (x, y): ``2 pi /
+        period`` along the direction from the cell's dot centre (the code is constant per cell)."""
         x, y = _screen_xy(x, y)
         i, j = self.cell_of(x, y)
         dx = x - (self._first[0] + i * self.pitch)
         dy = y - (self._first[1] + j * self.pitch)
         r = np.maximum(np.hypot(dx, dy), 1e-12)
         k = 2 * np.pi / self.period
-        cx, cy = self.code_gradient(x, y)
-        return k * dx / r + cx, k * dy / r + cy
+        return k * dx / r, k * dy / r
 
     @property
     def phase_shifts(self) -> np.ndarray:
@@ -524,14 +612,14 @@ class PhaseTarget(_ScreenTarget):
             "period": self.period,
             "centre": list(self.centre),
             "guard": self.guard,
-            "code": self.coded,
-            "code_strength": self.code_strength,
-            "code_coefficients": list(self.code_coefficients),
+            "levels": self.levels,
+            "code": self.code.tolist() if self.coded else None,
+            "code_window": list(self.code_window) if self.coded else None,
             "background": self.background,
             "amplitude": self.amplitude,
             "gamma": self.gamma,
-            "formula": "I_k = B + A sin(2 pi r / period + psi + 2 pi k / steps), r = distance to the nearest dot centre; "
-                       "psi = a u^2 + b v^2 + c u + d v, (u, v) = ((x, y) - centre) / pitch, (a, b, c, d) = code_coefficients",
+            "formula": "I_k = B + A sin(2 pi r / period + 2 pi code[j, i] / levels + 2 pi k / steps), "
+                       "r = distance to the dot centre of the cell (i, j) the point lies in",
             "dense_periods": [[lv.period for lv in self.dense_levels if lv.axis == a] for a in (0, 1)],
             "dense_formula": "I = B + A sin(2 pi (s - centre[axis]) / period + 2 pi k / steps), s = x (axis 0) or y (axis 1) in screen px",
             "ids": self.ids.tolist(),
@@ -541,19 +629,16 @@ class PhaseTarget(_ScreenTarget):
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PhaseTarget":
         _check_schema(data, "phase")
+        code = data.get("code")
         target = cls(
             data["screen"], data["pixel_pitch"], data["grid"], data["pitch"], data["steps"],
             period=data["period"], centre=data["centre"], guard=data["guard"],
-            code=bool(data["code"]), code_strength=data["code_strength"],
+            code=False if code is None else np.asarray(code, dtype=np.int64), levels=data["levels"],
             background=data["background"], amplitude=data["amplitude"], gamma=data["gamma"],
             dense_periods=data.get("dense_periods"),
         )
-        stored = data.get("code_coefficients")
-        if stored is not None and not np.allclose(stored, target.code_coefficients, rtol=1e-9, atol=1e-12):
-            raise ValueError(
-                f"the target file's code_coefficients {stored} differ from those this version computes "
-                f"{list(target.code_coefficients)}; the file was written by an incompatible version"
-            )
+        if code is not None and data.get("code_window"):
+            target.code_window = tuple(int(v) for v in data["code_window"])
         return target
 
     def __repr__(self) -> str:

@@ -354,8 +354,8 @@ def _main(argv=None):  # pragma: no cover - documentation tool
     args = ap.parse_args(argv)
     t0 = time.time()
     rows = accuracy_study(args.draws, args.noise)
-    print(f"| configuration | rig rotation error (deg, RMS) | baseline error (%, RMS) | rig translation error (mm, RMS) "
-          f"| left pose rot. (deg) / transl. (mm) | reported σ baseline (%) | check: neighbour error (mm, RMS) |")
+    print("| configuration | rig rotation error (deg, RMS) | baseline error (%, RMS) | rig translation error (mm, RMS) "
+          "| left pose rot. (deg) / transl. (mm) | reported σ baseline (%) | check: neighbour error (mm, RMS) |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['config']} | {r['rig_rotation_deg']:.4f} | {r['baseline_percent']:.4f} | {r['rig_translation_mm']:.3f} "

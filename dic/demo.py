@@ -19,8 +19,10 @@ import math
 import platform
 import sys
 import time
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -38,6 +40,8 @@ class DemoConfig:
     subset: int = 21
     step: int = 4
     order: int = 2
+    search: str | None = "pyramid"  #: initial-guess strategy (the motion reaches ~5 px)
+    search_radius: int = 8          #: px
     strain_window: int = 7
     noise_sigma: float = 1.0        #: grey levels (8-bit)
     seed: int = 2019
@@ -54,8 +58,8 @@ class DemoState:
     current: np.ndarray | None = None
     field: object = None
     strain: object = None
-    timings: dict = field(default_factory=dict)
-    summary: dict = field(default_factory=dict)
+    timings: dict = dataclasses.field(default_factory=dict)
+    summary: dict = dataclasses.field(default_factory=dict)
 
 
 # -- the known displacement and its derivatives (reference coordinates, px)
@@ -97,7 +101,7 @@ def track_step(state: DemoState) -> None:
     cfg = state.config
     t0 = time.perf_counter()
     state.field = track(state.reference, state.current, step=cfg.step, subset=cfg.subset, order=cfg.order,
-                        device=cfg.device)
+                        search=cfg.search, search_radius=cfg.search_radius, device=cfg.device)
     state.timings["track_s"] = time.perf_counter() - t0
 
 
@@ -159,13 +163,21 @@ def write_step(state: DemoState) -> None:
         w.write_frame(1, state.field, strain=state.strain, path="current.tif")
     write_field_figure(out / "displacement_strain.png", state.reference, state.field, state.strain,
                        title="Specula demo: synthetic speckle, stretch + sinusoidal shear")
+    u_v, _ = displacement(cfg)
+    pts = np.asarray(state.field.points, np.float64)
+    u_true, v_true = u_v(pts[:, 0], pts[:, 1])
+    error_field = SimpleNamespace(points=pts, u=np.asarray(state.field.u) - u_true,
+                                  v=np.asarray(state.field.v) - v_true, valid=state.field.valid)
+    write_field_figure(out / "displacement_error.png", state.reference, error_field, components=("u", "v"),
+                       title="Measured minus true displacement (px)")
     errors = evaluate(state)
     state.summary = {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
         "errors": errors,
         "timings_s": {k: round(v, 3) for k, v in state.timings.items()},
         "python": platform.python_version(),
-        "files": ["reference.tif", "current.tif", "results.h5", "displacement_strain.png", "summary.json", "summary.md"],
+        "files": ["reference.tif", "current.tif", "results.h5", "displacement_strain.png", "displacement_error.png",
+                  "summary.json", "summary.md"],
     }
     (out / "summary.json").write_text(json.dumps(state.summary, indent=2))
     e = errors

@@ -17,7 +17,8 @@ doi:10.1016/j.optlaseng.2008.10.014), extended to a surface in 3-D as in Sutton,
 1. the tangent plane at each point is the least-squares plane of the reference positions of its
    neighbours (the eigenvector of the smallest eigenvalue of their scatter matrix), with the
    unit normal ``n`` turned towards the left camera; the in-plane basis ``e1`` is the object
-   frame's x axis projected onto the plane, ``e2 = n × e1``;
+   frame's x axis projected onto the plane, ``e2 = ± n × e1`` on the side of the frame's y axis
+   (:func:`tangent_basis`);
 2. the 3-D displacement of the neighbours is fitted by least squares as an affine function of
    their tangent-plane coordinates ``(a, b)``: ``U ≈ U0 + G_a a + G_b b``;
 3. the deformed tangent vectors are ``f_a = e1 + G_a``, ``f_b = e2 + G_b`` and the strain is
@@ -36,7 +37,7 @@ from enum import IntEnum
 import numpy as np
 
 __all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "grid_neighbours", "scattered_neighbours",
-           "as_frame", "tangent_axis"]
+           "as_frame", "tangent_axis", "tangent_basis"]
 
 
 class StereoStatus(IntEnum):
@@ -56,7 +57,7 @@ class StereoStatus(IntEnum):
     EPIPOLAR_VIOLATION = 6   #: the matched pair is farther than ``epipolar_tol_px`` from its epipolar line
     TRIANGULATION_FAILED = 7 #: a triangulation status other than OK (behind a camera, degenerate rays,
     #:                          outside an image, lens model not invertible, not converged)
-    LOW_ZNCC = 8             #: a match or track has ZNCC below ``min_zncc``
+    LOW_ZNCC = 8             #: a match or track has ZNCC below ``zncc_min``
 
 
 # ------------------------------------------------------------------------------------------------
@@ -163,8 +164,23 @@ def tangent_axis(normals, x_axis, y_axis=(0.0, 1.0, 0.0)) -> np.ndarray:
         return e1 / np.linalg.norm(e1, axis=1, keepdims=True)
 
 
+def tangent_basis(normals, x_axis, y_axis=(0.0, 1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """In-plane unit axes ``(e1, e2)``, each (N, 3), of planes with unit ``normals`` (N, 3).
+
+    ``e1`` is ``x_axis`` projected onto the plane (``y_axis`` where ``x_axis`` is normal to it);
+    ``e2 = ± n × e1``, the sign chosen so that ``e2 · y_axis >= 0`` — so in the left camera frame
+    ``e2`` points down the image like ``y``, in the best-fit-plane frame along its ``y``.
+    """
+    nrm = np.asarray(normals, dtype=np.float64)
+    e1 = tangent_axis(nrm, x_axis, y_axis)
+    e2 = np.cross(nrm, e1)
+    flip = (e2 @ np.asarray(y_axis, dtype=np.float64)) < 0
+    e2[flip] = -e2[flip]
+    return e1, e2
+
+
 def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_axis=(1.0, 0.0, 0.0),
-                   min_neighbours: int = 6):
+                   y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6):
     """Green-Lagrange strain in the local tangent plane by pointwise least squares (module docstring).
 
     Parameters
@@ -179,8 +195,9 @@ def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_
         Neighbour indices per point (-1 = none), e.g. from :func:`grid_neighbours`.
     camera_center : (3,)
         Position of the (left) camera in the same frame; normals are turned towards it.
-    x_axis : (3,)
-        Direction whose projection onto the tangent plane is ``e1``.
+    x_axis, y_axis : (3,)
+        ``e1`` is ``x_axis`` projected onto the tangent plane, ``e2`` the perpendicular in-plane
+        direction on the side of ``y_axis`` (:func:`tangent_basis`).
     min_neighbours : int
         A point needs this many valid neighbours (itself included), not all on a line.
 
@@ -225,8 +242,7 @@ def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_
     planar = evals[:, 1] > 1e-6 * np.maximum(evals[:, 2], 1e-300)
     to_cam = np.asarray(camera_center, dtype=np.float64) - X[ok]
     nrm = np.where((np.sum(nrm * to_cam, axis=1) < 0)[:, None], -nrm, nrm)
-    e1 = tangent_axis(nrm, x_axis)
-    e2 = np.cross(nrm, e1)
+    e1, e2 = tangent_basis(nrm, x_axis, y_axis)
     idx = np.flatnonzero(ok)
     rel = Xn[idx] - X[idx][:, None, :]                            # about the point itself
     a = np.einsum("nki,ni->nk", rel, e1)
@@ -284,8 +300,9 @@ class Field3D:
     U, V, W : (N,) float64
         Displacements from the reference to the current state, mm (0 for the reference itself).
     exx, eyy, exy : (N,) float64
-        Green-Lagrange surface strain in the local tangent basis ``(e1, e2)`` (dimensionless,
-        tensor shear). NaN exactly where ``strain_valid`` is False.
+        Green-Lagrange surface strain in the local tangent basis ``(e1, e2)``: ``e1`` the frame's
+        x axis projected onto the surface, ``e2`` perpendicular to it on the side of the frame's
+        y axis (dimensionless, tensor shear). NaN exactly where ``strain_valid`` is False.
     normal : (N, 3) float64
         Unit surface normal (towards the left camera), NaN where ``strain_valid`` is False.
     zncc_stereo, zncc_left, zncc_right : (N,) float64
@@ -397,15 +414,15 @@ class Field3D:
         n_left = self.normal @ self.R_frame_left
         xyz = xyz_left @ R.T + t
         uvw = uvw_left @ R.T
-        # rotate the strain tensor from the old in-plane basis to the new one (angle about the normal)
-        e1_old = tangent_axis(n_left, self.R_frame_left[0], self.R_frame_left[1])
-        e1_new = tangent_axis(n_left, R[0], R[1])
-        c = np.sum(e1_new * e1_old, axis=1)
-        s = np.sum(e1_new * np.cross(n_left, e1_old), axis=1)
+        # express the strain tensor in the new in-plane basis: E' = Q E Q^T, Q_ij = e_i' . e_j
+        e1_old, e2_old = tangent_basis(n_left, self.R_frame_left[0], self.R_frame_left[1])
+        e1_new, e2_new = tangent_basis(n_left, R[0], R[1])
+        q11, q12 = np.sum(e1_new * e1_old, axis=1), np.sum(e1_new * e2_old, axis=1)
+        q21, q22 = np.sum(e2_new * e1_old, axis=1), np.sum(e2_new * e2_old, axis=1)
         exx, eyy, exy = self.exx, self.eyy, self.exy
-        new_exx = c * c * exx + 2 * c * s * exy + s * s * eyy
-        new_eyy = s * s * exx - 2 * c * s * exy + c * c * eyy
-        new_exy = -c * s * exx + (c * c - s * s) * exy + c * s * eyy
+        new_exx = q11 * q11 * exx + 2 * q11 * q12 * exy + q12 * q12 * eyy
+        new_eyy = q21 * q21 * exx + 2 * q21 * q22 * exy + q22 * q22 * eyy
+        new_exy = q11 * q21 * exx + (q11 * q22 + q12 * q21) * exy + q12 * q22 * eyy
         return replace(self, X=xyz[:, 0], Y=xyz[:, 1], Z=xyz[:, 2], U=uvw[:, 0], V=uvw[:, 1], W=uvw[:, 2],
                        exx=new_exx, eyy=new_eyy, exy=new_exy, normal=n_left @ R.T,
                        R_frame_left=R, t_frame_left=t, frame_name=name)

@@ -53,8 +53,10 @@ def _limits(values):
     if v.size == 0:
         return -1.0, 1.0
     lo, hi = np.percentile(v, [1, 99])
-    if hi - lo < 1e-12:
-        lo, hi = lo - 1e-6, hi + 1e-6
+    pad = 0.01 * max(abs(lo), abs(hi)) or 1e-6
+    if hi - lo < pad:  # (nearly) uniform: centre a +-1 % range on it
+        mid = 0.5 * (lo + hi)
+        lo, hi = mid - pad, mid + pad
     return float(lo), float(hi)
 
 
@@ -93,7 +95,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
     nrows = -(-n // ncols)
     H, W = ref.shape
     aspect = H / W
-    fig = Figure(figsize=(panel_size * ncols * 1.15, panel_size * aspect * nrows + 0.6), layout="constrained")
+    fig = Figure(figsize=(panel_size * ncols * 1.25, (panel_size * aspect + 0.7) * nrows + 0.5))
+    fig.subplots_adjust(left=0.06, right=0.97, bottom=0.08, top=0.9, wspace=0.35, hspace=0.35)
     pts = np.asarray(field.points, dtype=np.float64)
     for k, name in enumerate(components):
         ax = fig.add_subplot(nrows, ncols, k + 1)
@@ -116,7 +119,9 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         ax.set_title(_LABELS[name])
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
-        fig.colorbar(im, ax=ax, shrink=0.85)
+        cb = fig.colorbar(im, ax=ax, shrink=0.85)
+        cb.formatter.set_useOffset(False)
+        cb.update_ticks()
     if title:
         fig.suptitle(title)
     return fig

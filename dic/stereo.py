@@ -12,7 +12,7 @@ Pipeline (docs/stereo.md, sections "Stereo matching" and "3-D fields"):
    nearby matches get their guess from an already matched neighbour (reliability-guided
    propagation, Pan, Applied Optics 48(8), 2009, doi:10.1364/AO.48.001535), and regions with
    neither from a ZNCC search along their epipolar line in the right image. A match is accepted
-   when IC-GN converged, its ZNCC is at least ``min_zncc`` and the matched point lies within
+   when IC-GN converged, its ZNCC is at least ``zncc_min`` and the matched point lies within
    ``epipolar_tol_px`` of the epipolar line; the others keep a :class:`StereoStatus` saying why.
 2. **Temporal tracking.** Each later state is tracked left-reference -> left-current and
    right-reference -> right-current (reference subsets precomputed once, the previous state's
@@ -28,7 +28,8 @@ centre of the top-left pixel; 3-D in mm in the left camera frame (or a chosen ob
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -279,7 +280,7 @@ def feature_matches(image_a, image_b, *, max_features: int = 20000, ratio: float
 
 
 def affine_guess(points, src, dst, *, k: int = 16, radius: float = 120.0, min_matches: int = 6,
-                 inlier_px: float = 2.0, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+                 inlier_px: float = 2.0, iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Per-POI affine guess ``(u, ux, uy, v, vx, vy)`` from point correspondences ``src -> dst``.
 
     For each POI the displacement ``dst - src`` of its ``k`` nearest correspondences within
@@ -434,14 +435,16 @@ class _TrackResult:
 
 
 def _correlate(corr: _Correlator, current, guess: np.ndarray, has_guess: np.ndarray, initial_source: int, *,
-               eligible: np.ndarray, min_zncc: float, radius: float, extra: Callable | None = None,
+               eligible: np.ndarray, zncc_min: float, radius: float, extra: Callable | None = None,
                fallback: Callable | None = None, max_attempts: int = 3, max_seeds: int = 64,
-               max_fallback_rounds: int = 8, min_fallback: int = 1) -> _TrackResult:
+               max_fallback_rounds: int = 8, min_fallback: int = 1, zncc_drop: float = 0.05) -> _TrackResult:
     """IC-GN of every eligible POI, from the given guesses, then neighbour propagation and a fallback.
 
     ``extra(idx, params) -> bool mask`` adds an acceptance test (the epipolar check);
     ``fallback(idx) -> (guess (m, k), ok (m,))`` proposes guesses for isolated POIs; it is called
-    only while at least ``min_fallback`` eligible POIs are unresolved and untried.
+    only while at least ``min_fallback`` eligible POIs are unresolved and untried. Finally, an
+    accepted POI whose ZNCC is more than ``zncc_drop`` below the median of its accepted
+    neighbours is retried from its best neighbour; the better-correlating result is kept.
     """
     from scipy.spatial import cKDTree
 
@@ -455,6 +458,7 @@ def _correlate(corr: _Correlator, current, guess: np.ndarray, has_guess: np.ndar
     extra_failed = np.zeros(n, dtype=bool)
     source = np.full(n, SOURCE_NONE, dtype=np.int8)
     attempts = np.zeros(n, dtype=np.int32)
+    rank = np.full(n, -1, dtype=np.int32)
     eligible = eligible & corr.ready
 
     def batch(idx: np.ndarray, g: np.ndarray, src: int) -> int:
@@ -464,16 +468,22 @@ def _correlate(corr: _Correlator, current, guess: np.ndarray, has_guess: np.ndar
         p = r["params"].astype(np.float64)
         z = r["zncc"].astype(np.float64)
         st = r["status"].astype(np.int32)
-        params[idx], zncc[idx], status[idx], iters[idx] = p, z, st, r["iterations"]
-        source[idx] = src
         attempts[idx] += 1
-        good = np.isin(st, _GOOD) & (z >= min_zncc)
+        good = np.isin(st, _GOOD) & (z >= zncc_min)
         ext = np.ones(idx.size, dtype=bool)
         if extra is not None and np.any(good):
             ext[good] = extra(idx[good], p[good])
-        extra_failed[idx] = good & ~ext
-        accepted[idx] = good & ext
-        return int(np.count_nonzero(good & ext))
+        # keep the best attempt per POI: accepted > rejected by `extra` > low ZNCC > failed, then ZNCC
+        new_rank = np.where(good & ext, 3, np.where(good, 2, np.where(np.isin(st, _GOOD), 1, 0)))
+        take = (new_rank > rank[idx]) | ((new_rank == rank[idx]) & (np.nan_to_num(z, nan=-2.0)
+                                                                   >= np.nan_to_num(zncc[idx], nan=-2.0)))
+        t = idx[take]
+        params[t], zncc[t], status[t], iters[t] = p[take], z[take], st[take], r["iterations"][take]
+        source[t] = src
+        rank[t] = new_rank[take]
+        extra_failed[t] = (good & ~ext)[take]
+        accepted[t] = (good & ext)[take]
+        return int(np.count_nonzero((good & ext)[take]))
 
     start = np.flatnonzero(has_guess & eligible)
     batch(start, guess[start], initial_source)
@@ -504,6 +514,25 @@ def _correlate(corr: _Correlator, current, guess: np.ndarray, has_guess: np.ndar
         if np.any(ok):
             batch(seeds[ok], g[ok], SOURCE_SEARCH)
             attempts[seeds[ok]] = np.minimum(attempts[seeds[ok]], max_attempts - 1)  # neighbours may still retry
+    # second opinion: an accepted POI whose ZNCC is clearly below its neighbours' converged to a
+    # wrong local minimum more often than not (measured: a 2nd-order track started 2 px away ended
+    # at ZNCC 0.86 with spurious curvature, its neighbours at 0.99); retry it from the best
+    # neighbour and keep whichever result correlates better
+    acc = np.flatnonzero(accepted)
+    if acc.size >= 3:
+        kk = min(9, acc.size)
+        d, j = cKDTree(corr.points[acc]).query(corr.points[acc], k=kk, distance_upper_bound=2.0 * radius)
+        have = np.isfinite(d[:, 1:])
+        nb = np.where(have, acc[np.minimum(j[:, 1:], acc.size - 1)], -1)
+        z_nb = np.where(have, zncc[np.maximum(nb, 0)], np.nan)
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(np.where(np.sum(have, axis=1, keepdims=True) >= 3, z_nb, np.nan), axis=1)
+        suspect = np.isfinite(med) & (zncc[acc] < med - zncc_drop)
+        if np.any(suspect):
+            idx = acc[suspect]
+            best = nb[suspect][np.arange(idx.size), np.nanargmax(np.where(nb[suspect] >= 0, z_nb[suspect], -np.inf), axis=1)]
+            g = _extrapolate(params[best], corr.points[idx] - corr.points[best], corr.order)
+            batch(idx, g, SOURCE_NEIGHBOUR)  # replaces a result only by an accepted one with a higher ZNCC
     return _TrackResult(params, zncc, iters, status, accepted, source, extra_failed)
 
 
@@ -644,14 +673,14 @@ class StereoMatch:
 
 
 def _final_status(res: _TrackResult, eligible: np.ndarray, failed_code: StereoStatus, extra_code: StereoStatus,
-                  min_zncc: float) -> np.ndarray:
+                  zncc_min: float) -> np.ndarray:
     """Per-POI StereoStatus of a correlation stage."""
     out = np.full(res.accepted.shape, int(StereoStatus.OK), dtype=np.int8)
     ran = res.icgn_status != int(Status.NOT_COMPUTED)
     out[~ran] = StereoStatus.NO_GUESS
     bad = ran & ~np.isin(res.icgn_status, _GOOD)
     out[bad] = failed_code
-    low = ran & np.isin(res.icgn_status, _GOOD) & ~(res.zncc >= min_zncc)
+    low = ran & np.isin(res.icgn_status, _GOOD) & ~(res.zncc >= zncc_min)
     out[low] = StereoStatus.LOW_ZNCC
     out[res.extra_failed & ~res.accepted] = extra_code
     out[res.accepted] = StereoStatus.OK
@@ -683,7 +712,7 @@ class StereoCorrelation:
     subset : odd int, subset size (px); order : 1 or 2 (shape function; 2 recommended for stereo).
     frame : "left", "plane" or (R_obj_left, t_obj_left): output frame (see :class:`Field3D`).
     epipolar_tol_px : float, px (undistorted right image) beyond which a match is ``EPIPOLAR_VIOLATION``.
-    min_zncc : float, matches and tracks below it are ``LOW_ZNCC``.
+    zncc_min : float, matches and tracks below it are ``LOW_ZNCC``.
     strain_window : odd int, grid points per side of the strain neighbourhood (scattered points:
         the ``strain_window²`` nearest).
     max_iter, tol : IC-GN iteration limit and convergence threshold (px, see kernels/icgn.py).
@@ -694,7 +723,7 @@ class StereoCorrelation:
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int = 10, roi=None, subset: int = 21,
-                 order: int = 2, frame="left", epipolar_tol_px: float = 1.0, min_zncc: float = 0.8,
+                 order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, device=None):
         self.device = resolve_device(device)
@@ -704,9 +733,9 @@ class StereoCorrelation:
         self.rig = rig
         self.shape = left_ref.shape
         self.epipolar_tol_px = _positive_float(epipolar_tol_px, "epipolar_tol_px")
-        if not (-1.0 <= float(min_zncc) <= 1.0):
-            raise ValueError(f"min_zncc must be in [-1, 1], got {min_zncc!r}")
-        self.min_zncc = float(min_zncc)
+        if not (-1.0 <= float(zncc_min) <= 1.0):
+            raise ValueError(f"zncc_min must be in [-1, 1], got {zncc_min!r}")
+        self.zncc_min = float(zncc_min)
         if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
             raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
         self.max_iter, self.tol = int(max_iter), _positive_float(tol, "tol")
@@ -736,14 +765,20 @@ class StereoCorrelation:
         self.radius = 1.5 * self.step + 1e-6
         self._left_ref, self._right_ref = left_ref, right_ref
         self._F = fundamental_matrix(rig)
+        #: seconds spent per stage in the constructor (reference) and in the last :meth:`measure`
+        self.timings: dict[str, float] = {}
+        t0 = time.perf_counter()
         self.left = _Correlator(left_ref, self.points, self.subset, self.order, self.device, self.max_iter, self.tol)
+        self.timings["reference_prepare_s"] = time.perf_counter() - t0
         self._ideal_left, _ = undistort_points(rig.left, self.points, device=self.device, margin_px=np.inf)
         self.match = self._match() if match is None else self._check_match(match)
         ok = self.match.valid
         self._matched = np.flatnonzero(ok)
         self.right = (_Correlator(right_ref, self.match.points_right[ok], self.subset, self.order, self.device,
                                   self.max_iter, self.tol) if ok.any() else None)
+        t0 = time.perf_counter()
         self._tri_ref = self._triangulate(self.points, self.match.points_right)
+        self.timings["triangulation_s"] = time.perf_counter() - t0
         self._frame = self._choose_frame(frame)
         self._previous = None          # (params_left (N, k), params_right (M, k)) of the last state
         self.reference = self._field(None, index=0)
@@ -777,6 +812,7 @@ class StereoCorrelation:
         """Left reference -> right reference, guided by the rig's epipolar geometry."""
         L, R = self._left_ref, self._right_ref
         k = n_params(self.order)
+        t0 = time.perf_counter()
         pa, pb = feature_matches(L, R, max_features=self.max_features)
         n_feat = 0
         params6 = np.full((self.points.shape[0], 6), np.nan)
@@ -815,10 +851,13 @@ class StereoCorrelation:
             return g, ok
 
         eligible = self.in_roi
-        res = _correlate(self.left, current, guess, has, SOURCE_FEATURES, eligible=eligible, min_zncc=self.min_zncc,
+        self.timings["features_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        res = _correlate(self.left, current, guess, has, SOURCE_FEATURES, eligible=eligible, zncc_min=self.zncc_min,
                          radius=self.radius, extra=extra, fallback=fallback)
+        self.timings["match_icgn_s"] = time.perf_counter() - t0
         status = _final_status(res, eligible & self.left.ready, StereoStatus.MATCH_FAILED,
-                               StereoStatus.EPIPOLAR_VIOLATION, self.min_zncc)
+                               StereoStatus.EPIPOLAR_VIOLATION, self.zncc_min)
         ran = res.icgn_status != int(Status.NOT_COMPUTED)
         right = np.full_like(self.points, np.nan)
         right[ran] = self.points[ran] + _displacement(res.params[ran], self.order)
@@ -875,7 +914,7 @@ class StereoCorrelation:
             g[ok[idx]] = _embed(p6[idx][ok[idx]], self.order)
             return g, ok[idx]
 
-        return _correlate(corr, current, guess, has, src, eligible=eligible, min_zncc=self.min_zncc,
+        return _correlate(corr, current, guess, has, src, eligible=eligible, zncc_min=self.zncc_min,
                           radius=self.radius, fallback=fallback, max_seeds=max(64, n),
                           min_fallback=max(16, int(0.01 * n)))
 
@@ -891,16 +930,35 @@ class StereoCorrelation:
             raise ValueError(f"the current images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
                              f"{self.shape[1]}x{self.shape[0]} px")
         prev = self._previous if use_previous else None
-        n = self.points.shape[0]
         matched = self._matched
+        self.timings = {}
+        t0 = time.perf_counter()
         tl = self._track(self.left, L, None if prev is None else prev[0], self.match.valid, self._left_ref)
+        self.timings["track_left_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         if self.right is not None:
-            tr = self._track(self.right, R, None if prev is None else prev[1], np.ones(matched.size, dtype=bool),
-                             self._right_ref)
+            tr = self._track(self.right, R, None if prev is None else prev[1][matched],
+                             np.ones(matched.size, dtype=bool), self._right_ref)
         else:
             tr = None
-        self._previous = (tl.params, None if tr is None else tr.params)
-        return self._field((tl, tr), index=index)
+        self.timings["track_right_s"] = time.perf_counter() - t0
+        f = self._field((tl, tr), index=index)
+        self._previous = (f.details["params_left"], f.details["params_right"])
+        return f
+
+    def set_previous(self, params_left, params_right) -> None:
+        """Set the initial guess of the next :meth:`measure`: parameters (N, 6|12) of the left and right tracks.
+
+        E.g. ``field.details["params_left"]``, ``field.details["params_right"]`` of the previous
+        state read back from a result file. NaN rows (points that failed) start from zero.
+        """
+        k = n_params(self.order)
+        n = self.points.shape[0]
+        pl = np.asarray(params_left, dtype=np.float64)
+        pr = np.asarray(params_right, dtype=np.float64)
+        if pl.shape != (n, k) or pr.shape != (n, k):
+            raise ValueError(f"previous parameters must both have shape {(n, k)}, got {pl.shape} and {pr.shape}")
+        self._previous = (pl, pr)
 
     # -------------------------------------------------------------------------------------------
     def _field(self, tracks, index: int) -> Field3D:
@@ -944,11 +1002,11 @@ class StereoCorrelation:
                 st_right[matched] = tr.icgn_status
                 p_right[matched] = tr.params
             # per-stage status, first failure wins (reference stages already in `status`)
-            fl = _final_status(tl, m.valid, StereoStatus.TRACK_LEFT_FAILED, StereoStatus.TRACK_LEFT_FAILED, self.min_zncc)
+            fl = _final_status(tl, m.valid, StereoStatus.TRACK_LEFT_FAILED, StereoStatus.TRACK_LEFT_FAILED, self.zncc_min)
             fr = np.full(n, int(StereoStatus.NOT_COMPUTED), dtype=np.int8)
             if tr is not None:
                 fr[matched] = _final_status(tr, np.ones(matched.size, dtype=bool), StereoStatus.TRACK_RIGHT_FAILED,
-                                            StereoStatus.TRACK_RIGHT_FAILED, self.min_zncc)
+                                            StereoStatus.TRACK_RIGHT_FAILED, self.zncc_min)
             ok_ref = status == StereoStatus.OK
             status[ok_ref & (fl != StereoStatus.OK)] = np.where(fl == StereoStatus.LOW_ZNCC, StereoStatus.LOW_ZNCC,
                                                                 StereoStatus.TRACK_LEFT_FAILED)[ok_ref & (fl != StereoStatus.OK)]
@@ -958,7 +1016,9 @@ class StereoCorrelation:
             both = left_ok & right_ok
             use_l = np.where(both[:, None], pl_cur, np.nan)
             use_r = np.where(both[:, None], pr_cur, np.nan)
+            t0 = time.perf_counter()
             xyz_cur, res_cur, tri_cur = self._triangulate(use_l, use_r)
+            self.timings["triangulation_s"] = time.perf_counter() - t0
             epi_cur = np.full(n, np.nan)
             if np.any(both):
                 epi_cur[both] = epipolar_residuals(self.rig, pl_cur[both], pr_cur[both], device=self.device)
@@ -979,7 +1039,9 @@ class StereoCorrelation:
         # reference positions are kept wherever the reference match and its triangulation are good
         xyz_ref_f[~(m.valid & (tri_ref == TriangulationStatus.OK))] = np.nan
         camera_center = t  # the left camera centre (origin of the left frame) in the output frame
+        t0 = time.perf_counter()
         strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center)
+        self.timings["strain_s"] = time.perf_counter() - t0
         details.update(triangulation_status=tri_cur, points_left_cur=pl_cur, points_right_cur=pr_cur)
         zs = np.where(np.isfinite(m.zncc), m.zncc, np.nan)
         return Field3D(
@@ -994,7 +1056,7 @@ class StereoCorrelation:
 
 
 def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=None, step: int = 10, roi=None,
-           subset: int = 21, order: int = 2, frame="left", epipolar_tol_px: float = 1.0, min_zncc: float = 0.8,
+           subset: int = 21, order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
            strain_window: int = 5, device=None, **options) -> Field3D:
     """Stereo DIC of one reference pair, and of one current pair when given.
 
@@ -1003,7 +1065,7 @@ def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=No
     rig : calibration.stereo.StereoRig (cameras ``left``, ``right``; ``R_right_left``, ``t_right_left`` mm).
     left_ref, right_ref : (H, W) grey images of the reference state.
     left_cur, right_cur : (H, W) grey images of a current state, optional (both or neither).
-    points, step, roi, subset, order, frame, epipolar_tol_px, min_zncc, strain_window, device :
+    points, step, roi, subset, order, frame, epipolar_tol_px, zncc_min, strain_window, device :
         see :class:`StereoCorrelation`; ``options`` passes ``max_iter``, ``tol``, ``triangulation``,
         ``max_features``.
 
@@ -1022,7 +1084,7 @@ def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=No
     if (left_cur is None) != (right_cur is None):
         raise ValueError("give both left_cur and right_cur (a current stereo pair) or neither")
     sc = StereoCorrelation(rig, left_ref, right_ref, points=points, step=step, roi=roi, subset=subset, order=order,
-                           frame=frame, epipolar_tol_px=epipolar_tol_px, min_zncc=min_zncc,
+                           frame=frame, epipolar_tol_px=epipolar_tol_px, zncc_min=zncc_min,
                            strain_window=strain_window, device=device, **options)
     if left_cur is None:
         return sc.reference

@@ -41,8 +41,8 @@ Scaled parameters and convergence norm
 Statuses
     ``CONVERGED`` (norm < tol), ``MAX_ITERATIONS``, ``OUT_OF_BOUNDS`` (the reference subset, or a
     warped subset at any iteration, leaves ``[0, W-1] x [0, H-1]``), ``FLAT_SUBSET`` (reference
-    grey-level standard deviation <= ``flat_std``), ``SINGULAR_HESSIAN`` (a Cholesky pivot keeps
-    less than 1e-7 of its diagonal), ``DIVERGED`` (non-finite values, an update longer than the
+    grey-level standard deviation <= ``flat_std``), ``SINGULAR_HESSIAN`` (a Cholesky pivot below
+    1e-6 of the largest diagonal entry of the scaled Hessian), ``DIVERGED`` (non-finite values, an update longer than the
     subset size, or a warped subset with no grey-level variation).
 """
 from __future__ import annotations
@@ -79,8 +79,9 @@ ST_SINGULAR = wp.constant(int(Status.SINGULAR_HESSIAN))
 ST_DIVERGED = wp.constant(int(Status.DIVERGED))
 ST_NOT_COMPUTED = wp.constant(int(Status.NOT_COMPUTED))
 
-#: Relative Cholesky pivot below which the Hessian counts as singular (float32 solves lose it).
-PIVOT_RTOL = 1e-7
+#: A Cholesky pivot below this fraction of the largest diagonal entry of the (scaled) Hessian makes
+#: it SINGULAR_HESSIAN: beyond a condition number ~1e6 float32 solves lose the weak direction.
+PIVOT_RTOL = 1e-6
 
 
 def n_params(order: int) -> int:
@@ -101,14 +102,18 @@ def refdata_width(order: int) -> int:
 
 @wp.func
 def cholesky_inverse(h: mat1212d, k: int):
-    """Inverse of the symmetric positive-definite top-left k x k block of h; ok = 0 if singular."""
+    """Inverse of the symmetric positive-definite top-left k x k block of h; ok = 0 if singular
+    (a pivot below PIVOT_RTOL times the largest diagonal entry)."""
     lo = mat1212d()
     ok = int(1)
+    hmax = wp.float64(0.0)
+    for j in range(k):
+        hmax = wp.max(hmax, h[j, j])
     for j in range(k):
         s = h[j, j]
         for m in range(j):
             s -= lo[j, m] * lo[j, m]
-        if not (s > wp.float64(PIVOT_RTOL) * h[j, j]):
+        if not (s > wp.float64(PIVOT_RTOL) * hmax):
             ok = 0
             s = wp.float64(1.0)
         d = wp.sqrt(s)
@@ -204,9 +209,13 @@ def warped_value(coef: wp.array(dtype=wp.vec4), pitch: int, x0: int, y0: int, du
 @wp.func
 def subset_pass_1st(
     fgrad: wp.array(dtype=wp.vec3), width: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    cx0: int, cy0: int, r: int, dl: wp.vec2, inv_s: float, p: vec6, fmean: float,
+    cx0: int, cy0: int, r: int, dl: wp.vec2, inv_s: float, p: vec6, fmean: float, goff: float,
 ):
-    """One pass over the warped subset: (sum J^T g', (sum g', sum g'^2, sum (f - fm) g')), g' = g - fm."""
+    """One pass over the warped subset: (sum J^T g', (sum g', sum g'^2, sum (f - fm) g')), g' = g - goff.
+
+    ``goff`` (the previous iteration's mean of g, fm at first) keeps the float32 sums free of
+    cancellation: sum g'^2 - (sum g')^2 / n is the variance of g only when g' is nearly centred.
+    """
     b = vec6()
     sg = float(0.0)
     sgg = float(0.0)
@@ -222,7 +231,7 @@ def subset_pass_1st(
         sy1 = float(0.0)
         for i in range(-r, r + 1):
             dx = float(i) + dl[0]
-            g = warped_value(coef, pitch, cx0 + i, cy0 + j, u0 + p[1] * dx, v0 + p[4] * dx) - fmean
+            g = warped_value(coef, pitch, cx0 + i, cy0 + j, u0 + p[1] * dx, v0 + p[4] * dx) - goff
             fg = fgrad[row + i]
             sg += g
             sgg += g * g
@@ -247,7 +256,7 @@ def subset_pass_1st(
 @wp.func
 def subset_pass_2nd(
     fgrad: wp.array(dtype=wp.vec3), width: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    cx0: int, cy0: int, r: int, dl: wp.vec2, inv_s: float, p: vec12, fmean: float,
+    cx0: int, cy0: int, r: int, dl: wp.vec2, inv_s: float, p: vec12, fmean: float, goff: float,
 ):
     """2nd-order version of :func:`subset_pass_1st` (p physical, PARAMS_2ND order)."""
     b = vec12()
@@ -272,7 +281,7 @@ def subset_pass_2nd(
         sy2 = float(0.0)
         for i in range(-r, r + 1):
             dx = float(i) + dl[0]
-            g = warped_value(coef, pitch, cx0 + i, cy0 + j, u0 + dx * (u1 + dx * u2), v0 + dx * (v1 + dx * v2)) - fmean
+            g = warped_value(coef, pitch, cx0 + i, cy0 + j, u0 + dx * (u1 + dx * u2), v0 + dx * (v1 + dx * v2)) - goff
             fg = fgrad[row + i]
             sg += g
             sgg += g * g
@@ -460,6 +469,66 @@ def _row_to_moments(m: mat55d, row: vec5, eta: wp.float64, deg: int):
 
 
 @wp.func
+def _row_moments_deg4(fgrad: wp.array(dtype=wp.vec3), row: int, r: int, dlx: float, inv_s: float, fm: float):
+    """One subset row: sums of G * xi^alpha (alpha <= 4) for G = fx^2, fx fy, fy^2, fx, fy, fx fd, fy fd."""
+    rxx = vec5()
+    rxy = vec5()
+    ryy = vec5()
+    rx = vec5()
+    ry = vec5()
+    rxf = vec5()
+    ryf = vec5()
+    rss = float(0.0)
+    for i in range(-r, r + 1):
+        xi = (float(i) + dlx) * inv_s
+        fg = fgrad[row + i]
+        fd = fg[0] - fm
+        x2 = xi * xi
+        pw = vec5(1.0, xi, x2, x2 * xi, x2 * x2)
+        rxx += (fg[1] * fg[1]) * pw
+        rxy += (fg[1] * fg[2]) * pw
+        ryy += (fg[2] * fg[2]) * pw
+        rx += fg[1] * pw
+        ry += fg[2] * pw
+        rxf += (fg[1] * fd) * pw
+        ryf += (fg[2] * fd) * pw
+        rss += fd * fd
+    return rxx, rxy, ryy, rx, ry, rxf, ryf, rss
+
+
+@wp.func
+def _row_moments_deg2(fgrad: wp.array(dtype=wp.vec3), row: int, r: int, dlx: float, inv_s: float, fm: float):
+    """As :func:`_row_moments_deg4` for alpha <= 2 (1st order); entries 3, 4 are left at zero."""
+    rxx = wp.vec3()
+    rxy = wp.vec3()
+    ryy = wp.vec3()
+    rx = wp.vec3()
+    ry = wp.vec3()
+    rxf = wp.vec3()
+    ryf = wp.vec3()
+    rss = float(0.0)
+    for i in range(-r, r + 1):
+        xi = (float(i) + dlx) * inv_s
+        fg = fgrad[row + i]
+        fd = fg[0] - fm
+        pw = wp.vec3(1.0, xi, xi * xi)
+        rxx += (fg[1] * fg[1]) * pw
+        rxy += (fg[1] * fg[2]) * pw
+        ryy += (fg[2] * fg[2]) * pw
+        rx += fg[1] * pw
+        ry += fg[2] * pw
+        rxf += (fg[1] * fd) * pw
+        ryf += (fg[2] * fd) * pw
+        rss += fd * fd
+    return (_pad5(rxx), _pad5(rxy), _pad5(ryy), _pad5(rx), _pad5(ry), _pad5(rxf), _pad5(ryf), rss)
+
+
+@wp.func
+def _pad5(v: wp.vec3):
+    return vec5(v[0], v[1], v[2], 0.0, 0.0)
+
+
+@wp.func
 def _subset_hessian(fgrad: wp.array(dtype=wp.vec3), width: int, cx0: int, cy0: int, r: int, dl: wp.vec2,
                     k: int, fmean: wp.float64):
     """Centred H = sum (J - Jm)^T (J - Jm), a = sum J^T (f - fm), c = sum J, ss = sum (f - fm)^2.
@@ -484,28 +553,11 @@ def _subset_hessian(fgrad: wp.array(dtype=wp.vec3), width: int, cx0: int, cy0: i
     ss = wp.float64(0.0)
     for j in range(-r, r + 1):
         eta = wp.float64((float(j) + dl[1]) * inv_s)
-        rxx = vec5()
-        rxy = vec5()
-        ryy = vec5()
-        rx = vec5()
-        ry = vec5()
-        rxf = vec5()
-        ryf = vec5()
-        rss = float(0.0)
-        for i in range(-r, r + 1):
-            xi = (float(i) + dl[0]) * inv_s
-            fg = fgrad[(cy0 + j) * width + cx0 + i]
-            fd = fg[0] - fm
-            x2 = xi * xi
-            pw = vec5(1.0, xi, x2, x2 * xi, x2 * x2)
-            rxx += (fg[1] * fg[1]) * pw
-            rxy += (fg[1] * fg[2]) * pw
-            ryy += (fg[2] * fg[2]) * pw
-            rx += fg[1] * pw
-            ry += fg[2] * pw
-            rxf += (fg[1] * fd) * pw
-            ryf += (fg[2] * fd) * pw
-            rss += fd * fd
+        row = (cy0 + j) * width + cx0
+        if dj == 1:
+            rxx, rxy, ryy, rx, ry, rxf, ryf, rss = _row_moments_deg2(fgrad, row, r, dl[0], inv_s, fm)
+        else:
+            rxx, rxy, ryy, rx, ry, rxf, ryf, rss = _row_moments_deg4(fgrad, row, r, dl[0], inv_s, fm)
         ss += wp.float64(rss)
         mxx = _row_to_moments(mxx, rxx, eta, 2 * dj)
         mxy = _row_to_moments(mxy, rxy, eta, 2 * dj)
@@ -632,11 +684,15 @@ def load_hinv12(refdata: wp.array2d(dtype=float), n: int):
 
 
 @wp.func
-def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float):
-    """(gm', df/dg, zncc) from (sum g', sum g'^2, sum (f-fm) g'); df/dg = 0 flags a flat warped subset."""
+def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float, flat_var: float):
+    """(mean g', df/dg, zncc) from (sum g', sum g'^2, sum (f-fm) g').
+
+    df/dg = 0 flags a warped subset without texture: its grey-level variance is at most
+    ``flat_var`` (the reference's flat-subset threshold) or lost in float32 rounding.
+    """
     gmean = sums[0] / float(npx)
     dg2 = sums[1] - sums[0] * gmean
-    if not (dg2 > 1e-12 * sums[1]) or not (dg2 > 0.0):
+    if not (dg2 > 1e-5 * sums[1]) or not (dg2 > float(npx) * flat_var):
         return gmean, 0.0, 0.0
     dg = wp.sqrt(dg2)
     return gmean, fnorm / dg, sums[2] / (fnorm * dg)
@@ -647,6 +703,7 @@ def _icgn_1st(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
     ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    flat_var: float,
     params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),
 ):
@@ -657,6 +714,7 @@ def _icgn_1st(
     it = int(0)
     if st == ST_CONVERGED:
         hinv, a, c, fmean, fnorm = load_hinv6(refdata, n)
+        goff = fmean
         ctr = centres[n]
         dl = deltas[n]
         s = float(r)
@@ -666,9 +724,10 @@ def _icgn_1st(
                              p[3], p[4], p[5], 0.0, 0.0, 0.0) == 0:
                 st = ST_OUT_OF_BOUNDS
                 break
-            b, sums = subset_pass_1st(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean)
+            b, sums = subset_pass_1st(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean, goff)
             it += 1
-            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm)
+            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
+            goff = goff + gmean
             dq = ratio * (hinv * b - gmean * c) - a
             norm = wp.length(dq)
             if ratio == 0.0 or not (norm <= float(2 * r + 1)):
@@ -690,6 +749,7 @@ def _icgn_2nd(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
     ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    flat_var: float,
     params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),
 ):
@@ -702,6 +762,7 @@ def _icgn_2nd(
     it = int(0)
     if st == ST_CONVERGED:
         hinv, a, c, fmean, fnorm = load_hinv12(refdata, n)
+        goff = fmean
         ctr = centres[n]
         dl = deltas[n]
         s = float(r)
@@ -712,9 +773,10 @@ def _icgn_2nd(
                              p[6], p[7], p[8], p[9], p[10], p[11]) == 0:
                 st = ST_OUT_OF_BOUNDS
                 break
-            b, sums = subset_pass_2nd(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean)
+            b, sums = subset_pass_2nd(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean, goff)
             it += 1
-            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm)
+            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
+            goff = goff + gmean
             dq = ratio * (hinv * b - gmean * c) - a
             norm = wp.length(dq)
             if ratio == 0.0 or not (norm <= float(2 * r + 1)):
@@ -777,6 +839,8 @@ class ReferenceSubsets:
     refdata : wp.array2d float32 (N, :func:`refdata_width`)   packed ``H^-1`` and friends.
     status : wp.array int32 (N,)          ``CONVERGED`` (= ready) or why the POI cannot be tracked
                                           (``OUT_OF_BOUNDS``, ``FLAT_SUBSET``, ``SINGULAR_HESSIAN``).
+    flat_std : float                      grey-level std of a flat subset (also applied to the
+                                          warped subsets: DIVERGED when their texture vanishes).
     """
 
     reference: ReferenceImage
@@ -787,6 +851,7 @@ class ReferenceSubsets:
     deltas: wp.array
     refdata: wp.array
     status: wp.array
+    flat_std: float = 0.0
 
     @property
     def device(self) -> str:
@@ -958,7 +1023,7 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
         [0, reference.fgrad, w, h, pts_wp, subset // 2, k, float(flat_std) ** 2, centres, deltas, refdata, status],
         device, offset_index=0, min_chunk=64,
     )
-    return ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status)
+    return ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status, float(flat_std))
 
 
 def _as_guess(guess, n: int, k: int, device: str) -> wp.array:
@@ -1032,7 +1097,7 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
     launch_1d(
         kernel, n,
         [0, subsets.reference.fgrad, w, h, cur.rows4, cur.pitch, subsets.centres, subsets.deltas, subsets.refdata,
-         subsets.status, g, subsets.subset // 2, int(max_iter), float(tol),
+         subsets.status, g, subsets.subset // 2, int(max_iter), float(tol), float(subsets.flat_std) ** 2,
          out.params, out.zncc, out.iterations, out.status],
         device, offset_index=0, min_chunk=64,
     )

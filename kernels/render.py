@@ -289,37 +289,29 @@ def screen_radiance(scene: SceneGeom, s: ScreenGeom, p: wp.vec3, d: wp.vec3) -> 
 
 
 @wp.func
-def keys_w(t: float, k: int) -> float:
-    """Keys (a = -1/2) weight of tap k in {0..3} (offsets -1, 0, 1, 2) at fraction t."""
-    if k == 0:
-        return ((-0.5 * t + 1.0) * t - 0.5) * t
-    if k == 1:
-        return (1.5 * t - 2.5) * t * t + 1.0
-    if k == 2:
-        return ((-1.5 * t + 2.0) * t + 0.5) * t
-    return (0.5 * t - 0.5) * t * t
+def keys_weights(t: float) -> wp.vec4:
+    """Keys (a = -1/2, Catmull-Rom) weights of the taps at offsets -1, 0, 1, 2 for fraction t in [0, 1)."""
+    t2 = t * t
+    return wp.vec4(((-0.5 * t + 1.0) * t - 0.5) * t, (1.5 * t - 2.5) * t2 + 1.0, ((-1.5 * t + 2.0) * t + 0.5) * t, (0.5 * t - 0.5) * t2)
 
 
 @wp.func
-def keys_dw(t: float, k: int) -> float:
-    if k == 0:
-        return (-1.5 * t + 2.0) * t - 0.5
-    if k == 1:
-        return (4.5 * t - 5.0) * t
-    if k == 2:
-        return (-4.5 * t + 4.0) * t + 0.5
-    return (1.5 * t - 1.0) * t
+def keys_dweights(t: float) -> wp.vec4:
+    """Derivatives of :func:`keys_weights` with respect to t."""
+    return wp.vec4((-1.5 * t + 2.0) * t - 0.5, (4.5 * t - 5.0) * t, (-4.5 * t + 4.0) * t + 0.5, (1.5 * t - 1.0) * t)
 
 
 @wp.func
 def disp_eval(g: DispGrid, X: float, Y: float) -> wp.mat33:
-    """Columns: u, du/dX, du/dY (surface-frame components) by Keys bicubic interpolation."""
+    """Columns: u, du/dX, du/dY (surface-frame components) by Keys bicubic interpolation (clamped taps)."""
     fx = (X - g.origin[0]) * g.inv_step[0]
     fy = (Y - g.origin[1]) * g.inv_step[1]
     ix = int(wp.floor(fx))
     iy = int(wp.floor(fy))
-    tx = fx - float(ix)
-    ty = fy - float(iy)
+    wx = keys_weights(fx - float(ix))
+    dwx = keys_dweights(fx - float(ix))
+    wy = keys_weights(fy - float(iy))
+    dwy = keys_dweights(fy - float(iy))
     ny = g.values.shape[0]
     nx = g.values.shape[1]
     u = wp.vec3(0.0)
@@ -327,15 +319,15 @@ def disp_eval(g: DispGrid, X: float, Y: float) -> wp.mat33:
     uy = wp.vec3(0.0)
     for j in range(4):
         row = wp.clamp(iy + j - 1, 0, ny - 1)
-        wy = keys_w(ty, j)
-        dwy = keys_dw(ty, j)
+        r = wp.vec3(0.0)
+        rx = wp.vec3(0.0)
         for i in range(4):
-            col = wp.clamp(ix + i - 1, 0, nx - 1)
-            val = g.values[row, col]
-            wx = keys_w(tx, i)
-            u += (wy * wx) * val
-            ux += (wy * keys_dw(tx, i)) * val
-            uy += (dwy * wx) * val
+            val = g.values[row, wp.clamp(ix + i - 1, 0, nx - 1)]
+            r += wx[i] * val
+            rx += dwx[i] * val
+        u += wy[j] * r
+        ux += wy[j] * rx
+        uy += dwy[j] * r
     return wp.matrix_from_cols(u, ux * g.inv_step[0], uy * g.inv_step[1])
 
 

@@ -185,6 +185,7 @@ def _coverage_points_kernel(
 
 
 _vec16 = wp.types.vector(length=16, dtype=float)
+_vec64 = wp.types.vector(length=64, dtype=float)
 
 
 @wp.func
@@ -225,24 +226,25 @@ def _fine_block_kernel(
     out: wp.array(dtype=float),
     offset: int,
 ):
-    # one 4x4 block of sub-cells: map them, gather the disks near the block once, test each sub-cell
+    # one 8x8 block of sub-cells: map them, gather the disks near the block once (up to 16),
+    # then coverage = clamp(1/2 - min_disks(|p - c| - r) / width, 0, 1) per sub-cell
     b = wp.tid() + offset
-    r0 = (b / nbx) * 4
-    c0 = (b - (b / nbx) * nbx) * 4
-    px = _vec16()
-    py = _vec16()
+    r0 = (b / nbx) * 8
+    c0 = (b - (b / nbx) * nbx) * 8
+    px = _vec64()
+    py = _vec64()
     centre = wp.vec2(0.0, 0.0)
-    for k in range(16):
-        row = wp.min(r0 + k / 4, nrows - 1)
-        col = wp.min(c0 + k - (k / 4) * 4, ncols - 1)
-        q = wp.vec2(start[0] + float(col) * step, start[1] + float(row) * step)
-        x = _map_point(q, mode, shift, field_u, field_v, field_origin, field_step)
+    for k in range(64):
+        row = wp.min(r0 + k / 8, nrows - 1)
+        col = wp.min(c0 + k - (k / 8) * 8, ncols - 1)
+        x = _map_point(wp.vec2(start[0] + float(col) * step, start[1] + float(row) * step),
+                       mode, shift, field_u, field_v, field_origin, field_step)
         px[k] = x[0]
         py[k] = x[1]
         centre += x
-    centre = centre / 16.0
+    centre = centre / 64.0
     far2 = float(0.0)
-    for k in range(16):
+    for k in range(64):
         far2 = wp.max(far2, wp.length_sq(wp.vec2(px[k], py[k]) - centre))
     half = 0.5 * wp.max(width, 0.0)
     reach = wp.sqrt(far2) + half + 1.0e-4
@@ -268,7 +270,7 @@ def _fine_block_kernel(
                 dist = wp.length(c - centre)
                 if dist < r + reach:
                     if dist + reach <= r:
-                        full = 1
+                        full = 1  # every sub-cell is deeper than width/2 inside this disk
                     elif n < 16:
                         cx[n] = c[0]
                         cy[n] = c[1]
@@ -276,36 +278,29 @@ def _fine_block_kernel(
                         n += 1
                     else:
                         overflow = 1
-    for k in range(16):
-        row = r0 + k / 4
-        col = c0 + k - (k / 4) * 4
+    init = half  # no disk within width/2: coverage 0
+    if width <= 0.0:
+        init = 1.0e30  # binary coverage: uncovered unless some |p - c| - r <= 0
+    best = _vec64()
+    for k in range(64):
+        best[k] = init
+    for j in range(n):
+        c = wp.vec2(cx[j], cy[j])
+        r = cr[j]
+        for k in range(64):
+            best[k] = wp.min(best[k], wp.length(wp.vec2(px[k], py[k]) - c) - r)
+    for k in range(64):
+        row = r0 + k / 8
+        col = c0 + k - (k / 8) * 8
         if row < nrows and col < ncols:
-            p = wp.vec2(px[k], py[k])
             val = float(1.0)
             if full == 0:
                 if overflow == 1:
-                    val = speckle_coverage_smooth(model, p, width)
-                else:
-                    # inline _candidate_coverage (passing the candidate vectors by value is slow)
-                    best = float(half)
-                    inside = int(0)
-                    for j in range(n):
-                        d = p - wp.vec2(cx[j], cy[j])
-                        r = cr[j]
-                        dd = wp.dot(d, d)
-                        if dd < (r + half) * (r + half):
-                            sd = wp.sqrt(dd) - r
-                            if sd <= -half:
-                                inside = 1
-                            best = wp.min(best, sd)
-                    if inside == 1:
-                        val = 1.0
-                    elif width > 0.0:
-                        val = wp.clamp(0.5 - best / width, 0.0, 1.0)
-                    else:
-                        val = 0.0
-                        if best <= 0.0:
-                            val = 1.0
+                    val = speckle_coverage_smooth(model, wp.vec2(px[k], py[k]), width)
+                elif width > 0.0:
+                    val = wp.clamp(0.5 - best[k] / width, 0.0, 1.0)
+                elif best[k] > 0.0:
+                    val = 0.0
             out[row * ncols + col] = val
 
 
@@ -655,8 +650,8 @@ def render_speckle(
         # sub-cell m of pixel i along an axis sits at -0.5 + (m + 0.5) h; the band starts at m = r0 s - reach
         start = wp.vec2(-0.5 + (0 - reach + 0.5) * h, -0.5 + (r0 * s - reach + 0.5) * h)
         fine = wp.empty(n_frows * n_fcols, dtype=float, device=device)
-        nbx = (n_fcols + 3) // 4
-        nby = (n_frows + 3) // 4
+        nbx = (n_fcols + 7) // 8
+        nby = (n_frows + 7) // 8
         launch_1d(
             _fine_block_kernel,
             nbx * nby,

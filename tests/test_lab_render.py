@@ -12,7 +12,7 @@ from scipy.optimize import minimize_scalar
 
 from calibration.camera import Camera
 from dic.lab.camera import LabCamera
-from dic.lab.render import project, render
+from dic.lab.rendering import project, render
 from dic.lab.scene import Displacement, Mirror, Scene, Screen, SpeckleCylinder, SpeckleDisks, SpecklePlane, rotation_about
 from kernels import available_devices
 

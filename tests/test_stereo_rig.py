@@ -5,7 +5,6 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.camera import Camera, rotation_angle_deg, rotation_from_vector, transform_points
 from calibration.mirror import joint_mirror_stereo
 from calibration.stereo import StereoRig, reconstruct_target, stereo_calibrate
 from calibration.uncertainty import (checkerboard_far_views, covariance_from_jacobian, paper_mirror_setup, propagate,

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import click
+import numpy as np
 
 
 def _fail(exc: Exception) -> click.ClickException:
@@ -24,7 +25,12 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--step", default=5, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
 @click.option("--order", default="1", show_default=True, type=click.Choice(["1", "2"]),
               help="Shape function: 1 (affine, 6 parameters) or 2 (quadratic, 12 parameters).")
-@click.option("--search", default=None, type=click.FloatRange(min=0), help="Integer-pixel search radius (px) for displacements larger than about a third of the subset.")
+@click.option("--search", default=None, type=click.IntRange(min=1),
+              help="Find an integer-pixel initial guess first, for displacements up to this many px "
+                   "(needed beyond about a third of the subset).")
+@click.option("--search-method", default="pyramid", show_default=True, type=click.Choice(["pyramid", "zncc", "fft", "rg"]),
+              help="Initial-guess strategy used with --search: pyramid (coarse-to-fine), zncc (window search "
+                   "per point), fft (one global shift), rg (reliability-guided propagation).")
 @click.option("--max-iter", default=None, type=click.IntRange(min=1), help="IC-GN iteration limit per point.")
 @click.option("--tol", default=None, type=click.FloatRange(min=0, min_open=True), help="Convergence threshold on the parameter update norm.")
 @click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=0),
@@ -34,12 +40,13 @@ def _fail(exc: Exception) -> click.ClickException:
               help="Also write a displacement/strain figure per frame (PNG) into this folder.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
-def track(reference, current, output, subset, step, order, search, max_iter, tol, strain_window, device,
-          figure_dir, overwrite, quiet):
+def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
+          device, figure_dir, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
-    Frames are numbered 1, 2, ... in the order given. Per point the file holds u, v, the shape
-    function parameters, ZNCC, iterations, a status code and a validity flag, plus strain.
+    Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
+    result (or from --search). Per point the file holds u, v, the shape-function parameters, ZNCC,
+    iterations, a status code and a validity flag, plus strain.
     """
     from tqdm import tqdm
 
@@ -57,11 +64,12 @@ def track(reference, current, output, subset, step, order, search, max_iter, tol
         ref = read_image(reference)
     except ValueError as exc:
         raise _fail(exc) from None
-    settings = {"subset": subset, "step": step, "order": order, "search": search, "max_iter": max_iter, "tol": tol,
+    settings = {"subset": subset, "step": step, "order": order, "search": search,
+                "search_method": search_method if search else None, "max_iter": max_iter, "tol": tol,
                 "strain_window": strain_window}
     try:
-        tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search, max_iter=max_iter,
-                                tol=tol, device=device)
+        tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search,
+                                search_method=search_method, max_iter=max_iter, tol=tol, device=device)
     except ValueError as exc:
         raise _fail(exc) from None
     try:
@@ -73,13 +81,17 @@ def track(reference, current, output, subset, step, order, search, max_iter, tol
 
     done_before = 0
     summary = []
+    previous = None  # (params, valid) of the last frame: the next frame's initial guess
     with writer, tqdm(total=len(current), unit="frame", disable=quiet, desc="track") as bar:
         for k, cur_path in enumerate(current):
             index = k + 1
             if writer.is_done(index):
                 done_before += 1
+                previous = None
                 bar.update(1)
                 continue
+            if previous is None and index > 1 and writer.is_done(index - 1):
+                previous = _stored_guess(output, index - 1)
             t0 = time.perf_counter()
             try:
                 cur = read_image(cur_path)
@@ -87,7 +99,7 @@ def track(reference, current, output, subset, step, order, search, max_iter, tol
                     raise ValueError(
                         f"{cur_path} is {cur.shape[1]}x{cur.shape[0]} px but the reference {reference} is "
                         f"{ref.shape[1]}x{ref.shape[0]} px; all images must have the same size")
-                field = tracker(cur)
+                field = tracker.track(cur, guess=_guess(previous))
                 strain = None
                 if strain_window:
                     from dic.strain import strain as compute_strain
@@ -104,9 +116,8 @@ def track(reference, current, output, subset, step, order, search, max_iter, tol
 
                 write_field_figure(figure_dir / f"frame_{index:06d}.png", ref, field, strain,
                                    title=f"frame {index}: {Path(cur_path).name}")
-            import numpy as np
-
             valid = np.asarray(field.valid, bool)
+            previous = (np.asarray(field.params, np.float64), valid)
             summary.append((index, int(valid.sum()), valid.size, seconds))
             bar.update(1)
     if not quiet:
@@ -117,18 +128,43 @@ def track(reference, current, output, subset, step, order, search, max_iter, tol
         click.echo(f"results: {output}")
 
 
-def _make_tracker(reference, *, subset, step, order, search, max_iter, tol, device):
-    """A callable ``current -> Field2D`` built on dic.track (reference-side work done once)."""
-    import dic.track as dt
+def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device):
+    """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
+    from dic.track import Tracker
 
     kwargs = {"step": step, "subset": subset, "order": order, "device": device}
     if search is not None:
-        kwargs["search"] = search
+        kwargs["search"] = search_method
+        kwargs["search_radius"] = int(search)
     if max_iter is not None:
         kwargs["max_iter"] = max_iter
     if tol is not None:
         kwargs["tol"] = tol
-    if hasattr(dt, "Tracker"):
-        tracker = dt.Tracker(reference, **kwargs)
-        return tracker.track
-    return lambda current: dt.track(reference, current, **kwargs)
+    return Tracker(reference, **kwargs)
+
+
+def _guess(previous):
+    """Initial parameters from the previous frame: its valid points as they are, the others at
+    the mean displacement of the valid ones (None for the first frame or when none is valid)."""
+    if previous is None:
+        return None
+    params, valid = previous
+    if not np.any(valid) or params.ndim != 2:
+        return None
+    guess = params.copy()
+    k = params.shape[1]
+    guess[~valid] = 0.0
+    guess[~valid, 0] = params[valid, 0].mean()
+    guess[~valid, k // 2] = params[valid, k // 2].mean()
+    return guess
+
+
+def _stored_guess(output, index):
+    """(params, valid) of a finished frame in the result file (resuming a sequence)."""
+    import h5py
+
+    with h5py.File(output, "r") as f:
+        g = f["frames"].get(f"{index:06d}")
+        if g is None or "params" not in g or "valid" not in g:
+            return None
+        return np.asarray(g["params"][()], np.float64), np.asarray(g["valid"][()], bool)

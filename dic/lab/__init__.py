@@ -7,7 +7,7 @@ Build a :class:`Scene` (or load one with :func:`load_scene`, or take the paper's
 from .camera import LabCamera, look_at
 from .io import load_scene, save_scene
 from .paper import MIRROR_TILTS_DEG, MonitorPose, PaperRig, paper_fringe_image, paper_rig, tilt_mirror
-from .render import project, render
+from .rendering import project, render
 from .scene import (
     Displacement,
     Mirror,

@@ -1,0 +1,146 @@
+"""``specula stereo``: stereo DIC of a reference image pair and any number of later pairs.
+
+Results go to an HDF5 file (layout: dic/sequence.py, docs/stereo.md), one group per state,
+flushed as each state finishes; rerunning the same command resumes after the last finished one.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+def _image_shape(path) -> tuple[int, int]:
+    """(H, W) of an image file from its header (the pixels are read later, one pair at a time)."""
+    from dic.io import read_image
+
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(path) as tif:
+                shape = tif.series[0].shape
+                return int(shape[0]), int(shape[1])
+        from PIL import Image
+
+        with Image.open(path) as im:
+            return int(im.size[1]), int(im.size[0])
+    except Exception:
+        return read_image(path).shape  # raises a clear ValueError for missing/corrupt files
+
+
+@click.command(name="stereo", context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Stereo rig JSON file (from 'specula calibrate').")
+@click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="HDF5 result file (.h5); an existing compatible file is resumed.")
+@click.option("--step", default=10, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
+@click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
+@click.option("--order", default="2", show_default=True, type=click.Choice(["1", "2"]),
+              help="Shape function: 1 (affine) or 2 (quadratic; recommended for the left-right match).")
+@click.option("--roi", nargs=4, type=float, default=None, metavar="X0 Y0 X1 Y1",
+              help="Region of interest in the left reference image, px.")
+@click.option("--frame", default="left", show_default=True, type=click.Choice(["left", "plane"]),
+              help="Output coordinates: left camera frame, or the best-fit plane of the reference shape.")
+@click.option("--epipolar-tol", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              help="Matches farther than this from their epipolar line (px) are flagged.")
+@click.option("--zncc-min", default=0.8, show_default=True, type=click.FloatRange(-1, 1),
+              help="Matches and tracks with a lower ZNCC are flagged.")
+@click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=3),
+              help="Strain fit window in grid points (odd).")
+@click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
+@click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Also write ParaView files (one .vtu per state and a .pvd collection) into this folder.")
+@click.option("--figures", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Also write PNG maps (depth, displacements, strains, status) per state into this folder.")
+@click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_tol, zncc_min, strain_window, device,
+           vtk_dir, figure_dir, overwrite, quiet):
+    """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
+
+    The first pair is the reference state (state 0: the shape); later pairs are states 1, 2, ...
+    (shape, 3-D displacement and surface strain). Coordinates are in mm.
+    """
+    import numpy as np
+
+    from calibration.stereo import StereoRig
+    from dic.io import read_image
+    from dic.sequence import read_stereo, stereo_sequence
+
+    if len(images) < 2 or len(images) % 2:
+        raise click.BadParameter(f"give the images as LEFT RIGHT pairs (an even number, at least 2); got {len(images)}",
+                                 param_hint="IMAGES")
+    if subset < 5 or subset % 2 == 0:
+        raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
+    if strain_window % 2 == 0:
+        raise click.BadParameter(f"must be an odd number >= 3, got {strain_window}", param_hint="--strain-window")
+    if output.suffix.lower() not in (".h5", ".hdf5"):
+        raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
+    try:
+        rig = StereoRig.load(rig_path)
+    except ValueError as exc:
+        raise click.ClickException(f"rig file {rig_path}: {exc}") from None
+    pairs = [(images[i], images[i + 1]) for i in range(0, len(images), 2)]
+    # check every file's size before any work (headers only): a long run should not stop at its last pair
+    size = None
+    for k, (lp, rp) in enumerate(pairs):
+        for side, p in (("left", lp), ("right", rp)):
+            try:
+                shape = _image_shape(p) if size is not None else read_image(p).shape
+            except ValueError as exc:
+                raise click.ClickException(str(exc)) from None
+            if size is None:
+                size = shape
+                try:
+                    from dic.stereo import check_rig_images
+
+                    check_rig_images(rig, size)
+                except ValueError as exc:
+                    raise click.ClickException(f"{rig_path} does not fit {p}: {exc}") from None
+            elif shape != size:
+                raise click.ClickException(
+                    f"{p} ({side} image of pair {k}) is {shape[1]}x{shape[0]} px but {pairs[0][0]} is "
+                    f"{size[1]}x{size[0]} px; every image must have the same size")
+    options = dict(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
+                   zncc_min=zncc_min, strain_window=strain_window)
+    if roi:
+        options["roi"] = list(roi)
+    written = []
+
+    def after(field):
+        written.append((field.index, int(np.count_nonzero(field.valid)), len(field)))
+
+    try:
+        stereo_sequence(rig, pairs, output, mode="overwrite" if overwrite else "resume", progress=not quiet,
+                        callback=after, device=device, **options)
+    except ValueError as exc:
+        raise click.ClickException(f"{exc}" + (f"; finished states are saved in {output}" if written else "")) from None
+    if vtk_dir is not None or figure_dir is not None:
+        results = read_stereo(output)
+        fields = [results.fields[i] for i in results.indices]
+        if vtk_dir is not None:
+            from dic.export import write_vtk_series
+
+            try:
+                pvd = write_vtk_series(fields, vtk_dir, stem=output.stem)
+            except ValueError as exc:
+                raise click.ClickException(f"VTK export: {exc}") from None
+            if not quiet:
+                click.echo(f"ParaView: {pvd}")
+        if figure_dir is not None:
+            from dic.export import write_figures
+
+            left_ref = read_image(pairs[0][0])
+            for f in fields:
+                write_figures(f, left_ref, figure_dir, prefix=f"state_{f.index:06d}_")
+            if not quiet:
+                click.echo(f"figures: {figure_dir}")
+    if not quiet:
+        for index, n_valid, n in written:
+            click.echo(f"state {index}: {n_valid}/{n} valid points")
+        skipped = len(pairs) - len(written)
+        if skipped:
+            click.echo(f"{skipped} state(s) were already in {output} and were skipped")
+        click.echo(f"results: {output}")

@@ -1,0 +1,269 @@
+"""Integer-pixel initial guesses for IC-GN: batched ZNCC window search, FFT phase correlation,
+and a Gaussian image pyramid for coarse-to-fine tracking.
+
+IC-GN (:mod:`kernels.icgn`) converges from guesses within a few pixels of the solution. For larger
+motions, :func:`zncc_search` scans an integer window per POI (one Warp thread per POI, exhaustive,
+cost ``(2R + 1)^2 S^2`` per POI), :func:`phase_correlation` finds one global integer shift of the
+whole image (NumPy FFT, Kuglin & Hines 1975), and :func:`pyramid` builds the reduced images for
+coarse-to-fine tracking (Burt & Adelson, "The Laplacian pyramid as a compact image code", IEEE
+Trans. Commun. 31(4), 1983, doi:10.1109/TCOM.1983.1095851). The tracking orchestration (coarse-to-
+fine and reliability-guided propagation, Pan et al., Applied Optics 48(8), 2009,
+doi:10.1364/AO.48.001535) lives in :mod:`dic.track`.
+
+Conventions (docs/conventions.md): points ``(x, y)`` in pixels; integer displacements ``(u, v)``
+move reference pixel ``(x, y)`` to ``(x + u, y + v)`` in the current image.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ._device import as_float32_image, resolve_device
+from ._launch import launch_1d
+
+wp.set_module_options({"enable_backward": False})
+
+# ----------------------------------------------------------------------------------------------
+# @wp.func helpers
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def subset_stats(img: wp.array(dtype=float), width: int, cx: int, cy: int, r: int):
+    """(mean, sqrt(sum (f - mean)^2)) of the (2r+1)^2 integer subset centred on (cx, cy)."""
+    s = float(0.0)
+    for j in range(-r, r + 1):
+        row = (cy + j) * width + cx
+        for i in range(-r, r + 1):
+            s += img[row + i]
+    n = float((2 * r + 1) * (2 * r + 1))
+    mean = s / n
+    ss = float(0.0)
+    for j in range(-r, r + 1):
+        row = (cy + j) * width + cx
+        for i in range(-r, r + 1):
+            d = img[row + i] - mean
+            ss += d * d
+    return mean, wp.sqrt(ss)
+
+
+@wp.func
+def candidate_zncc(ref: wp.array(dtype=float), cur: wp.array(dtype=float), width: int, cx: int, cy: int,
+                   du: int, dv: int, r: int, fmean: float, fnorm: float):
+    """ZNCC between the reference subset at (cx, cy) and the current subset at (cx + du, cy + dv)."""
+    sg = float(0.0)
+    sgg = float(0.0)
+    sfg = float(0.0)
+    for j in range(-r, r + 1):
+        rrow = (cy + j) * width + cx
+        crow = (cy + j + dv) * width + cx + du
+        for i in range(-r, r + 1):
+            g = cur[crow + i] - fmean
+            sg += g
+            sgg += g * g
+            sfg += (ref[rrow + i] - fmean) * g
+    n = float((2 * r + 1) * (2 * r + 1))
+    dg2 = sgg - sg * sg / n
+    if not (dg2 > 0.0):
+        return -2.0
+    return sfg / (fnorm * wp.sqrt(dg2))
+
+
+# ----------------------------------------------------------------------------------------------
+# kernels
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def _zncc_search(
+    offset: int, ref: wp.array(dtype=float), cur: wp.array(dtype=float), width: int, height: int,
+    centres: wp.array(dtype=wp.vec2i), start: wp.array(dtype=wp.vec2i), radius: int, r: int,
+    best: wp.array(dtype=wp.vec2i), best_cc: wp.array(dtype=float),
+):
+    n = wp.tid() + offset
+    c = centres[n]
+    s0 = start[n]
+    best[n] = s0
+    best_cc[n] = wp.nan
+    if c[0] - r < 0 or c[1] - r < 0 or c[0] + r > width - 1 or c[1] + r > height - 1:
+        return
+    fmean, fnorm = subset_stats(ref, width, c[0], c[1], r)
+    if not (fnorm > 0.0):
+        return
+    top = float(-3.0)
+    arg = s0
+    for dv in range(s0[1] - radius, s0[1] + radius + 1):
+        if c[1] + dv - r < 0 or c[1] + dv + r > height - 1:
+            continue
+        for du in range(s0[0] - radius, s0[0] + radius + 1):
+            if c[0] + du - r < 0 or c[0] + du + r > width - 1:
+                continue
+            cc = candidate_zncc(ref, cur, width, c[0], c[1], du, dv, r, fmean, fnorm)
+            if cc > top:
+                top = cc
+                arg = wp.vec2i(du, dv)
+    if top > -2.0:
+        best[n] = arg
+        best_cc[n] = top
+
+
+@wp.kernel
+def _reduce_rows(offset: int, src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float), width: int):
+    """Filter rows with [1 4 6 4 1]/16 (mirror) and keep even columns: dst (H, W2)."""
+    y = wp.tid() + offset
+    for xo in range(dst.shape[1]):
+        x = 2 * xo
+        acc = 6.0 * src[y, x]
+        for k in range(1, 3):
+            xl = wp.abs(x - k)
+            xr = x + k
+            if xr > width - 1:
+                xr = 2 * (width - 1) - xr
+            w = 4.0
+            if k == 2:
+                w = 1.0
+            acc += w * (src[y, xl] + src[y, xr])
+        dst[y, xo] = acc * (1.0 / 16.0)
+
+
+@wp.kernel
+def _reduce_cols(offset: int, src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float), height: int):
+    """Filter columns with [1 4 6 4 1]/16 (mirror) and keep even rows."""
+    x = wp.tid() + offset
+    for yo in range(dst.shape[0]):
+        y = 2 * yo
+        acc = 6.0 * src[y, x]
+        for k in range(1, 3):
+            yl = wp.abs(y - k)
+            yr = y + k
+            if yr > height - 1:
+                yr = 2 * (height - 1) - yr
+            w = 4.0
+            if k == 2:
+                w = 1.0
+            acc += w * (src[yl, x] + src[yr, x])
+        dst[yo, x] = acc * (1.0 / 16.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# launchers
+# ----------------------------------------------------------------------------------------------
+
+
+def _int_pairs(a, n: int, name: str) -> np.ndarray:
+    arr = np.asarray(a)
+    if arr.shape != (n, 2):
+        raise ValueError(f"{name} must have shape {(n, 2)}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return np.ascontiguousarray(np.rint(arr), dtype=np.int32)
+
+
+def zncc_search(reference, current, points, radius: int, subset: int = 21, start=None, device=None):
+    """Exhaustive integer ZNCC search of each POI's subset within a window.
+
+    Parameters
+    ----------
+    reference, current : array-like (H, W) grey images of the same shape.
+    points : array-like (N, 2)
+        POIs ``(x, y)``; the subset is centred on ``round(x), round(y)``.
+    radius : int >= 0
+        Half-width R of the search window: shifts ``start + (-R..R)^2`` are tried.
+    subset : odd int >= 3
+    start : array-like (N, 2), optional
+        Integer displacement at the window centre per POI (default zero; rounded).
+    device : None or str
+
+    Returns
+    -------
+    uv : np.ndarray int32 (N, 2)
+        Best integer displacement ``(u, v)`` (``start`` where nothing could be evaluated).
+    zncc : np.ndarray float32 (N,)
+        Its ZNCC; NaN where the reference subset leaves the image or is flat, or no candidate
+        subset fits in the current image.
+    """
+    device = resolve_device(device)
+    ref = as_float32_image(reference, "reference")
+    cur = as_float32_image(current, "current")
+    if ref.shape != cur.shape:
+        raise ValueError(f"reference {ref.shape} and current {cur.shape} images must have the same shape")
+    if isinstance(subset, bool) or not isinstance(subset, (int, np.integer)) or subset < 3 or subset % 2 == 0:
+        raise ValueError(f"subset must be an odd integer >= 3, got {subset!r}")
+    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or radius < 0:
+        raise ValueError(f"radius must be a non-negative integer (pixels), got {radius!r}")
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] == 0:
+        raise ValueError(f"points must be a non-empty (N, 2) array of (x, y), got shape {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("points contain NaN or infinite values")
+    n = pts.shape[0]
+    st = np.zeros((n, 2), np.int32) if start is None else _int_pairs(start, n, "start")
+    h, w = ref.shape
+    centres = wp.array(np.rint(pts).astype(np.int32), dtype=wp.vec2i, device=device)
+    best = wp.empty(n, dtype=wp.vec2i, device=device)
+    best_cc = wp.empty(n, dtype=wp.float32, device=device)
+    launch_1d(
+        _zncc_search, n,
+        [0, wp.array(ref.ravel(), dtype=wp.float32, device=device), wp.array(cur.ravel(), dtype=wp.float32, device=device),
+         w, h, centres, wp.array(st, dtype=wp.vec2i, device=device), int(radius), subset // 2, best, best_cc],
+        device, offset_index=0, min_chunk=1,
+    )
+    return best.numpy().astype(np.int32), best_cc.numpy()
+
+
+def phase_correlation(reference, current) -> tuple[int, int, float]:
+    """Global integer shift ``(u, v)`` of ``current`` relative to ``reference`` by phase correlation.
+
+    Both images are mean-removed and Hann-windowed; the peak of the normalised cross-power
+    spectrum's inverse FFT gives the shift (|u| < W/2, |v| < H/2). NumPy FFT on the host.
+
+    Returns
+    -------
+    (u, v, peak) : the integer shift in pixels and the peak height (1 for a perfect circular shift,
+    close to 0 when the images do not match).
+    """
+    ref = as_float32_image(reference, "reference").astype(np.float64)
+    cur = as_float32_image(current, "current").astype(np.float64)
+    if ref.shape != cur.shape:
+        raise ValueError(f"reference {ref.shape} and current {cur.shape} images must have the same shape")
+    win = np.outer(np.hanning(ref.shape[0]), np.hanning(ref.shape[1]))
+    fr = np.fft.rfft2((ref - ref.mean()) * win)
+    fc = np.fft.rfft2((cur - cur.mean()) * win)
+    cross = fc * np.conj(fr)
+    cross /= np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max() + 1e-30)
+    corr = np.fft.irfft2(cross, s=ref.shape)
+    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    h, w = ref.shape
+    v = iy - h if iy > h // 2 else iy
+    u = ix - w if ix > w // 2 else ix
+    return int(u), int(v), float(corr[iy, ix])
+
+
+def reduce(image, device=None) -> np.ndarray:
+    """One Gaussian-pyramid reduction: filter with [1 4 6 4 1]/16 (mirror borders), keep even pixels.
+
+    Pixel ``(X, Y)`` of the result sits at ``(2X, 2Y)`` of the input, so coordinates and
+    displacements scale by exactly 2 between levels. Returns float32 ``(ceil(H/2), ceil(W/2))``.
+    """
+    device = resolve_device(device)
+    img = as_float32_image(image, "image")
+    h, w = img.shape
+    if h < 3 or w < 3:
+        raise ValueError(f"image must be at least 3x3 to reduce, got shape {img.shape}")
+    h2, w2 = (h + 1) // 2, (w + 1) // 2
+    src = wp.array(img, dtype=wp.float32, device=device)
+    tmp = wp.empty((h, w2), dtype=wp.float32, device=device)
+    dst = wp.empty((h2, w2), dtype=wp.float32, device=device)
+    launch_1d(_reduce_rows, h, [0, src, tmp, w], device, offset_index=0, min_chunk=64)
+    launch_1d(_reduce_cols, w2, [0, tmp, dst, h], device, offset_index=0, min_chunk=64)
+    return dst.numpy()
+
+
+def pyramid(image, levels: int, device=None) -> list[np.ndarray]:
+    """``[image, reduce(image), reduce(reduce(image)), ...]`` with ``levels + 1`` entries (float32)."""
+    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 0:
+        raise ValueError(f"levels must be a non-negative integer, got {levels!r}")
+    out = [as_float32_image(image, "image")]
+    for _ in range(levels):
+        out.append(reduce(out[-1], device=device))
+    return out

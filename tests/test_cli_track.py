@@ -1,0 +1,158 @@
+"""``specula track`` (dic/commands/track.py) with click's CliRunner on small images."""
+import importlib.util
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dic.cli import main
+from dic.io import write_image
+from dic.store import read_results
+from dic.synth import speckle_pair
+
+HAVE_TRACK = importlib.util.find_spec("dic.track") is not None
+
+
+@pytest.fixture
+def images(tmp_path):
+    """A reference and two current images (rigid shifts of 0.4 and 0.8 px along x), 8-bit TIFF."""
+    ref, cur1 = speckle_pair((96, 112), (0.4, -0.3), seed=21)
+    _, cur2 = speckle_pair((96, 112), (0.8, -0.6), seed=21)
+    paths = [write_image(tmp_path / name, img, bits=8) for name, img in
+             [("ref.tif", ref), ("cur1.tif", cur1), ("cur2.tif", cur2)]]
+    return [str(p) for p in paths]
+
+
+class FakeTracker:
+    """Stands in for dic.track so the CLI mechanics are tested on their own: returns a grid
+    field whose u is the frame's mean grey level (so frames are distinguishable)."""
+
+    calls = 0
+    guesses = []
+
+    def __init__(self, reference, *, subset, step, order, **kw):
+        h, w = reference.shape
+        r = subset // 2
+        xs, ys = np.meshgrid(np.arange(r, w - r, step, dtype=float), np.arange(r, h - r, step, dtype=float))
+        self.points = np.stack([xs.ravel(), ys.ravel()], 1)
+        self.order = order
+
+    def track(self, current, guess=None):
+        FakeTracker.calls += 1
+        FakeTracker.guesses.append(None if guess is None else np.array(guess))
+        n = len(self.points)
+        k = 6 if self.order == 1 else 12
+        u = np.full(n, float(np.mean(current)))
+        params = np.zeros((n, k))
+        params[:, 0] = u
+        valid = np.ones(n, bool)
+        valid[0] = False
+        return SimpleNamespace(points=self.points, u=u, v=0.001 * self.points[:, 0], params=params,
+                               zncc=np.ones(n, np.float32), iterations=np.ones(n, np.int32),
+                               status=np.zeros(n, np.int8), valid=valid)
+
+
+@pytest.fixture
+def fake(monkeypatch):
+    import dic.commands.track as cmd
+
+    FakeTracker.calls = 0
+    FakeTracker.guesses = []
+    monkeypatch.setattr(cmd, "_make_tracker", lambda ref, **kw: FakeTracker(ref, **kw))
+    return FakeTracker
+
+
+def run(args):
+    return CliRunner().invoke(main, ["track", *args], catch_exceptions=False)
+
+
+def test_writes_frames_strain_and_figures(images, tmp_path, fake):
+    out = tmp_path / "res.h5"
+    r = run([*images, "-o", str(out), "--step", "8", "--figure", str(tmp_path / "figs")])
+    assert r.exit_code == 0, r.output
+    res = read_results(out)
+    assert sorted(res.frames) == [1, 2] and res.reference["shape"] == (96, 112)
+    assert res.settings["subset"] == 21 and res.settings["step"] == 8
+    assert res.frames[2].path == images[2]
+    # v = 0.001 x exactly -> dv/dx = 0.001 from the plane fits (float64 rounding only)
+    s = res.frames[1].strain
+    assert np.nanmax(np.abs(s["dvdx"] - 0.001)) < 1e-9 and s["valid"].sum() == len(s["valid"]) - 1
+    # frame 2 started from frame 1's result: its parameters, with the invalid point at the mean
+    g = fake.guesses[1]
+    assert fake.guesses[0] is None and np.allclose(g[:, 0], res.frames[1].u[1])
+    assert (tmp_path / "figs" / "frame_000001.png").stat().st_size > 1000
+    assert "frame 2:" in r.output and "valid points" in r.output
+
+
+def test_resume_skips_finished_frames(images, tmp_path, fake):
+    out = tmp_path / "res.h5"
+    assert run([images[0], images[1], "-o", str(out), "-q"]).exit_code == 0
+    assert fake.calls == 1
+    r = run([*images, "-o", str(out)])
+    assert r.exit_code == 0 and fake.calls == 2  # frame 1 skipped, frame 2 computed
+    assert np.allclose(fake.guesses[1][:, 0], read_results(out).frames[1].u[1])  # guess read back from the file
+    assert "1 frame(s) were already" in r.output
+    assert sorted(read_results(out).frames) == [1, 2]
+    r = run([*images, "-o", str(out), "--step", "6"])
+    assert r.exit_code == 1 and "different settings" in r.output
+    r = run([*images, "-o", str(out), "--step", "6", "--overwrite", "-q"])
+    assert r.exit_code == 0 and fake.calls == 4
+
+
+def test_clean_errors(images, tmp_path, fake):
+    out = str(tmp_path / "res.h5")
+    r = run([images[0], str(tmp_path / "missing.tif"), "-o", out])
+    assert r.exit_code == 1 and "image file not found" in r.output and "Traceback" not in r.output
+    raw = open(images[1], "rb").read()
+    (tmp_path / "trunc.tif").write_bytes(raw[: len(raw) // 2])
+    r = run([images[0], images[1], str(tmp_path / "trunc.tif"), "-o", out])
+    assert r.exit_code == 1 and "frame 2" in r.output and "cannot read image" in r.output
+    assert sorted(read_results(out).frames) == [1]  # the finished frame was kept
+    write_image(tmp_path / "small.tif", np.zeros((50, 50)), bits=8)
+    r = run([images[0], str(tmp_path / "small.tif"), "-o", str(tmp_path / "b.h5")])
+    assert r.exit_code == 1 and "same size" in r.output
+    r = run([*images, "-o", str(tmp_path / "c.h5"), "--subset", "20"])
+    assert r.exit_code == 2 and "odd" in r.output
+    r = run([*images, "-o", str(tmp_path / "c.txt")])
+    assert r.exit_code == 2 and ".h5" in r.output
+    import imageio.v3 as iio
+
+    iio.imwrite(tmp_path / "rgb.png", np.zeros((96, 112, 3), np.uint8))
+    r = run([str(tmp_path / "rgb.png"), images[1], "-o", str(tmp_path / "d.h5")])
+    assert r.exit_code == 1 and "colour image" in r.output
+
+
+@pytest.mark.skipif(not HAVE_TRACK, reason="dic.track is not in this checkout yet")
+def test_end_to_end_with_the_real_tracker(images, tmp_path):
+    out = tmp_path / "res.h5"
+    r = run([*images, "-o", str(out), "--step", "8", "--device", "cpu", "-q"])
+    assert r.exit_code == 0, r.output
+    res = read_results(out)
+    for index, (u, v) in [(1, (0.4, -0.3)), (2, (0.8, -0.6))]:
+        f = res.frames[index]
+        # the top row of subsets (y = 10, subset 21) moves out of the image with v < 0: those
+        # points must be reported OUT_OF_BOUNDS, every other one is valid
+        assert f.valid.mean() > 0.8 and np.all(f.status[~f.valid] == 2)
+        # noise-free 8-bit Boolean speckle, 21 px subsets: IC-GN errors are ~0.01 px; 0.03 allows
+        # the 8-bit quantisation and the few border subsets
+        assert np.max(np.abs(f.u[f.valid] - u)) < 0.03 and np.max(np.abs(f.v[f.valid] - v)) < 0.03
+
+
+@pytest.mark.skipif(not HAVE_TRACK, reason="dic.track is not in this checkout yet")
+def test_search_option_finds_a_large_shift(tmp_path):
+    """A 7.6 px shift is beyond IC-GN's reach from zero with 21 px subsets; --search finds it."""
+    ref, cur = speckle_pair((96, 112), (7.6, -5.2), seed=5)
+    paths = [str(write_image(tmp_path / n, im, bits=8)) for n, im in [("r.tif", ref), ("c.tif", cur)]]
+    out = tmp_path / "res.h5"
+    r = run([*paths, "-o", str(out), "--step", "10", "--search", "12", "--device", "cpu", "-q"])
+    assert r.exit_code == 0, r.output
+    f = read_results(out).frames[1]
+    assert res_settings(out)["search_method"] == "pyramid"
+    assert f.valid.sum() >= 10
+    # same bound as above: noise-free 8-bit speckle, IC-GN errors ~0.01 px
+    assert np.max(np.abs(f.u[f.valid] - 7.6)) < 0.03 and np.max(np.abs(f.v[f.valid] + 5.2)) < 0.03
+
+
+def res_settings(path):
+    return read_results(path).settings

@@ -1,0 +1,321 @@
+"""IC-GN kernels: Jacobians and Hessians against finite differences, one Gauss-Newton step against
+a NumPy implementation, warp composition against exact numerical composition, statuses, bad input.
+
+Images here are analytic band-limited textures (sums of sinusoids, |k| <= 0.9 rad/px) sampled
+exactly at any position, so no reference relies on the code under test.
+"""
+import numpy as np
+import pytest
+import warp as wp
+from scipy import ndimage
+
+from kernels.conventions import Status
+from kernels.icgn import (
+    compose_1st,
+    compose_2nd,
+    icgn,
+    n_params,
+    prepare_current,
+    prepare_reference,
+    prepare_subsets,
+    vec6,
+    vec12,
+)
+
+
+class Texture:
+    """f(x, y) = 128 + sum_k a_k sin(kx_k x + ky_k y + phi_k), evaluable anywhere (float64)."""
+
+    def __init__(self, seed=0, n=40, kmax=0.9):
+        rng = np.random.default_rng(seed)
+        k = rng.uniform(0.1, kmax, n)
+        ang = rng.uniform(0, 2 * np.pi, n)
+        self.kx, self.ky = k * np.cos(ang), k * np.sin(ang)
+        self.phi = rng.uniform(0, 2 * np.pi, n)
+        self.a = rng.uniform(5, 15, n)
+
+    def __call__(self, x, y):
+        x = np.asarray(x, float)[..., None]
+        y = np.asarray(y, float)[..., None]
+        return 128 + np.sum(self.a * np.sin(self.kx * x + self.ky * y + self.phi), axis=-1)
+
+    def image(self, shape, mapping=None):
+        """Image whose pixel (x, y) shows the texture at mapping(x, y) (default identity)."""
+        yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+        if mapping is not None:
+            xx, yy = mapping(xx, yy)
+        return self(xx, yy)
+
+
+def shape_displacement(q, dx, dy, s, order):
+    """(U, V) of the scaled parameters q at offsets (dx, dy) (xi = dx/s, eta = dy/s), see icgn docs."""
+    xi, eta = dx / s, dy / s
+    m = 3 if order == 1 else 6
+    mono = [np.ones_like(xi), xi, eta, 0.5 * xi * xi, xi * eta, 0.5 * eta * eta][:m]
+    u = sum(q[k] * mono[k] for k in range(m))
+    v = sum(q[m + k] * mono[k] for k in range(m))
+    return u, v
+
+
+def unpack_refdata(row, order):
+    k = n_params(order)
+    hinv = np.zeros((k, k))
+    iu = np.triu_indices(k)
+    npk = len(iu[0])
+    hinv[iu] = row[:npk]
+    hinv = hinv + np.triu(hinv, 1).T
+    a_ = row[npk:npk + k]
+    c_ = row[npk + k:npk + 2 * k]
+    return hinv, a_, c_, row[npk + 2 * k], row[npk + 2 * k + 1]
+
+
+def fd_terms(img, point, subset, order, h=1e-3):
+    """Finite-difference steepest-descent images J (n, K) of the scipy B-spline interpolant, and f."""
+    r = subset // 2
+    s = float(r)
+    cx0, cy0 = int(round(point[0])), int(round(point[1]))
+    j, i = np.mgrid[-r:r + 1, -r:r + 1]
+    i, j = i.ravel().astype(float), j.ravel().astype(float)
+    dx, dy = i + (cx0 - point[0]), j + (cy0 - point[1])
+    k = n_params(order)
+
+    def sample(q):
+        u, v = shape_displacement(q, dx, dy, s, order)
+        return ndimage.map_coordinates(img, [cy0 + j + v, cx0 + i + u], order=3, mode="mirror")
+
+    jac = np.zeros((i.size, k))
+    for c in range(k):
+        e = np.zeros(k)
+        e[c] = h
+        jac[:, c] = (sample(e) - sample(-e)) / (2 * h)
+    return jac, sample(np.zeros(k)), (cx0, cy0, i, j)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+@pytest.mark.parametrize("point", [(40.0, 37.0), (51.3, 44.6)])
+def test_hessian_and_jacobians_match_finite_differences(device, order, point):
+    img = Texture(1).image((90, 100))
+    subset = 21
+    ref = prepare_reference(img, device=device)
+    subs = prepare_subsets(ref, np.array([point]), subset=subset, order=order)
+    assert subs.status.numpy()[0] == Status.CONVERGED
+    hinv, a_k, c_k, fmean, fnorm = unpack_refdata(subs.refdata.numpy()[0].astype(np.float64), order)
+    jac, f, _ = fd_terms(img, point, subset, order)
+    jc = jac - jac.mean(axis=0)
+    h_fd = jc.T @ jc  # centred Gauss-Newton Hessian (docs: sum (J - Jm)^T (J - Jm))
+    a_fd = jac.T @ (f - f.mean())
+    c_fd = jac.sum(axis=0)
+    h_k = np.linalg.inv(hinv)
+    # FD truncation ~h^2 f''' / 6 ~ 1e-6 relative; float32 gradients/sums and a float32 H^-1
+    # (condition number ~1e3) leave ~1e-4 relative error
+    assert np.linalg.norm(h_k - h_fd) / np.linalg.norm(h_fd) < 1e-3
+    sol = np.linalg.solve(h_fd, np.c_[a_fd, c_fd])
+    assert np.linalg.norm(a_k - sol[:, 0]) <= 1e-3 * np.linalg.norm(sol[:, 0]) + 1e-6
+    assert np.linalg.norm(c_k - sol[:, 1]) <= 1e-3 * np.linalg.norm(sol[:, 1]) + 1e-6
+    assert abs(fmean - f.mean()) < 1e-3
+    assert abs(fnorm - np.linalg.norm(f - f.mean())) < 1e-4 * fnorm
+
+
+@wp.kernel
+def _compose1_probe(p: wp.array2d(dtype=float), dp: wp.array2d(dtype=float), out: wp.array2d(dtype=float)):
+    i = wp.tid()
+    a = vec6()
+    b = vec6()
+    for k in range(6):
+        a[k] = p[i, k]
+        b[k] = dp[i, k]
+    c = compose_1st(a, b)
+    for k in range(6):
+        out[i, k] = c[k]
+
+
+@wp.kernel
+def _compose2_probe(p: wp.array2d(dtype=float), dp: wp.array2d(dtype=float), s: float, out: wp.array2d(dtype=float)):
+    i = wp.tid()
+    a = vec12()
+    b = vec12()
+    for k in range(12):
+        a[k] = p[i, k]
+        b[k] = dp[i, k]
+    c = compose_2nd(a, b, s)
+    for k in range(12):
+        out[i, k] = c[k]
+
+
+def compose(p, dp, order, s, device):
+    pa = wp.array(np.atleast_2d(p).astype(np.float32), dtype=wp.float32, device=device)
+    da = wp.array(np.atleast_2d(dp).astype(np.float32), dtype=wp.float32, device=device)
+    out = wp.zeros(pa.shape, dtype=wp.float32, device=device)
+    if order == 1:
+        wp.launch(_compose1_probe, dim=pa.shape[0], inputs=[pa, da, out], device=device)
+    else:
+        wp.launch(_compose2_probe, dim=pa.shape[0], inputs=[pa, da, float(s), out], device=device)
+    return out.numpy()[0].astype(np.float64)
+
+
+def physical_displacement(p, x, y, order):
+    """(U, V) of physical parameters (PARAMS order) at offsets (x, y)."""
+    if order == 1:
+        return p[0] + p[1] * x + p[2] * y, p[3] + p[4] * x + p[5] * y
+    u = p[0] + p[1] * x + p[2] * y + 0.5 * p[3] * x * x + p[4] * x * y + 0.5 * p[5] * y * y
+    v = p[6] + p[7] * x + p[8] * y + 0.5 * p[9] * x * x + p[10] * x * y + 0.5 * p[11] * y * y
+    return u, v
+
+
+def exact_composition(p, dp, x, y, order):
+    """Points W(p)(W(dp)^-1(x, y)), the inverse by Newton iterations (float64)."""
+    zx, zy = x.copy(), y.copy()
+    for _ in range(50):
+        u, v = physical_displacement(dp, zx, zy, order)
+        rx, ry = zx + u - x, zy + v - y
+        hh = 1e-6
+        ux1, vx1 = physical_displacement(dp, zx + hh, zy, order)
+        uy1, vy1 = physical_displacement(dp, zx, zy + hh, order)
+        a11, a12 = 1 + (ux1 - u) / hh, (uy1 - u) / hh
+        a21, a22 = (vx1 - v) / hh, 1 + (vy1 - v) / hh
+        det = a11 * a22 - a12 * a21
+        zx, zy = zx - (a22 * rx - a12 * ry) / det, zy - (-a21 * rx + a11 * ry) / det
+    u, v = physical_displacement(p, zx, zy, order)
+    return zx + u, zy + v
+
+
+def test_composition_1st_order_is_exact(device):
+    r = 10
+    j, i = np.mgrid[-r:r + 1, -r:r + 1].astype(float)
+    p = np.array([1.7, 0.02, -0.015, -0.6, 0.01, 0.03])
+    dp = np.array([0.05, 0.004, -0.002, -0.03, 0.001, 0.006])
+    c = compose(p, dp, 1, r, device)
+    xe, ye = exact_composition(p, dp, i, j, 1)
+    u, v = physical_displacement(c, i, j, 1)
+    # affine warps form a group: only float32 rounding remains (~1e-6 px)
+    assert np.max(np.hypot(i + u - xe, j + v - ye)) < 2e-5
+
+
+def test_composition_2nd_order(device):
+    r = 10
+    j, i = np.mgrid[-r:r + 1, -r:r + 1].astype(float)
+    p = np.array([1.7, 0.02, -0.015, 3e-4, -2e-4, 1e-4, -0.6, 0.01, 0.03, -1e-4, 2e-4, 3e-4])
+    dp0 = np.array([0.05, 0.004, -0.002, 4e-5, -3e-5, 2e-5, -0.03, 0.001, 0.006, 2e-5, 1e-5, -4e-5])
+    errors = []
+    for scale in (1.0, 0.1):
+        dp = dp0 * scale
+        c = compose(p, dp, 2, r, device)
+        xe, ye = exact_composition(p, dp, i, j, 2)
+        u, v = physical_displacement(c, i, j, 2)
+        errors.append(np.max(np.hypot(i + u - xe, j + v - ye)))
+    # Gao's 6x6 matrices drop cubic/quartic monomials: the error is a product of the quadratic
+    # terms of p with dp (and of dp with itself), here ~1e-4 px, and it shrinks at least in
+    # proportion to dp (the composition is consistent: p o 0 = p, so IC-GN's fixed point is exact)
+    assert errors[0] < 5e-4
+    assert errors[1] < 0.15 * errors[0] + 2e-5
+    # with a purely affine p the truncated terms are products of dp with itself: O(|dp|^2)
+    p_aff = p.copy()
+    p_aff[[3, 4, 5, 9, 10, 11]] = 0.0
+    c = compose(p_aff, dp0, 2, r, device)
+    xe, ye = exact_composition(p_aff, dp0, i, j, 2)
+    u, v = physical_displacement(c, i, j, 2)
+    assert np.max(np.hypot(i + u - xe, j + v - ye)) < 5e-5
+    # identity: p o 0 = p
+    np.testing.assert_allclose(compose(p, np.zeros(12), 2, r, device), p, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_one_gauss_newton_step_matches_numpy(device, order):
+    tex = Texture(2)
+    shape = (90, 100)
+    ref_img = tex.image(shape)
+    # current: an affine deformation of the texture (its exact parameters do not matter here:
+    # the NumPy step below uses the same current image)
+    cur_img = tex.image(shape, lambda x, y: (x - 0.35 - 0.01 * y, y + 0.2 - 0.008 * x))
+    point = (48.0, 43.0)
+    subset = 21
+    ref = prepare_reference(ref_img, device=device)
+    subs = prepare_subsets(ref, np.array([point]), subset=subset, order=order)
+    res = icgn(subs, prepare_current(cur_img, device=device), max_iter=1, tol=1e-9).numpy()
+    assert res["status"][0] == Status.MAX_ITERATIONS and res["iterations"][0] == 1
+    # NumPy IC-GN step from zero: e = (f - fm) - df/dg (g - gm), dq = -H^-1 sum J^T e
+    jac, f, (cx0, cy0, i, j) = fd_terms(ref_img, point, subset, order)
+    g = cur_img[(cy0 + j).astype(int), (cx0 + i).astype(int)]
+    fz, gz = f - f.mean(), g - g.mean()
+    e = fz - np.linalg.norm(fz) / np.linalg.norm(gz) * gz
+    jc = jac - jac.mean(axis=0)
+    dq = -np.linalg.solve(jc.T @ jc, jac.T @ e)
+    s = subset // 2
+    scale = np.array([1, s, s, 1, s, s] if order == 1 else [1, s, s, s * s, s * s, s * s] * 2, float)
+    dp = dq / scale
+    expected = compose(np.zeros(n_params(order)), dp, order, s, device)
+    # the kernel's B-spline gradients vs FD of scipy's spline (~1e-4 relative) and float32 sums
+    err = np.abs(res["params"][0] - expected) * scale
+    assert np.max(err) < 2e-4 * max(1.0, np.max(np.abs(dq)))
+    zncc = fz @ gz / (np.linalg.norm(fz) * np.linalg.norm(gz))
+    assert abs(res["zncc"][0] - zncc) < 1e-5
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_converges_on_integer_and_subpixel_points(device, order):
+    tex = Texture(3)
+    shape = (80, 90)
+    u0, v0 = 0.63, -0.41
+    ref_img = tex.image(shape)
+    cur_img = tex.image(shape, lambda x, y: (x - u0, y - v0))
+    pts = np.array([[40.0, 40.0], [30.0, 45.0], [52.25, 33.7], [47.5, 41.5]])
+    ref = prepare_reference(ref_img, device=device)
+    subs = prepare_subsets(ref, pts, subset=21, order=order)
+    res = icgn(subs, cur_img).numpy()
+    k = n_params(order)
+    assert np.all(res["status"] == Status.CONVERGED)
+    assert np.all(res["iterations"] <= 6)
+    # band-limited texture, B-spline interpolation error < 1e-3 grey: displacement error ~1e-4 px
+    assert np.max(np.abs(res["params"][:, 0] - u0)) < 2e-3
+    assert np.max(np.abs(res["params"][:, k // 2] - v0)) < 2e-3
+    assert np.all(res["zncc"] > 0.9999)
+
+
+def test_statuses(device):
+    tex = Texture(4)
+    shape = (80, 100)
+    img = tex.image(shape)
+    img[5:40, 60:95] = 100.0  # flat patch
+    stripes = 128 + 50 * np.sin(0.7 * np.arange(100))[None, :] * np.ones((80, 1))
+    img[45:78, 60:95] = stripes[45:78, 60:95]  # texture along x only: singular Hessian
+    pts = np.array([[30.0, 30.0], [5.0, 40.0], [77.0, 20.0], [77.0, 61.0], [40.0, 40.0]])
+    ref = prepare_reference(img, device=device)
+    subs = prepare_subsets(ref, pts, subset=21, order=1)
+    st = subs.status.numpy()
+    assert st[1] == Status.OUT_OF_BOUNDS  # reference subset crosses the left border
+    assert st[2] == Status.FLAT_SUBSET
+    assert st[3] == Status.SINGULAR_HESSIAN
+    guess = np.zeros((5, 6))
+    guess[4, 0] = 50.0  # warped subset would leave the image
+    cur = tex.image(shape, lambda x, y: (x - 0.4, y))
+    res = icgn(subs, cur, guess=guess).numpy()
+    assert res["status"][0] == Status.CONVERGED
+    assert res["status"][4] == Status.OUT_OF_BOUNDS
+    assert np.all(res["status"][1:4] == st[1:4])
+    assert np.isnan(res["zncc"][1])
+    res = icgn(subs, cur, max_iter=1).numpy()
+    assert res["status"][0] == Status.MAX_ITERATIONS
+    res = icgn(subs, np.full(shape, 90.0)).numpy()  # nothing to correlate with
+    assert res["status"][0] == Status.DIVERGED
+
+
+def test_bad_input(device):
+    img = Texture(5).image((40, 40))
+    ref = prepare_reference(img, device=device)
+    with pytest.raises(ValueError, match="odd"):
+        prepare_subsets(ref, [[20, 20]], subset=20)
+    with pytest.raises(ValueError, match="order"):
+        prepare_subsets(ref, [[20, 20]], order=3)
+    with pytest.raises(ValueError, match="empty"):
+        prepare_subsets(ref, np.zeros((0, 2)))
+    subs = prepare_subsets(ref, [[20, 20]], subset=11)
+    with pytest.raises(ValueError, match="shape"):
+        icgn(subs, np.zeros((40, 41)))
+    with pytest.raises(ValueError, match=r"\(1, 6\)"):
+        icgn(subs, img, guess=np.zeros((1, 12)))
+    with pytest.raises(ValueError, match="NaN"):
+        icgn(subs, img, guess=np.full((1, 6), np.nan))
+    with pytest.raises(ValueError, match="max_iter"):
+        icgn(subs, img, max_iter=0)
+    with pytest.raises(ValueError, match="tol"):
+        icgn(subs, img, tol=-1.0)

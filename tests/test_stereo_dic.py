@@ -1,0 +1,357 @@
+"""End-to-end stereo DIC on virtual-lab images with exact ground truth (dic.stereo, dic.sequence, CLI).
+
+Scene: two 320x240 px pinhole cameras (12 mm lens, 7.4 um pixels: f = 1641 px, no distortion, no
+sensor noise, 8-bit), 300 mm apart and toed in on a point 1000 mm in front of their midpoint
+(17 deg between the axes); a 300 x 250 mm speckled plane (Boolean model, 1.2 mm disk radius ~ 2 px)
+facing the cameras at 1000 mm. Images are ray-traced by dic.lab with 16 samples per pixel.
+
+Error budget used for the bounds: the depth sensitivity of this rig is
+dZ/d(disparity) ~ Z^2 / (f B) = 1000^2 / (1641 * 300) = 2.03 mm/px, the lateral one Z / f = 0.61 mm/px.
+IC-GN (2nd order, 21 px subsets) on these renders has a random error of ~0.03 px (measured against
+the exact projections; it falls to ~0.017 px with 64 samples per pixel, so it is the rendering
+quadrature that limits it). We allow 0.05 px RMS per matched coordinate.
+"""
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calibration.camera import rotation_from_vector
+from calibration.stereo import StereoRig
+from dic.field3d import StereoStatus
+from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.stereo import StereoCorrelation, stereo
+from dic.synth import make_speckle
+from dic.triangulate import TriangulationStatus
+
+W_PX, H_PX = 320, 240
+TRANSLATION_WORLD = np.array([1.0, -0.5, 2.0])  # mm, rigid motion of the plane (state 1)
+STRETCH = 0.005                                  # uniform stretch of the plane along its x axis (state 2)
+DEPTH_MM_PER_PX = 1000.0**2 / (1641.0 * 300.0)   # 2.03 mm of depth per px of disparity
+LATERAL_MM_PER_PX = 1000.0 / 1641.0              # 0.61 mm per px
+
+
+def _cameras():
+    return [LabCamera.from_lens(name=name, size=(W_PX, H_PX), focal_length_mm=12.0, f_number=float("inf"),
+                                focus_distance_mm=1000.0, position=(x, 0.0, 0.0), look_at_point=(0.0, 0.0, 1000.0),
+                                exposure_dn=200.0, bit_depth=8)
+            for name, x in (("left", -150.0), ("right", 150.0))]
+
+
+@pytest.fixture(scope="module")
+def lab():
+    cams = _cameras()
+    speckle = make_speckle(region=(-5, -5, 305, 255), radius=1.2, density=0.5, bits=None, seed=3)
+    plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(300.0, 250.0), speckle=speckle)
+    t_local = plane.R_world_surface.T @ TRANSLATION_WORLD
+    moved = replace(plane, displacement=Displacement(np.broadcast_to(t_local, (2, 2, 3)).copy(), (0.0, 0.0), (300.0, 250.0)))
+    stretched = replace(plane, displacement=Displacement.from_function(
+        lambda X, Y: (STRETCH * (X - 150.0), 0.0 * Y, 0.0 * X), extent=(0, 300, 0, 250), step=10.0))
+    states = []
+    for k, p in enumerate((plane, moved, stretched)):
+        scene = Scene(cameras=cams, planes=[p])
+        states.append(tuple(render(scene, i, samples=16, seed=10 * k + i) for i in range(2)))
+    left, right = cams
+    R = right.R_cam_world @ left.R_cam_world.T
+    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    normal = left.R_cam_world @ plane.R_world_surface[:, 2]
+    centre = left.R_cam_world @ plane.to_world(np.array([[150.0, 125.0]]))[0] + left.t_cam_world
+    return {"rig": rig, "states": states, "plane": (normal, centre), "R_left_world": left.R_cam_world}
+
+
+def _exact_points(rig, normal, centre, points_left):
+    """Independent ground truth: intersect each left pixel's ray with the plane, project into the right camera."""
+    xy = rig.left.undistort_normalized(rig.left.pixels_to_normalized(points_left))
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    X = rays * ((normal @ centre) / (rays @ normal))[:, None]
+    return X, rig.right.project(X @ rig.R_right_left.T + rig.t_right_left)
+
+
+@pytest.fixture(scope="module")
+def measured(lab):
+    (l0, r0), (l1, r1), (l2, r2) = lab["states"]
+    sc = StereoCorrelation(lab["rig"], l0, r0, step=10, subset=21, order=2, device="cpu")
+    translated = sc.measure(l1, r1, index=1)
+    stretched = sc.measure(l2, r2, index=2, use_previous=False)
+    return sc, translated, stretched
+
+
+def test_reference_match_and_plane_shape(lab, measured, device):
+    sc, _, _ = measured
+    if device != "cpu":
+        (l0, r0) = lab["states"][0]
+        sc = StereoCorrelation(lab["rig"], l0, r0, step=10, device=device)
+    f = sc.reference
+    ok = f.valid
+    # most of the grid is matched: only POIs whose warped subset leaves the right image fail
+    # (the plane fills both views; the 21 px subsets of the last grid column fall off the right image)
+    assert ok.mean() > 0.9
+    failed = ~ok
+    assert np.all(f.status[failed] == StereoStatus.MATCH_FAILED)
+    x, y = f.points[failed, 0], f.points[failed, 1]
+    assert np.all((x <= 21) | (x >= W_PX - 1 - 21) | (y <= 21) | (y >= H_PX - 1 - 21))
+    normal, centre = lab["plane"]
+    X_true, right_true = _exact_points(lab["rig"], normal, centre, f.points[ok])
+    err = sc.match.points_right[ok] - right_true
+    # matching error against the exact projection: bias < 0.01 px (sub-pixel interpolation bias of
+    # cubic B-splines on 2 px speckle), RMS <= 0.05 px (budget in the module docstring), and no
+    # outlier beyond 0.25 px (a wrong match is off by pixels)
+    assert np.all(np.abs(err.mean(axis=0)) < 0.01)
+    assert np.sqrt(np.mean(err**2)) < 0.05
+    assert np.abs(err).max() < 0.25
+    # distance to the true plane: RMS <= 0.05 px x 2.03 mm/px = 0.10 mm, max <= 0.25 px x 2.03 = 0.5 mm
+    dist = (f.xyz[ok] - centre) @ normal
+    assert np.sqrt(np.mean(dist**2)) < 0.05 * DEPTH_MM_PER_PX
+    assert np.abs(dist).max() < 0.25 * DEPTH_MM_PER_PX
+    # planarity: RMS of the residual to the best-fit plane (what the paper reports) <= the same 0.10 mm
+    P = f.xyz[ok] - f.xyz[ok].mean(axis=0)
+    planarity = np.linalg.svd(P, compute_uv=False)[2] / np.sqrt(len(P))
+    assert planarity < 0.05 * DEPTH_MM_PER_PX
+    # epipolar and reprojection residuals of a perfect rig are the matching noise: < 0.25 px
+    assert np.nanmax(f.epipolar_ref_px[ok]) < 0.25 and np.nanmax(f.reprojection_ref_px[ok]) < 0.25
+    assert np.nanmin(f.zncc_stereo[ok]) > 0.9
+    # the reference state has no displacement and no strain
+    assert np.all(f.uvw[ok] == 0) and np.allclose(f.exx[ok & f.strain_valid], 0, atol=1e-12)
+
+
+def test_rigid_translation_measured(lab, measured):
+    sc, f, _ = measured
+    ok = f.valid
+    assert ok.mean() > 0.85  # border POIs whose subsets move out of the image fail, nothing else
+    assert set(np.unique(f.status[~ok])) <= {StereoStatus.MATCH_FAILED, StereoStatus.TRACK_LEFT_FAILED,
+                                             StereoStatus.TRACK_RIGHT_FAILED}
+    true = lab["R_left_world"] @ TRANSLATION_WORLD   # the plane's translation in the left camera frame
+    err = f.uvw[ok] - true
+    # mean error: a 0.01 px systematic matching error gives 0.006 mm laterally and 2.03 x 0.01 x sqrt(2)
+    # = 0.03 mm in depth (two states); bounds 0.01 mm (x, y) and 0.04 mm (z)
+    assert np.all(np.abs(err.mean(axis=0)) < [0.01, 0.01, 0.04])
+    # scatter: two states of 0.05 px noise -> depth 0.05 x 2.03 x sqrt(2) = 0.14 mm, lateral 0.043 mm;
+    # bounds 0.15 mm and 0.05 mm
+    assert np.all(err.std(axis=0) < [0.05, 0.05, 0.15])
+    # a rigid motion has no strain: mean |E| < 3e-4 (noise of a 5x5-point fit ~5e-4 per point / sqrt(~25 windows))
+    s = ok & f.strain_valid
+    for e in (f.exx, f.eyy, f.exy):
+        assert abs(e[s].mean()) < 3e-4
+    # every OK point has finite values; NaN appears only with a non-OK status
+    for name in ("X", "Y", "Z", "U", "V", "W", "zncc_left", "zncc_right", "epipolar_px", "reprojection_px"):
+        assert np.all(np.isfinite(getattr(f, name)[ok])), name
+    assert np.all(np.isfinite(f.exx[f.strain_valid]))
+    assert not np.any(np.isnan(f.U) & ok)
+
+
+def test_uniform_stretch_strain(measured):
+    _, _, f = measured
+    s = f.valid & f.strain_valid
+    assert s.sum() > 400
+    # exact Green-Lagrange strain of u = eps X: exx = eps + eps^2 / 2; eyy = exy = 0. The plane's x axis
+    # is the projection of the left camera's x axis (both horizontal), so the tangent basis matches.
+    # Mean over ~600 points: bound 2e-4 (the per-point std is ~4e-4 from 0.03 px matching noise over
+    # a 5 x 5-point, 24 mm window; neighbouring windows overlap, ~25 independent ones)
+    assert abs(f.exx[s].mean() - (STRETCH + STRETCH**2 / 2)) < 2e-4
+    assert abs(f.eyy[s].mean()) < 2e-4 and abs(f.exy[s].mean()) < 2e-4
+    assert f.exx[s].std() < 1e-3
+
+
+def test_object_frame_plane(lab, measured):
+    sc, f, _ = measured
+    g = f.in_frame("plane")
+    ok = f.valid
+    # in the best-fit plane frame the shape is flat (Z = out-of-plane distance) and the motion
+    # keeps its length; W is the out-of-plane component of the plane's translation
+    assert np.sqrt(np.mean(g.Z[ok] ** 2)) < 0.05 * DEPTH_MM_PER_PX
+    assert np.allclose(np.linalg.norm(g.uvw[ok], axis=1), np.linalg.norm(f.uvw[ok], axis=1), atol=1e-9)
+    normal = lab["plane"][0]
+    expected_w = -(lab["R_left_world"] @ TRANSLATION_WORLD) @ normal  # +z of the plane frame faces the camera
+    assert abs(g.W[ok].mean() - expected_w) < 0.04
+    # the strain tensor is rotated into the new in-plane basis: its invariants (trace, determinant)
+    # do not change; the components barely do (both frames' x axes project to nearly the same e1)
+    s = ok & f.strain_valid
+    assert np.allclose(g.exx[s] + g.eyy[s], f.exx[s] + f.eyy[s], rtol=0, atol=1e-12)
+    assert np.allclose(g.exx[s] * g.eyy[s] - g.exy[s] ** 2, f.exx[s] * f.eyy[s] - f.exy[s] ** 2, rtol=0, atol=1e-15)
+    assert np.allclose(g.exx[s], f.exx[s], rtol=0, atol=1e-5)
+
+
+def _epipolar_line_distance(rig, point_left, point_right):
+    """Independent epipolar distance: back-project the left pixel at two depths, project into the right image."""
+    xy = rig.left.pixels_to_normalized(point_left[None])[0]
+    ray = np.array([xy[0], xy[1], 1.0])
+    a, b = (rig.right.project((ray * z) @ rig.R_right_left.T + rig.t_right_left)[0] for z in (500.0, 2000.0))
+    d = b - a
+    return abs(d[0] * (point_right[1] - a[1]) - d[1] * (point_right[0] - a[0])) / np.hypot(*d)
+
+
+def test_guesses_without_features_and_flat_regions(lab, measured):
+    """No SIFT features: the epipolar-line search seeds the match and neighbours propagate it;
+    a textureless patch of the left image is NOT_COMPUTED, never a silent NaN."""
+    sc_ref, _, _ = measured
+    (l0, r0) = lab["states"][0]
+    left = l0.astype(np.float32).copy()
+    left[100:160, 120:200] = 120.0  # no texture
+    sc = StereoCorrelation(lab["rig"], left, r0, step=10, max_features=1)
+    f = sc.reference
+    src = f.details["guess_source"]
+    assert np.any(src == 2) and np.any(src == 1) and not np.any(src == 0)   # search seeds, then propagation
+    inside = (f.points[:, 0] > 120 + 11) & (f.points[:, 0] < 200 - 11) & (f.points[:, 1] > 100 + 11) & (f.points[:, 1] < 160 - 11)
+    assert inside.sum() >= 6 and np.all(f.status[inside] == StereoStatus.NOT_COMPUTED)
+    assert np.all(np.isnan(f.X[inside]))
+    # where the subsets do not touch the flat patch the result is the feature-guided one (same minimum)
+    x, y = f.points[:, 0], f.points[:, 1]
+    clear = (x + 10 < 120) | (x - 10 >= 200) | (y + 10 < 100) | (y - 10 >= 160)
+    both = f.valid & sc_ref.reference.valid & clear
+    assert both.sum() > 0.7 * len(f)
+    # IC-GN stops when the update is below 1e-3 px: two starts end within a few 1e-3 px
+    assert np.abs(sc.match.points_right[both] - sc_ref.match.points_right[both]).max() < 0.01
+
+
+def test_epipolar_outliers_flagged(lab):
+    """A rig whose right camera is rolled by 0.9 deg: matches drift off their epipolar lines by 0.7-2.3 px."""
+    rig = lab["rig"]
+    roll = rotation_from_vector([0.0, 0.0, 2.5 / 160.0])
+    wrong = StereoRig(rig.left, rig.right, roll @ rig.R_right_left, roll @ rig.t_right_left)
+    (l0, r0) = lab["states"][0]
+    tol = 1.0
+    f = stereo(wrong, l0, r0, step=20, epipolar_tol_px=tol)
+    normal, centre = lab["plane"]
+    matched = np.isin(f.status, (StereoStatus.OK, StereoStatus.EPIPOLAR_VIOLATION))
+    _, right_true = _exact_points(rig, normal, centre, f.points[matched])
+    expected = np.array([_epipolar_line_distance(wrong, p, q) for p, q in zip(f.points[matched], right_true)])
+    assert expected.min() < tol - 0.15 and expected.max() > tol + 0.15   # the test covers both cases
+    # the reported residual is the distance of the matched point (0.05 px RMS noise, see above)
+    assert np.max(np.abs(f.epipolar_ref_px[matched] - expected)) < 0.15
+    st = f.status[matched]
+    assert np.all(st[expected > tol + 0.15] == StereoStatus.EPIPOLAR_VIOLATION)
+    assert np.all(st[expected < tol - 0.15] == StereoStatus.OK)
+    assert np.all(np.isnan(f.U[f.status == StereoStatus.EPIPOLAR_VIOLATION]))
+
+
+def test_points_behind_camera_and_degenerate_rays(lab):
+    (l0, r0) = lab["states"][0]
+    rig = lab["rig"]
+    # the baseline reversed: same epipolar geometry (F changes sign only), so every match is accepted,
+    # but the rays now meet behind the cameras -> per-point status, NaN-free where the status is OK
+    flipped = StereoRig(rig.left, rig.right, rig.R_right_left, -rig.t_right_left)
+    f = stereo(flipped, l0, r0, step=20)
+    tri = f.details["triangulation_ref_status"]
+    matched = f.status != StereoStatus.MATCH_FAILED
+    assert np.all(f.status[matched] == StereoStatus.TRIANGULATION_FAILED)
+    assert np.all(tri[matched] == TriangulationStatus.BEHIND_CAMERA)
+    assert not np.any(f.valid)
+    # a 0.1 um baseline: the left image is its own right image, the rays coincide -> DEGENERATE
+    tiny = StereoRig(rig.left, rig.left, np.eye(3), [1e-4, 0.0, 0.0])
+    g = stereo(tiny, l0, l0, step=20)
+    assert np.all(g.status == StereoStatus.TRIANGULATION_FAILED)
+    assert np.all(g.details["triangulation_ref_status"] == TriangulationStatus.DEGENERATE)
+    assert np.all(np.isnan(g.X))
+
+
+def test_bad_input(lab):
+    (l0, r0), (l1, r1), _ = lab["states"]
+    rig = lab["rig"]
+    with pytest.raises(ValueError, match="differ in size"):
+        stereo(rig, l0, r0[:, :-8], step=20)
+    with pytest.raises(ValueError, match="calibrated for 320x240 px images but the images are 312x240"):
+        stereo(rig, l0[:, :-8], r0[:, :-8], step=20)
+    with pytest.raises(ValueError, match="both left_cur and right_cur"):
+        stereo(rig, l0, r0, l1, None, step=20)
+    with pytest.raises(ValueError, match="outside the 320x240 px left image"):
+        stereo(rig, l0, r0, points=[[100.0, 100.0], [400.0, 10.0]])
+    with pytest.raises(ValueError, match="colour image"):
+        stereo(rig, np.dstack([l0] * 3), r0, step=20)
+    with pytest.raises(ValueError, match="NaN"):
+        bad = l0.astype(np.float32)
+        bad[5, 5] = np.nan
+        stereo(rig, bad, r0, step=20)
+    with pytest.raises(ValueError, match="subset must be an odd integer"):
+        stereo(rig, l0, r0, subset=20)
+    with pytest.raises(ValueError, match="epipolar_tol_px"):
+        stereo(rig, l0, r0, epipolar_tol_px=0)
+    with pytest.raises(ValueError, match="calibration.stereo.StereoRig"):
+        stereo(object(), l0, r0)
+    sc = StereoCorrelation(rig, l0, r0, step=40)
+    with pytest.raises(ValueError, match="current images are 312x240 px but the reference images are 320x240"):
+        sc.measure(l1[:, :-8], r1[:, :-8])
+    with pytest.raises(ValueError, match="differ in size"):
+        sc.measure(l1, r1[:-2])
+
+
+def test_sequence_writes_resumes_and_reads_back(lab, tmp_path):
+    from dic.sequence import read_field, read_stereo, stereo_sequence
+
+    rig = lab["rig"]
+    (l0, r0), (l1, r1), _ = lab["states"]
+    out = tmp_path / "run.h5"
+    first = stereo_sequence(rig, [(l0, r0), (l1, r1)], out, step=20)
+    assert [f.index for f in first] == [0, 1]
+    # resume: the finished states are skipped, the new one is computed from the stored match
+    second = stereo_sequence(rig, [(l0, r0), (l1, r1), (l1, r1)], out, step=20)
+    assert [f.index for f in second] == [2]
+    back = read_stereo(out)
+    assert back.indices == [0, 1, 2]
+    f1 = back.fields[1]
+    assert np.array_equal(f1.status, first[1].status)
+    assert np.allclose(f1.uvw, first[1].uvw, equal_nan=True)
+    # the same images give the same displacement whether tracked from scratch or from the previous state
+    ok = f1.valid & back.fields[2].valid
+    assert np.max(np.abs(back.fields[2].uvw[ok] - f1.uvw[ok])) < 0.01
+    assert read_field(out, 2).index == 2
+    assert back.rig.baseline == pytest.approx(rig.baseline)
+    with pytest.raises(ValueError, match="other settings"):
+        stereo_sequence(rig, [(l0, r0)], out, step=10)
+    with pytest.raises(ValueError, match="another reference image pair"):
+        stereo_sequence(rig, [(l1, r1)], out, step=20)
+    with pytest.raises(ValueError, match="no finished state 7"):
+        read_field(out, 7)
+    with pytest.raises(ValueError, match="not a Specula stereo result file"):
+        import h5py
+
+        with h5py.File(tmp_path / "other.h5", "w") as h:
+            h.attrs["format"] = "something-else"
+        read_stereo(tmp_path / "other.h5")
+
+
+def test_cli(lab, tmp_path):
+    from click.testing import CliRunner
+
+    from dic.cli import main
+    from dic.io import write_image
+
+    rig = lab["rig"]
+    (l0, r0), (l1, r1), _ = lab["states"]
+    paths = []
+    for k, (a, b) in enumerate(((l0, r0), (l1, r1))):
+        for side, img in (("L", a), ("R", b)):
+            p = tmp_path / f"{side}{k}.png"
+            write_image(p, img)
+            paths.append(str(p))
+    rig.save(tmp_path / "rig.json")
+    runner = CliRunner()
+    out = tmp_path / "out.h5"
+    res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "-o", str(out), "--step", "20",
+                               "--vtk", str(tmp_path / "vtk"), "--figures", str(tmp_path / "fig"), "-q"])
+    assert res.exit_code == 0, res.output
+    assert out.exists() and (tmp_path / "vtk" / "out.pvd").exists() and (tmp_path / "fig" / "state_000001_W.png").exists()
+    # odd number of images
+    res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths[:3], "-o", str(out)])
+    assert res.exit_code != 0 and "LEFT RIGHT pairs" in res.output
+    # a rig for another image size
+    data = json.loads((tmp_path / "rig.json").read_text())
+    for side in ("left", "right"):
+        data[side]["size"] = [640, 480]
+    (tmp_path / "rig640.json").write_text(json.dumps(data))
+    res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig640.json"), *paths, "-o", str(tmp_path / "x.h5")])
+    assert res.exit_code != 0 and "calibrated for 640x480 px images but the images are 320x240 px" in res.output
+    # a pair of different sizes
+    small = tmp_path / "small.png"
+    write_image(small, r1[:200])
+    res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths[:3], str(small), "-o",
+                               str(tmp_path / "y.h5")])
+    assert res.exit_code != 0 and "every image must have the same size" in res.output
+    # a missing image and a broken rig file: clear errors, no traceback
+    res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), paths[0], str(tmp_path / "nope.png"),
+                               "-o", str(tmp_path / "z.h5")])
+    assert res.exit_code != 0 and "image file not found" in res.output
+    assert res.exception is None or isinstance(res.exception, SystemExit)  # a ClickException, not a crash
+    (tmp_path / "broken.json").write_text("{")
+    res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "broken.json"), *paths[:2], "-o", str(tmp_path / "z.h5")])
+    assert res.exit_code != 0 and "not valid JSON" in res.output
