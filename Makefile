@@ -26,6 +26,8 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.icgn
+	$(BIN)/python -m bench.render
+	$(BIN)/python -m bench.triangulate
 
 clean:
 	rm -rf $(VENV) demo_output .pytest_cache

@@ -148,10 +148,11 @@ class Field2D:
             raise ValueError(f"values must have one row per point ({self.n_points}), got shape {arr.shape}")
         (_, _, kx), (_, _, ky) = self._lattice()
         nx, ny = int(kx.max()) + 1, int(ky.max()) + 1
-        dtype = np.result_type(arr.dtype, np.asarray(fill).dtype) if not np.issubdtype(arr.dtype, np.floating) \
-            else arr.dtype
         if arr.dtype == bool and isinstance(fill, float) and np.isnan(fill):
-            fill, dtype = False, bool
+            fill = False  # boolean maps (valid) are False where there is no point
+        dtype = np.result_type(arr.dtype, np.min_scalar_type(fill) if not isinstance(fill, float) else np.float64)
+        if arr.dtype == bool and fill is False:
+            dtype = bool
         out = np.full((ny, nx) + arr.shape[1:], fill, dtype=dtype)
         out[ky, kx] = arr
         return out
@@ -361,11 +362,9 @@ def _pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset
     r = subset // 2
     step = max(2, subset // 2)
     prev = None  # (points, params, ok) at the coarser level
-    for lvl in range(levels, -1, -1):
+    for lvl in range(levels, 0, -1):
         img_r, img_c = pr[lvl], pc[lvl]
-        pts = grid(img_r.shape, step, margin=r) if lvl > 0 else None
-        if lvl == 0:
-            break
+        pts = grid(img_r.shape, step, margin=r)
         if prev is None:
             top = int(math.ceil(radius / 2 ** lvl)) + 1
             uv, _ = zncc_search(img_r, img_c, pts, top, subset=subset, device=device)

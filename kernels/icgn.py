@@ -469,15 +469,21 @@ def _row_to_moments(m: mat55d, row: vec5, eta: wp.float64, deg: int):
 
 
 @wp.func
+def _pad5(v: wp.vec3):
+    return vec5(v[0], v[1], v[2], 0.0, 0.0)
+
+
+@wp.func
 def _row_moments_deg4(fgrad: wp.array(dtype=wp.vec3), row: int, r: int, dlx: float, inv_s: float, fm: float):
-    """One subset row: sums of G * xi^alpha (alpha <= 4) for G = fx^2, fx fy, fy^2, fx, fy, fx fd, fy fd."""
+    """One subset row: sums of G * xi^alpha for G = fx^2, fx fy, fy^2 (alpha <= 4) and G = fx, fy,
+    fx fd, fy fd (alpha <= 2, entries 3 and 4 left at zero), fd = f - fm; and sum fd^2."""
     rxx = vec5()
     rxy = vec5()
     ryy = vec5()
-    rx = vec5()
-    ry = vec5()
-    rxf = vec5()
-    ryf = vec5()
+    rx = wp.vec3()
+    ry = wp.vec3()
+    rxf = wp.vec3()
+    ryf = wp.vec3()
     rss = float(0.0)
     for i in range(-r, r + 1):
         xi = (float(i) + dlx) * inv_s
@@ -485,15 +491,16 @@ def _row_moments_deg4(fgrad: wp.array(dtype=wp.vec3), row: int, r: int, dlx: flo
         fd = fg[0] - fm
         x2 = xi * xi
         pw = vec5(1.0, xi, x2, x2 * xi, x2 * x2)
+        pw3 = wp.vec3(1.0, xi, x2)
         rxx += (fg[1] * fg[1]) * pw
         rxy += (fg[1] * fg[2]) * pw
         ryy += (fg[2] * fg[2]) * pw
-        rx += fg[1] * pw
-        ry += fg[2] * pw
-        rxf += (fg[1] * fd) * pw
-        ryf += (fg[2] * fd) * pw
+        rx += fg[1] * pw3
+        ry += fg[2] * pw3
+        rxf += (fg[1] * fd) * pw3
+        ryf += (fg[2] * fd) * pw3
         rss += fd * fd
-    return rxx, rxy, ryy, rx, ry, rxf, ryf, rss
+    return rxx, rxy, ryy, _pad5(rx), _pad5(ry), _pad5(rxf), _pad5(ryf), rss
 
 
 @wp.func
@@ -520,12 +527,7 @@ def _row_moments_deg2(fgrad: wp.array(dtype=wp.vec3), row: int, r: int, dlx: flo
         rxf += (fg[1] * fd) * pw
         ryf += (fg[2] * fd) * pw
         rss += fd * fd
-    return (_pad5(rxx), _pad5(rxy), _pad5(ryy), _pad5(rx), _pad5(ry), _pad5(rxf), _pad5(ryf), rss)
-
-
-@wp.func
-def _pad5(v: wp.vec3):
-    return vec5(v[0], v[1], v[2], 0.0, 0.0)
+    return _pad5(rxx), _pad5(rxy), _pad5(ryy), _pad5(rx), _pad5(ry), _pad5(rxf), _pad5(ryf), rss
 
 
 @wp.func
@@ -650,37 +652,37 @@ def _prepare_subsets(
 
 
 @wp.func
-def load_hinv6(refdata: wp.array2d(dtype=float), n: int):
-    m = mat66()
+def gn_update6(refdata: wp.array2d(dtype=float), n: int, b: vec6, ratio: float, gmean: float):
+    """dq = ratio (H^-1 b - gm H^-1 c) - H^-1 a, reading the packed H^-1 from refdata (not registers)."""
+    dq = vec6()
     col = int(0)
     for i in range(6):
         for j in range(i, 6):
-            m[i, j] = refdata[n, col]
-            m[j, i] = refdata[n, col]
+            h = refdata[n, col]
+            dq[i] += h * b[j]
+            if j != i:
+                dq[j] += h * b[i]
             col += 1
-    a = vec6()
-    c = vec6()
     for i in range(6):
-        a[i] = refdata[n, 21 + i]
-        c[i] = refdata[n, 27 + i]
-    return m, a, c, refdata[n, 33], refdata[n, 34]
+        dq[i] = ratio * (dq[i] - gmean * refdata[n, 27 + i]) - refdata[n, 21 + i]
+    return dq
 
 
 @wp.func
-def load_hinv12(refdata: wp.array2d(dtype=float), n: int):
-    m = mat1212()
+def gn_update12(refdata: wp.array2d(dtype=float), n: int, b: vec12, ratio: float, gmean: float):
+    """12-parameter version of :func:`gn_update6`."""
+    dq = vec12()
     col = int(0)
     for i in range(12):
         for j in range(i, 12):
-            m[i, j] = refdata[n, col]
-            m[j, i] = refdata[n, col]
+            h = refdata[n, col]
+            dq[i] += h * b[j]
+            if j != i:
+                dq[j] += h * b[i]
             col += 1
-    a = vec12()
-    c = vec12()
     for i in range(12):
-        a[i] = refdata[n, 78 + i]
-        c[i] = refdata[n, 90 + i]
-    return m, a, c, refdata[n, 102], refdata[n, 103]
+        dq[i] = ratio * (dq[i] - gmean * refdata[n, 90 + i]) - refdata[n, 78 + i]
+    return dq
 
 
 @wp.func
@@ -713,7 +715,8 @@ def _icgn_1st(
     cc = float(wp.nan)
     it = int(0)
     if st == ST_CONVERGED:
-        hinv, a, c, fmean, fnorm = load_hinv6(refdata, n)
+        fmean = refdata[n, 33]
+        fnorm = refdata[n, 34]
         goff = fmean
         ctr = centres[n]
         dl = deltas[n]
@@ -728,7 +731,7 @@ def _icgn_1st(
             it += 1
             gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
             goff = goff + gmean
-            dq = ratio * (hinv * b - gmean * c) - a
+            dq = gn_update6(refdata, n, b, ratio, gmean)
             norm = wp.length(dq)
             if ratio == 0.0 or not (norm <= float(2 * r + 1)):
                 st = ST_DIVERGED
@@ -761,7 +764,8 @@ def _icgn_2nd(
     cc = float(wp.nan)
     it = int(0)
     if st == ST_CONVERGED:
-        hinv, a, c, fmean, fnorm = load_hinv12(refdata, n)
+        fmean = refdata[n, 102]
+        fnorm = refdata[n, 103]
         goff = fmean
         ctr = centres[n]
         dl = deltas[n]
@@ -777,7 +781,7 @@ def _icgn_2nd(
             it += 1
             gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
             goff = goff + gmean
-            dq = ratio * (hinv * b - gmean * c) - a
+            dq = gn_update12(refdata, n, b, ratio, gmean)
             norm = wp.length(dq)
             if ratio == 0.0 or not (norm <= float(2 * r + 1)):
                 st = ST_DIVERGED

@@ -3,26 +3,35 @@
 One thread renders one camera pixel (``launch_1d`` over pixels, chunked on the CPU):
 
 1. **Sampling.** ``samples`` sub-samples per pixel, each a point in the pixel's area and a point
-   on the lens aperture, from the 4-D Kronecker (R-) sequence with a per-pixel random shift
-   (Cranley–Patterson rotation) drawn from ``(seed, pixel index)``: stratified, and deterministic
-   for a given seed. The aperture point maps the unit square onto the disk with Shirley and
-   Chiu's concentric map ("A low distortion map between disk and square", J. Graphics Tools 2(3),
-   1997, doi:10.1080/10867651.1997.10487479), which keeps the stratification.
+   on the lens aperture. Pixel area: the ``s × s`` grid of sub-cell centres when ``samples = s²``
+   (else the first two dimensions of a 4-D Kronecker sequence), the same in every pixel, with the
+   texture at each sub-sample area-filtered over the sub-cell's footprint (anti-aliased speckle
+   coverage, box-filtered monitor pixels) — the midpoint rule of ``kernels/speckle.py``, exact for
+   straight edges and shift-covariant. Aperture: the last two dimensions of the 4-D Kronecker
+   sequence with increments ``1/g^k``, ``g^5 = g + 1`` (M. Roberts' R-sequence, "The unreasonable
+   effectiveness of quasirandom sequences", 2018), shifted per pixel by a random offset drawn from
+   ``(seed, pixel index)`` (Cranley–Patterson rotation; ``jitter=False`` uses the same pattern
+   everywhere), mapped onto the disk with Shirley and Chiu's concentric map ("A low distortion map
+   between disk and square", J. Graphics Tools 2(3), 1997, doi:10.1080/10867651.1997.10487479),
+   which keeps the stratification. Deterministic for a given seed.
 2. **Lens.** The sub-sample's sensor position ``(u, v)`` (distorted pixels) is undistorted with
    Newton's method on the OpenCV model (k1 k2 p1 p2 k3 k4 k5 k6, analytic Jacobian; 12 steps at
-   the pixel centre, then 2 per sub-sample from there) into the ideal normalised ray ``(x, y, 1)``
+   the pixel centre, then 1 per sub-sample from there) into the ideal normalised ray ``(x, y, 1)``
    of the chief ray. A thin lens focused at distance ``s`` sends every ray from the aperture
    point ``A`` through the point ``s (x, y, 1)`` where the chief ray meets the plane of focus, so a
    point at depth ``z`` blurs into a disk of diameter ``f_x (f/N) |1/s − 1/z|`` px: physically correct
    defocus, zero at the focus plane.
 3. **Scene.** Up to ``max_bounces`` reflections on planar rectangular mirrors (Householder
    ``d' = d − 2 (n·d) n``, scaled by the reflectance; the back face is black), then the nearest
-   hit of a screen (the monitor pixel's value, box-shaped pixels, optional emission
+   hit of a screen (the monitor's square pixels box-filtered over the footprint, optional emission
    non-uniformity and bezel) or a speckled surface (Boolean-model coverage at the hit's material
-   coordinates: :func:`kernels.speckle.speckle_coverage`). A surface with a displacement field
+   coordinates: :func:`kernels.speckle.speckle_coverage_smooth`; Sur, Blaysat & Grédiac, J. Math.
+   Imaging Vis. 60, 2018, doi:10.1007/s10851-018-0834-x). A surface with a displacement field
    ``u(X)`` is hit on its deformed geometry ``x(X) = S(X) + u(X)``: Newton's method solves
    ``x(X) = o + t d`` for ``(X, t)`` from the undeformed hit, so the speckle is evaluated exactly at
    the material point that moved there (no texture resampling).
+   The filter footprint is the sub-cell's angular size times the path length, isotropic (it
+   ignores the obliquity of the surface).
 4. **Sensor.** The mean radiance ``L`` over the sub-samples becomes ``black + exposure · L`` grey
    levels, with optional Poisson shot noise (``gain`` e⁻/DN), Gaussian read noise and quantisation
    to ``2^bits − 1``.
@@ -39,7 +48,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
-from .speckle import SpeckleModel, build_speckle_model, speckle_coverage
+from .speckle import SpeckleModel, build_speckle_model, speckle_coverage_smooth
 
 wp.set_module_options({"enable_backward": False})
 
@@ -212,20 +221,31 @@ def pixel_to_distorted(cam: LensCamera, u: float, v: float) -> wp.vec2:
 
 @wp.func
 def concentric_disk(a: float, b: float) -> wp.vec2:
-    """Shirley–Chiu concentric map of [0, 1)² onto the unit disk."""
+    """Shirley–Chiu concentric map of [0, 1)² onto the unit disk.
+
+    The angle within each octant is at most π/4, where Taylor polynomials of degree 8 (cos) and 9
+    (sin) are accurate to 3e-8: no library calls in the per-sample loop.
+    """
     sx = 2.0 * a - 1.0
     sy = 2.0 * b - 1.0
     if sx == 0.0 and sy == 0.0:
         return wp.vec2(0.0, 0.0)
     r = float(0.0)
-    phi = float(0.0)
+    alpha = float(0.0)
+    swap = bool(False)
     if wp.abs(sx) > wp.abs(sy):
         r = sx
-        phi = 0.25 * wp.pi * (sy / sx)
+        alpha = 0.25 * wp.pi * (sy / sx)
     else:
         r = sy
-        phi = 0.5 * wp.pi - 0.25 * wp.pi * (sx / sy)
-    return wp.vec2(r * wp.cos(phi), r * wp.sin(phi))
+        alpha = 0.25 * wp.pi * (sx / sy)  # phi = pi/2 - alpha: cos and sin swap
+        swap = True
+    a2 = alpha * alpha
+    c = 1.0 + a2 * (-0.5 + a2 * (1.0 / 24.0 + a2 * (-1.0 / 720.0 + a2 * (1.0 / 40320.0))))
+    sn = alpha * (1.0 + a2 * (-1.0 / 6.0 + a2 * (1.0 / 120.0 + a2 * (-1.0 / 5040.0 + a2 * (1.0 / 362880.0)))))
+    if swap:
+        return wp.vec2(r * sn, r * c)
+    return wp.vec2(r * c, r * sn)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -269,7 +289,21 @@ def hit_screen(s: ScreenGeom, o: wp.vec3, d: wp.vec3) -> float:
 
 
 @wp.func
-def screen_radiance(scene: SceneGeom, s: ScreenGeom, p: wp.vec3, d: wp.vec3) -> float:
+def box_weight(x: float, half: float) -> wp.vec2:
+    """Nearest texel offset (-1 or +1) and its weight when the box [x - half, x + half] (texel units,
+    texel centres at integers, half <= 1/2) straddles the boundary between the nearest texel and it."""
+    c = wp.floor(x + 0.5)
+    if half <= 0.0:
+        return wp.vec2(1.0, 0.0)
+    if x >= c:
+        return wp.vec2(1.0, wp.clamp((x + half - (c + 0.5)) / (2.0 * half), 0.0, 1.0))
+    return wp.vec2(-1.0, wp.clamp(((c - 0.5) - (x - half)) / (2.0 * half), 0.0, 1.0))
+
+
+@wp.func
+def screen_radiance(scene: SceneGeom, s: ScreenGeom, p: wp.vec3, d: wp.vec3, width: float) -> float:
+    """Radiance of the screen at world point p: the displayed image box-filtered over a footprint of
+    ``width`` mm (the sub-sample's size there, at most one texel), pixels emitting uniformly."""
     if wp.dot(d, s.ez) <= 0.0:
         return 0.0  # back of the monitor
     q = p - s.origin
@@ -279,7 +313,16 @@ def screen_radiance(scene: SceneGeom, s: ScreenGeom, p: wp.vec3, d: wp.vec3) -> 
     r = int(wp.floor(row + 0.5))
     if c < 0 or c >= s.width or r < 0 or r >= s.height:
         return 0.0  # bezel
-    value = scene.texels[s.offset + r * s.width + c]
+    bx = box_weight(col, wp.min(0.5 * width / s.pitch_x, 0.5))
+    by = box_weight(row, wp.min(0.5 * width / s.pitch_y, 0.5))
+    c1 = wp.clamp(c + int(bx[0]), 0, s.width - 1)
+    r1 = wp.clamp(r + int(by[0]), 0, s.height - 1)
+    base = s.offset
+    v00 = scene.texels[base + r * s.width + c]
+    v01 = scene.texels[base + r * s.width + c1]
+    v10 = scene.texels[base + r1 * s.width + c]
+    v11 = scene.texels[base + r1 * s.width + c1]
+    value = (1.0 - by[1]) * ((1.0 - bx[1]) * v00 + bx[1] * v01) + by[1] * ((1.0 - bx[1]) * v10 + bx[1] * v11)
     hw = 0.5 * float(s.width - 1)
     hh = 0.5 * float(s.height - 1)
     rx = (col - hw) / wp.max(hw, 0.5)
@@ -447,19 +490,25 @@ def hit_surface(scene: SceneGeom, s: SurfaceGeom, o: wp.vec3, d: wp.vec3) -> wp.
 
 
 @wp.func
-def surface_radiance(scene: SceneGeom, s: SurfaceGeom, X: float, Y: float) -> float:
+def surface_radiance(scene: SceneGeom, s: SurfaceGeom, X: float, Y: float, width: float) -> float:
+    """Albedo at material point (X, Y): speckle coverage anti-aliased over a footprint of ``width`` mm."""
     if s.speckle < 0:
         return s.albedo_bg
-    cov = speckle_coverage(scene.speckles[s.speckle], wp.vec2(X, Y))
+    cov = speckle_coverage_smooth(scene.speckles[s.speckle], wp.vec2(X, Y), width)
     return s.albedo_bg + (s.albedo_sp - s.albedo_bg) * cov
 
 
 @wp.func
-def trace(scene: SceneGeom, o_in: wp.vec3, d_in: wp.vec3) -> float:
-    """Radiance arriving along the ray (world frame) after up to max_bounces mirror reflections."""
+def trace(scene: SceneGeom, o_in: wp.vec3, d_in: wp.vec3, footprint: float) -> float:
+    """Radiance arriving along the ray (world frame) after up to max_bounces mirror reflections.
+
+    ``footprint`` (rad) is the angular size of one sub-sample: textures are area-filtered over
+    ``path length x footprint`` mm where the ray lands (planar mirrors keep the footprint).
+    """
     o = o_in
     d = d_in
     throughput = float(1.0)
+    travelled = float(0.0)
     last_mirror = int(-1)
     for bounce in range(scene.max_bounces + 1):
         best_t = float(BIG)
@@ -489,9 +538,11 @@ def trace(scene: SceneGeom, o_in: wp.vec3, d_in: wp.vec3) -> float:
         if kind == KIND_NONE:
             return throughput * scene.background
         if kind == KIND_SCREEN:
-            return throughput * screen_radiance(scene, scene.screens[idx], o + best_t * d, d)
+            width = (travelled + best_t) * footprint
+            return throughput * screen_radiance(scene, scene.screens[idx], o + best_t * d, d, width)
         if kind == KIND_SURFACE:
-            return throughput * surface_radiance(scene, scene.surfaces[idx], mat[0], mat[1])
+            width = (travelled + best_t) * footprint
+            return throughput * surface_radiance(scene, scene.surfaces[idx], mat[0], mat[1], width)
         m = scene.mirrors[idx]
         den = wp.dot(d, m.n)
         if den >= 0.0:
@@ -499,6 +550,7 @@ def trace(scene: SceneGeom, o_in: wp.vec3, d_in: wp.vec3) -> float:
         o = o + best_t * d
         d = d - (2.0 * den) * m.n
         throughput = throughput * m.reflectance
+        travelled = travelled + best_t
         last_mirror = idx
     return 0.0
 
@@ -508,17 +560,18 @@ def trace(scene: SceneGeom, o_in: wp.vec3, d_in: wp.vec3) -> float:
 
 
 @wp.func
-def camera_ray_radiance(cam: LensCamera, scene: SceneGeom, u: float, v: float, centre: wp.vec2, lens: wp.vec2) -> float:
+def camera_ray_radiance(cam: LensCamera, scene: SceneGeom, u: float, v: float, centre: wp.vec2, lens: wp.vec2,
+                        footprint: float) -> float:
     """Radiance of the ray from sensor position (u, v) px through aperture point ``lens`` (unit disk)."""
     target = pixel_to_distorted(cam, u, v)
-    p = centre + (target - distort(cam, centre))  # start from the pixel centre's solution
-    p = undistort_step(cam, p, target)
-    p = undistort_step(cam, p, target)
+    # from the pixel centre's solution, shifted by the sub-pixel offset: one Newton step is exact to
+    # float32 (the start is off by ~|J - I| * 0.5 px, the step leaves the square of that)
+    p = undistort_step(cam, centre + (target - distort(cam, centre)), target)
     s = cam.focus_distance
     a = cam.aperture_radius * lens
     o_cam = wp.vec3(a[0], a[1], 0.0)
     d_cam = wp.normalize(wp.vec3(p[0] * s, p[1] * s, s) - o_cam)
-    return trace(scene, cam.center + cam.R_world_cam * o_cam, cam.R_world_cam * d_cam)
+    return trace(scene, cam.center + cam.R_world_cam * o_cam, cam.R_world_cam * d_cam, footprint)
 
 
 @wp.func
@@ -542,6 +595,7 @@ def _render_kernel(
     sensor: SensorModel,
     samples: int,
     seed: int,
+    jitter: int,
     out: wp.array(dtype=float),
     offset: int,
 ):
@@ -549,17 +603,34 @@ def _render_kernel(
     row = i / cam.width
     col = i - row * cam.width
     state = wp.rand_init(seed, i)
-    shift = wp.vec4(wp.randf(state), wp.randf(state), wp.randf(state), wp.randf(state))
+    # aperture pattern: shifted per pixel (jitter) or the same in every pixel
+    shift = wp.vec2(wp.randf(state), wp.randf(state))
+    if jitter == 0:
+        shift = wp.vec2(0.5, 0.5)
+    # pixel-area pattern, the same in every pixel: an s x s grid of sub-cell centres when samples = s^2
+    grid = int(wp.sqrt(float(samples)) + 0.5)
+    if grid * grid != samples:
+        grid = 0
+    cell = 1.0 / wp.sqrt(float(samples))
     # ideal normalised coordinates of the pixel centre (Newton from the distorted position)
     target = pixel_to_distorted(cam, float(col), float(row))
     centre = target
     for it in range(12):
         centre = undistort_step(cam, centre, target)
+    # angular size of one sub-cell: the texture filter width per mm of path
+    footprint = cell / wp.sqrt(cam.fx * cam.fy)
     acc = float(0.0)
     for k in range(samples):
-        q = shift + float(k + 1) * R4_ALPHA
-        q = q - wp.vec4(wp.floor(q[0]), wp.floor(q[1]), wp.floor(q[2]), wp.floor(q[3]))
-        acc += camera_ray_radiance(cam, scene, float(col) + q[0] - 0.5, float(row) + q[1] - 0.5, centre, concentric_disk(q[2], q[3]))
+        q = float(k + 1) * R4_ALPHA
+        px = q[0] + 0.5 - wp.floor(q[0] + 0.5)
+        py = q[1] + 0.5 - wp.floor(q[1] + 0.5)
+        if grid > 0:
+            px = (float(k % grid) + 0.5) * cell
+            py = (float(k / grid) + 0.5) * cell
+        ax = q[2] + shift[0] - wp.floor(q[2] + shift[0])
+        ay = q[3] + shift[1] - wp.floor(q[3] + shift[1])
+        acc += camera_ray_radiance(cam, scene, float(col) + px - 0.5, float(row) + py - 0.5, centre,
+                                   concentric_disk(ax, ay), footprint)
     out[i] = sensor_response(sensor, acc / float(samples), state)
 
 
@@ -694,7 +765,7 @@ _LOADED: set[str] = set()
 
 
 def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, samples: int = 16, seed: int = 0,
-                 device=None, out=None) -> np.ndarray:
+                 jitter: bool = True, device=None, out=None) -> np.ndarray:
     """Render one camera image: float32 (H, W) grey levels (integers when the sensor quantises).
 
     Parameters
@@ -705,6 +776,10 @@ def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, s
         Sub-samples per pixel (pixel area × aperture), ≥ 1.
     seed : int
         Seed of the per-pixel sample shifts and of the noise; same seed, same image.
+    jitter : bool
+        ``True``: the aperture pattern is shifted randomly in every pixel (defocus blur is
+        unbiased; its quadrature error becomes a small per-pixel noise). ``False``: the same
+        aperture pattern in every pixel. The pixel-area pattern is the same in every pixel anyway.
     out : wp.array, optional
         float32 array of ``W·H`` elements on ``device`` to render into.
     """
@@ -725,7 +800,8 @@ def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, s
         out = wp.empty(n, dtype=float, device=device)
     elif out.shape != (n,) or out.dtype != wp.float32 or str(out.device) != device:
         raise ValueError(f"out must be a float32 warp array of {n} elements on {device}, got {out.shape} {out.dtype} on {out.device}")
-    launch_1d(_render_kernel, n, [camera, scene, sensor, int(samples), int(seed), out, 0], device, 6, min_chunk=1024)
+    launch_1d(_render_kernel, n, [camera, scene, sensor, int(samples), int(seed), int(bool(jitter)), out, 0], device, 7,
+              min_chunk=1024)
     return out.numpy().reshape(camera.height, camera.width)
 
 

@@ -224,6 +224,7 @@ def _fine_block_kernel(
     field_step: float,
     width: float,
     out: wp.array(dtype=float),
+    out_stride: int,
     offset: int,
 ):
     # one 8x8 block of sub-cells: map them, gather the disks near the block once (up to 16),
@@ -301,7 +302,7 @@ def _fine_block_kernel(
                     val = wp.clamp(0.5 - best[k] / width, 0.0, 1.0)
                 elif best[k] > 0.0:
                     val = 0.0
-            out[row * ncols + col] = val
+            out[row * out_stride + col] = val
 
 
 @wp.kernel
@@ -325,20 +326,42 @@ def _decimate_cols_kernel(
 
 
 @wp.kernel
-def _decimate_rows_kernel(
-    fine: wp.array2d(dtype=float),
-    weights: wp.array(dtype=float),
-    factor: int,
+def _decimate_cols4_kernel(
+    fine: wp.array(dtype=wp.vec4),
+    stride4: int,
+    weights: wp.array(dtype=wp.vec4),
+    factor4: int,
     out: wp.array2d(dtype=float),
     offset: int,
 ):
-    # out[r, c] = sum_j weights[j] * fine[r * factor + j, c]
+    # the same filter when the factor is a multiple of 4: taps read as aligned vec4 groups
+    # (about 2.5x faster on the CPU); fine row r starts at group r * stride4
+    i = wp.tid() + offset
+    ncols = out.shape[1]
+    r = i / ncols
+    c = i - r * ncols
+    base = r * stride4 + c * factor4
+    acc = float(0.0)
+    for g in range(weights.shape[0]):
+        acc += wp.dot(weights[g], fine[base + g])
+    out[r, c] = acc
+
+
+@wp.kernel
+def _decimate_rows_kernel(
+    fine: wp.array2d(dtype=wp.vec4),
+    weights: wp.array(dtype=float),
+    factor: int,
+    out: wp.array2d(dtype=wp.vec4),
+    offset: int,
+):
+    # out[r, c] = sum_j weights[j] * fine[r * factor + j, c], four image columns per vec4
     i = wp.tid() + offset
     ncols = out.shape[1]
     r = i / ncols
     c = i - r * ncols
     base = r * factor
-    acc = float(0.0)
+    acc = wp.vec4(0.0)
     for j in range(weights.shape[0]):
         acc += weights[j] * fine[base + j, c]
     out[r, c] = acc
@@ -641,7 +664,15 @@ def render_speckle(
         f_origin = wp.vec2(float(origin[0]), float(origin[1]))
 
     h = 1.0 / s
-    n_fcols = W * s + 2 * reach
+    W4 = -(-W // 4)  # output columns are computed in groups of 4 (the extra ones are dropped)
+    n_fcols = W4 * 4 * s + 2 * reach
+    vec4 = s % 4 == 0
+    if vec4:  # pad the taps to whole vec4 groups and the sub-cell rows to match
+        n_groups = -(-weights.size // 4)
+        w4 = np.zeros(4 * n_groups, dtype=np.float32)
+        w4[: weights.size] = weights
+        w4_dev = wp.array(w4.reshape(n_groups, 4), dtype=wp.vec4, device=device)
+        n_fcols = (W4 * 4 - 1) * s + 4 * n_groups
     rows_per_band = max(1, min(H, band_elements // max(1, n_fcols * s)))
     out = np.empty((H, W), dtype=np.float32)
     for r0 in range(0, H, rows_per_band):
@@ -655,14 +686,19 @@ def render_speckle(
         launch_1d(
             _fine_block_kernel,
             nbx * nby,
-            [model, start, h, n_frows, n_fcols, nbx, mode, shift_v, fu, fv, f_origin, f_step, h, fine, 0],
+            [model, start, h, n_frows, n_fcols, nbx, mode, shift_v, fu, fv, f_origin, f_step, h, fine, n_fcols, 0],
             device,
-            14,
+            15,
         )
-        fine2 = fine.reshape((n_frows, n_fcols))
-        tmp = wp.empty((n_frows, W), dtype=float, device=device)
-        launch_1d(_decimate_cols_kernel, n_frows * W, [fine2, w_dev, s, tmp, 0], device, 4)
-        band = wp.empty((r1 - r0, W), dtype=float, device=device)
-        launch_1d(_decimate_rows_kernel, (r1 - r0) * W, [tmp, w_dev, s, band, 0], device, 4)
-        out[r0:r1] = band.numpy()
+        tmp = wp.empty((n_frows, W4 * 4), dtype=float, device=device)
+        if vec4:
+            fine4 = fine.reshape((n_frows * n_fcols // 4, 4)).view(wp.vec4)
+            launch_1d(_decimate_cols4_kernel, n_frows * W4 * 4, [fine4, n_fcols // 4, w4_dev, s // 4, tmp, 0], device, 5)
+        else:
+            fine2 = fine.reshape((n_frows, n_fcols))
+            launch_1d(_decimate_cols_kernel, n_frows * W4 * 4, [fine2, w_dev, s, tmp, 0], device, 4)
+        tmp4 = tmp.reshape((n_frows, W4, 4)).view(wp.vec4)
+        band = wp.empty((r1 - r0, W4), dtype=wp.vec4, device=device)
+        launch_1d(_decimate_rows_kernel, (r1 - r0) * W4, [tmp4, w_dev, s, band, 0], device, 4)
+        out[r0:r1] = band.numpy().reshape(r1 - r0, W4 * 4)[:, :W]
     return out

@@ -86,14 +86,16 @@ def build_scene_geometry(scene: Scene, device=None):
 
 
 def render(scene: Scene, camera=0, *, samples: int = 16, seed: int = 0, noise: bool = True, quantize: bool = True,
-           device=None) -> np.ndarray:
+           jitter: bool = True, device=None) -> np.ndarray:
     """Render the image that ``camera`` (index, name or LabCamera of ``scene``) records.
 
     Parameters
     ----------
     samples : int
-        Sub-samples per pixel, spread over the pixel area and the lens aperture (stratified). 16
-        is a good default; in-focus sub-0.01 px work wants 64–256.
+        Sub-samples per pixel, spread over the pixel area and the lens aperture. A perfect square
+        ``s²`` puts them on an ``s × s`` grid of anti-aliased sub-cells (exact for straight edges;
+        16 gives ~0.6 DN rms on 2 px speckle); defocused scenes want more (the aperture is sampled
+        by the same number of points).
     seed : int
         Seed of the sample pattern and of the noise: the same seed gives the same image.
     noise : bool
@@ -101,6 +103,12 @@ def render(scene: Scene, camera=0, *, samples: int = 16, seed: int = 0, noise: b
     quantize : bool
         Round to integers in ``[0, 2^bit_depth − 1]`` and return uint8 (bit_depth ≤ 8) or uint16;
         ``False`` returns float32 grey levels.
+    jitter : bool
+        ``True`` (default): the aperture points are shifted randomly in every pixel, so the
+        defocus blur is unbiased and its sampling error is per-pixel noise. ``False``: the same
+        aperture points in every pixel — with strong defocus the blur disk is then a fixed set of
+        ``samples`` points, which shows as overlapping copies. In-focus content does not depend
+        on it (the pixel-area pattern is always the same in every pixel).
     device : str, optional
         Warp device (``None``: CUDA when present, else CPU).
 
@@ -118,7 +126,7 @@ def render(scene: Scene, camera=0, *, samples: int = 16, seed: int = 0, noise: b
                           cam.aperture_diameter_mm, cam.focus_distance_mm)
     sensor = _k.make_sensor(exposure=cam.exposure_dn, black=cam.black_level_dn, gain=cam.electrons_per_dn,
                             read_noise=cam.read_noise_dn, bit_depth=cam.bit_depth, noise=noise, quantize=quantize)
-    img = _k.render_image(lens, geom, sensor, samples=samples, seed=seed, device=device)
+    img = _k.render_image(lens, geom, sensor, samples=samples, seed=seed, jitter=jitter, device=device)
     del keep
     if not quantize:
         return img

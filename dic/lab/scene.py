@@ -386,8 +386,8 @@ class Screen:
 
     @property
     def center_world(self) -> np.ndarray:
+        """World position (mm) of the centre of the active area."""
         W, H = self.resolution
-        px, py = self.pixel_pitch_mm
         return self.to_world([[(W - 1) / 2.0, (H - 1) / 2.0]])[0]
 
     def to_world(self, pixels) -> np.ndarray:
