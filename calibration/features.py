@@ -631,18 +631,20 @@ def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0
             except np.linalg.LinAlgError:
                 return None
             An, vn = apply(Ac, delta)
-            Fn, Jn = evaluate(An, vn, True)
+            Fn, _ = evaluate(An, vn, False)
             Bn, gn, rn = solve_gain(Fn)
             cn = float(np.vdot(rn, rn).real)
             if cn <= cost:
                 old_c = _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0]
-                Ac, v, F, J, B, gain, r = An, vn, Fn, Jn, Bn, gn, rn
+                Ac, v, B, gain, r = An, vn, Bn, gn, rn
                 step = np.linalg.norm(_apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0] - old_c)
                 cost, lam, accepted = cn, max(lam / 10, 1e-7), True
                 break
             lam *= 10
-            if os.environ.get("SPECULA_DEBUG"):
-                print("   it", it, "cost", cost, "lam", lam, "acc", accepted, "v", v)
+        if os.environ.get("SPECULA_DEBUG"):
+            print("   it", it, "cost", cost, "lam", lam, "acc", accepted, "v", v, _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0])
+        if accepted and step >= 1e-5:
+            F, J = evaluate(Ac, v, True)
         if not accepted or step < 1e-5:
             break
     centre = _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0]
@@ -817,25 +819,16 @@ def detect_dots(
         Z = modulation * np.exp(1j * phase)
         by_id = {int(d): n for n, d in enumerate(ids) if good[n]}
         new_fits = list(fits_k)
+        # start: one homography through all pass-1 centres (well conditioned; pass-1 centres can
+        # be off by ~1 px under strong blur), moved so that it maps the dot onto its own
+        # pass-1 centre (lens distortion keeps a global homography from being exact)
+        gsel0 = np.flatnonzero(good)
+        H_all = _homography(screen_c[ids[gsel0]], centres[gsel0])
         for n, d in enumerate(ids):
             if not good[n]:
                 continue
-            i0, j0 = ij[n]
-            src, dst = [], []
-            for di in (-1, 0, 1):
-                for dj in (-1, 0, 1):
-                    ii, jj = i0 + di, j0 + dj
-                    if 0 <= ii < target.grid[0] and 0 <= jj < target.grid[1]:
-                        m = by_id.get(int(jj * target.grid[0] + ii))
-                        if m is not None:
-                            src.append(screen_c[int(jj * target.grid[0] + ii)])
-                            dst.append(centres[m])
-            src, dst = np.array(src), np.array(dst)
-            if len(src) >= 4 and np.linalg.matrix_rank(src - src.mean(axis=0)) == 2:
-                A_abs = np.linalg.inv(_homography(src, dst))
-            else:
-                Tc = np.array([[1, 0, screen_c[d][0]], [0, 1, screen_c[d][1]], [0, 0, 1.0]])
-                A_abs = Tc @ fits_k[n].A
+            shift = centres[n] - _apply_h(H_all, screen_c[d][None])[0]
+            A_abs = np.linalg.inv(np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]]) @ H_all)
             res = _refine_dot_blurred(Z, mask, target, A_abs, screen_c[d], float(blur_sigma))
             if res is None:
                 good[n] = False

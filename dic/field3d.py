@@ -36,7 +36,7 @@ from enum import IntEnum
 
 import numpy as np
 
-__all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "grid_neighbours", "scattered_neighbours",
+__all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "surface_strain_grid", "grid_neighbours", "scattered_neighbours",
            "as_frame", "tangent_axis", "tangent_basis"]
 
 
@@ -269,6 +269,85 @@ def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_
     out["exx"][sel], out["eyy"][sel], out["exy"][sel] = exx[good], eyy[good], exy[good]
     normal[sel] = nrm[good]
     out["normal"] = normal
+    out["strain_valid"][sel] = True
+    return out
+
+
+def surface_strain_grid(X, U, valid, grid_shape, window: int, *, camera_center=(0.0, 0.0, 0.0),
+                        x_axis=(1.0, 0.0, 0.0), y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6):
+    """:func:`surface_strain` for points on a regular grid with ``window × window`` neighbourhoods, in O(N).
+
+    Same result as ``surface_strain(X, U, valid, grid_neighbours(grid_shape, window), ...)`` (to
+    rounding), but the neighbourhood sums (weights, first and second moments of the positions,
+    position-displacement cross moments) come from box filters over the grid instead of gathering
+    ``window²`` neighbours per point: ~20x less memory traffic at 200 000 points.
+    """
+    from scipy.ndimage import uniform_filter
+
+    ny, nx = (int(v) for v in grid_shape)
+    X = np.asarray(X, dtype=np.float64)
+    U = np.asarray(U, dtype=np.float64)
+    n_pts = ny * nx
+    if X.shape != (n_pts, 3) or U.shape != (n_pts, 3):
+        raise ValueError(f"X and U must be (ny*nx, 3) = ({n_pts}, 3), got {X.shape} and {U.shape}")
+    if isinstance(window, bool) or int(window) != window or window < 3 or window % 2 == 0:
+        raise ValueError(f"strain window must be an odd integer >= 3 (grid points), got {window!r}")
+    valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(U), axis=1)
+    out = {k: np.full(n_pts, np.nan) for k in ("exx", "eyy", "exy")}
+    out["normal"] = np.full((n_pts, 3), np.nan)
+    out["strain_valid"] = np.zeros(n_pts, dtype=bool)
+    if not np.any(valid):
+        return out
+    w = valid.astype(np.float64)
+    origin = X[valid].mean(axis=0)           # moments about a global origin: no cancellation at 1e3 mm
+    Xc = np.where(valid[:, None], X - origin, 0.0)
+    Uc = np.where(valid[:, None], U, 0.0)
+    size = float(window * window)
+
+    def box(v):
+        return uniform_filter(v.reshape(ny, nx), size=int(window), mode="constant", cval=0.0).ravel() * size
+
+    sw = box(w)
+    ok = valid & (np.rint(sw) >= min_neighbours)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return out
+    inv = 1.0 / sw[idx]
+    mX = np.stack([box(Xc[:, i])[idx] for i in range(3)], axis=1) * inv[:, None]
+    mU = np.stack([box(Uc[:, c])[idx] for c in range(3)], axis=1) * inv[:, None]
+    C = np.empty((idx.size, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            C[:, i, j] = C[:, j, i] = box(Xc[:, i] * Xc[:, j])[idx] * inv - mX[:, i] * mX[:, j]
+    CXU = np.empty((idx.size, 3, 3))                                  # [i, c] = cov(X_i, U_c)
+    for i in range(3):
+        for c in range(3):
+            CXU[:, i, c] = box(Xc[:, i] * Uc[:, c])[idx] * inv - mX[:, i] * mU[:, c]
+    evals, evecs = np.linalg.eigh(C)
+    nrm = evecs[:, :, 0]
+    planar = evals[:, 1] > 1e-6 * np.maximum(evals[:, 2], 1e-300)
+    to_cam = np.asarray(camera_center, dtype=np.float64) - X[idx]
+    nrm = np.where((np.sum(nrm * to_cam, axis=1) < 0)[:, None], -nrm, nrm)
+    e1, e2 = tangent_basis(nrm, x_axis, y_axis)
+    saa = np.einsum("ni,nij,nj->n", e1, C, e1)
+    sab = np.einsum("ni,nij,nj->n", e1, C, e2)
+    sbb = np.einsum("ni,nij,nj->n", e2, C, e2)
+    sat = np.einsum("ni,nic->nc", e1, CXU)
+    sbt = np.einsum("ni,nic->nc", e2, CXU)
+    det = saa * sbb - sab * sab
+    solvable = planar & (det > 1e-12 * (saa + sbb) ** 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ga = (sbb[:, None] * sat - sab[:, None] * sbt) / det[:, None]
+        gb = (saa[:, None] * sbt - sab[:, None] * sat) / det[:, None]
+    fa = e1 + ga
+    fb = e2 + gb
+    exx = 0.5 * (np.sum(fa * fa, axis=1) - 1.0)
+    eyy = 0.5 * (np.sum(fb * fb, axis=1) - 1.0)
+    exy = 0.5 * np.sum(fa * fb, axis=1)
+    good = solvable & np.isfinite(exx) & np.isfinite(eyy) & np.isfinite(exy)
+    sel = idx[good]
+    out["exx"][sel], out["eyy"][sel], out["exy"][sel] = exx[good], eyy[good], exy[good]
+    out["normal"][sel] = nrm[good]
     out["strain_valid"][sel] = True
     return out
 
