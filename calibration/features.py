@@ -527,145 +527,41 @@ def _pixel_field(target: PhaseTarget, Ac, u, c_screen, jac: bool):
     return E, dE
 
 
-def _refine_dot_blurred(Z, fitmask, target: PhaseTarget, A_abs, c_screen, sigma0: float, iterations: int = 10):
-    """Analysis-by-synthesis refinement of one dot on the complex fringe field ``Z = M exp(i phi)``.
+def _simulated_fit_bias(target: PhaseTarget, mask, A_abs, c_screen, sigma: float, A_start, rho_in, border):
+    """Bias of the pass-1 fit for one dot, measured on a simulated view.
 
-    Model, on the pixels of the dot's cell: ``Z(x) = (g0 + g1 dx + g2 dy) [K_v * E](x)`` with
-    ``E(x) = exp(i Phi(s(x)))`` the target's emitted complex fringe field (all cells, codes and
-    the edge of the fringe area) at ``s = dehom(A x)`` (``A``: image -> screen px, a local
-    homography), ``K_v`` a Gaussian of variance ``v`` (the blur) times the pixel-area box, and a
-    complex gain with a linear trend (eliminated by variable projection). Levenberg-Marquardt over
-    the 8 homography parameters and ``v``. The centre is ``dehom(A^-1 c)``.
-    """
+    The view around the dot is rendered from the target's exact fringe field (all cells, codes,
+    the edge of the fringe area) through the local homography ``A_abs`` (image -> screen px),
+    blurred with a Gaussian of ``sigma`` px, and the pass-1 fit is run on it with the data's
+    pixel mask. Returns (fitted - true) centre of the simulation (px), or None."""
     from scipy import fft as sfft
 
-    h, w = Z.shape
-    k = TWO_PI / target.period
+    h, w = mask.shape
+    Ainv = np.linalg.inv(A_abs)
     half = target.pitch / 2
-    Tc = np.array([[1, 0, -c_screen[0]], [0, 1, -c_screen[1]], [0, 0, 1.0]])
-    Ac = Tc @ A_abs  # image -> cell-centred screen px
-    Ac = Ac / Ac[2, 2]
-    v = max(sigma0, 0.3) ** 2
-    sig_pad = max(sigma0, 1.0)
-
-    def region(Ac_):
-        Ainv = np.linalg.inv(Ac_)
-        corners = _apply_h(Ainv, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half)
-        x0, y0 = np.floor(corners.min(axis=0)).astype(int)
-        x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
-        if x1 - x0 < 4 or y1 - y0 < 4:
-            return None
-        ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-        u = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], axis=1) @ Ac_.T
-        s_ = u[:, :2] / u[:, 2:3]
-        inside = (np.abs(s_) <= half).all(axis=1) & fitmask[ys.ravel(), xs.ravel()]
-        if inside.sum() < 50:
-            return None
-        return xs.ravel()[inside], ys.ravel()[inside]
-
-    reg = region(Ac)
-    if reg is None:
+    corners = _apply_h(Ainv, c_screen + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half)
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
+    if x1 - x0 < 4 or y1 - y0 < 4:
         return None
-    fx_pts, fy_pts = reg
-    pad = int(math.ceil(4.5 * max(sig_pad, 2.0))) + 2
-    bx0, by0 = fx_pts.min() - pad, fy_pts.min() - pad
-    bx1, by1 = fx_pts.max() + pad, fy_pts.max() + pad
-    nyb, nxb = sfft.next_fast_len(by1 - by0 + 1), sfft.next_fast_len(bx1 - bx0 + 1)
-    gy, gx = np.mgrid[by0:by0 + nyb, bx0:bx0 + nxb].astype(np.float64)
+    pad = int(math.ceil(4.5 * max(sigma, 1.0))) + 2
+    nyb = sfft.next_fast_len(y1 - y0 + 1 + 2 * pad)
+    nxb = sfft.next_fast_len(x1 - x0 + 1 + 2 * pad)
+    gy, gx = np.mgrid[y0 - pad:y0 - pad + nyb, x0 - pad:x0 - pad + nxb].astype(np.float64)
     Xb = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
-    fyv = sfft.fftfreq(nyb)[:, None]
-    fxv = sfft.fftfreq(nxb)[None, :]
-    f2 = fxv ** 2 + fyv ** 2
-    box = np.sinc(fxv) * np.sinc(fyv)
-    rows = fy_pts - by0
-    cols = fx_pts - bx0
-    z = Z[fy_pts, fx_pts]
-    dx = (fx_pts - fx_pts.mean()) / max(1.0, np.ptp(fx_pts))
-    dy = (fy_pts - fy_pts.mean()) / max(1.0, np.ptp(fy_pts))
-
-    def evaluate(Ac_, v_, jac: bool):
-        u = Xb @ Ac_.T
-        E, dE = _pixel_field(target, Ac_, u, c_screen, jac)
-        fields = [E] if not jac else [E] + [dE[:, m] for m in range(8)]
-        stack = np.stack(fields).reshape(len(fields), nyb, nxb)
-        T = np.exp(-2 * np.pi ** 2 * v_ * f2)
-        spec = sfft.fft2(stack, axes=(1, 2), workers=-1)
-        out = sfft.ifft2(spec * T, axes=(1, 2), workers=-1)
-        F = out[0][rows, cols]
-        if not jac:
-            return F, None
-        Jc = [o[rows, cols] for o in out[1:]]
-        Fv = sfft.ifft2(spec[0] * T * (-2 * np.pi ** 2 * f2), workers=-1)[rows, cols]
-        Jc.append(Fv)
-        return F, np.stack(Jc, axis=1)
-
-    def solve_gain(F):
-        B = np.stack([F, F * dx, F * dy], axis=1)
-        g, *_ = np.linalg.lstsq(B, z, rcond=None)
-        return B, g, z - B @ g
-
-    def apply(Ac_, delta):
-        a, b, c, d, e, f, g, hh, dv = delta
-        D = np.array([[a, b, c], [d, e, f], [g, hh, 0.0]])
-        An = (np.eye(3) + D) @ Ac_
-        return An / An[2, 2], max(v + dv, 0.0)
-
-    F, J = evaluate(Ac, v, True)
-    B, gain, r = solve_gain(F)
-    cost = float(np.vdot(r, r).real)
-    lam = 1e-3
-    for it in range(iterations):
-        # variable projection (Kaufman): d r / d p = -(I - P_B) (gain * dF/dp)
-        Jm = -(gain[0] + gain[1] * dx + gain[2] * dy)[:, None] * J
-        coef, *_ = np.linalg.lstsq(B, Jm, rcond=None)
-        Jm = Jm - B @ coef
-        Jr = np.concatenate([Jm.real, Jm.imag])
-        rr = np.concatenate([r.real, r.imag])
-        Hm = Jr.T @ Jr
-        grad = Jr.T @ rr
-        accepted = False
-        for _ in range(12):
-            try:
-                delta = -np.linalg.solve(Hm + lam * np.diag(np.diag(Hm) + 1e-12), grad)
-            except np.linalg.LinAlgError:
-                return None
-            An, vn = apply(Ac, delta)
-            Fn, _ = evaluate(An, vn, False)
-            Bn, gn, rn = solve_gain(Fn)
-            cn = float(np.vdot(rn, rn).real)
-            if cn <= cost:
-                old_c = _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0]
-                Ac, v, B, gain, r = An, vn, Bn, gn, rn
-                step = np.linalg.norm(_apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0] - old_c)
-                cost, lam, accepted = cn, max(lam / 10, 1e-7), True
-                break
-            lam *= 10
-        if os.environ.get("SPECULA_DEBUG"):
-            print("   it", it, "cost", cost, "lam", lam, "acc", accepted, "v", v, _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0])
-        if accepted and step >= 1e-5:
-            F, J = evaluate(Ac, v, True)
-        if not accepted or step < 1e-5:
-            break
-    centre = _apply_h(np.linalg.inv(Ac), np.zeros((1, 2)))[0]
-    n = len(z)
-    s2 = cost / max(2 * n - 12, 1)
-    try:
-        cov = s2 * np.linalg.inv(Hm)
-        Jc = np.zeros((2, 9))
-        for p in range(8):
-            dp = np.zeros(9)
-            dp[p] = 1e-7
-            An, _ = apply(Ac, dp)
-            Jc[:, p] = (_apply_h(np.linalg.inv(An), np.zeros((1, 2)))[0] - centre) / 1e-7
-        ccov = Jc @ cov @ Jc.T
-        sigma = float(np.sqrt(max(np.trace(ccov), 0.0) / 2))
-    except np.linalg.LinAlgError:
-        sigma = float("inf")
-    amp = np.abs(gain[0])
-    rms_phase = float(np.sqrt(cost / n) / max(amp, 1e-9))  # residual relative to the fringe amplitude (~ rad)
-    A_abs_new = np.linalg.inv(Tc) @ Ac
-    return _DotFit(centre, A_abs_new, float(np.angle(gain[0])), rms_phase, sigma, n, float(amp), True), math.sqrt(v)
+    Ac = np.array([[1, 0, -c_screen[0]], [0, 1, -c_screen[1]], [0, 0, 1.0]]) @ A_abs
+    E, _ = _pixel_field(target, Ac, Xb @ Ac.T, c_screen, False)
+    f2 = sfft.fftfreq(nyb)[:, None] ** 2 + sfft.fftfreq(nxb)[None, :] ** 2
+    Zs = sfft.ifft2(sfft.fft2(E.reshape(nyb, nxb), workers=-1) * np.exp(-2 * np.pi ** 2 * sigma ** 2 * f2), workers=-1)
+    Zs = Zs[pad:pad + y1 - y0 + 1, pad:pad + x1 - x0 + 1]
+    shift = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
+    fit = _fit_dot(np.angle(Zs), np.abs(Zs), mask[y0:y1 + 1, x0:x1 + 1], A_start @ shift,
+                   target.period, target.pitch, rho_in, border)
+    if fit is None:
+        return None
+    true = _apply_h(Ainv, c_screen[None])[0]
+    return fit.centre + (x0, y0) - true
 
 
 # ------------------------------------------------------------------------------------------------
@@ -768,6 +664,7 @@ def detect_dots(
     if blur_sigma is None:
         blur_sigma = _estimate_blur(phase, modulation, mask, period_img)
     # pass 1: radial phase model on the wrapped phase, margins a fixed fraction of the cell
+    pass1_rho_in, pass1_border = 0.1 * target.period, 0.1 * pitch
     fits = []
     for n, ij in enumerate(lab):
         src, dst = [], []
@@ -782,7 +679,7 @@ def detect_dots(
             fits.append(None)
             continue
         A0 = np.linalg.inv(_homography(src, dst))
-        fits.append(_fit_dot(phase, modulation, mask, A0, target.period, pitch, float(os.environ.get("RIN", 0.1)) * target.period, float(os.environ.get("BRD", 0.1)) * pitch))
+        fits.append(_fit_dot(phase, modulation, mask, A0, target.period, pitch, pass1_rho_in, pass1_border))
     keep = np.array([f is not None for f in fits])
     if keep.sum() < 4:
         raise DetectionError(f"only {int(keep.sum())} dot fits succeeded; at least 4 are needed")
@@ -810,30 +707,37 @@ def detect_dots(
             raise DetectionError(
                 f"an uncoded target must be fully visible: found {len(lab_k)} of {target.n_dots} dots"
             )
-        ij, good = _uncoded_ids(lab_k, centres, target, mirrored)
+        ij, good, _T_uncoded = _uncoded_ids(lab_k, centres, target, mirrored)
     ids = ij[:, 1] * target.grid[0] + ij[:, 0]
     # pass 2: blur-aware refinement on the complex fringe field
     screen_c = target.dot_centres_px
     sigmas = np.full(len(ids), float(blur_sigma))
-    if refine:
-        Z = modulation * np.exp(1j * phase)
-        by_id = {int(d): n for n, d in enumerate(ids) if good[n]}
+    if refine and blur_sigma > 0.3:
+        # pass 2: remove the defocus bias of pass 1, measured by running the same fit on a
+        # simulated view of the dot (exact target field, local homography, Gaussian blur)
+        Tl = np.eye(3)
+        Tl[:2, :2] = T if target.coded else _T_uncoded
         new_fits = list(fits_k)
-        # start: one homography through all pass-1 centres (well conditioned; pass-1 centres can
-        # be off by ~1 px under strong blur), moved so that it maps the dot onto its own
-        # pass-1 centre (lens distortion keeps a global homography from being exact)
-        gsel0 = np.flatnonzero(good)
-        H_all = _homography(screen_c[ids[gsel0]], centres[gsel0])
         for n, d in enumerate(ids):
             if not good[n]:
                 continue
-            shift = centres[n] - _apply_h(H_all, screen_c[d][None])[0]
-            A_abs = np.linalg.inv(np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]]) @ H_all)
-            res = _refine_dot_blurred(Z, mask, target, A_abs, screen_c[d], float(blur_sigma))
-            if res is None:
+            c_scr = screen_c[d]
+            A_loc = np.array([[1, 0, c_scr[0]], [0, 1, c_scr[1]], [0, 0, 1.0]]) @ Tl @ fits_k[n].A
+            corrected = fits_k[n].centre
+            for _ in range(2):
+                # move the local map so that the dot lands on the current estimate
+                off = corrected - _apply_h(np.linalg.inv(A_loc), c_scr[None])[0]
+                A_sim = A_loc @ np.array([[1, 0, -off[0]], [0, 1, -off[1]], [0, 0, 1.0]])
+                bias = _simulated_fit_bias(target, mask, A_sim, c_scr, float(blur_sigma), fits_k[n].A,
+                                           pass1_rho_in, pass1_border)
+                if bias is None:
+                    break
+                corrected = fits_k[n].centre - bias
+            if bias is None:
                 good[n] = False
                 continue
-            new_fits[n], sigmas[n] = res
+            f = fits_k[n]
+            new_fits[n] = _DotFit(corrected, f.A, f.phi0, f.rms, f.sigma, f.n, f.modulation, True)
         fits_k = new_fits
         centres = np.array([f.centre for f in fits_k])
     # handedness of the target -> image mapping
@@ -880,16 +784,17 @@ def _uncoded_ids(lab, centres, target, mirrored):
             continue
         ids = L[:, 1] * nx + L[:, 0]
         H = _homography(target.dot_centres_px[ids], centres)
+        T_keep = T
         J = _jacobian_h(H, target.dot_centres_px.mean(axis=0))
         if (np.linalg.det(J) < 0) != want_mirror:
             continue
         ex = J[:, 0] / np.linalg.norm(J[:, 0])
         score = ex[0]
         if best is None or score > best[0]:
-            best = (score, L)
+            best = (score, L, T_keep)
     if best is None:
         raise DetectionError("no placement of the plain grid matches the requested handedness")
-    return best[1], np.ones(len(lab), dtype=bool)
+    return best[1], np.ones(len(lab), dtype=bool), best[2]
 
 
 def _estimate_blur(phase, modulation, mask, period_img):

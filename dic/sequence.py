@@ -278,7 +278,9 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                 prev = max((d for d in done if d < k and d > 0), default=None)
                 if sc._previous is None and prev is not None:
                     grp = h5["frames"][_frame_name(prev)]
-                    sc.set_previous(grp["params_left"][()], grp["params_right"][()])
+                    imgs = (_load(pairs[prev][0], "left image")[0], _load(pairs[prev][1], "right image")[0]) \
+                        if prev < len(pairs) else None
+                    sc.set_previous(grp["params_left"][()], grp["params_right"][()], images=imgs)
                 t1 = time.perf_counter()
                 try:
                     f = sc.measure(L, R, index=k)

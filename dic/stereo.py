@@ -853,7 +853,8 @@ class StereoCorrelation:
         self._tri_ref = self._triangulate(self.points, self.match.points_right)
         self.timings["triangulation_s"] = time.perf_counter() - t0
         self._frame = self._choose_frame(frame)
-        self._previous = None          # (params_left (N, k), params_right (M, k)) of the last state
+        self._previous = None          # (params_left (N, k), params_right (N, k)) of the last state
+        self._previous_images = (None, None)
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
@@ -969,22 +970,22 @@ class StereoCorrelation:
 
     # -------------------------------------------------------------------------------------------
     def _track(self, corr: _Correlator, image: np.ndarray, previous: np.ndarray | None, eligible: np.ndarray,
-               reference_image: np.ndarray) -> _TrackResult:
+               reference_image: np.ndarray, previous_image: np.ndarray | None) -> _TrackResult:
         k = n_params(self.order)
         n = corr.points.shape[0]
         current = _prepare_current(image, self.device)
-        if previous is not None:
-            guess = np.nan_to_num(previous)
-            src = SOURCE_PREVIOUS
-        else:
-            # no previous state: start every POI from the global shift found by phase correlation
-            # (an integer shift; IC-GN from zero needed 2.6x the iterations on a 3-4 px motion)
-            guess = np.zeros((n, k))
-            src = SOURCE_NONE
-            u, v, peak = phase_correlation(reference_image, image)
-            if peak > 0.05 and (u or v):
-                guess[:, 0], guess[:, k // 2] = u, v
-                src = SOURCE_GLOBAL
+        # initial guess: the previous state's parameters (or zero) plus the global integer shift
+        # between the previous image (or the reference) and this one, by phase correlation. 2nd-order
+        # IC-GN converges slowly from 2-3 px away on fine speckle (measured on the 5 MP benchmark: a
+        # 3 px motion took 32 iterations on average, many hitting max_iter; within 0.5 px, 6-8)
+        guess = np.zeros((n, k)) if previous is None else np.nan_to_num(previous)
+        src = SOURCE_NONE if previous is None else SOURCE_PREVIOUS
+        base = reference_image if previous is None or previous_image is None else previous_image
+        u, v, peak = phase_correlation(base, image)
+        if peak > 0.05 and (u or v):
+            guess[:, 0] += u
+            guess[:, k // 2] += v
+            src = SOURCE_GLOBAL if previous is None else src
         has = np.ones(n, dtype=bool)
         cache = {}
 
@@ -1013,27 +1014,32 @@ class StereoCorrelation:
             raise ValueError(f"the current images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
                              f"{self.shape[1]}x{self.shape[0]} px")
         prev = self._previous if use_previous else None
+        prev_images = self._previous_images if prev is not None else (None, None)
         matched = self._matched
         self.timings = {}
         t0 = time.perf_counter()
-        tl = self._track(self.left, L, None if prev is None else prev[0], self.match.valid, self._left_ref)
+        tl = self._track(self.left, L, None if prev is None else prev[0], self.match.valid, self._left_ref,
+                         prev_images[0])
         self.timings["track_left_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if self.right is not None:
             tr = self._track(self.right, R, None if prev is None else prev[1][matched],
-                             np.ones(matched.size, dtype=bool), self._right_ref)
+                             np.ones(matched.size, dtype=bool), self._right_ref, prev_images[1])
         else:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0
         f = self._field((tl, tr), index=index)
         self._previous = (f.details["params_left"], f.details["params_right"])
+        self._previous_images = (L, R)
         return f
 
-    def set_previous(self, params_left, params_right) -> None:
+    def set_previous(self, params_left, params_right, images=None) -> None:
         """Set the initial guess of the next :meth:`measure`: parameters (N, 6|12) of the left and right tracks.
 
         E.g. ``field.details["params_left"]``, ``field.details["params_right"]`` of the previous
         state read back from a result file. NaN rows (points that failed) start from zero.
+        ``images``: that state's ``(left, right)`` images, optional (their global shift to the next
+        images is added to the guess).
         """
         k = n_params(self.order)
         n = self.points.shape[0]
@@ -1042,6 +1048,7 @@ class StereoCorrelation:
         if pl.shape != (n, k) or pr.shape != (n, k):
             raise ValueError(f"previous parameters must both have shape {(n, k)}, got {pl.shape} and {pr.shape}")
         self._previous = (pl, pr)
+        self._previous_images = (None, None) if images is None else _check_pair(images[0], images[1], "previous")
 
     # -------------------------------------------------------------------------------------------
     def _field(self, tracks, index: int) -> Field3D:

@@ -22,8 +22,10 @@ Subsets
 
 Criterion and update
     ZNSSD ``C = sum [(f - fm)/df - (g - gm)/dg]^2`` (``df = sqrt(sum (f - fm)^2)``, likewise ``dg``).
-    With the steepest-descent images ``J = grad f . dW/dq`` of the reference and the constant
-    Hessian ``H = sum J^T J``, each iteration solves
+    With the steepest-descent images ``J = grad f . dW/dq`` of the reference and the constant,
+    mean-centred Hessian ``H = sum (J - Jm)^T (J - Jm)`` (the exact Gauss-Newton Hessian of the
+    offset-invariant criterion; ~3 iterations instead of ~5 with Pan's ``sum J^T J`` for 2nd order),
+    each iteration solves
     ``dq = -H^-1 [sum J^T (f - fm) - (df/dg) sum J^T (g - gm)]`` and updates the warp
     ``W(p) <- W(p) o W(dp)^-1`` (1st order: 3x3 affine matrices; 2nd order: Gao's 6x6 matrices on
     ``(x^2, xy, y^2, x, y, 1)``). The warped subset is never stored: one pass over it per iteration
@@ -42,8 +44,8 @@ Statuses
     ``CONVERGED`` (norm < tol), ``MAX_ITERATIONS``, ``OUT_OF_BOUNDS`` (the reference subset, or a
     warped subset at any iteration, leaves ``[0, W-1] x [0, H-1]``), ``FLAT_SUBSET`` (reference
     grey-level standard deviation <= ``flat_std``), ``SINGULAR_HESSIAN`` (a Cholesky pivot below
-    1e-6 of the largest diagonal entry of the scaled Hessian), ``DIVERGED`` (non-finite values, an update longer than the
-    subset size, or a warped subset with no grey-level variation).
+    1e-6 of the largest diagonal entry of the scaled Hessian), ``DIVERGED`` (non-finite values, an
+    update longer than the subset size, or a warped subset whose grey-level std is <= ``flat_std``).
 """
 from __future__ import annotations
 
@@ -65,7 +67,6 @@ wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=n
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
 mat66 = wp.types.matrix(shape=(6, 6), dtype=wp.float32)
-mat1212 = wp.types.matrix(shape=(12, 12), dtype=wp.float32)
 vec12d = wp.types.vector(length=12, dtype=wp.float64)
 mat1212d = wp.types.matrix(shape=(12, 12), dtype=wp.float64)
 vec5 = wp.types.vector(length=5, dtype=wp.float32)
