@@ -325,21 +325,30 @@ class _DotFit:
     n: int
     modulation: float
     ok: bool
-    g: np.ndarray | None = None
+    A_window: np.ndarray | None = None
 
 
-def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterations=15):
-    """Pass 1: fit ``phi = 2 pi |s| / period + phi0``, ``s = dehom(A x)``, on one cell.
+def _smoothstep(t):
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3 - 2 * t)
 
-    ``A0`` maps image (x, y, 1) to cell-centred screen px (lattice frame). Pixels with
-    ``|s| < rho_in`` or within ``border`` of the cell edge are left out. Gauss-Newton on the
-    wrapped residual, modulation-weighted. Returns a :class:`_DotFit` or None."""
+
+def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterations=30, A_window=None):
+    """Pass 1: fit ``phi = 2 pi |s| / period + phi0``, ``s = dehom(A x)``, around one dot.
+
+    ``A0`` (start) maps image (x, y, 1) to cell-centred screen px. Each pixel's residual is
+    weighted by its modulation (phase noise ~ 1 / modulation) times a smooth window of its cell
+    position under ``A_window`` (default ``A0``; fixed during the fit) that fades out pixels
+    nearer than ``rho_in`` to the dot centre or than ``border`` to the cell edge (screen px, taper
+    0.05 pitch). Gauss-Newton on the wrapped residual. Returns a :class:`_DotFit` or None."""
     h, w = phase.shape
     half = pitch / 2 - border
-    Ainv = np.linalg.inv(A0)
+    taper = 0.05 * pitch
+    A_window = A0 if A_window is None else A_window
+    Ainv = np.linalg.inv(A_window)
     corners = _apply_h(Ainv, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * (pitch / 2))
-    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int) - 2
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 2
     x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
     if x1 - x0 < 4 or y1 - y0 < 4:
         return None
@@ -351,32 +360,35 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
         return None
     X = np.stack([xs, ys, np.ones(xs.size)], axis=1).astype(np.float64)
     phi = phase[ys, xs]
-    wts = modulation[ys, xs]
+    mod = modulation[ys, xs]
     k = TWO_PI / period
     A = A0 / A0[2, 2]
-    gvec = np.zeros(2)
+
+    def window(s):
+        rho = np.hypot(s[:, 0], s[:, 1])
+        return (_smoothstep((rho - rho_in) / taper) * _smoothstep((half - np.abs(s[:, 0])) / taper)
+                * _smoothstep((half - np.abs(s[:, 1])) / taper)), rho
+
+    win, _ = window(_apply_h(A_window, X[:, :2]))
+    use = win > 0
+    if use.sum() < 30:
+        return None
+    X, phi, mod, win = X[use], phi[use], mod[use], win[use]
+    ww = mod * win
     s0 = _apply_h(A, X[:, :2])
     rho0 = np.hypot(s0[:, 0], s0[:, 1])
-    use0 = (rho0 > rho_in) & (np.abs(s0) < half).all(axis=1)
-    if use0.sum() < 30:
-        return None
-    phi0 = float(np.angle(np.sum(wts[use0] * np.exp(1j * (phi[use0] - k * rho0[use0])))))
-    use = None
+    phi0 = float(np.angle(np.sum(ww * np.exp(1j * (phi - k * rho0)))))
     Hm = None
+    centre = _apply_h(np.linalg.inv(A), np.zeros((1, 2)))[0]
     for it in range(iterations):
-        u = X @ A.T
-        s = u[:, :2] / u[:, 2:3]
-        rho = np.hypot(s[:, 0], s[:, 1])
-        if it in (0, 3):  # pixel selection from the current local map
-            use = (rho > rho_in) & (np.abs(s) < half).all(axis=1)
-            if use.sum() < 30:
-                return None
-        uu, ss, rr, pp, ww = u[use], s[use], rho[use], phi[use], wts[use]
-        res = _wrap(pp - (k * rr + phi0 + ss @ gvec))
+        uu = X @ A.T
+        ss = uu[:, :2] / uu[:, 2:3]
+        rr = np.hypot(ss[:, 0], ss[:, 1])
+        res = _wrap(phi - (k * rr + phi0))
         q2 = uu[:, 2]
         sx, sy = ss[:, 0], ss[:, 1]
-        dpx = k * sx / np.maximum(rr, 1e-9) + gvec[0]   # d phi / d s
-        dpy = k * sy / np.maximum(rr, 1e-9) + gvec[1]
+        dpx = k * sx / np.maximum(rr, 1e-9)   # d phi / d s
+        dpy = k * sy / np.maximum(rr, 1e-9)
         g0, g1 = dpx / q2, dpy / q2
         g2 = -(dpx * sx + dpy * sy) / q2
         u0, u1, u2 = uu[:, 0], uu[:, 1], uu[:, 2]
@@ -394,18 +406,33 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
         A = (np.eye(3) + D) @ A
         A = A / A[2, 2]
         phi0 = float(_wrap(phi0 + dphi))
-        if np.abs(delta[:7]).max() < 1e-11 and abs(dphi) < 1e-10:
+        new_centre = _apply_h(np.linalg.inv(A), np.zeros((1, 2)))[0]
+        moved = float(np.hypot(*(new_centre - centre)))
+        centre = new_centre
+        if moved < 1e-7 and it > 1:
             break
-    u = X[use] @ A.T
+    u = X @ A.T
     s = u[:, :2] / u[:, 2:3]
-    rr = np.hypot(s[:, 0], s[:, 1])
-    res = _wrap(phi[use] - (k * rr + phi0 + s @ gvec))
-    n = int(use.sum())
-    centre = _apply_h(np.linalg.inv(A), np.zeros((1, 2)))[0]
-    fit = _DotFit(centre, A, phi0, float(np.sqrt(np.mean(res ** 2))), float("nan"), n,
-                  float(np.median(wts[use])), True)
-    fit.g = gvec
-    return fit
+    res = _wrap(phi - (k * np.hypot(s[:, 0], s[:, 1]) + phi0))
+    # centre covariance from the Gauss-Newton normal matrix (phase noise from the residual)
+    sigma = float("nan")
+    try:
+        s2 = float(np.sum((res * ww) ** 2)) / max(len(res) - 8, 1)
+        cov = s2 * np.linalg.inv(Hm)
+        Jc = np.zeros((2, 8))
+        for p in range(7):
+            dp = np.zeros(7)
+            dp[p] = 1e-7
+            a, b, c, e, f, g, hh = dp
+            Ap = (np.eye(3) + np.array([[a, b, c], [b, e, f], [g, hh, 0.0]])) @ A
+            Jc[:, p] = (_apply_h(np.linalg.inv(Ap), np.zeros((1, 2)))[0] - centre) / 1e-7
+        sigma = float(np.sqrt(max(np.trace(Jc @ cov @ Jc.T), 0.0) / 2))
+    except np.linalg.LinAlgError:
+        pass
+    rms = float(np.sqrt(np.sum(win * res ** 2) / max(np.sum(win), 1e-12)))
+    out = _DotFit(centre, A, phi0, rms, sigma, len(res), float(np.median(mod)), True)
+    out.A_window = A_window
+    return out
 
 
 def _edge_cdf(d, a, b):
@@ -527,41 +554,108 @@ def _pixel_field(target: PhaseTarget, Ac, u, c_screen, jac: bool):
     return E, dE
 
 
-def _simulated_fit_bias(target: PhaseTarget, mask, A_abs, c_screen, sigma: float, A_start, rho_in, border):
-    """Bias of the pass-1 fit for one dot, measured on a simulated view.
+class _DotSimulation:
+    """The exact view of one dot, rendered through a local homography, for any blur.
 
-    The view around the dot is rendered from the target's exact fringe field (all cells, codes,
-    the edge of the fringe area) through the local homography ``A_abs`` (image -> screen px),
-    blurred with a Gaussian of ``sigma`` px, and the pass-1 fit is run on it with the data's
-    pixel mask. Returns (fitted - true) centre of the simulation (px), or None."""
-    from scipy import fft as sfft
+    The target's fringe field around the dot (all cells, codes, the edge of the fringe area) is
+    sampled on the image pixels of the dot's cell plus a margin through ``A_abs`` (image ->
+    screen px); :meth:`blurred` applies a Gaussian blur of ``sigma`` px (FFT)."""
 
-    h, w = mask.shape
-    Ainv = np.linalg.inv(A_abs)
-    half = target.pitch / 2
-    corners = _apply_h(Ainv, c_screen + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half)
-    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
-    if x1 - x0 < 4 or y1 - y0 < 4:
-        return None
-    pad = int(math.ceil(4.5 * max(sigma, 1.0))) + 2
-    nyb = sfft.next_fast_len(y1 - y0 + 1 + 2 * pad)
-    nxb = sfft.next_fast_len(x1 - x0 + 1 + 2 * pad)
-    gy, gx = np.mgrid[y0 - pad:y0 - pad + nyb, x0 - pad:x0 - pad + nxb].astype(np.float64)
-    Xb = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
-    Ac = np.array([[1, 0, -c_screen[0]], [0, 1, -c_screen[1]], [0, 0, 1.0]]) @ A_abs
-    E, _ = _pixel_field(target, Ac, Xb @ Ac.T, c_screen, False)
-    f2 = sfft.fftfreq(nyb)[:, None] ** 2 + sfft.fftfreq(nxb)[None, :] ** 2
-    Zs = sfft.ifft2(sfft.fft2(E.reshape(nyb, nxb), workers=-1) * np.exp(-2 * np.pi ** 2 * sigma ** 2 * f2), workers=-1)
-    Zs = Zs[pad:pad + y1 - y0 + 1, pad:pad + x1 - x0 + 1]
-    shift = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
-    fit = _fit_dot(np.angle(Zs), np.abs(Zs), mask[y0:y1 + 1, x0:x1 + 1], A_start @ shift,
-                   target.period, target.pitch, rho_in, border)
+    def __init__(self, target: PhaseTarget, shape, A_abs, c_screen, sigma_max: float):
+        from scipy import fft as sfft
+
+        h, w = shape
+        Ainv = np.linalg.inv(A_abs)
+        half = target.pitch / 2
+        corners = _apply_h(Ainv, c_screen + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half)
+        x0, y0 = np.floor(corners.min(axis=0)).astype(int) - 2
+        x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 2
+        self.x0, self.y0 = max(x0, 0), max(y0, 0)
+        self.x1, self.y1 = min(x1, w - 1), min(y1, h - 1)
+        self.ok = self.x1 - self.x0 >= 4 and self.y1 - self.y0 >= 4
+        if not self.ok:
+            return
+        self.pad = pad = int(math.ceil(4.0 * max(sigma_max, 1.0))) + 2
+        nyb = sfft.next_fast_len(self.y1 - self.y0 + 1 + 2 * pad)
+        nxb = sfft.next_fast_len(self.x1 - self.x0 + 1 + 2 * pad)
+        gy, gx = np.mgrid[self.y0 - pad:self.y0 - pad + nyb, self.x0 - pad:self.x0 - pad + nxb].astype(np.float64)
+        Xb = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
+        Ac = np.array([[1, 0, -c_screen[0]], [0, 1, -c_screen[1]], [0, 0, 1.0]]) @ A_abs
+        E, _ = _pixel_field(target, Ac, Xb @ Ac.T, c_screen, False)
+        self.spec = sfft.fft2(E.reshape(nyb, nxb), workers=-1)
+        self.f2 = sfft.fftfreq(nyb)[:, None] ** 2 + sfft.fftfreq(nxb)[None, :] ** 2
+        self.true_centre = _apply_h(Ainv, np.asarray(c_screen, dtype=np.float64)[None])[0]
+
+    def blurred(self, sigma: float) -> np.ndarray:
+        from scipy import fft as sfft
+
+        Z = sfft.ifft2(self.spec * np.exp(-2 * np.pi ** 2 * sigma ** 2 * self.f2), workers=-1)
+        p = self.pad
+        return Z[p:p + self.y1 - self.y0 + 1, p:p + self.x1 - self.x0 + 1]
+
+    def window(self, arr):
+        return arr[self.y0:self.y1 + 1, self.x0:self.x1 + 1]
+
+
+def _fit_blur(sim: _DotSimulation, modulation, mask, sigma0: float) -> float:
+    """Blur (px) whose simulated modulation best matches the measured one around the dot
+    (least squares with a free gain; golden-section search on log sigma)."""
+    m = sim.window(modulation)
+    ok = sim.window(mask)
+    if ok.sum() < 50:
+        return sigma0
+    m = m[ok]
+
+    def cost(ls):
+        a = np.abs(sim.blurred(math.exp(ls)))[ok]
+        g = float(a @ m) / max(float(a @ a), 1e-12)
+        r = m - g * a
+        return float(r @ r)
+
+    lo, hi = math.log(max(sigma0, 0.5) / 1.6), math.log(max(sigma0, 0.5) * 1.6)
+    gr = (math.sqrt(5) - 1) / 2
+    c, d = hi - gr * (hi - lo), lo + gr * (hi - lo)
+    fc, fd = cost(c), cost(d)
+    for _ in range(11):
+        if fc < fd:
+            hi, d, fd = d, c, fc
+            c = hi - gr * (hi - lo)
+            fc = cost(c)
+        else:
+            lo, c, fc = c, d, fd
+            d = lo + gr * (hi - lo)
+            fd = cost(d)
+    return math.exp((lo + hi) / 2)
+
+
+def _smooth_blur(centres, sigmas, sel):
+    """Robust plane ``sigma = a + b x + c y`` through per-dot blur estimates (median if < 6)."""
+    out = np.array(sigmas, dtype=np.float64)
+    if len(sel) < 6:
+        out[sel] = np.median(out[sel])
+        return out
+    X = np.c_[np.ones(len(sel)), centres[sel]]
+    y = out[sel]
+    w = np.ones(len(sel))
+    for _ in range(5):  # iteratively reweighted (Huber-like) least squares
+        coef = np.linalg.lstsq(X * w[:, None], y * w, rcond=None)[0]
+        r = y - X @ coef
+        scale = 1.4826 * np.median(np.abs(r)) + 1e-6
+        w = 1.0 / np.maximum(1.0, np.abs(r) / (1.5 * scale))
+    out[sel] = np.c_[np.ones(len(sel)), centres[sel]] @ coef
+    return np.maximum(out, 0.0)
+
+
+def _simulated_fit_bias(sim: _DotSimulation, mask, sigma: float, A_start, A_window, period, pitch, rho_in, border):
+    """(fitted - true) centre (px) of the pass-1 fit run on the simulated view (same pixel
+    window as on the data), or None."""
+    Zs = sim.blurred(sigma)
+    shift = np.array([[1, 0, sim.x0], [0, 1, sim.y0], [0, 0, 1.0]])
+    fit = _fit_dot(np.angle(Zs), np.abs(Zs), sim.window(mask), A_start @ shift, period, pitch, rho_in, border,
+                   A_window=A_window @ shift)
     if fit is None:
         return None
-    true = _apply_h(Ainv, c_screen[None])[0]
-    return fit.centre + (x0, y0) - true
+    return fit.centre + (sim.x0, sim.y0) - sim.true_centre
 
 
 # ------------------------------------------------------------------------------------------------
@@ -688,7 +782,12 @@ def detect_dots(
     centres = np.array([f.centre for f in fits_k])
     # ids
     phi0 = np.array([f.phi0 for f in fits_k])
-    sym = np.mod(np.rint(phi0 / (TWO_PI / target.levels)), target.levels).astype(np.int64)
+    step = TWO_PI / target.levels
+    # defocus shifts every dot's phi0 by about the same amount: remove the common offset
+    # (circular mean of the deviations from the nearest symbol) before reading the symbols
+    dev = phi0 - step * np.rint(phi0 / step)
+    common = float(np.angle(np.mean(np.exp(1j * dev * target.levels)))) / target.levels
+    sym = np.mod(np.rint((phi0 - common) / step), target.levels).astype(np.int64)
     if target.coded:
         placements = _match_code(lab_k, sym, target)
         best = placements[0]
@@ -714,30 +813,42 @@ def detect_dots(
     sigmas = np.full(len(ids), float(blur_sigma))
     if refine and blur_sigma > 0.3:
         # pass 2: remove the defocus bias of pass 1, measured by running the same fit on a
-        # simulated view of the dot (exact target field, local homography, Gaussian blur)
-        Tl = np.eye(3)
-        Tl[:2, :2] = T if target.coded else _T_uncoded
-        new_fits = list(fits_k)
-        for n, d in enumerate(ids):
-            if not good[n]:
-                continue
-            c_scr = screen_c[d]
-            A_loc = np.array([[1, 0, c_scr[0]], [0, 1, c_scr[1]], [0, 0, 1.0]]) @ Tl @ fits_k[n].A
-            corrected = fits_k[n].centre
-            for _ in range(2):
-                # move the local map so that the dot lands on the current estimate
-                off = corrected - _apply_h(np.linalg.inv(A_loc), c_scr[None])[0]
-                A_sim = A_loc @ np.array([[1, 0, -off[0]], [0, 1, -off[1]], [0, 0, 1.0]])
-                bias = _simulated_fit_bias(target, mask, A_sim, c_scr, float(blur_sigma), fits_k[n].A,
-                                           pass1_rho_in, pass1_border)
+        # simulated view of the dot (exact target field through the local homography, Gaussian
+        # blur fitted to the measured modulation around the dot)
+        gsel0 = np.flatnonzero(good)
+        corrected = centres.copy()
+        n_rep = int(os.environ.get('NREP', 3))
+        for rep in range(n_rep):
+            H_all = _homography(screen_c[ids[gsel0]], corrected[gsel0])
+            sims = {}
+            for n in gsel0:
+                c_scr = screen_c[ids[n]]
+                # global homography moved so that the dot lands on the current estimate
+                off = corrected[n] - _apply_h(H_all, c_scr[None])[0]
+                A_sim = np.linalg.inv(np.array([[1, 0, off[0]], [0, 1, off[1]], [0, 0, 1.0]]) @ H_all)
+                sim = _DotSimulation(target, phase.shape, A_sim, c_scr, 1.5 * blur_sigma)
+                if sim.ok:
+                    sims[n] = sim
+                    if rep < n_rep - 1:
+                        sigmas[n] = _fit_blur(sim, modulation, mask, float(blur_sigma))
+            if rep < n_rep - 1:
+                # a single dot's blur estimate is noisy; the defocus of a flat target varies
+                # smoothly: fit a plane over the image
+                sigmas = _smooth_blur(centres, sigmas, np.array(sorted(sims)))
+            for n in gsel0:
+                bias = None
+                if n in sims:
+                    bias = _simulated_fit_bias(sims[n], mask, float(sigmas[n]), fits_k[n].A, fits_k[n].A_window,
+                                               target.period, pitch, pass1_rho_in, pass1_border)
                 if bias is None:
-                    break
-                corrected = fits_k[n].centre - bias
-            if bias is None:
-                good[n] = False
-                continue
+                    good[n] = False
+                    continue
+                corrected[n] = centres[n] - bias
+            gsel0 = np.flatnonzero(good)
+        new_fits = list(fits_k)
+        for n in np.flatnonzero(good):
             f = fits_k[n]
-            new_fits[n] = _DotFit(corrected, f.A, f.phi0, f.rms, f.sigma, f.n, f.modulation, True)
+            new_fits[n] = _DotFit(corrected[n], f.A, f.phi0, f.rms, f.sigma, f.n, f.modulation, True)
         fits_k = new_fits
         centres = np.array([f.centre for f in fits_k])
     # handedness of the target -> image mapping

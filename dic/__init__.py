@@ -1,2 +1,25 @@
-"""Specula's user-facing DIC engine: grids, tracking, strain, stereo, results, CLI and the virtual lab."""
-__all__: list[str] = []
+"""Specula's user-facing DIC engine: grids, tracking, strain, stereo, results, CLI and the virtual lab.
+
+``dic.track``, ``dic.strain``, ``dic.stereo`` and ``dic.triangulate`` are the functions; their modules
+stay importable as ``from dic.track import Tracker`` etc. Importing compiles no kernel.
+"""
+from . import synth
+from .export import write_figures, write_vtk, write_vtk_series
+from .field3d import Field3D, StereoStatus
+from .io import read_image, write_image
+from .sequence import read_stereo, stereo_sequence
+from .store import ResultWriter, read_results
+from .strain import StrainField, strain
+from .stereo import StereoCorrelation, stereo
+from .track import Field2D, Tracker, grid, track
+from .triangulate import Triangulation, triangulate, undistort_points
+
+__all__ = [
+    "synth",
+    "Field2D", "Tracker", "grid", "track",
+    "StrainField", "strain",
+    "ResultWriter", "read_results", "read_image", "write_image",
+    "Triangulation", "triangulate", "undistort_points",
+    "Field3D", "StereoStatus", "StereoCorrelation", "stereo", "read_stereo", "stereo_sequence",
+    "write_figures", "write_vtk", "write_vtk_series",
+]

@@ -1,8 +1,9 @@
 """Warp kernels and their thin launchers (the bottom layer; imports only warp and numpy).
 
-Importing this package compiles nothing and initialises no device.
+Importing this package compiles nothing and initialises no device. Kernel modules: ``interp``,
+``icgn``, ``search``, ``speckle``, ``phase``, ``triangulate``, ``render``.
 """
-from .conventions import PARAMS_1ST, PARAMS_2ND, Status, param_names
 from ._device import available_devices, resolve_device
+from .conventions import PARAMS_1ST, PARAMS_2ND, Status, param_names
 
 __all__ = ["PARAMS_1ST", "PARAMS_2ND", "Status", "param_names", "available_devices", "resolve_device"]

@@ -1,0 +1,649 @@
+"""The paper's Section 3 experiments in the virtual lab: calibration → measurement → metrics.
+
+One chain, shared by ``bench/paper.py`` (the full reproduction) and ``dic/demo.py`` (the quick
+end-to-end demo):
+
+1. **Calibration images** of the paper rig (:func:`dic.lab.paper_rig`): the coded phase target
+   (:class:`calibration.targets.PhaseTarget`, N-step fringes) on the monitor, seen by each camera
+   through its mirror at the rig's three tilts, and directly at several poses spread over depth
+   (intrinsics); optionally a far view both cameras see (joint adjustment), and checkerboard views
+   at the far working distance (the conventional calibration, for comparison).
+2. **Calibration** with the project's own pipeline: dot centres (:mod:`calibration.features`),
+   intrinsics from the direct + mirrored views (:func:`calibration.intrinsics.calibrate_intrinsics`),
+   mirror extrinsics per camera (:func:`calibration.mirror.mirror_extrinsics`, the paper's method +
+   bundle adjustment), the rig (:func:`calibration.stereo.rig_from_mirror`, or
+   :func:`calibration.mirror.joint_mirror_stereo` with the far view). The ground-truth cameras of
+   the virtual lab are **never** used by the measurement: only rendered images go in.
+3. **Measurement images**: the paper's 4 × 2 dot target (300 px dots at 450 px pitch, as phase
+   dots) and a speckle image at the 27 monitor positions; shifted and sinusoidally deformed
+   speckle at the central position.
+4. **Metrics**: neighbouring-dot distances against 139.95 mm, deviation of the DIC surface from
+   its best-fit plane, measured against imposed displacements (the paper's Table 1 and Fig. 10).
+   Monitor coordinates of DIC points come from the triangulated dots at the same position (a rigid
+   fit of the dot target to its measured 3-D dots), not from the lab's ground truth.
+
+Paper: "Stereo-camera calibration for large-scale DIC measurements with active phase targets and
+planar mirrors", Optics Express 27(6), 9040 (2019), doi:10.1364/OE.27.009040, Section 3.
+
+Renders are cached on disk (``cache`` folder, ``.npy`` per image, keyed by every parameter that
+changes the image), so an interrupted run resumes where it stopped.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+MONITOR_PITCH_MM = 0.311
+MONITOR_RES = (1920, 1080)
+DOT_SPACING_PX = 450.0
+DOT_SPACING_MM = DOT_SPACING_PX * MONITOR_PITCH_MM  # 139.95 mm
+
+__all__ = ["ExperimentConfig", "Experiment", "RenderCache", "CalibrationOutcome", "dot_test", "plane_deviation",
+           "speckle_monitor_image", "DOT_SPACING_MM"]
+
+
+@dataclass
+class ExperimentConfig:
+    """Everything that changes the rendered images or the processing.
+
+    scale : camera resolution factor of the paper rig (1 = 2352 × 1728 px).
+    samples : render sub-samples per pixel (a perfect square).
+    noise : read + shot noise on (quantisation to 8 bits and defocus are always on).
+    calib_grid, calib_pitch : coded phase target for calibration (dots, screen px).
+    direct_distances_mm : distances of the direct intrinsic views along each camera's axis.
+    far_view : also render a far view both cameras see (joint mirror-stereo adjustment).
+    checkerboard : also render the conventional far checkerboard views.
+    positions : monitor test positions (indices 0..26).
+    speckle_radius_cam_px : mean speckle disk radius, in camera px at the central depth.
+    step, subset, order : stereo-DIC settings (the paper: step 2, 21 px subsets, 2nd order).
+    shifts_px : horizontal shifts of the displayed speckle (monitor px) for the displacement test.
+    deform_amplitude_px, deform_frequency : x_d = x + A sin(2 pi f y) (monitor px), paper A = 24, f = 1/600.
+    """
+
+    scale: float = 0.25
+    samples: int = 9
+    noise: bool = True
+    seed: int = 2019
+    calib_grid: tuple = (12, 6)
+    calib_pitch: float = 150.0
+    direct_distances_mm: tuple = (1100.0, 1300.0, 1500.0, 1700.0, 1900.0, 2100.0, 2400.0, 2700.0)
+    far_view: bool = True
+    checkerboard: bool = True
+    checker_views: int = 10
+    positions: tuple = tuple(range(27))
+    speckle_radius_cam_px: float = 1.6
+    step: int = 2
+    subset: int = 21
+    order: int = 2
+    shifts_px: tuple = (4, 8, 16, 32, 64, 128, 256, 384)
+    deform_amplitude_px: float = 24.0
+    deform_frequency: float = 1.0 / 600.0
+    displacement_test: bool = True
+    deformation_test: bool = True
+    device: str | None = None
+
+    def key(self) -> dict:
+        """Parameters that change rendered images (the cache key)."""
+        return {"scale": self.scale, "samples": self.samples, "noise": self.noise, "seed": self.seed,
+                "calib_grid": list(self.calib_grid), "calib_pitch": self.calib_pitch,
+                "speckle_radius_cam_px": self.speckle_radius_cam_px}
+
+
+class RenderCache:
+    """On-disk cache of rendered images: ``folder/<hash of (config key, label)>.npy``; None = no cache."""
+
+    def __init__(self, folder=None):
+        self.folder = None if folder is None else Path(folder)
+        if self.folder is not None:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        self.hits = 0
+        self.renders = 0
+        self.render_s = 0.0
+
+    def get(self, key: dict, label: str, make):
+        name = hashlib.sha1(json.dumps([key, label], sort_keys=True).encode()).hexdigest()[:20]
+        path = None if self.folder is None else self.folder / f"{name}.npy"
+        if path is not None and path.exists():
+            try:
+                self.hits += 1
+                return np.load(path)
+            except Exception:  # a truncated file from an interrupted run: render again
+                self.hits -= 1
+        t0 = time.perf_counter()
+        img = make()
+        self.render_s += time.perf_counter() - t0
+        self.renders += 1
+        if path is not None:
+            tmp = path.with_suffix(".tmp.npy")
+            np.save(tmp, img)
+            tmp.replace(path)
+        return img
+
+
+# ------------------------------------------------------------------------------------------------
+# monitor images
+# ------------------------------------------------------------------------------------------------
+def speckle_monitor_image(radius_px: float, seed: int, displacement=None) -> np.ndarray:
+    """(1080, 1920) uint8 Boolean speckle for the monitor, optionally displaced (monitor px).
+
+    ``displacement``: None, a constant (u, v) or a callable (x, y) -> (u, v) of reference monitor
+    pixel coordinates (the displayed image shows material point X at X + u(X)).
+    """
+    from dic.synth import make_speckle, render
+
+    W, H = MONITOR_RES
+    margin = 420.0 + 4 * radius_px
+    model = make_speckle(region=(-margin, -margin, W + margin, H + margin), radius=radius_px, density=0.5,
+                         blur=0.7, bits=8, samples=2, seed=seed)
+    img = render(model, (H, W), displacement)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def _camera_pose_world(lab_cam):
+    R = np.asarray(lab_cam.R_cam_world, float)
+    t = np.asarray(lab_cam.t_cam_world, float)
+    return R, t, -R.T @ t
+
+
+def _rot(axis, deg):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float)).as_matrix()
+
+
+def _monitor_pose_facing(center_world, R_world_base, tilt_x_deg=0.0, tilt_y_deg=0.0, roll_deg=0.0):
+    """Screen pose whose centre is ``center_world`` and whose frame is the base frame turned by the tilts."""
+    R = R_world_base @ _rot([1, 0, 0], tilt_x_deg) @ _rot([0, 1, 0], tilt_y_deg) @ _rot([0, 0, 1], roll_deg)
+    W, H = MONITOR_RES
+    c_local = np.array([(W - 1) / 2 * MONITOR_PITCH_MM, (H - 1) / 2 * MONITOR_PITCH_MM, 0.0])
+    return R, center_world - R @ c_local
+
+
+# ------------------------------------------------------------------------------------------------
+# calibration
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class CalibrationOutcome:
+    """The calibrated rig(s) and their figures."""
+
+    rig: object                       # StereoRig used for the measurements (mirror, or joint when far view)
+    rig_mirror: object                # paper-faithful: rig_from_mirror of per-camera mirror extrinsics
+    rig_joint: object | None          # joint mirror-stereo adjustment with the far view
+    rig_conventional: object | None   # checkerboard at the far working distance
+    figures: dict = field(default_factory=dict)
+
+
+class Experiment:
+    """Renders (cached) and measures the paper's experiments on the virtual paper rig."""
+
+    def __init__(self, config: ExperimentConfig | None = None, cache=None, log=print):
+        from dic.lab import paper_rig
+        from calibration.targets import PhaseTarget
+
+        self.cfg = config or ExperimentConfig()
+        self.cache = cache if isinstance(cache, RenderCache) else RenderCache(cache)
+        self.log = log
+        self.lab = paper_rig(scale=self.cfg.scale, noise=self.cfg.noise)
+        self.size = tuple(int(v) for v in self.lab.cameras[0].size)
+        self.calib_target = PhaseTarget(grid=self.cfg.calib_grid, pitch=self.cfg.calib_pitch)
+        self.dot_target = PhaseTarget(grid=(4, 2), pitch=DOT_SPACING_PX, period=300.0)
+        self._calib_imgs = self.calib_target.images()
+        self._dot_imgs = self.dot_target.images()
+        # speckle grain: radius in camera px at the central depth -> monitor px
+        fx = float(self.lab.cameras[0].camera.K[0, 0])
+        mm_per_px = 5400.0 / fx
+        self.speckle_radius_monitor_px = self.cfg.speckle_radius_cam_px * mm_per_px / MONITOR_PITCH_MM
+        self._speckle_ref = None
+        self.timings = {}
+
+    # -- rendering ---------------------------------------------------------------------------
+    def _render(self, scene, cam: str, label: str, seed: int):
+        from dic.lab import render
+
+        return self.cache.get(self.cfg.key(), f"{label}|{cam}",
+                              lambda: render(scene, cam, samples=self.cfg.samples, seed=seed, device=self.cfg.device))
+
+    def _render_stack(self, scene, cam: str, images, label: str, seed: int):
+        return np.stack([self._render(scene.with_monitor_image(im), cam, f"{label}|step{k}", seed + 7919 * k)
+                         for k, im in enumerate(images)])
+
+    def _seed(self, label: str) -> int:
+        return int(hashlib.sha1(f"{self.cfg.seed}|{label}".encode()).hexdigest()[:8], 16)
+
+    # -- calibration views -----------------------------------------------------------------------
+    def direct_poses(self, cam_index: int):
+        """Monitor poses for the direct intrinsic views of one camera (spread in depth, tilted ±25°)."""
+        cam = self.lab.cameras[cam_index]
+        R_cw, _, c = _camera_pose_world(cam)
+        R_wc = R_cw.T
+        poses = []
+        tilts = [(20, 0, 0), (-20, 0, 5), (0, 25, -5), (0, -25, 0), (15, 15, 10), (-15, -20, -10),
+                 (20, -15, 0), (-10, 20, 5), (0, 0, 0), (10, 10, -5)]
+        for n, d in enumerate(self.cfg.direct_distances_mm):
+            tx, ty, roll = tilts[n % len(tilts)]
+            # off-axis placement at the farther distances so the image corners get points
+            fx, (W, H) = float(cam.camera.K[0, 0]), cam.size
+            off = np.array([0.22 * W * (1 if n % 2 else -1), 0.2 * H * (1 if (n // 2) % 2 else -1), 0.0]) * d / fx
+            if d < 1600:
+                off[:] = 0.0
+            center = c + R_wc @ (np.array([0.0, 0.0, d]) + off)
+            poses.append(_monitor_pose_facing(center, R_wc, tx, ty, roll))
+        return poses
+
+    def far_pose(self):
+        """A far view both cameras see (not a test position): 4.6 m, turned 12° / -8°."""
+        return _monitor_pose_facing(np.array([150.0, -100.0, 4600.0]), np.eye(3), 8.0, -12.0, 3.0)
+
+    def checker_poses(self):
+        """Conventional calibration: monitor (checkerboard) near the far working distance, tilted."""
+        rng = np.random.default_rng(self.cfg.seed + 5)
+        poses = []
+        for n in range(self.cfg.checker_views):
+            z = 5400.0 + rng.uniform(-500, 500)
+            center = np.array([rng.uniform(-500, 500), rng.uniform(-350, 350), z])
+            poses.append(_monitor_pose_facing(center, np.eye(3), rng.uniform(-30, 30), rng.uniform(-30, 30),
+                                              rng.uniform(-8, 8)))
+        return poses
+
+    def detect(self, stack):
+        from calibration.features import detect_dots_in_images
+
+        return detect_dots_in_images(stack, self.calib_target, device=self.cfg.device)
+
+    def calibrate(self) -> CalibrationOutcome:
+        """Render the calibration images and calibrate the rig with the project's pipeline."""
+        from calibration.features import DetectionError, detect_dots_in_images
+        from calibration.intrinsics import calibrate_intrinsics
+        from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
+        from calibration.stereo import rig_from_mirror
+
+        t0 = time.perf_counter()
+        lab = self.lab
+        names = [c.name for c in lab.cameras]
+        n_tilts = len(lab.mirror_tilts_deg)
+        mirrored = {n: [] for n in names}
+        for k in range(n_tilts):
+            scene = lab.with_mirror_tilt(k)
+            for n in names:
+                stack = self._render_stack(scene, n, self._calib_imgs, f"calib|mirror{k}", self._seed(f"m{k}{n}"))
+                mirrored[n].append(self.detect(stack))
+        self.log(f"[calib] mirrored views detected: " + ", ".join(
+            f"{n} {[len(d.ids) for d in mirrored[n]]}" for n in names))
+        direct = {n: [] for n in names}
+        for ci, n in enumerate(names):
+            for v, (R, t) in enumerate(self.direct_poses(ci)):
+                scene = lab.without_mirrors().with_monitor_pose(R, t)
+                stack = self._render_stack(scene, n, self._calib_imgs, f"calib|direct{v}", self._seed(f"d{v}{n}"))
+                try:
+                    direct[n].append(self.detect(stack))
+                except DetectionError as exc:
+                    self.log(f"[calib] {n} direct view {v}: not detected ({exc})")
+        self.log(f"[calib] direct views detected: " + ", ".join(f"{n} {[len(d.ids) for d in direct[n]]}" for n in names))
+        cams, intr = {}, {}
+        for n in names:
+            views = direct[n] + mirrored[n]
+            res = calibrate_intrinsics([d.object_points for d in views], [d.image_points for d in views], self.size,
+                                       mirrored=[bool(d.mirrored) for d in views], model="opencv5", name=n)
+            cams[n], intr[n] = res.camera, res
+        # mirror extrinsics: points seen in every tilt
+        X = self.calib_target.object_points
+        results = {}
+        for n in names:
+            common = set(mirrored[n][0].ids.tolist())
+            for d in mirrored[n][1:]:
+                common &= set(d.ids.tolist())
+            ids = np.array(sorted(common))
+            pts = []
+            for d in mirrored[n]:
+                lookup = {int(i): p for i, p in zip(d.ids, d.image_points)}
+                pts.append(np.array([lookup[int(i)] for i in ids]))
+            results[n] = (mirror_extrinsics(cams[n], pts, X[ids]), pts, ids)
+        rig_mirror = rig_from_mirror(results[names[0]][0], results[names[1]][0])
+        figures = {
+            "reprojection_rms_px": {n: float(intr[n].rms) for n in names},
+            "intrinsic_views": {n: int(len(intr[n].per_view_rms)) for n in names},
+            "intrinsic_dropped_views": {n: len(getattr(intr[n], "dropped", []) or []) for n in names},
+            "mirror_rms_px": {n: float(results[n][0].rms) for n in names},
+            "mirror_points": {n: int(len(results[n][2])) for n in names},
+            "baseline_mm_mirror": float(rig_mirror.baseline),
+        }
+        rig_joint = None
+        if self.cfg.far_view:
+            R, t = self.far_pose()
+            scene = lab.without_mirrors().with_monitor_pose(R, t)
+            dl = self.detect(self._render_stack(scene, names[0], self._calib_imgs, "calib|far", self._seed("farL")))
+            dr = self.detect(self._render_stack(scene, names[1], self._calib_imgs, "calib|far", self._seed("farR")))
+            ids, ql, qr = _matched(dl, dr)
+            nL, nR = names
+            # joint adjustment needs the same points in both cameras' mirrored views: restrict to common ids
+            common = np.intersect1d(results[nL][2], results[nR][2])
+            selL = np.searchsorted(results[nL][2], common)
+            selR = np.searchsorted(results[nR][2], common)
+            mL = mirror_extrinsics(cams[nL], [p[selL] for p in results[nL][1]], X[common])
+            mR = mirror_extrinsics(cams[nR], [p[selR] for p in results[nR][1]], X[common])
+            joint = joint_mirror_stereo(cams[nL], cams[nR], [p[selL] for p in results[nL][1]],
+                                        [p[selR] for p in results[nR][1]], X[common],
+                                        far_views=[(X[ids], ql, qr)], left_result=mL, right_result=mR)
+            rig_joint = joint.rig
+            figures["baseline_mm_joint"] = float(rig_joint.baseline)
+            figures["far_view_points"] = int(len(ids))
+        rig_conv = None
+        if self.cfg.checkerboard:
+            rig_conv = self._conventional(names, figures)
+        self.timings["calibration_s"] = time.perf_counter() - t0
+        rig = rig_joint if rig_joint is not None else rig_mirror
+        return CalibrationOutcome(rig=rig, rig_mirror=rig_mirror, rig_joint=rig_joint, rig_conventional=rig_conv,
+                                  figures=figures)
+
+    def _conventional(self, names, figures):
+        """Checkerboard at the far working distance: intrinsics and rig from those views only (OpenCV)."""
+        from calibration.features import detect_checkerboard
+        from calibration.intrinsics import calibrate_intrinsics
+        from calibration.stereo import stereo_calibrate
+        from calibration.targets import CheckerboardTarget
+
+        board = CheckerboardTarget(corners=(8, 5), square=200)
+        img = board.images()[0]
+        X = board.object_points
+        per = {n: [] for n in names}
+        for v, (R, t) in enumerate(self.checker_poses()):
+            scene = self.lab.without_mirrors().with_monitor_pose(R, t).with_monitor_image(img)
+            found = []
+            for n in names:
+                im = self._render(scene, n, f"checker{v}", self._seed(f"c{v}{n}"))
+                det = detect_checkerboard(im, board)
+                if det is not None:
+                    pts = det[0]
+                    # OpenCV may start from either end of a symmetric board: put the first corner top-left
+                    if pts[0, 0] + pts[0, 1] > pts[-1, 0] + pts[-1, 1]:
+                        pts = pts[::-1].copy()
+                found.append(None if det is None else pts)
+            per[names[0]].append(found[0])
+            per[names[1]].append(found[1])
+        both = [i for i in range(len(per[names[0]])) if per[names[0]][i] is not None and per[names[1]][i] is not None]
+        figures["conventional_views"] = len(both)
+        if len(both) < 3:
+            self.log(f"[calib] conventional: only {len(both)} checkerboard views found in both cameras; skipped")
+            return None
+        cams = {}
+        for n in names:
+            views = [p for p in per[n] if p is not None]
+            res = calibrate_intrinsics([X] * len(views), views, self.size, model="opencv5", name=n)
+            cams[n] = res.camera
+            figures.setdefault("conventional_reprojection_rms_px", {})[n] = float(res.rms)
+        sc = stereo_calibrate(cams[names[0]], cams[names[1]], [X] * len(both), [per[names[0]][i] for i in both],
+                              [per[names[1]][i] for i in both], uncertainty="none")
+        figures["conventional_stereo_rms_px"] = float(getattr(sc, "rms", float("nan")))
+        figures["baseline_mm_conventional"] = float(sc.rig.baseline)
+        return sc.rig
+
+    # -- measurement images -------------------------------------------------------------------
+    def dot_views(self, position: int):
+        """Dot detections (left, right) of the 4 × 2 dot target at a monitor position."""
+        from calibration.features import detect_dots_in_images
+
+        scene = self.lab.with_monitor_at(position)
+        out = []
+        for n in ("left", "right"):
+            stack = self._render_stack(scene, n, self._dot_imgs, f"dots|pos{position}", self._seed(f"dots{position}{n}"))
+            out.append(detect_dots_in_images(stack, self.dot_target, device=self.cfg.device))
+        return out
+
+    def speckle_image(self, displacement=None, label="ref"):
+        if displacement is None:
+            if self._speckle_ref is None:
+                self._speckle_ref = speckle_monitor_image(self.speckle_radius_monitor_px, self.cfg.seed + 11)
+            return self._speckle_ref
+        return speckle_monitor_image(self.speckle_radius_monitor_px, self.cfg.seed + 11, displacement)
+
+    def speckle_pair(self, position: int, displacement=None, label="ref"):
+        """Rendered (left, right) of the monitor at ``position`` showing the (displaced) speckle."""
+        key = f"speckle|{label}|pos{position}"
+        cached = []
+        lazy = {}
+
+        def image():
+            if "img" not in lazy:
+                lazy["img"] = self.speckle_image(displacement, label)
+            return lazy["img"]
+
+        from dic.lab import render
+
+        for n in ("left", "right"):
+            seed = self._seed(f"{key}{n}")
+            cached.append(self.cache.get(self.cfg.key(), f"{key}|{n}", lambda n=n, seed=seed: render(
+                self.lab.with_monitor_at(position).with_monitor_image(image()), n, samples=self.cfg.samples,
+                seed=seed, device=self.cfg.device)))
+        return cached
+
+
+# ------------------------------------------------------------------------------------------------
+# metrics
+# ------------------------------------------------------------------------------------------------
+def _matched(det_l, det_r):
+    ids = np.intersect1d(det_l.ids, det_r.ids)
+    il = {int(i): k for k, i in enumerate(det_l.ids)}
+    ir = {int(i): k for k, i in enumerate(det_r.ids)}
+    return ids, det_l.image_points[[il[int(i)] for i in ids]], det_r.image_points[[ir[int(i)] for i in ids]]
+
+
+def triangulate_dots(rig, det_l, det_r, target):
+    """Triangulated dots (left frame, mm), their ids and the target's object points."""
+    from dic.triangulate import triangulate
+
+    ids, ql, qr = _matched(det_l, det_r)
+    res = triangulate(rig, ql, qr, method="optimal")
+    P = np.asarray(res[0], np.float64)
+    return ids, P, target.object_points[ids], np.asarray(res[1], np.float64)
+
+
+def dot_test(rig, det_l, det_r, target):
+    """Neighbouring-dot distances (mm) of one 4 × 2 view; returns dict with distances, errors, centre."""
+    ids, P, X, resid = triangulate_dots(rig, det_l, det_r, target)
+    nx, ny = target.grid
+    where = {int(i): k for k, i in enumerate(ids)}
+    d = []
+    for j in range(ny):
+        for i in range(nx):
+            a = j * nx + i
+            for b in ((a + 1) if i + 1 < nx else None, (a + nx) if j + 1 < ny else None):
+                if b is not None and a in where and b in where:
+                    d.append(float(np.linalg.norm(P[where[a]] - P[where[b]])))
+    d = np.array(d)
+    return {"distances_mm": d, "errors_mm": d - DOT_SPACING_MM, "points": P, "ids": ids,
+            "reprojection_px": resid, "centre": P.mean(axis=0)}
+
+
+def monitor_frame_from_dots(rig, det_l, det_r, target):
+    """Measured pose of the monitor (screen frame → left camera frame) from its triangulated dots (Kabsch)."""
+    from calibration.camera import rigid_fit
+
+    _, P, X, _ = triangulate_dots(rig, det_l, det_r, target)
+    out = rigid_fit(X, P)
+    R, t = out[0], out[1]
+    return np.asarray(R), np.asarray(t)
+
+
+def plane_deviation(points):
+    """Signed distances (mm) of (N, 3) points to their least-squares plane, and the unit normal."""
+    P = np.asarray(points, np.float64)
+    c = P.mean(axis=0)
+    _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+    n = vt[2]
+    return (P - c) @ n, n
+
+
+def roi_from_dots(det_l, target, image_shape, inset_px=60.0):
+    """Boolean mask of the monitor's screen (inset) in the left image, from the measured dot homography."""
+    import cv2
+
+    X = target.object_points[det_l.ids][:, :2] / target.pixel_pitch
+    H, _ = cv2.findHomography(X, det_l.image_points)
+    W, Hs = MONITOR_RES
+    corners = np.array([[inset_px, inset_px], [W - 1 - inset_px, inset_px], [W - 1 - inset_px, Hs - 1 - inset_px],
+                        [inset_px, Hs - 1 - inset_px]], np.float64)
+    poly = cv2.perspectiveTransform(corners[None], H)[0]
+    mask = np.zeros(image_shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(poly).astype(np.int32)], 1)
+    return mask.astype(bool)
+
+
+def to_monitor(R_left_screen, t_left_screen, P):
+    """Left-frame points (N, 3) → screen frame (mm); x / 0.311 and y / 0.311 are monitor px."""
+    return (np.asarray(P) - t_left_screen) @ R_left_screen
+
+
+# ------------------------------------------------------------------------------------------------
+# the experiments
+# ------------------------------------------------------------------------------------------------
+def run_dot_tests(exp: Experiment, rigs: dict, positions=None, log=print) -> dict:
+    """The 4 × 2 dot test at each position with each rig in ``rigs`` (name → StereoRig)."""
+    positions = exp.cfg.positions if positions is None else positions
+    out = {name: {"positions": [], "labels": [], "centres_mm": [], "mean_distance_mm": [], "errors_mm": [],
+                  "reprojection_rms_px": []} for name in rigs if rigs[name] is not None}
+    dets = {}
+    for p in positions:
+        try:
+            dets[p] = exp.dot_views(p)
+        except Exception as exc:  # a position whose dots are not found is reported, not fatal
+            log(f"[dots] position {p}: detection failed ({exc})")
+            continue
+        for name, rig in rigs.items():
+            if rig is None:
+                continue
+            r = dot_test(rig, *dets[p], exp.dot_target)
+            o = out[name]
+            o["positions"].append(int(p))
+            o["labels"].append(list(exp.lab.monitor_positions[p].label))
+            o["centres_mm"].append(r["centre"].tolist())
+            o["mean_distance_mm"].append(float(r["distances_mm"].mean()))
+            o["errors_mm"].extend(r["errors_mm"].tolist())
+            o["reprojection_rms_px"].append(float(np.sqrt(np.mean(r["reprojection_px"] ** 2))))
+        log(f"[dots] position {p} {exp.lab.monitor_positions[p].label}: " + ", ".join(
+            f"{n} {out[n]['mean_distance_mm'][-1]:.3f} mm" for n in out))
+    for name, o in out.items():
+        e = np.array(o["errors_mm"])
+        d = e + DOT_SPACING_MM
+        o["distance_mean_mm"] = float(d.mean()) if d.size else float("nan")
+        o["distance_std_mm"] = float(d.std(ddof=1)) if d.size > 1 else float("nan")
+        o["error_mean_mm"] = float(e.mean()) if e.size else float("nan")
+        o["abs_error_mean_mm"] = float(np.abs(e).mean()) if e.size else float("nan")
+        o["relative_error_percent"] = 100.0 * o["error_mean_mm"] / DOT_SPACING_MM
+        o["abs_relative_error_percent"] = 100.0 * o["abs_error_mean_mm"] / DOT_SPACING_MM
+    return out, dets
+
+
+def run_planarity(exp: Experiment, rig, dets: dict, positions=None, log=print) -> dict:
+    """Speckle at each position: stereo-DIC shape, deviation from the best-fit plane."""
+    from dic.stereo import stereo
+
+    positions = exp.cfg.positions if positions is None else positions
+    out = {"positions": [], "labels": [], "rms_mm": [], "mean_abs_mm": [], "points": [], "valid": [], "centres_mm": [],
+           "time_s": []}
+    for p in positions:
+        if p not in dets:
+            continue
+        L, R = exp.speckle_pair(p)
+        roi = roi_from_dots(dets[p][0], exp.dot_target, L.shape)
+        t0 = time.perf_counter()
+        f = stereo(rig, L, R, step=exp.cfg.step, subset=exp.cfg.subset, order=exp.cfg.order, roi=roi,
+                   device=exp.cfg.device)
+        dt = time.perf_counter() - t0
+        v = np.asarray(f.valid, bool)
+        P = np.stack([np.asarray(f.X), np.asarray(f.Y), np.asarray(f.Z)], axis=1)[v]
+        dev, _ = plane_deviation(P)
+        out["positions"].append(int(p))
+        out["labels"].append(list(exp.lab.monitor_positions[p].label))
+        out["rms_mm"].append(float(np.sqrt(np.mean(dev ** 2))))
+        out["mean_abs_mm"].append(float(np.mean(np.abs(dev))))
+        out["points"].append(int(v.size))
+        out["valid"].append(int(v.sum()))
+        out["centres_mm"].append(P.mean(axis=0).tolist())
+        out["time_s"].append(dt)
+        log(f"[plane] position {p}: {v.sum()}/{v.size} points, RMS deviation {out['rms_mm'][-1]:.4f} mm ({dt:.1f} s)")
+    r = np.array(out["rms_mm"])
+    out["rms_mean_mm"] = float(r.mean()) if r.size else float("nan")
+    out["rms_std_mm"] = float(r.std(ddof=1)) if r.size > 1 else float("nan")
+    a = np.array(out["mean_abs_mm"])
+    out["mean_abs_mean_mm"] = float(a.mean()) if a.size else float("nan")
+    return out
+
+
+def _central_position(exp):
+    return next(p.index for p in exp.lab.monitor_positions if tuple(p.label) == (2, 2, 2))
+
+
+def run_displacement_test(exp: Experiment, rig, dets_centre, log=print) -> dict:
+    """Eight horizontal shifts of the displayed speckle at (2, 2, 2): measured vs imposed (Table 1)."""
+    from dic.stereo import StereoCorrelation
+
+    p = _central_position(exp)
+    L0, R0 = exp.speckle_pair(p)
+    roi = roi_from_dots(dets_centre[0], exp.dot_target, L0.shape)
+    Rm, tm = monitor_frame_from_dots(rig, *dets_centre, exp.dot_target)
+    sc = StereoCorrelation(rig, L0, R0, step=max(exp.cfg.step, 2), subset=exp.cfg.subset, order=exp.cfg.order,
+                           roi=roi, device=exp.cfg.device)
+    rows = []
+    for s in exp.cfg.shifts_px:
+        L, R = exp.speckle_pair(p, (float(s), 0.0), label=f"shift{s}")
+        f = sc.measure(L, R)
+        v = np.asarray(f.valid, bool)
+        U = np.stack([np.asarray(f.U), np.asarray(f.V), np.asarray(f.W)], axis=1)[v]
+        Um = U @ Rm  # components in the measured monitor frame (mm)
+        mag = np.linalg.norm(U, axis=1)
+        imposed = s * MONITOR_PITCH_MM
+        rows.append({"imposed_px": float(s), "imposed_mm": imposed, "measured_mm": float(mag.mean()),
+                     "std_mm": float(mag.std(ddof=1)), "error_mm": float(mag.mean() - imposed),
+                     "relative_error_percent": float(100 * (mag.mean() - imposed) / imposed),
+                     "u_monitor_mm": float(Um[:, 0].mean()), "v_monitor_mm": float(Um[:, 1].mean()),
+                     "w_monitor_mm": float(Um[:, 2].mean()), "valid": int(v.sum()), "points": int(v.size)})
+        log(f"[shift] {s} px = {imposed:.3f} mm: measured {mag.mean():.4f} ± {mag.std():.4f} mm ({v.sum()}/{v.size})")
+    return {"position": int(p), "rows": rows}
+
+
+def run_deformation_test(exp: Experiment, rig, dets_centre, log=print) -> dict:
+    """x_d = x + A sin(2 pi f y) on the displayed speckle at (2, 2, 2): u profile, spurious v, w."""
+    from dic.stereo import stereo
+
+    A, fr = exp.cfg.deform_amplitude_px, exp.cfg.deform_frequency
+    p = _central_position(exp)
+    L0, R0 = exp.speckle_pair(p)
+    L1, R1 = exp.speckle_pair(p, lambda x, y: (A * np.sin(2 * np.pi * fr * y), 0.0 * y), label=f"sine{A}_{fr:.6g}")
+    roi = roi_from_dots(dets_centre[0], exp.dot_target, L0.shape)
+    Rm, tm = monitor_frame_from_dots(rig, *dets_centre, exp.dot_target)
+    f = stereo(rig, L0, R0, L1, R1, step=exp.cfg.step, subset=exp.cfg.subset, order=exp.cfg.order, roi=roi,
+               device=exp.cfg.device)
+    v = np.asarray(f.valid, bool)
+    P = np.stack([np.asarray(f.X), np.asarray(f.Y), np.asarray(f.Z)], axis=1)[v]
+    U = np.stack([np.asarray(f.U), np.asarray(f.V), np.asarray(f.W)], axis=1)[v]
+    Pm = to_monitor(Rm, tm, P) / MONITOR_PITCH_MM           # monitor px (x, y, z/0.311)
+    Um = (U @ Rm) / MONITOR_PITCH_MM                         # displacement in monitor px
+    u_true = A * np.sin(2 * np.pi * fr * Pm[:, 1])
+    resid = Um[:, 0] - u_true
+    # profile: bin by monitor row
+    edges = np.linspace(Pm[:, 1].min(), Pm[:, 1].max(), 41)
+    idx = np.clip(np.digitize(Pm[:, 1], edges) - 1, 0, len(edges) - 2)
+    prof_y = [float(Pm[idx == b, 1].mean()) for b in range(len(edges) - 1) if np.any(idx == b)]
+    prof_u = [float(Um[idx == b, 0].mean()) for b in range(len(edges) - 1) if np.any(idx == b)]
+    # peak smoothing: amplitude of the fitted sinusoid (phase known from the imposed field)
+    s = np.sin(2 * np.pi * fr * Pm[:, 1])
+    c = np.cos(2 * np.pi * fr * Pm[:, 1])
+    coef, *_ = np.linalg.lstsq(np.stack([s, c, np.ones_like(s)], 1), Um[:, 0], rcond=None)
+    out = {"position": int(p), "points": int(v.size), "valid": int(v.sum()),
+           "v_mean_px": float(Um[:, 1].mean()), "v_std_px": float(Um[:, 1].std(ddof=1)),
+           "w_mean_px": float(Um[:, 2].mean()), "w_std_px": float(Um[:, 2].std(ddof=1)),
+           "u_residual_rms_px": float(np.sqrt(np.mean(resid ** 2))), "u_residual_mean_px": float(resid.mean()),
+           "fitted_amplitude_px": float(coef[0]), "imposed_amplitude_px": float(A),
+           "peak_smoothing_percent": float(100 * (1 - coef[0] / A)),
+           "profile_y_px": prof_y, "profile_u_px": prof_u,
+           "_map": {"x_px": Pm[:, 0], "y_px": Pm[:, 1], "u_px": Um[:, 0], "residual_px": resid}}
+    log(f"[sine] u amplitude {coef[0]:.3f} px of {A} ({out['peak_smoothing_percent']:.2f} % smoothing), "
+        f"v {out['v_mean_px']:.4f} ± {out['v_std_px']:.4f} px, w {out['w_mean_px']:.4f} ± {out['w_std_px']:.4f} px")
+    return out
