@@ -2,37 +2,45 @@
 conventional checkerboard / circle-grid detectors of OpenCV.
 
 Dot centres (:func:`detect_dots`). The recorded phase-shifted images are demodulated
-(:func:`kernels.phase.demodulate`) into a wrapped phase ``phi`` and a modulation ``M``. The
-defocus blur of a camera attenuates the fringes but leaves the phase of slowly curved fringes in
-place, so the phase map stays sharp where intensity images are a blur (the paper behind Specula,
-Optics Express 27(6), 9040, 2019, doi:10.1364/OE.27.009040; Bell, Xu, Zhang, "Method for
-out-of-focus camera calibration", Applied Optics 55(9), 2016, doi:10.1364/AO.55.002346).
+(:func:`kernels.phase.demodulate`) into a wrapped phase ``phi`` and a modulation ``M``. Defocus
+attenuates the fringes but leaves the phase of slowly curved fringes nearly in place, so the phase
+map stays sharp where the intensity images are a blur (the paper behind Specula, Optics Express
+27(6), 9040, 2019, doi:10.1364/OE.27.009040; Bell, Xu, Zhang, "Method for out-of-focus camera
+calibration", Applied Optics 55(9), 2016, doi:10.1364/AO.55.002346).
 
 1. Candidates: the phase gradient of a dot points away from its centre; the divergence of the
    unit gradient field peaks at dot centres (and is negative on cell borders).
 2. Lattice: candidates are linked to their grid neighbours (4-neighbour growth with
    extrapolated steps, so perspective is followed), giving each a lattice index.
-3. Centre: around each dot, the projectively mapped radial phase model
+3. Centre (pass 1): around each dot the projectively mapped radial phase model
    ``phi(x) = 2 pi |s(x)| / period + phi0``, ``s = H^-1 x`` (``H`` a local homography from the
-   target cell, centred on the dot, to the image) is fitted to the wrapped phase by Gauss-Newton
-   on the wrapped residual, weighted by the modulation. The image point is ``H (0, 0)``: the image
-   of the dot centre itself, free of the eccentricity bias of ellipse or intensity centroids
-   (Heikkilä, "Geometric camera calibration using circular control points", IEEE TPAMI 22(10),
-   2000, doi:10.1109/34.879788). Pixels near the cone tip and near cell borders, where defocus
-   mixes neighbouring cells, are left out with margins that grow with the measured blur.
+   dot's cell, centred on the dot, to the image) is fitted to the wrapped phase by Gauss-Newton on
+   the wrapped residual, weighted by the modulation, on a smooth window of the cell that leaves out
+   the cone tip and the cell border. The image point is ``H (0, 0)``: the image of the dot centre
+   itself, free of the eccentricity bias of ellipse or intensity centroids (Heikkilä, "Geometric
+   camera calibration using circular control points", IEEE TPAMI 22(10), 2000,
+   doi:10.1109/34.879788).
 4. Ids: each dot's fitted ``phi0`` reads its code symbol; the lattice is matched to the target's
    code over all 8 rotations/reflections and translations. A view whose target-to-image mapping
-   is orientation-reversing (a mirror view) is flagged ``mirrored``; ids follow the reflected
-   target, so ``object_points[ids]`` stay the right correspondences.
+   reverses orientation (a mirror view) is flagged ``mirrored``; ids follow the reflected target,
+   so ``target.object_points[ids]`` stay the right correspondences.
+5. Defocus (pass 2): a Gaussian blur bends the phase of curved fringes near the cone tip and
+   where cells meet, and moves the pass-1 centres (by up to ~1 px at sigma = 10 px). The blur of
+   each dot is measured by matching a simulated modulation map to the measured one, and the bias
+   is measured by running the identical pass-1 fit (same pixels, same weights) on a simulated view
+   of the dot: the target's exact fringe field (all cells, codes, the edge of the fringe area,
+   pixel-area integration at the code jumps) mapped through the current homography and blurred.
+   The bias is subtracted, three rounds (the homography and blur are refined in between).
 
 Conventions: docs/conventions.md (pixel (0, 0) is the centre of the top-left pixel, points are
-(x, y)); target frame: :mod:`calibration.targets`.
+(x, y)); target frame: :mod:`calibration.targets`. Accuracy measured in docs/targets.md.
 """
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -52,6 +60,7 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * math.pi
+
 
 
 class DetectionError(RuntimeError):
@@ -120,6 +129,9 @@ class DenseDecoding:
         Modulation of the finest level (mean of both axes), grey levels.
     mirrored : bool or None
         Orientation of the image-to-screen mapping (None when too few pixels are valid).
+    period : (H, W, 2) float64
+        Finest fringe period (screen px) each pixel was decoded with, per axis: under strong
+        blur the finest fringes fade and a pixel keeps the last level it could resolve.
     """
 
     screen_xy: np.ndarray
@@ -127,6 +139,7 @@ class DenseDecoding:
     modulation: np.ndarray
     pixel_pitch: float
     mirrored: bool | None = None
+    period: np.ndarray | None = None
 
     @property
     def target_xy(self) -> np.ndarray:
@@ -318,13 +331,13 @@ def _apply_h(H, xy):
 @dataclass
 class _DotFit:
     centre: np.ndarray
-    A: np.ndarray          # image -> cell-centred screen px (3x3)
+    A: np.ndarray              # image -> cell-centred screen px (3x3)
     phi0: float
     rms: float
     sigma: float
     n: int
     modulation: float
-    ok: bool
+    coverage: float = 1.0      # share of the window's weight on usable pixels
     A_window: np.ndarray | None = None
 
 
@@ -353,14 +366,9 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
     if x1 - x0 < 4 or y1 - y0 < 4:
         return None
     ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-    sel = mask[y0:y1 + 1, x0:x1 + 1].ravel()
-    xs = xs.ravel()[sel]
-    ys = ys.ravel()[sel]
-    if xs.size < 30:
-        return None
+    xs, ys = xs.ravel(), ys.ravel()
     X = np.stack([xs, ys, np.ones(xs.size)], axis=1).astype(np.float64)
-    phi = phase[ys, xs]
-    mod = modulation[ys, xs]
+    sel = mask[ys, xs]
     k = TWO_PI / period
     A = A0 / A0[2, 2]
 
@@ -370,10 +378,16 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
                 * _smoothstep((half - np.abs(s[:, 1])) / taper)), rho
 
     win, _ = window(_apply_h(A_window, X[:, :2]))
-    use = win > 0
+    # share of the window that lands on usable pixels (inside the image and the mask); the
+    # window's full weight is its area in the cell, mapped into the image by the local Jacobian
+    full_area = float(np.sum(window(np.stack(np.meshgrid(np.linspace(-pitch / 2, pitch / 2, 61),
+                                                           np.linspace(-pitch / 2, pitch / 2, 61)), -1).reshape(-1, 2))[0]))
+    full_area *= (pitch / 60) ** 2 * abs(np.linalg.det(_jacobian_h(np.linalg.inv(A_window), np.zeros(2))))
+    use = (win > 0) & sel
+    coverage = float(np.sum(win[use])) / max(full_area, 1e-12)
     if use.sum() < 30:
         return None
-    X, phi, mod, win = X[use], phi[use], mod[use], win[use]
+    X, phi, mod, win = X[use], phase[ys[use], xs[use]], modulation[ys[use], xs[use]], win[use]
     ww = mod * win
     s0 = _apply_h(A, X[:, :2])
     rho0 = np.hypot(s0[:, 0], s0[:, 1])
@@ -430,9 +444,7 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
     except np.linalg.LinAlgError:
         pass
     rms = float(np.sqrt(np.sum(win * res ** 2) / max(np.sum(win), 1e-12)))
-    out = _DotFit(centre, A, phi0, rms, sigma, len(res), float(np.median(mod)), True)
-    out.A_window = A_window
-    return out
+    return _DotFit(centre, A, phi0, rms, sigma, len(res), float(np.median(mod)), coverage, A_window)
 
 
 def _edge_cdf(d, a, b):
@@ -451,15 +463,14 @@ def _edge_cdf(d, a, b):
     return ndtr(t), np.exp(-0.5 * t * t) / (sig * math.sqrt(2 * math.pi))
 
 
-def _pixel_field(target: PhaseTarget, Ac, u, c_screen, jac: bool):
+def _pixel_field(target: PhaseTarget, Ac, u, c_screen) -> np.ndarray:
     """The complex fringe field ``exp(i Phi)`` a camera pixel integrates, and its derivatives.
 
     ``u = Ac (x, y, 1)`` per pixel (``Ac``: image -> screen px relative to ``c_screen``). Near a
     cell border the pixel blends the fields of the cells on either side (each cell's radial
     field ``exp(i (k rho_c + offset_c))`` extended across the border) with the area fractions of
     the pixel footprint on each side; the edge of the fringe area is area-weighted the same way.
-    The field is then smooth in the 8 parameters of ``A <- (I + D) A`` even where the code jumps
-    and where the radial phase has its kink on the border. Returns ``E`` (N,) and ``dE`` (N, 8)."""
+    Returns the complex field ``E`` (N,) (amplitude 1 where the screen shows fringes)."""
     q2 = u[:, 2]
     sc = u[:, :2] / q2[:, None]
     sa = sc + c_screen
@@ -510,48 +521,7 @@ def _pixel_field(target: PhaseTarget, Ac, u, c_screen, jac: bool):
     Fhy, phy = _edge_cdf((hi[1] - sa[:, 1]) * nsy, ay_, by_)
     L = Flx * Fhx * Fly * Fhy
     E = L * C
-    if not jac:
-        return E, None
-    z = np.zeros_like(q2)
-    u0, u1, u2 = u[:, 0] / q2, u[:, 1] / q2, u[:, 2] / q2
-    dsx = np.stack([u0, u1, u2, z, z, z, -sc[:, 0] * u0, -sc[:, 0] * u1], axis=1)
-    dsy = np.stack([z, z, z, u0, u1, u2, -sc[:, 1] * u0, -sc[:, 1] * u1], axis=1)
-    # derivatives of the edge-normal lengths nsx = |grad s_x|, nsy = |grad s_y| (image px per
-    # screen px): D = e_a e_b^T changes row a of the map by row b of Ac
-    dnsx = np.zeros((len(q2), 8))
-    dnsy = np.zeros((len(q2), 8))
-    for m, (ra, rb) in enumerate(((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 0), (2, 1))):
-        dM = np.zeros((3, 3))
-        dM[ra] = Ac[rb]
-        dq2 = u[:, rb] if ra == 2 else 0.0
-        dgxx = (dM[0, 0] - dsx[:, m] * Ac[2, 0] - sc[:, 0] * dM[2, 0]) / q2 - gxx * dq2 / q2
-        dgxy = (dM[0, 1] - dsx[:, m] * Ac[2, 1] - sc[:, 0] * dM[2, 1]) / q2 - gxy * dq2 / q2
-        dgyx = (dM[1, 0] - dsy[:, m] * Ac[2, 0] - sc[:, 1] * dM[2, 0]) / q2 - gyx * dq2 / q2
-        dgyy = (dM[1, 1] - dsy[:, m] * Ac[2, 1] - sc[:, 1] * dM[2, 1]) / q2 - gyy * dq2 / q2
-        dnsx[:, m] = (gxx * dgxx + gxy * dgxy) / nsx
-        dnsy[:, m] = (gyx * dgyx + gyy * dgyy) / nsy
-    # d fx / d p: the fraction across the border grows as the inner distance shrinks
-    inx = (pitch / 2 - np.abs(rel[:, 0]))[:, None]
-    iny = (pitch / 2 - np.abs(rel[:, 1]))[:, None]
-    dfx = -np.where(hasx, px_, 0.0)[:, None] * (inx * dnsx - sgx[:, None] * dsx * nsx[:, None])
-    dfy = -np.where(hasy, py_, 0.0)[:, None] * (iny * dnsy - sgy[:, None] * dsy * nsy[:, None])
-    dweights = (-dfx * (1 - fy)[:, None] - (1 - fx)[:, None] * dfy,
-                dfx * (1 - fy)[:, None] - fx[:, None] * dfy,
-                -dfx * fy[:, None] + (1 - fx)[:, None] * dfy,
-                dfx * fy[:, None] + fx[:, None] * dfy)
-    dC = np.zeros((len(q2), 8), dtype=complex)
-    for w, dw, e, (r_c, rho_c) in zip(weights, dweights, fields, rels):
-        drho = (r_c[:, 0] / rho_c)[:, None] * dsx + (r_c[:, 1] / rho_c)[:, None] * dsy
-        dC += e[:, None] * (dw + (1j * k * w)[:, None] * drho)
-    dlx = dsx * nsx[:, None] + (sa[:, 0] - lo[0])[:, None] * dnsx
-    dhx = -dsx * nsx[:, None] + (hi[0] - sa[:, 0])[:, None] * dnsx
-    dly = dsy * nsy[:, None] + (sa[:, 1] - lo[1])[:, None] * dnsy
-    dhy = -dsy * nsy[:, None] + (hi[1] - sa[:, 1])[:, None] * dnsy
-    dLx = (plx * Fhx)[:, None] * dlx + (Flx * phx)[:, None] * dhx
-    dLy = (ply * Fhy)[:, None] * dly + (Fly * phy)[:, None] * dhy
-    dL = (Fly * Fhy)[:, None] * dLx + (Flx * Fhx)[:, None] * dLy
-    dE = C[:, None] * dL + L[:, None] * dC
-    return E, dE
+    return E
 
 
 class _DotSimulation:
@@ -581,7 +551,7 @@ class _DotSimulation:
         gy, gx = np.mgrid[self.y0 - pad:self.y0 - pad + nyb, self.x0 - pad:self.x0 - pad + nxb].astype(np.float64)
         Xb = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
         Ac = np.array([[1, 0, -c_screen[0]], [0, 1, -c_screen[1]], [0, 0, 1.0]]) @ A_abs
-        E, _ = _pixel_field(target, Ac, Xb @ Ac.T, c_screen, False)
+        E = _pixel_field(target, Ac, Xb @ Ac.T, c_screen)
         self.spec = sfft.fft2(E.reshape(nyb, nxb), workers=-1)
         self.f2 = sfft.fftfreq(nyb)[:, None] ** 2 + sfft.fftfreq(nxb)[None, :] ** 2
         self.true_centre = _apply_h(Ainv, np.asarray(c_screen, dtype=np.float64)[None])[0]
@@ -599,15 +569,21 @@ class _DotSimulation:
 
 def _fit_blur(sim: _DotSimulation, modulation, mask, sigma0: float) -> float:
     """Blur (px) whose simulated modulation best matches the measured one around the dot
-    (least squares with a free gain; golden-section search on log sigma)."""
-    m = sim.window(modulation)
+    (least squares with a free gain; golden-section search on log sigma within sigma0 / 1.6 ..
+    1.6 sigma0, to 1 %)."""
+    from scipy import fft as sfft
+
     ok = sim.window(mask)
     if ok.sum() < 50:
         return sigma0
-    m = m[ok]
+    p = sim.pad
+    rows, cols = np.nonzero(ok)
+    m = sim.window(modulation)[rows, cols]
+    rows, cols = rows + p, cols + p
 
     def cost(ls):
-        a = np.abs(sim.blurred(math.exp(ls)))[ok]
+        Z = sfft.ifft2(sim.spec * np.exp(-2 * np.pi ** 2 * math.exp(2 * ls) * sim.f2), workers=-1)
+        a = np.abs(Z[rows, cols])
         g = float(a @ m) / max(float(a @ a), 1e-12)
         r = m - g * a
         return float(r @ r)
@@ -616,7 +592,7 @@ def _fit_blur(sim: _DotSimulation, modulation, mask, sigma0: float) -> float:
     gr = (math.sqrt(5) - 1) / 2
     c, d = hi - gr * (hi - lo), lo + gr * (hi - lo)
     fc, fd = cost(c), cost(d)
-    for _ in range(11):
+    for _ in range(9):
         if fc < fd:
             hi, d, fd = d, c, fc
             c = hi - gr * (hi - lo)
@@ -684,20 +660,12 @@ def _match_code(labels: np.ndarray, symbols: np.ndarray, target: PhaseTarget):
     return out
 
 
-# ------------------------------------------------------------------------------------------------
-# public: dots
-# ------------------------------------------------------------------------------------------------
 def _estimate_period(phase, modulation, mask):
     gx, gy, ok = _phase_gradient(phase, modulation, mask)
     g = np.hypot(gx, gy)[ok]
     if g.size < 100:
         raise DetectionError(f"only {g.size} pixels show fringes with enough modulation; is the target in view?")
     return float(TWO_PI / np.median(g))
-
-
-def _blur_from_fits(fits, period):
-    """Not used for detection; kept for API symmetry."""
-    return 0.0
 
 
 def detect_dots(
@@ -708,8 +676,9 @@ def detect_dots(
     mask=None,
     min_modulation: float = 3.0,
     blur_sigma: float | None = None,
+    correct_blur: bool = True,
+    min_coverage: float = 0.8,
     mirrored: bool | None = None,
-    refine: bool = True,
 ) -> DotDetection:
     """Find the dots of a phase target in a demodulated view and their centres.
 
@@ -723,12 +692,17 @@ def detect_dots(
         Pixels to use (e.g. the ``valid`` output of the demodulation); combined with
         ``modulation >= min_modulation``.
     blur_sigma : float, optional
-        Camera blur (Gaussian sigma, px) if known; by default it is estimated from the drop of
-        the modulation at cell borders. It sets how far from the cone tip and the cell borders
-        pixels must be to enter the fit.
+        Gaussian blur of the camera (px) if known. By default it is measured: first from the
+        width of the modulation drop at the edge of the fringe area, then per dot from its
+        modulation map, smoothed by a plane over the image.
+    correct_blur : bool
+        Run pass 2 (defocus bias removal by simulation) when the blur exceeds 0.3 px.
+    min_coverage : float
+        Dots whose fit window is less than this share on usable pixels (cut by the image edge,
+        the mask, or a mirror's edge) are dropped.
     mirrored : bool, optional
         Only for targets without a code: whether the view is through a mirror (a plain grid
-        cannot tell). Ignored for coded targets, which report it.
+        cannot tell). Coded targets report it.
 
     Returns
     -------
@@ -737,6 +711,10 @@ def detect_dots(
     """
     _check_target(target)
     phase, modulation, mask = _check_maps(phase, modulation, mask)
+    if blur_sigma is not None and (not np.isfinite(blur_sigma) or blur_sigma < 0):
+        raise ValueError(f"blur_sigma must be a finite number of px >= 0 or None, got {blur_sigma!r}")
+    if not 0 <= min_coverage <= 1:
+        raise ValueError(f"min_coverage must be in [0, 1], got {min_coverage!r}")
     mask = mask & (modulation >= min_modulation)
     period_img = _estimate_period(phase, modulation, mask)
     cands, _ = _find_candidates(phase, modulation, mask, period_img * target.pitch / target.period)
@@ -745,7 +723,6 @@ def detect_dots(
     lab = labels[found]
     if len(pts) < 4:
         raise DetectionError(f"only {len(pts)} dots could be linked into a grid; at least 4 are needed")
-    # local homographies from the lattice (cell units) to the image
     where = {tuple(l): n for n, l in enumerate(lab)}
     ncell = np.array(target.grid)
     span = lab.max(axis=0) - lab.min(axis=0) + 1
@@ -755,10 +732,11 @@ def detect_dots(
             "check grid/pitch/period of the target"
         )
     pitch = target.pitch
+    given_blur = blur_sigma is not None
     if blur_sigma is None:
         blur_sigma = _estimate_blur(phase, modulation, mask, period_img)
-    # pass 1: radial phase model on the wrapped phase, margins a fixed fraction of the cell
-    pass1_rho_in, pass1_border = 0.1 * target.period, 0.1 * pitch
+    # pass 1: radial phase model on the wrapped phase, window margins a fixed fraction of the cell
+    rho_in, border = 0.1 * target.period, 0.1 * pitch
     fits = []
     for n, ij in enumerate(lab):
         src, dst = [], []
@@ -773,15 +751,16 @@ def detect_dots(
             fits.append(None)
             continue
         A0 = np.linalg.inv(_homography(src, dst))
-        fits.append(_fit_dot(phase, modulation, mask, A0, target.period, pitch, pass1_rho_in, pass1_border))
+        fit = _fit_dot(phase, modulation, mask, A0, target.period, pitch, rho_in, border)
+        fits.append(fit if fit is not None and fit.coverage >= min_coverage else None)
     keep = np.array([f is not None for f in fits])
     if keep.sum() < 4:
-        raise DetectionError(f"only {int(keep.sum())} dot fits succeeded; at least 4 are needed")
-    fits_k = [f for f in fits if f is not None]
-    lab_k = lab[keep]
-    centres = np.array([f.centre for f in fits_k])
+        raise DetectionError(f"only {int(keep.sum())} dots are fully in view with a successful fit; at least 4 are needed")
+    fits = [f for f in fits if f is not None]
+    lab = lab[keep]
+    centres = np.array([f.centre for f in fits])
     # ids
-    phi0 = np.array([f.phi0 for f in fits_k])
+    phi0 = np.array([f.phi0 for f in fits])
     step = TWO_PI / target.levels
     # defocus shifts every dot's phi0 by about the same amount: remove the common offset
     # (circular mean of the deviations from the nearest symbol) before reading the symbols
@@ -789,87 +768,119 @@ def detect_dots(
     common = float(np.angle(np.mean(np.exp(1j * dev * target.levels)))) / target.levels
     sym = np.mod(np.rint((phi0 - common) / step), target.levels).astype(np.int64)
     if target.coded:
-        placements = _match_code(lab_k, sym, target)
+        placements = _match_code(lab, sym, target)
         best = placements[0]
         second = placements[1][0] if len(placements) > 1 else 10 ** 6
-        # the code guarantees >= 2 differing cells between placements of a full window
+        # a full code window differs from any other placement in >= 2 cells
         if best[0] > 1 or second - best[0] < 2:
             raise DetectionError(
                 f"the dot code is ambiguous in this view (best placement {best[0]} mismatches, next {second}); "
-                f"{len(lab_k)} dots seen - show more of the target"
+                f"{len(lab)} dots seen - show more of the target"
             )
         T, off = best[1], np.array(best[2])
-        ij = lab_k @ T.T + off
-        good = target.code[ij[:, 1], ij[:, 0]] == sym
+        ij = lab @ T.T + off
+        good = target.code[ij[:, 1], ij[:, 0]] == sym  # drops a single misread dot
     else:
-        if len(lab_k) != target.n_dots:
+        if len(lab) != target.n_dots:
             raise DetectionError(
-                f"an uncoded target must be fully visible: found {len(lab_k)} of {target.n_dots} dots"
+                f"a target without code must be fully visible: found {len(lab)} of {target.n_dots} dots"
             )
-        ij, good, _T_uncoded = _uncoded_ids(lab_k, centres, target, mirrored)
+        ij = _uncoded_ids(lab, centres, target, mirrored)
+        good = np.ones(len(ij), dtype=bool)
     ids = ij[:, 1] * target.grid[0] + ij[:, 0]
-    # pass 2: blur-aware refinement on the complex fringe field
-    screen_c = target.dot_centres_px
     sigmas = np.full(len(ids), float(blur_sigma))
-    if refine and blur_sigma > 0.3:
-        # pass 2: remove the defocus bias of pass 1, measured by running the same fit on a
-        # simulated view of the dot (exact target field through the local homography, Gaussian
-        # blur fitted to the measured modulation around the dot)
-        gsel0 = np.flatnonzero(good)
-        corrected = centres.copy()
-        n_rep = int(os.environ.get('NREP', 3))
-        for rep in range(n_rep):
-            H_all = _homography(screen_c[ids[gsel0]], corrected[gsel0])
-            sims = {}
-            for n in gsel0:
-                c_scr = screen_c[ids[n]]
-                # global homography moved so that the dot lands on the current estimate
-                off = corrected[n] - _apply_h(H_all, c_scr[None])[0]
-                A_sim = np.linalg.inv(np.array([[1, 0, off[0]], [0, 1, off[1]], [0, 0, 1.0]]) @ H_all)
-                sim = _DotSimulation(target, phase.shape, A_sim, c_scr, 1.5 * blur_sigma)
-                if sim.ok:
-                    sims[n] = sim
-                    if rep < n_rep - 1:
-                        sigmas[n] = _fit_blur(sim, modulation, mask, float(blur_sigma))
-            if rep < n_rep - 1:
-                # a single dot's blur estimate is noisy; the defocus of a flat target varies
-                # smoothly: fit a plane over the image
-                sigmas = _smooth_blur(centres, sigmas, np.array(sorted(sims)))
-            for n in gsel0:
-                bias = None
-                if n in sims:
-                    bias = _simulated_fit_bias(sims[n], mask, float(sigmas[n]), fits_k[n].A, fits_k[n].A_window,
-                                               target.period, pitch, pass1_rho_in, pass1_border)
-                if bias is None:
-                    good[n] = False
-                    continue
-                corrected[n] = centres[n] - bias
-            gsel0 = np.flatnonzero(good)
-        new_fits = list(fits_k)
-        for n in np.flatnonzero(good):
-            f = fits_k[n]
-            new_fits[n] = _DotFit(corrected[n], f.A, f.phi0, f.rms, f.sigma, f.n, f.modulation, True)
-        fits_k = new_fits
-        centres = np.array([f.centre for f in fits_k])
-    # handedness of the target -> image mapping
+    if correct_blur and blur_sigma > 0.3:
+        centres, good, sigmas = _remove_blur_bias(target, phase.shape, modulation, mask, fits, ids, centres,
+                                                  good, float(blur_sigma), given_blur, rho_in, border)
     gsel = np.flatnonzero(good)
     if gsel.size < 4:
         raise DetectionError(f"only {gsel.size} dots were identified; at least 4 are needed")
+    # handedness of the target -> image mapping
+    screen_c = target.dot_centres_px
     Hg = _homography(screen_c[ids[gsel]], centres[gsel])
-    Jm = _jacobian_h(Hg, screen_c[ids[gsel]].mean(axis=0))
-    is_mirrored = bool(np.linalg.det(Jm) < 0)
+    is_mirrored = bool(np.linalg.det(_jacobian_h(Hg, screen_c[ids[gsel]].mean(axis=0))) < 0)
     sel = gsel[np.argsort(ids[gsel])]
     return DotDetection(
         image_points=centres[sel],
         ids=ids[sel].astype(np.int64),
         object_points=target.object_points[ids[sel]],
-        residual_rms=np.array([fits_k[i].rms for i in sel]),
-        sigma_px=np.array([fits_k[i].sigma for i in sel]),
-        modulation=np.array([fits_k[i].modulation for i in sel]),
-        n_pixels=np.array([fits_k[i].n for i in sel], dtype=np.int64),
+        residual_rms=np.array([fits[i].rms for i in sel]),
+        sigma_px=np.array([fits[i].sigma for i in sel]),
+        modulation=np.array([fits[i].modulation for i in sel]),
+        n_pixels=np.array([fits[i].n for i in sel], dtype=np.int64),
         mirrored=is_mirrored,
-        blur_sigma=float(np.median(sigmas[sel])) if refine else float(blur_sigma),
+        blur_sigma=float(np.median(sigmas[sel])),
     )
+
+
+def _remove_blur_bias(target, shape, modulation, mask, fits, ids, centres, good, blur0, given_blur, rho_in, border):
+    """Pass 2: subtract from each pass-1 centre the bias the same fit shows on a simulated view.
+
+    Three rounds: (1) global homography through the current centres, each dot's simulation
+    placed on its current estimate, blur ``blur0``; (2) blur measured per dot from the
+    modulation (unless given) and smoothed by a plane; (3) final. Returns (centres, good, sigmas).
+    """
+    screen_c = target.dot_centres_px
+    good = good.copy()
+    corrected = centres.copy()
+    sigmas = np.full(len(ids), blur0)
+    workers = max(1, min(4, _cpu_count()))
+    pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+
+    def run(fn, items):
+        return list(pool.map(fn, items)) if pool is not None else [fn(i) for i in items]
+
+    try:
+        for rnd in range(3):
+            sel = np.flatnonzero(good)
+            if sel.size < 4:
+                break
+            H_all = _homography(screen_c[ids[sel]], corrected[sel])
+
+            def simulate(n):
+                c_scr = screen_c[ids[n]]
+                # the global homography, moved so that the dot lands on its current estimate
+                off = corrected[n] - _apply_h(H_all, c_scr[None])[0]
+                A_sim = np.linalg.inv(np.array([[1, 0, off[0]], [0, 1, off[1]], [0, 0, 1.0]]) @ H_all)
+                sim = _DotSimulation(target, shape, A_sim, c_scr, 1.5 * blur0)
+                if not sim.ok:
+                    return None
+                blur = _fit_blur(sim, modulation, mask, blur0) if (rnd == 1 and not given_blur) else None
+                return sim, blur
+
+            sims = dict(zip(sel, run(simulate, sel)))
+            if rnd == 1 and not given_blur:
+                ok = np.array([n for n in sel if sims[n] is not None])
+                for n in ok:
+                    sigmas[n] = sims[n][1]
+                if ok.size:
+                    # a single dot's blur estimate is noisy; the defocus of a flat target varies
+                    # smoothly over the image: fit a plane
+                    sigmas = _smooth_blur(centres, sigmas, ok)
+
+            def debias(n):
+                if sims[n] is None:
+                    return None
+                f = fits[n]
+                return _simulated_fit_bias(sims[n][0], mask, float(sigmas[n]), f.A, f.A_window, target.period,
+                                           target.pitch, rho_in, border)
+
+            for n, bias in zip(sel, run(debias, sel)):
+                if bias is None:
+                    good[n] = False
+                else:
+                    corrected[n] = centres[n] - bias
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return corrected, good, sigmas
+
+
+def _cpu_count() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - non-Linux
+        return os.cpu_count() or 1
 
 
 def _jacobian_h(H, xy):
@@ -883,8 +894,8 @@ def _jacobian_h(H, xy):
 
 
 def _uncoded_ids(lab, centres, target, mirrored):
-    """Ids for a plain (uncoded) grid: the placement whose handedness matches ``mirrored`` and
-    whose target x axis points closest to the image +x axis."""
+    """Cell indices (K, 2) for a plain (uncoded), fully visible grid: the placement whose
+    handedness matches ``mirrored`` and whose target x axis points closest to the image +x axis."""
     nx, ny = target.grid
     want_mirror = bool(mirrored)
     best = None
@@ -895,17 +906,15 @@ def _uncoded_ids(lab, centres, target, mirrored):
             continue
         ids = L[:, 1] * nx + L[:, 0]
         H = _homography(target.dot_centres_px[ids], centres)
-        T_keep = T
         J = _jacobian_h(H, target.dot_centres_px.mean(axis=0))
         if (np.linalg.det(J) < 0) != want_mirror:
             continue
-        ex = J[:, 0] / np.linalg.norm(J[:, 0])
-        score = ex[0]
+        score = J[0, 0] / np.linalg.norm(J[:, 0])
         if best is None or score > best[0]:
-            best = (score, L, T_keep)
+            best = (score, L)
     if best is None:
-        raise DetectionError("no placement of the plain grid matches the requested handedness")
-    return best[1], np.ones(len(lab), dtype=bool), best[2]
+        raise DetectionError(f"no placement of the plain grid matches the requested handedness (mirrored={want_mirror})")
+    return best[1]
 
 
 def _estimate_blur(phase, modulation, mask, period_img):
@@ -952,15 +961,18 @@ def detect_dots_in_images(images, target: PhaseTarget, *, min_modulation: float 
 # dense mode
 # ------------------------------------------------------------------------------------------------
 def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, max_step_error: float = 0.5 * math.pi,
-                 erode: int = 0, device=None) -> DenseDecoding:
+                 erode: int | None = None, device=None) -> DenseDecoding:
     """Decode the dense sequence (``target.dense_images()`` as recorded) into screen coordinates.
 
     Each level is demodulated; the coarsest level's phase is absolute (its period exceeds the
     screen), and each finer level is unwrapped with the scaled coarser one,
-    ``Phi_f = phi_f + 2 pi round((Phi_c P_c / P_f - phi_f) / 2 pi)``. A pixel is valid when
-    every level has ``modulation >= min_modulation``, nothing saturates and every unwrapping step
-    is consistent to ``max_step_error`` rad. ``erode`` shrinks the valid mask by that many pixels
-    (away from the edge of the screen, where blur mixes in the bezel).
+    ``Phi_f = phi_f + 2 pi round((Phi_c P_c / P_f - phi_f) / 2 pi)`` (temporal, hierarchical
+    multi-frequency unwrapping). A pixel is valid when the coarsest level has
+    ``modulation >= min_modulation`` and nothing saturates; it climbs to finer levels while they
+    have enough modulation and the unwrapping step is consistent to ``max_step_error`` rad, and
+    keeps the finest level it reached (``DenseDecoding.period``). ``erode`` (px) shrinks the
+    valid mask away from the edge of the screen, where blur mixes the bezel into the phase;
+    default ``3 sigma + 1`` with ``sigma`` the blur measured from the modulation edge.
 
     Returns a :class:`DenseDecoding` with the screen position (px) seen by every valid pixel.
     """
@@ -973,29 +985,44 @@ def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, ma
         )
     coords = []
     mask = None
+    finest = []
     fine_mod = []
     for axis in (0, 1):
         levels = [lv for lv in target.dense_levels if lv.axis == axis]
-        unwrapped = None
-        prev_period = None
+        unwrapped = period = mod_used = None
+        active = None
         for lv in reversed(levels):  # coarse to fine
             stack = images[lv.first: lv.first + target.steps]
             ph, mod, _, ok = demodulate_images(stack, min_modulation=min_modulation, device=device)
-            mask = ok if mask is None else (mask & ok)
-            if unwrapped is None:
-                unwrapped = ph
-            else:
-                scaled = unwrapped * prev_period / lv.period
-                kk = np.rint((scaled - ph) / TWO_PI)
-                err = scaled - ph - TWO_PI * kk
-                mask &= np.abs(err) <= max_step_error
-                unwrapped = ph + TWO_PI * kk
-            prev_period = lv.period
-        coords.append(target.centre[axis] + unwrapped * prev_period / TWO_PI)
-        fine_mod.append(mod)
+            if unwrapped is None:  # the coarsest level is absolute
+                unwrapped, period, mod_used = ph, np.full(ph.shape, lv.period), mod
+                if axis == 0:
+                    coarse_mod = mod
+                active = ok.copy()
+                mask = ok if mask is None else (mask & ok)
+                continue
+            scaled = unwrapped * period / lv.period
+            kk = np.rint((scaled - ph) / TWO_PI)
+            err = scaled - ph - TWO_PI * kk
+            # a pixel moves on to this finer level while the fringes still reach it
+            # (enough modulation) and the unwrapping is consistent; otherwise it keeps the
+            # coarser (less precise) estimate and stops refining
+            step_ok = active & ok & (np.abs(err) <= max_step_error)
+            unwrapped = np.where(step_ok, ph + TWO_PI * kk, unwrapped)
+            period = np.where(step_ok, lv.period, period)
+            mod_used = np.where(step_ok, mod, mod_used)
+            active = step_ok
+        coords.append(target.centre[axis] + unwrapped * period / TWO_PI)
+        finest.append(period)
+        fine_mod.append(mod_used)
     screen = np.stack(coords, axis=-1)
     w, h = target.screen
     mask &= (screen[..., 0] >= -0.5) & (screen[..., 0] <= w - 0.5) & (screen[..., 1] >= -0.5) & (screen[..., 1] <= h - 0.5)
+    if erode is None:
+        # blur mixes the dark bezel into the phase near the edge of the screen: stay 3 sigma away
+        erode = int(math.ceil(3.0 * _estimate_blur(None, coarse_mod, mask, 0.0))) + 1
+    elif not isinstance(erode, (int, np.integer)) or erode < 0:
+        raise ValueError(f"erode must be a number of pixels >= 0 or None (automatic), got {erode!r}")
     if erode > 0:
         from scipy import ndimage
 
@@ -1011,7 +1038,9 @@ def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, ma
         det = det[np.isfinite(det)]
         if det.size:
             mirrored = bool(np.median(det) < 0)
-    return DenseDecoding(screen, mask, 0.5 * (fine_mod[0] + fine_mod[1]), target.pixel_pitch, mirrored)
+    period = np.stack(finest, axis=-1)
+    period[~mask] = np.nan
+    return DenseDecoding(screen, mask, 0.5 * (fine_mod[0] + fine_mod[1]), target.pixel_pitch, mirrored, period)
 
 
 def dense_correspondences(decoding: DenseDecoding, step: int = 8, *, max_points: int | None = None):

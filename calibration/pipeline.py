@@ -228,6 +228,8 @@ class ViewResult:
         Dense mode: screen coordinates per pixel.
     error : str or None
         Why the view was dropped (``None`` when usable).
+    preview : (h, w) float32 or None
+        The wrapped phase (rad) subsampled by ``preview_step`` (for figures).
     """
 
     name: str
@@ -235,6 +237,8 @@ class ViewResult:
     detection: DotDetection | None = None
     dense: DenseDecoding | None = None
     error: str | None = None
+    preview: np.ndarray | None = None
+    preview_step: int = 1
 
     @property
     def ok(self) -> bool:
@@ -280,7 +284,7 @@ def _check_mode(mode):
 
 
 def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | None = None,
-                min_modulation: float = 3.0, refine: bool = False, min_points: int = 4,
+                min_modulation: float = 3.0, correct_blur: bool | None = None, min_points: int = 4,
                 dense_erode: int = 2, device=None) -> ViewResult:
     """Demodulate one view and find the target in it.
 
@@ -293,10 +297,9 @@ def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | 
     mode : ``"dots"`` or ``"dense"``
     min_modulation : float
         Pixels with a lower fringe modulation (grey levels) are ignored.
-    refine : bool
-        Dot mode: also run the blur-aware second pass of :func:`calibration.features.detect_dots`
-        (off by default: in the virtual lab the first pass — the projective radial phase fit — was
-        as accurate or better; see docs/calibration.md).
+    correct_blur : bool or None
+        Dot mode: run the detector's defocus-bias correction (pass 2 of
+        :func:`calibration.features.detect_dots`); ``None`` keeps the detector's default.
     min_points : int
         Fewer dots (or decoded pixels / 100 in dense mode) drop the view.
     dense_erode : int
@@ -326,17 +329,20 @@ def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | 
         if dec.mirrored is None:
             return ViewResult(name, size, error="could not tell whether the view is mirrored")
         return ViewResult(name, size, dense=dec)
+    phase, mod, _, valid = demodulate_images(stack, target, min_modulation=min_modulation, device=device)
+    step = max(1, int(math.ceil(max(size) / 800)))
+    preview = np.where(valid, phase, np.nan)[::step, ::step].astype(np.float32)
     try:
-        phase, mod, _, valid = demodulate_images(stack, target, min_modulation=min_modulation, device=device)
-        det = detect_dots(phase, mod, target, mask=valid, min_modulation=min_modulation, refine=refine)
+        extra = {} if correct_blur is None else {"correct_blur": bool(correct_blur)}
+        det = detect_dots(phase, mod, target, mask=valid, min_modulation=min_modulation, **extra)
     except DetectionError as exc:
-        return ViewResult(name, size, error=f"target not found: {exc}")
-    if len(det) < min_points:
-        return ViewResult(name, size, detection=None, error=f"only {len(det)} dots identified (need {min_points})")
+        return ViewResult(name, size, error=f"target not found: {exc}", preview=preview, preview_step=step)
     if not (np.all(np.isfinite(det.image_points))):
-        keep = np.all(np.isfinite(det.image_points), axis=1)
-        det = _subset_detection(det, keep)
-    return ViewResult(name, size, detection=det)
+        det = _subset_detection(det, np.all(np.isfinite(det.image_points), axis=1))
+    if len(det) < min_points:
+        return ViewResult(name, size, error=f"only {len(det)} dots identified (need {min_points})", preview=preview,
+                          preview_step=step)
+    return ViewResult(name, size, detection=det, preview=preview, preview_step=step)
 
 
 def _subset_detection(det: DotDetection, keep) -> DotDetection:
@@ -507,7 +513,7 @@ def _short(s: str, n: int) -> str:
 def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, mode: str = "dots",
                                      model: str = "opencv5", reject: float | None = 3.0,
                                      max_view_rms: float | None = None, min_points: int = 6,
-                                     dense_step: int = 16, dense_max_points: int = 4000, refine: bool = False,
+                                     dense_step: int = 16, dense_max_points: int = 4000, correct_blur: bool | None = None,
                                      min_modulation: float = 3.0, name: str = "", progress=None,
                                      device=None) -> IntrinsicsCalibration:
     """Intrinsics of one camera from image stacks of the phase target, direct and mirrored views together.
@@ -525,7 +531,7 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
         rejection).
     min_points : int
         Views with fewer identified points are dropped.
-    refine, min_modulation, device :
+    correct_blur, min_modulation, device :
         Passed to :func:`detect_view`.
     name : str
         Camera name written into the result (``"left"``...).
@@ -542,7 +548,7 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
     _check_mode(mode)
     if model not in DISTORTION_MODELS:
         raise ValueError(f"model must be one of {DISTORTION_MODELS}, got {model!r}")
-    results = detect_views(views, target, names=names, mode=mode, refine=refine, min_points=min_points,
+    results = detect_views(views, target, names=names, mode=mode, correct_blur=correct_blur, min_points=min_points,
                            min_modulation=min_modulation, device=device, progress=progress)
     sizes = {r.image_size for r in results}
     if len(sizes) > 1:
@@ -703,7 +709,7 @@ def _rotvec(R):
 
 def calibrate_mirror_from_images(camera: Camera, views, target: PhaseTarget, *, names=None, mode: str = "dots",
                                  dense_spacing: float | None = None, sigma_px: float | None = None,
-                                 refine: bool = False, min_modulation: float = 3.0, min_common: int = 6,
+                                 correct_blur: bool | None = None, min_modulation: float = 3.0, min_common: int = 6,
                                  progress=None, device=None) -> MirrorCalibration:
     """Pose of ``camera`` relative to the monitor from views of it in a mirror at K ≥ 3 tilts (paper Steps 2, 5).
 
@@ -736,7 +742,7 @@ def calibrate_mirror_from_images(camera: Camera, views, target: PhaseTarget, *, 
     _check_mode(mode)
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a calibration.camera.Camera, got {type(camera).__name__}")
-    results = detect_views(views, target, names=names, mode=mode, refine=refine, min_modulation=min_modulation,
+    results = detect_views(views, target, names=names, mode=mode, correct_blur=correct_blur, min_modulation=min_modulation,
                            device=device, progress=progress)
     for r in results:
         if r.ok and r.image_size != tuple(camera.size) and camera.size != (0, 0):
@@ -800,7 +806,7 @@ class StereoView:
         return self.object_points, self.left_points, self.right_points
 
 
-def detect_stereo_view(left_source, right_source, target: PhaseTarget, *, name: str = "", refine: bool = False,
+def detect_stereo_view(left_source, right_source, target: PhaseTarget, *, name: str = "", correct_blur: bool | None = None,
                        min_modulation: float = 3.0, min_points: int = 4, device=None) -> StereoView:
     """Detect a direct view of the target in both cameras (e.g. the monitor at the working distance).
 
@@ -808,7 +814,7 @@ def detect_stereo_view(left_source, right_source, target: PhaseTarget, *, name: 
     when fewer than ``min_points`` dots are common to both."""
     out = []
     for side, src in (("left", left_source), ("right", right_source)):
-        r = detect_view(src, target, name=f"{name or 'stereo view'} ({side})", refine=refine,
+        r = detect_view(src, target, name=f"{name or 'stereo view'} ({side})", correct_blur=correct_blur,
                         min_modulation=min_modulation, device=device)
         if not r.ok:
             raise ValueError(f"{r.name}: {r.error}")

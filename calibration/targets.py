@@ -352,7 +352,7 @@ class PhaseTarget(_ScreenTarget):
         gamma: float = 1.0,
         dense_periods=None,
         dense_fine_period: float = 40.0,
-        dense_max_ratio: float = 8.0,
+        dense_max_ratio: float = 5.0,
     ):
         self.screen = _pair(screen, "screen", integer=True, minimum=1)
         self.pixel_pitch = _positive(pixel_pitch, "pixel_pitch")
@@ -919,8 +919,12 @@ def render_view(
         raise ValueError("R_cam_target must be an orthogonal 3x3 matrix (proper, or improper for a mirrored view)")
     indices = list(range(target.n_images)) if indices is None else list(indices)
     n = supersample
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    acc = np.zeros((len(indices), h, w))
+    # render a margin around the sensor so that the blur near the image edge sees the scene
+    # beyond it, as a real lens does
+    pad = int(math.ceil(4 * blur_sigma)) if blur_sigma > 0 else 0
+    ys, xs = np.mgrid[-pad:h + pad, -pad:w + pad].astype(np.float64)
+    hp, wp = h + 2 * pad, w + 2 * pad
+    acc = np.zeros((len(indices), hp, wp))
     sw, sh = target.screen
     for a in range(n):
         for b in range(n):
@@ -931,14 +935,14 @@ def render_view(
             sx = np.where(on, sx, 0.0)
             sy = np.where(on, sy, 0.0)
             for m, val in enumerate(target.intensities(sx, sy, indices)):
-                acc[m] += np.where(on, val, 0.0).reshape(h, w)
+                acc[m] += np.where(on, val, 0.0).reshape(hp, wp)
     acc /= n * n
     rng = np.random.default_rng(seed)
     out = []
     for img in acc:
         img = black_level + gain * img
         if blur_sigma > 0:
-            img = _gaussian_blur(img, blur_sigma)
+            img = _gaussian_blur(img, blur_sigma)[pad:pad + h, pad:pad + w]
         if noise_sigma > 0:
             img = img + rng.normal(0.0, noise_sigma, img.shape)
         out.append(img)

@@ -9,6 +9,15 @@ Steps (each a function, so later demos can add stages such as the stereo chain):
 4. :func:`write_step` - the HDF5 result file, a figure (PNG) and a summary (Markdown and JSON)
    with the errors against the exact ground truth.
 
+Then the stereo chain on the virtual paper rig (``--only stereo``; both by default), at reduced
+resolution (:mod:`dic.experiments`):
+
+5. :func:`stereo_calibration_step` - render the phase-target calibration images (mirrored at three
+   tilts, direct at several depths), calibrate intrinsics and mirror extrinsics, write the rig file;
+6. :func:`stereo_measure_step` - render a reference and a deformed speckle state on the monitor at
+   the crossing point (x_d = x + A sin(2 pi f y), the paper's deformation test) and measure them in 3-D;
+7. :func:`stereo_report_step` - figures, VTK and a short Markdown report (``stereo/report.md``).
+
 Everything is written into ``--out``; a short summary is printed.
 """
 from __future__ import annotations
@@ -60,6 +69,11 @@ class DemoState:
     strain: object = None
     timings: dict = dataclasses.field(default_factory=dict)
     summary: dict = dataclasses.field(default_factory=dict)
+    stereo_config: object = None
+    experiment: object = None
+    calibration: object = None
+    dots: object = None
+    deformation: object = None
 
 
 # -- the known displacement and its derivatives (reference coordinates, px)
@@ -209,17 +223,163 @@ def write_step(state: DemoState) -> None:
 STEPS = (generate, track_step, strain_step, write_step)
 
 
-def run_demo(out, config: DemoConfig | None = None, *, echo=print) -> dict:
-    """Run every step into folder ``out``; return the summary dictionary."""
-    state = DemoState(config=config or DemoConfig(), out=Path(out))
-    for step in STEPS:
-        echo(f"[demo] {step.__doc__.splitlines()[0]}")
-        step(state)
-    e = state.summary["errors"]
-    echo(f"[demo] {e['valid_points']}/{e['points']} points valid; RMS error u {e['u_rms_error_px']:.4f} px, "
-         f"v {e['v_rms_error_px']:.4f} px; strain RMS error exx {e['exx_rms_error']:.1e}, "
-         f"eyy {e['eyy_rms_error']:.1e}, exy {e['exy_rms_error']:.1e}")
-    echo(f"[demo] wrote {', '.join(state.summary['files'])} to {state.out}")
+# -- the stereo chain on the virtual paper rig ---------------------------------------------------
+@dataclass
+class StereoDemoConfig:
+    """Reduced-resolution settings of the stereo demo (see dic.experiments.ExperimentConfig)."""
+
+    scale: float = 0.25
+    samples: int = 4
+    direct_distances_mm: tuple = (1100.0, 1400.0, 1700.0, 2000.0, 2400.0, 2700.0)
+    step: int = 3
+    amplitude_px: float = 24.0           #: monitor px (the paper's A)
+    frequency: float = 1.0 / 600.0       #: 1/monitor px (the paper's f)
+    cache: str | None = None             #: render cache folder (None: no cache)
+    device: str | None = None
+
+
+def stereo_calibration_step(state: DemoState) -> None:
+    """Step 5: render the calibration images of the paper rig and calibrate it (intrinsics, mirror extrinsics)."""
+    from dic.experiments import Experiment, ExperimentConfig
+
+    sc = state.stereo_config
+    t0 = time.perf_counter()
+    cfg = ExperimentConfig(scale=sc.scale, samples=sc.samples, direct_distances_mm=sc.direct_distances_mm,
+                           far_view=False, checkerboard=False, positions=(13,), step=sc.step,
+                           deform_amplitude_px=sc.amplitude_px, deform_frequency=sc.frequency, device=sc.device)
+    state.experiment = Experiment(cfg, cache=sc.cache, log=lambda m: None)
+    state.calibration = state.experiment.calibrate()
+    out = state.out / "stereo"
+    out.mkdir(parents=True, exist_ok=True)
+    state.calibration.rig.save(out / "rig.json")
+    state.timings["stereo_calibration_s"] = time.perf_counter() - t0
+
+
+def stereo_measure_step(state: DemoState) -> None:
+    """Step 6: render a reference and a sinusoidally deformed speckle state and measure them in 3-D."""
+    from dic.experiments import _central_position, run_deformation_test
+
+    t0 = time.perf_counter()
+    exp = state.experiment
+    p = _central_position(exp)
+    state.dots = exp.dot_views(p)
+    state.deformation = run_deformation_test(exp, state.calibration.rig, state.dots, log=lambda m: None)
+    state.timings["stereo_measure_s"] = time.perf_counter() - t0
+
+
+def stereo_report_step(state: DemoState) -> None:
+    """Step 7: figures, VTK and the stereo report (Markdown, JSON)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    from dic.experiments import dot_test
+    from dic.io import write_image
+
+    exp, cal, de = state.experiment, state.calibration, state.deformation
+    out = state.out / "stereo"
+    out.mkdir(parents=True, exist_ok=True)
+    p = de["position"]
+    L0, R0 = exp.speckle_pair(p)
+    write_image(out / "left_reference.tif", L0, bits=8)
+    write_image(out / "right_reference.tif", R0, bits=8)
+    dots = dot_test(cal.rig, *state.dots, exp.dot_target)
+    m = de.pop("_map")
+    fig, axs = plt.subplots(1, 3, figsize=(13, 3.6))
+    s = axs[0].scatter(m["x_px"], m["y_px"], c=m["u_px"], s=4, cmap="coolwarm")
+    axs[0].invert_yaxis(); axs[0].set_title("measured u (monitor px)"); fig.colorbar(s, ax=axs[0])
+    y = np.linspace(m["y_px"].min(), m["y_px"].max(), 300)
+    axs[1].plot(de["profile_y_px"], de["profile_u_px"], "o", ms=3, label="measured (row bins)")
+    axs[1].plot(y, de["imposed_amplitude_px"] * np.sin(2 * np.pi * exp.cfg.deform_frequency * y), label="imposed")
+    axs[1].set_xlabel("monitor y (px)"); axs[1].set_ylabel("u (monitor px)"); axs[1].legend(fontsize=8)
+    s = axs[2].scatter(m["x_px"], m["y_px"], c=m["residual_px"], s=4, cmap="coolwarm")
+    axs[2].invert_yaxis(); axs[2].set_title("u residual (monitor px)"); fig.colorbar(s, ax=axs[2])
+    fig.tight_layout(); fig.savefig(out / "deformation.png", dpi=80); plt.close(fig)
+    fig, axs = plt.subplots(1, 2, figsize=(9, 3.4))
+    axs[0].imshow(L0, cmap="gray"); axs[0].set_title("left camera, reference"); axs[0].axis("off")
+    axs[1].imshow(R0, cmap="gray"); axs[1].set_title("right camera, reference"); axs[1].axis("off")
+    fig.tight_layout(); fig.savefig(out / "views.png", dpi=80); plt.close(fig)
+    f = cal.figures
+    summary = {"calibration": f, "dot_check": {"mean_distance_mm": float(dots["distances_mm"].mean()),
+                                                "std_mm": float(dots["distances_mm"].std(ddof=1)),
+                                                "true_mm": 139.95},
+               "deformation": {k: v for k, v in de.items() if not k.startswith("profile")},
+               "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(exp.cfg).items()},
+               "image_size": list(exp.size), "renders": exp.cache.renders, "render_s": round(exp.cache.render_s, 1),
+               "files": ["rig.json", "left_reference.tif", "right_reference.tif", "deformation.png", "views.png",
+                         "report.md", "summary.json"]}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    rp = f["reprojection_rms_px"]
+    lines = [
+        "# Specula demo: stereo DIC on the virtual paper rig",
+        "",
+        f"The paper's rig (docs/lab.md) at scale {exp.cfg.scale} ({exp.size[0]} x {exp.size[1]} px cameras, 8 bit, read "
+        f"and shot noise, f/2.8 defocus), {exp.cfg.samples} samples per pixel. Calibrated from rendered images only: "
+        f"a coded {exp.cfg.calib_grid[0]}x{exp.cfg.calib_grid[1]} phase-dot target seen through each camera's mirror at "
+        f"3 tilts and directly at {len(exp.cfg.direct_distances_mm)} depths; intrinsics (Zhang, direct + mirrored views), "
+        "mirror extrinsics (the paper's method + bundle adjustment). Then the monitor at the axes' crossing (5.4 m) "
+        f"shows a speckle, then the same speckle deformed by x_d = x + {de['imposed_amplitude_px']:g} sin(2 pi y / "
+        f"{1 / exp.cfg.deform_frequency:g}) (monitor px), measured by stereo DIC (subset {exp.cfg.subset} px, step "
+        f"{exp.cfg.step} px, order {exp.cfg.order}). See docs/paper_reproduction.md for the full reproduction.",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        f"| calibration reprojection RMS left / right (px) | {rp['left']:.4f} / {rp['right']:.4f} |",
+        f"| mirror bundle RMS left / right (px) | {f['mirror_rms_px']['left']:.4f} / {f['mirror_rms_px']['right']:.4f} |",
+        f"| calibrated baseline (mm; lab: 1650) | {f['baseline_mm_mirror']:.2f} |",
+        f"| 4x2 dots at 5.4 m: neighbour distance (mm; true 139.95) | {summary['dot_check']['mean_distance_mm']:.3f} "
+        f"± {summary['dot_check']['std_mm']:.3f} |",
+        f"| valid 3-D points | {de['valid']} / {de['points']} |",
+        f"| u amplitude (monitor px; imposed {de['imposed_amplitude_px']:g}) | {de['fitted_amplitude_px']:.3f} |",
+        f"| u residual RMS (monitor px) | {de['u_residual_rms_px']:.4f} |",
+        f"| spurious v (monitor px) | {de['v_mean_px']:.4f} ± {de['v_std_px']:.4f} |",
+        f"| spurious w (monitor px) | {de['w_mean_px']:.4f} ± {de['w_std_px']:.4f} |",
+        "",
+        "![views](views.png)",
+        "",
+        "![deformation](deformation.png)",
+        "",
+        "Timings (s): " + ", ".join(f"{k[:-2]} {v:.1f}" for k, v in state.timings.items() if k.startswith("stereo")),
+        "",
+    ]
+    (out / "report.md").write_text("\n".join(lines))
+    state.summary.setdefault("stereo", {})
+    state.summary["stereo"] = {"deformation": summary["deformation"], "reprojection_rms_px": rp,
+                               "dot_check": summary["dot_check"]}
+
+
+STEREO_STEPS = (stereo_calibration_step, stereo_measure_step, stereo_report_step)
+
+
+def run_demo(out, config: DemoConfig | None = None, *, echo=print, only: str = "all",
+             stereo_config: StereoDemoConfig | None = None) -> dict:
+    """Run the steps into folder ``out`` (``only``: "2d", "stereo" or "all"); return the summary dictionary."""
+    if only not in ("2d", "stereo", "all"):
+        raise ValueError(f"only must be '2d', 'stereo' or 'all', got {only!r}")
+    state = DemoState(config=config or DemoConfig(), out=Path(out), stereo_config=stereo_config or StereoDemoConfig())
+    state.out.mkdir(parents=True, exist_ok=True)
+    if only in ("2d", "all"):
+        for step in STEPS:
+            echo(f"[demo] {step.__doc__.splitlines()[0]}")
+            step(state)
+        e = state.summary["errors"]
+        echo(f"[demo] {e['valid_points']}/{e['points']} points valid; RMS error u {e['u_rms_error_px']:.4f} px, "
+             f"v {e['v_rms_error_px']:.4f} px; strain RMS error exx {e['exx_rms_error']:.1e}, "
+             f"eyy {e['eyy_rms_error']:.1e}, exy {e['exy_rms_error']:.1e}")
+        echo(f"[demo] wrote {', '.join(state.summary['files'])} to {state.out}")
+    if only in ("stereo", "all"):
+        for step in STEREO_STEPS:
+            echo(f"[demo] {step.__doc__.splitlines()[0]}")
+            t0 = time.perf_counter()
+            step(state)
+            echo(f"[demo]   ({time.perf_counter() - t0:.0f} s)")
+        d = state.summary["stereo"]["deformation"]
+        rp = state.summary["stereo"]["reprojection_rms_px"]
+        echo(f"[demo] stereo: calibration RMS {rp['left']:.3f} / {rp['right']:.3f} px; u amplitude "
+             f"{d['fitted_amplitude_px']:.2f} of {d['imposed_amplitude_px']:g} monitor px, spurious w "
+             f"{d['w_mean_px']:.3f} ± {d['w_std_px']:.3f} px; wrote {state.out / 'stereo'}")
+        if only == "stereo":
+            (state.out / "summary.json").write_text(json.dumps(state.summary, indent=2, default=float))
     return state.summary
 
 
@@ -230,11 +390,19 @@ def main(argv=None) -> int:
     parser.add_argument("--step", type=int, default=DemoConfig.step, help="grid step in px (default 4)")
     parser.add_argument("--order", type=int, choices=(1, 2), default=DemoConfig.order)
     parser.add_argument("--device", default=None, help="Warp device (default: CUDA when present, else CPU)")
+    parser.add_argument("--only", choices=("2d", "stereo", "all"), default="all",
+                        help="2d: the synthetic 2-D demo; stereo: the paper-rig chain; all (default): both")
+    parser.add_argument("--scale", type=float, default=StereoDemoConfig.scale,
+                        help="stereo: camera resolution factor of the paper rig (default 0.25)")
+    parser.add_argument("--cache", default=None, help="stereo: folder to cache rendered images in (default: none)")
     args = parser.parse_args(argv)
     if args.size < 96:
         parser.error("--size must be at least 96 px")
     cfg = DemoConfig(size=args.size, step=args.step, order=args.order, device=args.device)
-    run_demo(args.out, cfg)
+    if not 0.05 <= args.scale <= 1.0:
+        parser.error("--scale must be in [0.05, 1]")
+    run_demo(args.out, cfg, only=args.only,
+             stereo_config=StereoDemoConfig(scale=args.scale, cache=args.cache, device=args.device))
     return 0
 
 

@@ -1,0 +1,464 @@
+"""Calibration of the paper's stereo rig in the virtual lab, from rendered images to the rig (issue 4).
+
+Run from the repository root (the full-resolution run renders ~300 images and takes hours on the shared
+2-core CPU; rendered stacks are cached in ``--cache`` so an interrupted run resumes)::
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab                 # full resolution
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --scale 0.25 --samples 4   # quick
+
+What it does, in the virtual lab's paper rig (``dic.lab.paper_rig``: two 2352 × 1728 px 8-bit cameras
+with read noise 1 DN and shot noise, 28 mm f/2.8 lenses focused at 5.4 m, 1650 mm baseline, mirrors
+400 mm ahead, the 27" monitor 650 mm behind the cameras):
+
+* renders, for each camera, the N-step phase target (``calibration.targets.PhaseTarget``) at
+  direct poses through the depth of field (1.15–3.4 m, tilts up to 30°, blur up to ~28 px) and
+  through the mirror at the mount's tilts, plus the monitor at places both cameras see;
+* runs ``calibration.pipeline`` on the images: intrinsics (direct + mirrored views in one bundle),
+  mirror extrinsics per camera, the rig (per camera and joint with the far view), and
+  reconstructs independent check views (distances between dots);
+* compares with the lab's ground truth, for the paper-faithful setup (6×3 dots, 3 tilts, per-camera
+  composition) and the improved one (24×12 dots, 5 tilts, joint adjustment with the far view), and
+  with ``cv2.stereoCalibrate`` from a 9×6 checkerboard of 40 mm squares shown by the monitor around
+  the working distance;
+* writes ``bench/results/calibration_lab.json`` (or ``--out``) and prints a table.
+
+The helpers (:func:`direct_pose`, :func:`render_view_stack`, :class:`LabTruth` ...) are also used by
+tests/test_calibration_lab.py at reduced resolution.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import platform
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.camera import Camera, rotation_angle_deg, rotation_from_vector
+from calibration.intrinsics import STD_NAMES
+from calibration.stereo import StereoRig
+from calibration.targets import CheckerboardTarget, PhaseTarget, make_cell_code
+
+# -- scenario ---------------------------------------------------------------------------------------
+#: Direct intrinsic views: (depth along the camera axis mm, offset u, v as a fraction of the room
+#: left in the image, tilt about the camera x and y axes in degrees). Depths from 1.15 m (the
+#: monitor fills the image, ~28 px blur at full resolution) to 3.4 m.
+DIRECT_POSES = (
+    (1150, 0, 0, 0, 0), (1250, 0, 0, 25, 0), (1250, 0, 0, 0, -30), (1500, -1, -1, -20, 20), (1500, 1, 1, 20, -20),
+    (1800, 1, -1, -25, -15), (1800, -1, 1, 15, 25), (2200, -1, 1, 10, 30), (2200, 1, -1, -30, -10),
+    (2700, 1, 1, 20, 20), (2700, -1, -1, -20, -20), (3400, 0, 0, 10, -15),
+)
+#: Mirror-mount settings (about the mirror's vertical, horizontal axes; degrees). The first three are
+#: the lab's (and the paper's) three tilts; the improved setup adds two more on the same 3° cone.
+MIRROR_TILTS = ((3.0, 0.0), (-1.5, 2.6), (-1.5, -2.6), (1.5, 2.6), (1.5, -2.6))
+
+
+def paper_target(steps: int = 4) -> PhaseTarget:
+    """The paper's target: 6 × 3 dots, 300 px pitch (93.3 mm), one fringe period per cell, coded."""
+    return PhaseTarget(grid=(6, 3), pitch=300, steps=steps)
+
+
+def dense_target(steps: int = 4, grid=(24, 12), pitch: float = 75) -> PhaseTarget:
+    """A denser dot grid on the same monitor area (24 × 12 dots at 75 px = 23.3 mm by default).
+
+    The code is searched with a 4 × 4 window (``make_cell_code``'s default search starts with a 2 × 3
+    window, which takes minutes for grids this large)."""
+    code, _ = make_cell_code(grid, window=(4, 4))
+    return PhaseTarget(grid=grid, pitch=pitch, steps=steps, code=code)
+
+
+def rot_xy(ax_deg: float, ay_deg: float) -> np.ndarray:
+    return rotation_from_vector([np.radians(ax_deg), 0, 0]) @ rotation_from_vector([0, np.radians(ay_deg), 0])
+
+
+def direct_pose(rig, camera: str, target: PhaseTarget, depth: float, u: float, v: float, ax: float, ay: float,
+                margin: float = 0.03):
+    """Monitor pose ``(R_world_screen, t_world_screen)`` for a direct view of ``camera``.
+
+    The monitor faces the camera, turned by ``ax`` / ``ay`` degrees about the camera's x / y axes, its
+    centre at ``depth`` mm along the viewing direction shifted by ``(u, v)`` times the room that keeps
+    the target's lit area ``margin`` × width inside the image.
+    """
+    cam = rig.camera(camera)
+    W, H = cam.size
+    R_c_s = rot_xy(ax, ay)
+    pitch = rig.monitor.pixel_pitch_mm[0]
+    res = rig.monitor.resolution
+    c_local = np.array([(res[0] - 1) / 2 * pitch, (res[1] - 1) / 2 * pitch, 0.0])
+    lo, hi = target._lit_lo * target.pixel_pitch, target._lit_hi * target.pixel_pitch
+    corners = np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]])
+    m = margin * W
+    for s in np.linspace(1.0, 0.0, 41):
+        p_c = np.array([u * s * (W / 2) / cam.camera.fx * depth, v * s * (H / 2) / cam.camera.fy * depth, depth])
+        t_c = p_c - R_c_s @ c_local
+        uv = cam.camera.project(corners @ R_c_s.T + t_c)
+        if np.all(uv[:, 0] > m) and np.all(uv[:, 0] < W - 1 - m) and np.all(uv[:, 1] > m) and np.all(uv[:, 1] < H - 1 - m):
+            break
+    else:
+        raise ValueError(f"direct pose depth={depth} ax={ax} ay={ay}: the target does not fit in the image")
+    return cam.R_cam_world.T @ R_c_s, cam.R_cam_world.T @ (t_c - cam.t_cam_world)
+
+
+def common_pose(rig, center, ax: float = 0.0, ay: float = 0.0):
+    """Monitor pose facing the cameras (normal along −z of the world) at ``center`` (world mm), turned by ax/ay deg."""
+    R = rot_xy(ax, ay)
+    pitch = rig.monitor.pixel_pitch_mm[0]
+    res = rig.monitor.resolution
+    c_local = np.array([(res[0] - 1) / 2 * pitch, (res[1] - 1) / 2 * pitch, 0.0])
+    return R, np.asarray(center, dtype=np.float64) - R @ c_local
+
+
+def render_view_stack(scene, camera, images, *, samples: int, seed: int) -> np.ndarray:
+    """Render the monitor showing each of ``images`` (K, 1080, 1920) uint8: (K, H, W) uint8."""
+    from dic.lab import render
+
+    return np.stack([render(scene.with_monitor_image(im), camera, samples=samples, seed=seed + 7919 * k)
+                     for k, im in enumerate(images)])
+
+
+def target_pose(scene, camera):
+    """True ``(R_cam_target, t_cam_target)`` of the monitor (target frame = screen frame) in ``camera``."""
+    cam = scene.camera(camera)
+    return (cam.R_cam_world @ scene.monitor.R_world_screen,
+            cam.R_cam_world @ scene.monitor.t_world_screen + cam.t_cam_world)
+
+
+def true_rig(rig) -> StereoRig:
+    L, R = rig.camera("left"), rig.camera("right")
+    R_rl = R.R_cam_world @ L.R_cam_world.T
+    return StereoRig(L.camera, R.camera, R_rl, R.t_cam_world - R_rl @ L.t_cam_world)
+
+
+def intrinsic_errors(calib, truth: Camera) -> dict:
+    """Errors of an IntrinsicsResult against the true camera: per parameter value, error, σ, error/σ."""
+    cam = calib.camera
+    est = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}
+    tru = {"fx": truth.fx, "fy": truth.fy, "cx": truth.cx, "cy": truth.cy}
+    for i, nm in enumerate(("k1", "k2", "p1", "p2", "k3")):
+        est[nm] = float(cam.dist8[i])
+        tru[nm] = float(truth.dist8[i])
+    out = {}
+    for nm in est:
+        sd = calib.std.get(nm)
+        err = est[nm] - tru[nm]
+        out[nm] = {"estimate": est[nm], "truth": tru[nm], "error": err, "sigma": sd,
+                   "error_over_sigma": (err / sd) if sd else None}
+    out["focal_error_percent"] = 100 * max(abs(cam.fx - truth.fx) / truth.fx, abs(cam.fy - truth.fy) / truth.fy)
+    out["max_error_over_sigma"] = max(abs(v["error_over_sigma"]) for v in out.values()
+                                      if isinstance(v, dict) and v["error_over_sigma"] is not None)
+    return out
+
+
+def pose_errors(R, t, R_true, t_true) -> dict:
+    return {"rotation_deg": rotation_angle_deg(R, R_true), "translation_mm": float(np.linalg.norm(t - t_true))}
+
+
+@dataclass
+class Cache:
+    """Rendered stacks on disk (``.npy`` per view), keyed by a hash of what was rendered."""
+
+    directory: str | None
+
+    def get(self, key: str, make):
+        if self.directory is None:
+            return make()
+        os.makedirs(self.directory, exist_ok=True)
+        path = os.path.join(self.directory, hashlib.sha1(key.encode()).hexdigest()[:16] + ".npy")
+        if os.path.exists(path):
+            return np.load(path)
+        arr = make()
+        np.save(path + ".tmp.npy", arr)
+        os.replace(path + ".tmp.npy", path)
+        return arr
+
+
+class LabSession:
+    """Renders the views of one calibration session of the paper rig (see the module docstring)."""
+
+    def __init__(self, *, scale: float = 1.0, samples: int = 16, seed: int = 2019, cache: str | None = None,
+                 tilts=MIRROR_TILTS, log=print):
+        from dic.lab import paper_rig
+
+        self.scale, self.samples, self.seed = scale, samples, seed
+        self.rig = paper_rig(scale=scale, mirror_tilts_deg=tilts, mirror_tilt=None)
+        self.tilts = tuple(tilts)
+        self.cache = Cache(cache)
+        self.log = log
+        self._images = {}
+
+    def _key(self, *parts) -> str:
+        return repr((self.scale, self.samples, self.seed) + parts)
+
+    def images(self, target: PhaseTarget):
+        key = repr(target)
+        if key not in self._images:
+            self._images[key] = target.images()
+        return self._images[key]
+
+    def _render(self, scene, camera, target, tag, seed):
+        t0 = time.time()
+        key = self._key(tag, camera, repr(target), target.code.tolist(), seed)
+        stack = self.cache.get(key, lambda: render_view_stack(scene, camera, self.images(target),
+                                                               samples=self.samples, seed=seed))
+        dt = time.time() - t0
+        if dt > 5 and self.log:
+            self.log(f"    rendered {tag} ({camera}, {target.grid[0]}x{target.grid[1]} dots) in {dt:.0f} s")
+        return stack
+
+    def direct_view(self, camera: str, target: PhaseTarget, pose_index: int, poses=DIRECT_POSES):
+        base = self.rig.without_mirrors()
+        R, t = direct_pose(base, camera, target, *poses[pose_index])
+        scene = base.with_monitor_pose(R, t)
+        seed = self.seed + 1000 * pose_index + (0 if camera == "left" else 500)
+        return scene, self._render(scene, camera, target, f"direct{pose_index}", seed)
+
+    def mirror_view(self, camera: str, target: PhaseTarget, tilt: int):
+        scene = self.rig.with_mirror_tilt(tilt)
+        seed = self.seed + 50000 + 100 * tilt + (0 if camera == "left" else 50)
+        return scene, self._render(scene, camera, target, f"mirror{tilt}", seed)
+
+    def common_view(self, target: PhaseTarget, center, ax=0.0, ay=0.0, tag="common"):
+        R, t = common_pose(self.rig, center, ax, ay)
+        scene = self.rig.without_mirrors().with_monitor_pose(R, t)
+        seed = self.seed + 90000 + int(abs(hash((tuple(np.round(center, 3)), ax, ay))) % 10000)
+        return scene, (self._render(scene, "left", target, tag, seed), self._render(scene, "right", target, tag, seed + 1))
+
+    def mirror_truth(self, camera: str):
+        scene = self.rig.with_mirror_tilt(0)
+        return target_pose(scene, camera)
+
+
+# -- the benchmark ----------------------------------------------------------------------------------
+def _summary_intrinsics(ic, truth):
+    e = intrinsic_errors(ic.result, truth)
+    return {"views": len(ic.result.view_indices), "points": int(sum(len(ic.image_points[i]) for i in ic.result.view_indices)),
+            "rms_px": ic.result.rms, "focal_error_percent": e["focal_error_percent"],
+            "max_error_over_sigma": e["max_error_over_sigma"], "parameters": {k: v for k, v in e.items() if isinstance(v, dict)},
+            "dropped": [{"view": n, "reason": r} for n, r in ic.dropped]}
+
+
+def _summary_mirror(mc, truth_pose):
+    R, t = truth_pose
+    r = mc.result
+    return {"tilts": len(mc.names), "points": int(len(mc.point_ids)), "rms_px": r.rms,
+            "closed_form": pose_errors(r.closed_form.R_cam_target, r.closed_form.t_cam_target, R, t),
+            "adjusted": pose_errors(r.R_cam_target, r.t_cam_target, R, t),
+            "reported_sigma_rotation_deg": r.std_rotation_deg.tolist(),
+            "reported_sigma_translation_mm": r.std_translation_mm.tolist()}
+
+
+def _summary_rig(rig, truth, checks=()):
+    e = rig.errors_to(truth)
+    out = {"rotation_error_deg": e["rotation_deg"], "translation_error_mm": e["translation_mm"],
+           "baseline_error_mm": e["baseline_mm"], "baseline_error_percent": e["baseline_percent"],
+           "baseline_mm": rig.baseline}
+    if rig.covariance is not None:
+        out["reported_sigma_baseline_percent"] = 100 * rig.std_baseline_mm / rig.baseline
+        out["reported_sigma_rotation_deg"] = rig.std_rotation_deg.tolist()
+    if checks:
+        ne = np.concatenate([c.neighbour_errors for c in checks])
+        ae = np.concatenate([c.distance_errors for c in checks])
+        rel = np.concatenate([c.distance_errors / c.true_distances for c in checks])
+        out["check"] = {"views": len(checks), "neighbour_error_mean_mm": float(np.mean(ne)),
+                        "neighbour_error_rms_mm": float(np.sqrt(np.mean(ne ** 2))),
+                        "all_pairs_rms_mm": float(np.sqrt(np.mean(ae ** 2))),
+                        "scale_error_percent": float(100 * np.mean(rel)),
+                        "relative_error_rms_percent": float(100 * np.sqrt(np.mean(rel ** 2))),
+                        "neighbour_distance_mm": float(np.mean(np.concatenate([c.neighbour_true for c in checks])))}
+    return out
+
+
+def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: int | None = None,
+        checks=None, boards: int = 15) -> dict:
+    from calibration import pipeline as pl
+
+    t_start = time.time()
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    S = LabSession(scale=scale, samples=samples, cache=cache, log=log)
+    rig_truth = true_rig(S.rig)
+    targets = {"paper": paper_target(), "dense": dense_target()}
+    poses = DIRECT_POSES if n_direct is None else DIRECT_POSES[:n_direct]
+    result = {"conditions": {
+        "scale": scale, "image_size": list(S.rig.camera("left").size), "samples_per_pixel": samples,
+        "camera_noise": "8-bit, read noise 1 DN, shot noise 80 e-/DN", "phase_steps": 4,
+        "direct_poses": [list(p) for p in poses], "mirror_tilts_deg": [list(t) for t in S.tilts],
+        "targets": {k: {"grid": list(t.grid), "pitch_px": t.pitch, "pitch_mm": t.spacing_mm} for k, t in targets.items()},
+        "detector": "calibration.features.detect_dots (default options)",
+    }}
+    # 1. intrinsics: direct views + mirrored views, per camera and target
+    intr = {}
+    for tname, tgt in targets.items():
+        for cam in ("left", "right"):
+            n_mirror = 3 if tname == "paper" else 5
+            log(f"[intrinsics] {cam}, {tname} target: {len(poses)} direct + {n_mirror} mirrored views")
+            views, names = [], []
+            for i in range(len(poses)):
+                views.append(S.direct_view(cam, tgt, i, poses)[1])
+                names.append(f"direct{i}")
+            for k in range(n_mirror):
+                views.append(S.mirror_view(cam, tgt, k)[1])
+                names.append(f"mirror{k}")
+            t0 = time.time()
+            ic = pl.calibrate_intrinsics_from_images(views, tgt, names=names, name=cam)
+            intr[(tname, cam)] = ic
+            s = _summary_intrinsics(ic, S.rig.camera(cam).camera)
+            s["time_s"] = time.time() - t0
+            result.setdefault("intrinsics", {}).setdefault(tname, {})[cam] = s
+            log(f"    RMS {s['rms_px']:.4f} px, focal error {s['focal_error_percent']:.4f} %, "
+                f"max |error|/σ {s['max_error_over_sigma']:.2f}, dropped {len(s['dropped'])}")
+    # 2. mirror extrinsics per camera: paper-faithful (paper target, 3 tilts) and improved (dense target, 5 tilts)
+    mirr = {}
+    configs = {"paper_3tilts": ("paper", 3), "paper_5tilts": ("paper", 5), "dense_3tilts": ("dense", 3),
+               "dense_5tilts": ("dense", 5)}
+    for cname, (tname, k) in configs.items():
+        for cam in ("left", "right"):
+            tgt = targets[tname]
+            views = [S.mirror_view(cam, tgt, j)[1] for j in range(k)]
+            mc = pl.calibrate_mirror_from_images(intr[(tname, cam)].camera, views, tgt,
+                                                 names=[f"mirror{j}" for j in range(k)])
+            mirr[(cname, cam)] = mc
+            s = _summary_mirror(mc, S.mirror_truth(cam))
+            result.setdefault("mirror", {}).setdefault(cname, {})[cam] = s
+            log(f"[mirror] {cname} {cam}: RMS {s['rms_px']:.4f} px, pose error {s['adjusted']['rotation_deg']:.4f} deg / "
+                f"{s['adjusted']['translation_mm']:.2f} mm (closed form {s['closed_form']['rotation_deg']:.4f} deg / "
+                f"{s['closed_form']['translation_mm']:.2f} mm)")
+    # 3. views both cameras see: the far view (monitor at the axes' crossing) and check views
+    far_center = S.rig.crossing_point
+    check_places = checks if checks is not None else [
+        ((-1000.0, -780.0, 4500.0), 0, 0), ((1000.0, 780.0, 4500.0), 0, 0), ((0.0, 0.0, 5400.0), 10, -20),
+        ((-1000.0, 780.0, 6300.0), 0, 0), ((1000.0, -780.0, 6300.0), 0, 0), ((0.0, 0.0, 6300.0), -15, 15)]
+    # (the far view and the checks show the paper's target: 18 dots of 93.3 mm pitch, ~66 px apart at 5.4 m)
+    tgt = targets["paper"]
+    _, (sl, sr) = S.common_view(tgt, far_center, tag="far")
+    far = pl.detect_stereo_view(sl, sr, tgt, name="far (crossing point)")
+    chk = []
+    for j, (c, ax, ay) in enumerate(check_places):
+        _, (cl, cr) = S.common_view(tgt, c, ax, ay, tag=f"check{j}")
+        try:
+            chk.append(pl.detect_stereo_view(cl, cr, tgt, name=f"check{j} at {c}"))
+        except ValueError as exc:
+            log(f"    check view {j} skipped: {exc}")
+    # 4. rigs
+    rigs = {}
+    rig_configs = {
+        "paper-faithful: 6x3 dots, 3 tilts, per camera": ("paper_3tilts", False, False),
+        "paper target, 3 tilts, joint + far view": ("paper_3tilts", True, True),
+        "paper target, 5 tilts, joint + far view": ("paper_5tilts", True, True),
+        "24x12 dots, 3 tilts, per camera": ("dense_3tilts", False, False),
+        "24x12 dots, 5 tilts, per camera": ("dense_5tilts", False, False),
+        "improved: 24x12 dots, 5 tilts, joint + far view": ("dense_5tilts", True, True),
+    }
+    for label, (cname, joint, use_far) in rig_configs.items():
+        rc = pl.calibrate_rig_from_mirrors(mirr[(cname, "left")], mirr[(cname, "right")],
+                                           far_views=[far] if use_far else [], check_views=chk, joint=joint)
+        rigs[label] = rc
+        s = _summary_rig(rc.rig, rig_truth, rc.checks)
+        s["per_camera_closed_form"] = None
+        result.setdefault("rig", {})[label] = s
+        log(f"[rig] {label}: rotation {s['rotation_error_deg']:.4f} deg, baseline {s['baseline_error_percent']:+.4f} %, "
+            f"check scale {s.get('check', {}).get('scale_error_percent', float('nan')):+.4f} %")
+    # closed form only (paper-faithful, no bundle adjustment anywhere)
+    from calibration.stereo import reconstruct_target, rig_from_mirror
+
+    cf = rig_from_mirror(mirr[("paper_3tilts", "left")].result.closed_form, mirr[("paper_3tilts", "right")].result.closed_form,
+                         left_camera=intr[("paper", "left")].camera, right_camera=intr[("paper", "right")].camera)
+    cf_checks = [reconstruct_target(cf, v.left_points, v.right_points, v.object_points) for v in chk]
+    result["rig"]["paper-faithful, closed form only"] = _summary_rig(cf, rig_truth, cf_checks)
+    # 5. conventional: checkerboard at the working distance, cv2.stereoCalibrate
+    if boards:
+        result["checkerboard"] = _checkerboard(S, intr, rig_truth, chk, boards, log)
+    result["conditions"]["wall_time_s"] = time.time() - t_start
+    result["environment"] = {"python": platform.python_version(), "numpy": np.__version__,
+                             "machine": platform.machine(), "cpu_count": os.cpu_count(),
+                             "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None}
+    os.makedirs(os.path.dirname(out_path) or ".", exist_ok=True)
+    with open(out_path, "w") as f:
+        json.dump(result, f, indent=1, default=lambda o: o.tolist() if isinstance(o, np.ndarray) else float(o))
+    print_table(result)
+    return result
+
+
+def checkerboard_poses(rig, n: int, seed: int = 7):
+    """``n`` poses of a board centred near the axes' crossing (±10 % in depth, ±30° tilts, spread laterally)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        c = rig.crossing_point + np.array([rng.uniform(-400, 400), rng.uniform(-300, 300), rng.uniform(-540, 540)])
+        out.append((c, rng.uniform(-30, 30), rng.uniform(-30, 30)))
+    return out
+
+
+def _checkerboard(S: LabSession, intr, rig_truth, checks, n: int, log):
+    from calibration import pipeline as pl
+    from calibration.stereo import reconstruct_target
+
+    board = CheckerboardTarget(corners=(9, 6), square=40.0 / 0.311)
+    img = board.images()
+    left, right = [], []
+    for j, (c, ax, ay) in enumerate(checkerboard_poses(S.rig, n)):
+        R, t = common_pose(S.rig, c, ax, ay)
+        scene = S.rig.without_mirrors().with_monitor_pose(R, t)
+        seed = S.seed + 70000 + 10 * j
+        key = S._key("board", j)
+        left.append(S.cache.get(key + "L", lambda: render_view_stack(scene, "left", img, samples=S.samples, seed=seed))[0])
+        right.append(S.cache.get(key + "R", lambda: render_view_stack(scene, "right", img, samples=S.samples, seed=seed + 1))[0])
+    out = {"board": "9x6 inner corners, 40 mm squares (shown on the monitor)", "views": n}
+    for label, cams in (("intrinsics from the phase-target calibration (fixed)",
+                         (intr[("dense", "left")].camera, intr[("dense", "right")].camera)),
+                        ("intrinsics from the same board views (conventional)", (None, None))):
+        try:
+            cs = pl.stereo_from_checkerboards(left, right, board, left_camera=cams[0], right_camera=cams[1])
+        except ValueError as exc:
+            out[label] = {"failed": str(exc)}
+            log(f"[checkerboard] {label}: failed: {exc}")
+            continue
+        cc = [reconstruct_target(cs.rig, v.left_points, v.right_points, v.object_points) for v in checks]
+        s = _summary_rig(cs.rig, rig_truth, cc)
+        s["pairs_used"] = len(cs.names)
+        s["dropped"] = [{"view": a, "reason": b} for a, b in cs.dropped]
+        s["rms_px"] = cs.result.rms
+        out[label] = s
+        log(f"[checkerboard] {label}: {len(cs.names)} pairs, rotation {s['rotation_error_deg']:.4f} deg, "
+            f"baseline {s['baseline_error_percent']:+.4f} %")
+    return out
+
+
+def print_table(result: dict) -> None:
+    print("\nintrinsics (RMS px / focal error % / max |error|/σ):")
+    for tname, d in result.get("intrinsics", {}).items():
+        for cam, s in d.items():
+            print(f"  {tname:6s} {cam:5s}  {s['rms_px']:.4f}  {s['focal_error_percent']:.4f}  {s['max_error_over_sigma']:.2f}")
+    print("\nmirror extrinsics (pose error rotation deg / translation mm, closed form -> adjusted):")
+    for cname, d in result.get("mirror", {}).items():
+        for cam, s in d.items():
+            print(f"  {cname:13s} {cam:5s}  {s['closed_form']['rotation_deg']:.4f} / {s['closed_form']['translation_mm']:.2f}"
+                  f"  ->  {s['adjusted']['rotation_deg']:.4f} / {s['adjusted']['translation_mm']:.2f}")
+    print("\nrig (rotation error deg, baseline error %, check: neighbour error mean mm, scale error %):")
+    rows = dict(result.get("rig", {}))
+    for label, s in result.get("checkerboard", {}).items():
+        if isinstance(s, dict) and "rotation_error_deg" in s:
+            rows["cv2.stereoCalibrate, " + label] = s
+    for label, s in rows.items():
+        c = s.get("check", {})
+        print(f"  {label:70s} {s['rotation_error_deg']:.4f}  {s['baseline_error_percent']:+.4f}  "
+              f"{c.get('neighbour_error_mean_mm', float('nan')):+.4f}  {c.get('scale_error_percent', float('nan')):+.4f}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--scale", type=float, default=1.0, help="camera resolution factor (1: 2352x1728)")
+    p.add_argument("--samples", type=int, default=16, help="render samples per pixel")
+    p.add_argument("--cache", default="/tmp/specula_calibration_lab_cache", help="folder for rendered stacks ('' = none)")
+    p.add_argument("--out", default=None, help="JSON output (default bench/results/calibration_lab.json at scale 1)")
+    p.add_argument("--boards", type=int, default=15, help="checkerboard views for cv2.stereoCalibrate (0 = skip)")
+    a = p.parse_args(argv)
+    out = a.out or ("bench/results/calibration_lab.json" if a.scale == 1.0 else f"bench/results/calibration_lab_scale{a.scale:g}.json")
+    run(a.scale, a.samples, a.cache or None, out, boards=a.boards)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
