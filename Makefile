@@ -22,7 +22,7 @@ demo: $(STAMP)
 # One BLAS thread per pytest worker: with two workers on two cores, threaded BLAS makes the
 # small matrix operations of calibration 50-100x slower.
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q --durations=15
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.icgn

@@ -62,7 +62,6 @@ __all__ = [
 TWO_PI = 2.0 * math.pi
 
 
-
 class DetectionError(RuntimeError):
     """The target could not be found or identified in a view (the message says why)."""
 
@@ -124,9 +123,12 @@ class DenseDecoding:
     screen_xy : (H, W, 2) float64
         Screen position (x, y) in screen px seen by each camera pixel (NaN where invalid).
     mask : (H, W) bool
-        Pixels with enough modulation at every level and a consistent unwrapping.
+        Pixels decoded: enough modulation at the coarsest level, no saturation, on the screen,
+        away from its blurred edge.
     modulation : (H, W) float64
-        Modulation of the finest level (mean of both axes), grey levels.
+        Modulation of the finest level used (mean of both axes), grey levels.
+    pixel_pitch : float
+        Screen pixel pitch (mm), for :attr:`target_xy`.
     mirrored : bool or None
         Orientation of the image-to-screen mapping (None when too few pixels are valid).
     period : (H, W, 2) float64
@@ -696,7 +698,7 @@ def detect_dots(
         width of the modulation drop at the edge of the fringe area, then per dot from its
         modulation map, smoothed by a plane over the image.
     correct_blur : bool
-        Run pass 2 (defocus bias removal by simulation) when the blur exceeds 0.3 px.
+        Run pass 2 (defocus bias removal by simulation) when the blur exceeds 0.5 px.
     min_coverage : float
         Dots whose fit window is less than this share on usable pixels (cut by the image edge,
         the mask, or a mirror's edge) are dropped.
@@ -734,7 +736,7 @@ def detect_dots(
     pitch = target.pitch
     given_blur = blur_sigma is not None
     if blur_sigma is None:
-        blur_sigma = _estimate_blur(phase, modulation, mask, period_img)
+        blur_sigma = _estimate_blur(modulation, mask)
     # pass 1: radial phase model on the wrapped phase, window margins a fixed fraction of the cell
     rho_in, border = 0.1 * target.period, 0.1 * pitch
     fits = []
@@ -789,7 +791,7 @@ def detect_dots(
         good = np.ones(len(ij), dtype=bool)
     ids = ij[:, 1] * target.grid[0] + ij[:, 0]
     sigmas = np.full(len(ids), float(blur_sigma))
-    if correct_blur and blur_sigma > 0.3:
+    if correct_blur and blur_sigma > 0.5:
         centres, good, sigmas = _remove_blur_bias(target, phase.shape, modulation, mask, fits, ids, centres,
                                                   good, float(blur_sigma), given_blur, rho_in, border)
     gsel = np.flatnonzero(good)
@@ -917,13 +919,12 @@ def _uncoded_ids(lab, centres, target, mirrored):
     return best[1]
 
 
-def _estimate_blur(phase, modulation, mask, period_img):
+def _estimate_blur(modulation, mask):
     """Rough Gaussian blur (px) from the width of the modulation drop at the fringe-area edge.
 
     The modulation across a straight edge of the fringe area is ``M0 * Phi(d / sigma)``; its
-    10-90 % width is 2.56 sigma. Measured along image rows and columns, median over edges."""
-    from scipy import ndimage
-
+    10-90 % width is 2.56 sigma (plus ~1 px for the pixel). Measured along image rows and
+    columns, median over edges."""
     valid = modulation * mask
     top = np.percentile(valid[mask], 90) if mask.any() else 0.0
     if top <= 0:
@@ -960,8 +961,9 @@ def detect_dots_in_images(images, target: PhaseTarget, *, min_modulation: float 
 # ------------------------------------------------------------------------------------------------
 # dense mode
 # ------------------------------------------------------------------------------------------------
-def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, max_step_error: float = 0.5 * math.pi,
-                 erode: int | None = None, device=None) -> DenseDecoding:
+def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, min_contrast: float = 0.8,
+                 max_step_error: float = 0.5 * math.pi, erode: int | None = None, blur_sigma: float | None = None,
+                 device=None) -> DenseDecoding:
     """Decode the dense sequence (``target.dense_images()`` as recorded) into screen coordinates.
 
     Each level is demodulated; the coarsest level's phase is absolute (its period exceeds the
@@ -970,13 +972,23 @@ def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, ma
     multi-frequency unwrapping). A pixel is valid when the coarsest level has
     ``modulation >= min_modulation`` and nothing saturates; it climbs to finer levels while they
     have enough modulation and the unwrapping step is consistent to ``max_step_error`` rad, and
-    keeps the finest level it reached (``DenseDecoding.period``). ``erode`` (px) shrinks the
+    keeps the finest level it reached (``DenseDecoding.period``). A level counts as resolved
+    where its modulation is at least ``min_contrast`` times the coarsest level's: blur attenuates
+    fringes of image period ``T`` by ``exp(-2 pi^2 sigma^2 / T^2)`` and, where the fringes are
+    also chirped by perspective, shifts their phase; fringes attenuated by less than 20 % keep
+    the shift small (measured in docs/targets.md). ``erode`` (px) shrinks the
     valid mask away from the edge of the screen, where blur mixes the bezel into the phase;
-    default ``3 sigma + 1`` with ``sigma`` the blur measured from the modulation edge.
+    default ``3 sigma + 1`` with ``sigma`` the blur (``blur_sigma``, px, else measured from the
+    modulation edge). Blurring a curved image-to-screen map ``s(x)`` moves the decoded phase by
+    ``~ 1/2 sigma^2 lap(s) - 1/2 sigma^4 k^2 grad(s)^T Hess(s) grad(s)`` (Gaussian blur of a
+    chirp, ``k = 2 pi / period``); this is subtracted using a homography fitted to the decoded
+    map for the derivatives.
 
     Returns a :class:`DenseDecoding` with the screen position (px) seen by every valid pixel.
     """
     _check_target(target)
+    if not 0 <= min_contrast < 1:
+        raise ValueError(f"min_contrast must be in [0, 1), got {min_contrast!r}")
     n = len(images) if isinstance(images, (list, tuple)) else (np.shape(images)[0] if np.ndim(images) == 3 else None)
     if n != target.n_dense_images:
         raise ValueError(
@@ -996,6 +1008,7 @@ def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, ma
             ph, mod, _, ok = demodulate_images(stack, min_modulation=min_modulation, device=device)
             if unwrapped is None:  # the coarsest level is absolute
                 unwrapped, period, mod_used = ph, np.full(ph.shape, lv.period), mod
+                base_mod = mod
                 if axis == 0:
                     coarse_mod = mod
                 active = ok.copy()
@@ -1007,7 +1020,7 @@ def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, ma
             # a pixel moves on to this finer level while the fringes still reach it
             # (enough modulation) and the unwrapping is consistent; otherwise it keeps the
             # coarser (less precise) estimate and stops refining
-            step_ok = active & ok & (np.abs(err) <= max_step_error)
+            step_ok = active & ok & (np.abs(err) <= max_step_error) & (mod >= min_contrast * base_mod)
             unwrapped = np.where(step_ok, ph + TWO_PI * kk, unwrapped)
             period = np.where(step_ok, lv.period, period)
             mod_used = np.where(step_ok, mod, mod_used)
@@ -1018,9 +1031,12 @@ def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, ma
     screen = np.stack(coords, axis=-1)
     w, h = target.screen
     mask &= (screen[..., 0] >= -0.5) & (screen[..., 0] <= w - 0.5) & (screen[..., 1] >= -0.5) & (screen[..., 1] <= h - 0.5)
+    sigma = _estimate_blur(coarse_mod, mask) if blur_sigma is None else float(blur_sigma)
+    if sigma > 0.5 and mask.sum() > 100:
+        screen = _correct_dense_blur(screen, mask, np.stack(finest, axis=-1), sigma)
     if erode is None:
         # blur mixes the dark bezel into the phase near the edge of the screen: stay 3 sigma away
-        erode = int(math.ceil(3.0 * _estimate_blur(None, coarse_mod, mask, 0.0))) + 1
+        erode = int(math.ceil(3.0 * sigma)) + 1
     elif not isinstance(erode, (int, np.integer)) or erode < 0:
         raise ValueError(f"erode must be a number of pixels >= 0 or None (automatic), got {erode!r}")
     if erode > 0:
@@ -1041,6 +1057,32 @@ def decode_dense(images, target: PhaseTarget, *, min_modulation: float = 3.0, ma
     period = np.stack(finest, axis=-1)
     period[~mask] = np.nan
     return DenseDecoding(screen, mask, 0.5 * (fine_mod[0] + fine_mod[1]), target.pixel_pitch, mirrored, period)
+
+
+def _correct_dense_blur(screen, mask, period, sigma):
+    """Subtract the blur-induced shift of decoded screen coordinates (see :func:`decode_dense`)."""
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    pick = np.linspace(0, len(xs) - 1, min(len(xs), 4000)).astype(int)
+    img = np.stack([xs[pick], ys[pick]], axis=1).astype(np.float64)
+    H = _homography(img, screen[ys[pick], xs[pick]])
+    out = screen.copy()
+    pts = np.stack([xs, ys], axis=1).astype(np.float64)
+    e = 1.0  # px, finite-difference step on the (smooth) homography
+    f0 = _apply_h(H, pts)
+    fxp, fxm = _apply_h(H, pts + (e, 0)), _apply_h(H, pts - (e, 0))
+    fyp, fym = _apply_h(H, pts + (0, e)), _apply_h(H, pts - (0, e))
+    fpp, fmm = _apply_h(H, pts + (e, e)), _apply_h(H, pts - (e, e))
+    fpm, fmp = _apply_h(H, pts + (e, -e)), _apply_h(H, pts + (-e, e))
+    gx, gy = (fxp - fxm) / (2 * e), (fyp - fym) / (2 * e)
+    hxx, hyy = (fxp - 2 * f0 + fxm) / e ** 2, (fyp - 2 * f0 + fym) / e ** 2
+    hxy = (fpp - fpm - fmp + fmm) / (4 * e ** 2)
+    for a in (0, 1):
+        k = 2 * np.pi / period[ys, xs, a]
+        quad = gx[:, a] ** 2 * hxx[:, a] + 2 * gx[:, a] * gy[:, a] * hxy[:, a] + gy[:, a] ** 2 * hyy[:, a]
+        shift = 0.5 * sigma ** 2 * (hxx[:, a] + hyy[:, a]) - 0.5 * sigma ** 4 * k ** 2 * quad
+        out[ys, xs, a] = screen[ys, xs, a] - shift
+    return out
 
 
 def dense_correspondences(decoding: DenseDecoding, step: int = 8, *, max_points: int | None = None):
@@ -1080,29 +1122,80 @@ def _gray_u8(image):
     return np.clip(np.rint((f - lo) / max(hi - lo, 1e-9) * 255), 0, 255).astype(np.uint8)
 
 
-def detect_checkerboard(image, target: CheckerboardTarget, *, flags=None):
-    """Inner corners of a checkerboard with ``cv2.findChessboardCornersSB`` (sub-pixel).
+def _orderings(grid_pts: np.ndarray) -> list[np.ndarray]:
+    """The 4 re-orderings of an (ny, nx, 2) corner grid that keep its shape (identity, 180 deg,
+    flip x, flip y)."""
+    return [grid_pts, grid_pts[::-1, ::-1], grid_pts[:, ::-1], grid_pts[::-1, :]]
 
-    Returns ``(image_points (N, 2), ids (N,))`` in OpenCV's order mapped to the target's ids up to
-    the board's symmetry (OpenCV's ordering is kept; ids assume its first corner is id 0), or
-    ``None`` when OpenCV does not find the board."""
+
+def _pick_ordering(candidates, object_px, mirrored, score=None):
+    """Choose, among grid orderings, one whose target->image handedness matches ``mirrored``;
+    ties go to ``score`` (higher better), else to the target x axis closest to image +x."""
+    best = None
+    for grid_pts in candidates:
+        pts = grid_pts.reshape(-1, 2)
+        H = _homography(object_px, pts)
+        J = _jacobian_h(H, object_px.mean(axis=0))
+        if (np.linalg.det(J) < 0) != bool(mirrored):
+            continue
+        sc = (score(pts) if score is not None else 0.0, J[0, 0] / np.linalg.norm(J[:, 0]))
+        if best is None or sc > best[0]:
+            best = (sc, pts)
+    return None if best is None else best[1]
+
+
+def detect_checkerboard(image, target: CheckerboardTarget, *, mirrored: bool = False):
+    """Inner corners of a checkerboard, with OpenCV (for comparison and for printed boards).
+
+    Tries ``cv2.findChessboardCornersSB`` (exhaustive + accuracy flags, then normalised), then
+    the classic ``cv2.findChessboardCorners`` refined by ``cv2.cornerSubPix``. The corners are put
+    in the target's id order: the handedness follows ``mirrored`` (a checkerboard cannot tell),
+    and the 180-degree ambiguity is resolved from the square colours when ``nx + ny`` is odd
+    (else the board's x axis is taken closest to the image x axis).
+
+    Returns ``(image_points (N, 2), ids (N,))`` or ``None`` when OpenCV finds no board."""
     import cv2
 
     _check_target(target, CheckerboardTarget)
     gray = _gray_u8(image)
-    if flags is None:
-        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    ok, corners = cv2.findChessboardCornersSB(gray, tuple(target.corners), flags=flags)
-    if not ok or corners is None:
+    nx, ny = target.corners
+    corners = None
+    for flags in (cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY, cv2.CALIB_CB_NORMALIZE_IMAGE):
+        ok, found = cv2.findChessboardCornersSB(gray, (nx, ny), flags=flags)
+        if ok and found is not None:
+            corners = found
+            break
+    if corners is None:
+        ok, found = cv2.findChessboardCorners(gray, (nx, ny))
+        if not ok or found is None:
+            return None
+        corners = cv2.cornerSubPix(gray, found, (11, 11), (-1, -1),
+                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4))
+    grid_pts = corners.reshape(ny, nx, 2).astype(np.float64)
+    from scipy import ndimage
+
+    def colour_score(pts):
+        # inner square between corners (i, j) and (i+1, j+1) is target square (i+1, j+1): dark
+        # when i + j is even
+        g = pts.reshape(ny, nx, 2)
+        centres = 0.25 * (g[:-1, :-1] + g[1:, :-1] + g[:-1, 1:] + g[1:, 1:])
+        jj, ii = np.mgrid[0:ny - 1, 0:nx - 1]
+        dark = ((ii + jj) % 2 == 0).ravel()
+        vals = ndimage.map_coordinates(gray.astype(np.float64), [centres[..., 1].ravel(), centres[..., 0].ravel()], order=1)
+        return float(np.mean(vals[~dark]) - np.mean(vals[dark]))
+
+    pts = _pick_ordering(_orderings(grid_pts), target.points_px, mirrored,
+                         colour_score if (nx + ny) % 2 == 1 else None)
+    if pts is None:
         return None
-    pts = corners.reshape(-1, 2).astype(np.float64)
     return pts, np.arange(len(pts))
 
 
-def detect_circle_grid(image, target: CircleGridTarget, *, blob_detector=None):
-    """Circle centres of a symmetric circle grid with ``cv2.findCirclesGrid``.
-
-    Returns ``(image_points (N, 2), ids (N,))`` in OpenCV's order, or ``None`` when not found."""
+def detect_circle_grid(image, target: CircleGridTarget, *, mirrored: bool = False, blob_detector=None):
+    """Circle centres of a symmetric grid of dark circles with ``cv2.findCirclesGrid`` (the
+    blob centroids; tries the clustering variant for perspective views). A symmetric grid has no
+    orientation mark: the handedness follows ``mirrored`` and the grid's x axis is taken closest
+    to the image x axis. Returns ``(image_points (N, 2), ids (N,))`` or ``None``."""
     import cv2
 
     _check_target(target, CircleGridTarget)
@@ -1112,8 +1205,16 @@ def detect_circle_grid(image, target: CircleGridTarget, *, blob_detector=None):
         params.maxArea = float(gray.size)
         params.minArea = 10.0
         blob_detector = cv2.SimpleBlobDetector_create(params)
-    ok, centres = cv2.findCirclesGrid(gray, tuple(target.grid), flags=cv2.CALIB_CB_SYMMETRIC_GRID, blobDetector=blob_detector)
-    if not ok or centres is None:
+    nx, ny = target.grid
+    centres = None
+    for flags in (cv2.CALIB_CB_SYMMETRIC_GRID, cv2.CALIB_CB_SYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING):
+        ok, found = cv2.findCirclesGrid(gray, (nx, ny), flags=flags, blobDetector=blob_detector)
+        if ok and found is not None:
+            centres = found
+            break
+    if centres is None:
         return None
-    pts = centres.reshape(-1, 2).astype(np.float64)
+    pts = _pick_ordering(_orderings(centres.reshape(ny, nx, 2).astype(np.float64)), target.points_px, mirrored)
+    if pts is None:
+        return None
     return pts, np.arange(len(pts))

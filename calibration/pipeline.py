@@ -76,7 +76,9 @@ __all__ = [
     "detect_views",
     "dense_grid_points",
     "calibrate_intrinsics_from_images",
+    "calibrate_intrinsics_from_detections",
     "calibrate_mirror_from_images",
+    "calibrate_mirror_from_detections",
     "detect_stereo_view",
     "calibrate_rig_from_mirrors",
     "stereo_from_checkerboards",
@@ -441,7 +443,9 @@ class IntrinsicsCalibration:
     ``result`` is the :class:`~calibration.intrinsics.IntrinsicsResult` (camera, RMS, per-view RMS,
     σ, poses, residuals, views dropped by outlier rejection — their indices refer to ``used``).
     ``views`` lists every input view; ``used`` the indices (into ``views``) that entered the bundle.
-    ``image_points`` / ``object_points`` are what entered the bundle, per used view.
+    ``image_points`` / ``object_points`` / ``point_ids`` are what entered the bundle, per used view;
+    ``dropped_points`` lists ``(view name, point id, |residual| px, threshold px)`` for every point removed as
+    an outlier (e.g. a dot whose blur is cut by the edge of a mirror).
     """
 
     result: IntrinsicsResult
@@ -450,6 +454,8 @@ class IntrinsicsCalibration:
     image_points: list
     object_points: list
     mode: str = "dots"
+    point_ids: list = field(default_factory=list)
+    dropped_points: list = field(default_factory=list)
 
     @property
     def camera(self) -> Camera:
@@ -494,6 +500,7 @@ class IntrinsicsCalibration:
                          + (f"{r:.4f}" if r is not None else "dropped"))
         for nm, why in self.dropped:
             lines.append(f"  dropped {nm}: {why}")
+        lines.extend(_dropped_points_lines(self.dropped_points))
         return "\n".join(lines)
 
     def metadata(self) -> dict:
@@ -503,7 +510,22 @@ class IntrinsicsCalibration:
                 else "Zhang (cv2.calibrateCameraExtended), dense phase decoding",
                 "model": res.model, "rms_px": res.rms, "std": res.std, "view_rms_px": self.view_rms(),
                 "mirrored_views": [self.views[self.used[i]].name for i, m in zip(res.view_indices, res.mirrored) if m],
-                "dropped": [{"view": n, "reason": r} for n, r in self.dropped]}
+                "dropped": [{"view": n, "reason": r} for n, r in self.dropped],
+                "dropped_points": [{"view": n, "id": i, "residual_px": r, "threshold_px": t}
+                                   for n, i, r, t in self.dropped_points]}
+
+
+def _dropped_points_lines(dropped_points) -> list[str]:
+    if not dropped_points:
+        return []
+    by_view: dict = {}
+    for nm, pid, r, thr in dropped_points:
+        by_view.setdefault(nm, []).append((pid, r))
+    thr = max(t for *_, t in dropped_points)
+    lines = [f"  removed {len(dropped_points)} outlier point(s) (|residual| > {thr:.3f} px, i.e. 4 × the robust RMS):"]
+    for nm, items in by_view.items():
+        lines.append(f"    {_short(nm, 36)}: " + ", ".join(f"{pid} ({r:.3f} px)" for pid, r in sorted(items)))
+    return lines
 
 
 def _short(s: str, n: int) -> str:
@@ -513,7 +535,8 @@ def _short(s: str, n: int) -> str:
 def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, mode: str = "dots",
                                      model: str = "opencv5", reject: float | None = 3.0,
                                      max_view_rms: float | None = None, min_points: int = 6,
-                                     dense_step: int = 16, dense_max_points: int = 4000, correct_blur: bool | None = None,
+                                     reject_points: float | None = 4.0, dense_step: int = 16,
+                                     dense_max_points: int = 4000, correct_blur: bool | None = None,
                                      min_modulation: float = 3.0, name: str = "", progress=None,
                                      device=None) -> IntrinsicsCalibration:
     """Intrinsics of one camera from image stacks of the phase target, direct and mirrored views together.
@@ -529,6 +552,11 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
     model, reject, max_view_rms :
         As :func:`calibration.intrinsics.calibrate_intrinsics` (distortion model and outlier-view
         rejection).
+    reject_points : float or None
+        Outlier points: after each calibration, points whose residual exceeds ``reject_points`` times
+        the robust RMS of all residuals are removed and the calibration is repeated (listed in
+        ``dropped_points``). In the virtual lab this removes the dots whose defocus blur is cut by the
+        edge of the mirror (vignetting makes their blur spot lopsided). None disables it.
     min_points : int
         Views with fewer identified points are dropped.
     correct_blur, min_modulation, device :
@@ -550,32 +578,75 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
         raise ValueError(f"model must be one of {DISTORTION_MODELS}, got {model!r}")
     results = detect_views(views, target, names=names, mode=mode, correct_blur=correct_blur, min_points=min_points,
                            min_modulation=min_modulation, device=device, progress=progress)
-    sizes = {r.image_size for r in results}
+    return calibrate_intrinsics_from_detections(results, model=model, reject=reject, max_view_rms=max_view_rms,
+                                                reject_points=reject_points, min_points=min_points,
+                                                dense_step=dense_step, dense_max_points=dense_max_points, name=name)
+
+
+def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", reject: float | None = 3.0,
+                                         max_view_rms: float | None = None, reject_points: float | None = 4.0,
+                                         min_points: int = 6, dense_step: int = 16, dense_max_points: int = 4000,
+                                         name: str = "") -> IntrinsicsCalibration:
+    """The bundle of :func:`calibrate_intrinsics_from_images` on views already detected (a list of
+    :class:`ViewResult` from :func:`detect_views`, possibly of different targets or modes); same options."""
+    if not isinstance(results, (list, tuple)) or not all(isinstance(r, ViewResult) for r in results):
+        raise ValueError("results must be a list of ViewResult (from detect_views)")
+    if model not in DISTORTION_MODELS:
+        raise ValueError(f"model must be one of {DISTORTION_MODELS}, got {model!r}")
+    results = list(results)
+    modes = {"dense" if r.dense is not None else "dots" for r in results if r.ok}
+    mode = modes.pop() if len(modes) == 1 else "mixed"
+    sizes = {r.image_size for r in results if r.image_size is not None}
     if len(sizes) > 1:
         raise ValueError(f"the views have different image sizes {sorted(sizes)}; calibrate one camera at a time")
-    used, objs, imgs, flags = [], [], [], []
+    used, objs, imgs, flags, pids = [], [], [], [], []
     for i, r in enumerate(results):
         if not r.ok:
             continue
-        if mode == "dots":
-            q, X = r.detection.image_points, r.detection.object_points
+        if r.detection is not None:
+            q, X, ids = r.detection.image_points, r.detection.object_points, r.detection.ids
         else:
             q, X = dense_correspondences(r.dense, step=int(dense_step), max_points=int(dense_max_points))
+            ids = np.arange(len(q))
         if len(q) < min_points:
             r.error = f"only {len(q)} points (need {min_points})"
             continue
         used.append(i)
         imgs.append(np.asarray(q, dtype=np.float64))
         objs.append(np.asarray(X, dtype=np.float64))
+        pids.append(np.asarray(ids, dtype=np.int64))
         flags.append(bool(r.mirrored))
     if len(used) < 3:
         why = "; ".join(f"{r.name}: {r.error}" for r in results if not r.ok) or "none dropped"
         raise ValueError(f"only {len(used)} of {len(results)} views are usable; intrinsic calibration needs at least 3 "
                          f"({why})")
     size = results[used[0]].image_size
-    res = calibrate_intrinsics(objs, imgs, size, mirrored=flags, model=model, reject=reject,
-                               max_view_rms=max_view_rms, name=name)
-    return IntrinsicsCalibration(result=res, views=results, used=used, image_points=imgs, object_points=objs, mode=mode)
+    dropped_points = []
+    for _ in range(6):
+        res = calibrate_intrinsics(objs, imgs, size, mirrored=flags, model=model, reject=reject,
+                                   max_view_rms=max_view_rms, name=name)
+        if reject_points is None:
+            break
+        norms = [np.linalg.norm(r_, axis=1) for r_ in res.residuals]
+        thr = _outlier_threshold(np.concatenate(norms), reject_points)
+        removed = False
+        for k, u in enumerate(res.view_indices):
+            bad = norms[k] > thr
+            if bad.any() and len(bad) - bad.sum() >= min_points:
+                for j in np.flatnonzero(bad):
+                    dropped_points.append((results[used[u]].name, int(pids[u][j]), float(norms[k][j]), float(thr)))
+                imgs[u], objs[u], pids[u] = imgs[u][~bad], objs[u][~bad], pids[u][~bad]
+                removed = True
+        if not removed:
+            break
+    return IntrinsicsCalibration(result=res, views=results, used=used, image_points=imgs, object_points=objs, mode=mode,
+                                 point_ids=pids, dropped_points=dropped_points)
+
+
+def _outlier_threshold(norms: np.ndarray, k: float) -> float:
+    """``k`` times a robust RMS of 2-D residual lengths: for Gaussian residuals (σ per axis) the length
+    is Rayleigh-distributed, median 1.1774 σ, RMS √2 σ, so RMS ≈ 1.2011 × median."""
+    return float(k * 1.2011 * np.median(norms))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -601,6 +672,7 @@ class MirrorCalibration:
     mode: str = "dots"
     target: dict | None = None
     sigma_px: float | None = None
+    dropped_points: list = field(default_factory=list)
 
     @property
     def camera(self) -> Camera:
@@ -634,6 +706,7 @@ class MirrorCalibration:
             lines.append(f"  {_short(nm, 38):38s} {rms:8.4f}  [{m.normal[0]: .5f} {m.normal[1]: .5f} {m.normal[2]: .5f}]  {m.d:8.2f}")
         for nm, why in self.dropped:
             lines.append(f"  dropped {nm}: {why}")
+        lines.extend(_dropped_points_lines(self.dropped_points))
         return "\n".join(lines)
 
     # -- file -------------------------------------------------------------------------------------
@@ -657,6 +730,8 @@ class MirrorCalibration:
                         for nm, m, rms in zip(self.names, r.mirrors, r.per_mirror_rms)],
             "mode": self.mode, "sigma_px": self.sigma_px,
             "dropped": [{"view": n, "reason": w} for n, w in self.dropped],
+            "dropped_points": [{"view": n, "id": i, "residual_px": r, "threshold_px": t}
+                               for n, i, r, t in self.dropped_points],
             "target": self.target,
             "observations": {"point_ids": [int(i) for i in self.point_ids],
                              "object_points": self.object_points.tolist(),
@@ -693,7 +768,9 @@ class MirrorCalibration:
                              "was the file edited?")
         return cls(result=res, point_ids=ids, object_points=X, mirrored_points=q, names=names,
                    views=[ViewResult(d["view"], error=d["reason"]) for d in data.get("dropped", [])],
-                   mode=str(data.get("mode", "dots")), target=data.get("target"), sigma_px=sigma)
+                   mode=str(data.get("mode", "dots")), target=data.get("target"), sigma_px=sigma,
+                   dropped_points=[(d["view"], d["id"], d["residual_px"], d["threshold_px"])
+                                   for d in data.get("dropped_points", [])])
 
     @classmethod
     def load(cls, path) -> "MirrorCalibration":
@@ -710,6 +787,7 @@ def _rotvec(R):
 def calibrate_mirror_from_images(camera: Camera, views, target: PhaseTarget, *, names=None, mode: str = "dots",
                                  dense_spacing: float | None = None, sigma_px: float | None = None,
                                  correct_blur: bool | None = None, min_modulation: float = 3.0, min_common: int = 6,
+                                 reject_points: float | None = 4.0,
                                  progress=None, device=None) -> MirrorCalibration:
     """Pose of ``camera`` relative to the monitor from views of it in a mirror at K ≥ 3 tilts (paper Steps 2, 5).
 
@@ -729,6 +807,9 @@ def calibrate_mirror_from_images(camera: Camera, views, target: PhaseTarget, *, 
         Image noise for the covariance (default: from the residuals).
     min_common : int
         Fewest target points that every kept view must show.
+    reject_points : float or None
+        Outlier points: a target point whose residual in any view exceeds ``reject_points`` times the
+        robust RMS is removed from all views and the adjustment repeated (``dropped_points``).
 
     Returns
     -------
@@ -744,12 +825,33 @@ def calibrate_mirror_from_images(camera: Camera, views, target: PhaseTarget, *, 
         raise ValueError(f"camera must be a calibration.camera.Camera, got {type(camera).__name__}")
     results = detect_views(views, target, names=names, mode=mode, correct_blur=correct_blur, min_modulation=min_modulation,
                            device=device, progress=progress)
-    for r in results:
+    return calibrate_mirror_from_detections(camera, results, target, dense_spacing=dense_spacing, sigma_px=sigma_px,
+                                            min_common=min_common, reject_points=reject_points)
+
+
+def calibrate_mirror_from_detections(camera: Camera, results, target: PhaseTarget, *, dense_spacing: float | None = None,
+                                     sigma_px: float | None = None, min_common: int = 6,
+                                     reject_points: float | None = 4.0) -> MirrorCalibration:
+    """The adjustment of :func:`calibrate_mirror_from_images` on views already detected (a list of
+    :class:`ViewResult` of ``target``, all in the same mode); same options. The inputs are not modified."""
+    import dataclasses
+
+    _check_phase_target(target)
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a calibration.camera.Camera, got {type(camera).__name__}")
+    if not isinstance(results, (list, tuple)) or not all(isinstance(r, ViewResult) for r in results):
+        raise ValueError("results must be a list of ViewResult (from detect_views)")
+    modes = {"dense" if r.dense is not None else "dots" for r in results if r.ok}
+    if len(modes) > 1:
+        raise ValueError("the mirror views mix dot detections and dense decodings; use one mode")
+    mode = modes.pop() if modes else "dots"
+    results = list(results)
+    for i, r in enumerate(results):
         if r.ok and r.image_size != tuple(camera.size) and camera.size != (0, 0):
             raise ValueError(f"view {r.name} is {r.image_size[0]}x{r.image_size[1]} px but the camera was calibrated "
                              f"for {camera.size[0]}x{camera.size[1]} px")
         if r.ok and not r.mirrored:
-            r.error = "the target appears right-handed: this is not a view through a mirror"
+            results[i] = dataclasses.replace(r, error="the target appears right-handed: this is not a view through a mirror")
     kept = [r for r in results if r.ok]
     if len(kept) < 3:
         why = "; ".join(f"{r.name}: {r.error}" for r in results if not r.ok) or "none dropped"
@@ -783,10 +885,23 @@ def calibrate_mirror_from_images(camera: Camera, views, target: PhaseTarget, *, 
             raise ValueError(f"only {len(ids)} screen points are decoded in every mirror view (need {min_common})")
         q = [p[ids] for p in pts]
         X = target.screen_to_target(grid[ids])
-    res = mirror_extrinsics(camera, q, X, sigma_px=sigma_px)
-    return MirrorCalibration(result=res, point_ids=ids, object_points=X, mirrored_points=q,
-                             names=[r.name for r in kept], views=results, mode=mode, target=target.to_dict(),
-                             sigma_px=sigma_px)
+    names = [r.name for r in kept]
+    dropped_points = []
+    for _ in range(6):
+        res = mirror_extrinsics(camera, q, X, sigma_px=sigma_px)
+        if reject_points is None:
+            break
+        norms = np.linalg.norm(np.stack(res.residuals), axis=2)  # (K, N)
+        thr = _outlier_threshold(norms.ravel(), reject_points)
+        bad = (norms > thr).any(axis=0)
+        if not bad.any() or len(ids) - bad.sum() < min_common:
+            break
+        for n in np.flatnonzero(bad):
+            j = int(np.argmax(norms[:, n]))
+            dropped_points.append((names[j], int(ids[n]), float(norms[j, n]), float(thr)))
+        ids, X, q = ids[~bad], X[~bad], [p[~bad] for p in q]
+    return MirrorCalibration(result=res, point_ids=ids, object_points=X, mirrored_points=q, names=names, views=results,
+                             mode=mode, target=target.to_dict(), sigma_px=sigma_px, dropped_points=dropped_points)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -124,35 +124,35 @@ def _dihedral_views(block: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def _oriented_blocks(code: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """All windows of shape (h, w) read from ``code`` in any of the 8 orientations.
-
-    Returns (blocks (M, h*w), is_identity (M,)): identity blocks are windows read in the
-    target's own orientation."""
-    ny, nx = code.shape
+def _placement_indices(grid: tuple[int, int], h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat cell indices of every window of shape (h, w) read from an (ny, nx) grid in any of the
+    8 orientations: (M, h*w) int, and a bool (M,) marking windows read in the target's own
+    orientation."""
+    nx, ny = grid
+    cells = np.arange(nx * ny).reshape(ny, nx)
     blocks, ident = [], []
     for hh, ww in {(h, w), (w, h)}:
         for j in range(ny - hh + 1):
             for i in range(nx - ww + 1):
-                sub = code[j:j + hh, i:i + ww]
+                sub = cells[j:j + hh, i:i + ww]
                 for t, view in enumerate(_dihedral_views(sub)):
-                    if view.shape != (h, w):
-                        continue
-                    blocks.append(view.ravel())
-                    ident.append((hh, ww) == (h, w) and t == 0)
-    return np.array(blocks), np.array(ident)
+                    if view.shape == (h, w):
+                        blocks.append(view.ravel())
+                        ident.append((hh, ww) == (h, w) and t == 0)
+    return np.array(blocks, dtype=np.int64).reshape(-1, h * w), np.array(ident, dtype=bool)
 
 
-def _code_conflicts(code: np.ndarray, windows: list[tuple[int, int]], min_distance: int) -> int:
+def _code_conflicts(code: np.ndarray, placements, min_distance: int) -> int:
     """Number of (window, other placement) pairs closer than ``min_distance`` (Hamming)."""
+    flat = code.ravel()
     total = 0
-    for h, w in windows:
-        blocks, ident = _oriented_blocks(code, h, w)
-        if blocks.size == 0:
+    for idx, ident in placements:
+        if idx.size == 0:
             continue
-        ids = np.flatnonzero(ident)
-        d = (blocks[ids][:, None, :] != blocks[None, :, :]).sum(axis=2)
-        d[np.arange(ids.size), ids] = 10 ** 6  # a window against its own true placement
+        blocks = flat[idx]
+        rows = np.flatnonzero(ident)
+        d = (blocks[rows][:, None, :] != blocks[None, :, :]).sum(axis=2)
+        d[np.arange(rows.size), rows] = 10 ** 6  # a window against its own true placement
         total += int((d < min_distance).sum())
     return total
 
@@ -168,16 +168,23 @@ def _windows_for(grid: tuple[int, int], window: tuple[int, int]) -> list[tuple[i
 def _search_code(grid: tuple[int, int], levels: int, window: tuple[int, int], seed: int, iterations: int):
     nx, ny = grid
     rng = np.random.default_rng(seed)
-    windows = _windows_for(grid, window)
+    placements = [_placement_indices(grid, h, w) for h, w in _windows_for(grid, window)]
+    # expected number of near-collisions of a random code; a local search does not repair
+    # hundreds of them, so go straight to a larger window
+    n_cells = window[0] * window[1]
+    p_close = (1 + n_cells * (levels - 1)) / float(levels) ** n_cells
+    expected = sum(int(ident.sum()) * len(idx) for idx, ident in placements) * p_close
+    if expected > 30:
+        return None
     code = rng.integers(0, levels, size=(ny, nx))
-    cost = _code_conflicts(code, windows, 2)
+    cost = _code_conflicts(code, placements, 2)
     for _ in range(iterations):
         if cost == 0:
             return code
         j, i = rng.integers(0, ny), rng.integers(0, nx)
         old = code[j, i]
         code[j, i] = (old + rng.integers(1, levels)) % levels
-        new = _code_conflicts(code, windows, 2)
+        new = _code_conflicts(code, placements, 2)
         if new <= cost:
             cost = new
         else:
@@ -205,7 +212,7 @@ def make_cell_code(grid, levels: int = 4, window=None, seed: int = 2019) -> tupl
     for win in candidates:
         key = (nx, ny, int(levels), int(win[0]), int(win[1]), int(seed))
         if key not in _CODE_CACHE:
-            _CODE_CACHE[key] = _search_code((nx, ny), int(levels), (int(win[0]), int(win[1])), int(seed), 4000)
+            _CODE_CACHE[key] = _search_code((nx, ny), int(levels), (int(win[0]), int(win[1])), int(seed), 3000)
         code = _CODE_CACHE[key]
         if code is not None:
             return code.copy(), (int(win[0]), int(win[1]))
@@ -668,7 +675,7 @@ class _DenseView(_ScreenTarget):
 # ------------------------------------------------------------------------------------------------
 # conventional targets
 # ------------------------------------------------------------------------------------------------
-def _box_supersample(fn, x, y, n: int = 4) -> np.ndarray:
+def _box_supersample(fn, x, y, n: int = 3) -> np.ndarray:
     """Mean of ``fn`` over an n x n grid of sub-samples of each (unit) screen pixel."""
     acc = np.zeros(np.broadcast(x, y).shape)
     for a in range(n):

@@ -30,10 +30,8 @@ changes the image), so an interrupted run resumes where it stopped.
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -259,7 +257,7 @@ class Experiment:
 
     def calibrate(self) -> CalibrationOutcome:
         """Render the calibration images and calibrate the rig with the project's pipeline."""
-        from calibration.features import DetectionError, detect_dots_in_images
+        from calibration.features import DetectionError
         from calibration.intrinsics import calibrate_intrinsics
         from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
         from calibration.stereo import rig_from_mirror
@@ -280,7 +278,9 @@ class Experiment:
         for ci, n in enumerate(names):
             for v, (R, t) in enumerate(self.direct_poses(ci)):
                 scene = lab.without_mirrors().with_monitor_pose(R, t)
-                stack = self._render_stack(scene, n, self._calib_imgs, f"calib|direct{v}", self._seed(f"d{v}{n}"))
+                pose_key = np.round(np.concatenate([R.ravel(), t]), 4).tolist()  # the pose is part of the cache key
+                stack = self._render_stack(scene, n, self._calib_imgs, f"calib|direct{v}|{pose_key}",
+                                           self._seed(f"d{v}{n}"))
                 try:
                     direct[n].append(self.detect(stack))
                 except DetectionError as exc:
@@ -357,7 +357,7 @@ class Experiment:
             scene = self.lab.without_mirrors().with_monitor_pose(R, t).with_monitor_image(img)
             found = []
             for n in names:
-                im = self._render(scene, n, f"checker{v}", self._seed(f"c{v}{n}"))
+                im = self._render(scene, n, f"checker{v}|{np.round(t, 4).tolist()}", self._seed(f"c{v}{n}"))
                 det = detect_checkerboard(im, board)
                 if det is not None:
                     pts = det[0]

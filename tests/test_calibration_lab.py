@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera, rotation_angle_deg
-from calibration.pipeline import (IntrinsicsCalibration, MirrorCalibration, calibrate_intrinsics_from_images,
+from calibration.pipeline import (IntrinsicsCalibration, MirrorCalibration, calibrate_intrinsics_from_detections,
+                                  calibrate_intrinsics_from_images, calibrate_mirror_from_detections,
                                   calibrate_mirror_from_images, calibrate_rig_from_mirrors, detect_stereo_view,
                                   detect_view, read_stack)
 from calibration.targets import PhaseTarget, make_cell_code
@@ -31,28 +32,30 @@ sys.modules[_spec.name] = lab
 _spec.loader.exec_module(lab)
 
 SCALE = 0.25
-SAMPLES = 4  # 4 sub-samples per pixel: in the blurred views the aperture sampling noise stays below the sensor noise
-LEFT_POSES = lab.DIRECT_POSES[:11]
-LEFT_POSES = tuple(p for i, p in enumerate(LEFT_POSES) if i != 9)  # 10 poses, 1.15-2.7 m
-RIGHT_POSES = (lab.DIRECT_POSES[0], lab.DIRECT_POSES[3], lab.DIRECT_POSES[5], lab.DIRECT_POSES[6],
-               lab.DIRECT_POSES[8], lab.DIRECT_POSES[10])
+# 9 sub-samples per pixel (pixel area x lens aperture): with the lab's jittered aperture sampling, 4 samples add
+# ~0.05 px of per-dot noise in blurred views, 9 about 0.03 px, 16 about 0.02 px (measured); 9 fits the budget.
+SAMPLES = 9
+STEPS = 3  # the fewest phase steps (kernels.phase needs N >= 3): 3 renders per view
+LEFT_POSES = tuple(lab.DIRECT_POSES[i] for i in (0, 1, 2, 3, 5, 7, 10))  # 7 poses, 1.15-2.7 m, tilts to 30 deg
+RIGHT_POSES = tuple(lab.DIRECT_POSES[i] for i in (0, 4, 8))  # 3 poses (+ 3 mirrored views)
 
 
 def _target():
     code, _ = make_cell_code((12, 6), window=(3, 3))
-    return PhaseTarget(grid=(12, 6), pitch=150, steps=4, code=code)
+    return PhaseTarget(grid=(12, 6), pitch=150, steps=STEPS, code=code)
 
 
 @pytest.fixture(scope="module")
 def session():
-    S = lab.LabSession(scale=SCALE, samples=SAMPLES, seed=11, cache=__import__("os").environ.get("DEVCACHE"), log=None)
+    S = lab.LabSession(scale=SCALE, samples=SAMPLES, seed=11, cache=None, log=None)
     tgt = _target()
     views = {}
     for cam, poses in (("left", LEFT_POSES), ("right", RIGHT_POSES)):
         views[cam] = {"direct": [S.direct_view(cam, tgt, i, poses) for i in range(len(poses))],
                       "mirror": [S.mirror_view(cam, tgt, k) for k in range(3)]}
-    views["far"] = S.common_view(tgt, (0.0, 0.0, 3000.0), tag="far")
-    views["check"] = S.common_view(tgt, (-150.0, 100.0, 3500.0), 12.0, -15.0, tag="check")
+    # the common views are nearly in focus (blur < 1.5 px): 4 samples per pixel suffice there
+    views["far"] = S.common_view(tgt, (0.0, 0.0, 3000.0), tag="far", samples=4)
+    views["check"] = S.common_view(tgt, (-150.0, 100.0, 3500.0), 12.0, -15.0, tag="check", samples=4)
     return S, tgt, views
 
 
@@ -63,7 +66,9 @@ def intrinsics(session):
     for cam in ("left", "right"):
         stacks = [s for _, s in views[cam]["direct"]] + [s for _, s in views[cam]["mirror"]]
         names = [f"direct{i}" for i in range(len(views[cam]["direct"]))] + ["mirror0", "mirror1", "mirror2"]
-        out[cam] = calibrate_intrinsics_from_images(stacks, tgt, names=names, name=cam)
+        # the detector's defocus correction (pass 2) is off: at this resolution the blur is <= 2 px and the
+        # correction changed nothing measurable (docs/calibration.md) while tripling the detection time
+        out[cam] = calibrate_intrinsics_from_images(stacks, tgt, names=names, name=cam, correct_blur=False)
     return out
 
 
@@ -71,25 +76,34 @@ def intrinsics(session):
 def mirrors(session, intrinsics):
     S, tgt, views = session
     return {cam: calibrate_mirror_from_images(intrinsics[cam].camera, [s for _, s in views[cam]["mirror"]], tgt,
-                                              names=["tilt0", "tilt1", "tilt2"])
+                                              names=["tilt0", "tilt1", "tilt2"], correct_blur=False)
             for cam in ("left", "right")}
 
 
-def test_dot_centres_in_lab_views(session):
-    # Detected centres against the exact projection of the dot centres (through the mirror for mirrored
-    # views). At 1/4 resolution the cells are 26-50 px, blur up to 7 px (disk), noise 1 DN + shot noise:
-    # measured 0.01-0.02 px RMS per view; the bound for dot centres is 0.02 px in focus and
-    # 0.05 px with defocus -> assert 0.05 px per view, and that mirrored views are flagged.
+def test_dot_centres_in_lab_views(session, intrinsics):
+    # Detected centres (from the intrinsic calibration's detections) against the exact projection of the
+    # dot centres, through the mirror for mirrored views. Bound 0.05 px RMS per view: the bound for
+    # defocused views; here the render's aperture sampling adds ~0.03 px per dot (see SAMPLES).
+    # In mirrored views the dots next to the mirror's edge are vignetted (the mirror, 0.4 m from the lens, cuts
+    # part of their blur disk, so the spot is lopsided): they are off by 0.1-0.3 px, and the pipeline's
+    # outlier rejection must remove them (and only points that are really off: > 2x the bound).
     S, tgt, views = session
-    for (scene, stack), mirrored in ([(v, False) for v in views["left"]["direct"][:4]]
-                                     + [(v, True) for v in views["left"]["mirror"]]):
-        res = detect_view(stack, tgt)
-        assert res.ok, res.error
-        det = res.detection
+    ic = intrinsics["left"]
+    scenes = [sc for sc, _ in views["left"]["direct"]] + [sc for sc, _ in views["left"]["mirror"]]
+    removed = {}
+    for name, pid, _, _ in ic.dropped_points:
+        removed.setdefault(name, set()).add(pid)
+    for v, scene in zip(ic.views, scenes):
+        assert v.ok, v.error
+        det = v.detection
+        mirrored = v.name.startswith("mirror")
         assert det.mirrored == mirrored
         truth = lab_project(scene, "left", tgt, det.ids, mirror=0 if mirrored else None)
-        err = det.image_points - truth
-        assert np.sqrt(np.mean(np.sum(err ** 2, axis=1))) < 0.05
+        err = np.linalg.norm(det.image_points - truth, axis=1)
+        out = np.isin(det.ids, list(removed.get(v.name, ())))
+        assert not mirrored or out.sum() <= 12, v.name
+        assert np.all(err[out] > 0.1), v.name
+        assert np.sqrt(np.mean(err[~out] ** 2)) < 0.05, v.name
         assert len(det) >= 60  # of 72 dots
 
 
@@ -143,7 +157,9 @@ def test_mirror_extrinsics_from_rendered_views(mirrors, session, cam):
     m = r.mirrors[0]
     assert np.degrees(np.arccos(min(1.0, abs(m.normal @ n_true)))) < 0.1
     assert abs(m.d - abs(d_true)) < 5.0
-    assert r.rms < 0.05 and d_rot >= 0
+    # RMS of the mirrored dots after the adjustment: their centre errors are 0.03-0.05 px RMS (the views are
+    # blurred and partly vignetted; see test_dot_centres_in_lab_views), so 0.06 px
+    assert r.rms < 0.06 and d_rot >= 0
 
 
 def test_rig_per_camera_and_joint(session, mirrors):
@@ -151,8 +167,8 @@ def test_rig_per_camera_and_joint(session, mirrors):
     truth = lab.true_rig(S.rig)
     _, (fl, fr) = views["far"]
     _, (cl, cr) = views["check"]
-    far = detect_stereo_view(fl, fr, tgt, name="far")
-    check = detect_stereo_view(cl, cr, tgt, name="check")
+    far = detect_stereo_view(fl, fr, tgt, name="far", correct_blur=False)
+    check = detect_stereo_view(cl, cr, tgt, name="check", correct_blur=False)
     per_cam = calibrate_rig_from_mirrors(mirrors["left"], mirrors["right"], joint=False, check_views=[check])
     joint = calibrate_rig_from_mirrors(mirrors["left"], mirrors["right"], far_views=[far], check_views=[check])
     for rc in (per_cam, joint):
@@ -162,14 +178,18 @@ def test_rig_per_camera_and_joint(session, mirrors):
         assert abs(e["baseline_mm"]) < 4 * rc.rig.std_baseline_mm
     ej = joint.rig.errors_to(truth)
     ep = per_cam.rig.errors_to(truth)
-    # the joint adjustment with the far view pins the rotation: its reported σ is smaller than the
-    # per-camera composition's and its error is below 0.02 deg at this resolution
-    assert np.linalg.norm(joint.rig.std_rotation_deg) < np.linalg.norm(per_cam.rig.std_rotation_deg)
-    assert ej["rotation_deg"] < 0.02
-    # the check view (3.5 m, 46.65 mm dot spacing, not used in the fit): neighbour distances within 0.1 %
-    c = joint.checks[0]
-    assert np.sqrt(np.mean((c.neighbour_errors / c.neighbour_true) ** 2)) < 1e-3
-    assert ep["rotation_deg"] >= 0
+    # the joint adjustment with the far view pins the rotation: its reported σ is several times smaller than the
+    # per-camera composition's (measured 6x), and so is its error (assert a factor 2)
+    assert np.linalg.norm(joint.rig.std_rotation_deg) < 0.5 * np.linalg.norm(per_cam.rig.std_rotation_deg)
+    assert ej["rotation_deg"] < 0.5 * ep["rotation_deg"]
+    # the check view (3.5 m, 46.65 mm dot spacing, not used in the fit): the joint rig measures the distances
+    # between all its dots within 0.1 % RMS (the paper reports 0.18 % on its rig); the per-camera rig, whose
+    # rotation is weakly determined by the mirror views alone, is several times worse (measured 0.35 % scale error)
+    def rel_rms(c):
+        return np.sqrt(np.mean((c.distance_errors / c.true_distances) ** 2))
+
+    assert rel_rms(joint.checks[0]) < 1e-3
+    assert rel_rms(joint.checks[0]) < 0.5 * rel_rms(per_cam.checks[0])
 
 
 def test_pose_file_round_trip_and_stack_reading(tmp_path, mirrors, session):
@@ -187,28 +207,28 @@ def test_pose_file_round_trip_and_stack_reading(tmp_path, mirrors, session):
     stack = views["left"]["mirror"][0][1]
     folder = tmp_path / "view"
     folder.mkdir()
-    for k, name in enumerate(["img_2.png", "img_10.png", "img_11.png", "img_12.png"]):
+    for k, name in enumerate(["img_2.png", "img_10.png", "img_11.png"]):
         iio.imwrite(folder / name, stack[k])
-    assert np.array_equal(read_stack(folder, 4), stack)
-    with pytest.raises(ValueError, match="holds 4 images but the target needs 3"):
-        read_stack(folder, 3)
+    assert np.array_equal(read_stack(folder, 3), stack)
+    with pytest.raises(ValueError, match="holds 3 images but the target needs 4"):
+        read_stack(folder, 4)
 
 
 def test_intrinsics_report_and_bad_views(session, intrinsics):
     S, tgt, views = session
-    text = intrinsics["left"].report()
+    ic = intrinsics["left"]
+    text = ic.report()
     assert "fx =" in text and "mirrored" in text and "RMS" in text
-    assert isinstance(intrinsics["left"], IntrinsicsCalibration)
-    # a blank view is dropped with its reason, the calibration goes on
-    blank = np.full((4, 432, 588), 30, dtype=np.uint8)
-    stacks = [s for _, s in views["left"]["direct"][:5]] + [blank]
-    ic = calibrate_intrinsics_from_images(stacks, tgt, names=[f"v{i}" for i in range(6)])
-    assert [n for n, _ in ic.dropped] == ["v5"]
+    assert isinstance(ic, IntrinsicsCalibration) and isinstance(ic.camera, Camera)
+    # a blank view is dropped with its reason, the calibration goes on with the others
+    blank = detect_view(np.full((STEPS, 432, 588), 30, dtype=np.uint8), tgt, name="blank")
+    assert not blank.ok and "not found" in blank.error
+    ic2 = calibrate_intrinsics_from_detections(ic.views[:3] + [blank])
+    assert [n for n, _ in ic2.dropped] == ["blank"]
     with pytest.raises(ValueError, match="at least 3"):
-        calibrate_intrinsics_from_images([blank, blank, stacks[0]], tgt)
+        calibrate_intrinsics_from_detections([blank, blank, ic.views[0]])
     with pytest.raises(ValueError, match="PhaseTarget"):
-        calibrate_intrinsics_from_images(stacks, "target.json")
-    # direct views are refused by the mirror calibration (not mirrored)
+        calibrate_intrinsics_from_images([views["left"]["direct"][0][1]], "target.json")
+    # direct views are refused by the mirror calibration (the target appears right-handed)
     with pytest.raises(ValueError, match="not a view through a mirror"):
-        calibrate_mirror_from_images(intrinsics["left"].camera, stacks[:3], tgt)
-    assert isinstance(intrinsics["left"].camera, Camera)
+        calibrate_mirror_from_detections(ic.camera, ic.views[:3], tgt)

@@ -1,0 +1,113 @@
+"""``specula target``: write calibration target images to show on a monitor (or to print), with a
+JSON file of the target (parameters, orientation code, object points in mm).
+
+Examples::
+
+    specula target fringes --screen 1920x1080 --pixel-pitch 0.311 --grid 6x3 --pitch 300 --steps 4 -o fringes/
+    specula target fringes --grid 4x2 --pitch 450 --period 300 --dense -o section3/
+    specula target checkerboard --corners 9x6 --square 120 -o board/
+    specula target circles --grid 6x3 --pitch 300 --diameter 150 -o circles/
+
+See docs/targets.md for the designs and the target frame (origin at the centre of screen pixel
+(0, 0), x right, y down, z into the screen, mm).
+"""
+from __future__ import annotations
+
+import os
+
+import click
+
+
+def _pair(text: str, name: str, integer: bool):
+    parts = str(text).lower().replace(",", "x").split("x")
+    try:
+        vals = [int(p) if integer else float(p) for p in parts]
+    except ValueError:
+        raise click.BadParameter(f"{name} must look like 'AxB' ({'integers' if integer else 'numbers'}), got {text!r}") from None
+    if len(vals) != 2:
+        raise click.BadParameter(f"{name} must look like 'AxB', got {text!r}")
+    return tuple(vals)
+
+
+def _write(target, out: str, prefix: str, dense: bool = False) -> None:
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as exc:
+        raise click.ClickException(f"cannot create output folder {out}: {exc}") from exc
+    paths = target.save_images(out, prefix=prefix)
+    if dense:
+        import imageio.v3 as iio
+
+        for k, img in enumerate(target.dense_images()):
+            path = os.path.join(out, f"{prefix}_dense_{k:02d}.png")
+            iio.imwrite(path, img)
+            paths.append(path)
+    json_path = os.path.join(out, f"{prefix}.json")
+    target.save_json(json_path)
+    click.echo(f"wrote {len(paths)} image(s) {target.screen[0]}x{target.screen[1]} and {json_path}")
+
+
+def _common(f):
+    f = click.option("--screen", default="1920x1080", show_default=True, help="Monitor resolution WxH (px).")(f)
+    f = click.option("--pixel-pitch", type=float, default=0.311, show_default=True, help="Monitor pixel pitch (mm).")(f)
+    f = click.option("-o", "--out", required=True, type=click.Path(file_okay=False), help="Output folder.")(f)
+    return f
+
+
+@click.group(name="target")
+def target():
+    """Write calibration target images (PNG, shown full-screen, unscaled) and their JSON."""
+
+
+@target.command()
+@_common
+@click.option("--grid", default="6x3", show_default=True, help="Dots along x and y.")
+@click.option("--pitch", type=float, default=300, show_default=True, help="Dot spacing (screen px).")
+@click.option("--steps", type=int, default=4, show_default=True, help="Phase steps N >= 3.")
+@click.option("--period", type=float, default=None, help="Fringe period (screen px); default: the pitch.")
+@click.option("--guard", type=float, default=None, help="Fringe band beyond the outer cells (screen px).")
+@click.option("--no-code", is_flag=True, help="Plain target as in the paper (no orientation code).")
+@click.option("--gamma", type=float, default=1.0, show_default=True, help="Monitor gamma to pre-compensate.")
+@click.option("--dense", is_flag=True, help="Also write the dense-mode linear fringe sequence.")
+def fringes(screen, pixel_pitch, out, grid, pitch, steps, period, guard, no_code, gamma, dense):
+    """Phase-shifted circular fringes (coded dot grid) and optionally the dense sequence."""
+    from calibration.targets import PhaseTarget
+
+    try:
+        tg = PhaseTarget(_pair(screen, "--screen", True), pixel_pitch, _pair(grid, "--grid", True), pitch, steps,
+                         period=period, guard=guard, code=not no_code, gamma=gamma)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from exc
+    _write(tg, out, "fringes", dense=dense)
+    click.echo(f"{tg.n_dots} dots, spacing {tg.spacing_mm:.3f} mm; show the images in order, one capture each")
+
+
+@target.command()
+@_common
+@click.option("--corners", default="9x6", show_default=True, help="Inner corners along x and y.")
+@click.option("--square", type=float, default=100, show_default=True, help="Square size (screen px).")
+def checkerboard(screen, pixel_pitch, out, corners, square):
+    """A checkerboard (for OpenCV's detectors and for comparison)."""
+    from calibration.targets import CheckerboardTarget
+
+    try:
+        tg = CheckerboardTarget(_pair(screen, "--screen", True), pixel_pitch, _pair(corners, "--corners", True), square)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from exc
+    _write(tg, out, "checkerboard")
+
+
+@target.command()
+@_common
+@click.option("--grid", default="6x3", show_default=True, help="Circles along x and y.")
+@click.option("--pitch", type=float, default=300, show_default=True, help="Circle spacing (screen px).")
+@click.option("--diameter", type=float, default=None, help="Circle diameter (screen px); default pitch / 2.")
+def circles(screen, pixel_pitch, out, grid, pitch, diameter):
+    """A symmetric grid of dark circles (OpenCV's findCirclesGrid target)."""
+    from calibration.targets import CircleGridTarget
+
+    try:
+        tg = CircleGridTarget(_pair(screen, "--screen", True), pixel_pitch, _pair(grid, "--grid", True), pitch, diameter)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from exc
+    _write(tg, out, "circles")
