@@ -5,6 +5,7 @@ Run from the repository root (the full-resolution run renders ~300 images and ta
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab                 # full resolution
     OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --scale 0.25 --samples 4   # quick
+    .venv/bin/python -m bench.calibration_lab --export session/     # image folders for the CLI walk-through
 
 What it does, in the virtual lab's paper rig (``dic.lab.paper_rig``: two 2352 × 1728 px 8-bit cameras
 with read noise 1 DN and shot noise, 28 mm f/2.8 lenses focused at 5.4 m, 1650 mm baseline, mirrors
@@ -39,7 +40,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.camera import Camera, rotation_angle_deg, rotation_from_vector
-from calibration.intrinsics import STD_NAMES
 from calibration.stereo import StereoRig
 from calibration.targets import CheckerboardTarget, PhaseTarget, make_cell_code
 
@@ -505,6 +505,52 @@ def print_table(result: dict) -> None:
               f"{c.get('neighbour_error_mean_mm', float('nan')):+.4f}  {c.get('scale_error_percent', float('nan')):+.4f}")
 
 
+def export_session(out_dir: str, *, scale: float = 1.0, samples: int = 16, cache: str | None = None,
+                   n_tilts: int = 3, log=print) -> str:
+    """Write a calibration session of the lab as image folders, laid out like a real one (for the CLI
+    walk-through of docs/calibration.md)::
+
+        OUT/fringes/fringes.json                   the target file ('specula target fringes' writes it)
+        OUT/left/intrinsics/pose01 ... pose12/     direct views, 4 phase-shifted TIFFs each
+        OUT/left/mirror/tilt1 ... tiltK/           the monitor behind the cameras, seen in the mirror
+        OUT/right/...                              the same for the right camera
+        OUT/far/left, OUT/far/right                the monitor at the axes' crossing (both cameras)
+        OUT/check1/left, OUT/check1/right          another common view, for checking
+        OUT/ground_truth.json                      the lab's cameras and rig (for comparison only)
+
+    Stacks come from the render cache when present (``cache``), else they are rendered."""
+    import tifffile
+
+    S = LabSession(scale=scale, samples=samples, cache=cache, log=log)
+    tgt = paper_target()
+    os.makedirs(os.path.join(out_dir, "fringes"), exist_ok=True)
+    tgt.save_json(os.path.join(out_dir, "fringes", "fringes.json"))
+
+    def write(folder, stack):
+        os.makedirs(folder, exist_ok=True)
+        for k, img in enumerate(stack):
+            tifffile.imwrite(os.path.join(folder, f"img_{k}.tif"), img)
+
+    for cam in ("left", "right"):
+        for i in range(len(DIRECT_POSES)):
+            write(os.path.join(out_dir, cam, "intrinsics", f"pose{i + 1:02d}"), S.direct_view(cam, tgt, i)[1])
+        for k in range(n_tilts):
+            write(os.path.join(out_dir, cam, "mirror", f"tilt{k + 1}"), S.mirror_view(cam, tgt, k)[1])
+    _, (l, r) = S.common_view(tgt, S.rig.crossing_point, tag="far")
+    write(os.path.join(out_dir, "far", "left"), l)
+    write(os.path.join(out_dir, "far", "right"), r)
+    _, (l, r) = S.common_view(tgt, (1000.0, 780.0, 4500.0), 0, 0, tag="check1")
+    write(os.path.join(out_dir, "check1", "left"), l)
+    write(os.path.join(out_dir, "check1", "right"), r)
+    truth = true_rig(S.rig)
+    R_l, t_l = S.mirror_truth("left")
+    R_r, t_r = S.mirror_truth("right")
+    with open(os.path.join(out_dir, "ground_truth.json"), "w") as f:
+        json.dump({"rig": truth.to_dict(), "R_left_target": R_l.tolist(), "t_left_target": t_l.tolist(),
+                   "R_right_target": R_r.tolist(), "t_right_target": t_r.tolist()}, f, indent=1)
+    return out_dir
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scale", type=float, default=1.0, help="camera resolution factor (1: 2352x1728)")
@@ -512,7 +558,12 @@ def main(argv=None):
     p.add_argument("--cache", default="/tmp/specula_calibration_lab_cache", help="folder for rendered stacks ('' = none)")
     p.add_argument("--out", default=None, help="JSON output (default bench/results/calibration_lab.json at scale 1)")
     p.add_argument("--boards", type=int, default=15, help="checkerboard views for cv2.stereoCalibrate (0 = skip)")
+    p.add_argument("--export", default=None, metavar="DIR",
+                   help="only write the session's image folders into DIR (see export_session) and stop")
     a = p.parse_args(argv)
+    if a.export:
+        export_session(a.export, scale=a.scale, samples=a.samples, cache=a.cache or None)
+        return
     out = a.out or ("bench/results/calibration_lab.json" if a.scale == 1.0 else f"bench/results/calibration_lab_scale{a.scale:g}.json")
     run(a.scale, a.samples, a.cache or None, out, boards=a.boards)
 

@@ -698,7 +698,7 @@ def detect_dots(
         width of the modulation drop at the edge of the fringe area, then per dot from its
         modulation map, smoothed by a plane over the image.
     correct_blur : bool
-        Run pass 2 (defocus bias removal by simulation) when the blur exceeds 0.5 px.
+        Run pass 2 (defocus bias removal by simulation) when the blur exceeds 0.3 px.
     min_coverage : float
         Dots whose fit window is less than this share on usable pixels (cut by the image edge,
         the mask, or a mirror's edge) are dropped.
@@ -791,7 +791,7 @@ def detect_dots(
         good = np.ones(len(ij), dtype=bool)
     ids = ij[:, 1] * target.grid[0] + ij[:, 0]
     sigmas = np.full(len(ids), float(blur_sigma))
-    if correct_blur and blur_sigma > 0.5:
+    if correct_blur and blur_sigma > 0.3:
         centres, good, sigmas = _remove_blur_bias(target, phase.shape, modulation, mask, fits, ids, centres,
                                                   good, float(blur_sigma), given_blur, rho_in, border)
     gsel = np.flatnonzero(good)

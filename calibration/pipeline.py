@@ -32,10 +32,13 @@ them, from the recorded images to the files:
 
 Dense mode (``mode="dense"``): the monitor shows two orthogonal sets of phase-shifted linear
 fringes (:meth:`PhaseTarget.dense_images`); every camera pixel that sees it gets its screen
-coordinate. For intrinsics the decoded pixels are sampled every ``dense_step`` px; for mirror
-extrinsics, which need the *same* target points in every view, the image position of a regular
-grid of screen points (every ``dense_spacing`` screen px) is interpolated in each view by a local
-quadratic fit of the decoded map (:func:`dense_grid_points`).
+coordinate. The pipeline does not use the pixels one by one (each carries the phase noise of one
+pixel): it locates a regular grid of screen points (every ``dense_spacing`` screen px, the same
+grid in every view) by a local quadratic fit of the decoded map over the pixels around each point
+(:func:`dense_grid_points`); the mirror extrinsics need exactly that (the same target points in
+every view), and the intrinsics get many well-averaged points per view. Choose the target's
+finest dense period so that it spans at least ~8 camera pixels in every view (coarser fringes
+survive blur and pixel integration; finer ones lose their modulation).
 
 Frames and units: docs/conventions.md (mm, px, camera frame x right / y down / z forward, pixel
 (0, 0) the centre of the top-left pixel); target frame: :mod:`calibration.targets`.
@@ -52,11 +55,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .camera import Camera, _check_schema, _read_json, _write_json
-from .features import (DenseDecoding, DetectionError, DotDetection, decode_dense, dense_correspondences,
-                       demodulate_images, detect_checkerboard, detect_dots)
+from .features import (DenseDecoding, DetectionError, DotDetection, decode_dense, demodulate_images,
+                       detect_checkerboard, detect_dots)
 from .intrinsics import DISTORTION_MODELS, IntrinsicsResult, calibrate_intrinsics
 from .mirror import JointMirrorResult, MirrorExtrinsicsResult, joint_mirror_stereo, mirror_extrinsics
-from .stereo import (StereoCalibrationResult, StereoRig, TargetReconstruction, reconstruct_target, rig_from_mirror,
+from .stereo import (StereoCalibrationResult, StereoRig, reconstruct_target, rig_from_mirror,
                      stereo_calibrate)
 from .targets import CheckerboardTarget, PhaseTarget
 
@@ -75,6 +78,7 @@ __all__ = [
     "detect_view",
     "detect_views",
     "dense_grid_points",
+    "dense_view_points",
     "calibrate_intrinsics_from_images",
     "calibrate_intrinsics_from_detections",
     "calibrate_mirror_from_images",
@@ -433,6 +437,27 @@ def _dense_screen_grid(target: PhaseTarget, spacing: float) -> np.ndarray:
     return np.stack([gx.ravel(), gy.ravel()], axis=1)
 
 
+def dense_view_points(decoding: DenseDecoding, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Correspondences of one dense view on the screen grid ``(i, j) * spacing`` (screen px).
+
+    Returns ``(image_points (M, 2) px, object_points (M, 3) mm, ids (M,))`` for the grid points that
+    :func:`dense_grid_points` finds; ``ids = j * 100000 + i`` name the grid points (the same in every
+    view)."""
+    if not spacing > 0:
+        raise ValueError(f"the dense grid spacing must be > 0 screen px, got {spacing!r}")
+    S = decoding.screen_xy[decoding.mask]
+    if len(S) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    lo = np.floor(S.min(axis=0) / spacing).astype(int)
+    hi = np.ceil(S.max(axis=0) / spacing).astype(int)
+    ii, jj = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    P = np.stack([ii.ravel(), jj.ravel()], axis=1) * float(spacing)
+    q, found = dense_grid_points(decoding, P)
+    ids = (jj.ravel() * 100000 + ii.ravel())[found]
+    X = np.concatenate([P[found] * decoding.pixel_pitch, np.zeros((int(found.sum()), 1))], axis=1)
+    return q[found], X, ids.astype(np.int64)
+
+
 # ------------------------------------------------------------------------------------------------
 # intrinsics
 # ------------------------------------------------------------------------------------------------
@@ -535,8 +560,8 @@ def _short(s: str, n: int) -> str:
 def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, mode: str = "dots",
                                      model: str = "opencv5", reject: float | None = 3.0,
                                      max_view_rms: float | None = None, min_points: int = 6,
-                                     reject_points: float | None = 4.0, dense_step: int = 16,
-                                     dense_max_points: int = 4000, correct_blur: bool | None = None,
+                                     reject_points: float | None = 4.0, dense_spacing: float | None = None,
+                                     correct_blur: bool | None = None,
                                      min_modulation: float = 3.0, name: str = "", progress=None,
                                      device=None) -> IntrinsicsCalibration:
     """Intrinsics of one camera from image stacks of the phase target, direct and mirrored views together.
@@ -547,8 +572,9 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
         The monitor at many poses through the camera's depth of field, and seen in the mirror(s)
         (paper Steps 3–4; ≥ 3 usable views, ~15 recommended). Blurred close-up views are fine.
     target : PhaseTarget
-    mode : ``"dots"`` (dot centres) or ``"dense"`` (per-pixel screen coordinates, every
-        ``dense_step``-th pixel, at most ``dense_max_points`` per view).
+    mode : ``"dots"`` (dot centres) or ``"dense"`` (per-pixel screen coordinates, located on a grid
+        of screen points every ``dense_spacing`` screen px, default ``target.pitch / 4``;
+        :func:`dense_view_points`).
     model, reject, max_view_rms :
         As :func:`calibration.intrinsics.calibrate_intrinsics` (distortion model and outlier-view
         rejection).
@@ -580,15 +606,17 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
                            min_modulation=min_modulation, device=device, progress=progress)
     return calibrate_intrinsics_from_detections(results, model=model, reject=reject, max_view_rms=max_view_rms,
                                                 reject_points=reject_points, min_points=min_points,
-                                                dense_step=dense_step, dense_max_points=dense_max_points, name=name)
+                                                dense_spacing=target.pitch / 4 if dense_spacing is None else dense_spacing,
+                                                name=name)
 
 
 def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", reject: float | None = 3.0,
                                          max_view_rms: float | None = None, reject_points: float | None = 4.0,
-                                         min_points: int = 6, dense_step: int = 16, dense_max_points: int = 4000,
+                                         min_points: int = 6, dense_spacing: float = 75.0,
                                          name: str = "") -> IntrinsicsCalibration:
     """The bundle of :func:`calibrate_intrinsics_from_images` on views already detected (a list of
-    :class:`ViewResult` from :func:`detect_views`, possibly of different targets or modes); same options."""
+    :class:`ViewResult` from :func:`detect_views`, possibly of different targets or modes); same options
+    (``dense_spacing`` in screen px for dense views)."""
     if not isinstance(results, (list, tuple)) or not all(isinstance(r, ViewResult) for r in results):
         raise ValueError("results must be a list of ViewResult (from detect_views)")
     if model not in DISTORTION_MODELS:
@@ -606,8 +634,7 @@ def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", rej
         if r.detection is not None:
             q, X, ids = r.detection.image_points, r.detection.object_points, r.detection.ids
         else:
-            q, X = dense_correspondences(r.dense, step=int(dense_step), max_points=int(dense_max_points))
-            ids = np.arange(len(q))
+            q, X, ids = dense_view_points(r.dense, dense_spacing)
         if len(q) < min_points:
             r.error = f"only {len(q)} points (need {min_points})"
             continue

@@ -143,23 +143,22 @@ def test_mirror_extrinsics_from_rendered_views(mirrors, session, cam):
     r = mc.result
     rot = rotation_angle_deg(r.R_cam_target, R_true)
     tr = np.linalg.norm(r.t_cam_target - t_true)
-    # The bundle adjustment's reported σ (scaled by the residuals) must account for the error: a 6-dof
-    # error within 4 σ per axis (a 3σ bound per axis is exceeded with ~1.6 % probability for 6 axes;
-    # the residual intrinsic error adds a small unmodelled part). Measured: ~0.01 deg / ~1 mm.
-    sr = r.std_rotation_deg
-    st = r.std_translation_mm
-    d_rot = np.degrees(np.linalg.norm(np.array(rot)))
-    assert rot < 4 * np.linalg.norm(sr), (rot, sr)
-    assert tr < 4 * np.linalg.norm(st), (tr, st)
-    # the mirror planes: normal within 0.05 deg... of the lab's planes for tilt 0 (weak along the normal)
-    scene = S.rig.with_mirror_tilt(0)
-    n_true, d_true = scene.mirrors[0 if cam == "left" else 1].plane_in(scene.camera(cam))
-    m = r.mirrors[0]
-    assert np.degrees(np.arccos(min(1.0, abs(m.normal @ n_true)))) < 0.1
-    assert abs(m.d - abs(d_true)) < 5.0
+    # The bundle adjustment's reported σ (scaled by the residuals) must account for the error: the rotation
+    # and translation errors within 4 times the norm of the per-axis σ (for a Gaussian error the norm of 3
+    # components exceeds 4 σ-norms with probability < 1e-4; the intrinsic error adds a small unmodelled
+    # part). Measured: 0.04 / 0.10 deg (σ-norm 0.05 / 0.07), 1.7 / 5.0 mm (σ-norm 2.0 / 2.4).
+    assert rot < 4 * np.linalg.norm(r.std_rotation_deg), (rot, r.std_rotation_deg)
+    assert tr < 4 * np.linalg.norm(r.std_translation_mm), (tr, r.std_translation_mm)
+    # the mirror planes against the lab's (in the camera frame): normals measured within 0.06 deg, distances
+    # within 2.4 mm (the pose is weakest along the mirror normals, as the issue explains): assert 0.15 deg, 6 mm
+    for k, m in enumerate(r.mirrors):
+        scene = S.rig.with_mirror_tilt(k)
+        n_true, d_true = scene.mirrors[0 if cam == "left" else 1].plane_in(scene.camera(cam))
+        assert np.degrees(np.arccos(min(1.0, abs(m.normal @ n_true)))) < 0.15
+        assert abs(m.d - abs(d_true)) < 6.0
     # RMS of the mirrored dots after the adjustment: their centre errors are 0.03-0.05 px RMS (the views are
     # blurred and partly vignetted; see test_dot_centres_in_lab_views), so 0.06 px
-    assert r.rms < 0.06 and d_rot >= 0
+    assert r.rms < 0.06
 
 
 def test_rig_per_camera_and_joint(session, mirrors):

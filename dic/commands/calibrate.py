@@ -73,8 +73,8 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
 @click.option("--model", default="opencv5", show_default=True, type=click.Choice(_MODELS),
               help="Distortion model: opencv5 = k1 k2 p1 p2 k3; radial3 for VIC-3D export.")
 @click.option("--dense", is_flag=True, help="The views hold the dense sequence (linear fringes), not the dots.")
-@click.option("--dense-step", default=16, show_default=True, type=click.IntRange(min=1),
-              help="Dense mode: use every N-th decoded pixel (rows and columns).")
+@click.option("--dense-spacing", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Dense mode: spacing of the screen-point grid located in each view, screen px (default: pitch / 4).")
 @click.option("--reject", default=3.0, show_default=True, type=click.FloatRange(min=0),
               help="Drop views whose RMS exceeds this multiple of the median view RMS (0: keep all).")
 @click.option("--max-view-rms", default=None, type=click.FloatRange(min=0, min_open=True),
@@ -87,7 +87,7 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Write PNG figures (detected centres per view, residuals) into this folder.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation: cpu, cuda, cuda:N.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-view progress lines.")
-def intrinsics_cmd(views, target_path, output, name, model, dense, dense_step, reject, max_view_rms, correct_blur,
+def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, correct_blur,
                    min_modulation, figure_dir, device, quiet):
     """Intrinsics of one camera from VIEWS of the phase target (direct and mirrored views together).
 
@@ -104,7 +104,7 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_step, r
             click.echo(f"{len(views)} views of {target!r}", err=True)
         ic = calibrate_intrinsics_from_images(
             list(views), target, mode="dense" if dense else "dots", model=model, reject=reject or None,
-            max_view_rms=max_view_rms, dense_step=dense_step, correct_blur=correct_blur, min_modulation=min_modulation,
+            max_view_rms=max_view_rms, dense_spacing=dense_spacing, correct_blur=correct_blur, min_modulation=min_modulation,
             name=name if name is not None else output.stem, progress=_progress(quiet), device=device)
     except ValueError as exc:
         _fail(exc)
