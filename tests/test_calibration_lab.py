@@ -81,18 +81,13 @@ def mirrors(session, intrinsics):
 
 
 def test_dot_centres_in_lab_views(session, intrinsics):
-    # Detected centres (from the intrinsic calibration's detections) against the exact projection of the
-    # dot centres, through the mirror for mirrored views. Bound 0.05 px RMS per view: the bound for
-    # defocused views; here the render's aperture sampling adds ~0.03 px per dot (see SAMPLES).
-    # In mirrored views the dots next to the mirror's edge are vignetted (the mirror, 0.4 m from the lens, cuts
-    # part of their blur disk, so the spot is lopsided): they are off by 0.1-0.3 px, and the pipeline's
-    # outlier rejection must remove them (and only points that are really off: > 2x the bound).
+    # Detected centres (the intrinsic calibration's detections) against the exact projection of the dot
+    # centres, through the mirror for mirrored views. Bound 0.05 px RMS per view: the bound for
+    # defocused views (the render's aperture sampling adds ~0.03 px per dot here, see SAMPLES; measured
+    # 0.027-0.038 px).
     S, tgt, views = session
     ic = intrinsics["left"]
     scenes = [sc for sc, _ in views["left"]["direct"]] + [sc for sc, _ in views["left"]["mirror"]]
-    removed = {}
-    for name, pid, _, _ in ic.dropped_points:
-        removed.setdefault(name, set()).add(pid)
     for v, scene in zip(ic.views, scenes):
         assert v.ok, v.error
         det = v.detection
@@ -100,11 +95,26 @@ def test_dot_centres_in_lab_views(session, intrinsics):
         assert det.mirrored == mirrored
         truth = lab_project(scene, "left", tgt, det.ids, mirror=0 if mirrored else None)
         err = np.linalg.norm(det.image_points - truth, axis=1)
-        out = np.isin(det.ids, list(removed.get(v.name, ())))
-        assert not mirrored or out.sum() <= 12, v.name
-        assert np.all(err[out] > 0.1), v.name
-        assert np.sqrt(np.mean(err[~out] ** 2)) < 0.05, v.name
-        assert len(det) >= 60  # of 72 dots
+        assert np.sqrt(np.mean(err ** 2)) < 0.05, v.name
+        assert len(det) >= (48 if mirrored else 66)  # of 72 dots
+        if not mirrored:
+            assert not v.removed  # the misfit filter leaves direct views alone
+
+
+def test_misfit_filter_removes_vignetted_dots(session):
+    # In a mirrored view the dots next to the mirror's edge are vignetted (the mirror, 0.4 m from the lens,
+    # cuts part of their blur disk, so the spot is lopsided) and come out 0.1-0.3 px off. The detection's
+    # misfit filter (phase-fit residual x modulation > 1.5 x the view's median) must remove them: detect
+    # tilt 0 of the left camera with and without it. Measured: the 6 removed dots are 0.18-0.40 px off
+    # (RMS 0.29 px), the 66 kept ones 0.032 px RMS.
+    S, tgt, views = session
+    scene, stack = views["left"]["mirror"][0]
+    full = detect_view(stack, tgt, correct_blur=False, max_misfit=None).detection
+    kept = detect_view(stack, tgt, correct_blur=False)
+    out = ~np.isin(full.ids, kept.detection.ids)
+    assert out.sum() == len(kept.removed) > 0
+    err = np.linalg.norm(full.image_points - lab_project(scene, "left", tgt, full.ids, mirror=0), axis=1)
+    assert np.sqrt(np.mean(err[out] ** 2)) > 0.1 > 2 * np.sqrt(np.mean(err[~out] ** 2))
 
 
 def lab_project(scene, camera, tgt, ids, mirror=None):

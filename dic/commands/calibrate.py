@@ -79,6 +79,10 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Drop views whose RMS exceeds this multiple of the median view RMS (0: keep all).")
 @click.option("--max-view-rms", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Also drop views whose RMS exceeds this many px.")
+@click.option("--max-misfit", default=1.5, show_default=True, type=click.FloatRange(min=0),
+              help="Remove dots whose phase-fit residual x modulation exceeds this multiple of the view's median (0: keep all).")
+@click.option("--reject-points", default=4.0, show_default=True, type=click.FloatRange(min=0),
+              help="Remove points whose residual exceeds this multiple of the robust RMS, then recalibrate (0: keep all).")
 @click.option("--blur-correction/--no-blur-correction", "correct_blur", default=None,
               help="Run (or skip) the dot detector's defocus-bias correction (default: the detector's default).")
 @click.option("--min-modulation", default=3.0, show_default=True, type=click.FloatRange(min=0),
@@ -87,7 +91,8 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Write PNG figures (detected centres per view, residuals) into this folder.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation: cpu, cuda, cuda:N.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-view progress lines.")
-def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, correct_blur,
+def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, max_misfit,
+                   reject_points, correct_blur,
                    min_modulation, figure_dir, device, quiet):
     """Intrinsics of one camera from VIEWS of the phase target (direct and mirrored views together).
 
@@ -104,7 +109,9 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
             click.echo(f"{len(views)} views of {target!r}", err=True)
         ic = calibrate_intrinsics_from_images(
             list(views), target, mode="dense" if dense else "dots", model=model, reject=reject or None,
-            max_view_rms=max_view_rms, dense_spacing=dense_spacing, correct_blur=correct_blur, min_modulation=min_modulation,
+            max_view_rms=max_view_rms, reject_points=reject_points or None, max_misfit=max_misfit or None,
+            dense_spacing=dense_spacing,
+            correct_blur=correct_blur, min_modulation=min_modulation,
             name=name if name is not None else output.stem, progress=_progress(quiet), device=device)
     except ValueError as exc:
         _fail(exc)
@@ -132,6 +139,10 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
               help="Dense mode: spacing of the common screen-point grid, screen px (default: half the dot pitch).")
 @click.option("--sigma-px", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image noise (px) for the covariance (default: from the residuals).")
+@click.option("--max-misfit", default=1.5, show_default=True, type=click.FloatRange(min=0),
+              help="Remove dots whose phase-fit residual x modulation exceeds this multiple of the view's median (0: keep all).")
+@click.option("--reject-points", default=4.0, show_default=True, type=click.FloatRange(min=0),
+              help="Remove target points whose residual in any view exceeds this multiple of the robust RMS (0: keep all).")
 @click.option("--blur-correction/--no-blur-correction", "correct_blur", default=None,
               help="Run (or skip) the dot detector's defocus-bias correction (default: the detector's default).")
 @click.option("--min-modulation", default=3.0, show_default=True, type=click.FloatRange(min=0),
@@ -140,8 +151,8 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
               help="Write PNG figures (residuals per mirror tilt) into this folder.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-view progress lines.")
-def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, sigma_px, correct_blur, min_modulation,
-               figure_dir, device, quiet):
+def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, sigma_px, max_misfit, reject_points,
+               correct_blur, min_modulation, figure_dir, device, quiet):
     """Pose of a camera relative to the monitor from VIEWS of it in a mirror at 3 or more tilts.
 
     The monitor stays put behind the cameras; the mirror in front of the camera is tilted about two
@@ -159,7 +170,9 @@ def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, si
         target = _load_phase_target(target_path)
         mc = calibrate_mirror_from_images(cam, list(views), target, mode="dense" if dense else "dots",
                                           dense_spacing=dense_spacing, sigma_px=sigma_px, correct_blur=correct_blur,
-                                          min_modulation=min_modulation, progress=_progress(quiet), device=device)
+                                          reject_points=reject_points or None, max_misfit=max_misfit or None,
+                                          min_modulation=min_modulation,
+                                          progress=_progress(quiet), device=device)
     except ValueError as exc:
         _fail(exc)
     click.echo(mc.report())
