@@ -64,7 +64,7 @@ def figures(results, maps, img_dir: Path):
     img_dir.mkdir(parents=True, exist_ok=True)
     files = []
     dots = results["dot_test"]
-    names = [n for n in ("mirror", "joint", "conventional") if n in dots and dots[n]["centres_mm"]]
+    names = [n for n in ("mirror", "joint", "conventional", "conventional_k1k2") if n in dots and dots[n]["centres_mm"]]
     if names:
         fig = plt.figure(figsize=(4.6 * len(names), 4.0))
         for k, n in enumerate(names):
@@ -147,20 +147,24 @@ def write_doc(results, files, path: Path):
     L.append(f"| same, in full-resolution px (÷ scale) | {rp['left'] / cfg['scale']:.4f} | {rp['right'] / cfg['scale']:.4f} | |")
     L.append(f"| views kept in the intrinsic bundle | {cal['intrinsic_views']['left']} | {cal['intrinsic_views']['right']} | 16 |")
     L.append(f"| mirror bundle adjustment RMS (px) | {cal['mirror_rms_px']['left']:.4f} | {cal['mirror_rms_px']['right']:.4f} | |")
-    if "conventional_reprojection_rms_px" in cal:
-        c = cal["conventional_reprojection_rms_px"]
-        L.append(f"| conventional (far checkerboard) intrinsic RMS (px) | {c['left']:.4f} | {c['right']:.4f} | |")
+    for key, label in (("conventional", "5-term lens"), ("conventional_k1k2", "k1, k2 only")):
+        if f"{key}_reprojection_rms_px" in cal:
+            c = cal[f"{key}_reprojection_rms_px"]
+            L.append(f"| conventional (far checkerboard, {label}) intrinsic RMS (px) | {c['left']:.4f} | {c['right']:.4f} | |")
     L.append("")
     L.append(f"Baseline: mirror {cal['baseline_mm_mirror']:.2f} mm"
              + (f", joint (mirror + far view) {cal['baseline_mm_joint']:.2f} mm" if "baseline_mm_joint" in cal else "")
              + (f", conventional {cal['baseline_mm_conventional']:.2f} mm" if "baseline_mm_conventional" in cal else "")
+             + (f", conventional k1, k2 {cal['baseline_mm_conventional_k1k2']:.2f} mm"
+                if "baseline_mm_conventional_k1k2" in cal else "")
              + " (the lab's: 1650 mm; quoted for information only, not used).\n")
     L.append("## Dot pattern at the monitor positions (distance between neighbouring dots, 139.95 mm)\n")
     L.append("| rig | positions | mean distance (mm) | std (mm) | mean error | mean abs. error | paper |")
     L.append("|---|---|---|---|---|---|---|")
     for n, label in (("mirror", "mirror method (paper-faithful: per-camera mirror extrinsics)"),
                      ("joint", "mirror + far view, joint adjustment (Specula's default)"),
-                     ("conventional", "conventional: checkerboard at the far working distance")):
+                     ("conventional", "conventional: checkerboard at the far working distance (OpenCV 5-term lens)"),
+                     ("conventional_k1k2", "conventional: same views, k1, k2-only lens model")):
         if n in r["dot_test"] and r["dot_test"][n]["positions"]:
             d = r["dot_test"][n]
             L.append(f"| {label} | {len(d['positions'])} | {d['distance_mean_mm']:.3f} | {d['distance_std_mm']:.3f} | "
@@ -249,7 +253,8 @@ def main(argv=None) -> int:
     exp = Experiment(cfg, cache=args.cache)
     cal = exp.calibrate()
     print("[paper] calibration:", json.dumps(cal.figures))
-    rigs = {"mirror": cal.rig_mirror, "joint": cal.rig_joint, "conventional": cal.rig_conventional}
+    rigs = {"mirror": cal.rig_mirror, "joint": cal.rig_joint, "conventional": cal.rig_conventional,
+            "conventional_k1k2": cal.rig_conventional_k1k2}
     centre = _central_position(exp)
     positions = tuple(cfg.positions) if centre in cfg.positions else tuple(cfg.positions) + (centre,)
     dots, dets = run_dot_tests(exp, rigs, positions=positions)

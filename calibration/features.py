@@ -87,6 +87,10 @@ class DotDetection:
         Standard deviation of each centre from the fit covariance (px, noise only).
     modulation : (N,) float64
         Median fringe modulation around each dot (grey levels).
+    modulation_slope : (N,) float64
+        Relative change of the modulation across each dot's fit window (plane fit, centre to
+        window edge). Near 0 for a fully lit dot; large where part of the window is vignetted
+        (e.g. by a mirror's edge), which biases the centre (see :func:`detect_dots`).
     n_pixels : (N,) int64
         Pixels used in each dot's fit.
     mirrored : bool
@@ -104,6 +108,7 @@ class DotDetection:
     n_pixels: np.ndarray
     mirrored: bool
     blur_sigma: float = 0.0
+    modulation_slope: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -248,6 +253,11 @@ _STEPS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 def _grow_lattice(points: np.ndarray, max_points: int):
     """Assign integer lattice indices to candidate points by 4-neighbour growth.
 
+    Growth starts from each of the (up to 12) candidates nearest the middle that has two
+    independent neighbour directions, and the largest labelling wins: a spurious candidate (a
+    phase defect near a mirror's edge, a glint) as the seed, or as the seed's nearest neighbour,
+    would otherwise set a wrong basis and link only a line of dots.
+
     Returns (labels (K, 2) int, labelled bool mask)."""
     from scipy.spatial import cKDTree
 
@@ -256,7 +266,6 @@ def _grow_lattice(points: np.ndarray, max_points: int):
         raise DetectionError(f"found {k} dot candidates; at least 4 are needed to set up the grid")
     tree = cKDTree(points)
     centre = np.median(points, axis=0)
-    # seed: a candidate near the middle with 4 neighbours in a plausible cross
     seed_order = np.argsort(np.linalg.norm(points - centre, axis=1))
     best = None
     for seed in seed_order[: min(k, 12)]:
@@ -270,15 +279,24 @@ def _grow_lattice(points: np.ndarray, max_points: int):
         cand = np.flatnonzero(cosang < 0.5)
         if cand.size == 0:
             continue
-        e2 = vecs[cand[0]]
-        best = (seed, e1, e2)
-        break
+        labels, done = _grow_from(points, tree, int(seed), e1, vecs[cand[0]], max_points)
+        span = labels[done].max(axis=0) - labels[done].min(axis=0)
+        score = (int(np.all(span > 0)), int(done.sum()))   # a 2-D grid beats a line, then more dots
+        if best is None or score > best[0]:
+            best = (score, labels, done)
+        if score[1] >= 0.9 * k:   # (nearly) every candidate linked: no better labelling exists
+            break
     if best is None:
         raise DetectionError("the dot candidates do not form a 2-D grid (no two independent neighbour directions)")
-    seed, e1, e2 = best
+    return best[1], best[2]
+
+
+def _grow_from(points, tree, seed: int, e1, e2, max_points: int):
+    """Breadth-first growth of the lattice labelling from ``seed`` with basis (e1, e2)."""
+    k = len(points)
     labels = np.zeros((k, 2), dtype=np.int64)
     done = np.zeros(k, dtype=bool)
-    where: dict[tuple[int, int], int] = {(0, 0): int(seed)}
+    where: dict[tuple[int, int], int] = {(0, 0): seed}
     done[seed] = True
     queue = [(0, 0)]
     basis = {(1, 0): e1, (-1, 0): -e1, (0, 1): e2, (0, -1): -e2}
@@ -341,6 +359,7 @@ class _DotFit:
     modulation: float
     coverage: float = 1.0      # share of the window's weight on usable pixels
     A_window: np.ndarray | None = None
+    modulation_slope: float = 0.0  # relative modulation change centre -> window edge (vignetting)
 
 
 def _smoothstep(t):
@@ -446,7 +465,26 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
     except np.linalg.LinAlgError:
         pass
     rms = float(np.sqrt(np.sum(win * res ** 2) / max(np.sum(win), 1e-12)))
-    return _DotFit(centre, A, phi0, rms, sigma, len(res), float(np.median(mod)), coverage, A_window)
+    return _DotFit(centre, A, phi0, rms, sigma, len(res), float(np.median(mod)), coverage, A_window,
+                   _modulation_slope(s, mod, win, half))
+
+
+def _modulation_slope(s, mod, win, half):
+    """Relative change of the modulation from the dot centre to the edge of its fit window.
+
+    A plane ``mod = a + b sx / half + c sy / half`` (cell coordinates ``s``, screen px) is fitted
+    to the window's modulation, weighted by the window; returns ``hypot(b, c) / a``. The dips of
+    the modulation at the dot centre and at the cell borders are symmetric and do not tilt the
+    plane; a lopsided fall-off does: part of the window lies where a mirror's (or any aperture
+    stop's) edge cuts the lens pupil, so those pixels see a truncated, off-centre defocus blur and
+    their phase is shifted along the fringe gradient, which biases the dot's centre."""
+    X = np.stack([np.ones(len(s)), s[:, 0] / half, s[:, 1] / half], axis=1)
+    sw = np.sqrt(np.maximum(win, 0.0))
+    try:
+        coef, *_ = np.linalg.lstsq(X * sw[:, None], mod * sw, rcond=None)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(np.hypot(coef[1], coef[2]) / coef[0]) if coef[0] > 0 else float("inf")
 
 
 def _edge_cdf(d, a, b):
@@ -812,6 +850,7 @@ def detect_dots(
         n_pixels=np.array([fits[i].n for i in sel], dtype=np.int64),
         mirrored=is_mirrored,
         blur_sigma=float(np.median(sigmas[sel])),
+        modulation_slope=np.array([fits[i].modulation_slope for i in sel]),
     )
 
 

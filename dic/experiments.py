@@ -174,8 +174,10 @@ class CalibrationOutcome:
     rig: object                       # StereoRig used for the measurements (mirror, or joint when far view)
     rig_mirror: object                # paper-faithful: rig_from_mirror of per-camera mirror extrinsics
     rig_joint: object | None          # joint mirror-stereo adjustment with the far view
-    rig_conventional: object | None   # checkerboard at the far working distance
+    rig_conventional: object | None   # checkerboard at the far working distance, OpenCV's 5-term lens model
     figures: dict = field(default_factory=dict)
+    #: the same checkerboard views with a k1, k2-only lens model (what few far views can constrain)
+    rig_conventional_k1k2: object | None = None
 
 
 class Experiment:
@@ -271,7 +273,11 @@ class Experiment:
             scene = lab.with_mirror_tilt(k)
             for n in names:
                 stack = self._render_stack(scene, n, self._calib_imgs, f"calib|mirror{k}", self._seed(f"m{k}{n}"))
-                mirrored[n].append(self.detect(stack))
+                try:
+                    mirrored[n].append(self.detect(stack))
+                except DetectionError as exc:
+                    raise DetectionError(f"{n} camera, mirror tilt {k}: the mirrored target was not detected ({exc}); "
+                                         "the mirror method needs every tilt") from exc
         self.log(f"[calib] mirrored views detected: " + ", ".join(
             f"{n} {[len(d.ids) for d in mirrored[n]]}" for n in names))
         direct = {n: [] for n in names}
@@ -334,16 +340,22 @@ class Experiment:
             rig_joint = joint.rig
             figures["baseline_mm_joint"] = float(rig_joint.baseline)
             figures["far_view_points"] = int(len(ids))
-        rig_conv = None
+        rig_conv = rig_conv_k1k2 = None
         if self.cfg.checkerboard:
-            rig_conv = self._conventional(names, figures)
+            rig_conv, rig_conv_k1k2 = self._conventional(names, figures)
         self.timings["calibration_s"] = time.perf_counter() - t0
         rig = rig_joint if rig_joint is not None else rig_mirror
         return CalibrationOutcome(rig=rig, rig_mirror=rig_mirror, rig_joint=rig_joint, rig_conventional=rig_conv,
-                                  figures=figures)
+                                  figures=figures, rig_conventional_k1k2=rig_conv_k1k2)
 
     def _conventional(self, names, figures):
-        """Checkerboard at the far working distance: intrinsics and rig from those views only (OpenCV)."""
+        """Checkerboard at the far working distance: intrinsics and rig from those views only (OpenCV).
+
+        Returns ``(rig_opencv5, rig_k1k2)``: the rig with OpenCV's default 5-term lens model (k1, k2, p1,
+        p2, k3), and with a k1, k2-only model (``radial2``) — a small board far away leaves the outer
+        image unconstrained, where a 5-term fit can bend so much that it cannot be inverted; the
+        2-term fit is what a careful user would choose with such views. ``(None, None)`` when fewer
+        than 3 views are found in both cameras."""
         from calibration.features import detect_checkerboard
         from calibration.intrinsics import calibrate_intrinsics
         from calibration.stereo import stereo_calibrate
@@ -371,18 +383,21 @@ class Experiment:
         figures["conventional_views"] = len(both)
         if len(both) < 3:
             self.log(f"[calib] conventional: only {len(both)} checkerboard views found in both cameras; skipped")
-            return None
-        cams = {}
-        for n in names:
-            views = [p for p in per[n] if p is not None]
-            res = calibrate_intrinsics([X] * len(views), views, self.size, model="opencv5", name=n)
-            cams[n] = res.camera
-            figures.setdefault("conventional_reprojection_rms_px", {})[n] = float(res.rms)
-        sc = stereo_calibrate(cams[names[0]], cams[names[1]], [X] * len(both), [per[names[0]][i] for i in both],
-                              [per[names[1]][i] for i in both], uncertainty="none")
-        figures["conventional_stereo_rms_px"] = float(getattr(sc, "rms", float("nan")))
-        figures["baseline_mm_conventional"] = float(sc.rig.baseline)
-        return sc.rig
+            return None, None
+        rigs = []
+        for model, key in (("opencv5", "conventional"), ("radial2", "conventional_k1k2")):
+            cams = {}
+            for n in names:
+                views = [p for p in per[n] if p is not None]
+                res = calibrate_intrinsics([X] * len(views), views, self.size, model=model, name=n)
+                cams[n] = res.camera
+                figures.setdefault(f"{key}_reprojection_rms_px", {})[n] = float(res.rms)
+            sc = stereo_calibrate(cams[names[0]], cams[names[1]], [X] * len(both), [per[names[0]][i] for i in both],
+                                  [per[names[1]][i] for i in both], uncertainty="none")
+            figures[f"{key}_stereo_rms_px"] = float(getattr(sc, "rms", float("nan")))
+            figures[f"baseline_mm_{key}"] = float(sc.rig.baseline)
+            rigs.append(sc.rig)
+        return tuple(rigs)
 
     # -- measurement images -------------------------------------------------------------------
     def dot_views(self, position: int):

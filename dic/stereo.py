@@ -742,6 +742,26 @@ class StereoMatch:
                                                "icgn_status", "epipolar_px", "guess_source", "status")}
 
 
+def _warn_if_epipolar_mismatch(match: "StereoMatch", tol_px: float) -> None:
+    """Warn when most correlated points miss their epipolar line: the rig does not fit the images.
+
+    Isolated violations are bad matches; a majority means the calibration (usually the relative
+    rotation) or the image order is wrong, and every point would silently come out invalid."""
+    import warnings
+
+    violated = match.status == StereoStatus.EPIPOLAR_VIOLATION
+    correlated = violated | (match.status == StereoStatus.OK)
+    if np.count_nonzero(correlated) >= 10 and np.count_nonzero(violated) > 0.5 * np.count_nonzero(correlated):
+        median = float(np.nanmedian(match.epipolar_px[violated]))
+        warnings.warn(
+            f"{np.count_nonzero(violated)} of {np.count_nonzero(correlated)} correlated points are more than "
+            f"{tol_px:g} px from their epipolar line (median {median:.2f} px): the rig does not fit these images. "
+            "Check that left and right are not swapped and that the rig file belongs to this setup; a relative "
+            "rotation error of a few hundredths of a degree (e.g. a mirror-only calibration without a far view) "
+            "gives this. Recalibrate (specula calibrate stereo with --far) or raise epipolar_tol_px / --epipolar-tol.",
+            RuntimeWarning, stacklevel=3)
+
+
 def _final_status(res: _TrackResult, eligible: np.ndarray, failed_code: StereoStatus, extra_code: StereoStatus,
                   zncc_min: float) -> np.ndarray:
     """Per-POI StereoStatus of a correlation stage."""
@@ -845,6 +865,7 @@ class StereoCorrelation:
         self.timings["reference_prepare_s"] = time.perf_counter() - t0
         self._ideal_left, _ = undistort_points(rig.left, self.points, device=self.device, margin_px=np.inf)
         self.match = self._match() if match is None else self._check_match(match)
+        _warn_if_epipolar_mismatch(self.match, self.epipolar_tol_px)
         ok = self.match.valid
         self._matched = np.flatnonzero(ok)
         self.right = (_Correlator(right_ref, self.match.points_right[ok], self.subset, self.order, self.device,

@@ -204,6 +204,7 @@ def test_guesses_without_features_and_flat_regions(lab, measured):
     assert np.abs(sc.match.points_right[both] - sc_ref.match.points_right[both]).max() < 0.01
 
 
+@pytest.mark.filterwarnings("ignore:.*from their epipolar line")   # most points violate here: warned, see below
 def test_epipolar_outliers_flagged(lab):
     """A rig whose right camera is rolled by 0.9 deg: matches drift off their epipolar lines by 0.7-2.3 px."""
     rig = lab["rig"]
@@ -223,6 +224,24 @@ def test_epipolar_outliers_flagged(lab):
     assert np.all(st[expected > tol + 0.15] == StereoStatus.EPIPOLAR_VIOLATION)
     assert np.all(st[expected < tol - 0.15] == StereoStatus.OK)
     assert np.all(np.isnan(f.U[f.status == StereoStatus.EPIPOLAR_VIOLATION]))
+
+
+def test_rig_that_does_not_fit_warns(lab):
+    """Most matches off their epipolar lines (right camera rolled by ~2.9 deg: 4-7 px here) means a wrong
+    rig, not bad matches: the user gets a warning that says so; the correct rig gives none."""
+    import warnings
+
+    rig = lab["rig"]
+    (l0, r0) = lab["states"][0]
+    roll = rotation_from_vector([0.0, 0.0, 8.0 / 160.0])
+    wrong = StereoRig(rig.left, rig.right, roll @ rig.R_right_left, roll @ rig.t_right_left)
+    with pytest.warns(RuntimeWarning, match="from their epipolar line.*does not fit"):
+        f = stereo(wrong, l0, r0, step=20, epipolar_tol_px=1.0)
+    assert np.count_nonzero(f.status == StereoStatus.EPIPOLAR_VIOLATION) > 0.5 * len(f)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        good = stereo(rig, l0, r0, step=20, epipolar_tol_px=1.0)
+    assert np.count_nonzero(good.valid) > 0.9 * len(good)
 
 
 def test_points_behind_camera_and_degenerate_rays(lab):

@@ -1,0 +1,38 @@
+"""Grid linking of dot candidates (calibration.features._grow_lattice): robust to a spurious candidate."""
+import numpy as np
+
+from calibration.features import _grow_lattice
+
+
+def _grid(nx=8, ny=4, pitch=110.0, angle_deg=7.0):
+    a = np.radians(angle_deg)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    ij = np.array([(i, j) for j in range(ny) for i in range(nx)], float)
+    return ij, (ij * pitch) @ R.T + (600.0, 400.0)
+
+
+def _labels_match_grid(labels, ij):
+    """Labels are the grid indices up to a rotation/reflection and an offset: check through the
+    affine map between them (exact integers for a correct linking)."""
+    X = np.c_[labels, np.ones(len(labels))]
+    coef, *_ = np.linalg.lstsq(X, ij, rcond=None)
+    return np.allclose(X @ coef, ij, atol=1e-9) and np.allclose(np.abs(np.linalg.det(coef[:2])), 1.0)
+
+
+def test_every_dot_linked_with_a_spurious_candidate_at_the_middle():
+    ij, pts = _grid()
+    # a phase defect 25 px from a dot, placed where the median of the candidates falls: it is the
+    # first seed tried, and its nearest neighbour is not a lattice step
+    centre = np.median(pts, axis=0)
+    spurious = centre + (3.0, 2.0)
+    cands = np.vstack([pts, spurious])
+    labels, done = _grow_lattice(cands, 4 * len(pts))
+    assert done[: len(pts)].all(), f"only {done[: len(pts)].sum()} of {len(pts)} dots linked"
+    assert not done[-1]
+    assert _labels_match_grid(labels[: len(pts)], ij)
+
+
+def test_clean_grid_linked():
+    ij, pts = _grid(angle_deg=-20.0)
+    labels, done = _grow_lattice(pts, 4 * len(pts))
+    assert done.all() and _labels_match_grid(labels, ij)
