@@ -700,6 +700,17 @@ def _match_code(labels: np.ndarray, symbols: np.ndarray, target: PhaseTarget):
     return out
 
 
+def _placement_is_unique(best: int, second: int, n_dots: int) -> bool:
+    """Whether the best code placement (``best`` misread symbols) identifies the dots safely.
+
+    A full code window differs from any other placement in >= 2 cells, so with no misread dot a
+    margin of 2 suffices. Heavy defocus can misread a few dots' symbols (their phase offset is
+    shifted unevenly); up to 10 % of the dots (at least 1) may disagree with the code, provided
+    the next placement is at least twice as bad (margin >= 2 and >= 2 x best). The disagreeing
+    dots are then dropped, never relabelled."""
+    return best <= max(1, n_dots // 10) and second - best >= max(2, 2 * best)
+
+
 def _estimate_period(phase, modulation, mask):
     gx, gy, ok = _phase_gradient(phase, modulation, mask)
     g = np.hypot(gx, gy)[ok]
@@ -811,8 +822,7 @@ def detect_dots(
         placements = _match_code(lab, sym, target)
         best = placements[0]
         second = placements[1][0] if len(placements) > 1 else 10 ** 6
-        # a full code window differs from any other placement in >= 2 cells
-        if best[0] > 1 or second - best[0] < 2:
+        if not _placement_is_unique(best[0], second, len(lab)):
             raise DetectionError(
                 f"the dot code is ambiguous in this view (best placement {best[0]} mismatches, next {second}); "
                 f"{len(lab)} dots seen - show more of the target"

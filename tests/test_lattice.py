@@ -36,3 +36,16 @@ def test_clean_grid_linked():
     ij, pts = _grid(angle_deg=-20.0)
     labels, done = _grow_lattice(pts, 4 * len(pts))
     assert done.all() and _labels_match_grid(labels, ij)
+
+
+def test_code_placement_rule():
+    """The code decides ids only when the best placement is clearly unique (see _placement_is_unique)."""
+    from calibration.features import _placement_is_unique
+
+    assert _placement_is_unique(0, 2, 18)          # a full code window: unique
+    assert _placement_is_unique(1, 3, 18)          # one misread dot, next placement 3 cells off
+    assert not _placement_is_unique(1, 2, 18)      # one misread dot, next placement 2 cells off: ambiguous
+    assert _placement_is_unique(2, 28, 32)         # two misread of 32 (heavy defocus), next 28: unique
+    assert not _placement_is_unique(2, 28, 18)     # two misread of 18 is more than 10 %
+    assert not _placement_is_unique(3, 5, 32)      # margin below 2 x best
+    assert not _placement_is_unique(13, 13, 22)
