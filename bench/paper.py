@@ -128,9 +128,13 @@ def write_doc(results, files, path: Path):
     L.append(f"- command: `{r['command']}`; date {r['date']}; wall time {r['wall_s']:.0f} s "
              f"({r['renders']} renders, {r['render_s']:.0f} s of rendering, {r['cache_hits']} cache hits) on "
              f"{r['machine']} (shared, noisy timings).")
-    L.append(f"- scale {cfg['scale']} (cameras {r['image_size'][0]} × {r['image_size'][1]} px instead of 2352 × 1728; "
-             f"geometry, optics and field of view unchanged, so every length in camera px is {cfg['scale']} × the "
-             f"paper's), {cfg['samples']} samples per pixel, noise {'on' if cfg['noise'] else 'off'}.")
+    if cfg["scale"] == 1:
+        L.append(f"- full resolution (cameras {r['image_size'][0]} × {r['image_size'][1]} px, as the paper's), "
+                 f"{cfg['samples']} samples per pixel, noise {'on' if cfg['noise'] else 'off'}.")
+    else:
+        L.append(f"- scale {cfg['scale']} (cameras {r['image_size'][0]} × {r['image_size'][1]} px instead of 2352 × 1728; "
+                 f"geometry, optics and field of view unchanged, so every length in camera px is {cfg['scale']} × the "
+                 f"paper's), {cfg['samples']} samples per pixel, noise {'on' if cfg['noise'] else 'off'}.")
     L.append(f"- calibration target: coded phase dots {cfg['calib_grid'][0]} × {cfg['calib_grid'][1]} at "
              f"{cfg['calib_pitch']:g} screen px ({cfg['calib_pitch'] * 0.311:.2f} mm), 4 phase steps; 3 mirror tilts "
              f"per camera; {len(cfg['direct_distances_mm'])} direct views per camera at "
@@ -184,6 +188,13 @@ def write_doc(results, files, path: Path):
         L.append("|---|---|---|---|")
         L.append(f"| {len(pl['positions'])} | {pl['rms_mean_mm']:.4f} ± {pl['rms_std_mm']:.4f} | "
                  f"{pl['mean_abs_mean_mm']:.4f} | {np.mean(pl['valid']):.0f} of {np.mean(pl['points']):.0f} |\n")
+        L.append("Per position (label (x, y, z) in the 3 × 3 × 3 grid; z = 2 is the cameras' focus distance):\n")
+        L.append("| position | label | mean depth (mm) | RMS deviation (mm) | valid points |")
+        L.append("|---|---|---|---|---|")
+        for i, p in enumerate(pl["positions"]):
+            L.append(f"| {p} | {tuple(pl['labels'][i])} | {pl['centres_mm'][i][2]:.0f} | {pl['rms_mm'][i]:.4f} | "
+                     f"{pl['valid'][i]} |")
+        L.append("")
         if "paper_planarity.png" in files:
             L.append("![planarity](img/paper_planarity.png)\n")
     dt = r.get("displacement_test")
@@ -285,9 +296,9 @@ def main(argv=None) -> int:
               "reprojection_rms_px"):
         results[k] = results["summary"][k]
     results["notes"] = [
-        f"Images at scale {cfg.scale} of the paper's resolution: pixel-level errors (dot centres, DIC matches) are "
-        f"in larger pixels, so 3-D errors are roughly 1/scale times larger than at full resolution for the same "
-        f"sub-pixel accuracy.",
+        (f"Images at scale {cfg.scale} of the paper's resolution: pixel-level errors (dot centres, DIC matches) are "
+         f"in larger pixels, so 3-D errors are roughly 1/scale times larger than at full resolution for the same "
+         f"sub-pixel accuracy." if cfg.scale != 1 else "Images at the paper's full resolution (2352 × 1728 px)."),
         "The dot pattern is shown as phase dots (4 phase-shifted images of the 4 × 2 target, 300 px dots at 450 px "
         "pitch, with a code for identification) and located by Specula's phase-dot detector, not by intensity "
         "centroids as in the paper.",
