@@ -32,7 +32,6 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -40,6 +39,7 @@ import numpy as np
 
 from .field3d import Field3D
 from .stereo import StereoCorrelation, StereoMatch
+from .store import _now, _specula_version
 
 __all__ = ["stereo_sequence", "read_stereo", "read_field", "StereoResults", "FORMAT_NAME", "SCHEMA_VERSION"]
 
@@ -49,17 +49,6 @@ _MATCH_KEYS = ("points_left", "points_right", "params", "zncc", "iterations", "i
                "guess_source", "status")
 
 
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
-
-
-def _specula_version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("specula")
-    except Exception:  # pragma: no cover - not installed
-        return "unknown"
 
 
 def _digest(image: np.ndarray) -> str:

@@ -269,12 +269,7 @@ def make_speckle(
     if not (math.isfinite(background) and math.isfinite(contrast)):
         raise ValueError("background and contrast must be finite")
     if shape is not None:
-        try:
-            H, W = (int(n) for n in shape)
-        except (TypeError, ValueError):
-            raise ValueError(f"shape must be (H, W), got {shape!r}") from None
-        if H < 1 or W < 1:
-            raise ValueError(f"shape must be positive, got {(H, W)}")
+        H, W = _check_shape(shape)
         m = 4 * blur + _DEFAULT_MARGIN if margin is None else float(margin)
         if m < 0:
             raise ValueError(f"margin must be >= 0, got {margin}")
