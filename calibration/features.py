@@ -700,6 +700,35 @@ def _match_code(labels: np.ndarray, symbols: np.ndarray, target: PhaseTarget):
     return out
 
 
+def _trim_spurious_lines(labels: np.ndarray, points: np.ndarray, grid):
+    """Drop outer lattice rows/columns that make the linked grid larger than the target's.
+
+    A spurious candidate just outside the grid (a phase defect at the monitor's edge, a reflection)
+    sits one pitch beyond the last row and gets linked as a row of its own. While the linked grid
+    spans more lines than the target has (in either orientation) and has more points than the
+    target, the outermost line with the fewest points is removed if it holds at most a quarter of a
+    full line; otherwise nothing is trimmed and the size check reports the mismatch.
+
+    labels : (K, 2) int lattice indices; points : (K, 2) px. Returns the kept (labels, points)."""
+    big, small = max(grid), min(grid)
+    n_dots = grid[0] * grid[1]
+    while len(labels) > n_dots:
+        span = np.sort(labels.max(axis=0) - labels.min(axis=0) + 1)
+        if span[0] <= small and span[1] <= big:
+            break
+        span = labels.max(axis=0) - labels.min(axis=0) + 1
+        lines = []
+        for axis in (0, 1):
+            for end in (labels[:, axis].min(), labels[:, axis].max()):
+                members = labels[:, axis] == end
+                lines.append((int(members.sum()), axis, members))
+        count, axis, members = min(lines, key=lambda t: t[0])
+        if count > max(1, span[1 - axis] // 4):   # a line across the grid holds span[1 - axis] dots
+            break
+        labels, points = labels[~members], points[~members]
+    return labels, points
+
+
 def _placement_is_unique(best: int, second: int, n_dots: int) -> bool:
     """Whether the best code placement (``best`` misread symbols) identifies the dots safely.
 
@@ -772,6 +801,7 @@ def detect_dots(
     labels, found = _grow_lattice(cands, 4 * target.n_dots)
     pts = cands[found]
     lab = labels[found]
+    lab, pts = _trim_spurious_lines(lab, pts, target.grid)
     if len(pts) < 4:
         raise DetectionError(f"only {len(pts)} dots could be linked into a grid; at least 4 are needed")
     where = {tuple(l): n for n, l in enumerate(lab)}

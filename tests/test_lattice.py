@@ -49,3 +49,18 @@ def test_code_placement_rule():
     assert not _placement_is_unique(2, 28, 18)     # two misread of 18 is more than 10 %
     assert not _placement_is_unique(3, 5, 32)      # margin below 2 x best
     assert not _placement_is_unique(13, 13, 22)
+
+
+def test_spurious_row_trimmed():
+    """A candidate one pitch beyond the last row is linked as a 5th row of an 8 x 4 grid: trimmed."""
+    from calibration.features import _trim_spurious_lines
+
+    ij, pts = _grid()
+    extra_ij = np.array([[3, 4]])
+    labels = np.vstack([ij.astype(int), extra_ij])
+    points = np.vstack([pts, pts[3] + 4 * (pts[8] - pts[0])])
+    kept_labels, kept_points = _trim_spurious_lines(labels, points, (8, 4))
+    assert len(kept_labels) == 32 and not np.any(np.all(kept_labels == (3, 4), axis=1))
+    # a genuine grid is left alone, also when seen rotated (labels transposed)
+    same, _ = _trim_spurious_lines(ij.astype(int)[:, ::-1], pts, (8, 4))
+    assert len(same) == 32
