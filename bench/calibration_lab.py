@@ -29,6 +29,7 @@ tests/test_calibration_lab.py at reduced resolution.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import os
@@ -55,6 +56,9 @@ DIRECT_POSES = (
 #: Mirror-mount settings (about the mirror's vertical, horizontal axes; degrees). The first three are
 #: the lab's (and the paper's) three tilts; the improved setup adds two more on the same 3° cone.
 MIRROR_TILTS = ((3.0, 0.0), (-1.5, 2.6), (-1.5, -2.6), (1.5, 2.6), (1.5, -2.6))
+#: Indices into DIRECT_POSES at which the improved setup also shows the 24x12 target directly (one
+#: more render per pose and camera, ~1-3 min each at full resolution; ``--dense-poses`` picks a subset).
+DENSE_DIRECT_POSES = tuple(range(12))
 
 
 def paper_target(steps: int = 4) -> PhaseTarget:
@@ -290,7 +294,7 @@ def centre_errors(scene, camera: str, target: PhaseTarget, det, mirror_index=Non
 
 
 def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: int | None = None,
-        checks=None, boards: int = 15) -> dict:
+        checks=None, boards: int = 15, dense_poses=None) -> dict:
     from calibration import pipeline as pl
     from calibration.stereo import reconstruct_target, rig_from_mirror
 
@@ -305,7 +309,10 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         "camera_noise": "8-bit, read noise 1 DN, shot noise 80 e-/DN", "phase_steps": 4,
         "direct_poses": [list(p) for p in poses], "mirror_tilts_deg": [list(t) for t in S.tilts],
         "targets": {k: {"grid": list(t.grid), "pitch_px": t.pitch, "pitch_mm": t.spacing_mm} for k, t in targets.items()},
-        "detector": f"calibration.features.detect_dots(correct_blur={CORRECT_BLUR})",
+        "detector": f"calibration.features.detect_dots(correct_blur={CORRECT_BLUR}), then "
+                    "calibration.pipeline.filter_detection (vignetted dots: modulation slope > max(0.015, 3 x the view's "
+                    "median); poor phase fit: misfit > 1.5 x median)",
+        "dense_direct_poses": [i for i in DENSE_DIRECT_POSES if i < len(poses)] if dense_poses is None else list(dense_poses),
         "outlier_points": "removed above 4 x robust RMS (calibration.pipeline, reject_points=4)",
     }}
 
@@ -319,28 +326,41 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
             tgt = targets[tname]
             scene, stack = S.direct_view(cam, tgt, j, poses) if kind == "direct" else S.mirror_view(cam, tgt, j)
             t0 = time.time()
-            r = pl.detect_view(stack, tgt, name=f"{tname}:{kind}{j}", correct_blur=CORRECT_BLUR)
+            # detect with the dot filters off, measure every dot, then filter (as detect_view does)
+            r = pl.detect_view(stack, tgt, name=f"{tname}:{kind}{j}", correct_blur=CORRECT_BLUR, max_misfit=None,
+                               max_slope=None)
             dt = time.time() - t0
-            det[key] = r
             if r.ok:
-                e = centre_errors(scene, cam, tgt, r.detection, (0 if cam == "left" else 1) if kind == "mirror" else None)
-                n = np.linalg.norm(e, axis=1)
+                mirror = (0 if cam == "left" else 1) if kind == "mirror" else None
+                n_all = np.linalg.norm(centre_errors(scene, cam, tgt, r.detection, mirror), axis=1)
+                kept, removed, vignetted = pl.filter_detection(r.detection)
+                r = dataclasses.replace(r, detection=kept, removed=removed, vignetted=vignetted)
+                n = np.linalg.norm(centre_errors(scene, cam, tgt, kept, mirror), axis=1)
                 centre_stats[f"{cam} {tname}:{kind}{j}"] = {
                     "dots": len(n), "rms_px": float(np.sqrt(np.mean(n ** 2))), "median_px": float(np.median(n)),
-                    "max_px": float(n.max()), "blur_sigma_px": float(r.detection.blur_sigma), "detect_s": dt}
+                    "max_px": float(n.max()), "blur_sigma_px": float(r.detection.blur_sigma), "detect_s": dt,
+                    "vignetted_removed": len(vignetted), "misfit_removed": len(removed),
+                    "unfiltered": {"dots": len(n_all), "rms_px": float(np.sqrt(np.mean(n_all ** 2))),
+                                   "median_px": float(np.median(n_all)), "max_px": float(n_all.max())}}
                 log(f"    {cam} {tname}:{kind}{j}: {len(n)} dots, centre error RMS {np.sqrt(np.mean(n ** 2)):.4f} px "
-                    f"(median {np.median(n):.4f}, max {n.max():.3f}), blur σ {r.detection.blur_sigma:.1f} px, {dt:.0f} s")
-            else:
+                    f"(median {np.median(n):.4f}, max {n.max():.3f}), blur σ {r.detection.blur_sigma:.1f} px, {dt:.0f} s; "
+                    f"removed {len(vignetted)} vignetted + {len(removed)} misfit (unfiltered RMS "
+                    f"{np.sqrt(np.mean(n_all ** 2)):.4f}, max {n_all.max():.3f})")
+            det[key] = r
+            if not r.ok:
                 log(f"    {cam} {tname}:{kind}{j}: dropped — {r.error}")
         return det[key]
 
     # -- 1. intrinsics per camera: "paper" = the paper target at the direct poses + its 3 mirror tilts (paper
     #       Step 4); "improved" = the same direct views + the paper target at 5 tilts + the 24x12 target at 5 tilts
+    #       and directly at DENSE_DIRECT_POSES; "improved, no dense direct" leaves the latter out (for comparison)
     intr = {}
+    dense_direct = [i for i in DENSE_DIRECT_POSES if i < len(poses)] if dense_poses is None else list(dense_poses)
+    base = [("paper", "direct", i) for i in range(len(poses))] + [("paper", "mirror", k) for k in range(5)]
     cfg_intr = {
         "paper": [("paper", "direct", i) for i in range(len(poses))] + [("paper", "mirror", k) for k in range(3)],
-        "improved": ([("paper", "direct", i) for i in range(len(poses))] + [("paper", "mirror", k) for k in range(5)]
-                     + [("dense", "mirror", k) for k in range(5)]),
+        "improved": base + [("dense", "mirror", k) for k in range(5)] + [("dense", "direct", i) for i in dense_direct],
+        "improved, no dense direct": base + [("dense", "mirror", k) for k in range(5)],
     }
     for iname, items in cfg_intr.items():
         for cam in ("left", "right"):
@@ -558,6 +578,8 @@ def main(argv=None):
     p.add_argument("--cache", default="/tmp/specula_calibration_lab_cache", help="folder for rendered stacks ('' = none)")
     p.add_argument("--out", default=None, help="JSON output (default bench/results/calibration_lab.json at scale 1)")
     p.add_argument("--boards", type=int, default=15, help="checkerboard views for cv2.stereoCalibrate (0 = skip)")
+    p.add_argument("--dense-poses", default=None, metavar="I,J,...",
+                   help="indices of DIRECT_POSES at which to show the 24x12 target directly (default: DENSE_DIRECT_POSES)")
     p.add_argument("--export", default=None, metavar="DIR",
                    help="only write the session's image folders into DIR (see export_session) and stop")
     a = p.parse_args(argv)
@@ -565,7 +587,8 @@ def main(argv=None):
         export_session(a.export, scale=a.scale, samples=a.samples, cache=a.cache or None)
         return
     out = a.out or ("bench/results/calibration_lab.json" if a.scale == 1.0 else f"bench/results/calibration_lab_scale{a.scale:g}.json")
-    run(a.scale, a.samples, a.cache or None, out, boards=a.boards)
+    dense = None if a.dense_poses is None else [int(x) for x in a.dense_poses.split(",") if x.strip()]
+    run(a.scale, a.samples, a.cache or None, out, boards=a.boards, dense_poses=dense)
 
 
 if __name__ == "__main__":

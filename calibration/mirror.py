@@ -44,6 +44,8 @@ from .uncertainty import covariance_from_jacobian
 MIN_AXIS_ANGLE_DEG = 3.0
 #: Smallest rotation (deg) between two virtual targets (twice the mirror tilt between two poses).
 MIN_VIRTUAL_ROTATION_DEG = 0.5
+#: Fewest points a mirror pose must show (its virtual target pose comes from a PnP on them).
+MIN_POINTS_PER_VIEW = 4
 
 
 @dataclass
@@ -158,8 +160,13 @@ def _validate(camera, mirrored_points, object_points, what="mirrored_points"):
         q = np.asarray(q, dtype=np.float64)
         if q.shape != (X.shape[0], 2):
             raise ValueError(f"{what}[{j}] must have shape ({X.shape[0]}, 2) (rows aligned with object_points), got {q.shape}")
-        if not np.all(np.isfinite(q)):
-            raise ValueError(f"{what}[{j}] contains NaN or infinite values; remove undetected points from all views")
+        if np.any(np.isinf(q)) or np.any(np.isnan(q[:, 0]) != np.isnan(q[:, 1])):
+            raise ValueError(f"{what}[{j}] contains infinite values or rows with one NaN coordinate; mark a point "
+                             "not seen in a view by a row of two NaN")
+        n_seen = int(np.isfinite(q[:, 0]).sum())
+        if n_seen < MIN_POINTS_PER_VIEW:
+            raise ValueError(f"{what}[{j}] has only {n_seen} points (NaN rows are not seen); every mirror pose needs "
+                             f"at least {MIN_POINTS_PER_VIEW}: keep more of the target inside the mirror")
         views.append(q)
     return views, X
 
@@ -190,7 +197,8 @@ def mirror_closed_form(camera: Camera, mirrored_points, object_points) -> Mirror
     Xf = X @ MIRROR_FLIP.T
     virt_poses, virt = [], []
     for q in views:
-        R, t = _pnp(camera, Xf, q)
+        seen = np.isfinite(q[:, 0])
+        R, t = _pnp(camera, Xf[seen], q[seen])
         virt_poses.append((R, t))
         virt.append(transform_points(R, t, Xf))
     for j in range(K):
@@ -357,8 +365,11 @@ class _RigBundle:
             x0.append(np.concatenate([np.zeros(3), t]))
         self.n_params = o
         self.x0 = np.concatenate(x0) if x0 else np.zeros(0)
-        self.obs = np.concatenate([q.ravel() for q in left_obs] + [q.ravel() for q in right_obs]
-                                  + [np.concatenate([ql.ravel(), qr.ravel()]) for _, ql, qr in far])
+        obs = np.concatenate([q.ravel() for q in left_obs] + [q.ravel() for q in right_obs]
+                             + [np.concatenate([ql.ravel(), qr.ravel()]) for _, ql, qr in far])
+        # points not seen in a view (NaN rows) have no residual: their rows are left out
+        self.seen = np.isfinite(obs)
+        self.obs = np.where(self.seen, obs, 0.0)
         self._cache_x = None
 
     # -- parameter access -------------------------------------------------------------------------
@@ -480,8 +491,14 @@ class _RigBundle:
                 rows_J.append(J)
         r = np.concatenate(rows_r) - self.obs
         J = np.concatenate(rows_J, axis=0)
-        self._cache_x, self._cache = x.copy(), (r, J)
-        return r, J
+        self._cache_x, self._cache = x.copy(), (r[self.seen], J[self.seen])
+        self._full_r = np.where(self.seen, r, np.nan)
+        return self._cache
+
+    def full_residuals(self, x):
+        """Residuals (px) of every observation slot, NaN where the point was not seen."""
+        self.evaluate(x)
+        return self._full_r.copy()
 
     def residuals(self, x):
         return self.evaluate(x)[0]
@@ -513,7 +530,10 @@ def mirror_extrinsics(camera: Camera, mirrored_points, object_points, *, sigma_p
         Calibrated intrinsics (distortion included in the projection).
     mirrored_points : list of K arrays (N, 2) float64
         Image points (px) of the mirrored target for each mirror pose; rows aligned with
-        ``object_points`` (row i is the image of the reflection of target point i).
+        ``object_points`` (row i is the image of the reflection of target point i). A point not
+        seen (or rejected, e.g. vignetted by the mirror's edge) in a pose is a row of two NaN: the
+        closed form takes each pose's virtual target from its own points, the adjustment leaves
+        the missing observations out. Each pose needs at least ``MIN_POINTS_PER_VIEW`` points.
     object_points : (N, 3) float64
         Target points in the target frame (mm); N ≥ 4, not collinear.
     sigma_px : float, optional
@@ -537,13 +557,13 @@ def mirror_extrinsics(camera: Camera, mirrored_points, object_points, *, sigma_p
     cf = mirror_closed_form(camera, views, X)
     K = len(views)
     model = _RigBundle(camera, None, X, views, [], [], (cf.R_cam_target, cf.t_cam_target), None, cf.mirrors, [], [])
-    r0 = model.residuals(model.x0)
+    r0 = model.residuals(model.x0)  # seen points only
     cf_rms = float(np.sqrt(np.mean(np.sum(r0.reshape(-1, 2) ** 2, axis=1))))
     x, r, cov = model.solve(sigma_px, refine)
     p = model.unpack(x)
     R, t = p["target"]
-    per = r.reshape(K, -1, 2)
-    per_rms = np.sqrt(np.mean(np.sum(per ** 2, axis=2), axis=1))
+    per = model.full_residuals(x).reshape(K, -1, 2)
+    per_rms = np.sqrt(np.nanmean(np.sum(per ** 2, axis=2), axis=1))
     return MirrorExtrinsicsResult(
         R_cam_target=nearest_rotation(R), t_cam_target=t,
         mirrors=[MirrorPlane(n, d) for n, d in p["mirrors_left"]], closed_form=cf,
@@ -636,6 +656,7 @@ def joint_mirror_stereo(left: Camera, right: Camera, left_mirrored, right_mirror
                        right_result.mirrors, far0)
     x, r, cov = model.solve(sigma_px)
     p = model.unpack(x)
+    r = model.full_residuals(x)  # NaN where a point was not seen
     n = X.shape[0]
     sizes = {"left_mirrored": 2 * n * len(lv), "right_mirrored": 2 * n * len(rv)}
     for i, (Xf, _, _) in enumerate(far):
@@ -644,7 +665,7 @@ def joint_mirror_stereo(left: Camera, right: Camera, left_mirrored, right_mirror
     groups, o = {}, 0
     for name, s in sizes.items():
         rr = r[o:o + s].reshape(-1, 2)
-        groups[name] = float(np.sqrt(np.mean(np.sum(rr ** 2, axis=1))))
+        groups[name] = float(np.sqrt(np.nanmean(np.sum(rr ** 2, axis=1))))
         o += s
     R_rl, t_rl = p["rig"]
     rig = StereoRig(left, right, nearest_rotation(R_rl), t_rl, covariance=cov[model.sl["rig"], model.sl["rig"]],
@@ -654,5 +675,5 @@ def joint_mirror_stereo(left: Camera, right: Camera, left_mirrored, right_mirror
     return JointMirrorResult(rig=rig, R_left_target=nearest_rotation(R_lt), t_left_target=t_lt,
                              mirrors_left=[MirrorPlane(nn, dd) for nn, dd in p["mirrors_left"]],
                              mirrors_right=[MirrorPlane(nn, dd) for nn, dd in p["mirrors_right"]],
-                             far_poses_left=p["far"], rms=float(np.sqrt(np.mean(np.sum(r.reshape(-1, 2) ** 2, axis=1)))),
+                             far_poses_left=p["far"], rms=float(np.sqrt(np.nanmean(np.sum(r.reshape(-1, 2) ** 2, axis=1)))),
                              rms_groups=groups, covariance=cov, initial_rig=initial_rig)

@@ -95,6 +95,9 @@ MIRROR_POSE_SCHEMA = "specula.mirror_calibration"
 MIRROR_POSE_SCHEMA_VERSION = 1
 
 MODES = ("dots", "dense")
+#: Floor of :func:`detect_view`'s vignetting test (relative modulation change across a dot's fit
+#: window): about twice the largest value on the fully lit dots of the virtual lab's direct views.
+MIN_VIGNETTING_SLOPE = 0.015
 
 
 # ------------------------------------------------------------------------------------------------
@@ -238,6 +241,10 @@ class ViewResult:
     removed : list of (id, misfit)
         Dots the detector found but :func:`detect_view` removed because their phase fit is poor
         (``misfit`` = residual × modulation relative to the view's median; see ``max_misfit``).
+    vignetted : list of (id, slope)
+        Dots removed because the modulation falls off across their fit window (``slope``: the
+        relative change centre → window edge, see ``max_slope``): partly vignetted, e.g. by a
+        mirror's edge.
     """
 
     name: str
@@ -248,6 +255,7 @@ class ViewResult:
     preview: np.ndarray | None = None
     preview_step: int = 1
     removed: list = field(default_factory=list)
+    vignetted: list = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -278,6 +286,9 @@ class ViewResult:
             q = np.median(d.sigma_px) if np.any(np.isfinite(d.sigma_px)) else float("nan")
             extra = (f"; removed {len(self.removed)} dot(s) with a poor phase fit (ids "
                      f"{', '.join(str(i) for i, _ in self.removed)})") if self.removed else ""
+            if self.vignetted:
+                extra += (f"; removed {len(self.vignetted)} vignetted dot(s) (ids "
+                          f"{', '.join(str(i) for i, _ in self.vignetted)})")
             return (f"{self.name}: {len(d)} dots, {kind}, blur σ ≈ {d.blur_sigma:.1f} px, "
                     f"median centre σ {q:.4f} px{extra}")
         return f"{self.name}: {self.n_points} decoded pixels, {kind}"
@@ -296,7 +307,8 @@ def _check_mode(mode):
 
 def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | None = None,
                 min_modulation: float = 3.0, correct_blur: bool | None = None, min_points: int = 4,
-                max_misfit: float | None = 1.5, dense_erode: int = 2, device=None) -> ViewResult:
+                max_misfit: float | None = 1.5, max_slope: float | None = 3.0, dense_erode: int = 2,
+                device=None) -> ViewResult:
     """Demodulate one view and find the target in it.
 
     Parameters
@@ -320,6 +332,18 @@ def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | 
         mirror's edge, whose defocus blur the edge cuts (vignetting makes the blur spot lopsided), came
         out at 1.6–2.8 times the median and 0.05–0.3 px off, while every dot of the direct views stayed
         below 1.2. None keeps every dot.
+    max_slope : float or None
+        Dot mode: remove dots whose modulation falls off across their fit window (partial
+        vignetting): those whose ``DotDetection.modulation_slope`` (relative modulation change from
+        the dot's centre to its window's edge, plane fit) exceeds ``max_slope`` times the view's
+        median, and at least :data:`MIN_VIGNETTING_SLOPE`. Where a mirror's edge (0.4 m from the
+        lens) cuts part of the pupil, the pixels see a truncated, off-centre defocus blur and the
+        phase there is shifted; the misfit test misses most of these dots when the cell is small
+        (the residual stays low, the centre moves). In the virtual lab (full resolution) the direct
+        views' dots (blur σ 1-7 px, tilts up to 30°) all had a slope ≤ 0.008 and the fully lit
+        dots of mirrored views ≤ 0.008 (6×3 target) and ≤ 0.037 (24×12 target, view median 0.013);
+        the vignetted ones 0.02-0.17 (6×3, 0.04-0.18 px off) and 0.13-0.78 (24×12, 0.5-4.2 px off).
+        None keeps every dot.
     dense_erode : int
         Dense mode: pixels this close to the edge of the decoded area are discarded.
 
@@ -357,6 +381,32 @@ def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | 
         return ViewResult(name, size, error=f"target not found: {exc}", preview=preview, preview_step=step)
     if not (np.all(np.isfinite(det.image_points))):
         det = _subset_detection(det, np.all(np.isfinite(det.image_points), axis=1))
+    det, removed, vignetted = filter_detection(det, max_misfit=max_misfit, max_slope=max_slope, min_points=min_points)
+    if len(det) < min_points:
+        return ViewResult(name, size, error=f"only {len(det)} dots identified (need {min_points})", preview=preview,
+                          preview_step=step)
+    return ViewResult(name, size, detection=det, preview=preview, preview_step=step, removed=removed,
+                      vignetted=vignetted)
+
+
+def filter_detection(det: DotDetection, *, max_misfit: float | None = 1.5, max_slope: float | None = 3.0,
+                     min_points: int = 4):
+    """The dot filters of :func:`detect_view` (see its ``max_slope`` and ``max_misfit``) on a detection.
+
+    Returns ``(kept DotDetection, removed [(id, misfit)], vignetted [(id, slope)])``. A filter that
+    would leave fewer than ``min_points`` dots is skipped."""
+    if not isinstance(det, DotDetection):
+        raise ValueError(f"det must be a calibration.features.DotDetection, got {type(det).__name__}")
+    vignetted = []
+    if max_slope is not None and len(det) >= 4 and det.modulation_slope is not None:
+        slope = det.modulation_slope
+        finite = slope[np.isfinite(slope)]
+        if finite.size:
+            thr = max(MIN_VIGNETTING_SLOPE, max_slope * float(np.median(finite)))
+            bad = ~(slope <= thr)
+            if bad.any() and (~bad).sum() >= min_points:
+                vignetted = [(int(i), float(m)) for i, m in zip(det.ids[bad], slope[bad])]
+                det = _subset_detection(det, ~bad)
     removed = []
     if max_misfit is not None and len(det) >= 4:
         q = det.residual_rms * det.modulation
@@ -366,10 +416,7 @@ def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | 
             if bad.any() and (~bad).sum() >= min_points:
                 removed = [(int(i), float(m)) for i, m in zip(det.ids[bad], misfit[bad])]
                 det = _subset_detection(det, ~bad)
-    if len(det) < min_points:
-        return ViewResult(name, size, error=f"only {len(det)} dots identified (need {min_points})", preview=preview,
-                          preview_step=step)
-    return ViewResult(name, size, detection=det, preview=preview, preview_step=step, removed=removed)
+    return det, removed, vignetted
 
 
 def _subset_detection(det: DotDetection, keep) -> DotDetection:
@@ -377,7 +424,8 @@ def _subset_detection(det: DotDetection, keep) -> DotDetection:
     return DotDetection(image_points=det.image_points[keep], ids=det.ids[keep], object_points=det.object_points[keep],
                         residual_rms=det.residual_rms[keep], sigma_px=det.sigma_px[keep],
                         modulation=det.modulation[keep], n_pixels=det.n_pixels[keep], mirrored=det.mirrored,
-                        blur_sigma=det.blur_sigma)
+                        blur_sigma=det.blur_sigma,
+                        modulation_slope=None if det.modulation_slope is None else det.modulation_slope[keep])
 
 
 def detect_views(sources, target: PhaseTarget, *, names=None, progress=None, **kwargs) -> list[ViewResult]:
@@ -560,7 +608,9 @@ class IntrinsicsCalibration:
                 "dropped": [{"view": n, "reason": r} for n, r in self.dropped],
                 "dropped_points": [{"view": n, "id": i, "residual_px": r, "threshold_px": t}
                                    for n, i, r, t in self.dropped_points],
-                "removed_dots": {v.name: [{"id": i, "misfit": m} for i, m in v.removed] for v in self.views if v.removed}}
+                "removed_dots": {v.name: [{"id": i, "misfit": m} for i, m in v.removed] for v in self.views if v.removed},
+                "vignetted_dots": {v.name: [{"id": i, "modulation_slope": m} for i, m in v.vignetted]
+                                   for v in self.views if v.vignetted}}
 
 
 def _removed_lines(views) -> list[str]:
@@ -569,7 +619,12 @@ def _removed_lines(views) -> list[str]:
     if out:
         out.insert(0, "  dots removed for a poor phase fit (residual x modulation above 1.5x the view's median; "
                       "e.g. blur cut by a mirror's edge):")
-    return out
+    vig = [f"    {_short(v.name, 36)}: " + ", ".join(f"{i} ({m:.3f})" for i, m in v.vignetted)
+           for v in views if v.ok and v.vignetted]
+    if vig:
+        vig.insert(0, "  vignetted dots removed (modulation falls off across the dot: relative slope above 3x the "
+                      "view's median; e.g. part of the dot beyond a mirror's edge):")
+    return out + vig
 
 
 def _dropped_points_lines(dropped_points) -> list[str]:
@@ -796,7 +851,8 @@ class MirrorCalibration:
             "observations": {"point_ids": [int(i) for i in self.point_ids],
                              "object_points": self.object_points.tolist(),
                              "views": self.names,
-                             "mirrored_points": [np.asarray(q).tolist() for q in self.mirrored_points]},
+                             # points not seen in a view are NaN rows: written as null (strict JSON)
+                             "mirrored_points": [_nan_to_none(q) for q in self.mirrored_points]},
         }
 
     def save(self, path) -> None:
@@ -836,6 +892,11 @@ class MirrorCalibration:
     def load(cls, path) -> "MirrorCalibration":
         """Read a pose file written by :meth:`save`; another schema version raises ``ValueError``."""
         return cls.from_dict(_read_json(path, "mirror calibration"))
+
+
+def _nan_to_none(points) -> list:
+    """(N, 2) array → nested lists with None where a value is NaN (read back as NaN by ``np.asarray(..., float)``)."""
+    return [[None if not np.isfinite(v) else float(v) for v in row] for row in np.asarray(points, dtype=np.float64)]
 
 
 def _rotvec(R):
@@ -917,17 +978,21 @@ def calibrate_mirror_from_detections(camera: Camera, results, target: PhaseTarge
         why = "; ".join(f"{r.name}: {r.error}" for r in results if not r.ok) or "none dropped"
         raise ValueError(f"only {len(kept)} usable mirror views; the mirror calibration needs at least 3 tilts ({why})")
     if mode == "dots":
-        common = set(int(i) for i in kept[0].detection.ids)
-        for r in kept[1:]:
-            common &= set(int(i) for i in r.detection.ids)
-        ids = np.array(sorted(common), dtype=np.int64)
-        if len(ids) < min_common:
-            raise ValueError(f"only {len(ids)} dots are seen in every mirror view (need {min_common}); keep the whole "
-                             "target inside the mirror at every tilt, or use smaller tilts")
+        # every dot seen in at least one view; a view that misses a dot (outside the mirror, or removed
+        # as vignetted) has a NaN row there (mirror_extrinsics leaves it out)
+        for r in kept:
+            if len(r.detection) < min_common:
+                raise ValueError(f"only {len(r.detection)} dots are seen in mirror view {r.name} (need {min_common}); "
+                                 "keep more of the target inside the mirror at every tilt, or use smaller tilts")
+        ids = np.array(sorted(set().union(*(set(int(i) for i in r.detection.ids) for r in kept))), dtype=np.int64)
         q = []
         for r in kept:
             pos = {int(d): n for n, d in enumerate(r.detection.ids)}
-            q.append(r.detection.image_points[[pos[int(i)] for i in ids]])
+            qq = np.full((len(ids), 2), np.nan)
+            for n, i in enumerate(ids):
+                if int(i) in pos:
+                    qq[n] = r.detection.image_points[pos[int(i)]]
+            q.append(qq)
         X = target.object_points[ids]
     else:
         spacing = float(target.pitch / 2 if dense_spacing is None else dense_spacing)
@@ -951,8 +1016,8 @@ def calibrate_mirror_from_detections(camera: Camera, results, target: PhaseTarge
         res = mirror_extrinsics(camera, q, X, sigma_px=sigma_px)
         if reject_points is None:
             break
-        norms = np.linalg.norm(np.stack(res.residuals), axis=2)  # (K, N)
-        thr = _outlier_threshold(norms.ravel(), reject_points)
+        norms = np.linalg.norm(np.stack(res.residuals), axis=2)  # (K, N), NaN where not seen
+        thr = _outlier_threshold(norms[np.isfinite(norms)], reject_points)
         bad = (norms > thr).any(axis=0)
         if not bad.any() or len(ids) - bad.sum() < min_common:
             break

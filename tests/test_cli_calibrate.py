@@ -146,6 +146,7 @@ def test_intrinsics_command(cameras, data):
     assert meta["rms_px"] < 0.1 and len(meta["mirrored_views"]) == 3 and "fx" in meta["std"]
     figs = data[0] / "fig_left"
     assert (figs / "intrinsics_views.png").stat().st_size > 1000 and (figs / "intrinsics_residuals.png").exists()
+    assert (figs / "intrinsics_detail.png").stat().st_size > 1000
 
 
 @pytest.mark.parametrize("name", ["left", "right"])
@@ -184,6 +185,8 @@ def test_stereo_command(data, poses):
     scale = float(line.split("scale error ")[1].split(" %")[0])
     assert abs(scale) < 0.1
     assert (root / "rig.yml").exists() and (root / "fig_rig" / "stereo_check.png").exists()
+    # the residual figure is drawn only when the residuals recomputed for it reproduce the adjustment's RMS
+    assert (root / "fig_rig" / "stereo_residuals.png").stat().st_size > 1000 and "note:" not in res.output
     assert rig.covariance is not None
 
 
@@ -195,6 +198,22 @@ def test_stereo_paper_composition(poses, data):
     # the paper's composition only: weaker (0.1-0.2 deg expected at this noise), but the same rig
     assert rig.errors_to(StereoRig(LEFT, RIGHT, R_RL, T_RL))["rotation_deg"] < 0.5
     assert "composition" in res.output
+
+
+def test_stereo_export_refused(poses, data):
+    root, _, _ = data
+    # the left camera was calibrated with the opencv5 model (tangential terms): VIC-3D cannot hold it. The rig
+    # and the other exports are still written; the command exits 1 and says how to get a VIC-3D rig
+    out, dice, vic = root / "rig_v.json", root / "rig_v_dice.xml", root / "rig_v_vic3d.xml"
+    res = _run("stereo", "--left", poses["left"][0], "--right", poses["right"][0], "--no-joint", "-o", out,
+               "--export-vic3d", vic, "--export-dice", dice)
+    assert res.exit_code == 1
+    assert "not written" in res.output and "--model radial3" in res.output and "--allow-lossy" in res.output
+    assert out.exists() and dice.exists() and not vic.exists()
+    res = _run("stereo", "--left", poses["left"][0], "--right", poses["right"][0], "--no-joint", "-o", out,
+               "--export-vic3d", vic, "--allow-lossy")
+    assert res.exit_code == 0, res.output
+    assert vic.exists()
 
 
 def test_stereo_checkerboard(tmp_path):

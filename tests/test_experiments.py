@@ -76,3 +76,15 @@ def test_render_cache_round_trip(tmp_path):
     assert len(calls) == 2 and cache.hits == 1
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a, c)
+
+
+def test_config_validation_and_speckle_cache_key():
+    for bad in (dict(samples=0), dict(samples=2.5), dict(speckle_samples=0), dict(scale=0.0)):
+        with pytest.raises(ValueError, match="ExperimentConfig"):
+            ExperimentConfig(**bad)
+    base = ExperimentConfig(samples=4)
+    # speckle views rendered with more samples get their own cache entries; the calibration views' key is unchanged
+    more = ExperimentConfig(samples=4, speckle_samples=64)
+    assert base.speckle_key() == base.key() == more.key()
+    assert more.speckle_key() != more.key() and more.speckle_key()["samples"] == 64
+    assert more.speckle_render_samples == 64 and base.speckle_render_samples == 4

@@ -151,3 +151,64 @@ def test_bad_input():
     assert detect_checkerboard(np.full((100, 120), 128, np.uint8), CheckerboardTarget()) is None
     with pytest.raises(ValueError, match="colour image"):
         detect_circle_grid(np.zeros((10, 10, 3)), CircleGridTarget())
+
+
+def _vignetted_view(target, cam, R, t, *, blur_sigma, edge_x, band, seed):
+    """A view whose right part is cut by an aperture edge far out of focus (a mirror's edge 0.4 m
+    from the lens): left of ``edge_x - band`` every pixel sees the full defocus blur (a Gaussian of
+    ``blur_sigma``), right of ``edge_x + band`` none; in between the pupil is partly cut, so the
+    blur kernel along x is the Gaussian truncated at ``c(x) = 2.5 blur_sigma (edge_x - x) / band``
+    (rays with image offset u > c(x) miss the mirror). Independent of the detector: space-variant
+    convolution of the sharp float render, then 1 grey level of noise and 8-bit quantisation."""
+    from scipy.ndimage import correlate1d, gaussian_filter1d
+
+    sharp = render_view(target, cam, R, t, noise_sigma=0.0, bits=None, supersample=2)
+    sharp = gaussian_filter1d(sharp, blur_sigma, axis=1, mode="nearest")  # full blur along y
+    r = int(np.ceil(4 * blur_sigma))
+    u = np.arange(-r, r + 1, dtype=float)
+    g = np.exp(-0.5 * (u / blur_sigma) ** 2)
+    g /= g.sum()
+    cuts = np.linspace(-3 * blur_sigma, 3 * blur_sigma, 49)
+    # image(x) = sum_u sharp(x - u) g(u) [u <= c]: correlate1d with the reversed kernel
+    conv = np.stack([correlate1d(sharp, (g * (u <= c))[::-1], axis=2, mode="nearest") for c in cuts])
+    x = np.arange(cam.size[0], dtype=float)
+    c = np.clip(2.5 * blur_sigma * (edge_x - x) / band, cuts[0], cuts[-1])
+    j = np.clip(np.searchsorted(cuts, c) - 1, 0, len(cuts) - 2)
+    a = (c - cuts[j]) / (cuts[j + 1] - cuts[j])
+    cols = np.arange(len(x))
+    out = conv[j, :, :, cols] * (1 - a)[:, None, None] + conv[j + 1, :, :, cols] * a[:, None, None]
+    out = np.moveaxis(out, 0, -1)  # (n, H, W)
+    out = out + np.random.default_rng(seed).normal(0.0, 1.0, out.shape)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def test_vignetted_dots_flagged_by_modulation_slope_and_removed():
+    """Dots partly beyond a defocused aperture edge (a mirror's edge) have a lopsided blur: their
+    centres move by a few tenths of a px. The detector's modulation_slope flags them and
+    calibration.pipeline.detect_view removes them; fully lit dots are kept."""
+    from calibration.pipeline import MIN_VIGNETTING_SLOPE, detect_view
+
+    R, t = _pose(TARGET, tilt_y=20.0, roll=5.0)
+    truth = _truth(TARGET, R, t)
+    # the edge's transition band (+-40 px, like the lab's ~110 px wide mirror edge vs ~10 px
+    # defocus blur) over the right part of the rightmost dot column's cells
+    edge_x = float(np.max(truth[:, 0])) + 35.0
+    imgs = _vignetted_view(TARGET, CAM, R, t, blur_sigma=5.0, edge_x=edge_x, band=40.0, seed=11)
+    full = detect_view(imgs, TARGET, correct_blur=False, max_misfit=None, max_slope=None, device="cpu")
+    assert full.ok and len(full.detection) == 18
+    det = full.detection
+    err = np.linalg.norm(det.image_points - truth[det.ids], axis=1)
+    # the dots whose cell (about +-55 px around the centre) reaches the band are vignetted
+    hit = truth[det.ids, 0] + 55.0 > edge_x - 40.0  # the rightmost column
+    assert hit.sum() >= 3
+    # fully lit dots: flat modulation (measured slope <= 0.01) and centres within the in-focus
+    # bound; the vignetted ones at least 3x the lab's largest lit-dot slope and off by > 0.05 px
+    # (measured 0.1-0.3 px), i.e. worth removing
+    assert det.modulation_slope[~hit].max() < MIN_VIGNETTING_SLOPE
+    assert det.modulation_slope[hit].min() > 3 * 0.008
+    assert np.sqrt(np.mean(err[~hit] ** 2)) <= 0.02 < 0.05 < np.sqrt(np.mean(err[hit] ** 2))
+    kept = detect_view(imgs, TARGET, correct_blur=False, max_misfit=None, device="cpu")
+    assert sorted(i for i, _ in kept.vignetted) == sorted(det.ids[hit].tolist())
+    assert "vignetted" in kept.summary()
+    err_kept = np.linalg.norm(kept.detection.image_points - truth[kept.detection.ids], axis=1)
+    assert np.sqrt(np.mean(err_kept ** 2)) <= 0.02  # the in-focus acceptance bound

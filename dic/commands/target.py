@@ -44,7 +44,9 @@ def _write(target, out: str, prefix: str, dense: bool = False) -> None:
             paths.append(path)
     json_path = os.path.join(out, f"{prefix}.json")
     target.save_json(json_path)
-    click.echo(f"wrote {len(paths)} image(s) {target.screen[0]}x{target.screen[1]} and {json_path}")
+    names = [os.path.basename(p) for p in paths]
+    listed = names[0] if len(names) == 1 else f"{names[0]} … {names[-1]}"
+    click.echo(f"wrote {len(paths)} image(s) {target.screen[0]}x{target.screen[1]} ({listed}) in {out}, and {json_path}")
 
 
 def _common(f):
@@ -79,7 +81,9 @@ def fringes(screen, pixel_pitch, out, grid, pitch, steps, period, guard, no_code
     except ValueError as exc:
         raise click.ClickException(str(exc)) from exc
     _write(tg, out, "fringes", dense=dense)
-    click.echo(f"{tg.n_dots} dots, spacing {tg.spacing_mm:.3f} mm; show the images in order, one capture each")
+    click.echo(f"{tg.n_dots} dots, spacing {tg.spacing_mm:.3f} mm; show each image full screen and unscaled (1 screen "
+               f"px = 1 image px), in order, one capture each; give {os.path.join(out, 'fringes.json')} to "
+               "'specula calibrate' as --target")
 
 
 @target.command()
