@@ -130,11 +130,11 @@ def write_doc(results, files, path: Path):
              f"{r['machine']} (shared, noisy timings).")
     if cfg["scale"] == 1:
         L.append(f"- full resolution (cameras {r['image_size'][0]} × {r['image_size'][1]} px, as the paper's), "
-                 f"{cfg['samples']} samples per pixel, noise {'on' if cfg['noise'] else 'off'}.")
+                 f"{_samples_text(cfg)}, noise {'on' if cfg['noise'] else 'off'}.")
     else:
         L.append(f"- scale {cfg['scale']} (cameras {r['image_size'][0]} × {r['image_size'][1]} px instead of 2352 × 1728; "
                  f"geometry, optics and field of view unchanged, so every length in camera px is {cfg['scale']} × the "
-                 f"paper's), {cfg['samples']} samples per pixel, noise {'on' if cfg['noise'] else 'off'}.")
+                 f"paper's), {_samples_text(cfg)}, noise {'on' if cfg['noise'] else 'off'}.")
     L.append(f"- calibration target: coded phase dots {cfg['calib_grid'][0]} × {cfg['calib_grid'][1]} at "
              f"{cfg['calib_pitch']:g} screen px ({cfg['calib_pitch'] * 0.311:.2f} mm), 4 phase steps; 3 mirror tilts "
              f"per camera; {len(cfg['direct_distances_mm'])} direct views per camera at "
@@ -242,10 +242,20 @@ def write_doc(results, files, path: Path):
     path.write_text("\n".join(L) + "\n")
 
 
+def _samples_text(cfg: dict) -> str:
+    sp = cfg.get("speckle_samples")
+    if sp is None or sp == cfg["samples"]:
+        return f"{cfg['samples']} samples per pixel"
+    return f"{cfg['samples']} samples per pixel for the calibration and dot views, {sp} for the speckle views"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.paper", description=__doc__.splitlines()[0])
     ap.add_argument("--scale", type=float, default=0.25)
-    ap.add_argument("--samples", type=int, default=9)
+    ap.add_argument("--samples", type=int, default=9, help="render samples per pixel (calibration and dot views)")
+    ap.add_argument("--speckle-samples", type=int, default=None,
+                    help="render samples per pixel of the speckle views (default: --samples); defocused speckle "
+                         "needs many (docs/paper_reproduction.md)")
     ap.add_argument("--positions", default="27", help="27, 9, 1 or a comma list of indices 0..26")
     ap.add_argument("--cache", default=os.path.expanduser("~/.cache/specula/paper"))
     ap.add_argument("--no-noise", action="store_true")
@@ -259,7 +269,8 @@ def main(argv=None) -> int:
                                  run_dot_tests, run_planarity, _central_position)
 
     t0 = time.perf_counter()
-    cfg = ExperimentConfig(scale=args.scale, samples=args.samples, noise=not args.no_noise,
+    cfg = ExperimentConfig(scale=args.scale, samples=args.samples, speckle_samples=args.speckle_samples,
+                           noise=not args.no_noise,
                            positions=_positions(args.positions), device=args.device)
     exp = Experiment(cfg, cache=args.cache)
     cal = exp.calibrate()
