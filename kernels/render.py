@@ -596,22 +596,36 @@ def _render_kernel(
     samples: int,
     seed: int,
     jitter: int,
+    window: wp.vec4i,
+    window_only: int,
     out: wp.array(dtype=float),
     offset: int,
 ):
-    i = wp.tid() + offset
-    row = i / cam.width
-    col = i - row * cam.width
+    # window = (x0, y0, width, height); width 0 = no window. window_only = 1: the launch runs over
+    # the window's pixels with ``samples``; 0: over the whole image, skipping the window's pixels
+    # when there is one and rendering the others with a single sample (they see uniform background).
+    j = wp.tid() + offset
+    row = j / cam.width
+    col = j - row * cam.width
+    n_samples = samples
+    if window_only == 1:
+        row = window[1] + j / window[2]
+        col = window[0] + j - (j / window[2]) * window[2]
+    elif window[2] > 0:
+        if col >= window[0] and col < window[0] + window[2] and row >= window[1] and row < window[1] + window[3]:
+            return
+        n_samples = 1
+    i = row * cam.width + col
     state = wp.rand_init(seed, i)
     # aperture pattern: shifted per pixel (jitter) or the same in every pixel
     shift = wp.vec2(wp.randf(state), wp.randf(state))
     if jitter == 0:
         shift = wp.vec2(0.5, 0.5)
     # pixel-area pattern, the same in every pixel: an s x s grid of sub-cell centres when samples = s^2
-    grid = int(wp.sqrt(float(samples)) + 0.5)
-    if grid * grid != samples:
+    grid = int(wp.sqrt(float(n_samples)) + 0.5)
+    if grid * grid != n_samples:
         grid = 0
-    cell = 1.0 / wp.sqrt(float(samples))
+    cell = 1.0 / wp.sqrt(float(n_samples))
     # ideal normalised coordinates of the pixel centre (Newton from the distorted position)
     target = pixel_to_distorted(cam, float(col), float(row))
     centre = target
@@ -620,7 +634,7 @@ def _render_kernel(
     # angular size of one sub-cell: the texture filter width per mm of path
     footprint = cell / wp.sqrt(cam.fx * cam.fy)
     acc = float(0.0)
-    for k in range(samples):
+    for k in range(n_samples):
         q = float(k + 1) * R4_ALPHA
         px = q[0] + 0.5 - wp.floor(q[0] + 0.5)
         py = q[1] + 0.5 - wp.floor(q[1] + 0.5)
@@ -631,7 +645,7 @@ def _render_kernel(
         ay = q[3] + shift[1] - wp.floor(q[3] + shift[1])
         acc += camera_ray_radiance(cam, scene, float(col) + px - 0.5, float(row) + py - 0.5, centre,
                                    concentric_disk(ax, ay), footprint)
-    out[i] = sensor_response(sensor, acc / float(samples), state)
+    out[i] = sensor_response(sensor, acc / float(n_samples), state)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -765,7 +779,7 @@ _LOADED: set[str] = set()
 
 
 def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, samples: int = 16, seed: int = 0,
-                 jitter: bool = True, device=None, out=None) -> np.ndarray:
+                 jitter: bool = True, window=None, device=None, out=None) -> np.ndarray:
     """Render one camera image: float32 (H, W) grey levels (integers when the sensor quantises).
 
     Parameters
@@ -780,6 +794,12 @@ def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, s
         ``True``: the aperture pattern is shifted randomly in every pixel (defocus blur is
         unbiased; its quadrature error becomes a small per-pixel noise). ``False``: the same
         aperture pattern in every pixel. The pixel-area pattern is the same in every pixel anyway.
+    window : (x0, y0, x1, y1) ints, optional
+        Pixel columns ``x0 <= col < x1`` and rows ``y0 <= row < y1`` rendered with ``samples``;
+        every other pixel gets a single sample. Exact (the same image as without a window) when
+        the pixels outside see uniform radiance everywhere on the lens (background only, blur
+        included); the caller chooses the window so (e.g. :func:`dic.lab.object_window`). Small
+        objects in a large frame then cost a fraction of a full render. Clipped to the image.
     out : wp.array, optional
         float32 array of ``W·H`` elements on ``device`` to render into.
     """
@@ -793,6 +813,7 @@ def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, s
     if str(scene.mirrors.device) != device:
         raise ValueError(f"scene arrays live on {scene.mirrors.device}, but device={device!r}; build the scene on the render device")
     n = camera.width * camera.height
+    win = _pixel_window(window, camera.width, camera.height)
     if device not in _LOADED:  # compile once before the CPU chunks start (they would all compile it)
         wp.load_module(sys.modules[__name__], device=device)
         _LOADED.add(device)
@@ -800,9 +821,34 @@ def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, s
         out = wp.empty(n, dtype=float, device=device)
     elif out.shape != (n,) or out.dtype != wp.float32 or str(out.device) != device:
         raise ValueError(f"out must be a float32 warp array of {n} elements on {device}, got {out.shape} {out.dtype} on {out.device}")
-    launch_1d(_render_kernel, n, [camera, scene, sensor, int(samples), int(seed), int(bool(jitter)), out, 0], device, 7,
-              min_chunk=1024)
+    args = [camera, scene, sensor, int(samples), int(seed), int(bool(jitter)), wp.vec4i(*win), 0, out, 0]
+    launch_1d(_render_kernel, n, args, device, 9, min_chunk=1024)
+    if win[2] > 0 and win[2] * win[3] < n:
+        args[7] = 1  # then the window alone, with every sample: a launch of its own balances the CPU chunks
+        launch_1d(_render_kernel, win[2] * win[3], args, device, 9, min_chunk=256)
     return out.numpy().reshape(camera.height, camera.width)
+
+
+def _pixel_window(window, width: int, height: int) -> tuple[int, int, int, int]:
+    """(x0, y0, w, h) of ``window`` = (x0, y0, x1, y1) clipped to the image; (0, 0, 0, 0) for None.
+
+    A window that covers the whole image is returned as "no window" (every pixel gets every sample)."""
+    if window is None:
+        return (0, 0, 0, 0)
+    try:
+        x0, y0, x1, y1 = (float(v) for v in window)
+    except (TypeError, ValueError):
+        raise ValueError(f"window must be (x0, y0, x1, y1) pixel bounds, got {window!r}") from None
+    if not all(np.isfinite([x0, y0, x1, y1])):
+        raise ValueError(f"window bounds must be finite, got {window!r}")
+    x0, y0 = max(0, int(np.floor(x0))), max(0, int(np.floor(y0)))
+    x1, y1 = min(width, int(np.ceil(x1))), min(height, int(np.ceil(y1)))
+    if x1 <= x0 or y1 <= y0:
+        # nothing of interest in view: the whole image sees background, one sample per pixel is exact
+        return (0, 0, 1, 1) if (width, height) != (1, 1) else (0, 0, 0, 0)
+    if (x0, y0, x1, y1) == (0, 0, width, height):
+        return (0, 0, 0, 0)
+    return (x0, y0, x1 - x0, y1 - y0)
 
 
 __all__ = [

@@ -282,3 +282,38 @@ def test_deformed_marker_lands_where_its_displaced_point_projects(device):
     img = render(scene, 0, samples=64, seed=9, noise=False, quantize=False, device=device).astype(np.float64)
     err = _centroid(img, uv_ref, half=6) - uv_ref
     assert np.all(np.abs(err) < 0.02), err
+
+
+@pytest.mark.parametrize("position", [0, 26])  # a near and a far corner of the volume: strong defocus
+def test_window_render_is_the_full_render(device, position):
+    """Pixels outside window_around(...) see only background: rendering them with one sample
+    changes nothing (bit for bit, noise and quantisation included); a window cut into the monitor does."""
+    from dic.experiments import speckle_monitor_image
+    from dic.lab import paper_rig, window_around
+
+    lab = paper_rig(scale=0.5)
+    scene = lab.with_monitor_at(position).with_monitor_image(speckle_monitor_image(3.0, 5))
+    for cam in ("left", "right"):
+        win = window_around(scene, cam, scene.monitor.outer_corners())
+        blur = scene.camera(cam).blur_diameter_px(scene.camera(cam).world_to_camera(scene.monitor.center_world[None])[:, 2])
+        assert blur[0] > 0.4  # out of focus (0.4-0.8 px at half scale): the window needs its blur margin
+        full = render(scene, cam, samples=4, seed=4, device=device)
+        assert np.array_equal(render(scene, cam, samples=4, seed=4, window=win, device=device), full)
+        x0, y0, x1, y1 = win
+        cut = (x0 + 12, y0 + 12, x1 - 12, y1 - 12)
+        assert not np.array_equal(render(scene, cam, samples=4, seed=4, window=cut, device=device), full)
+
+
+def test_window_bad_input():
+    from dic.lab import paper_rig, window_around
+
+    scene = paper_rig(scale=0.25).with_monitor_at(13)
+    with pytest.raises(ValueError, match="window must be"):
+        render(scene, "left", samples=1, window=(1, 2, 3))
+    with pytest.raises(ValueError, match="finite"):
+        render(scene, "left", samples=1, window=(0, 0, np.nan, 10))
+    with pytest.raises(ValueError, match="points_world"):
+        window_around(scene, "left", np.zeros((2, 2)))
+    behind = scene.camera("left").center_world - 100.0 * scene.camera("left").axis_world
+    with pytest.raises(ValueError, match="behind the camera"):
+        window_around(scene, "left", behind[None])

@@ -86,7 +86,7 @@ def build_scene_geometry(scene: Scene, device=None):
 
 
 def render(scene: Scene, camera=0, *, samples: int = 16, seed: int = 0, noise: bool = True, quantize: bool = True,
-           jitter: bool = True, device=None) -> np.ndarray:
+           jitter: bool = True, window=None, device=None) -> np.ndarray:
     """Render the image that ``camera`` (index, name or LabCamera of ``scene``) records.
 
     Parameters
@@ -109,6 +109,13 @@ def render(scene: Scene, camera=0, *, samples: int = 16, seed: int = 0, noise: b
         aperture points in every pixel — with strong defocus the blur disk is then a fixed set of
         ``samples`` points, which shows as overlapping copies. In-focus content does not depend
         on it (the pixel-area pattern is always the same in every pixel).
+    window : (x0, y0, x1, y1), optional
+        Pixel bounds (columns ``x0..x1``, rows ``y0..y1``, exclusive ends) that get ``samples``
+        sub-samples; all other pixels get one. The image is the same as without a window as long
+        as the pixels outside see only uniform background (their radiance does not depend on
+        where the ray crosses the pixel or the lens): take it from :func:`window_around`, which
+        adds the defocus blur. A monitor filling 2 % of the frame then renders ~30x faster at 64
+        samples.
     device : str, optional
         Warp device (``None``: CUDA when present, else CPU).
 
@@ -126,11 +133,45 @@ def render(scene: Scene, camera=0, *, samples: int = 16, seed: int = 0, noise: b
                           cam.aperture_diameter_mm, cam.focus_distance_mm)
     sensor = _k.make_sensor(exposure=cam.exposure_dn, black=cam.black_level_dn, gain=cam.electrons_per_dn,
                             read_noise=cam.read_noise_dn, bit_depth=cam.bit_depth, noise=noise, quantize=quantize)
-    img = _k.render_image(lens, geom, sensor, samples=samples, seed=seed, jitter=jitter, device=device)
+    img = _k.render_image(lens, geom, sensor, samples=samples, seed=seed, jitter=jitter, window=window, device=device)
     del keep
     if not quantize:
         return img
     return img.astype(np.uint8 if cam.bit_depth <= 8 else np.uint16)
+
+
+def window_around(scene: Scene, camera, points_world, *, margin_px: float = 4.0) -> tuple[int, int, int, int]:
+    """Pixel window ``(x0, y0, x1, y1)`` that holds the direct image of a convex object, blur included.
+
+    ``points_world`` (N, 3) mm are the object's outline (e.g. a monitor's four corners with
+    its bezel, :meth:`Screen.outer_corners`); the window is the bounding box of their projections, grown at each
+    point by half its defocus blur diameter (:meth:`LabCamera.blur_diameter_px`) plus
+    ``margin_px`` (pixel-area filtering, distortion between the corners). Use it as
+    ``render(..., window=...)`` for a scene in which nothing else than that object is in view;
+    objects seen through mirrors are not covered. Raises ``ValueError`` when a point lies
+    behind the camera (the image of the object is then unbounded).
+    """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene must be a dic.lab.Scene, got {type(scene).__name__}")
+    if not (np.isfinite(margin_px) and margin_px >= 0):
+        raise ValueError(f"margin_px must be a finite number >= 0, got {margin_px!r}")
+    cam = scene.camera(camera)
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3) if np.size(points_world) % 3 == 0 else None
+    if pts is None or len(pts) == 0:
+        raise ValueError(f"points_world must have shape (N, 3) with N >= 1, got {np.shape(points_world)}")
+    # the segments between all pairs of points span the outline: their images bound the object's
+    # image even where lens distortion bends its straight edges outwards
+    t = np.linspace(0.0, 1.0, 33)[:, None]
+    pairs = [pts[a] + t * (pts[b] - pts[a]) for a in range(len(pts)) for b in range(a + 1, len(pts))]
+    pts = np.vstack([pts, *pairs])
+    depth = cam.world_to_camera(pts)[:, 2]
+    if not np.all(depth > 0):
+        raise ValueError("window_around: a point lies behind the camera; its image has no bounded window")
+    uv = project(scene, cam, pts)
+    reach = 0.5 * cam.blur_diameter_px(depth) + float(margin_px)
+    lo = np.min(uv - reach[:, None], axis=0)
+    hi = np.max(uv + reach[:, None], axis=0)
+    return (int(np.floor(lo[0])), int(np.floor(lo[1])), int(np.ceil(hi[0])) + 1, int(np.ceil(hi[1])) + 1)
 
 
 def project(scene: Scene, camera, points_world, *, mirror=None, return_mask: bool = False):

@@ -401,6 +401,13 @@ class Screen:
         W, H = self.resolution
         return self.to_world([[-0.5, -0.5], [W - 0.5, -0.5], [W - 0.5, H - 0.5], [-0.5, H - 0.5]])
 
+    def outer_corners(self) -> np.ndarray:
+        """(4, 3) world corners of the screen with its bezel (same order as :meth:`corners`)."""
+        W, H = self.resolution
+        bx, by = self.bezel_mm / self.pixel_pitch_mm[0], self.bezel_mm / self.pixel_pitch_mm[1]
+        return self.to_world([[-0.5 - bx, -0.5 - by], [W - 0.5 + bx, -0.5 - by], [W - 0.5 + bx, H - 0.5 + by],
+                              [-0.5 - bx, H - 0.5 + by]])
+
     @classmethod
     def facing(cls, center, normal, up=(0.0, -1.0, 0.0), **kw) -> "Screen":
         """A screen whose active area is centred at ``center`` (world mm), emitting along ``normal``, top edge towards ``up``."""
