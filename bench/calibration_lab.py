@@ -118,9 +118,10 @@ def common_pose(rig, center, ax: float = 0.0, ay: float = 0.0):
 
 def render_view_stack(scene, camera, images, *, samples: int, seed: int) -> np.ndarray:
     """Render the monitor showing each of ``images`` (K, 1080, 1920) uint8: (K, H, W) uint8."""
-    from dic.lab import render
+    from dic.lab import render, screens_window
 
-    return np.stack([render(scene.with_monitor_image(im), camera, samples=samples, seed=seed + 7919 * k)
+    window = screens_window(scene, camera)  # direct views: background pixels get one sample (same image)
+    return np.stack([render(scene.with_monitor_image(im), camera, samples=samples, seed=seed + 7919 * k, window=window)
                      for k, im in enumerate(images)])
 
 
@@ -361,13 +362,17 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         "paper": [("paper", "direct", i) for i in range(len(poses))] + [("paper", "mirror", k) for k in range(3)],
         "improved": base + [("dense", "mirror", k) for k in range(5)] + [("dense", "direct", i) for i in dense_direct],
         "improved, no dense direct": base + [("dense", "mirror", k) for k in range(5)],
+        # the same views as "improved", each weighted by its estimated noise (calibrate_intrinsics(weighting=
+        # "per_view")): the 24x12 views count for what they are worth instead of being dropped or swamping the bundle
+        "improved, weighted": base + [("dense", "mirror", k) for k in range(5)] + [("dense", "direct", i) for i in dense_direct],
     }
     for iname, items in cfg_intr.items():
         for cam in ("left", "right"):
             log(f"[intrinsics] {cam}, {iname}: {len(items)} views")
             views = [detect(cam, *it) for it in items]
             t0 = time.time()
-            ic = pl.calibrate_intrinsics_from_detections(views, name=cam)
+            ic = pl.calibrate_intrinsics_from_detections(views, name=cam,
+                                                         weighting="per_view" if "weighted" in iname else "equal")
             intr[(iname, cam)] = ic
             s = _summary_intrinsics(ic, S.rig.camera(cam).camera)
             s["time_s"] = time.time() - t0
@@ -381,6 +386,8 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
     mirr = {}
     configs = {"6x3_3tilts": ("paper", 3, "paper"), "6x3_5tilts": ("paper", 5, "improved"),
                "24x12_3tilts": ("dense", 3, "improved"), "24x12_5tilts": ("dense", 5, "improved"),
+               "6x3_5tilts_weighted": ("paper", 5, "improved, weighted"),
+               "24x12_5tilts_weighted": ("dense", 5, "improved, weighted"),
                "6x3_5tilts_exact_intrinsics": ("paper", 5, None)}
     for cname, (tname, k, iname) in configs.items():
         for cam in ("left", "right"):
@@ -426,6 +433,8 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         "improved: 6x3 dots, 5 tilts, joint + far view": ("6x3_5tilts", True),
         "24x12 dots, 5 tilts, per camera": ("24x12_5tilts", False),
         "24x12 dots, 5 tilts, joint + far view": ("24x12_5tilts", True),
+        "weighted intrinsics: 6x3 dots, 5 tilts, joint + far view": ("6x3_5tilts_weighted", True),
+        "weighted intrinsics: 24x12 dots, 5 tilts, joint + far view": ("24x12_5tilts_weighted", True),
         "reference: 6x3 dots, 5 tilts, joint + far view, exact intrinsics": ("6x3_5tilts_exact_intrinsics", True),
     }
     for label, (cname, joint) in rig_configs.items():

@@ -572,7 +572,8 @@ class IntrinsicsCalibration:
         cam = res.camera
         lines = [f"intrinsic calibration of {cam.name or 'camera'} ({self.mode} mode, model {res.model}): "
                  f"{len(res.view_indices)} of {len(self.views)} views, "
-                 f"{sum(len(self.image_points[i]) for i in res.view_indices)} points, RMS {res.rms:.4f} px"]
+                 f"{sum(len(self.image_points[i]) for i in res.view_indices)} points, RMS {res.rms:.4f} px"
+                 + (", views weighted by their noise" if res.weighting == "per_view" else "")]
         values = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}
         for i, nm in enumerate(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")):
             if i < cam.dist.size:
@@ -584,14 +585,17 @@ class IntrinsicsCalibration:
                 lines.append(f"  {nm:>4} = {val: 16.8g} ± {res.std[nm]:.3g}{unit}")
             else:
                 lines.append(f"  {nm:>4} = {val: 16.8g}   (fixed)")
-        lines.append("  view                                   points  kind      RMS (px)")
+        weighted = res.view_sigma is not None
+        lines.append("  view                                   points  kind      RMS (px)" + ("  noise σ (px)" if weighted else ""))
         rms_of = {int(i): float(r) for i, r in zip(res.view_indices, res.per_view_rms)}
+        sigma_of = {int(i): float(sv) for i, sv in zip(res.view_indices, res.view_sigma)} if weighted else {}
         for u, vi in enumerate(self.used):
             v = self.views[vi]
             kind = "mirrored" if v.mirrored else "direct"
             r = rms_of.get(u)
             lines.append(f"  {_short(v.name, 38):38s} {len(self.image_points[u]):6d}  {kind:8s}  "
-                         + (f"{r:.4f}" if r is not None else "dropped"))
+                         + (f"{r:.4f}" if r is not None else "dropped")
+                         + (f"    {sigma_of[u]:.4f}" if u in sigma_of else ""))
         for nm, why in self.dropped:
             lines.append(f"  dropped {nm}: {why}")
         lines.extend(_removed_lines(self.views))
@@ -601,8 +605,15 @@ class IntrinsicsCalibration:
     def metadata(self) -> dict:
         """JSON-ready summary stored in the camera file."""
         res = self.result
-        return {"method": "Zhang (cv2.calibrateCameraExtended), phase-target dots" if self.mode == "dots"
-                else "Zhang (cv2.calibrateCameraExtended), dense phase decoding",
+        method = ("Zhang (cv2.calibrateCameraExtended), phase-target dots" if self.mode == "dots"
+                  else "Zhang (cv2.calibrateCameraExtended), dense phase decoding")
+        if res.weighting == "per_view":
+            method += ", then a bundle adjustment weighting each view by its estimated noise"
+        extra = {}
+        if res.view_sigma is not None:
+            extra["view_noise_px"] = {self.views[self.used[int(i)]].name: float(sv)
+                                      for i, sv in zip(res.view_indices, res.view_sigma)}
+        return {"method": method, "weighting": res.weighting, **extra,
                 "model": res.model, "rms_px": res.rms, "std": res.std, "view_rms_px": self.view_rms(),
                 "mirrored_views": [self.views[self.used[i]].name for i, m in zip(res.view_indices, res.mirrored) if m],
                 "dropped": [{"view": n, "reason": r} for n, r in self.dropped],
@@ -649,8 +660,8 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
                                      max_view_rms: float | None = None, min_points: int = 6,
                                      reject_points: float | None = 4.0, dense_spacing: float | None = None,
                                      correct_blur: bool | None = None, max_misfit: float | None = 1.5,
-                                     min_modulation: float = 3.0, name: str = "", progress=None,
-                                     device=None) -> IntrinsicsCalibration:
+                                     min_modulation: float = 3.0, weighting: str = "equal", name: str = "",
+                                     progress=None, device=None) -> IntrinsicsCalibration:
     """Intrinsics of one camera from image stacks of the phase target, direct and mirrored views together.
 
     Parameters
@@ -662,12 +673,13 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
     mode : ``"dots"`` (dot centres) or ``"dense"`` (per-pixel screen coordinates, located on a grid
         of screen points every ``dense_spacing`` screen px, default ``target.pitch / 4``;
         :func:`dense_view_points`).
-    model, reject, max_view_rms :
-        As :func:`calibration.intrinsics.calibrate_intrinsics` (distortion model and outlier-view
-        rejection).
+    model, reject, max_view_rms, weighting :
+        As :func:`calibration.intrinsics.calibrate_intrinsics` (distortion model, outlier-view
+        rejection, ``"equal"`` or ``"per_view"`` weighting of the views by their noise).
     reject_points : float or None
         Outlier points: after each calibration, points whose residual exceeds ``reject_points`` times
-        the robust RMS of all residuals are removed and the calibration is repeated (listed in
+        the robust RMS of all residuals (with ``weighting="per_view"``: of the residuals divided by
+        their view's noise) are removed and the calibration is repeated (listed in
         ``dropped_points``). In the virtual lab this removes the dots whose defocus blur is cut by the
         edge of the mirror (vignetting makes their blur spot lopsided). None disables it.
     min_points : int
@@ -694,13 +706,13 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
     return calibrate_intrinsics_from_detections(results, model=model, reject=reject, max_view_rms=max_view_rms,
                                                 reject_points=reject_points, min_points=min_points,
                                                 dense_spacing=target.pitch / 4 if dense_spacing is None else dense_spacing,
-                                                name=name)
+                                                weighting=weighting, name=name)
 
 
 def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", reject: float | None = 3.0,
                                          max_view_rms: float | None = None, reject_points: float | None = 4.0,
                                          min_points: int = 6, dense_spacing: float = 75.0,
-                                         name: str = "") -> IntrinsicsCalibration:
+                                         weighting: str = "equal", name: str = "") -> IntrinsicsCalibration:
     """The bundle of :func:`calibrate_intrinsics_from_images` on views already detected (a list of
     :class:`ViewResult` from :func:`detect_views`, possibly of different targets or modes); same options
     (``dense_spacing`` in screen px for dense views)."""
@@ -738,10 +750,12 @@ def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", rej
     dropped_points = []
     for _ in range(6):
         res = calibrate_intrinsics(objs, imgs, size, mirrored=flags, model=model, reject=reject,
-                                   max_view_rms=max_view_rms, name=name)
+                                   max_view_rms=max_view_rms, weighting=weighting, name=name)
         if reject_points is None:
             break
         norms = [np.linalg.norm(r_, axis=1) for r_ in res.residuals]
+        if res.view_sigma is not None:  # weighted bundle: compare each point with its own view's noise
+            norms = [n_ / s_ for n_, s_ in zip(norms, res.view_sigma)]
         thr = _outlier_threshold(np.concatenate(norms), reject_points)
         removed = False
         for k, u in enumerate(res.view_indices):

@@ -168,22 +168,6 @@ def speckle_monitor_image(radius_px: float, seed: int, displacement=None) -> np.
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def _monitor_window(scene, cam: str):
-    """Pixel window holding the monitor (bezel and defocus blur included) in a direct view, else None.
-
-    Outside it a camera sees only the uniform background, so :func:`dic.lab.render` gives it one
-    sample per pixel: the same image, ~30x faster for a monitor far away (see ``render(window=)``).
-    """
-    from dic.lab import window_around
-
-    if scene.mirrors:
-        return None  # what is seen through a mirror is not bounded by the monitor's direct image
-    try:
-        return window_around(scene, cam, scene.screens[0].outer_corners())
-    except ValueError:  # the monitor (partly) behind the camera: render everything
-        return None
-
-
 def _camera_pose_world(lab_cam):
     R = np.asarray(lab_cam.R_cam_world, float)
     t = np.asarray(lab_cam.t_cam_world, float)
@@ -245,14 +229,17 @@ class Experiment:
 
     # -- rendering ---------------------------------------------------------------------------
     def _render(self, scene, cam: str, label: str, seed: int, samples: int | None = None, key: dict | None = None):
-        """Cached render of ``scene`` (or of ``scene()`` when it is a callable, built only on a cache miss)."""
-        from dic.lab import render
+        """Cached render of ``scene`` (or of ``scene()`` when it is a callable, built only on a cache miss).
+
+        Direct views of the monitor are windowed (:func:`dic.lab.screens_window`): the same image, the
+        background pixels rendered with one sample."""
+        from dic.lab import render, screens_window
 
         samples = self.cfg.samples if samples is None else samples
 
         def make():
             sc = scene() if callable(scene) else scene
-            return render(sc, cam, samples=samples, seed=seed, window=_monitor_window(sc, cam), device=self.cfg.device)
+            return render(sc, cam, samples=samples, seed=seed, window=screens_window(sc, cam), device=self.cfg.device)
 
         return self.cache.get(self.cfg.key() if key is None else key, f"{label}|{cam}", make)
 

@@ -149,6 +149,26 @@ def test_intrinsics_command(cameras, data):
     assert (figs / "intrinsics_detail.png").stat().st_size > 1000
 
 
+def test_intrinsics_command_per_view_weighting(data, cameras):
+    root, views, _ = data
+    path = root / "camera_left_weighted.json"
+    res = _run("intrinsics", "--target", root / "target.json", *views["left"]["direct"], *views["left"]["mirror"],
+               "-o", path, "--weighting", "per_view", "-q")
+    assert res.exit_code == 0, res.output
+    assert "weighted by their noise" in res.output and "noise σ (px)" in res.output
+    meta = json.loads(path.read_text())["metadata"]
+    assert meta["weighting"] == "per_view" and len(meta["view_noise_px"]) == 7
+    assert all(0.002 < s_ < 0.05 for s_ in meta["view_noise_px"].values())  # centre noise ~0.01-0.02 px here
+    cam, eq = Camera.load(path), Camera.load(cameras["left"][0])
+    # same views, each weighted by its noise: close to the equal-weight solution (views of one target
+    # and similar blur), and within the same bounds of the truth as test_intrinsics_command
+    assert abs(cam.fx - eq.fx) / eq.fx < 1e-3
+    assert abs(cam.fx - LEFT.fx) / LEFT.fx < 3e-3 and np.hypot(cam.cx - LEFT.cx, cam.cy - LEFT.cy) < 2.0
+    bad = _run("intrinsics", "--target", root / "target.json", *views["left"]["direct"], "-o", path,
+               "--weighting", "robust")
+    assert bad.exit_code != 0 and "robust" in bad.output
+
+
 @pytest.mark.parametrize("name", ["left", "right"])
 def test_mirror_command(data, poses, name):
     root, views, truth = data

@@ -146,3 +146,94 @@ def test_bad_views(rng):
         calibrate_intrinsics([X + [0, 0, 1.0] * np.arange(18)[:, None]] * 4, imgs, TRUE.size)
     with pytest.raises(ValueError, match=r"shape \(N, 2\)"):
         calibrate_intrinsics(objs, [q[:, :1] for q in imgs], TRUE.size)
+
+
+# -- per-view weighting ---------------------------------------------------------------------------
+X_DENSE = grid_points(24, 12, 93.3 / 4)  # a denser grid on the same area, measured less precisely
+
+
+def _mixed_views(rng, n_sparse=12, n_dense=12, sparse_noise=0.014, dense_noise=0.07):
+    """Views of the 6x3 target (precise) and of the 24x12 target (5x noisier), some mirrored."""
+    poses = _poses(n_views=n_sparse + n_dense, n_mirrored=3, seed=int(rng.integers(1 << 30)))
+    objs, imgs, mirrored = [], [], []
+    for v, (R, t, m) in enumerate(poses):
+        target, noise = (X, sparse_noise) if v < n_sparse else (X_DENSE, dense_noise)
+        P = transform_points(R, t, target)
+        q = TRUE.project(P * [-1.0, 1.0, 1.0] if m else P)
+        objs.append(target)
+        imgs.append(q + rng.normal(0, noise, q.shape))
+        mirrored.append(m)
+    return objs, imgs, mirrored
+
+
+def test_weighted_bundle_equals_opencv_on_duplicated_points(rng):
+    """With fixed weights, minimising Σ w_v |r|² is what OpenCV's unweighted bundle does when each point of
+    view v is given w_v times: an independent reference for the weighted solver."""
+    import cv2
+
+    from calibration.intrinsics import _calibrate, _estimated_parameters, _model_flags, _weighted_bundle
+
+    objs, imgs, mirrored = _mixed_views(rng, n_sparse=6, n_dense=6)
+    used = [(MIRROR_FLIP @ o.T).T if m else o for o, m in zip(objs, mirrored)]
+    weights = np.array([9 if o is X else 1 for o in objs])  # σ ratio 3: weight 9
+    flags, ndist = _model_flags()["opencv5"]
+    dup = _calibrate(cv2, [np.tile(o, (w, 1)) for o, w in zip(used, weights)],
+                     [np.tile(q, (w, 1)) for q, w in zip(imgs, weights)], TRUE.size, flags)
+    start = _calibrate(cv2, used, imgs, TRUE.size, flags)
+    sol, _ = _weighted_bundle(cv2, used, imgs, start, _estimated_parameters(flags, ndist), ndist,
+                              sigma=1.0 / np.sqrt(weights))
+    # the same minimum: equal weighted cost (ours is not higher) and the same parameters
+    cost_dup = sum(float(np.sum(r ** 2)) for r in dup["residuals"])
+    cost_ours = sum(w * float(np.sum(r ** 2)) for r, w in zip(sol["residuals"], weights))
+    assert cost_ours <= cost_dup * (1 + 1e-7)
+    def params(so):
+        K, d = so["K"], so["dist"]
+        return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d[:5]])
+
+    sigma = sol["std"][:9]  # fx fy cx cy k1 k2 p1 p2 k3
+    assert np.all(np.abs(params(sol) - params(dup)) < 0.005 * sigma)  # both solvers stop within 0.5 % of σ
+    assert np.max(np.abs(params(start) - params(dup)) / sigma) > 0.1  # the weights do change the solution
+
+
+def test_per_view_weighting_estimates_noise_and_improves_mixed_bundles():
+    """6x3 views at 0.014 px beside 24x12 views at 0.07 px: per-view weighting finds each view's noise
+    (within the χ² spread of ~30-570 degrees of freedom) and beats the equal-weight bundle on cx, cy, fx
+    over draws; its reported σ match the observed errors."""
+    rng = np.random.default_rng(11)
+    err = {"equal": [], "per_view": []}
+    sig = []
+    for _ in range(6):
+        objs, imgs, mirrored = _mixed_views(rng)
+        for weighting in err:
+            res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None, weighting=weighting)
+            e = np.array([res.camera.cx - TRUE.cx, res.camera.cy - TRUE.cy, res.camera.fx - TRUE.fx])
+            err[weighting].append(e)
+            if weighting == "per_view":
+                sparse = np.array([o is X for o in objs])
+                assert np.all(np.abs(res.view_sigma[sparse] / 0.014 - 1) < 0.45)
+                assert np.all(np.abs(res.view_sigma[~sparse] / 0.07 - 1) < 0.15)
+                sig.append([res.std["cx"], res.std["cy"], res.std["fx"]])
+    rms = {k: np.sqrt(np.mean(np.square(v), axis=0)) for k, v in err.items()}
+    assert np.sqrt(np.mean(rms["per_view"] ** 2)) < 0.8 * np.sqrt(np.mean(rms["equal"] ** 2))
+    ratio = rms["per_view"] / np.mean(sig, axis=0)
+    assert np.all((ratio > 0.4) & (ratio < 1.8)), ratio  # 6 draws: a loose χ² band on each of 3 parameters
+
+
+def test_per_view_rejection_compares_views_of_the_same_target(rng):
+    objs, imgs, mirrored = _mixed_views(rng, n_sparse=8, n_dense=8)
+    imgs[10] = imgs[10] + rng.normal(0, 0.5, imgs[10].shape)  # one bad 24x12 view (7x its target's noise)
+    res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=3.0, weighting="per_view")
+    assert [d.index for d in res.dropped] == [10]
+    assert "views of this target" in res.dropped[0].reason
+    # the equal-weight rule compares with all views: it also drops good 24x12 views (5x the 6x3 RMS)
+    eq = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=3.0, weighting="equal")
+    assert len(eq.dropped) > 1
+    assert "noise σ" in res.report() and "weighted by their noise" in res.report()
+
+
+def test_weighting_bad_input(rng):
+    objs, imgs, mirrored = _views(_poses(n_views=5), rng)
+    with pytest.raises(ValueError, match="weighting must be"):
+        calibrate_intrinsics(objs, imgs, TRUE.size, weighting="robust")
+    with pytest.raises(ValueError, match="extra_flags"):
+        calibrate_intrinsics(objs, imgs, TRUE.size, weighting="per_view", extra_flags=1)

@@ -317,3 +317,14 @@ def test_window_bad_input():
     behind = scene.camera("left").center_world - 100.0 * scene.camera("left").axis_world
     with pytest.raises(ValueError, match="behind the camera"):
         window_around(scene, "left", behind[None])
+
+
+def test_screens_window_only_for_mirrorless_screen_scenes():
+    from dic.lab import paper_rig, screens_window, window_around
+
+    rig = paper_rig(scale=0.25)
+    direct = rig.with_monitor_at(13)
+    assert screens_window(direct, "left") == window_around(direct, "left", direct.monitor.outer_corners())
+    assert screens_window(rig.with_mirror_tilt(0), "left") is None  # monitor seen through a mirror
+    with pytest.raises(ValueError, match="dic.lab.Scene"):
+        screens_window("scene", "left")

@@ -87,6 +87,8 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Run (or skip) the dot detector's defocus-bias correction (default: the detector's default).")
 @click.option("--min-modulation", default=3.0, show_default=True, type=click.FloatRange(min=0),
               help="Ignore pixels whose fringe modulation is below this (grey levels).")
+@click.option("--weighting", default="equal", show_default=True, type=click.Choice(["equal", "per_view"]),
+              help="per_view: weight each view by its estimated point noise (views blurred to different degrees).")
 @click.option("--figures", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Write PNG figures (detected centres per view, a close-up with dot ids, residuals, RMS per view) "
                    "into this folder.")
@@ -94,7 +96,7 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
 @click.option("-q", "--quiet", is_flag=True, help="No per-view progress lines.")
 def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, max_misfit,
                    reject_points, correct_blur,
-                   min_modulation, figure_dir, device, quiet):
+                   min_modulation, weighting, figure_dir, device, quiet):
     """Intrinsics of one camera from VIEWS of the phase target (direct and mirrored views together).
 
     Show the target's images on the monitor at many poses through the camera's depth of field (near
@@ -112,7 +114,7 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
             list(views), target, mode="dense" if dense else "dots", model=model, reject=reject or None,
             max_view_rms=max_view_rms, reject_points=reject_points or None, max_misfit=max_misfit or None,
             dense_spacing=dense_spacing,
-            correct_blur=correct_blur, min_modulation=min_modulation,
+            correct_blur=correct_blur, min_modulation=min_modulation, weighting=weighting,
             name=name if name is not None else output.stem, progress=_progress(quiet), device=device)
     except ValueError as exc:
         _fail(exc)

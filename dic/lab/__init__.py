@@ -7,7 +7,7 @@ Build a :class:`Scene` (or load one with :func:`load_scene`, or take the paper's
 from .camera import LabCamera, look_at
 from .io import load_scene, save_scene
 from .paper import MIRROR_TILTS_DEG, MonitorPose, PaperRig, paper_fringe_image, paper_rig, tilt_mirror
-from .rendering import project, render, window_around
+from .rendering import project, render, screens_window, window_around
 from .scene import (
     Displacement,
     Mirror,
@@ -25,5 +25,5 @@ __all__ = [
     "Displacement", "LabCamera", "MIRROR_TILTS_DEG", "Mirror", "MonitorPose", "PaperRig", "Scene", "Screen",
     "SpeckleCylinder", "SpeckleDisks", "SpecklePlane", "frame_from_normal", "load_scene", "look_at",
     "paper_fringe_image", "paper_rig", "project", "reflect_points", "render", "rotation_about", "save_scene",
-    "tilt_mirror", "window_around",
+    "screens_window", "tilt_mirror", "window_around",
 ]

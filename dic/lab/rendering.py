@@ -174,6 +174,22 @@ def window_around(scene: Scene, camera, points_world, *, margin_px: float = 4.0)
     return (int(np.floor(lo[0])), int(np.floor(lo[1])), int(np.ceil(hi[0])) + 1, int(np.ceil(hi[1])) + 1)
 
 
+def screens_window(scene: Scene, camera, *, margin_px: float = 4.0):
+    """Window around every screen of a mirrorless scene (bezels and blur included), or None.
+
+    For ``render(..., window=...)`` when the screens are all there is to see besides the uniform
+    background (no speckled surfaces): None when the scene has mirrors or surfaces (what they show
+    is not bounded by the screens' direct images) or a screen reaches behind the camera."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene must be a dic.lab.Scene, got {type(scene).__name__}")
+    if scene.mirrors or scene.planes or scene.cylinders or not scene.screens:
+        return None
+    try:
+        return window_around(scene, camera, np.vstack([s.outer_corners() for s in scene.screens]), margin_px=margin_px)
+    except ValueError:
+        return None
+
+
 def project(scene: Scene, camera, points_world, *, mirror=None, return_mask: bool = False):
     """Exact pixel positions (N, 2) of world points (N, 3) mm in ``camera``, directly or via a mirror.
 
