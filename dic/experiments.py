@@ -77,7 +77,8 @@ class ExperimentConfig:
     seed: int = 2019
     calib_grid: tuple = (8, 4)
     calib_pitch: float = 225.0
-    direct_distances_mm: tuple = (1100.0, 1300.0, 1500.0, 1700.0, 1900.0, 2100.0, 2400.0, 2700.0)
+    direct_distances_mm: tuple = (1100.0, 1250.0, 1400.0, 1600.0, 1700.0, 1800.0, 1900.0, 2000.0, 2150.0, 2300.0,
+                                  2500.0, 2700.0)
     far_view: bool = True
     checkerboard: bool = True
     checker_views: int = 10
@@ -252,22 +253,39 @@ class Experiment:
 
     # -- calibration views -----------------------------------------------------------------------
     def direct_poses(self, cam_index: int):
-        """Monitor poses for the direct intrinsic views of one camera (spread in depth, tilted ±25°)."""
+        """Monitor poses for the direct intrinsic views of one camera (spread in depth, tilted ±25°).
+
+        Views closer than 1.6 m are centred (the target fills most of the image); the farther ones are
+        pushed, in turn, toward the image's four corners and four edges until the target's image
+        touches the border (2 % margin). The lens distortion is then measured out to the corners,
+        where the test positions at the corners of the working volume image: with centred views
+        the distortion there was extrapolated and bent the reconstructed planes (docs/paper_reproduction.md).
+        """
         cam = self.lab.cameras[cam_index]
         R_cw, _, c = _camera_pose_world(cam)
         R_wc = R_cw.T
-        poses = []
         tilts = [(20, 0, 0), (-20, 0, 5), (0, 25, -5), (0, -25, 0), (15, 15, 10), (-15, -20, -10),
                  (20, -15, 0), (-10, 20, 5), (0, 0, 0), (10, 10, -5)]
+        directions = [(-1, -1), (1, 1), (1, -1), (-1, 1), (0, -1), (0, 1), (-1, 0), (1, 0)]
+        fx, fy, (W, H) = float(cam.camera.K[0, 0]), float(cam.camera.K[1, 1]), cam.size
+        lo, hi = self.calib_target._lit_lo * MONITOR_PITCH_MM, self.calib_target._lit_hi * MONITOR_PITCH_MM
+        lit = np.array([[lo[0], lo[1], 0.0], [hi[0], lo[1], 0.0], [hi[0], hi[1], 0.0], [lo[0], hi[1], 0.0]])
+        margin = 0.02 * W
+        poses, k = [], 0
         for n, d in enumerate(self.cfg.direct_distances_mm):
             tx, ty, roll = tilts[n % len(tilts)]
-            # off-axis placement at the farther distances so the image corners get points
-            fx, (W, H) = float(cam.camera.K[0, 0]), cam.size
-            off = np.array([0.22 * W * (1 if n % 2 else -1), 0.2 * H * (1 if (n // 2) % 2 else -1), 0.0]) * d / fx
             if d < 1600:
-                off[:] = 0.0
-            center = c + R_wc @ (np.array([0.0, 0.0, d]) + off)
-            poses.append(_monitor_pose_facing(center, R_wc, tx, ty, roll))
+                poses.append(_monitor_pose_facing(c + R_wc @ np.array([0.0, 0.0, d]), R_wc, tx, ty, roll))
+                continue
+            u, v = directions[k % len(directions)]
+            k += 1
+            for scale in np.linspace(1.0, 0.0, 41):  # the largest offset that keeps the target in view
+                off = np.array([u * scale * (W / 2) / fx * d, v * scale * (H / 2) / fy * d, d])
+                R, t = _monitor_pose_facing(c + R_wc @ off, R_wc, tx, ty, roll)
+                uv = cam.project(lit @ R.T + t)
+                if np.all((uv > margin) & (uv < np.array([W - 1, H - 1]) - margin)):
+                    break
+            poses.append((R, t))
         return poses
 
     def far_pose(self):
