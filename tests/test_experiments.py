@@ -88,3 +88,25 @@ def test_config_validation_and_speckle_cache_key():
     assert base.speckle_key() == base.key() == more.key()
     assert more.speckle_key() != more.key() and more.speckle_key()["samples"] == 64
     assert more.speckle_render_samples == 64 and base.speckle_render_samples == 4
+
+
+def test_direct_calibration_views_reach_the_image_corners():
+    """The default direct views put the calibration target at every corner and edge of each image (so
+    the lens distortion is measured where the corner test positions image, not extrapolated there)."""
+    import cv2
+
+    from dic.experiments import MONITOR_PITCH_MM
+
+    exp = Experiment(ExperimentConfig(scale=0.25, samples=1), cache=None, log=lambda m: None)
+    t = exp.calib_target
+    lo, hi = t._lit_lo * MONITOR_PITCH_MM, t._lit_hi * MONITOR_PITCH_MM
+    lit = np.array([[lo[0], lo[1], 0.0], [hi[0], lo[1], 0.0], [hi[0], hi[1], 0.0], [lo[0], hi[1], 0.0]])
+    for ci, cam in enumerate(exp.lab.cameras):
+        W, H = cam.size
+        polys = [cam.project(lit @ R.T + tt).astype(np.float32) for R, tt in exp.direct_poses(ci)]
+        for poly in polys:  # every view fits in the image
+            assert np.all(poly > 0) and np.all(poly < [W - 1, H - 1])
+        # points 12 % of the width/height in from each corner and from the middle of each edge
+        probes = [(fx * W, fy * H) for fx in (0.12, 0.5, 0.88) for fy in (0.12, 0.5, 0.88) if (fx, fy) != (0.5, 0.5)]
+        for p in probes:
+            assert any(cv2.pointPolygonTest(poly.reshape(-1, 1, 2), p, False) >= 0 for poly in polys), (cam.name, p)
