@@ -304,9 +304,16 @@ class Experiment:
         return poses
 
     def detect(self, stack):
-        from calibration.features import detect_dots_in_images
+        """Dots of a calibration view, with the calibration pipeline's dot filters.
 
-        return detect_dots_in_images(stack, self.calib_target, device=self.cfg.device)
+        :func:`calibration.pipeline.filter_detection` drops vignetted dots (fringe modulation falling
+        off across the dot: the blur spot cut by a mirror's edge; in this rig a whole row or column
+        of every mirrored view) and dots with a poor phase fit, as ``specula calibrate`` does."""
+        from calibration.features import detect_dots_in_images
+        from calibration.pipeline import filter_detection
+
+        kept, _, _ = filter_detection(detect_dots_in_images(stack, self.calib_target, device=self.cfg.device))
+        return kept
 
     def calibrate(self) -> CalibrationOutcome:
         """Render the calibration images and calibrate the rig with the project's pipeline."""

@@ -595,8 +595,11 @@ def _correlate(corr: _Correlator, current, guess: np.ndarray, has_guess: np.ndar
         have = np.isfinite(d[:, 1:])
         nb = np.where(have, acc[np.minimum(j[:, 1:], acc.size - 1)], -1)
         z_nb = np.where(have, zncc[np.maximum(nb, 0)], np.nan)
-        with np.errstate(all="ignore"):
-            med = np.nanmedian(np.where(np.sum(have, axis=1, keepdims=True) >= 3, z_nb, np.nan), axis=1)
+        # the neighbours' median ZNCC, for the POIs that have at least 3 neighbours (NaN for the others)
+        enough = np.sum(have, axis=1) >= 3
+        med = np.full(acc.size, np.nan)
+        if np.any(enough):
+            med[enough] = np.nanmedian(z_nb[enough], axis=1)
         suspect = np.isfinite(med) & (zncc[acc] < med - zncc_drop)
         if np.any(suspect):
             idx = acc[suspect]
