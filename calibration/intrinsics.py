@@ -309,7 +309,7 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
 
 
 def _target_groups(objs) -> np.ndarray:
-    """Group index per view: views of the same target (the same point spacing, to 1 %) share one.
+    """Group index per view: views of the same target (the same point spacing, in bins 2 % wide) share one.
 
     The spacing (the smallest distance between two object points) identifies the target even when a
     view misses some of its points."""
