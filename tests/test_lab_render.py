@@ -314,6 +314,8 @@ def test_window_bad_input():
         render(scene, "left", samples=1, window=(0, 0, np.nan, 10))
     with pytest.raises(ValueError, match="points_world"):
         window_around(scene, "left", np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="points_world"):
+        window_around(scene, "left", np.zeros((3, 2)))  # 6 numbers, but not (N, 3)
     behind = scene.camera("left").center_world - 100.0 * scene.camera("left").axis_world
     with pytest.raises(ValueError, match="behind the camera"):
         window_around(scene, "left", behind[None])
