@@ -7,6 +7,12 @@ Run from the repository root (the full-resolution run renders ~300 images and ta
     OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --scale 0.25 --samples 4   # quick
     .venv/bin/python -m bench.calibration_lab --export session/     # image folders for the CLI walk-through
 
+On 2 cores, render first with one process per camera (Warp's CPU launches use one core each), then run::
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --render-only left &
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --render-only right; wait
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab
+
 What it does, in the virtual lab's paper rig (``dic.lab.paper_rig``: two 2352 × 1728 px 8-bit cameras
 with read noise 1 DN and shot noise, 28 mm f/2.8 lenses focused at 5.4 m, 1650 mm baseline, mirrors
 400 mm ahead, the 27" monitor 650 mm behind the cameras):
@@ -18,7 +24,9 @@ with read noise 1 DN and shot noise, 28 mm f/2.8 lenses focused at 5.4 m, 1650 m
   mirror extrinsics per camera, the rig (per camera and joint with the far view), and
   reconstructs independent check views (distances between dots);
 * compares with the lab's ground truth, for the paper-faithful setup (6×3 dots, 3 tilts, per-camera
-  composition) and the improved one (24×12 dots, 5 tilts, joint adjustment with the far view), and
+  composition), the improved one (24×12 dots, 5 tilts, joint adjustment with the far view) and the
+  "more views" one (the improved setup with 48 instead of 12 direct poses of both targets per camera:
+  ``EXTRA_DIRECT_POSES``; ``--extra-views 0`` leaves it out), and
   with ``cv2.stereoCalibrate`` from a 9×6 checkerboard of 40 mm squares shown by the monitor around
   the working distance;
 * writes ``bench/results/calibration_lab.json`` (or ``--out``) and prints a table.
@@ -52,6 +60,21 @@ DIRECT_POSES = (
     (1150, 0, 0, 0, 0), (1250, 0, 0, 25, 0), (1250, 0, 0, 0, -30), (1500, -1, -1, -20, 20), (1500, 1, 1, 20, -20),
     (1800, 1, -1, -25, -15), (1800, -1, 1, 15, 25), (2200, -1, 1, 10, 30), (2200, 1, -1, -30, -10),
     (2700, 1, 1, 20, 20), (2700, -1, -1, -20, -20), (3400, 0, 0, 10, -15),
+)
+#: 36 more direct views for the "more views" setup (48 per camera with DIRECT_POSES): depths evenly over
+#: 1.15-3.4 m, tilts of 10-30° in directions spread by the golden angle, the target pushed to the image's
+#: corners, edges and centre in turn (generated once, written out so that cache keys stay stable).
+#: Why: with 12 views the principal point is known to ~0.3-0.5 px, i.e. ~0.005-0.007° of camera rotation
+#: that no mirror view can see; bench/intrinsics_design.py predicts 48 views halve it (docs/calibration.md).
+EXTRA_DIRECT_POSES = (
+    (1150, 1, 1, 10, 0), (1210, -1, 0, -17, 15), (1280, -1, -1, 1, -14), (1340, 0, 1, 16, 21), (1410, 1, -1, -17, -3),
+    (1470, 0, -1, 25, -16), (1540, -1, 1, -5, 20), (1600, 0, 0, -5, -10), (1660, 1, 0, 23, 8), (1730, 1, 1, -14, 6),
+    (1790, -1, 0, 12, -26), (1860, -1, -1, 6, 18), (1920, 0, 1, -9, -5), (1990, 1, -1, 22, -5), (2050, 0, -1, -8, 11),
+    (2110, -1, 1, -3, -26), (2180, 0, 0, 13, 11), (2240, 1, 0, -30, 1), (2310, 1, 1, 15, -15), (2370, -1, 0, -1, 12),
+    (2440, -1, -1, -16, -19), (2500, 0, 1, 15, 2), (2560, 1, -1, -23, 16), (2630, 0, -1, 4, -19), (2690, -1, 1, 5, 9),
+    (2760, 0, 0, -22, -7), (2820, 1, 0, 12, -6), (2890, 1, 1, -10, 24), (2950, -1, 0, -6, -16), (3010, -1, -1, 27, 14),
+    (3080, 0, 1, -20, 5), (3140, 1, -1, 6, -10), (3210, 0, -1, 4, 24), (3270, -1, 1, -12, -9), (3340, 0, 0, 28, -2),
+    (3400, 1, 0, -13, 14),
 )
 #: Mirror-mount settings (about the mirror's vertical, horizontal axes; degrees). The first three are
 #: the lab's (and the paper's) three tilts; the improved setup adds two more on the same 3° cone.
@@ -265,14 +288,22 @@ def _summary_mirror(mc, truth_pose):
             "reported_sigma_translation_mm": r.std_translation_mm.tolist()}
 
 
-def _summary_rig(rig, truth, checks=()):
+def _summary_rig(rig, truth, checks=(), calibration=None):
+    from calibration.camera import vector_from_rotation
+
     e = rig.errors_to(truth)
     out = {"rotation_error_deg": e["rotation_deg"], "translation_error_mm": e["translation_mm"],
            "baseline_error_mm": e["baseline_mm"], "baseline_error_percent": e["baseline_percent"],
-           "baseline_mm": rig.baseline}
+           "baseline_mm": rig.baseline,
+           "rotation_error_vector_deg": np.degrees(vector_from_rotation(rig.R_right_left @ truth.R_right_left.T)).tolist()}
     if rig.covariance is not None:
         out["reported_sigma_baseline_percent"] = 100 * rig.std_baseline_mm / rig.baseline
         out["reported_sigma_rotation_deg"] = rig.std_rotation_deg.tolist()
+        out["rotation_error_over_sigma"] = (np.array(out["rotation_error_vector_deg"]) / rig.std_rotation_deg).tolist()
+    if calibration is not None and calibration.covariance_intrinsic is not None:
+        # the rig's σ above includes both cameras' intrinsic covariances; these are its two parts
+        out["reported_sigma_rotation_views_only_deg"] = np.degrees(np.sqrt(np.diag(calibration.covariance_extrinsic)[:3])).tolist()
+        out["reported_sigma_rotation_intrinsics_deg"] = np.degrees(np.sqrt(np.diag(calibration.covariance_intrinsic)[:3])).tolist()
     if checks:
         ne = np.concatenate([c.neighbour_errors for c in checks])
         ae = np.concatenate([c.distance_errors for c in checks])
@@ -295,7 +326,7 @@ def centre_errors(scene, camera: str, target: PhaseTarget, det, mirror_index=Non
 
 
 def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: int | None = None,
-        checks=None, boards: int = 15, dense_poses=None) -> dict:
+        checks=None, boards: int = 15, dense_poses=None, extra_views: int | None = None) -> dict:
     from calibration import pipeline as pl
     from calibration.stereo import reconstruct_target, rig_from_mirror
 
@@ -305,10 +336,14 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
     rig_truth = true_rig(S.rig)
     targets = {"paper": paper_target(), "dense": dense_target()}
     poses = DIRECT_POSES if n_direct is None else DIRECT_POSES[:n_direct]
+    # the "more views" setup: the same session plus EXTRA_DIRECT_POSES (indices len(poses)...; 0 = leave it out)
+    extra = EXTRA_DIRECT_POSES if extra_views is None else EXTRA_DIRECT_POSES[:extra_views]
+    all_poses = tuple(poses) + tuple(extra)
     result = {"conditions": {
         "scale": scale, "image_size": list(S.rig.camera("left").size), "samples_per_pixel": samples,
         "camera_noise": "8-bit, read noise 1 DN, shot noise 80 e-/DN", "phase_steps": 4,
-        "direct_poses": [list(p) for p in poses], "mirror_tilts_deg": [list(t) for t in S.tilts],
+        "direct_poses": [list(p) for p in poses], "extra_direct_poses": [list(p) for p in extra],
+        "mirror_tilts_deg": [list(t) for t in S.tilts],
         "targets": {k: {"grid": list(t.grid), "pitch_px": t.pitch, "pitch_mm": t.spacing_mm} for k, t in targets.items()},
         "detector": f"calibration.features.detect_dots(correct_blur={CORRECT_BLUR}), then "
                     "calibration.pipeline.filter_detection (vignetted dots: modulation slope > max(0.015, 3 x the view's "
@@ -325,7 +360,7 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         key = (cam, tname, kind, j)
         if key not in det:
             tgt = targets[tname]
-            scene, stack = S.direct_view(cam, tgt, j, poses) if kind == "direct" else S.mirror_view(cam, tgt, j)
+            scene, stack = S.direct_view(cam, tgt, j, all_poses) if kind == "direct" else S.mirror_view(cam, tgt, j)
             t0 = time.time()
             # detect with the dot filters off, measure every dot, then filter (as detect_view does)
             r = pl.detect_view(stack, tgt, name=f"{tname}:{kind}{j}", correct_blur=CORRECT_BLUR, max_misfit=None,
@@ -366,6 +401,15 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         # "per_view")): the 24x12 views count for what they are worth instead of being dropped or swamping the bundle
         "improved, weighted": base + [("dense", "mirror", k) for k in range(5)] + [("dense", "direct", i) for i in dense_direct],
     }
+    if extra:
+        # "more views": 4x the direct views (both targets at every pose), the lever bench/intrinsics_design.py
+        # found for the principal point; equal and per-view weights
+        more = (base + [("paper", "direct", i) for i in range(len(poses), len(all_poses))]
+                + [("dense", "mirror", k) for k in range(5)]
+                + [("dense", "direct", i) for i in dense_direct + list(range(len(poses), len(all_poses)))])
+        cfg_intr["more views"] = more
+        cfg_intr["more views, weighted"] = more
+
     for iname, items in cfg_intr.items():
         for cam in ("left", "right"):
             log(f"[intrinsics] {cam}, {iname}: {len(items)} views")
@@ -388,8 +432,13 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
                "24x12_3tilts": ("dense", 3, "improved"), "24x12_5tilts": ("dense", 5, "improved"),
                "6x3_5tilts_weighted": ("paper", 5, "improved, weighted"),
                "24x12_5tilts_weighted": ("dense", 5, "improved, weighted"),
+               "6x3_5tilts_more_views": ("paper", 5, "more views"),
+               "6x3_5tilts_more_views_weighted": ("paper", 5, "more views, weighted"),
+               "24x12_5tilts_more_views_weighted": ("dense", 5, "more views, weighted"),
                "6x3_5tilts_exact_intrinsics": ("paper", 5, None)}
     for cname, (tname, k, iname) in configs.items():
+        if iname is not None and (iname, "left") not in intr:
+            continue
         for cam in ("left", "right"):
             views = [detect(cam, tname, "mirror", j) for j in range(k)]
             camera = intr[(iname, cam)].camera if iname else S.rig.camera(cam).camera
@@ -435,6 +484,9 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         "24x12 dots, 5 tilts, joint + far view": ("24x12_5tilts", True),
         "weighted intrinsics: 6x3 dots, 5 tilts, joint + far view": ("6x3_5tilts_weighted", True),
         "weighted intrinsics: 24x12 dots, 5 tilts, joint + far view": ("24x12_5tilts_weighted", True),
+        f"{len(all_poses)} direct views, equal weights: 6x3 dots, 5 tilts, joint + far view": ("6x3_5tilts_more_views", True),
+        f"{len(all_poses)} direct views, weighted: 6x3 dots, 5 tilts, joint + far view": ("6x3_5tilts_more_views_weighted", True),
+        f"{len(all_poses)} direct views, weighted: 24x12 dots, 5 tilts, joint + far view": ("24x12_5tilts_more_views_weighted", True),
         "reference: 6x3 dots, 5 tilts, joint + far view, exact intrinsics": ("6x3_5tilts_exact_intrinsics", True),
     }
     for label, (cname, joint) in rig_configs.items():
@@ -442,12 +494,13 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
             continue
         rc = pl.calibrate_rig_from_mirrors(mirr[(cname, "left")], mirr[(cname, "right")],
                                            far_views=[far] if joint else [], check_views=chk, joint=joint)
-        s = _summary_rig(rc.rig, rig_truth, rc.checks)
+        s = _summary_rig(rc.rig, rig_truth, rc.checks, calibration=rc)
         if rc.joint is not None:
             s["rms_groups_px"] = rc.joint.rms_groups
         result.setdefault("rig", {})[label] = s
-        log(f"[rig] {label}: rotation {s['rotation_error_deg']:.4f} deg, baseline {s['baseline_error_percent']:+.4f} %, "
-            f"check scale {s.get('check', {}).get('scale_error_percent', float('nan')):+.4f} %")
+        log(f"[rig] {label}: rotation {s['rotation_error_deg']:.4f} deg (error/σ per axis "
+            f"{np.round(s.get('rotation_error_over_sigma', [np.nan] * 3), 2).tolist()}), baseline "
+            f"{s['baseline_error_percent']:+.4f} %, check scale {s.get('check', {}).get('scale_error_percent', float('nan')):+.4f} %")
     if ("6x3_3tilts", "left") in mirr and ("6x3_3tilts", "right") in mirr:
         cf = rig_from_mirror(mirr[("6x3_3tilts", "left")].result.closed_form, mirr[("6x3_3tilts", "right")].result.closed_form,
                              left_camera=intr[("paper", "left")].camera, right_camera=intr[("paper", "right")].camera)
@@ -580,6 +633,25 @@ def export_session(out_dir: str, *, scale: float = 1.0, samples: int = 16, cache
     return out_dir
 
 
+def prerender(camera: str, *, scale: float = 1.0, samples: int = 16, cache: str, log=print) -> int:
+    """Render (into ``cache``) every direct view of ``camera``, both targets, and return how many stacks.
+
+    Warp's CPU launches use one core, so two of these (``--render-only left`` and ``--render-only right``)
+    fill a 2-core machine before the main run, which then reads the stacks from the cache."""
+    if not cache:
+        raise ValueError("--render-only needs a --cache folder to render into")
+    if camera not in ("left", "right"):
+        raise ValueError(f"--render-only: camera must be 'left' or 'right', got {camera!r}")
+    S = LabSession(scale=scale, samples=samples, cache=cache, log=log)
+    poses = tuple(DIRECT_POSES) + tuple(EXTRA_DIRECT_POSES)
+    n = 0
+    for tgt in (paper_target(), dense_target()):
+        for i in range(len(poses)):
+            S.direct_view(camera, tgt, i, poses)
+            n += 1
+    return n
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scale", type=float, default=1.0, help="camera resolution factor (1: 2352x1728)")
@@ -589,15 +661,23 @@ def main(argv=None):
     p.add_argument("--boards", type=int, default=15, help="checkerboard views for cv2.stereoCalibrate (0 = skip)")
     p.add_argument("--dense-poses", default=None, metavar="I,J,...",
                    help="indices of DIRECT_POSES at which to show the 24x12 target directly (default: DENSE_DIRECT_POSES)")
+    p.add_argument("--extra-views", type=int, default=None, metavar="N",
+                   help=f"how many of the {len(EXTRA_DIRECT_POSES)} EXTRA_DIRECT_POSES the 'more views' setup adds "
+                        "(default all; 0 = leave that setup out)")
+    p.add_argument("--render-only", default=None, choices=("left", "right"),
+                   help="only render (into --cache) every direct view of this camera, then stop")
     p.add_argument("--export", default=None, metavar="DIR",
                    help="only write the session's image folders into DIR (see export_session) and stop")
     a = p.parse_args(argv)
+    if a.render_only:
+        prerender(a.render_only, scale=a.scale, samples=a.samples, cache=a.cache)
+        return
     if a.export:
         export_session(a.export, scale=a.scale, samples=a.samples, cache=a.cache or None)
         return
     out = a.out or ("bench/results/calibration_lab.json" if a.scale == 1.0 else f"bench/results/calibration_lab_scale{a.scale:g}.json")
     dense = None if a.dense_poses is None else [int(x) for x in a.dense_poses.split(",") if x.strip()]
-    run(a.scale, a.samples, a.cache or None, out, boards=a.boards, dense_poses=dense)
+    run(a.scale, a.samples, a.cache or None, out, boards=a.boards, dense_poses=dense, extra_views=a.extra_views)
 
 
 if __name__ == "__main__":

@@ -156,16 +156,91 @@ def study(draws: int, noise_px: float, seed: int, designs=DESIGNS, log=print) ->
     return rows
 
 
+def sigma_check(draws: int, noise_px: float, seed: int, view_counts=(12, 48), log=print) -> list[dict]:
+    """Does the rig's reported rotation σ match its actual error? (``--sigma-check``)
+
+    Per draw: calibrate both cameras (``n`` direct 6 × 3 views to 30° + 5 mirrored views), the joint
+    mirror adjustment with the far view, and the rig covariance with and without both cameras'
+    intrinsic covariances (:func:`calibration.uncertainty.rig_covariance_from_intrinsics`). Reports,
+    per axis, the RMS of error / σ over the draws: ≈ 1 when σ is right."""
+    from calibration.camera import vector_from_rotation
+    from calibration.intrinsics import calibrate_intrinsics
+    from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
+    from calibration.uncertainty import paper_mirror_setup, rig_covariance_from_intrinsics, simulate_mirror_observations
+
+    rng = np.random.default_rng(seed)
+    setup = paper_mirror_setup(n_tilts=5)
+    X = setup.object_points
+    rows = []
+    for n_views in view_counts:
+        err, s_views, s_total = [], [], []
+        t0 = time.perf_counter()
+        for _ in range(draws):
+            obs = simulate_mirror_observations(setup, noise_px, rng)
+            cams = {}
+            for name, true_cam in (("left", setup.left), ("right", setup.right)):
+                views = direct_views(true_cam, X, n_views, 30.0, noise_px, rng)
+                mir = list(obs[f"{name}_mirrored"])
+                cams[name] = calibrate_intrinsics([v[0] for v in views] + [X] * len(mir), [v[1] for v in views] + mir,
+                                                  true_cam.size, mirrored=[False] * len(views) + [True] * len(mir),
+                                                  reject=None).camera
+            L = mirror_extrinsics(cams["left"], obs["left_mirrored"], X)
+            R = mirror_extrinsics(cams["right"], obs["right_mirrored"], X)
+            far = [(setup.far_object_points, obs["far_left"], obs["far_right"])]
+
+            def solve(lc, rc):
+                r = joint_mirror_stereo(lc, rc, obs["left_mirrored"], obs["right_mirrored"], X, far_views=far,
+                                        left_result=L, right_result=R).rig
+                return r.R_right_left, r.t_right_left
+
+            rig = joint_mirror_stereo(cams["left"], cams["right"], obs["left_mirrored"], obs["right_mirrored"], X,
+                                      far_views=far, left_result=L, right_result=R).rig
+            C_int = rig_covariance_from_intrinsics(solve, cams["left"], cams["right"], rig.R_right_left, rig.t_right_left)
+            err.append(np.degrees(vector_from_rotation(rig.R_right_left @ setup.R_right_left.T)))
+            s_views.append(np.degrees(np.sqrt(np.diag(rig.covariance)[:3])))
+            s_total.append(np.degrees(np.sqrt(np.diag(rig.covariance + C_int)[:3])))
+        e, sv, st = np.array(err), np.array(s_views), np.array(s_total)
+        row = {"direct_views_per_camera": n_views, "draws": draws, "noise_px": noise_px,
+               "rotation_error_rms_deg_per_axis": np.sqrt(np.mean(e ** 2, axis=0)).tolist(),
+               "sigma_views_only_mean_deg": sv.mean(axis=0).tolist(),
+               "sigma_with_intrinsics_mean_deg": st.mean(axis=0).tolist(),
+               "error_over_sigma_rms_views_only": np.sqrt(np.mean((e / sv) ** 2, axis=0)).tolist(),
+               "error_over_sigma_rms_with_intrinsics": np.sqrt(np.mean((e / st) ** 2, axis=0)).tolist(),
+               "seconds": time.perf_counter() - t0}
+        rows.append(row)
+        log(f"{n_views} views: error RMS {np.round(row['rotation_error_rms_deg_per_axis'], 4)} deg; σ views only "
+            f"{np.round(row['sigma_views_only_mean_deg'], 4)}, with intrinsics {np.round(row['sigma_with_intrinsics_mean_deg'], 4)}; "
+            f"error/σ RMS {np.round(row['error_over_sigma_rms_views_only'], 2)} -> "
+            f"{np.round(row['error_over_sigma_rms_with_intrinsics'], 2)}")
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.intrinsics_design", description=__doc__.splitlines()[0])
     ap.add_argument("--draws", type=int, default=40)
     ap.add_argument("--noise", type=float, default=0.014, help="image noise per coordinate (px)")
     ap.add_argument("--seed", type=int, default=2019)
     ap.add_argument("--json", default=str(ROOT / "bench/results/intrinsics_design.json"))
+    ap.add_argument("--sigma-check", action="store_true",
+                    help="instead: compare the rig's reported rotation σ (with / without the intrinsics) with its error "
+                         "(writes bench/results/rig_sigma_check.json unless --json is given)")
     args = ap.parse_args(argv)
     if args.draws < 2 or not args.noise > 0:
         ap.error("--draws must be >= 2 and --noise > 0")
     t0 = time.perf_counter()
+    if args.sigma_check:
+        rows = sigma_check(args.draws, args.noise, args.seed)
+        path = Path(args.json if "--json" in (argv if argv is not None else sys.argv) else
+                    ROOT / "bench/results/rig_sigma_check.json")
+        out = {"benchmark": "rig_sigma_check", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+               "command": "python -m bench.intrinsics_design " + " ".join(argv if argv is not None else sys.argv[1:]),
+               "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores", "wall_s": time.perf_counter() - t0,
+               "geometry": "calibration.uncertainty.paper_mirror_setup, 5 mirror tilts, far view at the crossing",
+               "rows": rows}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(out, indent=1))
+        print(f"wrote {path} ({out['wall_s']:.0f} s)")
+        return 0
     rows = study(args.draws, args.noise, args.seed)
     out = {"benchmark": "intrinsics_design", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "command": "python -m bench.intrinsics_design " + " ".join(argv if argv is not None else sys.argv[1:]),

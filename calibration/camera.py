@@ -12,6 +12,7 @@ Camera file (JSON, ``Camera.save`` / ``Camera.load``)::
      "name": "left", "size": [width, height],
      "K": [[fx, skew, cx], [0, fy, cy], [0, 0, 1]],  # px
      "dist": [k1, k2, p1, p2, k3, ...],              # OpenCV order, normalised coordinates
+     "covariance": {"names": ["fx", ...], "matrix": [[...]]},   # optional: of the calibrated parameters
      "metadata": {...}}                              # free, e.g. calibration report
 
 A file with another ``schema`` or ``schema_version`` is refused with a ``ValueError``.
@@ -36,7 +37,10 @@ FRAME_CONVENTIONS: dict[str, str] = {
     "distortion_model": "OpenCV: k1 k2 p1 p2 k3 k4 k5 k6 applied to normalised coordinates x/z, y/z",
     "pose_naming": "R_a_b, t_a_b map frame-b coordinates into frame a: x_a = R_a_b @ x_b + t_a_b",
 }
-CAMERA_UNITS: dict[str, str] = {"K": "px", "size": "px", "dist": "dimensionless", "lengths": "mm"}
+CAMERA_UNITS: dict[str, str] = {"K": "px", "size": "px", "dist": "dimensionless", "lengths": "mm",
+                                 "covariance": "products of the parameters' units (px for fx fy cx cy)"}
+#: Intrinsic parameter names, in the order of ``K``'s ``fx fy cx cy`` then OpenCV's distortion terms.
+INTRINSIC_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
 
 def _as_points(points, ncols: int, name: str) -> np.ndarray:
@@ -144,12 +148,21 @@ class Camera:
         Image size in pixels.
     name : str
         Free label (``"left"``, ``"right"``...).
+    covariance : (P, P) float64 or None
+        Covariance of the calibrated intrinsic parameters named in ``covariance_names`` (units: px² for
+        ``fx fy cx cy``, products with px for the mixed terms, dimensionless for distortion), as
+        :func:`calibration.calibrate_intrinsics` estimates it; None when unknown. The rig
+        calibration propagates it into the rig's covariance.
+    covariance_names : tuple of str
+        Parameter of each row/column of ``covariance``, from :data:`INTRINSIC_PARAMETERS`.
     """
 
     K: np.ndarray
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
     size: tuple[int, int] = (0, 0)
     name: str = ""
+    covariance: np.ndarray | None = None
+    covariance_names: tuple = ()
 
     def __post_init__(self):
         K = np.asarray(self.K, dtype=np.float64)
@@ -168,6 +181,43 @@ class Camera:
         if len(size) != 2 or min(size) < 0:
             raise ValueError(f"Camera.size must be (width, height) in pixels, got {self.size}")
         self.K, self.dist, self.size = K, dist, size
+        if self.covariance is not None:
+            C = np.asarray(self.covariance, dtype=np.float64)
+            names = tuple(str(n) for n in self.covariance_names)
+            if C.ndim != 2 or C.shape[0] != C.shape[1] or C.shape[0] != len(names) or not np.all(np.isfinite(C)):
+                raise ValueError(f"Camera.covariance must be a finite square matrix with one row per name in "
+                                 f"covariance_names ({len(names)}), got shape {C.shape}")
+            unknown = [n for n in names if n not in INTRINSIC_PARAMETERS[:4 + max(dist.size, 0)]]
+            if unknown or len(set(names)) != len(names):
+                raise ValueError(f"Camera.covariance_names must be distinct parameters of this camera "
+                                 f"({INTRINSIC_PARAMETERS[:4 + dist.size]}), got {names}")
+            if not np.allclose(C, C.T, rtol=1e-6, atol=1e-9 * float(np.max(np.abs(C), initial=0.0))) or np.min(np.diag(C)) < 0:
+                raise ValueError("Camera.covariance must be symmetric with a non-negative diagonal")
+            self.covariance, self.covariance_names = 0.5 * (C + C.T), names
+        elif self.covariance_names:
+            raise ValueError("Camera.covariance_names given without a covariance")
+
+    def parameter(self, name: str) -> float:
+        """Value of one intrinsic parameter by name (:data:`INTRINSIC_PARAMETERS`)."""
+        i = INTRINSIC_PARAMETERS.index(name) if name in INTRINSIC_PARAMETERS else -1
+        if i < 0 or i >= 4 + self.dist.size:
+            raise ValueError(f"unknown parameter {name!r} for a camera with {self.dist.size} distortion terms")
+        return float((self.fx, self.fy, self.cx, self.cy)[i]) if i < 4 else float(self.dist[i - 4])
+
+    def with_parameters(self, **values: float) -> "Camera":
+        """A copy with some intrinsic parameters changed, e.g. ``camera.with_parameters(cx=1175.2)``.
+
+        The copy carries no covariance (it describes other values)."""
+        K, dist = self.K.copy(), self.dist.copy()
+        for name, v in values.items():
+            i = INTRINSIC_PARAMETERS.index(name) if name in INTRINSIC_PARAMETERS else -1
+            if i < 0 or i >= 4 + dist.size:
+                raise ValueError(f"unknown parameter {name!r} for a camera with {dist.size} distortion terms")
+            if i < 4:
+                K[(0, 1, 0, 1)[i], (0, 1, 2, 2)[i]] = float(v)
+            else:
+                dist[i - 4] = float(v)
+        return Camera(K=K, dist=dist, size=self.size, name=self.name)
 
     # -- convenience -------------------------------------------------------------------------
     @property
@@ -343,6 +393,8 @@ class Camera:
             "K": self.K.tolist(),
             "dist": self.dist.tolist(),
         }
+        if self.covariance is not None:
+            out["covariance"] = {"names": list(self.covariance_names), "matrix": self.covariance.tolist()}
         if metadata:
             out["metadata"] = metadata
         return out
@@ -356,7 +408,12 @@ class Camera:
         missing = [k for k in ("K", "dist", "size") if k not in data]
         if missing:
             raise ValueError(f"camera description lacks the keys {missing}")
-        return cls(K=data["K"], dist=data["dist"], size=tuple(data["size"]), name=str(data.get("name", "")))
+        cov = data.get("covariance")
+        if cov is not None and not (isinstance(cov, dict) and "names" in cov and "matrix" in cov):
+            raise ValueError("camera description: 'covariance' must be {'names': [...], 'matrix': [[...]]}")
+        return cls(K=data["K"], dist=data["dist"], size=tuple(data["size"]), name=str(data.get("name", "")),
+                   covariance=None if cov is None else cov["matrix"],
+                   covariance_names=() if cov is None else tuple(cov["names"]))
 
     def save(self, path, metadata: dict | None = None) -> None:
         """Write the camera as JSON (see module docstring); ``metadata`` is stored as given."""

@@ -379,7 +379,12 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
     half = pitch / 2 - border
     taper = 0.05 * pitch
     A_window = A0 if A_window is None else A_window
-    Ainv = np.linalg.inv(A_window)
+    if not np.all(np.isfinite(A_window)) or abs(np.linalg.det(A_window)) < 1e-300:
+        return None  # a degenerate start (e.g. a dot a few pixels wide in a small image): no fit, not a crash
+    try:
+        Ainv = np.linalg.inv(A_window)
+    except np.linalg.LinAlgError:
+        return None
     corners = _apply_h(Ainv, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * (pitch / 2))
     x0, y0 = np.floor(corners.min(axis=0)).astype(int) - 2
     x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 2
@@ -831,8 +836,11 @@ def detect_dots(
         if len(src) < 4 or np.linalg.matrix_rank(src - src.mean(axis=0)) < 2:
             fits.append(None)
             continue
-        A0 = np.linalg.inv(_homography(src, dst))
-        fit = _fit_dot(phase, modulation, mask, A0, target.period, pitch, rho_in, border)
+        try:
+            A0 = np.linalg.inv(_homography(src, dst))
+            fit = _fit_dot(phase, modulation, mask, A0, target.period, pitch, rho_in, border)
+        except np.linalg.LinAlgError:
+            fit = None  # degenerate neighbourhood (dots a few pixels apart): this dot has no fit
         fits.append(fit if fit is not None and fit.coverage >= min_coverage else None)
     keep = np.array([f is not None for f in fits])
     if keep.sum() < 4:
@@ -850,6 +858,10 @@ def detect_dots(
     sym = np.mod(np.rint((phi0 - common) / step), target.levels).astype(np.int64)
     if target.coded:
         placements = _match_code(lab, sym, target)
+        if not placements:
+            raise DetectionError(
+                f"the {len(lab)} linked dots span more rows or columns than the {target.grid[0]} x {target.grid[1]} "
+                "target in every orientation (spurious or mislinked dots); check the target file and the view")
         best = placements[0]
         second = placements[1][0] if len(placements) > 1 else 10 ** 6
         if not _placement_is_unique(best[0], second, len(lab)):

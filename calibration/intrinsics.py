@@ -82,6 +82,10 @@ class IntrinsicsResult:
         One standard deviation of each estimated intrinsic parameter (``fx fy cx cy`` in px,
         distortion coefficients dimensionless), from OpenCV's ``stdDeviationsIntrinsics`` (the
         Gauss–Newton covariance scaled by the residual variance). Fixed parameters are left out.
+        The full covariance (correlations included: cx with p1, cy with p2...) travels with the
+        camera as ``camera.covariance`` / ``camera.covariance_names`` (also :attr:`covariance`), the
+        intrinsic block of the bundle's covariance (poses marginalised); it is None with
+        ``extra_flags``. The rig calibration propagates it (``calibration.pipeline.calibrate_rig_from_mirrors``).
     poses : list[tuple[(3, 3), (3,)]]
         ``(R_cam_target, t_cam_target)`` per kept view (mm); for mirrored views see the module
         docstring (pose of the flipped object points, a proper rotation).
@@ -116,6 +120,11 @@ class IntrinsicsResult:
     flip: np.ndarray = field(default_factory=lambda: MIRROR_FLIP.copy())
     weighting: str = "equal"
     view_sigma: np.ndarray | None = None
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """(P, P) covariance of the estimated intrinsics named in ``camera.covariance_names``, or None."""
+        return self.camera.covariance
 
     def report(self) -> str:
         """A short readable report: parameters ± σ, RMS per view, dropped views."""
@@ -285,7 +294,15 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
                                            estimated, ndist)
     K = sol["K"]
     dist = sol["dist"][:ndist] if ndist else np.zeros(0)
-    camera = Camera(K=K, dist=dist, size=(w, h), name=name)
+    cov_names, cov = sol.get("covariance_names", ()), sol.get("covariance")
+    if cov is None and not extra_flags:
+        # the full covariance (OpenCV returns only its diagonal): the rig calibration propagates it
+        cov_names, cov = _intrinsic_covariance(cv2, [used_objs[i] for i in keep], [imgs[i] for i in keep], sol,
+                                               estimated, ndist)
+    if cov is not None and not (np.all(np.isfinite(cov)) and np.min(np.diag(cov)) > 0):
+        cov = None  # numerically singular (e.g. the rational model on too few views): no covariance to pass on
+    camera = Camera(K=K, dist=dist, size=(w, h), name=name, covariance=cov,
+                    covariance_names=tuple(cov_names) if cov is not None else ())
     std = {}
     std_raw = sol["std"]
     for i, nm in enumerate(STD_NAMES):
@@ -360,6 +377,87 @@ def _levenberg_marquardt(fun, jac, x, max_iter: int = 50, rel_tol: float = 1e-12
     return x
 
 
+class _BundleModel:
+    """Zhang's bundle (intrinsics + one pose per view) as residual / Jacobian functions of one vector
+    ``x = [free intrinsics, (rvec, tvec) per view]``, on ``cv2.projectPoints``' analytic Jacobian.
+
+    ``full0`` holds every intrinsic of the model (``fx fy cx cy`` + ``nd`` distortion terms, the
+    columns of :data:`_PROJECT_JAC_NAMES`); ``free`` indexes the estimated ones."""
+
+    def __init__(self, cv2, objs, imgs, full0, free, poses):
+        self.cv2, self.imgs, self.full0, self.free = cv2, imgs, np.asarray(full0, dtype=np.float64), free
+        self.names = tuple(_PROJECT_JAC_NAMES[i] for i in free)
+        self.n_int, self.V = free.size, len(objs)
+        self.obj3 = [np.ascontiguousarray(o, dtype=np.float64).reshape(-1, 1, 3) for o in objs]
+        self.rows = np.cumsum([0] + [2 * o.shape[0] for o in objs])
+        self.x0 = np.concatenate([self.full0[free]] + [np.concatenate([vector_from_rotation(R), t]) for R, t in poses])
+
+    def unpack(self, x):
+        full = self.full0.copy()
+        full[self.free] = x[:self.n_int]
+        K = np.array([[full[0], 0.0, full[2]], [0.0, full[1], full[3]], [0.0, 0.0, 1.0]])
+        return K, full[4:], x[self.n_int:].reshape(self.V, 6)
+
+    def project(self, x, jac: bool):
+        K, d, P = self.unpack(x)
+        out = []
+        for v in range(self.V):
+            q, J = self.cv2.projectPoints(self.obj3[v], P[v, :3], P[v, 3:], K, d)
+            out.append((q.reshape(-1, 2), J if jac else None))
+        return out
+
+    def residuals(self, x, sig):
+        return np.concatenate([((q - self.imgs[v]) / sig[v]).ravel() for v, (q, _) in enumerate(self.project(x, False))])
+
+    def jacobian(self, x, sig):
+        n_int, rows = self.n_int, self.rows
+        Jfull = np.zeros((rows[-1], n_int + 6 * self.V))
+        for v, (_, J) in enumerate(self.project(x, True)):
+            r0, r1 = rows[v], rows[v + 1]
+            Jfull[r0:r1, :n_int] = J[:, 6 + self.free] / sig[v]
+            Jfull[r0:r1, n_int + 6 * v:n_int + 6 * v + 6] = J[:, :6] / sig[v]
+        return Jfull
+
+    def view_sigma(self, x):
+        return np.array([np.sqrt(np.sum((q - self.imgs[v]) ** 2) / max(1, 2 * len(q) - 6))
+                         for v, (q, _) in enumerate(self.project(x, False))])
+
+    def covariance(self, x, sig):
+        """Gauss–Newton covariance of ``x``, scaled by the weighted residual variance ``Σ r² / (n − p)``."""
+        J = self.jacobian(x, sig)
+        r = self.residuals(x, sig)
+        dof = max(1, r.size - x.size)
+        # column scaling first: focal lengths (~1e3 px) and k3 (~1e-1) differ by orders of magnitude
+        scale = np.linalg.norm(J, axis=0)
+        scale[scale == 0] = 1.0
+        Jn = J / scale
+        try:
+            C = np.linalg.inv(Jn.T @ Jn) / np.outer(scale, scale) * float(r @ r) / dof
+        except np.linalg.LinAlgError:
+            raise ValueError("the intrinsic bundle is singular: the views do not determine the intrinsics") from None
+        return 0.5 * (C + C.T)
+
+
+def _bundle_model(cv2, objs, imgs, sol, estimated: set, ndist: int) -> _BundleModel:
+    nd = 8 if ndist == 8 else 5
+    names = _PROJECT_JAC_NAMES[: 4 + nd]
+    free = np.array([i for i, nm in enumerate(names) if nm in estimated], dtype=int)
+    K0, d0 = sol["K"], sol["dist"][:nd]
+    full0 = np.array([K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2], *d0])
+    return _BundleModel(cv2, objs, imgs, full0, free, sol["poses"])
+
+
+def _intrinsic_covariance(cv2, objs, imgs, sol, estimated: set, ndist: int):
+    """``(names, (P, P) covariance)`` of the estimated intrinsics of an equal-weight solution.
+
+    The intrinsic block of the full bundle covariance (poses included, i.e. the Schur complement),
+    with the residual variance as OpenCV scales its ``stdDeviationsIntrinsics``; their square roots
+    agree (tests/test_intrinsics.py)."""
+    model = _bundle_model(cv2, objs, imgs, sol, estimated, ndist)
+    cov = model.covariance(model.x0, np.ones(model.V))
+    return model.names, cov[:model.n_int, :model.n_int]
+
+
 def _weighted_bundle(cv2, objs, imgs, sol, estimated: set, ndist: int, rounds: int = 2, sigma=None):
     """Bundle adjustment of intrinsics + poses with per-view weights 1/σ_v², from OpenCV's solution.
 
@@ -367,63 +465,23 @@ def _weighted_bundle(cv2, objs, imgs, sol, estimated: set, ndist: int, rounds: i
     analytic Jacobian of ``cv2.projectPoints``; σ_v is re-estimated
     from the view's residuals (per coordinate, ``2 N_v − 6`` degrees of freedom) before each round.
     Returns the solution dict of :func:`_calibrate` (``std`` from the weighted Jacobian, in the
-    order of :data:`STD_NAMES`) and the final σ_v. ``sigma`` (V,) fixes σ_v instead (one round; tests).
+    order of :data:`STD_NAMES`; ``covariance`` and ``covariance_names`` of the free intrinsics) and
+    the final σ_v. ``sigma`` (V,) fixes σ_v instead (one round; tests).
     """
-    nd = 8 if ndist == 8 else 5
-    names = _PROJECT_JAC_NAMES[: 4 + nd]
-    free = np.array([i for i, nm in enumerate(names) if nm in estimated], dtype=int)
-    K0, d0 = sol["K"], sol["dist"][:nd]
-    full0 = np.array([K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2], *d0])
-    poses0 = np.concatenate([np.concatenate([vector_from_rotation(R), t]) for R, t in sol["poses"]])
-    n_int, V = free.size, len(objs)
-    obj3 = [np.ascontiguousarray(o, dtype=np.float64).reshape(-1, 1, 3) for o in objs]
-    rows = np.cumsum([0] + [2 * o.shape[0] for o in objs])
-
-    def unpack(x):
-        full = full0.copy()
-        full[free] = x[:n_int]
-        K = np.array([[full[0], 0.0, full[2]], [0.0, full[1], full[3]], [0.0, 0.0, 1.0]])
-        return K, full[4:], x[n_int:].reshape(V, 6)
-
-    def project(x, jac: bool):
-        K, d, P = unpack(x)
-        out = []
-        for v in range(V):
-            q, J = cv2.projectPoints(obj3[v], P[v, :3], P[v, 3:], K, d)
-            out.append((q.reshape(-1, 2), J if jac else None))
-        return out
-
-    def residuals(x, sig):
-        return np.concatenate([((q - imgs[v]) / sig[v]).ravel() for v, (q, _) in enumerate(project(x, False))])
-
-    def jacobian(x, sig):
-        Jfull = np.zeros((rows[-1], n_int + 6 * V))
-        for v, (_, J) in enumerate(project(x, True)):
-            r0, r1 = rows[v], rows[v + 1]
-            Jfull[r0:r1, :n_int] = J[:, 6 + free] / sig[v]
-            Jfull[r0:r1, n_int + 6 * v:n_int + 6 * v + 6] = J[:, :6] / sig[v]
-        return Jfull
-
-    def view_sigma(x):
-        return np.array([np.sqrt(np.sum((q - imgs[v]) ** 2) / max(1, 2 * len(q) - 6))
-                         for v, (q, _) in enumerate(project(x, False))])
-
-    x = np.concatenate([full0[free], poses0])
+    model = _bundle_model(cv2, objs, imgs, sol, estimated, ndist)
+    x = model.x0
     for _ in range(rounds if sigma is None else 1):
-        sig = np.maximum(view_sigma(x), 1e-6) if sigma is None else np.asarray(sigma, dtype=np.float64)
-        x = _levenberg_marquardt(lambda y: residuals(y, sig), lambda y: jacobian(y, sig), x)
-    J = jacobian(x, sig)
-    r = residuals(x, sig)
-    dof = max(1, r.size - x.size)
+        sig = np.maximum(model.view_sigma(x), 1e-6) if sigma is None else np.asarray(sigma, dtype=np.float64)
+        x = _levenberg_marquardt(lambda y: model.residuals(y, sig), lambda y: model.jacobian(y, sig), x)
     try:
-        cov = np.linalg.inv(J.T @ J) * float(r @ r) / dof
-    except np.linalg.LinAlgError:
+        cov = model.covariance(x, sig)
+    except ValueError:
         raise ValueError("the weighted intrinsic bundle is singular: the views do not determine the intrinsics") from None
-    std_by_name = {names[i]: float(np.sqrt(cov[k, k])) for k, i in enumerate(free)}
-    K, d, P = unpack(x)
+    std_by_name = {nm: float(np.sqrt(cov[k, k])) for k, nm in enumerate(model.names)}
+    K, d, P = model.unpack(x)
     dist = np.concatenate([d, np.zeros(8 - d.size)])
     poses, res_list, per_view, sq_total, n_total = [], [], [], 0.0, 0
-    for v, (q, _) in enumerate(project(x, False)):
+    for v, (q, _) in enumerate(model.project(x, False)):
         rr = imgs[v] - q
         sq = np.sum(rr * rr, axis=1)
         res_list.append(rr)
@@ -433,8 +491,9 @@ def _weighted_bundle(cv2, objs, imgs, sol, estimated: set, ndist: int, rounds: i
         poses.append((rotation_from_vector(P[v, :3]), P[v, 3:].copy()))
     std = np.array([std_by_name.get(nm, 0.0) for nm in STD_NAMES])
     return ({"K": K, "dist": dist, "std": std, "poses": poses, "residuals": res_list,
-             "per_view_rms": np.asarray(per_view), "rms": float(np.sqrt(sq_total / n_total))},
-            view_sigma(x))
+             "per_view_rms": np.asarray(per_view), "rms": float(np.sqrt(sq_total / n_total)),
+             "covariance": cov[:model.n_int, :model.n_int], "covariance_names": model.names},
+            model.view_sigma(x))
 
 
 def _estimated_parameters(flags: int, ndist: int) -> set:

@@ -45,6 +45,7 @@ Frames and units: docs/conventions.md (mm, px, camera frame x right / y down / z
 """
 from __future__ import annotations
 
+import dataclasses
 import glob
 import math
 import os
@@ -61,6 +62,7 @@ from .mirror import JointMirrorResult, MirrorExtrinsicsResult, joint_mirror_ster
 from .stereo import (StereoCalibrationResult, StereoRig, reconstruct_target, rig_from_mirror,
                      stereo_calibrate)
 from .targets import CheckerboardTarget, PhaseTarget
+from .uncertainty import rig_covariance_from_intrinsics
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -379,6 +381,10 @@ def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | 
         det = detect_dots(phase, mod, target, mask=valid, min_modulation=min_modulation, **extra)
     except DetectionError as exc:
         return ViewResult(name, size, error=f"target not found: {exc}", preview=preview, preview_step=step)
+    except np.linalg.LinAlgError as exc:
+        # a numerically degenerate view (e.g. dots only a few pixels apart): one dropped view, not a lost session
+        return ViewResult(name, size, error=f"target not found: degenerate geometry in the dot fit ({exc})",
+                          preview=preview, preview_step=step)
     if not (np.all(np.isfinite(det.image_points))):
         det = _subset_detection(det, np.all(np.isfinite(det.image_points), axis=1))
     det, removed, vignetted = filter_detection(det, max_misfit=max_misfit, max_slope=max_slope, min_points=min_points)
@@ -1096,6 +1102,10 @@ class RigCalibration:
     ``joint`` the :class:`~calibration.mirror.JointMirrorResult` or None; ``checks`` one
     :class:`~calibration.stereo.TargetReconstruction` per check view (views *not* used in the
     adjustment), ``far_views`` / ``check_views`` the :class:`StereoView` s.
+    ``rig.covariance`` is ``covariance_extrinsic`` (the adjustment's, intrinsics held fixed) plus
+    ``covariance_intrinsic`` (both cameras' intrinsic covariances propagated through the rig,
+    :func:`calibration.uncertainty.rig_covariance_from_intrinsics`) when the cameras carry one;
+    ``covariance_intrinsic`` is None otherwise.
     """
 
     rig: StereoRig
@@ -1106,6 +1116,8 @@ class RigCalibration:
     checks: list
     left: MirrorCalibration
     right: MirrorCalibration
+    covariance_extrinsic: np.ndarray | None = None
+    covariance_intrinsic: np.ndarray | None = None
 
     def report(self) -> str:
         lines = []
@@ -1116,6 +1128,14 @@ class RigCalibration:
         else:
             lines.append("stereo rig: composition of the two mirror calibrations (paper Section 2: H_LR = H_TR H_TL^-1)")
         lines.append(_rig_lines(self.rig))
+        if self.covariance_intrinsic is not None and self.covariance_extrinsic is not None:
+            se = np.degrees(np.sqrt(np.diag(self.covariance_extrinsic)[:3]))
+            si = np.degrees(np.sqrt(np.diag(self.covariance_intrinsic)[:3]))
+            lines.append(f"  σ = {self.rig.metadata.get('covariance', '')}; rotation σ from the views alone "
+                         f"[{', '.join(f'{v:.4f}' for v in se)}] deg, from the intrinsics "
+                         f"[{', '.join(f'{v:.4f}' for v in si)}] deg")
+        elif self.rig.covariance is not None:
+            lines.append("  σ holds the intrinsics fixed (no intrinsic covariance propagated): a lower bound for the rotation")
         if self.joint is not None:
             d = self.rig.errors_to(self.per_camera)
             lines.append(f"  vs the per-camera composition: rotation {d['rotation_deg']:.4f} deg, translation "
@@ -1141,7 +1161,8 @@ def _rig_lines(rig: StereoRig) -> str:
 
 
 def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration, *, far_views=(), check_views=(),
-                               joint: bool = True, sigma_px: float | None = None) -> RigCalibration:
+                               joint: bool = True, sigma_px: float | None = None,
+                               intrinsic_uncertainty: bool = True) -> RigCalibration:
     """The stereo rig from the left and right cameras' mirror calibrations against the same monitor pose.
 
     Parameters
@@ -1160,6 +1181,14 @@ def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration
     joint : bool
         Run the joint adjustment (needs points common to both cameras' mirror views). Without far
         views it still couples the two cameras through the common target pose.
+    sigma_px : float, optional
+        Image noise (px) for the adjustment's covariance (default: from its residuals).
+    intrinsic_uncertainty : bool
+        When the cameras carry an intrinsic covariance (``Camera.covariance``, written by
+        :func:`calibrate_intrinsics_from_images` into the camera file; a camera without one counts as
+        exact), add its effect to the rig's covariance: the rig is re-solved with each camera's intrinsics moved ±1σ along the principal
+        axes of its covariance (4 × 9 re-solves for the 5-term model). In the rendered lab this term
+        dominates the rotation σ (docs/calibration.md). False keeps the adjustment's covariance only.
     """
     for nm, m in (("left", left), ("right", right)):
         if not isinstance(m, MirrorCalibration):
@@ -1191,12 +1220,38 @@ def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration
                                    far_views=[v.as_tuple() for v in far_views] or None,
                                    left_result=left.result, right_result=right.result, sigma_px=sigma_px)
         rig = jres.rig
+    cov_ext = None if rig.covariance is None else rig.covariance.copy()
+    cov_int = None
+    with_cov = [nm for nm, m in (("left", left), ("right", right)) if m.camera.covariance is not None]
+    if intrinsic_uncertainty and with_cov:
+        if jres is not None:
+            def solve(lc, rc):
+                j = joint_mirror_stereo(lc, rc, [q[li] for q in left.mirrored_points], [q[ri] for q in right.mirrored_points],
+                                        X, far_views=[v.as_tuple() for v in far_views] or None,
+                                        left_result=left.result, right_result=right.result, sigma_px=sigma_px)
+                return j.rig.R_right_left, j.rig.t_right_left
+        else:
+            def solve(lc, rc):
+                ml = mirror_extrinsics(lc, left.mirrored_points, left.object_points)
+                mr = mirror_extrinsics(rc, right.mirrored_points, right.object_points)
+                r2 = rig_from_mirror(ml, mr)
+                return r2.R_right_left, r2.t_right_left
+        cov_int = rig_covariance_from_intrinsics(solve, left.camera, right.camera, rig.R_right_left, rig.t_right_left)
+        if cov_ext is not None:
+            rig = dataclasses.replace(rig, covariance=cov_ext + cov_int)
     rig.metadata = dict(rig.metadata)
     rig.metadata.update({"left_views": left.names, "right_views": right.names,
                          "far_views": [v.name for v in far_views]})
+    if rig.covariance is not None:
+        rig.metadata["covariance"] = (
+            f"adjustment (intrinsics fixed) + the intrinsic covariance of the {' and '.join(with_cov)} camera"
+            f"{'s' if len(with_cov) == 2 else ''} propagated"
+            + ("" if len(with_cov) == 2 else f" (the {({'left', 'right'} - set(with_cov)).pop()} camera carries none)")
+            if cov_int is not None else "adjustment only, intrinsics held fixed (a lower bound)")
     checks = [reconstruct_target(rig, v.left_points, v.right_points, v.object_points) for v in check_views]
     return RigCalibration(rig=rig, per_camera=per_camera, joint=jres, far_views=far_views, check_views=check_views,
-                          checks=checks, left=left, right=right)
+                          checks=checks, left=left, right=right, covariance_extrinsic=cov_ext,
+                          covariance_intrinsic=cov_int)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -75,6 +75,48 @@ def propagate(func, x0, cov, step: float = 1e-7) -> np.ndarray:
 
 
 # -- synthetic geometry --------------------------------------------------------------------------
+def rig_covariance_from_intrinsics(solve, left: Camera, right: Camera, R_right_left, t_right_left) -> np.ndarray:
+    """6×6 covariance of a rig ``[δρ (rad), δt (mm)]`` due to the uncertainty of both cameras' intrinsics.
+
+    ``solve(left_camera, right_camera) -> (R_right_left, t_right_left)`` re-computes the rig from
+    the same observations with other intrinsics (e.g. the joint mirror adjustment). Each camera's
+    intrinsics are moved by ±1 σ along every principal axis of its ``covariance`` and the rig is
+    re-solved: the central differences ``d_k`` give ``Σ_k d_k d_kᵀ`` (first-order propagation,
+    ``J C Jᵀ``, without forming J; 4 × P solves for P intrinsics per camera). The two cameras'
+    intrinsics are taken as independent of each other and of the rig's own observation noise (the
+    extrinsic covariance, added by the caller). A camera without a covariance is taken as exact.
+    Why: a principal-point error δ rotates a camera by δ / f, which no extrinsic view can see; the
+    rig adjustments hold intrinsics fixed, so without this term their rotation σ is a lower bound.
+
+    Raises ``ValueError`` when neither camera has a covariance.
+    """
+    from .camera import vector_from_rotation
+
+    R0 = np.asarray(R_right_left, dtype=np.float64)
+    t0 = np.asarray(t_right_left, dtype=np.float64)
+    C = np.zeros((6, 6))
+    if left.covariance is None and right.covariance is None:
+        raise ValueError("neither camera carries an intrinsic covariance (calibrate them with "
+                         "calibration.calibrate_intrinsics, or load camera files that have one)")
+    for side, cam in (("left", left), ("right", right)):
+        if cam.covariance is None:
+            continue
+        names = cam.covariance_names
+        values = np.array([cam.parameter(n) for n in names])
+        lam, E = np.linalg.eigh(cam.covariance)
+        for k in np.flatnonzero(lam > 1e-12 * max(lam.max(), 1e-300)):
+            step = np.sqrt(lam[k]) * E[:, k]
+            out = []
+            for sgn in (1.0, -1.0):
+                moved = cam.with_parameters(**dict(zip(names, values + sgn * step)))
+                pair = (moved, right) if side == "left" else (left, moved)
+                R, t = solve(*pair)
+                out.append(np.concatenate([vector_from_rotation(np.asarray(R) @ R0.T), np.asarray(t) - t0]))
+            d = 0.5 * (out[0] - out[1])
+            C += np.outer(d, d)
+    return 0.5 * (C + C.T)
+
+
 def _look_at(center, target) -> np.ndarray:
     """R_cam_world of a camera at ``center`` looking at ``target`` (x right, y down, world y down)."""
     z = np.asarray(target, float) - np.asarray(center, float)

@@ -192,7 +192,21 @@ def test_rig_per_camera_and_joint(session, mirrors):
     ep = per_cam.rig.errors_to(truth)
     # the joint adjustment with the far view pins the rotation: its reported σ is several times smaller than the
     # per-camera composition's (measured 6x), and so is its error (assert a factor 2)
-    assert np.linalg.norm(joint.rig.std_rotation_deg) < 0.5 * np.linalg.norm(per_cam.rig.std_rotation_deg)
+    def sigma_rot_ext(rc):
+        return np.degrees(np.sqrt(np.diag(rc.covariance_extrinsic)[:3]))
+
+    assert np.linalg.norm(sigma_rot_ext(joint)) < 0.5 * np.linalg.norm(sigma_rot_ext(per_cam))
+    # the cameras carry their intrinsic covariance: the rig's covariance adds its effect to the adjustment's
+    for rc in (per_cam, joint):
+        assert rc.covariance_intrinsic is not None
+        np.testing.assert_allclose(rc.rig.covariance, rc.covariance_extrinsic + rc.covariance_intrinsic)
+        assert np.all(np.linalg.eigvalsh(rc.covariance_intrinsic) > -1e-12 * np.abs(rc.covariance_intrinsic).max())
+        assert "intrinsic" in rc.report() and "intrinsic" in rc.rig.metadata["covariance"]
+    # with the far view the intrinsics dominate the joint rig's rotation σ (principal point δ -> rotation δ/f)
+    assert np.linalg.norm(joint.rig.std_rotation_deg) > 2 * np.linalg.norm(sigma_rot_ext(joint))
+    fixed = calibrate_rig_from_mirrors(mirrors["left"], mirrors["right"], far_views=[far], intrinsic_uncertainty=False)
+    assert fixed.covariance_intrinsic is None
+    np.testing.assert_allclose(fixed.rig.covariance, joint.covariance_extrinsic)
     assert ej["rotation_deg"] < 0.5 * ep["rotation_deg"]
     # the check view (3.5 m, 46.65 mm dot spacing, not used in the fit): the joint rig measures the distances
     # between all its dots within 0.1 % RMS (the paper reports 0.18 % on its rig); the per-camera rig, whose
@@ -293,3 +307,44 @@ def test_mirror_adjustment_with_points_missing_in_some_views():
     few[2][3:] = np.nan
     with pytest.raises(ValueError, match="only 3 points"):
         mirror_extrinsics(paper.left, few, paper.object_points)
+
+
+def test_extra_direct_poses_fit_and_cover_the_image():
+    """The 'more views' poses (bench/calibration_lab.py EXTRA_DIRECT_POSES) must all be renderable as
+    written (direct_pose raises when the lit target cannot fit) and must spread the target over the
+    image: the principal point they are there for is only seen through views off the image centre."""
+    from dic.lab import paper_rig
+
+    rig = paper_rig(scale=SCALE, mirror_tilts_deg=lab.MIRROR_TILTS, mirror_tilt=None).without_mirrors()
+    depths = np.array([p[0] for p in lab.EXTRA_DIRECT_POSES])
+    tilts = np.array([np.hypot(p[3], p[4]) for p in lab.EXTRA_DIRECT_POSES])
+    assert len(set(lab.EXTRA_DIRECT_POSES) | set(lab.DIRECT_POSES)) == len(lab.EXTRA_DIRECT_POSES) + len(lab.DIRECT_POSES)
+    assert depths.min() >= 1150 and depths.max() <= 3400 and np.ptp(depths) > 2000
+    assert tilts.min() >= 9.5 and tilts.max() <= 30.5
+    for cam in ("left", "right"):
+        W, H = rig.camera(cam).size
+        for tgt in (lab.paper_target(), lab.dense_target()):
+            centres = []
+            for pose in lab.EXTRA_DIRECT_POSES:
+                R, t = lab.direct_pose(rig, cam, tgt, *pose)
+                scene = rig.with_monitor_pose(R, t)
+                centre_world = scene.monitor.to_world(tgt.dot_centres_px).mean(axis=0)
+                c = rig.camera(cam)
+                centres.append(c.camera.project((c.R_cam_world @ centre_world + c.t_cam_world)[None])[0])
+            offset = (np.array(centres) - [W / 2, H / 2]) / [W, H]
+            # at least 3 views put the target's centre well into each quadrant (10 % of the size off both
+            # midlines), and at least 3 on each side of the centre along each axis alone (the edges)
+            off = np.abs(offset) > 0.10
+            corner = off[:, 0] & off[:, 1]
+            quadrant = (offset[:, 0] > 0).astype(int) + 2 * (offset[:, 1] > 0)
+            assert np.bincount(quadrant[corner], minlength=4).min() >= 3, (cam, np.bincount(quadrant[corner]))
+            for axis in (0, 1):
+                edge = off[:, axis] & ~off[:, 1 - axis]
+                assert np.sum(edge & (offset[:, axis] > 0)) >= 3 and np.sum(edge & (offset[:, axis] < 0)) >= 3, (cam, axis)
+
+
+def test_prerender_rejects_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="camera must be"):
+        lab.prerender("middle", scale=SCALE, cache=str(tmp_path))
+    with pytest.raises(ValueError, match="needs a --cache"):
+        lab.prerender("left", scale=SCALE, cache="")

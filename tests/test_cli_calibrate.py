@@ -208,6 +208,17 @@ def test_stereo_command(data, poses):
     # the residual figure is drawn only when the residuals recomputed for it reproduce the adjustment's RMS
     assert (root / "fig_rig" / "stereo_residuals.png").stat().st_size > 1000 and "note:" not in res.output
     assert rig.covariance is not None
+    # the left pose file carries the camera's intrinsic covariance (from 'calibrate intrinsics'): it is in the
+    # rig's σ; the right camera is the true model, written without one
+    assert "intrinsic covariance of the left camera propagated (the right camera carries none)" in res.output
+    assert rig.metadata["covariance"].startswith("adjustment (intrinsics fixed) + ")
+    fixed = _run("stereo", "--left", poses["left"][0], "--right", poses["right"][0], "--far", *views["far"],
+                 "-o", root / "rig_fixed.json", "--no-intrinsic-uncertainty")
+    assert fixed.exit_code == 0, fixed.output
+    assert "holds the intrinsics fixed" in fixed.output
+    rig_fixed = StereoRig.load(root / "rig_fixed.json")
+    assert np.all(rig_fixed.std_rotation_deg < rig.std_rotation_deg)
+    np.testing.assert_allclose(rig_fixed.R_right_left, rig.R_right_left, atol=1e-12)
 
 
 def test_stereo_paper_composition(poses, data):

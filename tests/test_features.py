@@ -212,3 +212,42 @@ def test_vignetted_dots_flagged_by_modulation_slope_and_removed():
     assert "vignetted" in kept.summary()
     err_kept = np.linalg.norm(kept.detection.image_points - truth[kept.detection.ids], axis=1)
     assert np.sqrt(np.mean(err_kept ** 2)) <= 0.02  # the in-focus acceptance bound
+
+
+def test_degenerate_dot_fit_drops_the_dot_not_the_run(monkeypatch):
+    """A numerically singular dot fit (seen on 24 x 12 dots a few pixels apart in a quarter-size render)
+    must drop that dot, and a view with no fittable dot must come back as a failed view with a reason."""
+    import calibration.features as features
+    from calibration.pipeline import detect_view
+
+    R, t = _pose(TARGET)
+    imgs = render_view(TARGET, CAM, R, t, noise_sigma=1.0, seed=1, supersample=1)
+    real_fit = features._fit_dot
+    calls = {"n": 0}
+
+    def one_singular(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(features, "_fit_dot", one_singular)
+    det = detect_dots_in_images(imgs, TARGET, device="cpu")
+    assert len(det) == 17  # the dot whose fit failed is left out, the others are found
+
+    def always_singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(features, "_fit_dot", always_singular)
+    res = detect_view(np.asarray(imgs), TARGET, name="degenerate")
+    assert not res.ok and "target not found" in res.error
+
+
+def test_lattice_larger_than_the_target_is_a_detection_error(monkeypatch):
+    import calibration.features as features
+
+    R, t = _pose(TARGET)
+    imgs = render_view(TARGET, CAM, R, t, noise_sigma=1.0, seed=1, supersample=1)
+    monkeypatch.setattr(features, "_match_code", lambda *a, **k: [])  # no placement fits the grid
+    with pytest.raises(DetectionError, match="span more rows or columns"):
+        detect_dots_in_images(imgs, TARGET, device="cpu")

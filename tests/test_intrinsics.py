@@ -237,3 +237,53 @@ def test_weighting_bad_input(rng):
         calibrate_intrinsics(objs, imgs, TRUE.size, weighting="robust")
     with pytest.raises(ValueError, match="extra_flags"):
         calibrate_intrinsics(objs, imgs, TRUE.size, weighting="per_view", extra_flags=1)
+
+
+def test_full_covariance_matches_opencv_and_monte_carlo():
+    """camera.covariance: its diagonal is OpenCV's stdDeviationsIntrinsics (computed independently by
+    OpenCV's own bundle) and its correlations match the scatter of the estimates over noise draws."""
+    poses = _poses()
+    rng = np.random.default_rng(5)
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    est, covs = [], []
+    for draw in range(30):
+        objs, imgs, mirrored = _views(poses, rng)
+        res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None)
+        cam = res.camera
+        assert cam.covariance_names == names and res.covariance is cam.covariance
+        if draw == 0:
+            np.testing.assert_allclose(np.sqrt(np.diag(cam.covariance)), [res.std[n] for n in names], rtol=0.02)
+            w = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None, weighting="per_view")
+            np.testing.assert_allclose(np.sqrt(np.diag(w.covariance)), [w.std[n] for n in w.camera.covariance_names],
+                                       rtol=1e-9)
+        est.append([cam.parameter(n) for n in names])
+        covs.append(cam.covariance)
+    est = np.array(est)
+    C_mc = np.cov(est.T)
+    C_rep = np.mean(covs, axis=0)
+    corr = lambda C: C / np.sqrt(np.outer(np.diag(C), np.diag(C)))  # noqa: E731
+    # the strongly correlated pairs (principal point with the tangential terms, fx with fy, the radial terms)
+    for a, b in (("cx", "p2"), ("cy", "p1"), ("fx", "fy"), ("k1", "k2"), ("k2", "k3")):
+        i, j = names.index(a), names.index(b)
+        assert abs(corr(C_rep)[i, j]) > 0.7, (a, b, corr(C_rep)[i, j])  # a real correlation, not noise
+        # 30 draws: a sample correlation of 0.7-0.99 is known to ±0.1 or better (1σ); accept 0.3
+        assert abs(corr(C_mc)[i, j] - corr(C_rep)[i, j]) < 0.3, (a, b, corr(C_mc)[i, j], corr(C_rep)[i, j])
+
+
+def test_camera_file_keeps_the_covariance(rng, tmp_path):
+    objs, imgs, mirrored = _views(_poses(), rng)
+    cam = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored).camera
+    cam.save(tmp_path / "cam.json")
+    back = Camera.load(tmp_path / "cam.json")
+    assert back.covariance_names == cam.covariance_names
+    np.testing.assert_array_equal(back.covariance, cam.covariance)
+    assert cam.with_parameters(cx=cam.cx + 1).covariance is None
+    assert cam.with_parameters(cx=cam.cx + 1, k1=0.5).cx == cam.cx + 1
+    with pytest.raises(ValueError, match="one row per name"):
+        Camera(K=cam.K, dist=cam.dist, covariance=np.eye(3), covariance_names=("fx", "fy"))
+    with pytest.raises(ValueError, match="distinct parameters"):
+        Camera(K=cam.K, dist=cam.dist, covariance=np.eye(2), covariance_names=("fx", "k4"))
+    with pytest.raises(ValueError, match="symmetric"):
+        Camera(K=cam.K, dist=cam.dist, covariance=[[1.0, 2.0], [0.0, 1.0]], covariance_names=("fx", "fy"))
+    with pytest.raises(ValueError, match="unknown parameter"):
+        cam.with_parameters(s1=1.0)

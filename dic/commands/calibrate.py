@@ -209,6 +209,10 @@ def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, si
               help="With --checkerboard: right camera file.")
 @click.option("--sigma-px", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image noise (px) for the rig covariance (default: from the residuals).")
+@click.option("--intrinsic-uncertainty/--no-intrinsic-uncertainty", default=True,
+              help="Mirror mode: add both cameras' intrinsic uncertainty (stored in the pose files' cameras) to the "
+                   "rig covariance by re-solving the rig with the intrinsics moved by ±1σ (default: on; it "
+                   "dominates the rotation σ when the far view pins the rig).")
 @click.option("--export-opencv", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="Also write the rig as OpenCV FileStorage (.yml/.yaml/.xml).")
 @click.option("--export-dice", default=None, type=click.Path(dir_okay=False, path_type=Path),
@@ -225,7 +229,7 @@ def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, si
               help="Run (or skip) the dot detector's defocus-bias correction on --far/--check views.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation.")
 def stereo_cmd(left, right, output, far, check, target_path, no_joint, checkerboard, left_camera, right_camera, sigma_px,
-               export_opencv, export_dice, export_vic3d, allow_lossy, figure_dir, correct_blur, device):
+               intrinsic_uncertainty, export_opencv, export_dice, export_vic3d, allow_lossy, figure_dir, correct_blur, device):
     """The stereo rig, from the two cameras' mirror calibrations (pose files) or from checkerboard pairs.
 
     Mirror mode: the rig is R_right_left = R_right_target R_left_target^T (paper Section 2); with
@@ -242,7 +246,8 @@ def stereo_cmd(left, right, output, far, check, target_path, no_joint, checkerbo
         else:
             if left_camera or right_camera:
                 raise click.UsageError("--left-camera/--right-camera go with --checkerboard; pose files carry their camera")
-            rig, report, rc = _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, correct_blur, device)
+            rig, report, rc = _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, correct_blur, device,
+                                             intrinsic_uncertainty)
     except ValueError as exc:
         _fail(exc)
     click.echo(report)
@@ -269,7 +274,8 @@ def stereo_cmd(left, right, output, far, check, target_path, no_joint, checkerbo
         raise click.ClickException("not written: " + "; ".join(failed))
 
 
-def _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, correct_blur, device):
+def _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, correct_blur, device,
+                   intrinsic_uncertainty=True):
     from calibration.pipeline import MirrorCalibration, calibrate_rig_from_mirrors, detect_stereo_view
     from calibration.targets import PhaseTarget
 
@@ -292,7 +298,7 @@ def _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, cor
     check_views = [detect_stereo_view(a, b, target, name=f"check {i + 1}", correct_blur=correct_blur, device=device)
                    for i, (a, b) in enumerate(check)]
     rc = calibrate_rig_from_mirrors(ml, mr, far_views=[] if no_joint else far_views, check_views=check_views,
-                                    joint=not no_joint, sigma_px=sigma_px)
+                                    joint=not no_joint, sigma_px=sigma_px, intrinsic_uncertainty=intrinsic_uncertainty)
     report = "\n".join([ml.report(), mr.report(), rc.report()])
     return rc.rig, report, rc
 
