@@ -92,8 +92,16 @@ def rig_covariance_from_intrinsics(solve, left: Camera, right: Camera, R_right_l
     """
     from .camera import vector_from_rotation
 
+    if not callable(solve):
+        raise ValueError("solve must be a function (left_camera, right_camera) -> (R_right_left, t_right_left)")
+    for nm, cam in (("left", left), ("right", right)):
+        if not isinstance(cam, Camera):
+            raise ValueError(f"{nm} must be a calibration.camera.Camera, got {type(cam).__name__}")
     R0 = np.asarray(R_right_left, dtype=np.float64)
-    t0 = np.asarray(t_right_left, dtype=np.float64)
+    t0 = np.asarray(t_right_left, dtype=np.float64).ravel()
+    if R0.shape != (3, 3) or t0.shape != (3,) or not (np.all(np.isfinite(R0)) and np.all(np.isfinite(t0))):
+        raise ValueError(f"R_right_left must be a finite 3x3 rotation and t_right_left a finite 3-vector, got shapes "
+                         f"{np.shape(R_right_left)} and {np.shape(t_right_left)}")
     C = np.zeros((6, 6))
     if left.covariance is None and right.covariance is None:
         raise ValueError("neither camera carries an intrinsic covariance (calibrate them with "

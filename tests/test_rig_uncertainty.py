@@ -43,3 +43,11 @@ def test_rig_covariance_from_intrinsics_needs_a_covariance():
     with pytest.raises(ValueError, match="neither camera carries an intrinsic covariance"):
         rig_covariance_from_intrinsics(lambda a, b: (np.eye(3), np.zeros(3)), setup.left, setup.right, np.eye(3),
                                        np.zeros(3))
+    with pytest.raises(ValueError, match="solve must be a function"):
+        rig_covariance_from_intrinsics(None, setup.left, setup.right, np.eye(3), np.zeros(3))
+    with pytest.raises(ValueError, match="finite 3x3 rotation"):
+        rig_covariance_from_intrinsics(lambda a, b: (np.eye(3), np.zeros(3)), setup.left, setup.right, np.eye(2),
+                                       np.zeros(3))
+    with pytest.raises(ValueError, match="must be a calibration.camera.Camera"):
+        rig_covariance_from_intrinsics(lambda a, b: (np.eye(3), np.zeros(3)), "left.json", setup.right, np.eye(3),
+                                       np.zeros(3))
