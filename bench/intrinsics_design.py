@@ -97,9 +97,30 @@ def direct_views(camera, object_points, n_views: int, max_tilt_deg: float, noise
     return views
 
 
-def study(draws: int, noise_px: float, seed: int, designs=DESIGNS, log=print) -> list[dict]:
+def _calibrate_camera(true_cam, views, mirrored, X, weighting: str, name: str):
+    """Zhang calibration (``opencv5``, no rejection) of one camera from direct ``views`` and its mirrored views."""
     from calibration.intrinsics import calibrate_intrinsics
+
+    mirrored = list(mirrored)
+    return calibrate_intrinsics([v[0] for v in views] + [X] * len(mirrored), [v[1] for v in views] + mirrored,
+                                true_cam.size, mirrored=[False] * len(views) + [True] * len(mirrored), model="opencv5",
+                                reject=None, weighting=weighting, name=name)
+
+
+def _joint_rig(setup, obs, cams):
+    """``f(left, right) -> JointMirrorResult``: the joint mirror adjustment with the far view for given cameras,
+    started from the per-camera mirror solutions of ``cams`` (so that re-runs with moved intrinsics start close)."""
     from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
+
+    X = setup.object_points
+    L = mirror_extrinsics(cams["left"], obs["left_mirrored"], X)
+    R = mirror_extrinsics(cams["right"], obs["right_mirrored"], X)
+    far = [(setup.far_object_points, obs["far_left"], obs["far_right"])]
+    return lambda lc, rc: joint_mirror_stereo(lc, rc, obs["left_mirrored"], obs["right_mirrored"], X, far_views=far,
+                                              left_result=L, right_result=R)
+
+
+def study(draws: int, noise_px: float, seed: int, designs=DESIGNS, log=print) -> list[dict]:
     from calibration.stereo import StereoRig
     from calibration.uncertainty import grid_points, paper_mirror_setup, simulate_mirror_observations
 
@@ -121,19 +142,11 @@ def study(draws: int, noise_px: float, seed: int, designs=DESIGNS, log=print) ->
                 views = (direct_views(true_cam, X, n_views, tilt, noise_px, rng)
                          + direct_views(true_cam, X_dense, n_dense, tilt, dense_noise * noise_px, rng))
                 used.append(len(views))
-                objs = [v[0] for v in views] + [X] * len(obs[f"{name}_mirrored"])
-                imgs = [v[1] for v in views] + list(obs[f"{name}_mirrored"])
-                flags = [False] * len(views) + [True] * len(obs[f"{name}_mirrored"])
-                res = calibrate_intrinsics(objs, imgs, true_cam.size, mirrored=flags, model="opencv5", reject=None,
-                                           weighting=weighting, name=name)
+                res = _calibrate_camera(true_cam, views, obs[f"{name}_mirrored"], X, weighting, name)
                 est[name] = res.camera
                 pp_err += [res.camera.cx - true_cam.cx, res.camera.cy - true_cam.cy]
                 pp_sigma += [res.std["cx"], res.std["cy"]]
-            L = mirror_extrinsics(est["left"], obs["left_mirrored"], X)
-            R = mirror_extrinsics(est["right"], obs["right_mirrored"], X)
-            far = [(setup.far_object_points, obs["far_left"], obs["far_right"])]
-            rig = joint_mirror_stereo(est["left"], est["right"], obs["left_mirrored"], obs["right_mirrored"], X,
-                                      far_views=far, left_result=L, right_result=R).rig
+            rig = _joint_rig(setup, obs, est)(est["left"], est["right"]).rig
             e = rig.errors_to(truth)
             rec.append([e["rotation_deg"], e["baseline_percent"], *pp_err, *pp_sigma, np.mean(used)])
         a = np.asarray(rec)
@@ -164,8 +177,6 @@ def sigma_check(draws: int, noise_px: float, seed: int, view_counts=(12, 48), lo
     intrinsic covariances (:func:`calibration.uncertainty.rig_covariance_from_intrinsics`). Reports,
     per axis, the RMS of error / σ over the draws: ≈ 1 when σ is right."""
     from calibration.camera import vector_from_rotation
-    from calibration.intrinsics import calibrate_intrinsics
-    from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
     from calibration.uncertainty import paper_mirror_setup, rig_covariance_from_intrinsics, simulate_mirror_observations
 
     rng = np.random.default_rng(seed)
@@ -177,24 +188,16 @@ def sigma_check(draws: int, noise_px: float, seed: int, view_counts=(12, 48), lo
         t0 = time.perf_counter()
         for _ in range(draws):
             obs = simulate_mirror_observations(setup, noise_px, rng)
-            cams = {}
-            for name, true_cam in (("left", setup.left), ("right", setup.right)):
-                views = direct_views(true_cam, X, n_views, 30.0, noise_px, rng)
-                mir = list(obs[f"{name}_mirrored"])
-                cams[name] = calibrate_intrinsics([v[0] for v in views] + [X] * len(mir), [v[1] for v in views] + mir,
-                                                  true_cam.size, mirrored=[False] * len(views) + [True] * len(mir),
-                                                  reject=None).camera
-            L = mirror_extrinsics(cams["left"], obs["left_mirrored"], X)
-            R = mirror_extrinsics(cams["right"], obs["right_mirrored"], X)
-            far = [(setup.far_object_points, obs["far_left"], obs["far_right"])]
+            cams = {name: _calibrate_camera(true_cam, direct_views(true_cam, X, n_views, 30.0, noise_px, rng),
+                                            obs[f"{name}_mirrored"], X, "equal", name).camera
+                    for name, true_cam in (("left", setup.left), ("right", setup.right))}
+            joint_rig = _joint_rig(setup, obs, cams)
 
             def solve(lc, rc):
-                r = joint_mirror_stereo(lc, rc, obs["left_mirrored"], obs["right_mirrored"], X, far_views=far,
-                                        left_result=L, right_result=R).rig
+                r = joint_rig(lc, rc).rig
                 return r.R_right_left, r.t_right_left
 
-            rig = joint_mirror_stereo(cams["left"], cams["right"], obs["left_mirrored"], obs["right_mirrored"], X,
-                                      far_views=far, left_result=L, right_result=R).rig
+            rig = joint_rig(cams["left"], cams["right"]).rig
             C_int = rig_covariance_from_intrinsics(solve, cams["left"], cams["right"], rig.R_right_left, rig.t_right_left)
             err.append(np.degrees(vector_from_rotation(rig.R_right_left @ setup.R_right_left.T)))
             s_views.append(np.degrees(np.sqrt(np.diag(rig.covariance)[:3])))

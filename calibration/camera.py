@@ -197,11 +197,16 @@ class Camera:
         elif self.covariance_names:
             raise ValueError("Camera.covariance_names given without a covariance")
 
-    def parameter(self, name: str) -> float:
-        """Value of one intrinsic parameter by name (:data:`INTRINSIC_PARAMETERS`)."""
+    def _parameter_index(self, name: str) -> int:
+        """Index of ``name`` in :data:`INTRINSIC_PARAMETERS`, if this camera has that parameter."""
         i = INTRINSIC_PARAMETERS.index(name) if name in INTRINSIC_PARAMETERS else -1
         if i < 0 or i >= 4 + self.dist.size:
             raise ValueError(f"unknown parameter {name!r} for a camera with {self.dist.size} distortion terms")
+        return i
+
+    def parameter(self, name: str) -> float:
+        """Value of one intrinsic parameter by name (:data:`INTRINSIC_PARAMETERS`)."""
+        i = self._parameter_index(name)
         return float((self.fx, self.fy, self.cx, self.cy)[i]) if i < 4 else float(self.dist[i - 4])
 
     def with_parameters(self, **values: float) -> "Camera":
@@ -210,9 +215,7 @@ class Camera:
         The copy carries no covariance (it describes other values)."""
         K, dist = self.K.copy(), self.dist.copy()
         for name, v in values.items():
-            i = INTRINSIC_PARAMETERS.index(name) if name in INTRINSIC_PARAMETERS else -1
-            if i < 0 or i >= 4 + dist.size:
-                raise ValueError(f"unknown parameter {name!r} for a camera with {dist.size} distortion terms")
+            i = self._parameter_index(name)
             if i < 4:
                 K[(0, 1, 0, 1)[i], (0, 1, 2, 2)[i]] = float(v)
             else:

@@ -368,6 +368,15 @@ def _smoothstep(t):
 
 
 def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterations=30, A_window=None):
+    """:func:`_fit_dot_core`, or None when its geometry is numerically singular (e.g. 24 x 12 dots a few
+    pixels apart in a small image): one dot without a fit, not a failed detection."""
+    try:
+        return _fit_dot_core(phase, modulation, mask, A0, period, pitch, rho_in, border, iterations, A_window)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _fit_dot_core(phase, modulation, mask, A0, period, pitch, rho_in, border, iterations=30, A_window=None):
     """Pass 1: fit ``phi = 2 pi |s| / period + phi0``, ``s = dehom(A x)``, around one dot.
 
     ``A0`` (start) maps image (x, y, 1) to cell-centred screen px. Each pixel's residual is
@@ -379,12 +388,7 @@ def _fit_dot(phase, modulation, mask, A0, period, pitch, rho_in, border, iterati
     half = pitch / 2 - border
     taper = 0.05 * pitch
     A_window = A0 if A_window is None else A_window
-    if not np.all(np.isfinite(A_window)) or abs(np.linalg.det(A_window)) < 1e-300:
-        return None  # a degenerate start (e.g. a dot a few pixels wide in a small image): no fit, not a crash
-    try:
-        Ainv = np.linalg.inv(A_window)
-    except np.linalg.LinAlgError:
-        return None
+    Ainv = np.linalg.inv(A_window)
     corners = _apply_h(Ainv, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * (pitch / 2))
     x0, y0 = np.floor(corners.min(axis=0)).astype(int) - 2
     x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 2
@@ -840,7 +844,7 @@ def detect_dots(
             A0 = np.linalg.inv(_homography(src, dst))
             fit = _fit_dot(phase, modulation, mask, A0, target.period, pitch, rho_in, border)
         except np.linalg.LinAlgError:
-            fit = None  # degenerate neighbourhood (dots a few pixels apart): this dot has no fit
+            fit = None  # degenerate neighbourhood homography (dots a few pixels apart): this dot has no fit
         fits.append(fit if fit is not None and fit.coverage >= min_coverage else None)
     keep = np.array([f is not None for f in fits])
     if keep.sum() < 4:

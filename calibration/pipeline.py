@@ -1215,39 +1215,40 @@ def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration
         X = left.object_points[li]
         if not np.allclose(X, right.object_points[ri], atol=1e-6):
             raise ValueError("the left and right mirror calibrations used different targets (object points differ)")
-        jres = joint_mirror_stereo(left.camera, right.camera, [q[li] for q in left.mirrored_points],
-                                   [q[ri] for q in right.mirrored_points], X,
-                                   far_views=[v.as_tuple() for v in far_views] or None,
-                                   left_result=left.result, right_result=right.result, sigma_px=sigma_px)
+        left_obs, right_obs = [q[li] for q in left.mirrored_points], [q[ri] for q in right.mirrored_points]
+        far = [v.as_tuple() for v in far_views] or None
+
+        def joint_rig(lc, rc):  # the joint adjustment with given intrinsics (also re-run for the covariance)
+            return joint_mirror_stereo(lc, rc, left_obs, right_obs, X, far_views=far, left_result=left.result,
+                                       right_result=right.result, sigma_px=sigma_px)
+
+        def solve(lc, rc):
+            r = joint_rig(lc, rc).rig
+            return r.R_right_left, r.t_right_left
+
+        jres = joint_rig(left.camera, right.camera)
         rig = jres.rig
+    else:
+        def solve(lc, rc):
+            r = rig_from_mirror(mirror_extrinsics(lc, left.mirrored_points, left.object_points),
+                                mirror_extrinsics(rc, right.mirrored_points, right.object_points))
+            return r.R_right_left, r.t_right_left
     cov_ext = None if rig.covariance is None else rig.covariance.copy()
     cov_int = None
     with_cov = [nm for nm, m in (("left", left), ("right", right)) if m.camera.covariance is not None]
     if intrinsic_uncertainty and with_cov:
-        if jres is not None:
-            def solve(lc, rc):
-                j = joint_mirror_stereo(lc, rc, [q[li] for q in left.mirrored_points], [q[ri] for q in right.mirrored_points],
-                                        X, far_views=[v.as_tuple() for v in far_views] or None,
-                                        left_result=left.result, right_result=right.result, sigma_px=sigma_px)
-                return j.rig.R_right_left, j.rig.t_right_left
-        else:
-            def solve(lc, rc):
-                ml = mirror_extrinsics(lc, left.mirrored_points, left.object_points)
-                mr = mirror_extrinsics(rc, right.mirrored_points, right.object_points)
-                r2 = rig_from_mirror(ml, mr)
-                return r2.R_right_left, r2.t_right_left
         cov_int = rig_covariance_from_intrinsics(solve, left.camera, right.camera, rig.R_right_left, rig.t_right_left)
         if cov_ext is not None:
             rig = dataclasses.replace(rig, covariance=cov_ext + cov_int)
     rig.metadata = dict(rig.metadata)
     rig.metadata.update({"left_views": left.names, "right_views": right.names,
                          "far_views": [v.name for v in far_views]})
-    if rig.covariance is not None:
-        rig.metadata["covariance"] = (
-            f"adjustment (intrinsics fixed) + the intrinsic covariance of the {' and '.join(with_cov)} camera"
-            f"{'s' if len(with_cov) == 2 else ''} propagated"
-            + ("" if len(with_cov) == 2 else f" (the {({'left', 'right'} - set(with_cov)).pop()} camera carries none)")
-            if cov_int is not None else "adjustment only, intrinsics held fixed (a lower bound)")
+    if rig.covariance is not None and cov_int is None:
+        rig.metadata["covariance"] = "adjustment only, intrinsics held fixed (a lower bound)"
+    elif rig.covariance is not None:
+        which = "left and right cameras" if len(with_cov) == 2 else f"{with_cov[0]} camera"
+        missing = "" if len(with_cov) == 2 else f" (the {({'left', 'right'} - set(with_cov)).pop()} camera carries none)"
+        rig.metadata["covariance"] = f"adjustment (intrinsics fixed) + the intrinsic covariance of the {which} propagated{missing}"
     checks = [reconstruct_target(rig, v.left_points, v.right_points, v.object_points) for v in check_views]
     return RigCalibration(rig=rig, per_camera=per_camera, joint=jres, far_views=far_views, check_views=check_views,
                           checks=checks, left=left, right=right, covariance_extrinsic=cov_ext,
