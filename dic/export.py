@@ -178,9 +178,10 @@ def write_figures(field: Field3D, image, directory, *, quantities=None, prefix: 
         if q == "status":
             vals = f.status.astype(np.float64)
             names = [s.name for s in StereoStatus]
-            # OK green; failures in colours without green (tab10 minus its green)
-            colours = plt.get_cmap("tab10")([2, 7, 1, 3, 4, 5, 6, 9, 8][:len(names)])
-            colours[1:] = plt.get_cmap("tab10")([7, 1, 3, 4, 5, 6, 9, 8, 0][:len(names) - 1])
+            # OK green; failures in colours without green (tab10 minus its green, then tab20b)
+            tab = plt.get_cmap("tab10")
+            colours = np.vstack([tab([2]), tab([7, 1, 3, 4, 5, 6, 9, 8, 0]),
+                                 plt.get_cmap("tab20b")(np.arange(20))])[:len(names)]
             cm = ListedColormap(colours)
             norm = BoundaryNorm(np.arange(len(names) + 1) - 0.5, len(names))
             kw = {"cmap": cm, "norm": norm}

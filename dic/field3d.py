@@ -58,6 +58,8 @@ class StereoStatus(IntEnum):
     TRIANGULATION_FAILED = 7 #: a triangulation status other than OK (behind a camera, degenerate rays,
     #:                          outside an image, lens model not invertible, not converged)
     LOW_ZNCC = 8             #: a match or track has ZNCC below ``zncc_min``
+    IMPLAUSIBLE_WARP = 9     #: a match or track converged to a warp its partly featureless subset cannot
+    #:                          support (a specimen edge; dic.correlation.acceptance)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -34,3 +34,5 @@ class Status(IntEnum):
     SINGULAR_HESSIAN = 4 #: the Gauss-Newton Hessian cannot be inverted
     DIVERGED = 5         #: the update grew without bound or the correlation collapsed
     NOT_COMPUTED = 6     #: not processed (e.g. masked out, or its guess failed)
+    IMPLAUSIBLE_WARP = 7 #: converged, but to a warp its partly featureless subset cannot support
+    #:                      (set by dic.correlation.acceptance, never by the kernels)

@@ -1,0 +1,314 @@
+"""The correlation engine: IC-GN of one reference image's POIs into current images.
+
+Everything that correlates subsets goes through here: 2-D tracking (:class:`dic.track.Tracker`),
+the stereo match left -> right and the temporal tracks of stereo DIC
+(:class:`dic.stereo.StereoCorrelation`).
+
+* :class:`Correlator` holds a reference image, its POIs and the per-POI reference quantities
+  (B-spline gradients, IC-GN Hessians; :func:`kernels.icgn.prepare_subsets`), computed once, and
+  runs IC-GN (:func:`kernels.icgn.icgn`) for all or some POIs from given initial guesses.
+* :func:`correlate` runs IC-GN from the guesses of an initial-guess strategy, then spreads
+  accepted results to their neighbours (propagation), asks a fallback strategy for guesses of
+  isolated POIs, and gives suspicious results a second opinion (:mod:`.acceptance`).
+* :func:`reliability_guided` is the reliability-guided propagation of Pan (2009): seeds found by a
+  ZNCC search, then neighbours in decreasing-ZNCC order.
+
+Initial guesses come from :mod:`.guesses`; acceptance rules (status, ZNCC, second opinion,
+implausible warps) from :mod:`.acceptance`.
+"""
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from kernels.conventions import Status
+from kernels.icgn import icgn, n_params, prepare_reference, prepare_subsets
+
+from .acceptance import GOOD, accepted_mask, flag_implausible, second_opinion_candidates
+from .params import convert_order, extrapolate
+
+__all__ = ["Correlator", "CorrelationResult", "correlate", "reliability_guided", "spread",
+           "SOURCE_NONE", "SOURCE_FEATURES", "SOURCE_NEIGHBOUR", "SOURCE_SEARCH", "SOURCE_PREVIOUS", "SOURCE_GLOBAL"]
+
+#: where a POI's accepted initial guess came from (``guess_source`` in stereo results)
+SOURCE_NONE, SOURCE_FEATURES, SOURCE_NEIGHBOUR, SOURCE_SEARCH, SOURCE_PREVIOUS, SOURCE_GLOBAL = -1, 0, 1, 2, 3, 4
+
+
+class Correlator:
+    """IC-GN of one reference image's POIs into current images; reference quantities computed once.
+
+    Parameters
+    ----------
+    reference : (H, W) float32 grey image (validated by the caller).
+    points : (N, 2) float64 POIs ``(x, y)`` px.
+    subset : odd int (px); order : 1 or 2.
+    max_iter : int; tol : float (px) - IC-GN limits (:func:`kernels.icgn.icgn`).
+    flat_std : float, optional - grey-level std below which a subset is FLAT_SUBSET.
+    device : resolved device string.
+    """
+
+    def __init__(self, reference: np.ndarray, points: np.ndarray, *, subset: int, order: int, max_iter: int,
+                 tol: float, device: str, flat_std: float | None = None):
+        self.image = reference
+        self.points = points
+        self.subset, self.order, self.device = subset, order, device
+        self.max_iter, self.tol, self.flat_std = max_iter, tol, flat_std
+        self.reference = prepare_reference(reference, device=device)
+        self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std)
+        self.reference_status = self.subsets.status.numpy().astype(np.int32)
+        self._out = None
+        self._textured = None
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def ready(self) -> np.ndarray:
+        """(N,) bool: the reference subset is trackable (inside the image, textured, regular)."""
+        return self.reference_status == int(Status.CONVERGED)
+
+    def textured_fraction(self) -> np.ndarray:
+        """(N,) fraction of each reference subset's pixels that carry texture (computed once)."""
+        if self._textured is None:
+            from .plausibility import textured_fraction
+
+            self._textured = textured_fraction(self.image, self.points, self.subset)
+        return self._textured
+
+    def run_all(self, current, guess: np.ndarray) -> dict:
+        """IC-GN of every POI from ``guess`` (N, k); returns host arrays (copies) of the results.
+
+        The result buffers are reused from call to call (no allocation per frame).
+        """
+        res = icgn(self.subsets, current, guess=guess, max_iter=self.max_iter, tol=self.tol, out=self._out)
+        self._out = res
+        return {k: np.array(v, copy=True) for k, v in res.numpy().items()}
+
+    def run(self, current, idx: np.ndarray, guess: np.ndarray) -> dict:
+        """IC-GN of the POIs ``idx`` (M,) from ``guess`` (M, k); host arrays of the M results."""
+        n = self.points.shape[0]
+        if idx.size == n and np.array_equal(idx, np.arange(n)):
+            subsets = self.subsets
+        else:
+            subsets = prepare_subsets(self.reference, self.points[idx], subset=self.subset, order=self.order,
+                                      flat_std=self.flat_std)
+        res = icgn(subsets, current, guess=np.asarray(guess, dtype=np.float64), max_iter=self.max_iter, tol=self.tol)
+        return res.numpy()
+
+
+@dataclass
+class CorrelationResult:
+    """Per-POI outcome of :func:`correlate` (the best attempt per POI).
+
+    params (N, k) float64 (NaN where never run); zncc (N,) float64; iterations (N,) int32;
+    icgn_status (N,) int32 :class:`kernels.conventions.Status` (NOT_COMPUTED where never run);
+    accepted (N,) bool; source (N,) int8 (``SOURCE_*``); extra_failed (N,) bool (converged with a
+    good ZNCC but rejected by the caller's extra check, e.g. the epipolar constraint);
+    implausible (N,) bool (converged with a good ZNCC to an implausible warp; not accepted).
+    """
+
+    params: np.ndarray
+    zncc: np.ndarray
+    iterations: np.ndarray
+    icgn_status: np.ndarray
+    accepted: np.ndarray
+    source: np.ndarray
+    extra_failed: np.ndarray
+    implausible: np.ndarray
+
+
+def spread(points: np.ndarray, candidates: np.ndarray, max_count: int) -> np.ndarray:
+    """Up to ``max_count`` of the candidate indices, spread over the image (one per grid cell)."""
+    if candidates.size <= max_count:
+        return candidates
+    P = points[candidates]
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    cells = int(np.ceil(np.sqrt(max_count)))
+    span = np.maximum(hi - lo, 1e-9)
+    cell = np.minimum((cells * (P - lo) / span).astype(int), cells - 1)
+    key = cell[:, 1] * cells + cell[:, 0]
+    _, first = np.unique(key, return_index=True)
+    chosen = candidates[np.sort(first)]
+    return chosen[:max_count]
+
+
+def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarray, initial_source: int, *,
+              eligible: np.ndarray, zncc_min: float, radius: float, extra: Callable | None = None,
+              fallback: Callable | None = None, max_attempts: int = 3, max_seeds: int = 64,
+              max_fallback_rounds: int = 8, min_fallback: int = 1, zncc_drop: float = 0.05,
+              second_opinion: bool = True, check_warps: bool = True) -> CorrelationResult:
+    """IC-GN of every eligible POI from the given guesses, then neighbour propagation and a fallback.
+
+    Parameters
+    ----------
+    corr : the reference side; current : a prepared current image (:func:`kernels.icgn.prepare_current`).
+    guess : (N, k) initial parameters; has_guess : (N,) bool, rows of ``guess`` to start from.
+    initial_source : ``SOURCE_*`` code recorded for POIs accepted from ``guess``.
+    eligible : (N,) bool - POIs to correlate (further restricted to ``corr.ready``).
+    zncc_min : acceptance threshold; radius : px, reach of the neighbour propagation.
+    extra : ``extra(idx, params) -> (m,) bool`` - an additional acceptance test (the epipolar check).
+    fallback : ``fallback(idx) -> (guess (m, k), ok (m,))`` - guesses for isolated POIs (an
+        initial-guess strategy of :mod:`.guesses`); called only while at least ``min_fallback``
+        eligible POIs are unresolved and untried.
+    second_opinion : retry an accepted POI whose ZNCC is more than ``zncc_drop`` below the median
+        of its accepted neighbours from its best neighbour; the better-correlating result is kept.
+    check_warps : un-accept POIs whose warp is implausible (:func:`.acceptance.flag_implausible`);
+        they are marked in ``CorrelationResult.implausible``.
+    """
+    from scipy.spatial import cKDTree
+
+    n = corr.points.shape[0]
+    k = n_params(corr.order)
+    params = np.full((n, k), np.nan)
+    zncc = np.full(n, np.nan)
+    iters = np.zeros(n, dtype=np.int32)
+    status = np.full(n, int(Status.NOT_COMPUTED), dtype=np.int32)
+    accepted = np.zeros(n, dtype=bool)
+    extra_failed = np.zeros(n, dtype=bool)
+    source = np.full(n, SOURCE_NONE, dtype=np.int8)
+    attempts = np.zeros(n, dtype=np.int32)
+    rank = np.full(n, -1, dtype=np.int32)
+    eligible = eligible & corr.ready
+
+    def batch(idx: np.ndarray, g: np.ndarray, src: int) -> int:
+        if idx.size == 0:
+            return 0
+        r = corr.run(current, idx, g)
+        p = r["params"].astype(np.float64)
+        z = r["zncc"].astype(np.float64)
+        st = r["status"].astype(np.int32)
+        attempts[idx] += 1
+        good = accepted_mask(st, z, zncc_min)
+        ext = np.ones(idx.size, dtype=bool)
+        if extra is not None and np.any(good):
+            ext[good] = extra(idx[good], p[good])
+        # keep the best attempt per POI: accepted > rejected by `extra` > low ZNCC > failed, then ZNCC
+        new_rank = np.where(good & ext, 3, np.where(good, 2, np.where(np.isin(st, GOOD), 1, 0)))
+        take = (new_rank > rank[idx]) | ((new_rank == rank[idx]) & (np.nan_to_num(z, nan=-2.0)
+                                                                   >= np.nan_to_num(zncc[idx], nan=-2.0)))
+        t = idx[take]
+        params[t], zncc[t], status[t], iters[t] = p[take], z[take], st[take], r["iterations"][take]
+        source[t] = src
+        rank[t] = new_rank[take]
+        extra_failed[t] = (good & ~ext)[take]
+        accepted[t] = (good & ext)[take]
+        return int(np.count_nonzero((good & ext)[take]))
+
+    start = np.flatnonzero(has_guess & eligible)
+    batch(start, guess[start], initial_source)
+    fallback_tried = np.zeros(n, dtype=bool)
+    for _ in range(max_fallback_rounds + 1):
+        # reliability-guided propagation: POIs next to accepted ones start from their parameters
+        while True:
+            acc = np.flatnonzero(accepted)
+            open_ = np.flatnonzero(eligible & ~accepted & (attempts < max_attempts))
+            if acc.size == 0 or open_.size == 0:
+                break
+            d, j = cKDTree(corr.points[acc]).query(corr.points[open_], k=1, distance_upper_bound=radius)
+            near = np.isfinite(d)
+            if not np.any(near):
+                break
+            idx = open_[near]
+            nb = acc[j[near]]
+            g = extrapolate(params[nb], corr.points[idx] - corr.points[nb], corr.order)
+            batch(idx, g, SOURCE_NEIGHBOUR)
+        if fallback is None:
+            break
+        cand = np.flatnonzero(eligible & ~accepted & ~fallback_tried)
+        if cand.size < max(1, min_fallback):
+            break
+        seeds = spread(corr.points, cand, max_seeds)
+        fallback_tried[seeds] = True
+        g, ok = fallback(seeds)
+        if np.any(ok):
+            batch(seeds[ok], g[ok], SOURCE_SEARCH)
+            attempts[seeds[ok]] = np.minimum(attempts[seeds[ok]], max_attempts - 1)  # neighbours may still retry
+    if second_opinion:
+        idx, best = second_opinion_candidates(corr.points, zncc, accepted, radius, zncc_drop)
+        if idx.size:
+            g = extrapolate(params[best], corr.points[idx] - corr.points[best], corr.order)
+            batch(idx, g, SOURCE_NEIGHBOUR)  # replaces a result only by an accepted one with a higher ZNCC
+    implausible = np.zeros(n, dtype=bool)
+    if check_warps:
+        implausible = flag_implausible(corr, params, accepted, corr.order)
+        accepted &= ~implausible
+    return CorrelationResult(params, zncc, iters, status, accepted, source, extra_failed, implausible)
+
+
+def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: Callable, *, zncc_min: float,
+                       step: float | None) -> dict:
+    """Reliability-guided propagation (Pan et al. 2009, doi:10.1364/AO.48.001535) over every POI.
+
+    Seeds (up to 9 trackable POIs spread over the list) get their guess from ``seed_guess(idx) ->
+    (m, k)`` (a ZNCC search) and are tracked; then neighbours (within 1.5 grid steps) of tracked
+    valid POIs, in decreasing-ZNCC order, in batched waves: each wave tracks, in one launch, every
+    untracked POI adjacent to a tracked valid POI, starting from the affine prediction of its
+    best-ZNCC tracked neighbour; a wave only releases neighbours of POIs whose ZNCC is within 0.05 of
+    the best pending one, which keeps the reliability ordering while launching many POIs at once.
+
+    ``base`` (N, k): parameters where nothing was tracked (the user's guess or zeros).
+    Returns host arrays ``params``, ``zncc``, ``iterations``, ``status`` (N rows).
+    """
+    from scipy.spatial import cKDTree
+
+    n, k = corr.n_points, n_params(corr.order)
+    points = corr.points
+    ready = corr.ready
+    params = base.copy()
+    zncc = np.full(n, np.nan)
+    iters = np.zeros(n, np.int32)
+    status = np.full(n, int(Status.NOT_COMPUTED), np.int32)
+    status[~ready] = corr.reference_status[~ready]
+    step = step or float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+    neigh = cKDTree(points).query_ball_point(points, r=1.5 * step)
+
+    def run(idx: np.ndarray, g: np.ndarray):
+        res = corr.run(current, idx, g)
+        params[idx] = res["params"]
+        zncc[idx] = res["zncc"]
+        iters[idx] = res["iterations"]
+        status[idx] = res["status"]
+
+    result = {"params": params, "zncc": zncc, "iterations": iters, "status": status}
+    cand = np.flatnonzero(ready)
+    if cand.size == 0:
+        return result
+    n_seeds = min(cand.size, 9)
+    seeds = cand[np.unique(np.linspace(0, cand.size - 1, n_seeds).round().astype(int))]
+    run(seeds, seed_guess(seeds))
+    good = lambda i: status[i] in GOOD and zncc[i] >= zncc_min  # noqa: E731
+    heap = [(-zncc[i], i) for i in seeds if good(i)]
+    heapq.heapify(heap)
+    while heap:
+        best = -heap[0][0]
+        wave = []
+        while heap and -heap[0][0] >= best - 0.05:
+            wave.append(heapq.heappop(heap)[1])
+        todo = {}
+        for i in wave:
+            for j in neigh[i]:
+                if status[j] == int(Status.NOT_COMPUTED) and ready[j]:
+                    if j not in todo or zncc[i] > zncc[todo[j]]:
+                        todo[j] = i
+        if not todo:
+            continue
+        idx = np.fromiter(todo.keys(), dtype=np.int64)
+        src = np.fromiter(todo.values(), dtype=np.int64)
+        d = points[idx] - points[src]
+        p = convert_order(params[src], 1)
+        g = np.zeros((idx.size, 6))
+        g[:, 0] = p[:, 0] + p[:, 1] * d[:, 0] + p[:, 2] * d[:, 1]
+        g[:, 3] = p[:, 3] + p[:, 4] * d[:, 0] + p[:, 5] * d[:, 1]
+        g[:, [1, 2, 4, 5]] = p[:, [1, 2, 4, 5]]
+        gk = convert_order(g, corr.order).copy()
+        if k == 12:
+            gk[:, [3, 4, 5, 9, 10, 11]] = params[src][:, [3, 4, 5, 9, 10, 11]]
+        run(idx, gk)
+        for j in idx:
+            if good(j):
+                heapq.heappush(heap, (-zncc[j], j))
+    return result

@@ -1,0 +1,128 @@
+"""2-D displacement fields: :class:`Field2D`, the result of 2-D tracking (:mod:`dic.track`).
+
+Conventions (docs/conventions.md): points ``(x, y)`` in reference pixels, displacements ``(u, v)``
+in pixels, parameters in :data:`kernels.conventions.PARAMS_1ST` / ``PARAMS_2ND`` order, statuses
+:class:`kernels.conventions.Status`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from kernels.conventions import param_names
+
+__all__ = ["Field2D"]
+
+
+@dataclass
+class Field2D:
+    """A 2-D displacement field at POIs of the reference image.
+
+    Attributes
+    ----------
+    points : (N, 2) float64
+        POIs ``(x, y)`` in reference pixels.
+    u, v : (N,) float64
+        Displacement at each POI (px), ``params[:, 0]`` and ``params[:, 3 | 6]``.
+    params : (N, 6 | 12) float64
+        Shape-function parameters in ``PARAMS_1ST`` / ``PARAMS_2ND`` order.
+    zncc : (N,) float64
+        Zero-normalised cross-correlation of the last iteration (NaN where not computed).
+    iterations : (N,) int32
+    status : (N,) int32
+        :class:`kernels.conventions.Status` code per POI.
+    valid : (N,) bool
+        ``status`` in (CONVERGED, MAX_ITERATIONS) and ``zncc >= zncc_min`` (POIs whose warp is
+        implausible get status IMPLAUSIBLE_WARP and are not valid; dic.correlation.acceptance).
+    subset, order : int
+        Subset size (px) and shape-function order.
+    step : int or None
+        Grid spacing when the points come from :func:`grid` (used by :meth:`to_grid`).
+    zncc_min : float
+        ZNCC threshold behind ``valid``.
+    """
+
+    points: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    params: np.ndarray
+    zncc: np.ndarray
+    iterations: np.ndarray
+    status: np.ndarray
+    valid: np.ndarray
+    subset: int
+    order: int
+    step: int | None = None
+    zncc_min: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return param_names(self.order)
+
+    def _lattice(self):
+        pts = self.points
+        if pts.shape[0] == 0:
+            raise ValueError("the field has no points")
+        out = []
+        for axis in (0, 1):
+            c = pts[:, axis]
+            lo = c.min()
+            step = self.step
+            if step is None:
+                d = np.diff(np.unique(c))
+                step = float(d.min()) if d.size else 1.0
+            k = (c - lo) / step
+            if not np.allclose(k, np.rint(k), atol=1e-6):
+                raise ValueError("the points are not on a regular grid (give step= or use grid())")
+            out.append((lo, step, np.rint(k).astype(np.int64)))
+        return out
+
+    def grid_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(xs, ys)``: coordinates of the grid columns and rows spanned by the points."""
+        (x0, sx, kx), (y0, sy, ky) = self._lattice()
+        return x0 + sx * np.arange(kx.max() + 1), y0 + sy * np.arange(ky.max() + 1)
+
+    def to_grid(self, values="u", fill=np.nan) -> np.ndarray:
+        """A per-point quantity as a 2-D map on the points' grid.
+
+        Parameters
+        ----------
+        values : str or array-like (N,) / (N, k)
+            A field name (``"u"``, ``"v"``, ``"zncc"``, ``"status"``, ``"valid"``, ``"iterations"``
+            or a parameter name such as ``"ux"``) or an array with one row per point.
+        fill : value for grid nodes without a point (ROIs); NaN by default.
+
+        Returns
+        -------
+        np.ndarray (ny, nx) or (ny, nx, k); row ``i`` is ``ys[i]``, column ``j`` is ``xs[j]``
+        (:meth:`grid_axes`). Invalid points keep their value: mask with ``to_grid("valid")``.
+        """
+        if isinstance(values, str):
+            if values in ("u", "v", "zncc", "status", "valid", "iterations"):
+                arr = np.asarray(getattr(self, values))
+            elif values in self.param_names:
+                arr = self.params[:, self.param_names.index(values)]
+            else:
+                raise ValueError(f"unknown quantity {values!r}; use u, v, zncc, status, valid, iterations or "
+                                 f"one of {self.param_names}")
+        else:
+            arr = np.asarray(values)
+        if arr.shape[0] != self.n_points:
+            raise ValueError(f"values must have one row per point ({self.n_points}), got shape {arr.shape}")
+        (_, _, kx), (_, _, ky) = self._lattice()
+        nx, ny = int(kx.max()) + 1, int(ky.max()) + 1
+        if arr.dtype == bool and isinstance(fill, float) and np.isnan(fill):
+            fill = False  # boolean maps (valid) are False where there is no point
+        dtype = np.result_type(arr.dtype, np.min_scalar_type(fill) if not isinstance(fill, float) else np.float64)
+        if arr.dtype == bool and fill is False:
+            dtype = bool
+        out = np.full((ny, nx) + arr.shape[1:], fill, dtype=dtype)
+        out[ky, kx] = arr
+        return out
