@@ -100,6 +100,10 @@ def test_interrupted_run_keeps_finished_frames(tmp_path):
 def test_bad_files(tmp_path):
     with pytest.raises(ValueError, match="result file not found"):
         read_results(tmp_path / "none.h5")
+    with pytest.raises(ValueError, match="image_digest needs an"):
+        image_digest(np.zeros(5))
+    with pytest.raises(ValueError, match="mode must be"):
+        ResultWriter(tmp_path / "m.h5", mode="append")
     (tmp_path / "junk.h5").write_bytes(b"not hdf5")
     with pytest.raises(ValueError, match="cannot open"):
         read_results(tmp_path / "junk.h5")
