@@ -1,6 +1,6 @@
 """``specula stereo``: stereo DIC of a reference image pair and any number of later pairs.
 
-Results go to an HDF5 file (layout: dic/sequence.py, docs/stereo.md), one group per state,
+Results go to an HDF5 file (layout: docs/results_format.md), one group per state,
 flushed as each state finishes; rerunning the same command resumes after the last finished one.
 """
 from __future__ import annotations

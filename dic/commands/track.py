@@ -91,7 +91,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                 bar.update(1)
                 continue
             if previous is None and index > 1 and writer.is_done(index - 1):
-                previous = _stored_guess(output, index - 1)
+                previous = _stored_guess(writer, index - 1)
             t0 = time.perf_counter()
             try:
                 cur = read_image(cur_path)
@@ -159,12 +159,9 @@ def _guess(previous):
     return guess
 
 
-def _stored_guess(output, index):
-    """(params, valid) of a finished frame in the result file (resuming a sequence)."""
-    import h5py
-
-    with h5py.File(output, "r") as f:
-        g = f["frames"].get(f"{index:06d}")
-        if g is None or "params" not in g or "valid" not in g:
-            return None
-        return np.asarray(g["params"][()], np.float64), np.asarray(g["valid"][()], bool)
+def _stored_guess(writer, index):
+    """(params, valid) of a finished frame in the result file (resuming a sequence), or None."""
+    stored = writer.frame_arrays(index, ("params", "valid"))
+    if stored is None:
+        return None
+    return np.asarray(stored[0], np.float64), np.asarray(stored[1], bool)

@@ -1,0 +1,396 @@
+"""One writer and one reader for every Specula result file (2-D DIC and stereo DIC).
+
+Both kinds share one root layout (docs/results_format.md)::
+
+    /                     attrs: format ("specula-dic2d" | "specula-stereo"), schema_version,
+                                 specula_version, created, updated
+    /reference            attrs: shape (H, W) and, per reference image, its path and sha256
+                          (2-D: path, sha256; stereo: left_path, left_sha256, right_path, right_sha256)
+    /settings             attrs: json (the run's settings, a JSON object)
+    /rig                  stereo only: attrs json (the StereoRig file content)
+    /frames/<index>       one group per frame (state), zero-padded ("000001")
+        attrs: index, path (2-D) or left_path/right_path (stereo), complete, written, and the
+               caller's extras (seconds); datasets: the kind's payload (dic.store.dic2d, dic.store.stereo)
+
+The frame protocol is the same for both: a frame is written into ``/frames/<index>.partial``,
+renamed to ``/frames/<index>`` and marked ``complete`` only when it is whole; the file is
+flushed after every frame. An interrupted run therefore keeps every finished frame, and a rerun
+with the same output, reference image(s), settings (and rig) skips them
+(:meth:`ResultWriter.is_done`) and drops leftovers of the frame that was cut short.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from . import dic2d, stereo
+from .layout import SCHEMA_VERSION, StoreKind, frame_name, now, plain, role_attr, settings_json, specula_version
+
+__all__ = ["ResultWriter", "ResultReader", "KINDS", "read_results", "read_stereo", "read_field"]
+
+KINDS: dict[str, StoreKind] = {dic2d.KIND.name: dic2d.KIND, stereo.KIND.name: stereo.KIND}
+_BY_FORMAT = {k.format: k for k in KINDS.values()}
+_MODES = ("resume", "overwrite", "new")
+
+
+def _kind(kind) -> StoreKind:
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {sorted(KINDS)}, got {kind!r}")
+    return KINDS[kind]
+
+
+def _per_image(kind: StoreKind, value, what: str) -> tuple[str, ...]:
+    """A path or digest given for each reference/current image of ``kind``: one text, or one per image."""
+    roles = kind.image_roles
+    if len(roles) == 1:
+        if isinstance(value, (tuple, list)):
+            raise ValueError(f"a {kind.label} file has one image per frame; {what} must be a single text, got {value!r}")
+        return (os.fspath(value) if isinstance(value, os.PathLike) else str(value),)
+    if isinstance(value, (str, os.PathLike)) and not value:
+        return ("",) * len(roles)
+    if not isinstance(value, (tuple, list)) or len(value) != len(roles):
+        raise ValueError(f"a {kind.label} file has {len(roles)} images per frame ({', '.join(roles)}); "
+                         f"{what} must be a ({', '.join(roles)}) pair, got {value!r}")
+    return tuple(os.fspath(v) if isinstance(v, os.PathLike) else str(v) for v in value)
+
+
+def _rig_dict(rig) -> dict:
+    if isinstance(rig, dict):
+        return rig
+    if not hasattr(rig, "to_dict"):
+        raise ValueError(f"rig must be a calibration.stereo.StereoRig (or its dict), got {type(rig).__name__}")
+    return rig.to_dict()
+
+
+class _ResultFile:
+    """What the writer and the reader share: the open h5py file, its kind and its frames."""
+
+    _h5 = None
+    path: Path
+    kind: StoreKind
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        """Flush (when writable) and close the file; closing twice is harmless."""
+        if self._h5 is not None and self._h5.id.valid:
+            if self._h5.mode != "r":
+                self._h5.flush()
+            self._h5.close()
+
+    # -- header
+    @property
+    def attrs(self) -> dict:
+        """The root attributes (format, schema_version, specula_version, created, updated)."""
+        return {k: plain(v) for k, v in self._h5.attrs.items()}
+
+    @property
+    def reference(self) -> dict:
+        """``shape`` (H, W) and each reference image's path and sha256 (2-D: ``path``, ``sha256``;
+        stereo: ``left_path``, ``left_sha256``, ``right_path``, ``right_sha256``)."""
+        ref = self._h5["reference"].attrs
+        out = {}
+        for role in self.kind.image_roles:
+            out[role_attr(role, "path")] = str(ref.get(role_attr(role, "path"), ""))
+        out["shape"] = tuple(int(n) for n in ref.get("shape", ()))
+        for role in self.kind.image_roles:
+            out[role_attr(role, "sha256")] = str(ref.get(role_attr(role, "sha256"), ""))
+        return out
+
+    @property
+    def settings(self) -> dict:
+        return json.loads(self._h5["settings"].attrs.get("json", "{}"))
+
+    @property
+    def rig(self) -> dict | None:
+        """The stored rig (the StereoRig file content) or None (2-D files)."""
+        return json.loads(self._h5["rig"].attrs["json"]) if "rig" in self._h5 else None
+
+    # -- frames
+    def _frames(self):
+        return self._h5["frames"] if "frames" in self._h5 else {}
+
+    def done_frames(self) -> list[int]:
+        """Indices of the complete frames in the file, ascending."""
+        g = self._frames()
+        return sorted(int(g[n].attrs["index"]) for n in g
+                      if not n.endswith(".partial") and g[n].attrs.get("complete", 0))
+
+    def is_done(self, index: int) -> bool:
+        """True when frame ``index`` is already complete in the file."""
+        g = self._frames()
+        name = frame_name(index)
+        return name in g and bool(g[name].attrs.get("complete", 0))
+
+    def _complete_group(self, index: int):
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+            raise ValueError(f"frame index must be a non-negative integer, got {index!r}")
+        if not self.is_done(index):
+            raise ValueError(f"{self.path} has no finished {self.kind.frame_noun} {index}; "
+                             f"finished: {self.done_frames()}")
+        return self._frames()[frame_name(index)]
+
+    def read_frame(self, index: int):
+        """A complete frame: :class:`dic.store.FrameResult` (2-D) or :class:`dic.field3d.Field3D` (stereo)."""
+        return self.kind.read_payload(self._complete_group(index))
+
+    def frame_paths(self, index: int) -> tuple[str, ...]:
+        """The image path(s) recorded for a complete frame: (path,) or (left, right)."""
+        g = self._complete_group(index)
+        return tuple(str(g.attrs.get(role_attr(r, "path"), "")) for r in self.kind.image_roles)
+
+    def frame_arrays(self, index: int, names) -> tuple | None:
+        """Datasets ``names`` of a complete frame (e.g. the parameters to resume from), or None
+        when the frame is not complete or lacks one of them."""
+        if not self.is_done(index):
+            return None
+        g = self._frames()[frame_name(index)]
+        if any(n not in g for n in names):
+            return None
+        return tuple(g[n][()] for n in names)
+
+    def read_match(self):
+        """The stored reference :class:`dic.stereo.StereoMatch` (stereo files), or None."""
+        return stereo.read_match(self._h5["reference/match"]) if "reference/match" in self._h5 else None
+
+
+class ResultWriter(_ResultFile):
+    """Write (or resume) a result file, one frame at a time: 2-D DIC or stereo DIC.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.h5`` file.
+    kind : "dic2d" | "stereo"
+        ``dic2d`` (format ``specula-dic2d``): frames are :class:`dic.track.Field2D` (+ strain).
+        ``stereo`` (format ``specula-stereo``): frames are :class:`dic.field3d.Field3D`, and the
+        file also holds the rig and the reference match (:meth:`write_match`).
+    reference_path : str, or (left, right) for stereo
+        Where the reference image(s) came from (recorded only).
+    reference_shape : (H, W) px
+    reference_sha256 : str, or (left, right) for stereo, optional
+        :func:`dic.store.image_digest` of the reference image(s); a resumed file must match.
+    settings : dict
+        The run's settings, stored as JSON; a resumed file must hold the same.
+    rig : calibration.stereo.StereoRig or its dict
+        Stereo only (required there); a resumed file must hold the same rig.
+    mode : "resume" | "overwrite" | "new"
+        ``resume`` (default) opens an existing compatible file and keeps its complete frames;
+        ``overwrite`` starts afresh; ``new`` refuses an existing file.
+
+    Use as a context manager; :meth:`write_frame` flushes the file after each frame.
+    """
+
+    def __init__(self, path, *, reference_path="", reference_shape=None, reference_sha256="",
+                 settings: dict | None = None, mode: str = "resume", kind: str = "dic2d", rig=None):
+        import h5py
+
+        self.kind = _kind(kind)
+        if mode not in _MODES:
+            raise ValueError(f"mode must be 'resume', 'overwrite' or 'new', got {mode!r}")
+        self.path = Path(os.fspath(path))
+        self._settings_json = settings_json(settings)
+        paths = _per_image(self.kind, reference_path, "reference_path")
+        digests = _per_image(self.kind, reference_sha256, "reference_sha256")
+        shape = tuple(int(n) for n in reference_shape) if reference_shape is not None else ()
+        if self.kind.needs_rig and rig is None:
+            raise ValueError(f"a {self.kind.label} result file needs the rig (rig=)")
+        if not self.kind.needs_rig and rig is not None:
+            raise ValueError(f"a {self.kind.label} result file has no rig; pass rig=None")
+        rig_json = json.dumps(_rig_dict(rig)) if rig is not None else None
+        exists = self.path.exists()
+        if exists and mode == "new":
+            raise ValueError(f"result file {self.path} already exists; choose another output or allow overwriting")
+        if exists and mode == "resume":
+            try:
+                self._h5 = h5py.File(self.path, "a")
+            except OSError as exc:
+                raise ValueError(
+                    f"cannot open the existing result file {self.path} to resume ({exc}); it may be corrupt: "
+                    "delete it or write to another file") from None
+            try:
+                self._check_compatible(paths, digests, shape, rig_json)
+            except ValueError:
+                self._h5.close()
+                raise
+            frames = self._h5.require_group("frames")  # stereo files of v1 create it with the first state
+            for name in list(frames.keys()):  # leftovers of an interrupted frame
+                if name.endswith(".partial") or not frames[name].attrs.get("complete", 0):
+                    del frames[name]
+            self._h5.attrs["updated"] = now()
+        else:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._h5 = h5py.File(self.path, "w")
+            f = self._h5
+            f.attrs["format"] = self.kind.format
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["specula_version"] = specula_version()
+            f.attrs["created"] = now()
+            f.attrs["updated"] = f.attrs["created"]
+            if rig_json is not None:
+                f.create_group("rig").attrs["json"] = rig_json
+            ref = f.create_group("reference")
+            for role, p in zip(self.kind.image_roles, paths):
+                ref.attrs[role_attr(role, "path")] = p
+            ref.attrs["shape"] = np.asarray(shape, dtype=np.int64)
+            for role, d in zip(self.kind.image_roles, digests):
+                ref.attrs[role_attr(role, "sha256")] = d
+            f.create_group("settings").attrs["json"] = self._settings_json
+            f.create_group("frames")
+        self._h5.flush()
+
+    def _check_compatible(self, paths, digests, shape, rig_json) -> None:
+        f, kind = self._h5, self.kind
+        fmt = f.attrs.get("format")
+        if fmt != kind.format or "reference" not in f or "settings" not in f:
+            raise ValueError(f"{self.path} is not a Specula {kind.label} result file (format {fmt!r}); "
+                             "write to another file or overwrite it")
+        version = int(f.attrs.get("schema_version", -1))
+        if version != SCHEMA_VERSION:
+            raise ValueError(
+                f"{self.path} uses result schema version {version}, this Specula writes version {SCHEMA_VERSION}; "
+                "write to another file or overwrite it")
+        stored = f["reference"].attrs
+        for role, d in zip(kind.image_roles, digests):
+            old = str(stored.get(role_attr(role, "sha256"), ""))
+            if d and old and old != d:
+                were = ", ".join(str(stored.get(role_attr(r, "path"), "?")) for r in kind.image_roles)
+                raise ValueError(f"{self.path} holds results for a different {kind.reference_noun} ({were}); "
+                                 "write to another file or overwrite it")
+        if shape and tuple(stored.get("shape", ())) != shape:
+            raise ValueError(f"{self.path} holds results for a reference of shape {tuple(stored['shape'])}, not {shape}")
+        old_json = f["settings"].attrs.get("json", "{}")
+        old, new = json.loads(old_json), json.loads(self._settings_json)
+        if old != new:
+            differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+            raise ValueError(
+                f"{self.path} was written with different settings ({', '.join(differ)} differ; stored: {old_json}); "
+                f"resuming needs the same settings ({self._settings_json}). Write to another file or overwrite it")
+        if rig_json is not None:
+            if "rig" not in f or json.loads(f["rig"].attrs["json"]) != json.loads(rig_json):
+                raise ValueError(f"{self.path} holds results computed with another rig; write to another file "
+                                 "or overwrite it")
+
+    # -- writing
+    def write_frame(self, index: int, field, *, strain=None, path="", attrs: dict | None = None) -> None:
+        """Write one frame, mark it complete, then flush.
+
+        ``field``: a :class:`dic.track.Field2D`-like object (``points``, ``u``, ``v`` and optionally
+        ``params``, ``zncc``, ``iterations``, ``status``, ``valid``) for 2-D, with ``strain`` a
+        :class:`dic.strain.StrainField` or None; a :class:`dic.field3d.Field3D` for stereo.
+        ``path``: the current image file (2-D) or (left, right) files (stereo). ``attrs``: extra
+        frame attributes (e.g. ``seconds``).
+        """
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+            raise ValueError(f"frame index must be a non-negative integer, got {index!r}")
+        paths = _per_image(self.kind, path, "path")
+        frames = self._h5["frames"]
+        name = frame_name(index)
+        if name in frames:
+            del frames[name]
+        tmp = name + ".partial"
+        if tmp in frames:
+            del frames[tmp]
+        g = frames.create_group(tmp)
+        try:
+            self.kind.write_payload(g, field, strain)
+        except BaseException:
+            del frames[tmp]
+            raise
+        g.attrs["index"] = int(index)
+        for role, p in zip(self.kind.image_roles, paths):
+            g.attrs[role_attr(role, "path")] = p
+        g.attrs["written"] = now()
+        for k, v in (attrs or {}).items():
+            g.attrs[k] = v
+        frames.move(tmp, name)
+        frames[name].attrs["complete"] = 1
+        self._h5.attrs["updated"] = now()
+        self._h5.flush()
+
+    def write_match(self, match) -> None:
+        """Store the reference :class:`dic.stereo.StereoMatch` (stereo files, once), then flush."""
+        if self.kind is not stereo.KIND:
+            raise ValueError(f"a {self.kind.label} result file has no reference match")
+        if "reference/match" in self._h5:
+            raise ValueError(f"{self.path} already holds a reference match")
+        g = self._h5["reference"].create_group("match")
+        try:
+            stereo.write_match(g, match)
+        except BaseException:
+            del self._h5["reference/match"]
+            raise
+        self._h5.flush()
+
+
+class ResultReader(_ResultFile):
+    """Open a result file read-only: ``kind`` "dic2d", "stereo", or None for whichever it is.
+
+    Offers :attr:`attrs`, :attr:`reference`, :attr:`settings`, :attr:`rig`, :meth:`done_frames`,
+    :meth:`read_frame`, :meth:`frame_paths`, :meth:`frame_arrays` and :meth:`read_match`;
+    incomplete frames are invisible. Files of a newer schema version are refused. Use as a
+    context manager.
+    """
+
+    def __init__(self, path, kind: str | None = None):
+        import h5py
+
+        wanted = _kind(kind) if kind is not None else None
+        self.path = Path(os.fspath(path))
+        if not self.path.exists():
+            raise ValueError(f"result file not found: {self.path}")
+        try:
+            self._h5 = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise ValueError(f"cannot open result file {self.path}: {exc}") from None
+        try:
+            fmt = self._h5.attrs.get("format")
+            found = _BY_FORMAT.get(fmt)
+            if found is None or (wanted is not None and found is not wanted):
+                label = wanted.label + " " if wanted is not None else ""
+                raise ValueError(f"{self.path} is not a Specula {label}result file (format {fmt!r})")
+            self.kind = found
+            version = int(self._h5.attrs.get("schema_version", -1))
+            if version > SCHEMA_VERSION:
+                raise ValueError(f"{self.path} uses result schema version {version}; this Specula reads up to "
+                                 f"{SCHEMA_VERSION}")
+        except Exception:
+            self._h5.close()
+            raise
+
+
+# ------------------------------------------------------------------------------------------------
+# whole-file readers, one per kind
+
+
+def read_results(path) -> dic2d.TrackResults:
+    """Read a 2-D DIC result file (complete frames only) into a :class:`dic.store.TrackResults`."""
+    with ResultReader(path, kind="dic2d") as r:
+        frames = {i: r.read_frame(i) for i in r.done_frames()}
+        return dic2d.TrackResults(path=r.path, attrs=r.attrs, reference=r.reference, settings=r.settings,
+                                  frames=frames)
+
+
+def read_field(path, index: int):
+    """One finished state of a stereo result file as a :class:`dic.field3d.Field3D` (``ValueError`` if absent)."""
+    with ResultReader(path, kind="stereo") as r:
+        return r.read_frame(index)
+
+
+def read_stereo(path) -> stereo.StereoResults:
+    """Read every finished state of a stereo result file into a :class:`dic.store.StereoResults`."""
+    from calibration.stereo import StereoRig
+
+    with ResultReader(path, kind="stereo") as r:
+        indices = r.done_frames()
+        fields = {i: r.read_frame(i) for i in indices}
+        paths = {i: r.frame_paths(i) for i in indices}
+        return stereo.StereoResults(fields, r.read_match(), StereoRig.from_dict(r.rig), r.settings, paths,
+                                    r.reference["shape"])

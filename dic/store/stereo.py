@@ -1,0 +1,107 @@
+"""The stereo payload of a result file (format ``specula-stereo``): one Field3D per state, plus the reference match.
+
+Beyond the common layout a stereo file has::
+
+    /rig                   attrs: json (the StereoRig file content)
+    /reference/match       points_left, points_right, params, zncc, iterations, icgn_status,
+                           epipolar_px, guess_source, status; attrs n_features, order
+    /frames/<index>        one group per state ("000000" = the reference shape)
+        attrs: grid_shape, frame_name, R_frame_left, t_frame_left (besides the common ones)
+        datasets: every per-point array of the Field3D (points, X ... W, exx, eyy, exy, normal,
+                  zncc_*, epipolar_*, reprojection_*, status, strain_valid) and its details
+                  (match_status, track_left_status, ..., params_left, params_right, ...);
+                  gzip level 4 + shuffle except booleans and arrays of fewer than 64 values
+
+The frame protocol (``.partial`` -> complete, flush, resume) is :class:`dic.store.ResultWriter`'s.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .layout import StoreKind
+
+__all__ = ["FORMAT_NAME", "KIND", "StereoResults", "write_field3d", "read_field3d", "write_match", "read_match"]
+
+FORMAT_NAME = "specula-stereo"
+MATCH_DATASETS = ("points_left", "points_right", "params", "zncc", "iterations", "icgn_status", "epipolar_px",
+                  "guess_source", "status")
+FIELD_DATASETS = ("points", "X", "Y", "Z", "U", "V", "W", "exx", "eyy", "exy", "normal", "zncc_stereo", "zncc_left",
+                  "zncc_right", "epipolar_ref_px", "epipolar_px", "reprojection_ref_px", "reprojection_px", "status",
+                  "strain_valid")
+
+
+@dataclass
+class StereoResults:
+    """A stereo result file read back (:func:`dic.store.read_stereo`).
+
+    ``fields`` maps state index -> :class:`dic.field3d.Field3D` (0 = the reference shape);
+    ``match`` is the reference :class:`dic.stereo.StereoMatch`; ``rig`` the
+    :class:`calibration.stereo.StereoRig`; ``settings`` the correlation settings; ``paths`` maps
+    index -> (left, right) file names; ``reference_shape`` is (H, W) px.
+    """
+
+    fields: dict
+    match: object | None
+    rig: object
+    settings: dict
+    paths: dict = field(default_factory=dict)
+    reference_shape: tuple = ()
+
+    @property
+    def indices(self) -> list[int]:
+        return sorted(self.fields)
+
+
+def write_field3d(group, field3d, strain=None) -> None:
+    """Write one state's :class:`dic.field3d.Field3D` (arrays and details) into an empty h5py ``group``."""
+    if strain is not None:
+        raise ValueError("a stereo frame carries its strain in the Field3D; pass strain=None")
+    if not hasattr(field3d, "arrays") or not hasattr(field3d, "R_frame_left"):
+        raise ValueError(f"a stereo frame must be a dic.field3d.Field3D, got {type(field3d).__name__}")
+    for key, arr in field3d.arrays().items():
+        arr = np.asarray(arr)
+        if arr.dtype == bool or arr.size < 64:  # compression only costs on flags and tiny arrays
+            group.create_dataset(key, data=arr)
+        else:
+            group.create_dataset(key, data=arr, compression="gzip", compression_opts=4, shuffle=True)
+    group.attrs.update({"grid_shape": list(field3d.grid_shape) if field3d.grid_shape is not None else [],
+                        "frame_name": field3d.frame_name, "R_frame_left": np.asarray(field3d.R_frame_left),
+                        "t_frame_left": np.asarray(field3d.t_frame_left)})
+
+
+def read_field3d(group):
+    """A complete ``/frames/<index>`` group of a stereo file as a :class:`dic.field3d.Field3D`."""
+    from ..field3d import Field3D
+
+    arrays = {k: group[k][()] for k in FIELD_DATASETS}
+    details = {k: group[k][()] for k in group.keys() if k not in FIELD_DATASETS}
+    gs = [int(v) for v in group.attrs.get("grid_shape", [])]
+    return Field3D(**arrays, grid_shape=tuple(gs) if gs else None,
+                   R_frame_left=np.asarray(group.attrs["R_frame_left"]),
+                   t_frame_left=np.asarray(group.attrs["t_frame_left"]), frame_name=str(group.attrs["frame_name"]),
+                   index=int(group.attrs["index"]), details=details)
+
+
+def write_match(group, match) -> None:
+    """Write the reference :class:`dic.stereo.StereoMatch` into an empty h5py ``group`` (``/reference/match``)."""
+    if not hasattr(match, "arrays"):
+        raise ValueError(f"match must be a dic.stereo.StereoMatch, got {type(match).__name__}")
+    for key, arr in match.arrays().items():
+        group.create_dataset(key, data=arr)
+    group.attrs.update({"n_features": match.n_features, "order": match.order})
+
+
+def read_match(group):
+    """``/reference/match`` as a :class:`dic.stereo.StereoMatch`."""
+    from ..stereo import StereoMatch
+
+    arrays = {k: group[k][()] for k in MATCH_DATASETS}
+    return StereoMatch(**arrays, n_features=int(group.attrs.get("n_features", 0)),
+                       order=int(group.attrs.get("order", 2)))
+
+
+KIND = StoreKind(name="stereo", format=FORMAT_NAME, label="stereo", image_roles=("left", "right"),
+                 reference_noun="reference image pair", frame_noun="state", needs_rig=True,
+                 write_payload=write_field3d, read_payload=read_field3d)
