@@ -6,6 +6,7 @@ invoked, so ``specula --help`` stays fast and one broken command cannot take the
 from __future__ import annotations
 
 import importlib
+import warnings
 
 import click
 
@@ -53,6 +54,12 @@ class LazyGroup(click.Group):
 @click.version_option(package_name="specula")
 def main():
     """Specula: stereo digital image correlation on Warp kernels."""
+    warnings.showwarning = _show_warning
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Library warnings (e.g. "only 0 of 2304 points are valid ... try --search") as plain messages."""
+    click.echo(f"Warning: {message}", err=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -244,6 +244,19 @@ def test_rig_that_does_not_fit_warns(lab):
     assert np.count_nonzero(good.valid) > 0.9 * len(good)
 
 
+def test_rig_for_other_images_says_nothing_could_start(lab):
+    """A rig whose geometry does not fit the images at all (right camera turned by 20 deg) leaves every
+    point without a usable initial guess; the run must say so and what to try, not return a silent
+    all-invalid field (it did before: no warning)."""
+    rig = lab["rig"]
+    (l0, r0) = lab["states"][0]
+    turn = rotation_from_vector([0.0, np.radians(20.0), 0.0])
+    wrong = StereoRig(rig.left, rig.right, turn @ rig.R_right_left, turn @ rig.t_right_left)
+    with pytest.warns(RuntimeWarning, match=r"only \d+ of \d+ points are valid.*rig does not fit these images"):
+        f = stereo(wrong, l0, r0, step=20)
+    assert np.count_nonzero(f.valid) < 0.05 * len(f)
+
+
 def test_points_behind_camera_and_degenerate_rays(lab):
     (l0, r0) = lab["states"][0]
     rig = lab["rig"]

@@ -37,6 +37,10 @@ def _sift_matches(a: np.ndarray, b: np.ndarray, scale: int, max_features: int, r
     empty = (np.zeros((0, 2)), np.zeros((0, 2)))
     if da is None or db is None or len(ka) < 2 or len(kb) < 2:
         return empty
+    # FLANN's randomised k-d trees draw from OpenCV's global RNG: seed it, so that the same images
+    # give the same matches on every call (unseeded, a second stereo match in one process differed
+    # in the last bits)
+    cv2.setRNGSeed(0)
     matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
     ia, ib = [], []
     for p in matcher.knnMatch(da, db, k=2):

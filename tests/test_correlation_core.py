@@ -1,0 +1,121 @@
+"""The one correlation core (dic.correlation): one ROI rule, guesses chosen by name and extensible,
+one engine that runs IC-GN for 2-D and stereo, repeatable feature guesses, and a warning when a run
+ends with (almost) nothing valid."""
+import ast
+import pathlib
+import warnings
+
+import numpy as np
+import pytest
+
+from dic.correlation.features import feature_matches
+from dic.correlation.guesses import GuessContext, _REGISTRY, available_guesses, get_guess, register_guess
+from dic.correlation.points import grid, grid_points
+from dic.synth import speckle_pair
+from dic.track import Tracker, track
+from kernels.conventions import Status
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _stays_inside(f, shift, shape, half=10):
+    """POIs whose subset, moved by ``shift``, stays inside the image (the others are OUT_OF_BOUNDS)."""
+    x, y = f.points[:, 0] + shift[0], f.points[:, 1] + shift[1]
+    return (x - half >= 0) & (x + half <= shape[1] - 1) & (y - half >= 0) & (y + half <= shape[0] - 1)
+
+
+def test_roi_has_one_meaning_for_2d_and_stereo():
+    """The same ROI selects the same POIs in the 2-D grid and the stereo lattice (before, a box one POI
+    wide was valid in 2-D and refused in stereo, and an integer mask was read as a box in stereo)."""
+    shape = (100, 160)
+    mask = np.zeros(shape, np.uint8)
+    mask[:50, 70:] = 255
+    for roi in [(40, 20, 80, 60), (50, 20, 50, 60), (50.5, 20, 50.5, 60.2), mask, mask.astype(bool)]:
+        if roi[0] == 50.5 if isinstance(roi, tuple) else False:
+            # a box between grid columns holds no POI: both refuse it the same way
+            for make in (lambda r: grid(shape, 10, margin=10, roi=r), lambda r: grid_points(shape, 10, 21, roi=r)):
+                with pytest.raises(ValueError, match="empty ROI"):
+                    make(roi)
+            continue
+        pts2d = grid(shape, 10, margin=10, roi=roi)
+        pts, _, in_roi = grid_points(shape, 10, 21, roi=roi)
+        assert np.array_equal(pts2d, pts[in_roi])
+    for make in (lambda r: grid(shape, 10, margin=10, roi=r), lambda r: grid_points(shape, 10, 21, roi=r)):
+        with pytest.raises(ValueError, match="is empty"):
+            make((80, 20, 40, 60))
+        with pytest.raises(ValueError, match="roi mask must have the image shape"):
+            make(np.ones((10, 10), bool))
+
+
+def test_guesses_by_name_and_extensible():
+    assert {"prior", "zncc", "fft", "pyramid", "rg", "shift", "features", "epipolar"} <= set(available_guesses())
+    with pytest.raises(ValueError, match="unknown initial-guess strategy 'nope'.*zncc"):
+        get_guess("nope")
+    shift = (23.0, -17.0)
+    ref, cur = speckle_pair((160, 180), lambda x, y: (shift[0] + 0 * x, shift[1] + 0 * y), seed=5)
+
+    @register_guess("oracle")
+    def _oracle(ctx: GuessContext, idx):
+        g = np.zeros((idx.size, 6 if ctx.order == 1 else 12))
+        g[:, 0], g[:, g.shape[1] // 2] = shift
+        return g, np.ones(idx.size, bool)
+
+    try:
+        f = track(ref, cur, step=10, search="oracle")
+    finally:
+        _REGISTRY.pop("oracle")
+    inside = _stays_inside(f, shift, ref.shape)
+    assert np.count_nonzero(f.valid[inside]) > 0.95 * np.count_nonzero(inside) > 0
+    assert np.allclose(f.u[f.valid], shift[0], atol=0.02) and np.allclose(f.v[f.valid], shift[1], atol=0.02)
+    with pytest.raises(ValueError, match="search must be None or one of"):
+        Tracker(ref, search="epipolar")  # needs a stereo rig
+
+
+def test_large_motion_without_search_says_what_to_try():
+    """A 23 px motion without a search gives no valid point; the run warns and names the search option."""
+    ref, cur = speckle_pair((160, 180), lambda x, y: (23.0 + 0 * x, 0.0 * y), seed=6)
+    with pytest.warns(RuntimeWarning, match=r"only \d+ of \d+ points are valid.*search"):
+        f = track(ref, cur, step=10)
+    assert np.count_nonzero(f.valid) < 0.05 * f.n_points
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        f = track(ref, cur, step=10, search="zncc")
+    inside = _stays_inside(f, (23.0, 0.0), ref.shape)
+    assert np.count_nonzero(f.valid[inside]) > 0.95 * np.count_nonzero(inside) > 0
+
+
+def test_feature_matches_are_repeatable():
+    """SIFT + FLANN gave different matches on a second call in the same process (FLANN's random trees
+    drew from OpenCV's global RNG); the same images must give the same matches."""
+    ref, cur = speckle_pair((240, 320), lambda x, y: (4.3 + 0.01 * x, -2.1 + 0 * y), seed=7, radius=2.5)
+    first = feature_matches(ref, cur)
+    for _ in range(3):
+        again = feature_matches(ref, cur)
+        assert np.array_equal(first[0], again[0]) and np.array_equal(first[1], again[1])
+    assert first[0].shape[0] > 50
+
+
+def _imports(path: pathlib.Path):
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            yield node.module, {a.name for a in node.names}
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                yield a.name, set()
+
+
+def test_one_engine_runs_icgn():
+    """Only the correlation engine calls the IC-GN kernels' launchers: 2-D tracking and stereo DIC both go
+    through dic.correlation.engine (one correlation engine in the code)."""
+    launchers = {"icgn", "prepare_subsets", "prepare_reference"}
+    users = []
+    for path in sorted((ROOT / "dic").rglob("*.py")):
+        for module, names in _imports(path):
+            if module == "kernels.icgn" and names & launchers:
+                users.append(path.relative_to(ROOT).as_posix())
+    assert users == ["dic/correlation/engine.py"], users
+
+
+def test_status_code_for_implausible_warps_is_not_a_kernel_code():
+    assert int(Status.IMPLAUSIBLE_WARP) == 7
+    assert Status.IMPLAUSIBLE_WARP.name not in ("CONVERGED", "MAX_ITERATIONS")
