@@ -34,19 +34,29 @@ N_COEFFICIENTS = 8
 
 
 @wp.func
+def radial_factor_terms(r2: Any, dist: Any):
+    """Numerator and denominator of the radial factor at ``r2 = x² + y²`` (scalars).
+
+    ``num = 1 + k1 r² + k2 r⁴ + k3 r⁶``, ``den = 1 + k4 r² + k5 r⁴ + k6 r⁶`` (Horner form).
+    """
+    one = type(r2)(1.0)
+    num = one + r2 * (dist[0] + r2 * (dist[1] + r2 * dist[4]))
+    den = one + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7]))
+    return num, den
+
+
+@wp.func
 def distort_normalized(xy: Any, dist: Any):
     """OpenCV distortion: ideal normalised ``xy`` (vec2) -> distorted normalised coordinates (vec2).
 
     ``dist``: :data:`vec8f` / :data:`vec8d` ``k1 k2 p1 p2 k3 k4 k5 k6`` of the same precision as ``xy``.
     """
-    one = type(xy[0])(1.0)
-    two = type(xy[0])(2.0)
     x = xy[0]
     y = xy[1]
     r2 = x * x + y * y
-    num = one + r2 * (dist[0] + r2 * (dist[1] + r2 * dist[4]))
-    den = one + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7]))
+    num, den = radial_factor_terms(r2, dist)
     radial = num / den
+    two = type(x)(2.0)
     xd = x * radial + two * dist[2] * x * y + dist[3] * (r2 + two * x * x)
     yd = y * radial + dist[2] * (r2 + two * y * y) + two * dist[3] * x * y
     return type(xy)(xd, yd)
@@ -54,29 +64,23 @@ def distort_normalized(xy: Any, dist: Any):
 
 @wp.func
 def distort_normalized_jacobian(xy: Any, dist: Any):
-    """Distorted normalised coordinates (vec2) and the analytic Jacobian d(distorted)/d(ideal) (mat22).
-
-    Same arithmetic as :func:`distort_normalized` for the value; the Jacobian is symmetric.
-    """
-    one = type(xy[0])(1.0)
+    """Distorted normalised coordinates (vec2, :func:`distort_normalized`) and the analytic Jacobian
+    d(distorted)/d(ideal) (mat22, symmetric)."""
     two = type(xy[0])(2.0)
     three = type(xy[0])(3.0)
     six = type(xy[0])(6.0)
     x = xy[0]
     y = xy[1]
     r2 = x * x + y * y
-    num = one + r2 * (dist[0] + r2 * (dist[1] + r2 * dist[4]))
-    den = one + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7]))
-    dnum = dist[0] + r2 * (two * dist[1] + three * r2 * dist[4])
+    num, den = radial_factor_terms(r2, dist)
+    dnum = dist[0] + r2 * (two * dist[1] + three * r2 * dist[4])  # d num / d r2
     dden = dist[5] + r2 * (two * dist[6] + three * r2 * dist[7])
     radial = num / den
     dradial = (dnum * den - num * dden) / (den * den)  # d radial / d r2
-    xd = x * radial + two * dist[2] * x * y + dist[3] * (r2 + two * x * x)
-    yd = y * radial + dist[2] * (r2 + two * y * y) + two * dist[3] * x * y
     dxx = radial + two * x * x * dradial + two * dist[2] * y + six * dist[3] * x
     dxy = two * x * y * dradial + two * dist[2] * x + two * dist[3] * y
     dyy = radial + two * y * y * dradial + six * dist[2] * y + two * dist[3] * x
-    return type(xy)(xd, yd), wp.matrix(dxx, dxy, dxy, dyy, shape=(2, 2))
+    return distort_normalized(xy, dist), wp.matrix(dxx, dxy, dxy, dyy, shape=(2, 2))
 
 
 @wp.func
