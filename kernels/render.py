@@ -15,7 +15,7 @@ One thread renders one camera pixel (``launch_1d`` over pixels, chunked on the C
    between disk and square", J. Graphics Tools 2(3), 1997, doi:10.1080/10867651.1997.10487479),
    which keeps the stratification. Deterministic for a given seed.
 2. **Lens.** The sub-sample's sensor position ``(u, v)`` (distorted pixels) is undistorted with
-   Newton's method on the OpenCV model (k1 k2 p1 p2 k3 k4 k5 k6, analytic Jacobian; 12 steps at
+   Newton's method on the OpenCV model (:mod:`kernels.distortion`: k1 k2 p1 p2 k3 k4 k5 k6, analytic Jacobian; 12 steps at
    the pixel centre, then 1 per sub-sample from there) into the ideal normalised ray ``(x, y, 1)``
    of the chief ray. A thin lens focused at distance ``s`` sends every ray from the aperture
    point ``A`` through the point ``s (x, y, 1)`` where the chief ray meets the plane of focus, so a

@@ -3,7 +3,8 @@
 Frames and units follow docs/conventions.md: camera frame x right, y down, z forward; millimetres;
 pixel (0, 0) is the centre of the top-left pixel; the right camera's pose is stored in the left
 camera's frame, ``x_right = R_right_left @ x_left + t_right_left``. Lens distortion is OpenCV's
-model with coefficients ``k1, k2, p1, p2[, k3[, k4, k5, k6]]`` (rational model when 8 are given).
+model with coefficients ``k1, k2, p1, p2[, k3[, k4, k5, k6]]`` (rational model when 8 are given),
+from :mod:`kernels.distortion` (shared with the renderer).
 
 Precision. Unlike the rest of the device code (float32), everything here is float64: image
 coordinates of 2000-4000 px have a float32 spacing of 1.2e-4 to 2.4e-4 px and metre-scale 3-D
