@@ -134,6 +134,54 @@ def transform_points(R, t, points) -> np.ndarray:
     return p @ _as_matrix3(R, "R").T + _as_vector3(t, "t")
 
 
+def distort_normalized(xy, dist, jacobian: bool = False):
+    """OpenCV's lens distortion: ideal normalised coordinates -> distorted normalised coordinates.
+
+    The host (NumPy, float64) twin of ``kernels.distortion.distort_normalized``; the one copy of
+    the model in calibration (:meth:`Camera.distort_normalized`, the bundle adjustments).
+
+    Parameters
+    ----------
+    xy : (N, 2) array-like
+        Ideal normalised coordinates ``(X/Z, Y/Z)`` (dimensionless); NaN rows give NaN rows.
+    dist : (0|4|5|8,) array-like
+        OpenCV coefficients ``k1 k2 p1 p2 [k3 [k4 k5 k6]]``.
+    jacobian : bool
+        Also return the analytic Jacobian d(distorted)/d(ideal).
+
+    Returns
+    -------
+    (N, 2) float64 distorted normalised coordinates, and with ``jacobian`` a tuple with the
+    (N, 2, 2) Jacobian (symmetric per point).
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ValueError(f"xy must have shape (N, 2), got {np.shape(xy)}")
+    d = np.asarray(dist, dtype=np.float64).ravel()
+    if d.size not in (0, 4, 5, 8):
+        raise ValueError(f"dist must hold 0, 4, 5 or 8 OpenCV coefficients (k1 k2 p1 p2 k3 k4 k5 k6), got {d.size}")
+    k1, k2, p1, p2, k3, k4, k5, k6 = np.concatenate([d, np.zeros(8 - d.size)])
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    distorted = np.empty_like(xy)
+    distorted[:, 0] = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    distorted[:, 1] = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    if not jacobian:
+        return distorted
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    dradial = (dnum * den - num * dden) / (den * den)  # d radial / d r2
+    J = np.empty((xy.shape[0], 2, 2))
+    J[:, 0, 0] = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+    J[:, 0, 1] = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+    J[:, 1, 0] = J[:, 0, 1]
+    J[:, 1, 1] = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+    return distorted, J
+
+
 @dataclass
 class Camera:
     """Intrinsic model of one camera.
@@ -249,14 +297,7 @@ class Camera:
     # -- distortion in normalised coordinates --------------------------------------------------
     def distort_normalized(self, xy) -> np.ndarray:
         """Apply the OpenCV distortion to ideal normalised coordinates (N, 2) -> (N, 2)."""
-        xy = _as_points(xy, 2, "xy")
-        k1, k2, p1, p2, k3, k4, k5, k6 = self.dist8
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=1)
+        return distort_normalized(_as_points(xy, 2, "xy"), self.dist8)
 
     def undistort_normalized(self, xy_distorted, tol: float = 1e-12, max_iter: int = 100) -> np.ndarray:
         """Invert :meth:`distort_normalized` by Newton iterations with a numerical Jacobian.

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import (Camera, nearest_rotation, rigid_fit, rotation_angle_deg, rotation_from_vector,
+from .camera import (Camera, distort_normalized, nearest_rotation, rigid_fit, rotation_angle_deg, rotation_from_vector,
                      transform_points)
 from .intrinsics import MIRROR_FLIP
 from .uncertainty import covariance_from_jacobian
@@ -281,32 +281,18 @@ def _project(camera, P, jacobian: bool = False):
     Z = P[:, 2]
     x = P[:, 0] / Z
     y = P[:, 1] / Z
-    k1, k2, p1, p2, k3, k4, k5, k6 = camera.dist8
-    r2 = x * x + y * y
-    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    rational = bool(k4 or k5 or k6)
-    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6)) if rational else 1.0
-    radial = a / b
-    xy2 = 2 * x * y
-    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
+    xy = np.column_stack([x, y])
+    if jacobian:
+        distorted, D = distort_normalized(xy, camera.dist8, jacobian=True)  # D: d(xd, yd)/d(x, y)
+    else:
+        distorted = distort_normalized(xy, camera.dist8)
+    xd, yd = distorted[:, 0], distorted[:, 1]
     K = camera.K
     out = np.empty((P.shape[0], 2))
     out[:, 0] = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
     out[:, 1] = K[1, 1] * yd + K[1, 2]
     if not jacobian:
         return out
-    da = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    if rational:
-        db = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-        drad = (da * b - a * db) / (b * b)
-    else:
-        drad = da
-    D = np.empty((P.shape[0], 2, 2))  # d(xd, yd)/d(x, y)
-    D[:, 0, 0] = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-    D[:, 0, 1] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-    D[:, 1, 0] = D[:, 0, 1]
-    D[:, 1, 1] = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
     A = np.array([[K[0, 0], K[0, 1]], [0.0, K[1, 1]]])
     G2 = np.einsum("ij,njk->nik", A, D)  # (N, 2, 2)
     Pi = np.zeros((P.shape[0], 2, 3))  # d(x, y)/dP

@@ -443,33 +443,6 @@ def _row_to_moments(m: mat55d, row: vec5, eta: wp.float64, deg: int):
 
 
 @wp.func
-def mono_exponents(k: int):
-    """(power of xi, power of eta, coefficient) of the k-th term of (1, xi, eta, xi^2/2, xi*eta, eta^2/2)."""
-    if k == 0:
-        return 0, 0, 1.0
-    if k == 1:
-        return 1, 0, 1.0
-    if k == 2:
-        return 0, 1, 1.0
-    if k == 3:
-        return 2, 0, 0.5
-    if k == 4:
-        return 1, 1, 1.0
-    return 0, 2, 0.5
-
-
-@wp.func
-def _row_to_moments(m: mat55d, row: vec5, eta: wp.float64, deg: int):
-    """m[alpha, beta] += row[alpha] * eta^beta for alpha + beta <= deg."""
-    eb = wp.float64(1.0)
-    for beta in range(deg + 1):
-        for alpha in range(deg + 1 - beta):
-            m[alpha, beta] = m[alpha, beta] + wp.float64(row[alpha]) * eb
-        eb = eb * eta
-    return m
-
-
-@wp.func
 def _pad5(v: wp.vec3):
     return vec5(v[0], v[1], v[2], 0.0, 0.0)
 

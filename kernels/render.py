@@ -15,7 +15,7 @@ One thread renders one camera pixel (``launch_1d`` over pixels, chunked on the C
    between disk and square", J. Graphics Tools 2(3), 1997, doi:10.1080/10867651.1997.10487479),
    which keeps the stratification. Deterministic for a given seed.
 2. **Lens.** The sub-sample's sensor position ``(u, v)`` (distorted pixels) is undistorted with
-   Newton's method on the OpenCV model (k1 k2 p1 p2 k3 k4 k5 k6, analytic Jacobian; 12 steps at
+   Newton's method on the OpenCV model (:mod:`kernels.distortion`: k1 k2 p1 p2 k3 k4 k5 k6, analytic Jacobian; 12 steps at
    the pixel centre, then 1 per sub-sample from there) into the ideal normalised ray ``(x, y, 1)``
    of the chief ray. A thin lens focused at distance ``s`` sends every ray from the aperture
    point ``A`` through the point ``s (x, y, 1)`` where the chief ray meets the plane of focus, so a
@@ -48,6 +48,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .distortion import distort_normalized, distortion_coefficients, undistort_step, vec8f
 from .speckle import SpeckleModel, build_speckle_model, speckle_coverage_smooth
 
 wp.set_module_options({"enable_backward": False})
@@ -80,14 +81,7 @@ class LensCamera:
     cx: float
     cy: float
     skew: float
-    k1: float
-    k2: float
-    p1: float
-    p2: float
-    k3: float
-    k4: float
-    k5: float
-    k6: float
+    dist: vec8f  # OpenCV k1 k2 p1 p2 k3 k4 k5 k6 (kernels.distortion)
     aperture_radius: float  # mm (0: pinhole)
     focus_distance: float  # mm along the optical axis
     width: int
@@ -176,41 +170,6 @@ class SensorModel:
 
 # ---------------------------------------------------------------------------------------------
 # lens
-
-
-@wp.func
-def distort(cam: LensCamera, p: wp.vec2) -> wp.vec2:
-    """OpenCV distortion of ideal normalised coordinates."""
-    x = p[0]
-    y = p[1]
-    r2 = x * x + y * y
-    num = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
-    den = 1.0 + r2 * (cam.k4 + r2 * (cam.k5 + r2 * cam.k6))
-    rad = num / den
-    xd = x * rad + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x)
-    yd = y * rad + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y
-    return wp.vec2(xd, yd)
-
-
-@wp.func
-def undistort_step(cam: LensCamera, p: wp.vec2, target: wp.vec2) -> wp.vec2:
-    """One Newton step of ``distort(p) = target`` (analytic Jacobian)."""
-    x = p[0]
-    y = p[1]
-    r2 = x * x + y * y
-    num = 1.0 + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
-    den = 1.0 + r2 * (cam.k4 + r2 * (cam.k5 + r2 * cam.k6))
-    dnum = cam.k1 + r2 * (2.0 * cam.k2 + 3.0 * r2 * cam.k3)
-    dden = cam.k4 + r2 * (2.0 * cam.k5 + 3.0 * r2 * cam.k6)
-    rad = num / den
-    drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
-    fx = x * rad + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x) - target[0]
-    fy = y * rad + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y - target[1]
-    jxx = rad + 2.0 * x * x * drad + 2.0 * cam.p1 * y + 6.0 * cam.p2 * x
-    jxy = 2.0 * x * y * drad + 2.0 * cam.p1 * x + 2.0 * cam.p2 * y
-    jyy = rad + 2.0 * y * y * drad + 6.0 * cam.p1 * y + 2.0 * cam.p2 * x
-    det = jxx * jyy - jxy * jxy
-    return wp.vec2(x - (jyy * fx - jxy * fy) / det, y - (-jxy * fx + jxx * fy) / det)
 
 
 @wp.func
@@ -566,7 +525,7 @@ def camera_ray_radiance(cam: LensCamera, scene: SceneGeom, u: float, v: float, c
     target = pixel_to_distorted(cam, u, v)
     # from the pixel centre's solution, shifted by the sub-pixel offset: one Newton step is exact to
     # float32 (the start is off by ~|J - I| * 0.5 px, the step leaves the square of that)
-    p = undistort_step(cam, centre + (target - distort(cam, centre)), target)
+    p = undistort_step(centre + (target - distort_normalized(centre, cam.dist)), target, cam.dist)
     s = cam.focus_distance
     a = cam.aperture_radius * lens
     o_cam = wp.vec3(a[0], a[1], 0.0)
@@ -630,7 +589,7 @@ def _render_kernel(
     target = pixel_to_distorted(cam, float(col), float(row))
     centre = target
     for it in range(12):
-        centre = undistort_step(cam, centre, target)
+        centre = undistort_step(centre, target, cam.dist)
     # angular size of one sub-cell: the texture filter width per mm of path
     footprint = cell / wp.sqrt(cam.fx * cam.fy)
     acc = float(0.0)
@@ -666,11 +625,10 @@ def make_camera(K, dist, size, R_cam_world, t_cam_world, aperture_diameter_mm: f
     """Build a :class:`LensCamera` (``K`` 3×3 px, ``dist`` OpenCV coefficients (≤ 8), ``size = (W, H)``,
     pose ``x_cam = R_cam_world x_world + t_cam_world`` in mm)."""
     K = np.asarray(K, dtype=np.float64)
-    dist8 = np.zeros(8)
     dist = np.asarray(dist, dtype=np.float64).ravel()
     if K.shape != (3, 3) or dist.size > 8 or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"make_camera: K must be 3x3 with positive focal lengths and dist <= 8 coefficients, got {K.shape}, {dist.size}")
-    dist8[: dist.size] = dist
+    dist8 = distortion_coefficients(dist, "make_camera: dist", sizes=tuple(range(9)))
     R = np.asarray(R_cam_world, dtype=np.float64)
     t = np.asarray(t_cam_world, dtype=np.float64).reshape(3)
     W, H = (int(s) for s in size)
@@ -682,7 +640,7 @@ def make_camera(K, dist, size, R_cam_world, t_cam_world, aperture_diameter_mm: f
     cam.R_world_cam = _m33(R.T)
     cam.center = _v3(-R.T @ t)
     cam.fx, cam.fy, cam.cx, cam.cy, cam.skew = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(K[0, 1])
-    cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, cam.k4, cam.k5, cam.k6 = (float(c) for c in dist8)
+    cam.dist = vec8f(*(float(c) for c in dist8))
     cam.aperture_radius = 0.5 * float(aperture_diameter_mm)
     cam.focus_distance = float(focus_distance_mm)
     cam.width, cam.height = W, H

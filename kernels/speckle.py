@@ -41,6 +41,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .interp import keys_weights
 
 # forward-only kernels: no adjoints are ever needed here, and skipping them halves compilation
 wp.set_module_options({"enable_backward": False})
@@ -134,25 +135,12 @@ def speckle_coverage_smooth(model: SpeckleModel, p: wp.vec2, width: float) -> fl
 
 
 @wp.func
-def _keys_weights(t: float) -> wp.vec4:
-    """Keys (1981) cubic convolution weights (a = -1/2) of taps -1, 0, 1, 2 at fraction t in [0, 1)."""
-    t2 = t * t
-    t3 = t2 * t
-    return wp.vec4(
-        -0.5 * t3 + t2 - 0.5 * t,
-        1.5 * t3 - 2.5 * t2 + 1.0,
-        -1.5 * t3 + 2.0 * t2 + 0.5 * t,
-        0.5 * t3 - 0.5 * t2,
-    )
-
-
-@wp.func
 def _keys_sample2(fu: wp.array2d(dtype=float), fv: wp.array2d(dtype=float), fx: float, fy: float) -> wp.vec2:
     """Keys bicubic values of two same-shape fields ``[row, col]`` at grid position (fx, fy); taps clamped."""
     ix = int(wp.floor(fx))
     iy = int(wp.floor(fy))
-    wx = _keys_weights(fx - float(ix))
-    wy = _keys_weights(fy - float(iy))
+    wx = keys_weights(fx - float(ix))
+    wy = keys_weights(fy - float(iy))
     nrow = fu.shape[0]
     ncol = fu.shape[1]
     c0 = wp.clamp(ix - 1, 0, ncol - 1)

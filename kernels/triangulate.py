@@ -3,7 +3,8 @@
 Frames and units follow docs/conventions.md: camera frame x right, y down, z forward; millimetres;
 pixel (0, 0) is the centre of the top-left pixel; the right camera's pose is stored in the left
 camera's frame, ``x_right = R_right_left @ x_left + t_right_left``. Lens distortion is OpenCV's
-model with coefficients ``k1, k2, p1, p2[, k3[, k4, k5, k6]]`` (rational model when 8 are given).
+model with coefficients ``k1, k2, p1, p2[, k3[, k4, k5, k6]]`` (rational model when 8 are given),
+from :mod:`kernels.distortion` (shared with the renderer).
 
 Precision. Unlike the rest of the device code (float32), everything here is float64: image
 coordinates of 2000-4000 px have a float32 spacing of 1.2e-4 to 2.4e-4 px and metre-scale 3-D
@@ -59,6 +60,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .distortion import distort_normalized, distort_normalized_jacobian, distortion_coefficients, vec8d
 
 
 class TriangulationStatus(IntEnum):
@@ -110,14 +112,7 @@ class CameraModel:
     cx: wp.float64
     cy: wp.float64
     skew: wp.float64
-    k1: wp.float64
-    k2: wp.float64
-    p1: wp.float64
-    p2: wp.float64
-    k3: wp.float64
-    k4: wp.float64
-    k5: wp.float64
-    k6: wp.float64
+    dist: vec8d  # OpenCV k1 k2 p1 p2 k3 k4 k5 k6 (kernels.distortion)
     width: wp.float64
     height: wp.float64
 
@@ -125,38 +120,6 @@ class CameraModel:
 # ---------------------------------------------------------------------------------------------
 # camera model
 # ---------------------------------------------------------------------------------------------
-@wp.func
-def distort_normalized(xy: wp.vec2d, cam: CameraModel) -> wp.vec2d:
-    """OpenCV distortion of ideal normalised coordinates -> distorted normalised coordinates."""
-    x = xy[0]
-    y = xy[1]
-    r2 = x * x + y * y
-    num = _ONE + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
-    den = _ONE + r2 * (cam.k4 + r2 * (cam.k5 + r2 * cam.k6))
-    radial = num / den
-    xd = x * radial + _TWO * cam.p1 * x * y + cam.p2 * (r2 + _TWO * x * x)
-    yd = y * radial + cam.p1 * (r2 + _TWO * y * y) + _TWO * cam.p2 * x * y
-    return wp.vec2d(xd, yd)
-
-
-@wp.func
-def distortion_jacobian(xy: wp.vec2d, cam: CameraModel) -> wp.mat22d:
-    """Analytic Jacobian d(distorted)/d(ideal) of :func:`distort_normalized` (2x2)."""
-    x = xy[0]
-    y = xy[1]
-    r2 = x * x + y * y
-    num = _ONE + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
-    den = _ONE + r2 * (cam.k4 + r2 * (cam.k5 + r2 * cam.k6))
-    dnum = cam.k1 + r2 * (_TWO * cam.k2 + wp.float64(3.0) * r2 * cam.k3)
-    dden = cam.k4 + r2 * (_TWO * cam.k5 + wp.float64(3.0) * r2 * cam.k6)
-    radial = num / den
-    dradial = (dnum * den - num * dden) / (den * den)  # d radial / d r2
-    dxx = radial + _TWO * x * x * dradial + _TWO * cam.p1 * y + wp.float64(6.0) * cam.p2 * x
-    dxy = _TWO * x * y * dradial + _TWO * cam.p1 * x + _TWO * cam.p2 * y
-    dyy = radial + _TWO * y * y * dradial + wp.float64(6.0) * cam.p1 * y + _TWO * cam.p2 * x
-    return wp.mat22d(dxx, dxy, dxy, dyy)
-
-
 @wp.func
 def normalized_to_pixel(xy: wp.vec2d, cam: CameraModel) -> wp.vec2d:
     return wp.vec2d(cam.fx * xy[0] + cam.skew * xy[1] + cam.cx, cam.fy * xy[1] + cam.cy)
@@ -187,7 +150,7 @@ def in_image(uv: wp.vec2d, cam: CameraModel, margin_px: wp.float64) -> bool:
 def project_camera(X: wp.vec3d, cam: CameraModel) -> wp.vec2d:
     """Distorted pixel of a point ``X`` (mm) in the camera frame; requires ``X[2] > 0``."""
     xy = wp.vec2d(X[0] / X[2], X[1] / X[2])
-    return normalized_to_pixel(distort_normalized(xy, cam), cam)
+    return normalized_to_pixel(distort_normalized(xy, cam.dist), cam)
 
 
 @wp.func
@@ -195,7 +158,7 @@ def project_camera_jacobian(X: wp.vec3d, cam: CameraModel) -> mat23d:
     """d(pixel)/d(X) of :func:`project_camera` (2x3, px/mm)."""
     iz = _ONE / X[2]
     xy = wp.vec2d(X[0] * iz, X[1] * iz)
-    Jd = distortion_jacobian(xy, cam)
+    _xyd, Jd = distort_normalized_jacobian(xy, cam.dist)
     Jk = wp.mat22d(cam.fx, cam.skew, _ZERO, cam.fy)
     Jn = mat23d(iz, _ZERO, -xy[0] * iz, _ZERO, iz, -xy[1] * iz)
     return (Jk @ Jd) @ Jn
@@ -213,24 +176,24 @@ def undistort_newton(uv: wp.vec2d, cam: CameraModel, tol_px: wp.float64, max_ite
     xy = target
     ok = int(0)
     for _it in range(max_iter):
-        err = wp.length(normalized_delta_to_pixels(distort_normalized(xy, cam) - target, cam))
-        J = distortion_jacobian(xy, cam)
+        err = wp.length(normalized_delta_to_pixels(distort_normalized(xy, cam.dist) - target, cam))
+        _xyd, J = distort_normalized_jacobian(xy, cam.dist)
         det = wp.determinant(J)
         if err < tol_px:
             if det > _ZERO:
                 ok = 1
                 # one more (quadratically convergent) step takes the error from < tol_px to
                 # rounding level at the cost of one 2x2 solve
-                xy = xy - wp.inverse(J) @ (distort_normalized(xy, cam) - target)
+                xy = xy - wp.inverse(J) @ (distort_normalized(xy, cam.dist) - target)
             break
         if not (det > _ZERO):
             break
-        step = wp.inverse(J) @ (distort_normalized(xy, cam) - target)
+        step = wp.inverse(J) @ (distort_normalized(xy, cam.dist) - target)
         alpha = _ONE
         cand = xy - step
         for _ls in range(40):
             cand = xy - alpha * step
-            if wp.length(normalized_delta_to_pixels(distort_normalized(cand, cam) - target, cam)) < err:
+            if wp.length(normalized_delta_to_pixels(distort_normalized(cand, cam.dist) - target, cam)) < err:
                 break
             alpha = alpha * _HALF
         xy = cand
@@ -514,16 +477,7 @@ def camera_model(K, dist=None, image_size=None, name: str = "camera") -> CameraM
         raise ValueError(f"{name} K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
     if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
         raise ValueError(f"{name} K must be upper triangular with last row [0, 0, 1], got\n{K}")
-    d = np.zeros(0) if dist is None else np.asarray(dist, dtype=np.float64).ravel()
-    if d.size not in (0, 4, 5, 8):
-        raise ValueError(
-            f"{name} dist must hold 0, 4, 5 or 8 OpenCV coefficients (k1 k2 p1 p2 k3 k4 k5 k6), got {d.size}; "
-            "the thin-prism and tilted models (12 or 14) are not supported"
-        )
-    if not np.all(np.isfinite(d)):
-        raise ValueError(f"{name} dist contains NaN or infinite values")
-    d8 = np.zeros(8)
-    d8[: d.size] = d
+    d8 = distortion_coefficients(dist, f"{name} dist")
     if image_size is None:
         width = height = 0.0
     else:
@@ -533,7 +487,7 @@ def camera_model(K, dist=None, image_size=None, name: str = "camera") -> CameraM
         width, height = float(size[0]), float(size[1])
     cam = CameraModel()
     cam.fx, cam.fy, cam.cx, cam.cy, cam.skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, cam.k4, cam.k5, cam.k6 = (float(c) for c in d8)
+    cam.dist = vec8d(*(float(c) for c in d8))
     cam.width, cam.height = width, height
     return cam
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration.camera import (Camera, nearest_rotation, rigid_fit, rotation_angle_deg, rotation_from_vector,
+from calibration.camera import (Camera, distort_normalized, nearest_rotation, rigid_fit, rotation_angle_deg, rotation_from_vector,
                                 transform_points, vector_from_rotation)
 
 
@@ -33,6 +33,29 @@ def test_rational_model_matches_opencv(rng):
     P = _points(rng)
     ref, _ = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist)
     assert np.max(np.abs(cam.project(P) - ref.reshape(-1, 2))) < 1e-8
+
+
+def test_distort_normalized_and_its_jacobian_match_opencv(rng):
+    # the one host copy of the model (Camera and the bundle adjustments use it), every coefficient non-zero
+    dist = np.array([-0.28, 0.11, 1.2e-3, -8.0e-4, -0.03, 0.05, -0.02, 0.004])
+    xy = rng.uniform(-0.4, 0.4, (300, 2))
+
+    def opencv(points):
+        out, _ = cv2.projectPoints(np.column_stack([points, np.ones(len(points))]).reshape(-1, 1, 3), np.zeros(3),
+                                   np.zeros(3), np.eye(3), dist)
+        return out.reshape(-1, 2)
+
+    distorted, J = distort_normalized(xy, dist, jacobian=True)
+    assert np.max(np.abs(distorted - opencv(xy))) < 1e-13
+    np.testing.assert_array_equal(distort_normalized(xy, dist), distorted)
+    h = 1e-6
+    for col, e in enumerate(np.eye(2)):
+        fd = (opencv(xy + h * e) - opencv(xy - h * e)) / (2 * h)
+        np.testing.assert_allclose(J[:, :, col], fd, rtol=0, atol=1e-8)
+    with pytest.raises(ValueError, match="shape"):
+        distort_normalized(xy[:, :1], dist)
+    with pytest.raises(ValueError, match="0, 4, 5 or 8"):
+        distort_normalized(xy, dist[:6])
 
 
 def test_project_points_with_pose_matches_opencv(camera, rng):
