@@ -523,7 +523,6 @@ class StereoCorrelation:
             if tr is not None:
                 fr[matched] = stage_status(tr, np.ones(matched.size, dtype=bool), StereoStatus.TRACK_RIGHT_FAILED,
                                             StereoStatus.TRACK_RIGHT_FAILED, self.zncc_min)
-            ok_ref = status == StereoStatus.OK
             # LOW_ZNCC and IMPLAUSIBLE_WARP keep their own code; other failures name the stage
             kept = (StereoStatus.LOW_ZNCC, StereoStatus.IMPLAUSIBLE_WARP)
             for stage, failed in ((fl, StereoStatus.TRACK_LEFT_FAILED), (fr, StereoStatus.TRACK_RIGHT_FAILED)):
