@@ -10,6 +10,7 @@ view, parameters ± σ, dropped views and why) and writes its file:
 
 A VIEW is one pose of the monitor: a folder holding the N phase-shifted images it recorded (in
 display order, natural sort of the file names), or a quoted glob pattern (``'view03/*.tif'``).
+``--figures DIR`` figures are drawn by :mod:`dic.plots.calibration`.
 """
 from __future__ import annotations
 
