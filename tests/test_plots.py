@@ -138,3 +138,21 @@ def test_calibration_figures_check_their_input(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(ValueError, match="not a folder"):
         write_check_figures([(None, None)], tmp_path / "file")
+
+
+def test_rig_residual_figure_left_out_with_a_warning(tmp_path, monkeypatch):
+    """When the residuals recomputed for stereo_residuals.png do not reproduce the adjustment's RMS, the figure
+    is left out with a FigureSkipped warning (the CLI prints it as a note) instead of drawing wrong residuals."""
+    from types import SimpleNamespace
+
+    from calibration.pipeline import RigCalibration
+    from dic.plots import calibration as cal
+
+    r = np.full((4, 2), 0.1)  # RMS 0.1414 px, the adjustment says 0.2
+    monkeypatch.setattr(cal, "_joint_residuals", lambda rc: {"left": [("a", r, r)], "right": [("b", r, r)]})
+    rc = RigCalibration(rig=None, per_camera=None, joint=SimpleNamespace(rms_groups={"left_mirrored": 0.2}),
+                        far_views=[], check_views=[], checks=[], left=SimpleNamespace(names=["a"]),
+                        right=SimpleNamespace(names=["b"]))
+    with pytest.warns(cal.FigureSkipped, match="no stereo_residuals.png"):
+        assert cal.write_rig_figures(rc, tmp_path) == []
+    assert not (tmp_path / "stereo_residuals.png").exists()
