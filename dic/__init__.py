@@ -4,9 +4,10 @@
 stay importable as ``from dic.track import Tracker`` etc. Importing compiles no kernel.
 """
 from . import synth
-from .export import write_figures, write_vtk, write_vtk_series
+from .export import write_vtk, write_vtk_series
 from .field3d import Field3D, StereoStatus
 from .io import read_image, write_image
+from .plots.fields import write_figures
 from .sequence import read_stereo, stereo_sequence
 from .store import ResultWriter, read_results
 from .strain import StrainField, strain

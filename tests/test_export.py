@@ -1,11 +1,12 @@
-"""VTK (meshio) and figure exports of 3-D fields (dic.export), checked by reading the files back."""
+"""VTK (meshio, dic.export) and figure (dic.plots.fields) exports of 3-D fields, checked by reading the files back."""
 import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
 
-from dic.export import write_figures, write_vtk, write_vtk_series
+from dic.export import write_vtk, write_vtk_series
 from dic.field3d import Field3D, StereoStatus
+from dic.plots.fields import write_figures
 
 
 def _field(rng, ny=6, nx=8, index=1, grid=True):

@@ -130,7 +130,7 @@ def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_t
             if not quiet:
                 click.echo(f"ParaView: {pvd}")
         if figure_dir is not None:
-            from dic.export import write_figures
+            from dic.plots.fields import write_figures
 
             left_ref = read_image(pairs[0][0])
             for f in fields:

@@ -112,7 +112,7 @@ def track(reference, current, output, subset, step, order, search, search_method
             seconds = time.perf_counter() - t0
             writer.write_frame(index, field, strain=strain, path=str(cur_path), attrs={"seconds": seconds})
             if figure_dir is not None:
-                from dic.figures import write_field_figure
+                from dic.plots.fields import write_field_figure
 
                 write_field_figure(figure_dir / f"frame_{index:06d}.png", ref, field, strain,
                                    title=f"frame {index}: {Path(cur_path).name}")

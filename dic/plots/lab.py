@@ -1,8 +1,9 @@
-"""Drawings of a virtual-lab scene (matplotlib): top and side views of the layout.
+"""Drawings of a virtual-lab scene (:mod:`dic.lab`): top and side views of the layout.
 
 ``plot_layout(scene)`` draws cameras (with their fields of view), optical axes, mirrors (with the
-chief ray reflected off each), screens, speckled surfaces and, for a :class:`PaperRig`, the 27
-monitor test positions. ``python -m dic.lab.plot OUT_DIR`` writes the figures of docs/lab.md.
+chief ray reflected off each), screens, speckled surfaces and, for a :class:`~dic.lab.PaperRig`, the
+27 monitor test positions. Coordinates are world millimetres. ``python -m dic.plots.lab OUT_DIR``
+writes the figures of docs/lab.md.
 """
 from __future__ import annotations
 
@@ -11,8 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .paper import PaperRig
-from .scene import Scene
+from ..lab.paper import PaperRig
+from ..lab.scene import Scene
+from ._common import new_figure, save_figure
+
+__all__ = ["plot_layout"]
 
 # view name -> (world axis along the page's x, world axis along the page's y, sign of page y)
 _VIEWS = {"top": (0, 2, 1.0), "side": (2, 1, -1.0)}
@@ -97,21 +101,24 @@ def plot_layout(scene: Scene, path=None, *, reach: float | None = None, near: fl
     """Top view, side view and a close-up of the cameras' neighbourhood (top view).
 
     ``reach`` (mm) is how far fields of view are drawn (default: beyond the farthest object);
-    ``near`` is the half-size of the close-up. Returns the matplotlib figure (saved to ``path`` if
-    given).
+    ``near`` (mm) is the half-size of the close-up. Returns the Matplotlib figure (saved to ``path``
+    at 90 dpi if given; format from the suffix).
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene must be a dic.lab.Scene, got {type(scene).__name__}")
+    if not scene.cameras:
+        raise ValueError("the scene has no camera to draw the layout around")
+    if reach is not None and not reach > 0:
+        raise ValueError(f"reach must be a positive distance in mm, got {reach!r}")
+    if not near > 0:
+        raise ValueError(f"near must be a positive distance in mm, got {near!r}")
     if reach is None:
         zs = [c.center_world[2] for c in scene.cameras]
         if isinstance(scene, PaperRig):
             zs += [p.t_world_screen[2] for p in scene.monitor_positions]
         zs += [s.center_world[2] for s in scene.screens]
         reach = max(zs) - min(zs) + 500.0
-    fig = plt.figure(figsize=(11, 7.2))
+    fig = new_figure((11, 7.2))
     gs = fig.add_gridspec(2, 2, width_ratios=[1.25, 1], height_ratios=[1.5, 1])
     ax_top = fig.add_subplot(gs[0, 0])
     ax_near = fig.add_subplot(gs[0, 1])
@@ -130,25 +137,18 @@ def plot_layout(scene: Scene, path=None, *, reach: float | None = None, near: fl
     ax_top.legend(uniq.values(), uniq.keys(), loc="upper left", fontsize=8)
     fig.tight_layout()
     if path is not None:
-        fig.savefig(path, dpi=90)
+        save_figure(fig, path, dpi=90)
     return fig
 
 
 def _docs_figures(out_dir: Path) -> None:  # pragma: no cover - run by hand to refresh docs/img
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .paper import paper_rig
-    from .rendering import render
+    from ..lab.paper import paper_rig
+    from ..lab.rendering import render
+    from ..lab.scene import SpecklePlane
 
     out_dir.mkdir(parents=True, exist_ok=True)
     rig = paper_rig()
-    fig = plot_layout(rig.replace(mirrors=list(rig.nominal_mirrors)), out_dir / "lab_layout.png")
-    plt.close(fig)
-
-    from .scene import SpecklePlane
+    plot_layout(rig.replace(mirrors=list(rig.nominal_mirrors)), out_dir / "lab_layout.png")
 
     small = paper_rig(scale=0.25)
     # for the picture only: a grey wall 9 m ahead shows where the mirrors are (the rig's lab is dark)
@@ -158,7 +158,8 @@ def _docs_figures(out_dir: Path) -> None:  # pragma: no cover - run by hand to r
     views += [(small.with_mirror_tilt(0), 1, "right camera, mirror tilt 0"),
               (small.with_monitor_at((2, 2, 2)), 0, "left camera, monitor at (2, 2, 2)"),
               (small.with_monitor_at((1, 1, 1)), 1, "right camera, monitor at (1, 1, 1)")]
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6.2))
+    fig = new_figure((12, 6.2))
+    axes = fig.subplots(2, 3)
     for ax, (scene, cam, title) in zip(axes.ravel(), views):
         img = render(scene, cam, samples=16, seed=0, device="cpu")
         ax.imshow(img, cmap="gray", vmin=0, vmax=255)
@@ -166,8 +167,7 @@ def _docs_figures(out_dir: Path) -> None:  # pragma: no cover - run by hand to r
         ax.set_xticks([])
         ax.set_yticks([])
     fig.tight_layout()
-    fig.savefig(out_dir / "lab_views.png", dpi=72)
-    plt.close(fig)
+    save_figure(fig, out_dir / "lab_views.png", dpi=72)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,40 @@
+"""All of Specula's plotting (Matplotlib): the one place in kernels/, calibration/ and dic/ that draws.
+
+* :mod:`dic.plots.fields` — maps of 2-D fields (:func:`field_figure`, :func:`write_field_figure`)
+  and of 3-D stereo fields (:func:`write_figures`, :data:`FIGURE_QUANTITIES`) over the reference image.
+* :mod:`dic.plots.calibration` — the figures of ``specula calibrate ... --figures``
+  (:func:`write_intrinsics_figures`, :func:`write_mirror_figures`, :func:`write_rig_figures`,
+  :func:`write_check_figures`, :func:`view_mosaic`, :func:`view_detail`, :class:`FigureSkipped`).
+* :mod:`dic.plots.lab` — the layout of a virtual-lab scene (:func:`plot_layout`).
+* :mod:`dic.plots._common` — shared plumbing: figures on their own Agg canvas (no pyplot, no global
+  backend change), colour limits, saving.
+
+The names above are importable from ``dic.plots`` too; each submodule is imported on first use of one
+of its names, so ``import dic.plots`` imports neither Matplotlib nor the calibration or lab packages.
+CLI commands call these functions; no module outside this package imports Matplotlib
+(tests/test_plots.py checks it).
+"""
+from __future__ import annotations
+
+import importlib
+
+#: public name -> submodule that defines it
+_EXPORTS = {
+    "field_figure": "fields", "write_field_figure": "fields", "write_figures": "fields", "FIGURE_QUANTITIES": "fields",
+    "write_intrinsics_figures": "calibration", "write_mirror_figures": "calibration",
+    "write_rig_figures": "calibration", "write_check_figures": "calibration",
+    "view_mosaic": "calibration", "view_detail": "calibration", "FigureSkipped": "calibration",
+    "plot_layout": "lab",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))
