@@ -190,20 +190,30 @@ def implausible_warps(points, params, order: int, accepted, textured_fraction, *
     1. it is accepted and its subset is *partial*: ``textured_fraction < partial_below``; and
     2. its displacement or its displacement gradient disagrees with the prediction of its
        well-textured neighbours: the ``neighbours`` nearest accepted POIs with
-       ``textured_fraction >= well_textured`` each predict the displacement at the POI by their own
-       1st-order Taylor expansion ``u_j + ux_j·dx + uy_j·dy`` (and ``v``), and the gradient by their
-       own; the prediction is the median over them. Flag when ``|Δu|`` or ``|Δv|`` exceeds
-       ``displacement_tol`` px, or any of ``Δux, Δuy, Δvx, Δvy`` exceeds ``gradient_tol``.
+       ``textured_fraction >= well_textured`` give their displacements and gradients (1st-order
+       terms), a quadratic ``w(d) = a + b·d + ½ dᵀ C d`` is fitted to them per component by least
+       squares (values and gradients: 3 equations per neighbour, so neighbours lined up along an
+       edge still fix it), and its value ``a`` and gradient ``b`` at the POI are the prediction.
+       Flag when ``|Δu|`` or ``|Δv|`` exceeds ``displacement_tol`` px, or any of
+       ``Δux, Δuy, Δvx, Δvy`` exceeds ``gradient_tol``.
 
     A partial POI with no well-textured accepted POI anywhere cannot be vouched for and is flagged.
     Fully textured POIs are never flagged, so an ordinary speckle image gives no flag whatever its
-    deformation. The prediction's own error is the neighbours' noise and the field's curvature over
-    the extrapolation distance ``d`` (``½ u'' d²``: 0.002 px for ``u'' = 4e-5 /px`` at ``d = 10 px``).
+    deformation. The quadratic fit follows curvature (a 1st-order Taylor step from each neighbour,
+    tried first, flagged 31 correct edge POIs of a 128 px sinusoid instead of 7); its error is the
+    neighbours' noise amplified by the extrapolation, plus the cubic part of the field.
 
-    Measured (tests/test_edge_subsets.py; 256² speckled band on a dark featureless background,
-    2 GL noise, subset 21, step 8, order 2, strains ~1 %): correct partial POIs disagree by at
-    most ~0.02 px and ~0.01 in gradient; the wrong CONVERGED ones (0.05-0.6 px off, ZNCC > 0.997)
-    by more than the tolerances.
+    Measured (tests/test_edge_subsets.py: 256² speckled band with slanted edges on a dark
+    featureless background, 2 GL noise, subset 21, step 8, strains ~1 %, 20 neighbours): the
+    prediction is within 0.028 px of the truth (RMS 0.012 px, 2nd order); the wrong POIs (0.05 to
+    0.58 px off, ZNCC >= 0.997) disagree with it by 0.032 px or more (median 0.15 px, 2nd order;
+    0.09 px, 1st order), the correct partial ones by a median 0.016 px (gradients: 0.005 median,
+    0.024 at most). ``displacement_tol = 0.03`` px therefore flags every POI off by more than
+    0.05 px there (48 of 449 accepted in 2nd order, plus 7 correct ones; 26 + 6 in 1st order);
+    over 4 seeds × (subset 21, 31) × (order 1, 2) it missed one POI 0.061 px off. The gradient
+    test is a backstop (it flagged none that the displacement test missed there). Limitation: in
+    a strongly curved field the prediction over 10-20 px is not accurate to 0.03 px, so correct
+    edge POIs get flagged (0.5 px sinusoid of 64 px wavelength: 35 of 86 partial POIs).
 
     Parameters
     ----------
