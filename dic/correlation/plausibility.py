@@ -152,29 +152,32 @@ def _first_order(params: np.ndarray, order: int) -> np.ndarray:
 
 
 def _quadratic_prediction(at: np.ndarray, where: np.ndarray, values: np.ndarray):
-    """Value and gradient at ``at`` (M, 2) of the quadratic fitted to neighbours' values and gradients.
+    """Values and gradients at ``at`` (M, 2) of quadratics fitted to neighbours' values and gradients.
 
-    ``where`` (M, k, 2) are the neighbours' positions and ``values`` (M, k, 3) their ``(w, wx, wy)``
-    for one displacement component ``w``. Each neighbour gives three equations for the six
-    coefficients of ``w(d) = a + b·d + ½ dᵀ C d`` around ``at`` (``d`` = neighbour − ``at``):
-    ``w = a + b·d + ½ dᵀ C d`` and ``∇w = b + C d``. Gradients make the fit well posed even when
-    the neighbours lie on one line (along an edge); a small ridge keeps unobserved curvature at 0.
-    Coordinates are scaled by the mean neighbour distance ``L`` so the equations are comparable.
-    Returns ``(a (M,), b (M, 2))``.
+    ``where`` (M, k, 2) are the neighbours' positions and ``values`` (M, k, 3, c) their
+    ``(w, wx, wy)`` for ``c`` displacement components ``w``. Each neighbour gives three equations
+    for the six coefficients of ``w(d) = a + b·d + ½ dᵀ C d`` around ``at`` (``d`` = neighbour −
+    ``at``): ``w = a + b·d + ½ dᵀ C d`` and ``∇w = b + C d``. Gradients make the fit well posed even
+    when the neighbours lie on one line (along an edge); a small ridge keeps unobserved curvature
+    at 0. Coordinates are scaled by the mean neighbour distance ``L`` so that the equations are
+    comparable. Returns ``(a (M, c), b (M, 2, c))``.
     """
+    m, k = where.shape[:2]
     d = where - at[:, None, :]  # (M, k, 2)
-    scale = np.maximum(np.mean(np.hypot(d[..., 0], d[..., 1]), axis=1), 1e-9)[:, None]  # (M, 1) px
-    dx, dy = d[..., 0] / scale, d[..., 1] / scale
-    one, zero = np.ones_like(dx), np.zeros_like(dx)
-    # unknowns (a, L·bx, L·by, L²·cxx, L²·cxy, L²·cyy); rows: value, L·wx, L·wy
-    rows_value = np.stack([one, dx, dy, 0.5 * dx * dx, dx * dy, 0.5 * dy * dy], axis=-1)
-    rows_gx = np.stack([zero, one, zero, dx, dy, zero], axis=-1)
-    rows_gy = np.stack([zero, zero, one, zero, dx, dy], axis=-1)
-    A = np.concatenate([rows_value, rows_gx, rows_gy], axis=1)  # (M, 3k, 6)
-    rhs = np.concatenate([values[..., 0], values[..., 1] * scale, values[..., 2] * scale], axis=1)  # (M, 3k)
-    normal = np.einsum("mki,mkj->mij", A, A) + 1e-6 * np.eye(6)
-    coef = np.linalg.solve(normal, np.einsum("mki,mk->mi", A, rhs)[..., None])[..., 0]
-    return coef[:, 0], coef[:, 1:3] / scale
+    scale = np.maximum(np.mean(np.hypot(d[..., 0], d[..., 1]), axis=1), 1e-9)  # (M,) px
+    dx, dy = d[..., 0] / scale[:, None], d[..., 1] / scale[:, None]
+    # unknowns (a, L·bx, L·by, L²·cxx, L²·cxy, L²·cyy); rows: value, L·wx, L·wy of each neighbour
+    design = np.zeros((m, 3, k, 6))
+    design[:, 0] = np.stack([np.ones_like(dx), dx, dy, 0.5 * dx * dx, dx * dy, 0.5 * dy * dy], axis=-1)
+    design[:, 1, :, 1], design[:, 1, :, 3], design[:, 1, :, 4] = 1.0, dx, dy
+    design[:, 2, :, 2], design[:, 2, :, 4], design[:, 2, :, 5] = 1.0, dx, dy
+    design = design.reshape(m, 3 * k, 6)
+    rhs = np.swapaxes(values, 1, 2).copy()  # (M, 3, k, c)
+    rhs[:, 1:] *= scale[:, None, None, None]
+    rhs = rhs.reshape(m, 3 * k, -1)
+    design_t = np.swapaxes(design, 1, 2)
+    coef = np.linalg.solve(design_t @ design + 1e-6 * np.eye(6), design_t @ rhs)  # (M, 6, c)
+    return coef[:, 0, :], coef[:, 1:3, :] / scale[:, None, None]
 
 
 def implausible_warps(points, params, order: int, accepted, textured_fraction, *, partial_below: float = 0.9,
@@ -273,9 +276,9 @@ def implausible_warps(points, params, order: int, accepted, textured_fraction, *
     _, nn = cKDTree(pts[src]).query(pts[idx], k=k)
     nn = src[nn.reshape(idx.size, k)]  # (M, k) indices into the points
     first = _first_order(p, order)  # (N, 6): u, ux, uy, v, vx, vy
-    u_pred, grad_u = _quadratic_prediction(pts[idx], pts[nn], first[nn][..., 0:3])
-    v_pred, grad_v = _quadratic_prediction(pts[idx], pts[nn], first[nn][..., 3:6])
-    grad_pred = np.concatenate([grad_u, grad_v], axis=1)  # (M, 4): ux, uy, vx, vy
+    value, gradient = _quadratic_prediction(pts[idx], pts[nn], first[nn].reshape(idx.size, k, 2, 3).swapaxes(2, 3))
+    u_pred, v_pred = value[:, 0], value[:, 1]
+    grad_pred = gradient.transpose(0, 2, 1).reshape(idx.size, 4)  # (M, 4): ux, uy, vx, vy
     mine = first[idx]
     disp_off = np.maximum(np.abs(mine[:, 0] - u_pred), np.abs(mine[:, 3] - v_pred))
     grad_off = np.max(np.abs(mine[:, [1, 2, 4, 5]] - grad_pred), axis=1)
