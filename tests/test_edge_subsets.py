@@ -130,6 +130,30 @@ def test_detector_leaves_only_accurate_valid_points(order, band_order1, band_ord
     assert flagged.sum() <= 1.5 * (accepted & (error > 0.05)).sum()  # few correct POIs flagged
 
 
+def test_detector_catches_warps_off_by_over_a_pixel(band_case):
+    """From a zero guess (no search), subset 29: errors > 1 px as on the real data, all flagged."""
+    reference, current, specimen = band_case
+    subset = 29
+    field = Tracker(reference, subset=subset, order=2, step=STEP, search=None, device="cpu").track(current)
+    pts = field.points
+    share = uniform_filter(specimen, subset, mode="nearest")[pts[:, 1].astype(int), pts[:, 0].astype(int)]
+    accepted = field.valid & (share >= MIN_SPECIMEN_FRACTION)
+    u_true, v_true = band_displacement(pts[:, 0], pts[:, 1])
+    error = np.hypot(field.u - u_true, field.v - v_true)
+    shear = np.abs(field.params[:, 2] + field.params[:, 7])
+    far_off = accepted & (error > 1.0)
+    flagged = implausible_warps(pts, field.params, 2, accepted, textured_fraction(reference, pts, subset))
+    kept = accepted & ~flagged
+    print(f"\nsubset 29, zero guess: {far_off.sum()} accepted POIs off by > 1 px (up to {error[far_off].max():.2f} px, "
+          f"ZNCC >= {field.zncc[far_off].min():.4f}, shear up to {shear[far_off].max():.3f}, statuses "
+          f"{sorted(set(field.status[far_off].tolist()))}); {(accepted & (error > 0.05)).sum()} off by > 0.05 px, "
+          f"{flagged.sum()} flagged, kept max error {error[kept].max():.4f} px")
+    # measured 7, up to 1.62 px, shear up to 0.19, ZNCC >= 0.95, all at MAX_ITERATIONS (valid)
+    assert far_off.sum() >= 3
+    assert np.all(flagged[accepted & (error > 0.05)])
+    assert error[kept].max() <= 0.05
+
+
 def test_textured_fraction_follows_the_specimen(band_case, band_order2):
     reference, _, specimen = band_case
     field, fraction, specimen_share, _, _, _ = band_order2
