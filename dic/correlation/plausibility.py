@@ -73,9 +73,10 @@ def textured_pixels(reference_image, *, window: int = 7, relative_threshold: flo
     A featureless background shows only its noise there (about 2 grey levels for 2 GL of noise),
     speckle tens of grey levels (defaults, 8 bits: s95 ≈ 95 GL, t ≈ 9.5 GL); pixels within
     ``window // 2`` px of a specimen edge count as textured (the edge itself has contrast).
-    Measured on a fully speckled 256² image (Boolean model, radius 2 px, density 0.5, 2 GL noise):
-    99.9 % of pixels are textured with the 7 px window (97 % with 5 px, where whole windows fit
-    inside the gaps between speckles).
+    Measured on the band case of tests/test_edge_subsets.py (Boolean speckle, radius 2 px,
+    density 0.5, 2 GL noise, 10 GL background): 99.86 % of the specimen's pixels are textured and
+    1.9 % of the background's (those next to the edge); a subset wholly on the speckle has a
+    textured fraction of 0.94 or more (large gaps between speckles are locally flat).
 
     Parameters
     ----------
@@ -116,7 +117,7 @@ def textured_fraction(reference_image, points, subset: int, *, window: int = 7, 
     The subset of a POI ``(x, y)`` is the ``subset`` × ``subset`` box centred on the nearest pixel;
     pixels outside the image count as untextured. Textured pixels are those of
     :func:`textured_pixels` (same keyword arguments), computed once for the image, and summed
-    per subset from an integral image: O(H·W + N), about 0.1 s for a 1 Mpx image and 1 M points.
+    per subset from an integral image: O(H·W + N); 0.15 s for 1 M points on a 256² image.
 
     Parameters
     ----------
