@@ -43,6 +43,7 @@ __all__ = [
     "add_noise",
     "inverse_displacement",
     "render",
+    "specimen_on_background",
 ]
 
 #: tile side in units of the mean radius: disks are drawn tile by tile with per-tile seeds, so a
@@ -546,3 +547,131 @@ def speckle_pair(shape, displacement=None, *, radius: float = 2.0, density: floa
     if return_model:
         return reference, current, model
     return reference, current
+
+
+# ---------------------------------------------------------------------------------------------
+# a specimen in front of a featureless background
+
+
+def _specimen_inside(specimen) -> Callable:
+    """``inside(x, y) -> bool array`` from a callable or an (K, 2) polygon of vertices (x, y) px."""
+    if callable(specimen):
+        def inside(x, y):
+            out = np.asarray(specimen(x, y))
+            if out.shape != x.shape:
+                raise ValueError(f"specimen(x, y) must return a boolean array of x's shape {x.shape}, got {out.shape}")
+            return out.astype(bool)
+        return inside
+    poly = np.asarray(specimen, dtype=np.float64)
+    if poly.ndim != 2 or poly.shape[1] != 2 or poly.shape[0] < 3 or not np.all(np.isfinite(poly)):
+        raise ValueError("specimen must be a callable inside(x, y) -> bool or an (K >= 3, 2) array of finite "
+                         f"polygon vertices (x, y) in px; got {type(specimen).__name__} of shape {poly.shape}")
+
+    def inside(x, y):  # even-odd crossing rule, vectorised over points, looped over the K edges
+        result = np.zeros(x.shape, dtype=bool)
+        xa, ya = poly[:, 0], poly[:, 1]
+        xb, yb = np.roll(xa, -1), np.roll(ya, -1)
+        for x0, y0, x1, y1 in zip(xa, ya, xb, yb):
+            if y0 == y1:
+                continue
+            crosses = (y0 > y) != (y1 > y)
+            x_cross = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+            result ^= crosses & (x < x_cross)
+        return result
+    return inside
+
+
+def _occupancy(inside, shape, displacement, samples: int, blur: float) -> np.ndarray:
+    """Fraction (H, W) of each pixel that shows the specimen: ``samples²`` sub-cells per pixel whose
+    material points (``x = X + u(X)`` inverted) are tested with ``inside``, then the Gaussian PSF."""
+    from scipy.ndimage import gaussian_filter
+
+    H, W = shape
+    sub = (np.arange(samples) + 0.5) / samples - 0.5
+    xs = (np.arange(W)[:, None] + sub[None, :]).ravel()  # (W * samples,)
+    ys = (np.arange(H)[:, None] + sub[None, :]).ravel()
+    qx, qy = np.meshgrid(xs, ys)  # (H * samples, W * samples)
+    if displacement is not None:
+        if _is_constant(displacement):
+            u, v = np.asarray(displacement, dtype=np.float64)
+            qx, qy = qx - u, qy - v
+        else:
+            qx, qy = inverse_displacement(displacement, qx, qy)
+    cells = inside(qx, qy).astype(np.float64)
+    frac = cells.reshape(H, samples, W, samples).mean(axis=(1, 3))
+    if blur > 0:
+        frac = gaussian_filter(frac, blur, mode="nearest")
+    return np.clip(frac, 0.0, 1.0)
+
+
+def specimen_on_background(shape, displacement=None, *, specimen, background_level: float | None = None,
+                           radius: float = 2.0, density: float = 0.5, radius_spread: float = 0.2,
+                           blur: float = 0.7, background: float | None = None, contrast: float | None = None,
+                           noise_sigma: float = 0.0, poisson: bool = False, full_well: float = 20000.0,
+                           bits: int | None = 8, samples: int = 4, seed=0, device=None):
+    """A speckled specimen in front of a dark featureless background, reference and deformed.
+
+    The specimen is the region ``specimen`` of the reference image (material coordinates); it
+    carries the Boolean-model speckle of :func:`speckle_pair` and moves with ``displacement``.
+    Everything else is a constant grey level ``background_level`` that does not move (a far,
+    featureless background, as behind a specimen's edge in a stereo test). Both images then get
+    the same camera noise and quantisation as :func:`add_noise` (independent streams).
+
+    The edge is anti-aliased: each pixel's specimen fraction ``f`` is the share of its
+    ``samples²`` sub-cells whose material point lies inside the specimen, blurred by the same
+    Gaussian PSF (``blur`` px), and the pixel is ``f · speckle + (1 − f) · background_level``.
+    The speckle itself is exact (Boolean model); the edge compositing is this approximation,
+    applied identically to both images.
+
+    Parameters
+    ----------
+    shape : (H, W)
+    displacement : None, (u, v) or callable
+        As in :func:`speckle_pair`: ``f(x, y) -> (u, v)`` px on reference coordinates; the ground
+        truth at a specimen POI ``(x, y)`` is ``f(x, y)``.
+    specimen : callable or (K, 2) array
+        ``inside(x, y) -> bool array`` on reference coordinates (px), or the vertices ``(x, y)`` px
+        of a polygon (even-odd rule; straight and slanted edges).
+    background_level : float, optional
+        Grey level of the featureless background; default 4 % of the full scale (10.2 in 8 bits).
+    radius, density, radius_spread, blur, background, contrast, samples :
+        Speckle and imaging of the specimen, see :func:`make_speckle` (``background`` there is the
+        specimen's grey level between speckles).
+    noise_sigma, poisson, full_well, bits, seed, device :
+        As in :func:`speckle_pair`.
+
+    Returns
+    -------
+    reference, current : float32 (H, W) grey levels.
+    specimen_fraction : float64 (H, W)
+        The specimen fraction ``f`` of each reference pixel (1 on the specimen, 0 on the
+        background).
+    """
+    H, W = _check_shape(shape)
+    full = _full_scale(bits)
+    background_level = 0.04 * full if background_level is None else background_level
+    if not (isinstance(background_level, numbers.Real) and math.isfinite(background_level)):
+        raise ValueError(f"background_level must be a finite grey level, got {background_level!r}")
+    if not (isinstance(samples, numbers.Integral) and samples >= 1):
+        raise ValueError(f"samples must be a positive integer, got {samples!r}")
+    if not (isinstance(blur, numbers.Real) and blur >= 0 and math.isfinite(blur)):
+        raise ValueError(f"blur must be >= 0 px, got {blur!r}")
+    inside = _specimen_inside(specimen)
+    probe = make_speckle(region=(0.0, 0.0, 1.0, 1.0), radius=radius, density=density, radius_spread=radius_spread,
+                         blur=blur, background=background, contrast=contrast, bits=bits, samples=samples, seed=seed)
+    ref_bounds, _ = _needed_bounds(probe, (H, W), None)
+    cur_bounds, cur_plan = _needed_bounds(probe, (H, W), displacement)
+    pad = 1.0
+    region = (min(ref_bounds[0], cur_bounds[0]) - pad, min(ref_bounds[1], cur_bounds[1]) - pad,
+              max(ref_bounds[2], cur_bounds[2]) + pad, max(ref_bounds[3], cur_bounds[3]) + pad)
+    model = make_speckle(region=region, radius=radius, density=density, radius_spread=radius_spread, blur=blur,
+                         background=background, contrast=contrast, bits=bits, samples=samples, seed=seed)
+    ref_speckle = _render_plan(model, (H, W), ref_bounds, None, device=device)
+    cur_speckle = _render_plan(model, (H, W), cur_bounds, cur_plan, device=device)
+    ref_fraction = _occupancy(inside, (H, W), None, int(samples), float(blur))
+    cur_fraction = _occupancy(inside, (H, W), displacement, int(samples), float(blur))
+    bg = float(background_level)
+    noise = dict(noise_sigma=noise_sigma, poisson=poisson, full_well=full_well, bits=bits)
+    reference = add_noise(ref_fraction * ref_speckle + (1.0 - ref_fraction) * bg, seed=_seed_entropy(seed, 1), **noise)
+    current = add_noise(cur_fraction * cur_speckle + (1.0 - cur_fraction) * bg, seed=_seed_entropy(seed, 2), **noise)
+    return reference, current, ref_fraction

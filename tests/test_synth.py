@@ -274,3 +274,57 @@ def test_bad_input_is_rejected():
         synth.speckle_pair((16, 16), lambda x, y: (x * np.nan, y))
     with pytest.raises(ValueError, match="displacement must be None"):
         synth.speckle_pair((16, 16), "left")
+
+
+# ---------------------------------------------------------------------------------------------
+# specimen_on_background
+
+
+def test_specimen_on_background_moves_the_specimen_only():
+    shape = (96, 96)
+    band = np.array([[-10.0, 30.0], [110.0, 36.0], [110.0, 70.0], [-10.0, 64.0]])
+
+    def disp(x, y):
+        return 1.5 + 0.01 * (x - 48), -1.0 + 0.005 * (y - 48)
+
+    ref, cur, fraction = synth.specimen_on_background(shape, disp, specimen=band, background_level=12.0, seed=5)
+    ref_s, cur_s = synth.speckle_pair(shape, disp, seed=5)
+    assert ref.dtype == np.float32 and ref.shape == shape and fraction.shape == shape
+    assert np.all((fraction >= 0) & (fraction <= 1))
+    # well inside the specimen: exactly the speckle images of speckle_pair (same disks and noise)
+    from scipy.ndimage import binary_erosion
+    inner = binary_erosion(fraction >= 1.0, iterations=5)
+    assert inner.sum() > 1000
+    np.testing.assert_array_equal(ref[inner], ref_s[inner])
+    np.testing.assert_array_equal(cur[inner], cur_s[inner])
+    # far from it: the featureless background, in both images (it does not move)
+    outer = binary_erosion(fraction <= 0.0, iterations=5)
+    assert outer.sum() > 1000
+    assert np.all(ref[outer] == 12.0) and np.all(cur[outer] == 12.0)
+    # the edge is anti-aliased: fractions between 0 and 1 along it
+    assert np.any((fraction > 0.2) & (fraction < 0.8))
+
+
+def test_specimen_on_background_polygon_and_callable_agree():
+    shape = (48, 64)
+    square = np.array([[10.0, 8.0], [50.0, 8.0], [50.0, 40.0], [10.0, 40.0]])
+
+    def inside(x, y):
+        return (x >= 10) & (x <= 50) & (y >= 8) & (y <= 40)
+
+    a = synth.specimen_on_background(shape, (0.4, -0.3), specimen=square, noise_sigma=1.0, seed=2)
+    b = synth.specimen_on_background(shape, (0.4, -0.3), specimen=inside, noise_sigma=1.0, seed=2)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    assert a[2][24, 30] == 1.0 and a[2][2, 2] == 0.0
+
+
+def test_specimen_on_background_rejects_bad_input():
+    with pytest.raises(ValueError, match="specimen"):
+        synth.specimen_on_background((32, 32), specimen=[[0, 0], [10, 10]])
+    with pytest.raises(ValueError, match="specimen"):
+        synth.specimen_on_background((32, 32), specimen=lambda x, y: np.ones(3, bool))
+    with pytest.raises(ValueError, match="background_level"):
+        synth.specimen_on_background((32, 32), specimen=lambda x, y: x > 10, background_level=float("nan"))
+    with pytest.raises(ValueError, match="shape"):
+        synth.specimen_on_background((0, 32), specimen=lambda x, y: x > 10)
