@@ -45,8 +45,9 @@ def band_case():
 def track_band(band_case, order):
     """Field, textured fraction, ROI, accepted POIs and error (px) of the band case."""
     reference, current, specimen = band_case
+    # check_warps=False: the raw IC-GN results, before the acceptance step flags implausible warps
     field = Tracker(reference, subset=SUBSET, order=order, step=STEP, search="zncc", search_radius=6,
-                    device="cpu").track(current)
+                    check_warps=False, device="cpu").track(current)
     pts = field.points
     cols, rows = pts[:, 0].astype(int), pts[:, 1].astype(int)
     specimen_share = uniform_filter(specimen, SUBSET, mode="nearest")[rows, cols]
@@ -134,7 +135,8 @@ def test_detector_catches_warps_off_by_over_a_pixel(band_case):
     """From a zero guess (no search), subset 29: errors > 1 px as on the real data, all flagged."""
     reference, current, specimen = band_case
     subset = 29
-    field = Tracker(reference, subset=subset, order=2, step=STEP, search=None, device="cpu").track(current)
+    field = Tracker(reference, subset=subset, order=2, step=STEP, search=None, check_warps=False,
+                    device="cpu").track(current)
     pts = field.points
     share = uniform_filter(specimen, subset, mode="nearest")[pts[:, 1].astype(int), pts[:, 0].astype(int)]
     accepted = field.valid & (share >= MIN_SPECIMEN_FRACTION)
@@ -255,3 +257,22 @@ def test_partial_points_without_textured_neighbours_are_flagged():
     assert flagged.tolist() == [True, True]
     flagged = implausible_warps(pts, params, 1, np.array([True, False]), np.array([1.0, 0.6]))
     assert flagged.tolist() == [False, False]  # only accepted POIs are judged
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_tracker_flags_them_with_their_own_status(order, band_case, band_order1, band_order2):
+    """Through the library (default check_warps=True): the wrong warps get status IMPLAUSIBLE_WARP and are
+    not valid, no valid POI of the specimen is off by more than 0.05 px, the interior keeps its accuracy
+    and every other result is the raw IC-GN result."""
+    raw, fraction, _, roi, accepted, error = band_order2 if order == 2 else band_order1
+    reference, current, _ = band_case
+    field = Tracker(reference, subset=SUBSET, order=order, step=STEP, search="zncc", search_radius=6,
+                    device="cpu").track(current)
+    flagged = field.status == int(Status.IMPLAUSIBLE_WARP)
+    assert np.array_equal(field.params, raw.params) and np.array_equal(field.zncc, raw.zncc)
+    assert np.array_equal(field.status[~flagged], raw.status[~flagged])
+    assert np.all(raw.valid[flagged]) and not np.any(field.valid[flagged])
+    assert np.all(flagged[accepted & (error > 0.05)])
+    assert error[field.valid & roi].max() <= 0.05
+    interior = accepted & (fraction >= 0.97)
+    assert np.all(field.valid[interior]) and rms(error[interior]) < (0.02 if order == 2 else 0.01)
