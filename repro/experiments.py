@@ -1,6 +1,6 @@
 """The paper's Section 3 experiments in the virtual lab: calibration → measurement → metrics.
 
-One chain, shared by ``bench/paper.py`` (the full reproduction) and ``dic/demo.py`` (the quick
+One chain, shared by ``repro/paper.py`` (the full reproduction) and ``repro/demo.py`` (the quick
 end-to-end demo):
 
 1. **Calibration images** of the paper rig (:func:`dic.lab.paper_rig`): the coded phase target
@@ -38,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-MONITOR_PITCH_MM = 0.311
-MONITOR_RES = (1920, 1080)
+from dic.lab.paper import MONITOR_PITCH_MM, WORKING_DISTANCE_MM
+from dic.lab.paper import MONITOR_RESOLUTION as MONITOR_RES
+
 DOT_SPACING_PX = 450.0
 DOT_SPACING_MM = DOT_SPACING_PX * MONITOR_PITCH_MM  # 139.95 mm
 
@@ -223,7 +224,7 @@ class Experiment:
         self._dot_imgs = self.dot_target.images()
         # speckle grain: radius in camera px at the central depth -> monitor px
         fx = float(self.lab.cameras[0].camera.K[0, 0])
-        mm_per_px = 5400.0 / fx
+        mm_per_px = WORKING_DISTANCE_MM / fx
         self.speckle_radius_monitor_px = self.cfg.speckle_radius_cam_px * mm_per_px / MONITOR_PITCH_MM
         self._speckle_ref = None
         self.timings = {}
@@ -297,7 +298,7 @@ class Experiment:
         rng = np.random.default_rng(self.cfg.seed + 5)
         poses = []
         for n in range(self.cfg.checker_views):
-            z = 5400.0 + rng.uniform(-500, 500)
+            z = WORKING_DISTANCE_MM + rng.uniform(-500, 500)
             center = np.array([rng.uniform(-500, 500), rng.uniform(-350, 350), z])
             poses.append(_monitor_pose_facing(center, np.eye(3), rng.uniform(-30, 30), rng.uniform(-30, 30),
                                               rng.uniform(-8, 8)))
