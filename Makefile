@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m dic.demo --out demo_output
+	$(BIN)/python -m repro.demo --out demo_output
 
 # One BLAS thread per pytest worker: with two workers on two cores, threaded BLAS makes the
 # small matrix operations of calibration 50-100x slower.

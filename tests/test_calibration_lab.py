@@ -5,16 +5,12 @@ focused at 5.4 m, 1650 mm baseline, mirrors 0.4 m ahead, monitor 0.65 m behind t
 quarter of the resolution (588 x 432 px) to fit the test budget, 4 samples per pixel. The monitor shows
 a coded 12 x 6 phase-dot target (150 px = 46.65 mm pitch, 4 phase steps). Everything is compared with the
 lab's ground truth (camera models and poses, mirror planes), which the pipeline never sees.
-Full-resolution figures: bench/calibration_lab.py and docs/calibration.md.
+Full-resolution figures: repro/calibration_lab.py and docs/calibration.md.
 
 Views rendered once per module: left camera 10 direct poses (1.15-2.7 m, tilts up to 30 deg, blur up to
 7 px) + 3 mirror tilts; right camera 6 direct + 3 mirror tilts; the monitor at 3 m in front of both
 cameras (far view) and a second common view (check).
 """
-import importlib.util
-import pathlib
-import sys
-
 import numpy as np
 import pytest
 
@@ -24,12 +20,7 @@ from calibration.pipeline import (IntrinsicsCalibration, MirrorCalibration, cali
                                   calibrate_mirror_from_images, calibrate_rig_from_mirrors, detect_stereo_view,
                                   detect_view, read_stack)
 from calibration.targets import PhaseTarget, make_cell_code
-
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("bench_calibration_lab", ROOT / "bench" / "calibration_lab.py")
-lab = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = lab
-_spec.loader.exec_module(lab)
+from repro import calibration_lab as lab
 
 SCALE = 0.25
 # 9 sub-samples per pixel (pixel area x lens aperture): with the lab's jittered aperture sampling, 4 samples add
@@ -277,10 +268,10 @@ def test_intrinsics_report_and_bad_views(session, intrinsics):
 def test_mirror_adjustment_with_points_missing_in_some_views():
     # Vignetted dots are removed per view, so mirror views no longer show the same dots: the mirror
     # calibration takes NaN rows for points a view misses. Exact geometry of the paper's rig
-    # (calibration.uncertainty.paper_mirror_setup). Noise-free: the pose must still be exact (the
+    # (repro.mirror_setup.paper_mirror_setup). Noise-free: the pose must still be exact (the
     # closed form takes each view's PnP on its own points; the adjustment leaves the NaN rows out).
     from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
-    from calibration.uncertainty import paper_mirror_setup, simulate_mirror_observations
+    from repro.mirror_setup import paper_mirror_setup, simulate_mirror_observations
 
     paper = paper_mirror_setup()
     obs = simulate_mirror_observations(paper, 0.0, np.random.default_rng(0))
@@ -310,7 +301,7 @@ def test_mirror_adjustment_with_points_missing_in_some_views():
 
 
 def test_extra_direct_poses_fit_and_cover_the_image():
-    """The 'more views' poses (bench/calibration_lab.py EXTRA_DIRECT_POSES) must all be renderable as
+    """The 'more views' poses (repro/calibration_lab.py EXTRA_DIRECT_POSES) must all be renderable as
     written (direct_pose raises when the lit target cannot fit) and must spread the target over the
     image: the principal point they are there for is only seen through views off the image centre."""
     from dic.lab import paper_rig

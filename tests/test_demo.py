@@ -1,9 +1,9 @@
-"""Smoke test of ``python -m dic.demo`` (what ``make demo`` runs) on a reduced image size."""
+"""Smoke test of ``python -m repro.demo`` (what ``make demo`` runs) on a reduced image size."""
 import json
 
 import numpy as np
 
-from dic import demo
+from repro import demo
 from dic.store import read_results
 
 

@@ -1,4 +1,4 @@
-"""Smoke test of the paper-reproduction chain (dic/experiments.py) at a very small scale.
+"""Smoke test of the paper-reproduction chain (repro/experiments.py) at a very small scale.
 
 Rendered calibration images → Specula's calibration (phase dots, intrinsics from direct + mirrored
 views, mirror extrinsics) → rendered measurement images → dot triangulation and stereo DIC. The
@@ -8,7 +8,7 @@ checked against (the chain itself never sees it).
 import numpy as np
 import pytest
 
-from dic.experiments import (DOT_SPACING_MM, Experiment, ExperimentConfig, RenderCache, dot_test, plane_deviation,
+from repro.experiments import (DOT_SPACING_MM, Experiment, ExperimentConfig, RenderCache, dot_test, plane_deviation,
                              run_deformation_test)
 
 
@@ -95,7 +95,7 @@ def test_direct_calibration_views_reach_the_image_corners():
     the lens distortion is measured where the corner test positions image, not extrapolated there)."""
     import cv2
 
-    from dic.experiments import MONITOR_PITCH_MM
+    from repro.experiments import MONITOR_PITCH_MM
 
     exp = Experiment(ExperimentConfig(scale=0.25, samples=1), cache=None, log=lambda m: None)
     t = exp.calib_target

@@ -4,7 +4,7 @@ import pytest
 
 from calibration.camera import Camera, rotation_from_vector, transform_points
 from calibration.intrinsics import MIRROR_FLIP, calibrate_intrinsics
-from calibration.uncertainty import grid_points
+from repro.mirror_setup import grid_points
 
 NOISE = 0.03  # px per coordinate, the noise level
 TRUE = Camera(K=[[4050.0, 0, 1172.8], [0, 4050.8, 868.1], [0, 0, 1]], dist=[-0.06, 0.09, 2e-4, -1e-4, 0.0],

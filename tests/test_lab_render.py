@@ -288,7 +288,7 @@ def test_deformed_marker_lands_where_its_displaced_point_projects(device):
 def test_window_render_is_the_full_render(device, position):
     """Pixels outside window_around(...) see only background: rendering them with one sample
     changes nothing (bit for bit, noise and quantisation included); a window cut into the monitor does."""
-    from dic.experiments import speckle_monitor_image
+    from repro.experiments import speckle_monitor_image
     from dic.lab import paper_rig, window_around
 
     lab = paper_rig(scale=0.5)

@@ -8,7 +8,7 @@ from calibration.camera import rotation_angle_deg, rotation_from_vector, transfo
 from calibration.mirror import (MirrorPlane, _pnp, _RigBundle, joint_mirror_stereo, mirror_closed_form,
                                 mirror_extrinsics)
 from calibration.stereo import StereoRig, rig_from_mirror
-from calibration.uncertainty import grid_points, paper_mirror_setup, simulate_mirror_observations
+from repro.mirror_setup import grid_points, paper_mirror_setup, simulate_mirror_observations
 
 NOISE = 0.03
 

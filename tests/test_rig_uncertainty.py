@@ -1,26 +1,18 @@
 """The rig covariance with the intrinsics' uncertainty (calibration.uncertainty.rig_covariance_from_intrinsics).
 
-Monte Carlo on the exact paper geometry (calibration.uncertainty.paper_mirror_setup), through the same code
-as ``python -m bench.intrinsics_design --sigma-check``: in every draw each camera is calibrated (Zhang, 12
+Monte Carlo on the exact paper geometry (repro.mirror_setup.paper_mirror_setup), through the same code
+as ``python -m repro.intrinsics_design --sigma-check``: in every draw each camera is calibrated (Zhang, 12
 direct views of the 6 x 3 target + its 5 mirrored views, 0.014 px noise), then the rig comes from the joint
 mirror adjustment with the far view. The reported rotation σ must match the scatter of the rig's rotation
 error over the draws. The adjustment's own σ (intrinsics held fixed) is an order of magnitude too small
 here: a principal-point error δ rotates a camera by δ / f.
 """
-import importlib.util
-import pathlib
-import sys
-
 import numpy as np
 import pytest
 
-from calibration.uncertainty import paper_mirror_setup, rig_covariance_from_intrinsics
-
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("bench_intrinsics_design", ROOT / "bench" / "intrinsics_design.py")
-design = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = design
-_spec.loader.exec_module(design)
+from calibration.uncertainty import rig_covariance_from_intrinsics
+from repro import intrinsics_design as design
+from repro.mirror_setup import paper_mirror_setup
 
 
 def test_rig_sigma_with_intrinsics_matches_monte_carlo():

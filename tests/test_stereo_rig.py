@@ -7,8 +7,8 @@ import pytest
 
 from calibration.mirror import joint_mirror_stereo
 from calibration.stereo import StereoRig, reconstruct_target, stereo_calibrate
-from calibration.uncertainty import (checkerboard_far_views, covariance_from_jacobian, paper_mirror_setup, propagate,
-                                     simulate_mirror_observations)
+from calibration.uncertainty import covariance_from_jacobian, propagate
+from repro.mirror_setup import checkerboard_far_views, paper_mirror_setup, simulate_mirror_observations
 
 NOISE = 0.03
 

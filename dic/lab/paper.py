@@ -47,6 +47,9 @@ MONITOR_BEHIND_MM = 650.0
 MONITOR_RESOLUTION = (1920, 1080)
 MONITOR_PITCH_MM = 0.311
 GRID_SPACING_MM = (1000.0, 780.0, 900.0)
+#: The cameras' sensor (Dalsa Falcon 4M30): (width, height) px and pixel pitch, mm.
+IMAGE_SIZE_PX = (2352, 1728)
+PIXEL_PITCH_MM = 0.0074
 
 
 @dataclass(frozen=True)
@@ -90,7 +93,7 @@ def _cameras(focal_length_mm: float, f_number: float) -> list[LabCamera]:
     for name, pos, pp, dist in specs:
         focus = float(np.linalg.norm(crossing - np.asarray(pos)))
         cams.append(LabCamera.from_lens(
-            name=name, size=(2352, 1728), pixel_pitch_mm=0.0074, focal_length_mm=focal_length_mm, f_number=f_number,
+            name=name, size=IMAGE_SIZE_PX, pixel_pitch_mm=PIXEL_PITCH_MM, focal_length_mm=focal_length_mm, f_number=f_number,
             focus_distance_mm=focus, position=pos, look_at_point=crossing, principal_point=pp, dist=dist,
             bit_depth=8, exposure_dn=200.0, black_level_dn=2.0, read_noise_dn=1.0, electrons_per_dn=80.0,
         ))
@@ -256,5 +259,7 @@ def paper_rig(*, scale: float = 1.0, mirror_tilt: int | None = 0, monitor_positi
     return rig
 
 
-__all__ = ["PaperRig", "MonitorPose", "paper_rig", "paper_fringe_image", "tilt_mirror", "MIRROR_TILTS_DEG"]
+__all__ = ["PaperRig", "MonitorPose", "paper_rig", "paper_fringe_image", "tilt_mirror", "MIRROR_TILTS_DEG",
+           "BASELINE_MM", "WORKING_DISTANCE_MM", "MIRROR_DISTANCE_MM", "MONITOR_BEHIND_MM", "MONITOR_RESOLUTION",
+           "MONITOR_PITCH_MM", "GRID_SPACING_MM", "IMAGE_SIZE_PX", "PIXEL_PITCH_MM"]
 

@@ -1,14 +1,14 @@
 """Reproduce the paper's Section 3 experiments in the virtual lab.
 
-    python -m bench.paper [--scale 0.25] [--samples 9] [--positions 27|9|1|i,j,...] [--cache DIR]
+    python -m repro.paper [--scale 0.25] [--samples 9] [--positions 27|9|1|i,j,...] [--cache DIR]
 
 Renders the calibration images of the paper rig, calibrates it with Specula's own pipeline (phase
 dots → intrinsics from direct + mirrored views → mirror extrinsics → rig; plus a joint adjustment
 with a far view, and a conventional checkerboard calibration at the far working distance), then
 renders and measures the dot pattern and the speckle at the monitor positions, the 8-shift
-displacement test and the sinusoidal deformation test (see :mod:`dic.experiments`).
+displacement test and the sinusoidal deformation test (see :mod:`repro.experiments`).
 
-Writes ``bench/results/paper.json`` (every figure) and ``docs/paper_reproduction.md`` with
+Writes ``repro/results/paper.json`` (every figure) and ``docs/paper_reproduction.md`` with
 figures in ``docs/img/paper_*.png``. Renders are cached in ``--cache`` (default
 ``~/.cache/specula/paper``), so an interrupted run resumes. Paper: Optics Express 27(6), 9040
 (2019), doi:10.1364/OE.27.009040.
@@ -24,6 +24,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from dic.lab.paper import BASELINE_MM, IMAGE_SIZE_PX, MONITOR_PITCH_MM, WORKING_DISTANCE_MM
+from repro.experiments import DOT_SPACING_MM
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -70,13 +73,13 @@ def figures(results, maps, img_dir: Path):
         for k, n in enumerate(names):
             ax = fig.add_subplot(1, len(names), k + 1, projection="3d")
             c = np.array(dots[n]["centres_mm"])
-            e = np.array(dots[n]["mean_distance_mm"]) - 139.95
+            e = np.array(dots[n]["mean_distance_mm"]) - DOT_SPACING_MM
             lim = max(float(np.abs(e).max()), 1e-3)  # each calibration on its own colour scale
             sc = ax.scatter(c[:, 0], c[:, 2], -c[:, 1], c=e, cmap="coolwarm", vmin=-lim, vmax=lim, s=40)
             ax.set_xlabel("x (mm)"); ax.set_ylabel("z (mm)"); ax.set_zlabel("-y (mm)")
             ax.set_title(f"{n} ({len(c)} positions): {dots[n]['distance_mean_mm']:.3f} ± "
                          f"{dots[n]['distance_std_mm']:.3f} mm", fontsize=9)
-            fig.colorbar(sc, ax=ax, shrink=0.5, pad=0.12, label="mean distance − 139.95 (mm)")
+            fig.colorbar(sc, ax=ax, shrink=0.5, pad=0.12, label=f"mean distance − {DOT_SPACING_MM:g} (mm)")
         fig.savefig(img_dir / "paper_dots.png", dpi=80)
         plt.close(fig)
         files.append("paper_dots.png")
@@ -122,8 +125,8 @@ def write_doc(results, files, path: Path):
              "paper rig (`dic.lab.paper_rig`, docs/lab.md) with Specula's own calibration and stereo-DIC. Every "
              "number below comes from rendered 8-bit images with read and shot noise, quantisation and the lenses' "
              "defocus; the rig used for measuring is the one the calibration pipeline produced from rendered "
-             "calibration images — no ground-truth camera enters the measurement. Code: `dic/experiments.py`; "
-             "run: `python -m bench.paper` (results: `bench/results/paper.json`).\n")
+             "calibration images — no ground-truth camera enters the measurement. Code: `repro/experiments.py`; "
+             "run: `python -m repro.paper` (results: `repro/results/paper.json`).\n")
     L.append("## Conditions of this run\n")
     L.append(f"- command: `{r['command']}`; date {r['date']}; wall time {r['wall_s']:.0f} s "
              f"({r['renders']} renders, {r['render_s']:.0f} s of rendering, {r['cache_hits']} cache hits) on "
@@ -132,17 +135,17 @@ def write_doc(results, files, path: Path):
         L.append(f"- full resolution (cameras {r['image_size'][0]} × {r['image_size'][1]} px, as the paper's), "
                  f"{_samples_text(cfg)}, noise {'on' if cfg['noise'] else 'off'}.")
     else:
-        L.append(f"- scale {cfg['scale']} (cameras {r['image_size'][0]} × {r['image_size'][1]} px instead of 2352 × 1728; "
+        L.append(f"- scale {cfg['scale']} (cameras {r['image_size'][0]} × {r['image_size'][1]} px instead of {IMAGE_SIZE_PX[0]} × {IMAGE_SIZE_PX[1]}; "
                  f"geometry, optics and field of view unchanged, so every length in camera px is {cfg['scale']} × the "
                  f"paper's), {_samples_text(cfg)}, noise {'on' if cfg['noise'] else 'off'}.")
     L.append(f"- calibration target: coded phase dots {cfg['calib_grid'][0]} × {cfg['calib_grid'][1]} at "
-             f"{cfg['calib_pitch']:g} screen px ({cfg['calib_pitch'] * 0.311:.2f} mm), 4 phase steps; 3 mirror tilts "
+             f"{cfg['calib_pitch']:g} screen px ({cfg['calib_pitch'] * MONITOR_PITCH_MM:.2f} mm), 4 phase steps; 3 mirror tilts "
              f"per camera; {len(cfg['direct_distances_mm'])} direct views per camera at "
              f"{min(cfg['direct_distances_mm']) / 1000:.1f}–{max(cfg['direct_distances_mm']) / 1000:.1f} m "
              f"(the paper: 6 × 3 dots at 300 px, 13 direct views).")
     L.append(f"- monitor positions measured: {len(r['dot_test'].get('mirror', {}).get('positions', []))} of 27 "
              f"({cfg['positions']}); stereo-DIC subset {cfg['subset']} px, step {cfg['step']} px, order {cfg['order']}; "
-             f"speckle radius {cfg['speckle_radius_cam_px']} camera px at 5.4 m.\n")
+             f"speckle radius {cfg['speckle_radius_cam_px']} camera px at {WORKING_DISTANCE_MM / 1000:g} m.\n")
     L.append("## Calibration\n")
     L.append("| quantity | left | right | paper |")
     L.append("|---|---|---|---|")
@@ -161,8 +164,8 @@ def write_doc(results, files, path: Path):
              + (f", conventional {cal['baseline_mm_conventional']:.2f} mm" if "baseline_mm_conventional" in cal else "")
              + (f", conventional k1, k2 {cal['baseline_mm_conventional_k1k2']:.2f} mm"
                 if "baseline_mm_conventional_k1k2" in cal else "")
-             + " (the lab's: 1650 mm; quoted for information only, not used).\n")
-    L.append("## Dot pattern at the monitor positions (distance between neighbouring dots, 139.95 mm)\n")
+             + f" (the lab's: {BASELINE_MM:g} mm; quoted for information only, not used).\n")
+    L.append(f"## Dot pattern at the monitor positions (distance between neighbouring dots, {DOT_SPACING_MM:g} mm)\n")
     L.append("| rig | positions | mean distance (mm) | std (mm) | mean error | mean abs. error | paper |")
     L.append("|---|---|---|---|---|---|---|")
     for n, label in (("mirror", "mirror method (paper-faithful: per-camera mirror extrinsics)"),
@@ -235,7 +238,7 @@ def write_doc(results, files, path: Path):
     L.append("")
     L.append("## Notes and limitations\n")
     L.extend(f"- {n}" for n in r.get("notes", []))
-    extra = ROOT / "bench/paper_discussion.md"
+    extra = ROOT / "repro/paper_discussion.md"
     if extra.exists():  # the hand-written discussion of the recorded runs (update it with new results)
         L.append("")
         L.append(extra.read_text())
@@ -250,7 +253,7 @@ def _samples_text(cfg: dict) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.paper", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m repro.paper", description=__doc__.splitlines()[0])
     ap.add_argument("--scale", type=float, default=0.25)
     ap.add_argument("--samples", type=int, default=9, help="render samples per pixel (calibration and dot views)")
     ap.add_argument("--speckle-samples", type=int, default=None,
@@ -260,12 +263,12 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default=os.path.expanduser("~/.cache/specula/paper"))
     ap.add_argument("--no-noise", action="store_true")
     ap.add_argument("--no-dic", action="store_true", help="skip the speckle tests (dots and calibration only)")
-    ap.add_argument("--json", default=str(ROOT / "bench/results/paper.json"))
+    ap.add_argument("--json", default=str(ROOT / "repro/results/paper.json"))
     ap.add_argument("--doc", default=str(ROOT / "docs/paper_reproduction.md"))
     ap.add_argument("--img-dir", default=str(ROOT / "docs/img"), help="where the paper_*.png figures go")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
-    from dic.experiments import (Experiment, ExperimentConfig, run_deformation_test, run_displacement_test,
+    from repro.experiments import (Experiment, ExperimentConfig, run_deformation_test, run_displacement_test,
                                  run_dot_tests, run_planarity, _central_position)
 
     t0 = time.perf_counter()
@@ -309,7 +312,7 @@ def main(argv=None) -> int:
     results["notes"] = [
         (f"Images at scale {cfg.scale} of the paper's resolution: pixel-level errors (dot centres, DIC matches) are "
          f"in larger pixels, so 3-D errors are roughly 1/scale times larger than at full resolution for the same "
-         f"sub-pixel accuracy." if cfg.scale != 1 else "Images at the paper's full resolution (2352 × 1728 px)."),
+         f"sub-pixel accuracy." if cfg.scale != 1 else f"Images at the paper's full resolution ({IMAGE_SIZE_PX[0]} × {IMAGE_SIZE_PX[1]} px)."),
         "The dot pattern is shown as phase dots (4 phase-shifted images of the 4 × 2 target, 300 px dots at 450 px "
         "pitch, with a code for identification) and located by Specula's phase-dot detector, not by intensity "
         "centroids as in the paper.",
@@ -324,7 +327,7 @@ def main(argv=None) -> int:
     results["renders"] = exp.cache.renders
     results["render_s"] = exp.cache.render_s
     results["cache_hits"] = exp.cache.hits
-    results["command"] = "python -m bench.paper " + " ".join(argv if argv is not None else sys.argv[1:])
+    results["command"] = "python -m repro.paper " + " ".join(argv if argv is not None else sys.argv[1:])
     results["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     results["machine"] = f"{platform.machine()} CPU, {os.cpu_count()} cores"
     results["timings_s"] = exp.timings

@@ -1,7 +1,7 @@
 """How many direct views, and how tilted, does a mirror-calibrated rig need for 0.01° of rig rotation?
 
-Monte Carlo on the exact paper geometry (``calibration.uncertainty.paper_mirror_setup``), with the
-**intrinsics calibrated** from simulated views rather than exact (``calibration.uncertainty.accuracy_study``
+Monte Carlo on the exact paper geometry (``repro.mirror_setup.paper_mirror_setup``), with the
+**intrinsics calibrated** from simulated views rather than exact (``repro.mirror_accuracy.accuracy_study``
 holds them exact): for each camera, direct views of the paper's 6 × 3 target (93.3 mm pitch) and/or
 of a 24 × 12 grid on the same area at depths 1.15–3.4 m, tilted up to ``tilt`` degrees, plus the
 camera's mirrored views, go into one Zhang bundle (``calibration.calibrate_intrinsics``, OpenCV
@@ -16,8 +16,8 @@ principal points (with exact intrinsics the same images give 0.001°): a princip
 as a camera rotation of δ / f, which no extrinsic view can detect. This study says how much
 intrinsic data removes it.
 
-Run: ``OPENBLAS_NUM_THREADS=1 python -m bench.intrinsics_design [--draws 40]``; writes
-``bench/results/intrinsics_design.json`` and prints a table (docs/calibration.md).
+Run: ``OPENBLAS_NUM_THREADS=1 python -m repro.intrinsics_design [--draws 40]``; writes
+``repro/results/intrinsics_design.json`` and prints a table (docs/calibration.md).
 """
 from __future__ import annotations
 
@@ -30,6 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from dic.lab.paper import BASELINE_MM, IMAGE_SIZE_PX, MIRROR_DISTANCE_MM, MONITOR_BEHIND_MM, WORKING_DISTANCE_MM
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -122,11 +124,11 @@ def _joint_rig(setup, obs, cams):
 
 def study(draws: int, noise_px: float, seed: int, designs=DESIGNS, log=print) -> list[dict]:
     from calibration.stereo import StereoRig
-    from calibration.uncertainty import grid_points, paper_mirror_setup, simulate_mirror_observations
+    from repro.mirror_setup import PAPER_DOT_PITCH_MM, grid_points, paper_mirror_setup, simulate_mirror_observations
 
     rng = np.random.default_rng(seed)
     rows = []
-    X_dense = grid_points(24, 12, 93.3 / 4)  # the same target area as 6 x 3 at 93.3 mm, denser dots
+    X_dense = grid_points(24, 12, PAPER_DOT_PITCH_MM / 4)  # the same target area as 6 x 3 at 93.3 mm, denser dots
     for d in designs:
         label, n_views, tilt, n_mirror = d["label"], d["views"], d["tilt"], d["mirror"]
         n_dense, dense_noise, weighting = d.get("dense", 0), d.get("dense_noise", 1.0), d.get("weighting", "equal")
@@ -177,7 +179,8 @@ def sigma_check(draws: int, noise_px: float, seed: int, view_counts=(12, 48), lo
     intrinsic covariances (:func:`calibration.uncertainty.rig_covariance_from_intrinsics`). Reports,
     per axis, the RMS of error / σ over the draws: ≈ 1 when σ is right."""
     from calibration.camera import vector_from_rotation
-    from calibration.uncertainty import paper_mirror_setup, rig_covariance_from_intrinsics, simulate_mirror_observations
+    from calibration.uncertainty import rig_covariance_from_intrinsics
+    from repro.mirror_setup import paper_mirror_setup, simulate_mirror_observations
 
     rng = np.random.default_rng(seed)
     setup = paper_mirror_setup(n_tilts=5)
@@ -219,14 +222,14 @@ def sigma_check(draws: int, noise_px: float, seed: int, view_counts=(12, 48), lo
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.intrinsics_design", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m repro.intrinsics_design", description=__doc__.splitlines()[0])
     ap.add_argument("--draws", type=int, default=40)
     ap.add_argument("--noise", type=float, default=0.014, help="image noise per coordinate (px)")
     ap.add_argument("--seed", type=int, default=2019)
-    ap.add_argument("--json", default=str(ROOT / "bench/results/intrinsics_design.json"))
+    ap.add_argument("--json", default=str(ROOT / "repro/results/intrinsics_design.json"))
     ap.add_argument("--sigma-check", action="store_true",
                     help="instead: compare the rig's reported rotation σ (with / without the intrinsics) with its error "
-                         "(writes bench/results/rig_sigma_check.json unless --json is given)")
+                         "(writes repro/results/rig_sigma_check.json unless --json is given)")
     args = ap.parse_args(argv)
     if args.draws < 2 or not args.noise > 0:
         ap.error("--draws must be >= 2 and --noise > 0")
@@ -234,11 +237,11 @@ def main(argv=None) -> int:
     if args.sigma_check:
         rows = sigma_check(args.draws, args.noise, args.seed)
         path = Path(args.json if "--json" in (argv if argv is not None else sys.argv) else
-                    ROOT / "bench/results/rig_sigma_check.json")
+                    ROOT / "repro/results/rig_sigma_check.json")
         out = {"benchmark": "rig_sigma_check", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-               "command": "python -m bench.intrinsics_design " + " ".join(argv if argv is not None else sys.argv[1:]),
+               "command": "python -m repro.intrinsics_design " + " ".join(argv if argv is not None else sys.argv[1:]),
                "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores", "wall_s": time.perf_counter() - t0,
-               "geometry": "calibration.uncertainty.paper_mirror_setup, 5 mirror tilts, far view at the crossing",
+               "geometry": "repro.mirror_setup.paper_mirror_setup, 5 mirror tilts, far view at the crossing",
                "rows": rows}
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(out, indent=1))
@@ -246,10 +249,11 @@ def main(argv=None) -> int:
         return 0
     rows = study(args.draws, args.noise, args.seed)
     out = {"benchmark": "intrinsics_design", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "command": "python -m bench.intrinsics_design " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "command": "python -m repro.intrinsics_design " + " ".join(argv if argv is not None else sys.argv[1:]),
            "machine": f"{platform.machine()} CPU, {os.cpu_count()} cores", "wall_s": time.perf_counter() - t0,
-           "geometry": "calibration.uncertainty.paper_mirror_setup (f = 4050 px, 2352 x 1728 px, baseline 1650 mm, "
-                       "axes crossing at 5400 mm, mirrors 400 mm ahead, monitor 650 mm behind); far view at the crossing",
+           "geometry": f"repro.mirror_setup.paper_mirror_setup (f = 4050 px, {IMAGE_SIZE_PX[0]} x {IMAGE_SIZE_PX[1]} px, "
+                       f"baseline {BASELINE_MM:g} mm, axes crossing at {WORKING_DISTANCE_MM:g} mm, mirrors "
+                       f"{MIRROR_DISTANCE_MM:g} mm ahead, monitor {MONITOR_BEHIND_MM:g} mm behind); far view at the crossing",
            "rows": rows}
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(out, indent=1))

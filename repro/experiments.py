@@ -1,6 +1,6 @@
 """The paper's Section 3 experiments in the virtual lab: calibration → measurement → metrics.
 
-One chain, shared by ``bench/paper.py`` (the full reproduction) and ``dic/demo.py`` (the quick
+One chain, shared by ``repro/paper.py`` (the full reproduction) and ``repro/demo.py`` (the quick
 end-to-end demo):
 
 1. **Calibration images** of the paper rig (:func:`dic.lab.paper_rig`): the coded phase target
@@ -8,12 +8,13 @@ end-to-end demo):
    through its mirror at the rig's three tilts, and directly at several poses spread over depth
    (intrinsics); optionally a far view both cameras see (joint adjustment), and checkerboard views
    at the far working distance (the conventional calibration, for comparison).
-2. **Calibration** with the project's own pipeline: dot centres (:mod:`calibration.features`),
-   intrinsics from the direct + mirrored views (:func:`calibration.intrinsics.calibrate_intrinsics`),
-   mirror extrinsics per camera (:func:`calibration.mirror.mirror_extrinsics`, the paper's method +
-   bundle adjustment), the rig (:func:`calibration.stereo.rig_from_mirror`, or
-   :func:`calibration.mirror.joint_mirror_stereo` with the far view). The ground-truth cameras of
-   the virtual lab are **never** used by the measurement: only rendered images go in.
+2. **Calibration** with the project's own pipeline, :mod:`calibration.pipeline` (what ``specula
+   calibrate`` runs): dot centres (:mod:`calibration.features`, the pipeline's dot filters),
+   intrinsics from the direct + mirrored views (``calibrate_intrinsics_from_detections``), mirror
+   extrinsics per camera (``calibrate_mirror_from_detections``: the paper's method + bundle
+   adjustment), the rig (``calibrate_rig_from_mirrors``: per camera, and the joint adjustment with
+   the far view). The ground-truth cameras of the virtual lab are **never** used by the
+   measurement: only rendered images go in.
 3. **Measurement images**: the paper's 4 × 2 dot target (300 px dots at 450 px pitch, as phase
    dots) and a speckle image at the 27 monitor positions; shifted and sinusoidally deformed
    speckle at the central position.
@@ -33,13 +34,14 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-MONITOR_PITCH_MM = 0.311
-MONITOR_RES = (1920, 1080)
+from dic.lab.paper import MONITOR_PITCH_MM, WORKING_DISTANCE_MM
+from dic.lab.paper import MONITOR_RESOLUTION as MONITOR_RES
+
 DOT_SPACING_PX = 450.0
 DOT_SPACING_MM = DOT_SPACING_PX * MONITOR_PITCH_MM  # 139.95 mm
 
@@ -223,7 +225,7 @@ class Experiment:
         self._dot_imgs = self.dot_target.images()
         # speckle grain: radius in camera px at the central depth -> monitor px
         fx = float(self.lab.cameras[0].camera.K[0, 0])
-        mm_per_px = 5400.0 / fx
+        mm_per_px = WORKING_DISTANCE_MM / fx
         self.speckle_radius_monitor_px = self.cfg.speckle_radius_cam_px * mm_per_px / MONITOR_PITCH_MM
         self._speckle_ref = None
         self.timings = {}
@@ -297,7 +299,7 @@ class Experiment:
         rng = np.random.default_rng(self.cfg.seed + 5)
         poses = []
         for n in range(self.cfg.checker_views):
-            z = 5400.0 + rng.uniform(-500, 500)
+            z = WORKING_DISTANCE_MM + rng.uniform(-500, 500)
             center = np.array([rng.uniform(-500, 500), rng.uniform(-350, 350), z])
             poses.append(_monitor_pose_facing(center, np.eye(3), rng.uniform(-30, 30), rng.uniform(-30, 30),
                                               rng.uniform(-8, 8)))
@@ -316,11 +318,19 @@ class Experiment:
         return kept
 
     def calibrate(self) -> CalibrationOutcome:
-        """Render the calibration images and calibrate the rig with the project's pipeline."""
+        """Render the calibration images and calibrate the rig with :mod:`calibration.pipeline`.
+
+        The steps of ``specula calibrate`` on the detected views: intrinsics from the direct and
+        mirrored views in one bundle (:func:`~calibration.pipeline.calibrate_intrinsics_from_detections`),
+        each camera's mirror extrinsics (:func:`~calibration.pipeline.calibrate_mirror_from_detections`),
+        the rig per camera and jointly with the far view
+        (:func:`~calibration.pipeline.calibrate_rig_from_mirrors`). Choices of this study, kept so that
+        its recorded figures stay the same: no point-outlier rejection (``reject_points=None``), the
+        mirror extrinsics on the dots every tilt shows (the joint adjustment: the dots both cameras'
+        tilts show), and the rig's covariance without the intrinsics' share."""
         from calibration.features import DetectionError
-        from calibration.intrinsics import calibrate_intrinsics
-        from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
-        from calibration.stereo import rig_from_mirror
+        from calibration.pipeline import (StereoView, ViewResult, calibrate_intrinsics_from_detections,
+                                          calibrate_rig_from_mirrors)
 
         t0 = time.perf_counter()
         lab = self.lab
@@ -352,30 +362,26 @@ class Experiment:
         self.log(f"[calib] direct views detected: " + ", ".join(f"{n} {[len(d.ids) for d in direct[n]]}" for n in names))
         cams, intr = {}, {}
         for n in names:
-            views = direct[n] + mirrored[n]
-            res = calibrate_intrinsics([d.object_points for d in views], [d.image_points for d in views], self.size,
-                                       mirrored=[bool(d.mirrored) for d in views], model="opencv5", name=n)
-            cams[n], intr[n] = res.camera, res
-        # mirror extrinsics: points seen in every tilt
-        X = self.calib_target.object_points
-        results = {}
+            views = ([ViewResult(f"{n} direct {v}", self.size, detection=d) for v, d in enumerate(direct[n])]
+                     + [ViewResult(f"{n} mirror tilt {k}", self.size, detection=d) for k, d in enumerate(mirrored[n])])
+            # min_points=1: every detected view enters the bundle, as detected
+            res = calibrate_intrinsics_from_detections(views, model="opencv5", reject_points=None, min_points=1, name=n)
+            cams[n], intr[n] = res.camera, res.result
+        # mirror extrinsics per camera: the dots seen in every tilt
+        mirror = {}
         for n in names:
-            common = set(mirrored[n][0].ids.tolist())
+            seen_by_all = set(mirrored[n][0].ids.tolist())
             for d in mirrored[n][1:]:
-                common &= set(d.ids.tolist())
-            ids = np.array(sorted(common))
-            pts = []
-            for d in mirrored[n]:
-                lookup = {int(i): p for i, p in zip(d.ids, d.image_points)}
-                pts.append(np.array([lookup[int(i)] for i in ids]))
-            results[n] = (mirror_extrinsics(cams[n], pts, X[ids]), pts, ids)
-        rig_mirror = rig_from_mirror(results[names[0]][0], results[names[1]][0])
+                seen_by_all &= set(d.ids.tolist())
+            mirror[n] = self._mirror_calibration(cams[n], mirrored[n], np.array(sorted(seen_by_all)))
+        nL, nR = names
+        rig_mirror = calibrate_rig_from_mirrors(mirror[nL], mirror[nR], joint=False, intrinsic_uncertainty=False).rig
         figures = {
             "reprojection_rms_px": {n: float(intr[n].rms) for n in names},
             "intrinsic_views": {n: int(len(intr[n].per_view_rms)) for n in names},
             "intrinsic_dropped_views": {n: len(getattr(intr[n], "dropped", []) or []) for n in names},
-            "mirror_rms_px": {n: float(results[n][0].rms) for n in names},
-            "mirror_points": {n: int(len(results[n][2])) for n in names},
+            "mirror_rms_px": {n: float(mirror[n].result.rms) for n in names},
+            "mirror_points": {n: int(len(mirror[n].point_ids)) for n in names},
             "baseline_mm_mirror": float(rig_mirror.baseline),
         }
         rig_joint = None
@@ -385,17 +391,13 @@ class Experiment:
             dl = self.detect(self._render_stack(scene, names[0], self._calib_imgs, "calib|far", self._seed("farL")))
             dr = self.detect(self._render_stack(scene, names[1], self._calib_imgs, "calib|far", self._seed("farR")))
             ids, ql, qr = _matched(dl, dr)
-            nL, nR = names
-            # joint adjustment needs the same points in both cameras' mirrored views: restrict to common ids
-            common = np.intersect1d(results[nL][2], results[nR][2])
-            selL = np.searchsorted(results[nL][2], common)
-            selR = np.searchsorted(results[nR][2], common)
-            mL = mirror_extrinsics(cams[nL], [p[selL] for p in results[nL][1]], X[common])
-            mR = mirror_extrinsics(cams[nR], [p[selR] for p in results[nR][1]], X[common])
-            joint = joint_mirror_stereo(cams[nL], cams[nR], [p[selL] for p in results[nL][1]],
-                                        [p[selR] for p in results[nR][1]], X[common],
-                                        far_views=[(X[ids], ql, qr)], left_result=mL, right_result=mR)
-            rig_joint = joint.rig
+            far = StereoView(ids, self.calib_target.object_points[ids], ql, qr, name="far")
+            # the joint adjustment needs the same points in both cameras' mirrored views: the common dots,
+            # each camera's mirror extrinsics re-solved on them as its start
+            common = np.intersect1d(mirror[nL].point_ids, mirror[nR].point_ids)
+            both = {n: self._mirror_calibration(cams[n], mirrored[n], common) for n in names}
+            rig_joint = calibrate_rig_from_mirrors(both[nL], both[nR], far_views=[far], joint=True,
+                                                   intrinsic_uncertainty=False).rig
             figures["baseline_mm_joint"] = float(rig_joint.baseline)
             figures["far_view_points"] = int(len(ids))
         rig_conv = rig_conv_k1k2 = None
@@ -405,6 +407,15 @@ class Experiment:
         rig = rig_joint if rig_joint is not None else rig_mirror
         return CalibrationOutcome(rig=rig, rig_mirror=rig_mirror, rig_joint=rig_joint, rig_conventional=rig_conv,
                                   figures=figures, rig_conventional_k1k2=rig_conv_k1k2)
+
+    def _mirror_calibration(self, camera, detections, ids):
+        """:func:`calibration.pipeline.calibrate_mirror_from_detections` of one camera's mirrored views
+        restricted to the dots ``ids`` (sorted, seen in every view), without point-outlier rejection."""
+        from calibration.pipeline import ViewResult, calibrate_mirror_from_detections
+
+        views = [ViewResult(f"{camera.name} mirror tilt {k}", self.size, detection=_dots_with_ids(d, ids))
+                 for k, d in enumerate(detections)]
+        return calibrate_mirror_from_detections(camera, views, self.calib_target, reject_points=None)
 
     def _conventional(self, names, figures):
         """Checkerboard at the far working distance: intrinsics and rig from those views only (OpenCV).
@@ -497,6 +508,15 @@ class Experiment:
 # ------------------------------------------------------------------------------------------------
 # metrics
 # ------------------------------------------------------------------------------------------------
+def _dots_with_ids(det, ids):
+    """The rows of a :class:`calibration.features.DotDetection` whose dot id is in ``ids``."""
+    keep = np.isin(det.ids, ids)
+    return replace(det, image_points=det.image_points[keep], ids=det.ids[keep], object_points=det.object_points[keep],
+                   residual_rms=det.residual_rms[keep], sigma_px=det.sigma_px[keep], modulation=det.modulation[keep],
+                   n_pixels=det.n_pixels[keep],
+                   modulation_slope=None if det.modulation_slope is None else det.modulation_slope[keep])
+
+
 def _matched(det_l, det_r):
     ids = np.intersect1d(det_l.ids, det_r.ids)
     il = {int(i): k for k, i in enumerate(det_l.ids)}

@@ -3,15 +3,15 @@
 Run from the repository root (the full-resolution run renders ~300 images and takes hours on the shared
 2-core CPU; rendered stacks are cached in ``--cache`` so an interrupted run resumes)::
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab                 # full resolution
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --scale 0.25 --samples 4   # quick
-    .venv/bin/python -m bench.calibration_lab --export session/     # image folders for the CLI walk-through
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m repro.calibration_lab                 # full resolution
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m repro.calibration_lab --scale 0.25 --samples 4   # quick
+    .venv/bin/python -m repro.calibration_lab --export session/     # image folders for the CLI walk-through
 
 On 2 cores, render first with one process per camera (Warp's CPU launches use one core each), then run::
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --render-only left &
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab --render-only right; wait
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m bench.calibration_lab
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m repro.calibration_lab --render-only left &
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m repro.calibration_lab --render-only right; wait
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m repro.calibration_lab
 
 What it does, in the virtual lab's paper rig (``dic.lab.paper_rig``: two 2352 × 1728 px 8-bit cameras
 with read noise 1 DN and shot noise, 28 mm f/2.8 lenses focused at 5.4 m, 1650 mm baseline, mirrors
@@ -29,7 +29,7 @@ with read noise 1 DN and shot noise, 28 mm f/2.8 lenses focused at 5.4 m, 1650 m
   ``EXTRA_DIRECT_POSES``; ``--extra-views 0`` leaves it out), and
   with ``cv2.stereoCalibrate`` from a 9×6 checkerboard of 40 mm squares shown by the monitor around
   the working distance;
-* writes ``bench/results/calibration_lab.json`` (or ``--out``) and prints a table.
+* writes ``repro/results/calibration_lab.json`` (or ``--out``) and prints a table.
 
 The helpers (:func:`direct_pose`, :func:`render_view_stack`, :class:`LabTruth` ...) are also used by
 tests/test_calibration_lab.py at reduced resolution.
@@ -51,6 +51,7 @@ import numpy as np
 from calibration.camera import Camera, rotation_angle_deg, rotation_from_vector
 from calibration.stereo import StereoRig
 from calibration.targets import CheckerboardTarget, PhaseTarget, make_cell_code
+from dic.lab.paper import GRID_SPACING_MM, MONITOR_PITCH_MM, WORKING_DISTANCE_MM
 
 # -- scenario ---------------------------------------------------------------------------------------
 #: Direct intrinsic views: (depth along the camera axis mm, offset u, v as a fraction of the room
@@ -65,7 +66,7 @@ DIRECT_POSES = (
 #: 1.15-3.4 m, tilts of 10-30° in directions spread by the golden angle, the target pushed to the image's
 #: corners, edges and centre in turn (generated once, written out so that cache keys stay stable).
 #: Why: with 12 views the principal point is known to ~0.3-0.5 px, i.e. ~0.005-0.007° of camera rotation
-#: that no mirror view can see; bench/intrinsics_design.py predicts 48 views halve it (docs/calibration.md).
+#: that no mirror view can see; repro/intrinsics_design.py predicts 48 views halve it (docs/calibration.md).
 EXTRA_DIRECT_POSES = (
     (1150, 1, 1, 10, 0), (1210, -1, 0, -17, 15), (1280, -1, -1, 1, -14), (1340, 0, 1, 16, 21), (1410, 1, -1, -17, -3),
     (1470, 0, -1, 25, -16), (1540, -1, 1, -5, 20), (1600, 0, 0, -5, -10), (1660, 1, 0, 23, 8), (1730, 1, 1, -14, 6),
@@ -402,7 +403,7 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         "improved, weighted": base + [("dense", "mirror", k) for k in range(5)] + [("dense", "direct", i) for i in dense_direct],
     }
     if extra:
-        # "more views": 4x the direct views (both targets at every pose), the lever bench/intrinsics_design.py
+        # "more views": 4x the direct views (both targets at every pose), the lever repro/intrinsics_design.py
         # found for the principal point; equal and per-view weights
         more = (base + [("paper", "direct", i) for i in range(len(poses), len(all_poses))]
                 + [("dense", "mirror", k) for k in range(5)]
@@ -461,9 +462,11 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
     tgt = targets["paper"]
     _, (sl, sr) = S.common_view(tgt, S.rig.crossing_point, tag="far")
     far = pl.detect_stereo_view(sl, sr, tgt, name="far (crossing point)", correct_blur=CORRECT_BLUR)
+    # corners of the paper's test volume (its front and rear planes) and the crossing point
+    wd, (dx, dy, dz) = WORKING_DISTANCE_MM, GRID_SPACING_MM
     check_places = checks if checks is not None else [
-        ((-1000.0, -780.0, 4500.0), 0, 0), ((1000.0, 780.0, 4500.0), 0, 0), ((0.0, 0.0, 5400.0), 10, -20),
-        ((-1000.0, 780.0, 6300.0), 0, 0), ((1000.0, -780.0, 6300.0), 0, 0), ((0.0, 0.0, 6300.0), -15, 15)]
+        ((-dx, -dy, wd - dz), 0, 0), ((dx, dy, wd - dz), 0, 0), ((0.0, 0.0, wd), 10, -20),
+        ((-dx, dy, wd + dz), 0, 0), ((dx, -dy, wd + dz), 0, 0), ((0.0, 0.0, wd + dz), -15, 15)]
     chk = []
     for j, (c, ax, ay) in enumerate(check_places):
         _, (cl, cr) = S.common_view(tgt, c, ax, ay, tag=f"check{j}")
@@ -471,7 +474,7 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
             chk.append(pl.detect_stereo_view(cl, cr, tgt, name=f"check{j} at {c}", correct_blur=CORRECT_BLUR))
         except ValueError as exc:
             log(f"    check view {j} skipped: {exc}")
-    result["conditions"]["far_view"] = "paper target at the axes' crossing point (0, 0, 5400), facing the cameras"
+    result["conditions"]["far_view"] = f"paper target at the axes' crossing point (0, 0, {WORKING_DISTANCE_MM:g}), facing the cameras"
     result["conditions"]["check_views"] = [{"center": list(c), "tilt_deg": [ax, ay]} for c, ax, ay in check_places]
 
     # -- 4. rigs
@@ -535,7 +538,7 @@ def _checkerboard(S: LabSession, intr, rig_truth, checks, n: int, log):
     from calibration import pipeline as pl
     from calibration.stereo import reconstruct_target
 
-    board = CheckerboardTarget(corners=(9, 6), square=40.0 / 0.311)
+    board = CheckerboardTarget(corners=(9, 6), square=40.0 / MONITOR_PITCH_MM)
     img = board.images()
     left, right = [], []
     for j, (c, ax, ay) in enumerate(checkerboard_poses(S.rig, n)):
@@ -657,7 +660,7 @@ def main(argv=None):
     p.add_argument("--scale", type=float, default=1.0, help="camera resolution factor (1: 2352x1728)")
     p.add_argument("--samples", type=int, default=16, help="render samples per pixel")
     p.add_argument("--cache", default="/tmp/specula_calibration_lab_cache", help="folder for rendered stacks ('' = none)")
-    p.add_argument("--out", default=None, help="JSON output (default bench/results/calibration_lab.json at scale 1)")
+    p.add_argument("--out", default=None, help="JSON output (default repro/results/calibration_lab.json at scale 1)")
     p.add_argument("--boards", type=int, default=15, help="checkerboard views for cv2.stereoCalibrate (0 = skip)")
     p.add_argument("--dense-poses", default=None, metavar="I,J,...",
                    help="indices of DIRECT_POSES at which to show the 24x12 target directly (default: DENSE_DIRECT_POSES)")
@@ -675,7 +678,7 @@ def main(argv=None):
     if a.export:
         export_session(a.export, scale=a.scale, samples=a.samples, cache=a.cache or None)
         return
-    out = a.out or ("bench/results/calibration_lab.json" if a.scale == 1.0 else f"bench/results/calibration_lab_scale{a.scale:g}.json")
+    out = a.out or ("repro/results/calibration_lab.json" if a.scale == 1.0 else f"repro/results/calibration_lab_scale{a.scale:g}.json")
     dense = None if a.dense_poses is None else [int(x) for x in a.dense_poses.split(",") if x.strip()]
     run(a.scale, a.samples, a.cache or None, out, boards=a.boards, dense_poses=dense, extra_views=a.extra_views)
 

@@ -1,6 +1,6 @@
 """Accuracy of the calibration-target detectors on synthetic views with exact ground truth.
 
-    .venv/bin/python -m bench.targets [--quick] [--out bench/results/targets.json] [--figures docs/img]
+    .venv/bin/python -m repro.targets [--quick] [--out repro/results/targets.json] [--figures docs/img]
 
 Camera 1024 x 768, f = 1200 px, no distortion; the paper's monitor (1920 x 1080, 0.311 mm) at
 933 mm (cells of ~120 px), turned about its vertical axis by ``tilt``; rendering with
@@ -54,7 +54,7 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer blur levels")
-    ap.add_argument("--out", default="bench/results/targets.json")
+    ap.add_argument("--out", default="repro/results/targets.json")
     ap.add_argument("--figures", default=None, help="folder for docs figures (targets_*.png)")
     args = ap.parse_args(argv)
 

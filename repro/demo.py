@@ -1,4 +1,4 @@
-"""End-to-end demo on generated data: ``python -m dic.demo --out DIR`` (what ``make demo`` runs).
+"""End-to-end demo on generated data: ``python -m repro.demo --out DIR`` (what ``make demo`` runs).
 
 Steps (each a function, so later demos can add stages such as the stereo chain):
 
@@ -10,7 +10,7 @@ Steps (each a function, so later demos can add stages such as the stereo chain):
    with the errors against the exact ground truth.
 
 Then the stereo chain on the virtual paper rig (``--only stereo``; both by default), at reduced
-resolution (:mod:`dic.experiments`):
+resolution (:mod:`repro.experiments`):
 
 5. :func:`stereo_calibration_step` - render the phase-target calibration images (mirrored at three
    tilts, direct at several depths, one far view), calibrate intrinsics and mirror extrinsics (joint
@@ -35,6 +35,9 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+
+from dic.lab.paper import BASELINE_MM, WORKING_DISTANCE_MM
+from repro.experiments import DOT_SPACING_MM
 
 
 @dataclass
@@ -227,7 +230,7 @@ STEPS = (generate, track_step, strain_step, write_step)
 # -- the stereo chain on the virtual paper rig ---------------------------------------------------
 @dataclass
 class StereoDemoConfig:
-    """Reduced-resolution settings of the stereo demo (see dic.experiments.ExperimentConfig)."""
+    """Reduced-resolution settings of the stereo demo (see repro.experiments.ExperimentConfig)."""
 
     scale: float = 0.25
     samples: int = 4
@@ -241,7 +244,7 @@ class StereoDemoConfig:
 
 def stereo_calibration_step(state: DemoState) -> None:
     """Step 5: render the calibration images of the paper rig and calibrate it (intrinsics, mirror extrinsics)."""
-    from dic.experiments import Experiment, ExperimentConfig
+    from repro.experiments import Experiment, ExperimentConfig
 
     sc = state.stereo_config
     t0 = time.perf_counter()
@@ -258,7 +261,7 @@ def stereo_calibration_step(state: DemoState) -> None:
 
 def stereo_measure_step(state: DemoState) -> None:
     """Step 6: render a reference and a sinusoidally deformed speckle state and measure them in 3-D."""
-    from dic.experiments import _central_position, run_deformation_test
+    from repro.experiments import _central_position, run_deformation_test
 
     t0 = time.perf_counter()
     exp = state.experiment
@@ -274,7 +277,7 @@ def stereo_report_step(state: DemoState) -> None:
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
-    from dic.experiments import dot_test
+    from repro.experiments import dot_test
     from dic.io import write_image
 
     exp, cal, de = state.experiment, state.calibration, state.deformation
@@ -303,7 +306,7 @@ def stereo_report_step(state: DemoState) -> None:
     f = cal.figures
     summary = {"calibration": f, "dot_check": {"mean_distance_mm": float(dots["distances_mm"].mean()),
                                                 "std_mm": float(dots["distances_mm"].std(ddof=1)),
-                                                "true_mm": 139.95},
+                                                "true_mm": DOT_SPACING_MM},
                "deformation": {k: v for k, v in de.items() if not k.startswith("profile")},
                "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(exp.cfg).items()},
                "image_size": list(exp.size), "renders": exp.cache.renders, "render_s": round(exp.cache.render_s, 1),
@@ -319,7 +322,7 @@ def stereo_report_step(state: DemoState) -> None:
         f"a coded {exp.cfg.calib_grid[0]}x{exp.cfg.calib_grid[1]} phase-dot target seen through each camera's mirror at "
         f"3 tilts and directly at {len(exp.cfg.direct_distances_mm)} depths; intrinsics (Zhang, direct + mirrored views), "
         "mirror extrinsics (the paper's method + bundle adjustment), then a joint adjustment of both cameras' mirror "
-        "views with one far view of the target that both cameras see (at 4.6 m, not the test position). Then the monitor at the axes' crossing (5.4 m) "
+        f"views with one far view of the target that both cameras see (at 4.6 m, not the test position). Then the monitor at the axes' crossing ({WORKING_DISTANCE_MM / 1000:g} m) "
         f"shows a speckle, then the same speckle deformed by x_d = x + {de['imposed_amplitude_px']:g} sin(2 pi y / "
         f"{1 / exp.cfg.deform_frequency:g}) (monitor px), measured by stereo DIC (subset {exp.cfg.subset} px, step "
         f"{exp.cfg.step} px, order {exp.cfg.order}). See docs/paper_reproduction.md for the full reproduction.",
@@ -328,9 +331,9 @@ def stereo_report_step(state: DemoState) -> None:
         "|---|---|",
         f"| calibration reprojection RMS left / right (px) | {rp['left']:.4f} / {rp['right']:.4f} |",
         f"| mirror bundle RMS left / right (px) | {f['mirror_rms_px']['left']:.4f} / {f['mirror_rms_px']['right']:.4f} |",
-        f"| calibrated baseline (mm; lab: 1650): mirror only / joint with the far view | {f['baseline_mm_mirror']:.2f} / "
+        f"| calibrated baseline (mm; lab: {BASELINE_MM:g}): mirror only / joint with the far view | {f['baseline_mm_mirror']:.2f} / "
         f"{f.get('baseline_mm_joint', float('nan')):.2f} |",
-        f"| 4x2 dots at 5.4 m: neighbour distance (mm; true 139.95) | {summary['dot_check']['mean_distance_mm']:.3f} "
+        f"| 4x2 dots at {WORKING_DISTANCE_MM / 1000:g} m: neighbour distance (mm; true {DOT_SPACING_MM:g}) | {summary['dot_check']['mean_distance_mm']:.3f} "
         f"± {summary['dot_check']['std_mm']:.3f} |",
         f"| valid 3-D points | {de['valid']} / {de['points']} |",
         f"| u amplitude (monitor px; imposed {de['imposed_amplitude_px']:g}) | {de['fitted_amplitude_px']:.3f} |",
@@ -387,7 +390,7 @@ def run_demo(out, config: DemoConfig | None = None, *, echo=print, only: str = "
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dic.demo", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m repro.demo", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="demo_output", help="output folder (default: demo_output)")
     parser.add_argument("--size", type=int, default=DemoConfig.size, help="image side in px (default 512)")
     parser.add_argument("--step", type=int, default=DemoConfig.step, help="grid step in px (default 4)")
