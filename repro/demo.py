@@ -167,7 +167,7 @@ def evaluate(state: DemoState) -> dict:
 
 def write_step(state: DemoState) -> None:
     """Step 4: images, HDF5 results, figure and summary."""
-    from dic.figures import write_field_figure
+    from dic.plots.fields import write_field_figure
     from dic.io import write_image
     from dic.store import ResultWriter, image_digest
 
