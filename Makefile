@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test venv bench clean
+.PHONY: demo test lint venv bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,8 +21,14 @@ demo: $(STAMP)
 
 # One BLAS thread per pytest worker: with two workers on two cores, threaded BLAS makes the
 # small matrix operations of calibration 50-100x slower.
-test: $(STAMP)
+test: $(STAMP) lint
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q --durations=15
+
+# Guard rails: ruff (pyflakes, pycodestyle, import order) and the import-layer contract
+# (import-linter: dic -> calibration -> kernels, no circles; pyproject.toml [tool.importlinter])
+lint: $(STAMP)
+	$(BIN)/ruff check kernels calibration dic bench repro tests
+	$(BIN)/lint-imports
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.icgn
