@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels.checks import positive_int
+
 MONITOR_PITCH_MM = 0.311
 MONITOR_RES = (1920, 1080)
 DOT_SPACING_PX = 450.0
@@ -99,8 +101,7 @@ class ExperimentConfig:
             v = getattr(self, name)
             if v is None and name == "speckle_samples":
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"ExperimentConfig.{name} must be a positive integer, got {v!r}")
+            positive_int(v, f"ExperimentConfig.{name}")
         if not self.scale > 0:
             raise ValueError(f"ExperimentConfig.scale must be > 0, got {self.scale!r}")
 

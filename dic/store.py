@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels.checks import non_negative_int
+
 __all__ = ["ResultWriter", "read_results", "TrackResults", "FrameResult", "SCHEMA_VERSION", "FORMAT_NAME",
            "image_digest"]
 
@@ -189,8 +191,7 @@ class ResultWriter:
         ``status``, ``valid`` (a :class:`dic.track.Field2D`); ``strain`` is a
         :class:`dic.strain.StrainField` or None.
         """
-        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
-            raise ValueError(f"frame index must be a non-negative integer, got {index!r}")
+        index = non_negative_int(index, "frame index")
         frames = self._h5["frames"]
         name = _frame_name(index)
         if name in frames:

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from kernels.checks import odd_int
+
 __all__ = ["StrainField", "strain", "grid_layout"]
 
 
@@ -167,9 +169,7 @@ def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainFi
     -------
     StrainField
     """
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
-        raise ValueError(f"window must be an odd integer >= 3 (grid points per side), got {window!r}")
-    window = int(window)
+    window = odd_int(window, "window", detail=" (grid points per side)")
     if min_points is None:
         min_points = max(3, (window // 2 + 1) ** 2)  # a corner of the grid: a quarter window
     if min_points < 3 or min_points > window * window:

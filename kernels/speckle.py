@@ -41,6 +41,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import positive_float, positive_int
 
 # forward-only kernels: no adjoints are ever needed here, and skipping them halves compilation
 wp.set_module_options({"enable_backward": False})
@@ -430,9 +431,7 @@ def build_speckle_model(centres, radii, *, cell_size=None, pad: float = 0.0, dev
     max_radius = float(radii.max()) if radii.size else 0.0
     if cell_size is None:
         cell_size = 2.0 * (max_radius + pad) if radii.size else 1.0
-    cell_size = float(cell_size)
-    if not (cell_size > 0 and math.isfinite(cell_size)):
-        raise ValueError(f"cell_size must be a positive finite number, got {cell_size}")
+    cell_size = positive_float(cell_size, "cell_size")
     if centres.shape[0]:
         lo = centres.min(axis=0)
         hi = centres.max(axis=0)
@@ -533,8 +532,7 @@ def quadrature_taps(samples: int, blur: float) -> tuple[np.ndarray, np.ndarray]:
     aligned with the pixel; weights are the exact integrals of the kernel over each sub-cell.
     Returns float64 arrays of length ``samples + 2 * ceil(4 * blur * samples)``.
     """
-    if int(samples) != samples or samples < 1:
-        raise ValueError(f"samples (sub-cells per pixel side) must be a positive integer, got {samples!r}")
+    samples = positive_int(samples, "samples (sub-cells per pixel side)", integral_float=True)
     if not (blur >= 0 and math.isfinite(blur)):
         raise ValueError(f"blur must be a finite number >= 0 (px), got {blur!r}")
     s = int(samples)
