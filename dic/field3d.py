@@ -36,7 +36,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from kernels.checks import odd_int
+from kernels.checks import as_points, odd_int
 
 __all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "surface_strain_grid", "grid_neighbours", "scattered_neighbours",
            "as_frame", "tangent_axis", "tangent_basis"]
@@ -92,9 +92,7 @@ def plane_frame(points, valid=None) -> tuple[np.ndarray, np.ndarray]:
     axis projected onto the plane, y = z × x. ``points`` (N, 3); ``valid`` (N,) bool selects the
     points used (at least 3, not collinear).
     """
-    P = np.asarray(points, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {P.shape}")
+    P = as_points(points, ncols=3, allow_empty=True, finite=False)  # non-finite points are left out below
     m = np.all(np.isfinite(P), axis=1)
     if valid is not None:
         m &= np.asarray(valid, dtype=bool)

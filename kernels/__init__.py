@@ -1,7 +1,8 @@
 """Warp kernels and their thin launchers (the bottom layer; imports only warp and numpy).
 
 Importing this package compiles nothing and initialises no device. Kernel modules: ``interp``,
-``icgn``, ``search``, ``speckle``, ``phase``, ``triangulate``, ``render``.
+``icgn``, ``search``, ``speckle``, ``phase``, ``triangulate``, ``render``. Shared by every layer
+(NumPy only): ``images`` (the one image reader/writer) and ``checks`` (argument checks).
 """
 from ._device import available_devices, resolve_device
 from .conventions import PARAMS_1ST, PARAMS_2ND, Status, param_names

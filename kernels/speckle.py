@@ -41,7 +41,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
-from .checks import positive_float, positive_int
+from .checks import as_points, positive_float, positive_int
 
 # forward-only kernels: no adjoints are ever needed here, and skipping them halves compilation
 wp.set_module_options({"enable_backward": False})
@@ -485,11 +485,7 @@ def _model_device(model) -> str:
 
 
 def _points_array(points, device):
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must have shape (N, 2) of (x, y), got {pts.shape}")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points contain NaN or infinite values")
+    pts = as_points(points, allow_empty=True)
     return wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device)
 
 
