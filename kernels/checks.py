@@ -16,8 +16,15 @@ import numbers
 
 import numpy as np
 
-__all__ = ["as_points", "positive_int", "non_negative_int", "odd_int", "positive_float", "in_range",
-           "unit_interval"]
+__all__ = [
+    "as_points",
+    "in_range",
+    "non_negative_int",
+    "odd_int",
+    "positive_float",
+    "positive_int",
+    "unit_interval",
+]
 
 _COLUMNS = {2: "(x, y)", 3: "(x, y, z)"}
 

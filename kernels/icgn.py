@@ -55,10 +55,10 @@ import numpy as np
 import warp as wp
 
 from ._device import resolve_device
-from .checks import as_points, odd_int, positive_float, positive_int
-from .images import as_float32_image
 from ._launch import launch_1d
+from .checks import as_points, odd_int, positive_float, positive_int
 from .conventions import Status
+from .images import as_float32_image
 from .interp import (
     PaddedImage, bspline3_value_grad, bspline3_weights_fast, bspline_coefficients, expand_rows4, stencil_dot_rows4,
 )

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["IMAGE_SUFFIXES", "read_image", "write_image", "as_float32_image"]
+__all__ = ["IMAGE_SUFFIXES", "as_float32_image", "read_image", "write_image"]
 
 #: file name suffixes read_image and write_image accept (case-insensitive)
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp")

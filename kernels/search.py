@@ -19,9 +19,9 @@ import numpy as np
 import warp as wp
 
 from ._device import resolve_device
+from ._launch import launch_1d
 from .checks import as_points, non_negative_int, odd_int
 from .images import as_float32_image
-from ._launch import launch_1d
 
 wp.set_module_options({"enable_backward": False})
 

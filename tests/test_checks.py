@@ -2,8 +2,15 @@
 import numpy as np
 import pytest
 
-from kernels.checks import (as_points, in_range, non_negative_int, odd_int, positive_float, positive_int,
-                            unit_interval)
+from kernels.checks import (
+    as_points,
+    in_range,
+    non_negative_int,
+    odd_int,
+    positive_float,
+    positive_int,
+    unit_interval,
+)
 
 
 def test_as_points_returns_contiguous_float64():
