@@ -6,8 +6,8 @@ Each check returns the value in its canonical type (float64 arrays, ``int``, ``f
 as the caller should see it (it may carry a prefix such as ``"scene.camera[0]: focal_length_mm"``);
 ``detail`` is appended to the requirement (``" number of pixels"``, ``" (e.g. 21)"``).
 
-Booleans are refused wherever a number is expected (``True`` is an ``int`` in Python). This module
-imports only NumPy.
+Booleans are refused wherever a number is expected (``True`` is an ``int`` in Python). The module
+itself needs only NumPy.
 """
 from __future__ import annotations
 

@@ -9,9 +9,8 @@ images through :func:`read_image`, so the same rules hold in DIC, calibration an
 - missing, empty, unsupported, truncated/corrupt and multi-page files raise ``ValueError``
   naming the file.
 
-Images are 2-D arrays indexed ``[row, col] = [y, x]`` (docs/conventions.md). This module imports
-only NumPy at load time (tifffile and imageio on first use), so calibration can read images
-without Warp.
+Images are 2-D arrays indexed ``[row, col] = [y, x]`` (docs/conventions.md). The module itself
+needs only NumPy (tifffile and imageio are imported on first use) and runs no kernel.
 """
 from __future__ import annotations
 
