@@ -190,9 +190,8 @@ def bench_device(device, ref, cur, points, shift, subset, max_iter, tol, repeats
         icgn(warm, prepare_current(cur[:128, :128], device=device), max_iter=2).numpy()
         rec = {"reference_s": [], "current_s": [], "icgn_s": [], "cpu_s": []}
         for _ in range(repeats):
-            (subs, t_ref, c_ref) = (lambda res: (res[0], res[1], res[2]))(
-                _timed(lambda: prepare_subsets(prepare_reference(ref, device=device), points, subset=subset,
-                                               order=order), device))
+            subs, t_ref, c_ref = _timed(lambda: prepare_subsets(prepare_reference(ref, device=device), points,
+                                                                subset=subset, order=order), device)
             curp, t_cur, c_cur = _timed(lambda: prepare_current(cur, device=device), device)
             res, t_icgn, c_icgn = _timed(lambda: icgn(subs, curp, max_iter=max_iter, tol=tol), device)
             rec["reference_s"].append(t_ref)
@@ -200,7 +199,7 @@ def bench_device(device, ref, cur, points, shift, subset, max_iter, tol, repeats
             rec["icgn_s"].append(t_icgn)
             rec["cpu_s"].append(c_ref + c_cur + c_icgn)
             out = res.numpy()
-            del subs, res
+            subs = res = None  # free the buffers before the next repeat
         n = len(points)
         med = {key: statistics.median(v) for key, v in rec.items()}
         wall = med["reference_s"] + med["current_s"] + med["icgn_s"]

@@ -4,8 +4,16 @@ See docs/calibration.md and docs/targets.md.
 """
 from .camera import Camera
 from .features import (
-    DenseDecoding, DetectionError, DotDetection, decode_dense, demodulate_images, dense_correspondences,
-    detect_checkerboard, detect_circle_grid, detect_dots, detect_dots_in_images,
+    DenseDecoding,
+    DetectionError,
+    DotDetection,
+    decode_dense,
+    demodulate_images,
+    dense_correspondences,
+    detect_checkerboard,
+    detect_circle_grid,
+    detect_dots,
+    detect_dots_in_images,
 )
 from .formats import load_dice_xml, load_opencv, load_vic3d_xml, save_dice_xml, save_opencv, save_vic3d_xml
 from .intrinsics import IntrinsicsResult, calibrate_intrinsics

@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from kernels.checks import as_points
+
 #: Name and version of the camera JSON schema written by :meth:`Camera.save`.
 CAMERA_SCHEMA = "specula.camera"
 CAMERA_SCHEMA_VERSION = 1
@@ -44,14 +46,11 @@ INTRINSIC_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k
 
 
 def _as_points(points, ncols: int, name: str) -> np.ndarray:
-    arr = np.asarray(points, dtype=np.float64)
+    """(N, ncols) float64 finite points; one point may be given as a 1-D (ncols,) array; N = 0 allowed."""
+    arr = np.asarray(points)
     if arr.ndim == 1 and arr.shape[0] == ncols:
         arr = arr[None, :]
-    if arr.ndim != 2 or arr.shape[1] != ncols:
-        raise ValueError(f"{name} must have shape (N, {ncols}), got {np.shape(points)}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or infinite values")
-    return arr
+    return as_points(arr, name, ncols=ncols, allow_empty=True)
 
 
 def _as_matrix3(R, name: str) -> np.ndarray:

@@ -35,8 +35,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import (Camera, distort_normalized, nearest_rotation, rigid_fit, rotation_angle_deg, rotation_from_vector,
-                     transform_points)
+from .camera import (
+    Camera,
+    distort_normalized,
+    nearest_rotation,
+    rigid_fit,
+    rotation_angle_deg,
+    rotation_from_vector,
+    transform_points,
+)
 from .intrinsics import MIRROR_FLIP
 from .uncertainty import covariance_from_jacobian
 

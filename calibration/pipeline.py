@@ -54,13 +54,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# the one image reader (same rules as DIC); IMAGE_SUFFIXES: the files a view folder or glob may hold
+from kernels.images import IMAGE_SUFFIXES, read_image
+
 from .camera import Camera, _check_schema, _read_json, _write_json
-from .features import (DenseDecoding, DetectionError, DotDetection, decode_dense, demodulate_images,
-                       detect_checkerboard, detect_dots)
+from .features import (
+    DenseDecoding,
+    DetectionError,
+    DotDetection,
+    decode_dense,
+    demodulate_images,
+    detect_checkerboard,
+    detect_dots,
+)
 from .intrinsics import DISTORTION_MODELS, IntrinsicsResult, calibrate_intrinsics
 from .mirror import JointMirrorResult, MirrorExtrinsicsResult, joint_mirror_stereo, mirror_extrinsics
-from .stereo import (StereoCalibrationResult, StereoRig, reconstruct_target, rig_from_mirror,
-                     stereo_calibrate)
+from .stereo import StereoCalibrationResult, StereoRig, reconstruct_target, rig_from_mirror, stereo_calibrate
 from .targets import CheckerboardTarget, PhaseTarget
 from .uncertainty import rig_covariance_from_intrinsics
 
@@ -89,8 +98,6 @@ __all__ = [
     "stereo_from_checkerboards",
 ]
 
-#: Image files a view folder or glob may hold (case-insensitive suffixes).
-IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp")
 
 #: Name and version of the pose file written by :meth:`MirrorCalibration.save`.
 MIRROR_POSE_SCHEMA = "specula.mirror_calibration"
@@ -141,30 +148,8 @@ def list_view_files(source) -> list[str]:
 
 
 def _read_image(path: str) -> np.ndarray:
-    if not os.path.isfile(path):
-        raise ValueError(f"image file not found: {path}")
-    if os.path.getsize(path) == 0:
-        raise ValueError(f"image file is empty: {path}")
-    suffix = os.path.splitext(path)[1].lower()
-    if suffix not in IMAGE_SUFFIXES:
-        raise ValueError(f"unsupported image format {suffix!r} for {path}; expected one of {', '.join(IMAGE_SUFFIXES)}")
-    try:
-        if suffix in (".tif", ".tiff"):
-            import tifffile
-
-            arr = tifffile.imread(path)
-        else:
-            import imageio.v3 as iio
-
-            arr = iio.imread(path)
-    except Exception as exc:  # the readers raise many types for corrupt files
-        raise ValueError(f"cannot read image {path}: {exc}") from None
-    arr = np.asarray(arr)
-    if arr.ndim == 3 and arr.shape[2] in (3, 4) and np.all(arr[..., 0] == arr[..., 1]) and np.all(arr[..., 1] == arr[..., 2]):
-        arr = arr[..., 0]  # grey stored as RGB(A)
-    if arr.ndim != 2:
-        raise ValueError(f"{path}: expected a grey-level image (H, W), got shape {arr.shape}; convert colour images to grey")
-    return arr
+    """One calibration image (H, W) in its file's dtype, by the rules of :func:`kernels.images.read_image`."""
+    return read_image(path)
 
 
 def read_stack(source, n_images: int | None = None) -> np.ndarray:

@@ -19,8 +19,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import (Camera, FRAME_CONVENTIONS, _check_schema, _read_json, _write_json, nearest_rotation, rigid_fit,
-                     rotation_angle_deg, rotation_from_vector, transform_points, vector_from_rotation)
+from .camera import (
+    FRAME_CONVENTIONS,
+    Camera,
+    _check_schema,
+    _read_json,
+    _write_json,
+    nearest_rotation,
+    rigid_fit,
+    rotation_angle_deg,
+    rotation_from_vector,
+    transform_points,
+    vector_from_rotation,
+)
 from .uncertainty import propagate
 
 RIG_SCHEMA = "specula.stereo_rig"

@@ -44,6 +44,8 @@ from typing import Any
 
 import numpy as np
 
+from kernels.checks import positive_float, positive_int
+
 __all__ = [
     "PhaseTarget",
     "CheckerboardTarget",
@@ -89,13 +91,6 @@ def _pair(value, name: str, *, integer: bool, minimum: float) -> tuple:
             raise ValueError(f"{name} values must be >= {minimum}, got {value!r}")
         out.append(int(v) if integer else float(v))
     return tuple(out)
-
-
-def _positive(value, name: str) -> float:
-    if not isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, bool) \
-            or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return float(value)
 
 
 def _grey(value, name: str) -> float:
@@ -206,8 +201,7 @@ def make_cell_code(grid, levels: int = 4, window=None, seed: int = 2019) -> tupl
     target's JSON file).
     """
     nx, ny = _pair(grid, "grid", integer=True, minimum=2)
-    if not isinstance(levels, (int, np.integer)) or isinstance(levels, bool) or levels < 2:
-        raise ValueError(f"levels must be an integer >= 2, got {levels!r}")
+    levels = positive_int(levels, "levels", minimum=2)
     candidates = [tuple(window)] if window is not None else [(2, 3), (3, 3), (3, 4), (4, 4), (4, 5)]
     for win in candidates:
         key = (nx, ny, int(levels), int(win[0]), int(win[1]), int(seed))
@@ -362,22 +356,20 @@ class PhaseTarget(_ScreenTarget):
         dense_max_ratio: float = 5.0,
     ):
         self.screen = _pair(screen, "screen", integer=True, minimum=1)
-        self.pixel_pitch = _positive(pixel_pitch, "pixel_pitch")
+        self.pixel_pitch = positive_float(pixel_pitch, "pixel_pitch")
         self.grid = _pair(grid, "grid", integer=True, minimum=2)
-        self.pitch = _positive(pitch, "pitch")
-        if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 3:
-            raise ValueError(f"steps (number of phase shifts) must be an integer >= 3, got {steps!r}")
-        self.steps = int(steps)
-        self.period = self.pitch if period is None else _positive(period, "period")
+        self.pitch = positive_float(pitch, "pitch")
+        self.steps = positive_int(steps, "steps (number of phase shifts)", minimum=3)
+        self.period = self.pitch if period is None else positive_float(period, "period")
         w, h = self.screen
         self.centre = ((w - 1) / 2.0, (h - 1) / 2.0) if centre is None else _pair(centre, "centre", integer=False, minimum=-np.inf)
         self.background = _grey(background, "background")
-        self.amplitude = _positive(amplitude, "amplitude")
+        self.amplitude = positive_float(amplitude, "amplitude")
         if self.background - self.amplitude < -1e-9 or self.background + self.amplitude > 255 + 1e-9:
             raise ValueError(
                 f"background +- amplitude must stay within [0, 255], got B={self.background}, A={self.amplitude}"
             )
-        self.gamma = _positive(gamma, "gamma")
+        self.gamma = positive_float(gamma, "gamma")
         nx, ny = self.grid
         half = (np.array(self.grid) - 1) / 2.0
         self._first = np.array(self.centre) - half * self.pitch  # screen px of dot (0, 0)
@@ -396,9 +388,7 @@ class PhaseTarget(_ScreenTarget):
         self.guard = float(min(guard, self.pitch / 2))
         self._lit_lo = np.maximum(lo - self.guard, -0.5)
         self._lit_hi = np.minimum(hi + self.guard, np.array([w - 0.5, h - 0.5]))
-        if not isinstance(levels, (int, np.integer)) or isinstance(levels, bool) or levels < 2:
-            raise ValueError(f"levels must be an integer >= 2, got {levels!r}")
-        self.levels = int(levels)
+        self.levels = positive_int(levels, "levels", minimum=2)
         if code is True:
             self.code, self.code_window = make_cell_code(self.grid, self.levels)
         elif code is False or code is None:
@@ -411,8 +401,8 @@ class PhaseTarget(_ScreenTarget):
                     f"got shape {arr.shape}, dtype {arr.dtype}"
                 )
             self.code, self.code_window = arr.astype(np.int64), (2, 3)
-        self.dense_levels = self._dense_levels(dense_periods, _positive(dense_fine_period, "dense_fine_period"),
-                                               _positive(dense_max_ratio, "dense_max_ratio"))
+        self.dense_levels = self._dense_levels(dense_periods, positive_float(dense_fine_period, "dense_fine_period"),
+                                               positive_float(dense_max_ratio, "dense_max_ratio"))
 
     # -- orientation code -----------------------------------------------------------------------
     @property
@@ -697,8 +687,8 @@ class CheckerboardTarget(_ScreenTarget):
     def __init__(self, screen=(1920, 1080), pixel_pitch: float = 0.311, corners=(9, 6), square: float = 100, *,
                  centre=None, dark: float = 0.0, light: float = 255.0):
         self.corners = _pair(corners, "corners", integer=True, minimum=2)
-        self.square = _positive(square, "square")
-        self.pixel_pitch = _positive(pixel_pitch, "pixel_pitch")
+        self.square = positive_float(square, "square")
+        self.pixel_pitch = positive_float(pixel_pitch, "pixel_pitch")
         nsq = np.array(self.corners) + 1
         if screen is None:
             screen = tuple(int(math.ceil(v)) for v in (nsq + 2) * self.square)
@@ -766,11 +756,11 @@ class CircleGridTarget(_ScreenTarget):
     def __init__(self, screen=(1920, 1080), pixel_pitch: float = 0.311, grid=(6, 3), pitch: float = 300,
                  diameter: float | None = None, *, centre=None, dark: float = 0.0, light: float = 255.0):
         self.grid = _pair(grid, "grid", integer=True, minimum=2)
-        self.pitch = _positive(pitch, "pitch")
-        self.diameter = self.pitch / 2 if diameter is None else _positive(diameter, "diameter")
+        self.pitch = positive_float(pitch, "pitch")
+        self.diameter = self.pitch / 2 if diameter is None else positive_float(diameter, "diameter")
         if self.diameter >= self.pitch:
             raise ValueError(f"circle diameter ({self.diameter:g} px) must be smaller than the pitch ({self.pitch:g} px)")
-        self.pixel_pitch = _positive(pixel_pitch, "pixel_pitch")
+        self.pixel_pitch = positive_float(pixel_pitch, "pixel_pitch")
         if screen is None:
             screen = tuple(int(math.ceil(v)) for v in (np.array(self.grid) + 1) * self.pitch)
         self.screen = _pair(screen, "screen", integer=True, minimum=1)

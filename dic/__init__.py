@@ -9,9 +9,9 @@ from .field3d import Field3D, StereoStatus
 from .io import read_image, write_image
 from .plots.fields import write_figures
 from .sequence import read_stereo, stereo_sequence
+from .stereo import StereoCorrelation, stereo
 from .store import ResultWriter, read_results
 from .strain import StrainField, strain
-from .stereo import StereoCorrelation, stereo
 from .track import Field2D, Tracker, grid, track
 from .triangulate import Triangulation, triangulate, undistort_points
 

@@ -36,6 +36,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from kernels.checks import as_points, odd_int
+
 __all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "surface_strain_grid", "grid_neighbours", "scattered_neighbours",
            "as_frame", "tangent_axis", "tangent_basis"]
 
@@ -92,9 +94,7 @@ def plane_frame(points, valid=None) -> tuple[np.ndarray, np.ndarray]:
     axis projected onto the plane, y = z × x. ``points`` (N, 3); ``valid`` (N,) bool selects the
     points used (at least 3, not collinear).
     """
-    P = np.asarray(points, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {P.shape}")
+    P = as_points(points, ncols=3, allow_empty=True, finite=False)  # non-finite points are left out below
     m = np.all(np.isfinite(P), axis=1)
     if valid is not None:
         m &= np.asarray(valid, dtype=bool)
@@ -128,8 +128,7 @@ def grid_neighbours(grid_shape, window: int) -> np.ndarray:
     are -1. ``window`` is odd (the point itself is the centre).
     """
     ny, nx = (int(v) for v in grid_shape)
-    if isinstance(window, bool) or int(window) != window or window < 3 or window % 2 == 0:
-        raise ValueError(f"strain window must be an odd integer >= 3 (grid points), got {window!r}")
+    window = odd_int(window, "strain window", detail=" (grid points)", integral_float=True)
     h = int(window) // 2
     jj, ii = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
     off = np.arange(-h, h + 1)
@@ -292,8 +291,7 @@ def surface_strain_grid(X, U, valid, grid_shape, window: int, *, camera_center=(
     n_pts = ny * nx
     if X.shape != (n_pts, 3) or U.shape != (n_pts, 3):
         raise ValueError(f"X and U must be (ny*nx, 3) = ({n_pts}, 3), got {X.shape} and {U.shape}")
-    if isinstance(window, bool) or int(window) != window or window < 3 or window % 2 == 0:
-        raise ValueError(f"strain window must be an odd integer >= 3 (grid points), got {window!r}")
+    window = odd_int(window, "strain window", detail=" (grid points)", integral_float=True)
     valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(U), axis=1)
     out = {k: np.full(n_pts, np.nan) for k in ("exx", "eyy", "exy")}
     out["normal"] = np.full((n_pts, 3), np.nan)

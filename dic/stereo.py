@@ -33,19 +33,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels._device import as_float32_image, resolve_device
+from kernels._device import resolve_device
+from kernels.checks import as_points, in_range, odd_int, positive_float, positive_int
 from kernels.conventions import Status
 from kernels.icgn import check_subset_order, n_params, prepare_current
+from kernels.images import as_float32_image
 
 from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
 from .correlation.engine import SOURCE_FEATURES, SOURCE_GLOBAL, SOURCE_NONE, SOURCE_PREVIOUS, Correlator, correlate
 from .correlation.features import affine_guess, feature_matches
 from .correlation.guesses import GuessContext, get_guess
 from .correlation.params import displacement as _displacement
-from .correlation.points import as_points, grid_points, typical_spacing
+from .correlation.points import grid_points, typical_spacing
 from .epipolar import epipolar_distance, epipolar_residuals, fundamental_matrix
-from .field3d import (Field3D, StereoStatus, as_frame, plane_frame, scattered_neighbours, surface_strain,
-                      surface_strain_grid)
+from .field3d import (
+    Field3D,
+    StereoStatus,
+    as_frame,
+    plane_frame,
+    scattered_neighbours,
+    surface_strain,
+    surface_strain_grid,
+)
 from .triangulate import TriangulationStatus, triangulate, undistort_points
 
 __all__ = [
@@ -88,16 +97,6 @@ def _check_pair(left, right, what: str) -> tuple[np.ndarray, np.ndarray]:
                          f"{R.shape[1]}x{R.shape[0]} px (W x H); stereo DIC needs the two cameras' images at their "
                          "calibrated size")
     return L, R
-
-
-def _positive_float(value, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
-    if not (v > 0 and np.isfinite(v)):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return v
 
 
 # ================================================================================================
@@ -240,13 +239,11 @@ class StereoCorrelation:
         check_rig_images(rig, left_ref.shape)
         self.rig = rig
         self.shape = left_ref.shape
-        self.epipolar_tol_px = _positive_float(epipolar_tol_px, "epipolar_tol_px")
-        if not (-1.0 <= float(zncc_min) <= 1.0):
-            raise ValueError(f"zncc_min must be in [-1, 1], got {zncc_min!r}")
-        self.zncc_min = float(zncc_min)
-        if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-            raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
-        self.max_iter, self.tol = int(max_iter), _positive_float(tol, "tol")
+        self.epipolar_tol_px = positive_float(epipolar_tol_px, "epipolar_tol_px")
+        self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
+        self.max_iter = positive_int(max_iter, "max_iter")
+        self.tol = positive_float(tol, "tol", detail=" of pixels")
+        strain_window = odd_int(strain_window, "strain window", detail=" (grid points)", integral_float=True)
         if triangulation not in ("optimal", "linear"):
             raise ValueError(f"triangulation must be 'optimal' or 'linear', got {triangulation!r}")
         self.triangulation = triangulation
@@ -255,20 +252,15 @@ class StereoCorrelation:
         if points is None:
             self.points, self.grid_shape, in_roi = grid_points(self.shape, step, self.subset, roi)
             self.step = int(step)
-            if isinstance(strain_window, bool) or int(strain_window) != strain_window or strain_window < 3 \
-                    or strain_window % 2 == 0:
-                raise ValueError(f"strain window must be an odd integer >= 3 (grid points), got {strain_window!r}")
             self.neighbours = None
         else:
             if roi is not None:
                 raise ValueError("give either points or roi (the ROI selects grid points), not both")
-            self.points = as_points(points, self.shape, image="left image")
+            self.points = as_points(points, shape=self.shape, image_name="left image")
             self.grid_shape = None
             in_roi = np.ones(self.points.shape[0], dtype=bool)
             spacing = typical_spacing(self.points)
             self.step = max(1, int(round(spacing)))
-            if isinstance(strain_window, bool) or int(strain_window) != strain_window or strain_window < 3 or strain_window % 2 == 0:
-                raise ValueError(f"strain window must be an odd integer >= 3 (grid points), got {strain_window!r}")
             self.neighbours = scattered_neighbours(self.points, int(strain_window) ** 2,
                                                    max_distance=strain_window * spacing)
         self.in_roi = in_roi

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from kernels.checks import as_points, odd_int
+
 __all__ = ["StrainField", "strain", "grid_layout"]
 
 
@@ -99,13 +101,7 @@ def grid_layout(points, *, rtol: float = 1e-6):
     Points may be any subset of a regular lattice ``(x0 + i dx, y0 + j dy)`` (an ROI, a masked
     grid). Raises ``ValueError`` when they are not on one.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must have shape (N, 2) of (x, y), got {pts.shape}")
-    if pts.shape[0] == 0:
-        raise ValueError("the field has no points")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points contain NaN or infinite values")
+    pts = as_points(points)
     index = np.empty(pts.shape, dtype=np.int64)
     shape, step = [0, 0], [1.0, 1.0]
     for axis in range(2):
@@ -167,9 +163,7 @@ def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainFi
     -------
     StrainField
     """
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
-        raise ValueError(f"window must be an odd integer >= 3 (grid points per side), got {window!r}")
-    window = int(window)
+    window = odd_int(window, "window", detail=" (grid points per side)")
     if min_points is None:
         min_points = max(3, (window // 2 + 1) ** 2)  # a corner of the grid: a quarter window
     if min_points < 3 or min_points > window * window:

@@ -34,6 +34,8 @@ from typing import Callable
 
 import numpy as np
 
+from kernels.checks import positive_int
+
 __all__ = [
     "BooleanSpeckle",
     "make_speckle",
@@ -262,8 +264,7 @@ def make_speckle(
         raise ValueError(f"radius_spread (relative std of the radius) must be in [0, 0.5], got {radius_spread!r}")
     if blur < 0:
         raise ValueError(f"blur must be >= 0 px, got {blur}")
-    if int(samples) != samples or samples < 1:
-        raise ValueError(f"samples must be a positive integer, got {samples!r}")
+    samples = positive_int(samples, "samples", integral_float=True)
     full = _full_scale(bits)
     background = 0.15 * full if background is None else float(background)
     contrast = 0.70 * full if contrast is None else float(contrast)

@@ -19,15 +19,17 @@ import os
 
 import numpy as np
 
-from kernels._device import as_float32_image, resolve_device
+from kernels._device import resolve_device
+from kernels.checks import as_points, in_range, non_negative_int, positive_float, positive_int
 from kernels.conventions import Status
 from kernels.icgn import check_subset_order, n_params, prepare_current
+from kernels.images import as_float32_image, read_image
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
 from .correlation.engine import Correlator, reliability_guided
 from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_guesses, get_guess
 from .correlation.params import guess_params
-from .correlation.points import as_points, check_step, grid
+from .correlation.points import check_step, grid
 from .field2d import Field2D
 
 __all__ = ["Field2D", "Tracker", "grid", "track", "SEARCH_METHODS"]
@@ -40,8 +42,6 @@ SEARCH_METHODS = TRACKING_SEARCHES
 def _as_image(image, name: str) -> np.ndarray:
     """Path, NumPy array (8/16-bit, float) or torch tensor -> float32 (H, W), validated."""
     if isinstance(image, (str, os.PathLike)):
-        from dic.io import read_image
-
         image = read_image(image)
     arr = as_float32_image(image, name)
     if arr.shape[0] < 4 or arr.shape[1] < 4:
@@ -120,16 +120,10 @@ class Tracker:
                  device=None):
         self.subset, self.order = check_subset_order(subset, order)
         self.search = _check_search(search)
-        if isinstance(search_radius, bool) or not isinstance(search_radius, (int, np.integer)) or search_radius < 0:
-            raise ValueError(f"search_radius must be a non-negative integer (px), got {search_radius!r}")
-        if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-            raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
-        if not (isinstance(tol, (int, float, np.floating)) and np.isfinite(tol) and tol > 0):
-            raise ValueError(f"tol must be a positive number of pixels, got {tol!r}")
-        if not (isinstance(zncc_min, (int, float, np.floating)) and -1.0 <= zncc_min <= 1.0):
-            raise ValueError(f"zncc_min must be in [-1, 1], got {zncc_min!r}")
-        self.search_radius = int(search_radius)
-        self.max_iter, self.tol, self.zncc_min = int(max_iter), float(tol), float(zncc_min)
+        self.search_radius = non_negative_int(search_radius, "search_radius", detail=" (px)")
+        self.max_iter = positive_int(max_iter, "max_iter")
+        self.tol = positive_float(tol, "tol", detail=" of pixels")
+        self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
         self.check_warps = bool(check_warps)
         self.device = resolve_device(device)
         self.reference = _as_image(reference, "reference")

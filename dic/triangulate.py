@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kernels.checks import as_points
 from kernels.triangulate import METHODS, TriangulationStatus
 from kernels.triangulate import triangulate_points as _triangulate_points
 from kernels.triangulate import undistort_points as _undistort_points
@@ -101,13 +102,8 @@ def _camera_fields(camera, name: str):
 
 
 def _image_points(points, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric array of shape (N, 2) in pixels, got {type(points).__name__}") from exc
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"{name} must have shape (N, 2) (x, y pixels), got {arr.shape}")
-    return np.ascontiguousarray(arr)
+    # NaN pixels are allowed (they come back NaN with their status); so is N = 0
+    return as_points(points, name, allow_empty=True, finite=False)
 
 
 def undistort_points(camera, points, device=None, *, margin_px: float = 0.0, tol_px: float = 1e-9,

@@ -1,12 +1,14 @@
-"""Device selection and array conversion shared by every kernel launcher.
+"""Device selection shared by every kernel launcher (and ``as_float32_image``, from :mod:`kernels.images`).
 
 Conventions (see docs/conventions.md): device arrays are float32, images are indexed
 ``[row, col] = [y, x]``. ``device=None`` means ``"cuda:0"`` when a CUDA device exists, else ``"cpu"``.
 """
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
+
+# array validation lives with the image reader; re-exported for the launchers that import it from here
+from .images import as_float32_image  # noqa: F401
 
 _initialised = False
 
@@ -61,29 +63,3 @@ def resolve_device(device=None) -> str:
     if name != "cpu" and not name.startswith("cuda"):
         raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {name!r}")
     return name
-
-
-def as_float32_image(image, name: str = "image") -> np.ndarray:
-    """Validate a 2-D grey image and return it as a C-contiguous float32 NumPy array.
-
-    Raises ``ValueError`` for non-2-D input (colour images included), empty images and
-    non-finite values.
-    """
-    if hasattr(image, "numpy") and not isinstance(image, np.ndarray):  # torch tensor / warp array
-        image = image.detach().cpu().numpy() if hasattr(image, "detach") else image.numpy()
-    arr = np.asarray(image)
-    if arr.ndim == 3 and arr.shape[2] in (3, 4):
-        raise ValueError(
-            f"{name} is a colour image of shape {arr.shape}; a grey image (H, W) is expected. "
-            "Convert it first, e.g. with cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)"
-        )
-    if arr.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D array (H, W), got shape {arr.shape}")
-    if arr.size == 0:
-        raise ValueError(f"{name} is empty (shape {arr.shape})")
-    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
-        raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
-    out = np.ascontiguousarray(arr, dtype=np.float32)
-    if not np.all(np.isfinite(out)):
-        raise ValueError(f"{name} contains NaN or infinite values; DIC needs finite grey levels")
-    return out

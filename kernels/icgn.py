@@ -54,11 +54,18 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._device import as_float32_image, resolve_device
+from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import as_points, odd_int, positive_float, positive_int
 from .conventions import Status
+from .images import as_float32_image
 from .interp import (
-    PaddedImage, bspline3_value_grad, bspline3_weights_fast, bspline_coefficients, expand_rows4, stencil_dot_rows4,
+    PaddedImage,
+    bspline3_value_grad,
+    bspline3_weights_fast,
+    bspline_coefficients,
+    expand_rows4,
+    stencil_dot_rows4,
 )
 
 # FMA contraction across statements: ~15% faster CPU passes, and FMA only improves rounding.
@@ -886,8 +893,7 @@ class IcgnResult:
 
 def check_subset_order(subset, order) -> tuple[int, int]:
     """Validate the subset size (odd int >= 3) and the shape-function order (1 or 2)."""
-    if isinstance(subset, bool) or not isinstance(subset, (int, np.integer)) or subset < 3 or subset % 2 == 0:
-        raise ValueError(f"subset must be an odd integer >= 3 (e.g. 21), got {subset!r}")
+    subset = odd_int(subset, "subset", detail=" (e.g. 21)")
     if isinstance(order, bool) or order not in (1, 2):
         raise ValueError(f"order must be 1 (affine, 6 parameters) or 2 (quadratic, 12 parameters), got {order!r}")
     return int(subset), int(order)
@@ -941,22 +947,6 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
     return CurrentImage(expand_rows4(coef, out=buf), coef.shape, device)
 
 
-def _as_points64(points) -> np.ndarray:
-    if isinstance(points, wp.array):
-        points = points.numpy()
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must be an (N, 2) array of (x, y) positions, got shape {pts.shape}")
-    if pts.shape[0] == 0:
-        raise ValueError("points is empty: at least one POI is needed")
-    if not np.issubdtype(pts.dtype, np.number):
-        raise ValueError(f"points must be numeric, got dtype {pts.dtype}")
-    pts = np.ascontiguousarray(pts, dtype=np.float64)
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points contain NaN or infinite values")
-    return pts
-
-
 def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: int = 1,
                     flat_std: float | None = None) -> ReferenceSubsets:
     """Precompute the per-POI reference quantities of IC-GN (Pan et al. 2013, doi:10.1007/s11340-012-9640-x).
@@ -982,7 +972,7 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
     if not isinstance(reference, ReferenceImage):
         raise ValueError(f"reference must be a ReferenceImage from prepare_reference(), got {type(reference).__name__}")
     subset, order = check_subset_order(subset, order)
-    pts = _as_points64(points)
+    pts = as_points(points)
     if flat_std is None:
         flat_std = 1e-3 * reference.grey_range
     if not np.isfinite(flat_std) or flat_std < 0:
@@ -1055,10 +1045,8 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         cur = prepare_current(current, device=device)
     if cur.shape != (h, w):
         raise ValueError(f"current image has shape {cur.shape} but the reference has shape {(h, w)}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
-    if not (np.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol must be a positive number of pixels, got {tol!r}")
+    max_iter = positive_int(max_iter, "max_iter")
+    tol = positive_float(tol, "tol", detail=" of pixels")
     n = subsets.n_points
     k = n_params(subsets.order)
     g = _as_guess(guess, n, k, device)

@@ -31,8 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._device import as_float32_image, resolve_device
+from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import as_points
+from .images import as_float32_image
 
 wp.set_module_options({"enable_backward": False})
 
@@ -422,14 +424,9 @@ def padded_samples(image, device=None) -> PaddedImage:
 
 
 def _as_points(points, device: str) -> wp.array:
-    if isinstance(points, wp.array):
-        points = points.numpy()
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must be an (N, 2) array of (x, y), got shape {pts.shape}")
-    if not np.issubdtype(pts.dtype, np.number):
-        raise ValueError(f"points must be numeric, got dtype {pts.dtype}")
-    return wp.array(np.ascontiguousarray(pts, dtype=np.float64), dtype=wp.vec2d, device=device)
+    # empty and NaN points are allowed here: a NaN point interpolates to NaN
+    pts = as_points(points, allow_empty=True, finite=False)
+    return wp.array(pts, dtype=wp.vec2d, device=device)
 
 
 def interpolate(image_or_coeffs, points, method: str = "bspline", gradient: bool = False, device=None) -> np.ndarray:

@@ -33,6 +33,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import positive_int
 
 __all__ = ["demodulate", "equal_phase_shifts", "demodulation_matrix"]
 
@@ -90,9 +91,8 @@ def _demodulate_kernel(
 
 def equal_phase_shifts(steps: int) -> np.ndarray:
     """The equal phase shifts ``delta_k = 2 pi k / N`` (rad, float64, shape (N,)), N >= 3."""
-    if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps < 3:
-        raise ValueError(f"the number of phase steps must be an integer >= 3, got {steps!r}")
-    return 2.0 * np.pi * np.arange(int(steps)) / int(steps)
+    steps = positive_int(steps, "the number of phase steps", minimum=3)
+    return 2.0 * np.pi * np.arange(steps) / steps
 
 
 def demodulation_matrix(phase_shifts) -> np.ndarray:

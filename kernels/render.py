@@ -48,6 +48,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import positive_int
 from .distortion import distort_normalized, distortion_coefficients, undistort_step, vec8f
 from .speckle import SpeckleModel, build_speckle_model, speckle_coverage_smooth
 
@@ -764,8 +765,7 @@ def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, s
     device = resolve_device(device)
     if not isinstance(camera, LensCamera.cls) or not isinstance(scene, SceneGeom.cls) or not isinstance(sensor, SensorModel.cls):
         raise ValueError("render_image expects LensCamera, SceneGeom and SensorModel structs (see make_camera, make_scene, make_sensor)")
-    if int(samples) != samples or samples < 1:
-        raise ValueError(f"samples must be a positive integer, got {samples!r}")
+    samples = positive_int(samples, "samples", integral_float=True)
     if int(seed) != seed or not 0 <= int(seed) < 2**31:
         raise ValueError(f"seed must be an integer in [0, 2**31), got {seed!r}")
     if str(scene.mirrors.device) != device:

@@ -18,8 +18,10 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ._device import as_float32_image, resolve_device
+from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import as_points, non_negative_int, odd_int
+from .images import as_float32_image
 
 wp.set_module_options({"enable_backward": False})
 
@@ -187,15 +189,9 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
     cur = as_float32_image(current, "current")
     if ref.shape != cur.shape:
         raise ValueError(f"reference {ref.shape} and current {cur.shape} images must have the same shape")
-    if isinstance(subset, bool) or not isinstance(subset, (int, np.integer)) or subset < 3 or subset % 2 == 0:
-        raise ValueError(f"subset must be an odd integer >= 3, got {subset!r}")
-    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or radius < 0:
-        raise ValueError(f"radius must be a non-negative integer (pixels), got {radius!r}")
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] == 0:
-        raise ValueError(f"points must be a non-empty (N, 2) array of (x, y), got shape {pts.shape}")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points contain NaN or infinite values")
+    subset = odd_int(subset, "subset")
+    radius = non_negative_int(radius, "radius", detail=" (pixels)")
+    pts = as_points(points)
     n = pts.shape[0]
     st = np.zeros((n, 2), np.int32) if start is None else _int_pairs(start, n, "start")
     h, w = ref.shape
@@ -261,8 +257,7 @@ def reduce(image, device=None) -> np.ndarray:
 
 def pyramid(image, levels: int, device=None) -> list[np.ndarray]:
     """``[image, reduce(image), reduce(reduce(image)), ...]`` with ``levels + 1`` entries (float32)."""
-    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 0:
-        raise ValueError(f"levels must be a non-negative integer, got {levels!r}")
+    levels = non_negative_int(levels, "levels")
     out = [as_float32_image(image, "image")]
     for _ in range(levels):
         out.append(reduce(out[-1], device=device))

@@ -41,6 +41,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import as_points, positive_float, positive_int
 from .interp import keys_weights
 
 # forward-only kernels: no adjoints are ever needed here, and skipping them halves compilation
@@ -418,9 +419,7 @@ def build_speckle_model(centres, radii, *, cell_size=None, pad: float = 0.0, dev
     max_radius = float(radii.max()) if radii.size else 0.0
     if cell_size is None:
         cell_size = 2.0 * (max_radius + pad) if radii.size else 1.0
-    cell_size = float(cell_size)
-    if not (cell_size > 0 and math.isfinite(cell_size)):
-        raise ValueError(f"cell_size must be a positive finite number, got {cell_size}")
+    cell_size = positive_float(cell_size, "cell_size")
     if centres.shape[0]:
         lo = centres.min(axis=0)
         hi = centres.max(axis=0)
@@ -474,11 +473,7 @@ def _model_device(model) -> str:
 
 
 def _points_array(points, device):
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must have shape (N, 2) of (x, y), got {pts.shape}")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points contain NaN or infinite values")
+    pts = as_points(points, allow_empty=True)
     return wp.array(pts.astype(np.float32), dtype=wp.vec2, device=device)
 
 
@@ -521,8 +516,7 @@ def quadrature_taps(samples: int, blur: float) -> tuple[np.ndarray, np.ndarray]:
     aligned with the pixel; weights are the exact integrals of the kernel over each sub-cell.
     Returns float64 arrays of length ``samples + 2 * ceil(4 * blur * samples)``.
     """
-    if int(samples) != samples or samples < 1:
-        raise ValueError(f"samples (sub-cells per pixel side) must be a positive integer, got {samples!r}")
+    samples = positive_int(samples, "samples (sub-cells per pixel side)", integral_float=True)
     if not (blur >= 0 and math.isfinite(blur)):
         raise ValueError(f"blur must be a finite number >= 0 (px), got {blur!r}")
     s = int(samples)

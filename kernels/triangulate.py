@@ -60,6 +60,7 @@ import warp as wp
 
 from ._device import resolve_device
 from ._launch import launch_1d
+from .checks import positive_float, positive_int
 from .distortion import distort_normalized, distort_normalized_jacobian, distortion_coefficients, vec8d
 
 
@@ -540,19 +541,6 @@ def _load(device: str) -> None:
     wp.load_module(sys.modules[__name__], device=device)
 
 
-def _positive(value, name: str) -> float:
-    v = float(value)
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return v
-
-
-def _max_iter(value) -> int:
-    if int(value) != value or int(value) < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {value!r}")
-    return int(value)
-
-
 def _margin(value) -> float:
     v = float(value)
     if not (v >= 0):  # +inf allowed: disables the out-of-image flag
@@ -586,7 +574,7 @@ def undistort_points(points, K, dist=None, *, image_size=None, margin_px: float 
     device = resolve_device(device)
     cam = camera_model(K, dist, image_size)
     pts = _points(points, 2, "points", device)
-    tol_px, max_iter, margin_px = _positive(tol_px, "tol_px"), _max_iter(max_iter), _margin(margin_px)
+    tol_px, max_iter, margin_px = positive_float(tol_px, "tol_px"), positive_int(max_iter, "max_iter", integral_float=True), _margin(margin_px)
     n = pts.shape[0]
     out_points, out_status = _check_out(out, [(n, wp.vec2d), (n, wp.int32)], device)
     _load(device)
@@ -671,7 +659,7 @@ def triangulate_points(points_left, points_right, *, K_left, dist_left, K_right,
         raise ValueError(
             f"points_left and points_right must hold the same number of points, got {pl.shape[0]} and {pr.shape[0]}"
         )
-    tol_px, max_iter, margin_px = _positive(tol_px, "tol_px"), _max_iter(max_iter), _margin(margin_px)
+    tol_px, max_iter, margin_px = positive_float(tol_px, "tol_px"), positive_int(max_iter, "max_iter", integral_float=True), _margin(margin_px)
     min_parallax = float(min_parallax)
     if not (0 <= min_parallax < np.pi / 2):
         raise ValueError(f"min_parallax must be an angle in [0, pi/2) rad, got {min_parallax!r}")

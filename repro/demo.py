@@ -24,12 +24,12 @@ Everything is written into ``--out``; a short summary is printed.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import platform
 import sys
 import time
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -167,8 +167,8 @@ def evaluate(state: DemoState) -> dict:
 
 def write_step(state: DemoState) -> None:
     """Step 4: images, HDF5 results, figure and summary."""
-    from dic.plots.fields import write_field_figure
     from dic.io import write_image
+    from dic.plots.fields import write_field_figure
     from dic.store import ResultWriter, image_digest
 
     cfg, out = state.config, state.out
@@ -277,8 +277,9 @@ def stereo_report_step(state: DemoState) -> None:
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
-    from repro.experiments import dot_test
+
     from dic.io import write_image
+    from repro.experiments import dot_test
 
     exp, cal, de = state.experiment, state.calibration, state.deformation
     out = state.out / "stereo"

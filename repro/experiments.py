@@ -41,6 +41,7 @@ import numpy as np
 
 from dic.lab.paper import MONITOR_PITCH_MM, WORKING_DISTANCE_MM
 from dic.lab.paper import MONITOR_RESOLUTION as MONITOR_RES
+from kernels.checks import positive_int
 
 DOT_SPACING_PX = 450.0
 DOT_SPACING_MM = DOT_SPACING_PX * MONITOR_PITCH_MM  # 139.95 mm
@@ -101,8 +102,7 @@ class ExperimentConfig:
             v = getattr(self, name)
             if v is None and name == "speckle_samples":
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"ExperimentConfig.{name} must be a positive integer, got {v!r}")
+            positive_int(v, f"ExperimentConfig.{name}")
         if not self.scale > 0:
             raise ValueError(f"ExperimentConfig.scale must be > 0, got {self.scale!r}")
 
@@ -211,8 +211,8 @@ class Experiment:
     """Renders (cached) and measures the paper's experiments on the virtual paper rig."""
 
     def __init__(self, config: ExperimentConfig | None = None, cache=None, log=print):
-        from dic.lab import paper_rig
         from calibration.targets import PhaseTarget
+        from dic.lab import paper_rig
 
         self.cfg = config or ExperimentConfig()
         self.cache = cache if isinstance(cache, RenderCache) else RenderCache(cache)
@@ -329,8 +329,12 @@ class Experiment:
         mirror extrinsics on the dots every tilt shows (the joint adjustment: the dots both cameras'
         tilts show), and the rig's covariance without the intrinsics' share."""
         from calibration.features import DetectionError
-        from calibration.pipeline import (StereoView, ViewResult, calibrate_intrinsics_from_detections,
-                                          calibrate_rig_from_mirrors)
+        from calibration.pipeline import (
+            StereoView,
+            ViewResult,
+            calibrate_intrinsics_from_detections,
+            calibrate_rig_from_mirrors,
+        )
 
         t0 = time.perf_counter()
         lab = self.lab
@@ -346,7 +350,7 @@ class Experiment:
                 except DetectionError as exc:
                     raise DetectionError(f"{n} camera, mirror tilt {k}: the mirrored target was not detected ({exc}); "
                                          "the mirror method needs every tilt") from exc
-        self.log(f"[calib] mirrored views detected: " + ", ".join(
+        self.log("[calib] mirrored views detected: " + ", ".join(
             f"{n} {[len(d.ids) for d in mirrored[n]]}" for n in names))
         direct = {n: [] for n in names}
         for ci, n in enumerate(names):
@@ -359,7 +363,7 @@ class Experiment:
                     direct[n].append(self.detect(stack))
                 except DetectionError as exc:
                     self.log(f"[calib] {n} direct view {v}: not detected ({exc})")
-        self.log(f"[calib] direct views detected: " + ", ".join(f"{n} {[len(d.ids) for d in direct[n]]}" for n in names))
+        self.log("[calib] direct views detected: " + ", ".join(f"{n} {[len(d.ids) for d in direct[n]]}" for n in names))
         cams, intr = {}, {}
         for n in names:
             views = ([ViewResult(f"{n} direct {v}", self.size, detection=d) for v, d in enumerate(direct[n])]

@@ -11,9 +11,12 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.camera import rotation_angle_deg, rotation_from_vector
-from repro.mirror_setup import (PAPER_DOT_PITCH_MM, checkerboard_far_views, paper_mirror_setup,
-                                simulate_mirror_observations)
-
+from repro.mirror_setup import (
+    PAPER_DOT_PITCH_MM,
+    checkerboard_far_views,
+    paper_mirror_setup,
+    simulate_mirror_observations,
+)
 
 __all__ = ["accuracy_study", "main"]
 

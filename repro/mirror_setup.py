@@ -23,8 +23,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.camera import Camera, rotation_from_vector, transform_points
-from dic.lab.paper import (BASELINE_MM, IMAGE_SIZE_PX, MIRROR_DISTANCE_MM, MONITOR_BEHIND_MM, MONITOR_PITCH_MM,
-                           WORKING_DISTANCE_MM)
+from dic.lab.paper import (
+    BASELINE_MM,
+    IMAGE_SIZE_PX,
+    MIRROR_DISTANCE_MM,
+    MONITOR_BEHIND_MM,
+    MONITOR_PITCH_MM,
+    WORKING_DISTANCE_MM,
+)
 
 #: The paper's calibration target: 6 × 3 dots, one per 300 monitor px cell (93.3 mm).
 PAPER_DOT_GRID = (6, 3)

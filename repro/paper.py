@@ -187,7 +187,7 @@ def write_doc(results, files, path: Path):
         L.append("## Speckle at the monitor positions: deviation from the best-fit plane\n")
         L.append("Per position, the RMS distance of the valid stereo-DIC points to their least-squares plane; "
                  "mean ± std over positions (the paper: 0.17 ± 0.038 mm).\n")
-        L.append(f"| positions | RMS deviation, mean ± std (mm) | mean abs. deviation (mm) | valid points / position |")
+        L.append("| positions | RMS deviation, mean ± std (mm) | mean abs. deviation (mm) | valid points / position |")
         L.append("|---|---|---|---|")
         L.append(f"| {len(pl['positions'])} | {pl['rms_mean_mm']:.4f} ± {pl['rms_std_mm']:.4f} | "
                  f"{pl['mean_abs_mean_mm']:.4f} | {np.mean(pl['valid']):.0f} of {np.mean(pl['points']):.0f} |\n")
@@ -268,8 +268,15 @@ def main(argv=None) -> int:
     ap.add_argument("--img-dir", default=str(ROOT / "docs/img"), help="where the paper_*.png figures go")
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
-    from repro.experiments import (Experiment, ExperimentConfig, run_deformation_test, run_displacement_test,
-                                 run_dot_tests, run_planarity, _central_position)
+    from repro.experiments import (
+        Experiment,
+        ExperimentConfig,
+        _central_position,
+        run_deformation_test,
+        run_displacement_test,
+        run_dot_tests,
+        run_planarity,
+    )
 
     t0 = time.perf_counter()
     cfg = ExperimentConfig(scale=args.scale, samples=args.samples, speckle_samples=args.speckle_samples,

@@ -47,10 +47,20 @@ def main(argv=None):
     from scipy.spatial import cKDTree
 
     from calibration.camera import Camera
-    from calibration.features import (DetectionError, decode_dense, detect_checkerboard, detect_circle_grid,
-                                      detect_dots_in_images)
-    from calibration.targets import CheckerboardTarget, CircleGridTarget, PhaseTarget, render_view, \
-        screen_points_of_pixels
+    from calibration.features import (
+        DetectionError,
+        decode_dense,
+        detect_checkerboard,
+        detect_circle_grid,
+        detect_dots_in_images,
+    )
+    from calibration.targets import (
+        CheckerboardTarget,
+        CircleGridTarget,
+        PhaseTarget,
+        render_view,
+        screen_points_of_pixels,
+    )
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer blur levels")

@@ -15,10 +15,18 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera, rotation_angle_deg
-from calibration.pipeline import (IntrinsicsCalibration, MirrorCalibration, calibrate_intrinsics_from_detections,
-                                  calibrate_intrinsics_from_images, calibrate_mirror_from_detections,
-                                  calibrate_mirror_from_images, calibrate_rig_from_mirrors, detect_stereo_view,
-                                  detect_view, read_stack)
+from calibration.pipeline import (
+    IntrinsicsCalibration,
+    MirrorCalibration,
+    calibrate_intrinsics_from_detections,
+    calibrate_intrinsics_from_images,
+    calibrate_mirror_from_detections,
+    calibrate_mirror_from_images,
+    calibrate_rig_from_mirrors,
+    detect_stereo_view,
+    detect_view,
+    read_stack,
+)
 from calibration.targets import PhaseTarget, make_cell_code
 from repro import calibration_lab as lab
 

@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration.camera import (Camera, distort_normalized, nearest_rotation, rigid_fit, rotation_angle_deg, rotation_from_vector,
-                                transform_points, vector_from_rotation)
+from calibration.camera import (
+    Camera,
+    distort_normalized,
+    nearest_rotation,
+    rigid_fit,
+    rotation_angle_deg,
+    rotation_from_vector,
+    transform_points,
+    vector_from_rotation,
+)
 
 
 @pytest.fixture

@@ -118,7 +118,9 @@ def test_clean_errors(images, tmp_path, fake):
     assert r.exit_code == 2 and ".h5" in r.output
     import imageio.v3 as iio
 
-    iio.imwrite(tmp_path / "rgb.png", np.zeros((96, 112, 3), np.uint8))
+    rgb = np.zeros((96, 112, 3), np.uint8)
+    rgb[..., 0] = 200  # true colour (grey stored as RGB, with equal channels, would be read as grey)
+    iio.imwrite(tmp_path / "rgb.png", rgb)
     r = run([str(tmp_path / "rgb.png"), images[1], "-o", str(tmp_path / "d.h5")])
     assert r.exit_code == 1 and "colour image" in r.output
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dic.correlation.features import feature_matches
-from dic.correlation.guesses import GuessContext, _REGISTRY, available_guesses, get_guess, register_guess
+from dic.correlation.guesses import _REGISTRY, GuessContext, available_guesses, get_guess, register_guess
 from dic.correlation.points import grid, grid_points
 from dic.synth import speckle_pair
 from dic.track import Tracker, track

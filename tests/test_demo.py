@@ -3,8 +3,8 @@ import json
 
 import numpy as np
 
-from repro import demo
 from dic.store import read_results
+from repro import demo
 
 
 def test_demo_runs_end_to_end(tmp_path):

@@ -10,8 +10,14 @@ import numpy as np
 import pytest
 import warp as wp
 
-from kernels.distortion import (distort_normalized, distort_normalized_jacobian, distortion_coefficients,
-                                undistort_step, vec8d, vec8f)
+from kernels.distortion import (
+    distort_normalized,
+    distort_normalized_jacobian,
+    distortion_coefficients,
+    undistort_step,
+    vec8d,
+    vec8f,
+)
 
 #: rational model with every coefficient non-zero (a wide-angle lens: ~10 % distortion at r = 0.6)
 DIST8 = np.array([-0.28, 0.11, 1.2e-3, -8.0e-4, -0.03, 0.05, -0.02, 0.004])

@@ -14,7 +14,7 @@ import pytest
 from scipy.ndimage import uniform_filter
 
 from dic.correlation.plausibility import implausible_warps, textured_fraction, textured_pixels
-from dic.synth import speckle_pair, specimen_on_background
+from dic.synth import specimen_on_background, speckle_pair
 from dic.track import Tracker
 from kernels.conventions import Status
 

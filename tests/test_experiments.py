@@ -8,8 +8,15 @@ checked against (the chain itself never sees it).
 import numpy as np
 import pytest
 
-from repro.experiments import (DOT_SPACING_MM, Experiment, ExperimentConfig, RenderCache, dot_test, plane_deviation,
-                             run_deformation_test)
+from repro.experiments import (
+    DOT_SPACING_MM,
+    Experiment,
+    ExperimentConfig,
+    RenderCache,
+    dot_test,
+    plane_deviation,
+    run_deformation_test,
+)
 
 
 @pytest.fixture(scope="module")

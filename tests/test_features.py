@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera
-from calibration.features import (DetectionError, decode_dense, dense_correspondences, detect_checkerboard,
-                                  detect_circle_grid, detect_dots, detect_dots_in_images)
+from calibration.features import (
+    DetectionError,
+    decode_dense,
+    dense_correspondences,
+    detect_checkerboard,
+    detect_circle_grid,
+    detect_dots,
+    detect_dots_in_images,
+)
 from calibration.targets import CheckerboardTarget, CircleGridTarget, PhaseTarget, render_view
 
 CAM = Camera(K=[[1000, 0, 399.5], [0, 1000, 299.5], [0, 0, 1]], size=(800, 600))

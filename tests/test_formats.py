@@ -5,8 +5,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calibration.camera import Camera, rotation_angle_deg, rotation_from_vector
-from calibration.formats import (euler_from_rotation, load_dice_xml, load_opencv, load_vic3d_xml, rotation_from_euler,
-                                 save_dice_xml, save_opencv, save_vic3d_xml)
+from calibration.formats import (
+    euler_from_rotation,
+    load_dice_xml,
+    load_opencv,
+    load_vic3d_xml,
+    rotation_from_euler,
+    save_dice_xml,
+    save_opencv,
+    save_vic3d_xml,
+)
 from calibration.stereo import StereoRig
 
 

@@ -1,4 +1,5 @@
-"""Image reading/writing (dic/io.py) against tifffile / imageio round trips and broken files."""
+"""Image reading/writing (kernels/images.py, re-exported by dic/io.py) against tifffile / imageio round trips
+and broken files; the same rules in the DIC, calibration and virtual-lab readers."""
 import numpy as np
 import pytest
 import tifffile
@@ -76,3 +77,81 @@ def test_missing_truncated_and_unsupported_files(tmp_path, rng):
         read_image(tmp_path / "stack.tif")
     with pytest.raises(ValueError, match="not an image file"):
         read_image(tmp_path)
+
+
+def test_one_reader_everywhere():
+    import calibration.pipeline
+    import kernels.images
+    from kernels._device import as_float32_image
+
+    assert read_image is kernels.images.read_image and write_image is kernels.images.write_image
+    assert calibration.pipeline.IMAGE_SUFFIXES is kernels.images.IMAGE_SUFFIXES
+    assert as_float32_image is kernels.images.as_float32_image
+
+
+@pytest.mark.parametrize("suffix,channels", [(".png", 3), (".png", 4), (".tif", 3), (".bmp", 3)])
+def test_grey_stored_as_rgb_is_grey_in_dic_and_calibration(tmp_path, rng, suffix, channels):
+    from calibration.pipeline import read_stack
+
+    grey = rng.integers(0, 256, size=(20, 30)).astype(np.uint8)
+    rgb = np.repeat(grey[:, :, None], channels, axis=2)
+    if channels == 4:
+        rgb[:, :, 3] = 255 - grey  # alpha is ignored
+    path = tmp_path / f"g{suffix}"
+    if suffix == ".tif":
+        tifffile.imwrite(path, rgb, photometric="rgb")
+    else:
+        import imageio.v3 as iio
+
+        iio.imwrite(path, rgb)
+    for as_grey in (False, True):  # grey stays exact (and in its dtype) with or without the conversion
+        back = read_image(path, as_grey=as_grey)
+        assert back.dtype == np.uint8 and np.array_equal(back, grey)
+    stack = read_stack([path, path])
+    assert stack.shape == (2, 20, 30) and stack.dtype == np.uint8 and np.array_equal(stack[1], grey)
+
+
+def test_true_colour_is_refused_in_dic_calibration_and_lab(tmp_path, rng):
+    import imageio.v3 as iio
+
+    from calibration.pipeline import read_stack
+    from dic.lab.io import _read_image as lab_read_image
+
+    rgb = rng.integers(0, 256, size=(20, 30, 3)).astype(np.uint8)
+    rgb[0, 0] = (10, 20, 30)  # at least one pixel whose channels differ
+    iio.imwrite(tmp_path / "c.png", rgb)
+    with pytest.raises(ValueError, match=r"c\.png is a colour image"):
+        read_image(tmp_path / "c.png")
+    with pytest.raises(ValueError, match=r"c\.png is a colour image"):
+        read_stack([tmp_path / "c.png"])
+    with pytest.raises(ValueError, match=r"screen\[0\]: 'image': .*c\.png is a colour image"):
+        lab_read_image(tmp_path / "c.png", "screen[0]: 'image'")
+    grey = rng.integers(0, 256, size=(20, 30)).astype(np.uint8)
+    iio.imwrite(tmp_path / "g.png", np.repeat(grey[:, :, None], 3, axis=2))
+    assert np.array_equal(lab_read_image(tmp_path / "g.png", "screen"), grey)
+
+
+def test_calibration_reader_messages(tmp_path):
+    from calibration.pipeline import read_stack
+
+    with pytest.raises(ValueError, match="image file not found"):
+        read_stack([tmp_path / "nope.png"])
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(ValueError, match="image file is empty"):
+        read_stack([tmp_path / "empty.png"])
+    (tmp_path / "text.png").write_text("not an image")
+    with pytest.raises(ValueError, match="cannot read image .*text.png"):
+        read_stack([tmp_path / "text.png"])
+    tifffile.imwrite(tmp_path / "stack.tif", np.zeros((3, 8, 8), np.uint8), photometric="minisblack")
+    with pytest.raises(ValueError, match="multi-page"):
+        read_stack([tmp_path / "stack.tif"])
+
+
+def test_reader_arguments_are_checked(tmp_path):
+    with pytest.raises(ValueError, match="path must be a file name"):
+        read_image(3)
+    write_image(tmp_path / "a.png", np.zeros((4, 4), np.uint8))
+    with pytest.raises(ValueError, match="as_grey must be True or False"):
+        read_image(tmp_path / "a.png", as_grey="yes")
+    with pytest.raises(ValueError, match="bits must be 8 or 16"):
+        write_image(tmp_path / "b.png", np.zeros((4, 4)), bits=12)

@@ -13,7 +13,16 @@ from scipy.optimize import minimize_scalar
 from calibration.camera import Camera
 from dic.lab.camera import LabCamera
 from dic.lab.rendering import project, render
-from dic.lab.scene import Displacement, Mirror, Scene, Screen, SpeckleCylinder, SpeckleDisks, SpecklePlane, rotation_about
+from dic.lab.scene import (
+    Displacement,
+    Mirror,
+    Scene,
+    Screen,
+    SpeckleCylinder,
+    SpeckleDisks,
+    SpecklePlane,
+    rotation_about,
+)
 from kernels import available_devices
 
 # a small camera with strong distortion (k1 = -0.25: ~4 px at the corners of 128 x 96 px)
@@ -288,8 +297,8 @@ def test_deformed_marker_lands_where_its_displaced_point_projects(device):
 def test_window_render_is_the_full_render(device, position):
     """Pixels outside window_around(...) see only background: rendering them with one sample
     changes nothing (bit for bit, noise and quantisation included); a window cut into the monitor does."""
-    from repro.experiments import speckle_monitor_image
     from dic.lab import paper_rig, window_around
+    from repro.experiments import speckle_monitor_image
 
     lab = paper_rig(scale=0.5)
     scene = lab.with_monitor_at(position).with_monitor_image(speckle_monitor_image(3.0, 5))

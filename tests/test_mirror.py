@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import rotation_angle_deg, rotation_from_vector, transform_points, vector_from_rotation
-from calibration.mirror import (MirrorPlane, _pnp, _RigBundle, joint_mirror_stereo, mirror_closed_form,
-                                mirror_extrinsics)
+from calibration.mirror import MirrorPlane, _pnp, _RigBundle, joint_mirror_stereo, mirror_closed_form, mirror_extrinsics
 from calibration.stereo import StereoRig, rig_from_mirror
 from repro.mirror_setup import grid_points, paper_mirror_setup, simulate_mirror_observations
 

@@ -127,7 +127,12 @@ def test_plot_layout(tmp_path):
 
 
 def test_calibration_figures_check_their_input(tmp_path):
-    from dic.plots.calibration import write_check_figures, write_intrinsics_figures, write_mirror_figures, write_rig_figures
+    from dic.plots.calibration import (
+        write_check_figures,
+        write_intrinsics_figures,
+        write_mirror_figures,
+        write_rig_figures,
+    )
 
     for fn in (write_intrinsics_figures, write_mirror_figures, write_rig_figures):
         with pytest.raises(ValueError, match="calibration.pipeline"):

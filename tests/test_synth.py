@@ -9,7 +9,6 @@ from scipy.special import ndtr
 from dic import synth
 from kernels.speckle import build_speckle_model, speckle_coverage_points
 
-
 # ---------------------------------------------------------------------------------------------
 # independent NumPy references (brute force over all disks, no cell grid, float64)
 

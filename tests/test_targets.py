@@ -5,8 +5,14 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera
-from calibration.targets import (CheckerboardTarget, CircleGridTarget, PhaseTarget, load_target, make_cell_code,
-                                 render_view)
+from calibration.targets import (
+    CheckerboardTarget,
+    CircleGridTarget,
+    PhaseTarget,
+    load_target,
+    make_cell_code,
+    render_view,
+)
 
 
 def _wrap(a):

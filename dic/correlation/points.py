@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from kernels.checks import as_points, non_negative_int, positive_int
+
 __all__ = ["image_shape", "check_step", "lattice", "roi_mask", "grid", "grid_points", "as_points",
            "typical_spacing"]
 
@@ -36,16 +38,11 @@ def image_shape(shape) -> tuple[int, int]:
 
 def check_step(step) -> int:
     """The grid spacing as a positive int (px), or ValueError."""
-    if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 1:
-        raise ValueError(f"step must be a positive integer number of pixels, got {step!r}")
-    return int(step)
+    return positive_int(step, "step", detail=" number of pixels")
 
 
 def _check_margin(margin) -> int:
-    margin = 0 if margin is None else margin
-    if isinstance(margin, bool) or not isinstance(margin, (int, np.integer)) or margin < 0:
-        raise ValueError(f"margin must be a non-negative integer, got {margin!r}")
-    return int(margin)
+    return 0 if margin is None else non_negative_int(margin, "margin")
 
 
 def lattice(shape, step: int, *, margin: int | None = None) -> tuple[np.ndarray, tuple[int, int]]:
@@ -142,32 +139,6 @@ def grid_points(shape, step: int, subset: int, roi=None) -> tuple[np.ndarray, tu
     if not np.any(in_roi):
         raise _empty_roi_error(roi, (h, w), step, margin)
     return pts, grid_shape, in_roi
-
-
-def as_points(points, shape=None, *, image: str = "image") -> np.ndarray:
-    """User POIs -> (N, 2) float64 contiguous ``(x, y)`` px; finite, non-empty, optionally inside ``shape``.
-
-    ``shape``: (H, W) of the image the points belong to; points farther than half a pixel outside
-    its border are an error (``image`` names it in the message). Accepts arrays, lists and objects
-    with a ``.numpy()`` method (Warp arrays, torch tensors).
-    """
-    if hasattr(points, "numpy") and not isinstance(points, np.ndarray):
-        points = points.numpy()
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must be an (N, 2) array of (x, y) px, got shape {pts.shape}")
-    if pts.shape[0] == 0:
-        raise ValueError("points is empty: give at least one point of interest")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points contain NaN or infinite values")
-    if shape is not None:
-        h, w = image_shape(shape)
-        out = (pts[:, 0] < -0.5) | (pts[:, 0] > w - 0.5) | (pts[:, 1] < -0.5) | (pts[:, 1] > h - 0.5)
-        if np.any(out):
-            i = int(np.argmax(out))
-            raise ValueError(f"{int(out.sum())} point(s) lie outside the {w}x{h} px {image}, e.g. point {i} at "
-                             f"({pts[i, 0]:.6g}, {pts[i, 1]:.6g})")
-    return np.ascontiguousarray(pts)
 
 
 def typical_spacing(points: np.ndarray, default: float = 10.0) -> float:

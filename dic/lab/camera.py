@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from calibration.camera import Camera
+from kernels.checks import positive_float
 
 
 def _vec3(value, what: str) -> np.ndarray:
@@ -116,14 +117,8 @@ class LabCamera:
         self.R_cam_world = check_rotation(self.R_cam_world, f"{who}: R_cam_world")
         self.t_cam_world = _vec3(self.t_cam_world, f"{who}: t_cam_world")
         for name in ("pixel_pitch_mm", "focal_length_mm", "f_number", "focus_distance_mm", "exposure_dn"):
-            value = getattr(self, name)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"{who}: {name} must be a number, got {value!r}") from None
-            if not value > 0 or math.isnan(value) or (math.isinf(value) and name != "f_number"):
-                raise ValueError(f"{who}: {name} must be a positive finite number, got {value!r}")
-            setattr(self, name, value)
+            # f_number = inf is a pinhole
+            setattr(self, name, positive_float(getattr(self, name), f"{who}: {name}", allow_inf=name == "f_number"))
         if self.focus_distance_mm <= self.focal_length_mm:
             raise ValueError(
                 f"{who}: focus_distance_mm ({self.focus_distance_mm}) must exceed focal_length_mm "

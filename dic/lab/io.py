@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
+from kernels.images import read_image
 
 from .camera import LabCamera, look_at
 from .scene import Displacement, Mirror, Scene, Screen, SpeckleCylinder, SpeckleDisks, SpecklePlane
@@ -135,21 +136,16 @@ def _resolve(base: Path, name: str, where: str) -> Path:
 
 
 def _read_image(path: Path, where: str) -> np.ndarray:
-    try:
-        if path.suffix.lower() == ".npy":
+    """A screen image: ``.npy`` as stored, image files by the rules of :func:`kernels.images.read_image`."""
+    if path.suffix.lower() == ".npy":
+        try:
             return np.load(path)
-        if path.suffix.lower() in (".tif", ".tiff"):
-            import tifffile
-
-            return tifffile.imread(path)
-        import imageio.v3 as iio
-
-        img = iio.imread(path)
-    except Exception as exc:  # unreadable file: say which and why
-        raise ValueError(f"{where}: cannot read image {str(path)!r}: {exc}") from None
-    if img.ndim == 3:
-        raise ValueError(f"{where}: image {str(path)!r} has shape {img.shape}; a grey image is expected")
-    return img
+        except Exception as exc:  # unreadable file: say which and why
+            raise ValueError(f"{where}: cannot read image {str(path)!r}: {exc}") from None
+    try:
+        return read_image(path)
+    except ValueError as exc:  # the message names the file; add the scene field
+        raise ValueError(f"{where}: {exc}") from None
 
 
 def _camera(sec: _Section) -> LabCamera:

@@ -12,6 +12,7 @@ import numpy as np
 
 from kernels import render as _k
 from kernels._device import resolve_device
+from kernels.checks import as_points
 from kernels.speckle import build_speckle_model
 
 from .scene import Scene
@@ -156,13 +157,10 @@ def window_around(scene: Scene, camera, points_world, *, margin_px: float = 4.0)
     if not (np.isfinite(margin_px) and margin_px >= 0):
         raise ValueError(f"margin_px must be a finite number >= 0, got {margin_px!r}")
     cam = scene.camera(camera)
-    pts = np.asarray(points_world, dtype=np.float64)
+    pts = np.asarray(points_world)
     if pts.shape == (3,):
         pts = pts[None]
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-        raise ValueError(f"points_world must have shape (N, 3) with N >= 1, got {np.shape(points_world)}")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points_world contains NaN or infinite values")
+    pts = as_points(pts, "points_world", ncols=3)
     # the segments between all pairs of points span the outline: their images bound the object's
     # image even where lens distortion bends its straight edges outwards
     t = np.linspace(0.0, 1.0, 33)[:, None]
@@ -213,13 +211,10 @@ def project(scene: Scene, camera, points_world, *, mirror=None, return_mask: boo
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a dic.lab.Scene, got {type(scene).__name__}")
     cam = scene.camera(camera)
-    pts = np.asarray(points_world, dtype=np.float64)
-    if pts.ndim == 1 and pts.shape[0] == 3:
+    pts = np.asarray(points_world)
+    if pts.shape == (3,):
         pts = pts[None]
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points_world must have shape (N, 3), got {np.shape(points_world)}")
-    if not np.all(np.isfinite(pts)):
-        raise ValueError("points_world contains NaN or infinite values")
+    pts = as_points(pts, "points_world", ncols=3, allow_empty=True)
     visible = np.ones(len(pts), dtype=bool)
     if mirror is not None:
         m = _mirror(scene, mirror)

@@ -28,30 +28,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from kernels.checks import in_range, positive_float
+
 from .camera import LabCamera, _vec3, check_rotation
 
 # ---------------------------------------------------------------------------------------------
 # helpers
-
-
-def _positive(value, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be a positive number, got {value!r}") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise ValueError(f"{what} must be a positive finite number, got {value!r}")
-    return v
-
-
-def _in_range(value, lo: float, hi: float, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be a number in [{lo}, {hi}], got {value!r}") from None
-    if not (lo <= v <= hi):
-        raise ValueError(f"{what} must be in [{lo}, {hi}], got {value!r}")
-    return v
 
 
 def _pair(value, what: str, positive: bool = True) -> tuple[float, float]:
@@ -159,7 +141,7 @@ class Displacement:
         every side so that the interpolation inside ``extent`` never uses clamped taps.
         """
         x0, x1, y0, y1 = (float(e) for e in extent)
-        step = _positive(step, "displacement step")
+        step = positive_float(step, "displacement step")
         xs = np.arange(x0 - step, x1 + 2 * step, step)
         ys = np.arange(y0 - step, y1 + 2 * step, step)
         X, Y = np.meshgrid(xs, ys)
@@ -259,7 +241,7 @@ class Mirror:
         self.size = _pair(self.size, f"{who}: size (width, height) mm")
         self.up = _unit(self.up, f"{who}: up")
         frame_from_normal(self.normal, self.up, who)  # checks up is not parallel to the normal
-        self.reflectance = _in_range(self.reflectance, 0.0, 1.0, f"{who}: reflectance")
+        self.reflectance = in_range(self.reflectance, 0.0, 1.0, f"{who}: reflectance")
 
     @property
     def plane(self) -> tuple[np.ndarray, float]:
@@ -341,10 +323,10 @@ class Screen:
         pitch = self.pixel_pitch_mm
         self.pixel_pitch_mm = _pair(pitch if np.ndim(pitch) else (pitch, pitch), f"{who}: pixel_pitch_mm")
         self.image = self._check_image(self.image, who)
-        self.brightness = _positive(self.brightness, f"{who}: brightness")
-        self.black_level = _in_range(self.black_level, 0.0, self.brightness, f"{who}: black_level")
-        self.nonuniformity = _in_range(self.nonuniformity, 0.0, 1.0, f"{who}: nonuniformity")
-        self.bezel_mm = _in_range(self.bezel_mm, 0.0, 1e6, f"{who}: bezel_mm")
+        self.brightness = positive_float(self.brightness, f"{who}: brightness")
+        self.black_level = in_range(self.black_level, 0.0, self.brightness, f"{who}: black_level")
+        self.nonuniformity = in_range(self.nonuniformity, 0.0, 1.0, f"{who}: nonuniformity")
+        self.bezel_mm = in_range(self.bezel_mm, 0.0, 1e6, f"{who}: bezel_mm")
 
     def _check_image(self, image, who):
         W, H = self.resolution
@@ -492,8 +474,8 @@ class SpeckleCylinder:
         who = f"cylinder {self.name!r}" if self.name else "cylinder"
         self.R_world_surface = check_rotation(self.R_world_surface, f"{who}: R_world_surface")
         self.t_world_surface = _vec3(self.t_world_surface, f"{who}: t_world_surface")
-        self.radius = _positive(self.radius, f"{who}: radius")
-        self.length = _positive(self.length, f"{who}: length")
+        self.radius = positive_float(self.radius, f"{who}: radius")
+        self.length = positive_float(self.length, f"{who}: length")
         half = math.pi * self.radius
         arc = (-half, half) if self.arc is None else _pair(self.arc, f"{who}: arc (S_min, S_max) mm", positive=False)
         if not (-half - 1e-9 <= arc[0] < arc[1] <= half + 1e-9):
@@ -573,7 +555,7 @@ class Scene:
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise ValueError(f"camera names must be unique, repeated: {sorted(dup)}")
-        self.background = _in_range(self.background, 0.0, 1e6, "scene background")
+        self.background = in_range(self.background, 0.0, 1e6, "scene background")
         if int(self.max_bounces) != self.max_bounces or not 0 <= int(self.max_bounces) <= 16:
             raise ValueError(f"scene max_bounces must be an integer in 0..16, got {self.max_bounces!r}")
         self.max_bounces = int(self.max_bounces)

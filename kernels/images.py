@@ -1,0 +1,205 @@
+"""The one image reader and writer, and the array check every kernel launcher uses.
+
+Files: TIFF (8/16-bit or float, tifffile), PNG and BMP (imageio/Pillow). Every package reads
+images through :func:`read_image`, so the same rules hold in DIC, calibration and the virtual lab:
+
+- grey levels keep their scale and dtype (0-255 for 8-bit, 0-65535 for 16-bit files);
+- grey stored as RGB(A) with three identical colour channels is grey (alpha ignored);
+- a true colour image needs ``as_grey=True`` (BT.601 luma), else ``ValueError`` naming the file;
+- missing, empty, unsupported, truncated/corrupt and multi-page files raise ``ValueError``
+  naming the file.
+
+Images are 2-D arrays indexed ``[row, col] = [y, x]`` (docs/conventions.md). The module itself
+needs only NumPy (tifffile and imageio are imported on first use) and runs no kernel.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["IMAGE_SUFFIXES", "as_float32_image", "read_image", "write_image"]
+
+#: file name suffixes read_image and write_image accept (case-insensitive)
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp")
+
+# ITU-R BT.601 luma weights, used only when a colour image is converted on request
+_LUMA = np.array([0.299, 0.587, 0.114])
+
+
+def _unsupported_suffix(p: Path) -> str:
+    return f"unsupported image format {p.suffix!r} for {p}; expected one of {', '.join(IMAGE_SUFFIXES)}"
+
+
+def _grey_channels(arr: np.ndarray) -> np.ndarray | None:
+    """Channel 0 of an (H, W, 3|4) image whose R, G and B are identical (grey stored as RGB(A)), else None."""
+    if arr.ndim == 3 and arr.shape[2] in (3, 4) and np.array_equal(arr[:, :, 0], arr[:, :, 1]) \
+            and np.array_equal(arr[:, :, 1], arr[:, :, 2]):
+        return np.ascontiguousarray(arr[:, :, 0])
+    return None
+
+
+def _to_grey(arr: np.ndarray, path) -> np.ndarray:
+    """Convert an RGB(A) image (H, W, 3|4) to float32 BT.601 luma (alpha ignored)."""
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        return (arr[:, :, :3].astype(np.float64) @ _LUMA).astype(np.float32)
+    raise ValueError(f"{path}: cannot convert an image of shape {arr.shape} to grey")
+
+
+def read_image(path, *, as_grey: bool = False) -> np.ndarray:
+    """Read a grey-level image file into a 2-D NumPy array.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.tif``/``.tiff`` (8-, 16-bit or float; first and only page), ``.png`` or ``.bmp`` file.
+    as_grey : bool
+        Convert true colour (RGB/RGBA) images to grey with BT.601 luma weights (result float32).
+        Without it a true colour image raises ``ValueError``. Grey stored as RGB(A) (identical
+        R, G, B) is read as grey either way, in the file's dtype.
+
+    Returns
+    -------
+    ndarray (H, W)
+        In the file's own dtype (uint8, uint16, float32, ...; 1-bit files as uint8 0/1) unless
+        converted from colour.
+
+    Raises
+    ------
+    ValueError
+        Missing, unreadable, truncated or empty files, unsupported formats, multi-page stacks,
+        and colour images without ``as_grey``; the message names the file.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path must be a file name (str or Path), got {type(path).__name__}")
+    if not isinstance(as_grey, (bool, np.bool_)):
+        raise ValueError(f"as_grey must be True or False, got {as_grey!r}")
+    p = Path(os.fspath(path))
+    if not p.exists():
+        raise ValueError(f"image file not found: {p}")
+    if not p.is_file():
+        raise ValueError(f"not an image file (it is a directory or special file): {p}")
+    suffix = p.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise ValueError(_unsupported_suffix(p))
+    if p.stat().st_size == 0:
+        raise ValueError(f"image file is empty: {p}")
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(p) as tif:
+                if len(tif.series) != 1 or len(tif.series[0].shape) > 3 or (
+                        len(tif.series[0].shape) == 3 and tif.series[0].shape[-1] not in (1, 3, 4)):
+                    raise ValueError(
+                        f"{p} holds a multi-page or multi-image TIFF (series shapes "
+                        f"{[s.shape for s in tif.series]}); give one image per file")
+                arr = tif.asarray()
+        else:
+            import imageio.v3 as iio
+
+            arr = np.asarray(iio.imread(p, plugin="pillow"))
+    except ValueError as exc:
+        if str(p) in str(exc):
+            raise
+        raise ValueError(f"cannot read image {p} (truncated or corrupt file?): {exc}") from exc
+    except Exception as exc:  # tifffile.TiffFileError, OSError from Pillow, ...
+        raise ValueError(f"cannot read image {p} (truncated or corrupt file?): {exc}") from exc
+    if arr.ndim == 3:
+        grey = arr[:, :, 0] if arr.shape[2] == 1 else _grey_channels(arr)
+        if grey is not None:
+            arr = grey
+        elif as_grey:
+            arr = _to_grey(arr, p)
+        else:
+            raise ValueError(
+                f"{p} is a colour image of shape {arr.shape}; DIC needs grey levels. Convert it "
+                "(read_image(path, as_grey=True) uses BT.601 luma) or save it as grey")
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(f"{p}: expected a 2-D grey image, got shape {arr.shape}")
+    if arr.dtype == bool:
+        arr = arr.astype(np.uint8)
+    if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+        raise ValueError(f"{p}: unsupported pixel type {arr.dtype}")
+    return arr
+
+
+def write_image(path, array, *, bits: int | None = None) -> Path:
+    """Write a 2-D grey image as TIFF, PNG (8 or 16 bit) or BMP (8 bit).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; the suffix picks the format (``.tif``/``.tiff``, ``.png``, ``.bmp``).
+    array : array_like (H, W)
+        Grey levels on the target scale (0-255 for 8 bits, 0-65535 for 16 bits); values are
+        rounded and clipped to that range.
+    bits : 8, 16 or None
+        None keeps uint8/uint16 arrays as they are and asks for ``bits`` otherwise.
+
+    Returns the path written.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path must be a file name (str or Path), got {type(path).__name__}")
+    p = Path(os.fspath(path))
+    suffix = p.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise ValueError(_unsupported_suffix(p))
+    arr = np.asarray(array)
+    if arr.ndim != 2 or arr.size == 0:
+        raise ValueError(f"write_image needs a non-empty 2-D grey image (H, W), got shape {arr.shape}")
+    if bits is None:
+        if arr.dtype == np.uint8:
+            bits = 8
+        elif arr.dtype == np.uint16:
+            bits = 16
+        else:
+            raise ValueError(f"give bits=8 or bits=16 to write a {arr.dtype} image")
+    if isinstance(bits, bool) or bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits!r}")
+    if suffix == ".bmp" and bits != 8:
+        raise ValueError("BMP files hold 8-bit grey images only; use .tif or .png for 16 bits")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"image must be numeric, got dtype {arr.dtype}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("image contains NaN or infinite values")
+    dtype = np.uint8 if bits == 8 else np.uint16
+    out = np.clip(np.rint(arr.astype(np.float64)), 0, 2**bits - 1).astype(dtype)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        tifffile.imwrite(p, out)
+    else:
+        import imageio.v3 as iio
+
+        iio.imwrite(p, out, plugin="pillow")
+    return p
+
+
+def as_float32_image(image, name: str = "image") -> np.ndarray:
+    """Validate a 2-D grey image array and return it as a C-contiguous float32 NumPy array (H, W).
+
+    ``image``: NumPy array (any real dtype or bool), torch tensor or ``wp.array``. Grey levels keep
+    their scale. Raises ``ValueError`` for non-2-D input (colour arrays included: unlike files,
+    arrays are not inspected for grey stored as RGB), empty images and non-finite values.
+    """
+    if hasattr(image, "numpy") and not isinstance(image, np.ndarray):  # torch tensor / warp array
+        image = image.detach().cpu().numpy() if hasattr(image, "detach") else image.numpy()
+    arr = np.asarray(image)
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        raise ValueError(
+            f"{name} is a colour image of shape {arr.shape}; a grey image (H, W) is expected. "
+            "Convert it first, e.g. with cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)"
+        )
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D array (H, W), got shape {arr.shape}")
+    if arr.size == 0:
+        raise ValueError(f"{name} is empty (shape {arr.shape})")
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
+    out = np.ascontiguousarray(arr, dtype=np.float32)
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name} contains NaN or infinite values; DIC needs finite grey levels")
+    return out
