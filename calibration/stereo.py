@@ -21,6 +21,7 @@ import numpy as np
 
 from .camera import (Camera, FRAME_CONVENTIONS, _check_schema, _read_json, _write_json, nearest_rotation, rigid_fit,
                      rotation_angle_deg, rotation_from_vector, transform_points, vector_from_rotation)
+from .bundle import RigBundle
 from .uncertainty import propagate
 
 RIG_SCHEMA = "specula.stereo_rig"
@@ -299,9 +300,7 @@ def _cv_stereo(left, right, views, flags):
 
 
 def _stereo_ba(left, right, views, R0, t0, poses0, sigma_px):
-    from .mirror import _RigBundle
-
-    model = _RigBundle(left, right, np.zeros((0, 3)), [], [], views, None, (R0, t0), [], [], poses0)
+    model = RigBundle(left, right, np.zeros((0, 3)), [], [], views, None, (R0, t0), [], [], poses0)
     x, r, cov = model.solve(sigma_px)
     p = model.unpack(x)
     R, t = p["rig"]
