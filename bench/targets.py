@@ -47,8 +47,8 @@ def main(argv=None):
     from scipy.spatial import cKDTree
 
     from calibration.camera import Camera
-    from calibration.features import (DetectionError, decode_dense, detect_checkerboard, detect_circle_grid,
-                                      detect_dots_in_images)
+    from calibration.detect import (DetectionError, decode_dense, detect_checkerboard, detect_circle_grid,
+                                    detect_dots_in_images)
     from calibration.targets import CheckerboardTarget, CircleGridTarget, PhaseTarget, render_view, \
         screen_points_of_pixels
 
@@ -156,7 +156,7 @@ def _figures(folder, rows, phase_t, cam):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calibration.features import demodulate_images, detect_dots
+    from calibration.detect import demodulate_images, detect_dots
     from calibration.targets import render_view
 
     os.makedirs(folder, exist_ok=True)

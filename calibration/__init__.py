@@ -3,7 +3,7 @@
 See docs/calibration.md and docs/targets.md.
 """
 from .camera import Camera
-from .features import (
+from .detect import (
     DenseDecoding, DetectionError, DotDetection, decode_dense, demodulate_images, dense_correspondences,
     detect_checkerboard, detect_circle_grid, detect_dots, detect_dots_in_images,
 )

@@ -11,9 +11,9 @@ them, from the recorded images to the files:
    an (N, H, W) array, a list of N arrays or image files, a folder holding exactly those images, or
    a glob pattern.
 2. :func:`detect_view` demodulates the stack (``kernels.phase`` through
-   :func:`calibration.features.demodulate_images`) and finds the dots, their ids and whether the
-   view is mirrored (:func:`calibration.features.detect_dots`); in dense mode it decodes the
-   per-pixel screen coordinates (:func:`calibration.features.decode_dense`). A view that cannot be
+   :func:`calibration.detect.demodulate_images`) and finds the dots, their ids and whether the
+   view is mirrored (:func:`calibration.detect.detect_dots`); in dense mode it decodes the
+   per-pixel screen coordinates (:func:`calibration.detect.decode_dense`). A view that cannot be
    used is *dropped* with the reason, never silently.
 3. :func:`calibrate_intrinsics_from_images` — Zhang's method with the direct and mirrored views in
    one bundle (:func:`calibration.intrinsics.calibrate_intrinsics`; the mirrored flag comes from
@@ -55,8 +55,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .camera import Camera, _check_schema, _read_json, _write_json
-from .features import (DenseDecoding, DetectionError, DotDetection, decode_dense, demodulate_images,
-                       detect_checkerboard, detect_dots)
+from .detect import (DenseDecoding, DetectionError, DotDetection, decode_dense, demodulate_images,
+                     detect_checkerboard, detect_dots)
 from .intrinsics import DISTORTION_MODELS, IntrinsicsResult, calibrate_intrinsics
 from .mirror import JointMirrorResult, MirrorExtrinsicsResult, joint_mirror_stereo, mirror_extrinsics
 from .stereo import (StereoCalibrationResult, StereoRig, reconstruct_target, rig_from_mirror,
@@ -324,7 +324,7 @@ def detect_view(source, target: PhaseTarget, *, mode: str = "dots", name: str | 
         Pixels with a lower fringe modulation (grey levels) are ignored.
     correct_blur : bool or None
         Dot mode: run the detector's defocus-bias correction (pass 2 of
-        :func:`calibration.features.detect_dots`); ``None`` keeps the detector's default.
+        :func:`calibration.detect.detect_dots`); ``None`` keeps the detector's default.
     min_points : int
         Fewer dots (or decoded pixels / 100 in dense mode) drop the view.
     max_misfit : float or None
@@ -402,7 +402,7 @@ def filter_detection(det: DotDetection, *, max_misfit: float | None = 1.5, max_s
     Returns ``(kept DotDetection, removed [(id, misfit)], vignetted [(id, slope)])``. A filter that
     would leave fewer than ``min_points`` dots is skipped."""
     if not isinstance(det, DotDetection):
-        raise ValueError(f"det must be a calibration.features.DotDetection, got {type(det).__name__}")
+        raise ValueError(f"det must be a calibration.detect.DotDetection, got {type(det).__name__}")
     vignetted = []
     if max_slope is not None and len(det) >= 4 and det.modulation_slope is not None:
         slope = det.modulation_slope

@@ -8,7 +8,7 @@ end-to-end demo):
    through its mirror at the rig's three tilts, and directly at several poses spread over depth
    (intrinsics); optionally a far view both cameras see (joint adjustment), and checkerboard views
    at the far working distance (the conventional calibration, for comparison).
-2. **Calibration** with the project's own pipeline: dot centres (:mod:`calibration.features`),
+2. **Calibration** with the project's own pipeline: dot centres (:mod:`calibration.detect`),
    intrinsics from the direct + mirrored views (:func:`calibration.intrinsics.calibrate_intrinsics`),
    mirror extrinsics per camera (:func:`calibration.mirror.mirror_extrinsics`, the paper's method +
    bundle adjustment), the rig (:func:`calibration.stereo.rig_from_mirror`, or
@@ -309,7 +309,7 @@ class Experiment:
         :func:`calibration.pipeline.filter_detection` drops vignetted dots (fringe modulation falling
         off across the dot: the blur spot cut by a mirror's edge; in this rig a whole row or column
         of every mirrored view) and dots with a poor phase fit, as ``specula calibrate`` does."""
-        from calibration.features import detect_dots_in_images
+        from calibration.detect import detect_dots_in_images
         from calibration.pipeline import filter_detection
 
         kept, _, _ = filter_detection(detect_dots_in_images(stack, self.calib_target, device=self.cfg.device))
@@ -317,7 +317,7 @@ class Experiment:
 
     def calibrate(self) -> CalibrationOutcome:
         """Render the calibration images and calibrate the rig with the project's pipeline."""
-        from calibration.features import DetectionError
+        from calibration.detect import DetectionError
         from calibration.intrinsics import calibrate_intrinsics
         from calibration.mirror import joint_mirror_stereo, mirror_extrinsics
         from calibration.stereo import rig_from_mirror
@@ -414,7 +414,7 @@ class Experiment:
         image unconstrained, where a 5-term fit can bend so much that it cannot be inverted; the
         2-term fit is what a careful user would choose with such views. ``(None, None)`` when fewer
         than 3 views are found in both cameras."""
-        from calibration.features import detect_checkerboard
+        from calibration.detect import detect_checkerboard
         from calibration.intrinsics import calibrate_intrinsics
         from calibration.stereo import stereo_calibrate
         from calibration.targets import CheckerboardTarget
@@ -460,7 +460,7 @@ class Experiment:
     # -- measurement images -------------------------------------------------------------------
     def dot_views(self, position: int):
         """Dot detections (left, right) of the 4 × 2 dot target at a monitor position."""
-        from calibration.features import detect_dots_in_images
+        from calibration.detect import detect_dots_in_images
 
         scene = self.lab.with_monitor_at(position)
         out = []
