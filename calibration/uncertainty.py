@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import Camera, rotation_angle_deg, rotation_from_vector, transform_points
+from .camera import Camera, rotation_angle_deg, rotation_from_vector, transform_points, vector_from_rotation
 
 
 # -- covariance ----------------------------------------------------------------------------------
@@ -90,8 +90,6 @@ def rig_covariance_from_intrinsics(solve, left: Camera, right: Camera, R_right_l
 
     Raises ``ValueError`` when neither camera has a covariance.
     """
-    from .camera import vector_from_rotation
-
     if not callable(solve):
         raise ValueError("solve must be a function (left_camera, right_camera) -> (R_right_left, t_right_left)")
     for nm, cam in (("left", left), ("right", right)):
