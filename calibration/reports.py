@@ -3,8 +3,8 @@ prints and writes next to the camera, pose and rig files.
 
 Each ``*_report`` function takes a stage's result and returns the report as one string (lines
 joined by newlines); the results' ``report()`` methods call them. Lengths in mm, angles in deg,
-image residuals in px. Frames and units: docs/conventions.md (mm, px, camera frame x right / y down / z forward, pixel
-(0, 0) the centre of the top-left pixel); target frame: :mod:`calibration.targets`.
+image residuals in px. Frames and units: docs/conventions.md (mm, px, camera frame x right / y
+down / z forward, pixel (0, 0) the centre of the top-left pixel); target frame: :mod:`calibration.targets`.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def _require(calibration, kind: str, attributes: tuple) -> None:
 def intrinsics_report(calibration) -> str:
     """Text report of an :class:`~calibration.stages.intrinsics.IntrinsicsCalibration`: parameters with σ,
     one line per view (points, direct / mirrored, RMS px), dropped views, removed dots and points."""
-    _require(calibration, "IntrinsicsCalibration", ("result", "views", "used", "image_points", "dropped_points",))
+    _require(calibration, "IntrinsicsCalibration", ("result", "views", "used", "image_points", "dropped_points"))
     res = calibration.result
     cam = res.camera
     lines = [f"intrinsic calibration of {cam.name or 'camera'} ({calibration.mode} mode, model {res.model}): "
@@ -66,7 +66,7 @@ def intrinsics_report(calibration) -> str:
 def mirror_report(calibration) -> str:
     """Text report of a :class:`~calibration.stages.mirror.MirrorCalibration`: the target pose with σ
     (mm, deg), one line per mirror tilt (RMS px, plane), dropped views, removed dots and points."""
-    _require(calibration, "MirrorCalibration", ("result", "names", "point_ids", "views", "dropped_points",))
+    _require(calibration, "MirrorCalibration", ("result", "names", "point_ids", "views", "dropped_points"))
     r = calibration.result
     sr = r.std_rotation_deg
     st = r.std_translation_mm
@@ -90,7 +90,7 @@ def mirror_report(calibration) -> str:
 def rig_report(calibration) -> str:
     """Text report of a :class:`~calibration.stages.stereo.RigCalibration`: the method, the rig with
     σ (mm, deg), where σ comes from, the joint result against the per-camera composition, the checks."""
-    _require(calibration, "RigCalibration", ("rig", "per_camera", "joint", "far_views", "check_views", "checks",))
+    _require(calibration, "RigCalibration", ("rig", "per_camera", "joint", "far_views", "check_views", "checks"))
     lines = []
     if calibration.joint is not None:
         g = ", ".join(f"{k} {v:.4f}" for k, v in calibration.joint.rms_groups.items())
@@ -119,7 +119,7 @@ def rig_report(calibration) -> str:
 def checkerboard_stereo_report(calibration) -> str:
     """Text report of a :class:`~calibration.stages.stereo.CheckerboardStereo`: RMS, the intrinsics
     when calibrated from the boards, the rig, one line per pair, dropped pairs."""
-    _require(calibration, "CheckerboardStereo", ("result", "names", "dropped",))
+    _require(calibration, "CheckerboardStereo", ("result", "names", "dropped"))
     lines = [f"stereo calibration from {len(calibration.names)} checkerboard pairs (cv2.stereoCalibrate + float64 bundle "
              f"adjustment), RMS {calibration.result.rms:.4f} px"]
     for nm, res in (("left", calibration.left_intrinsics), ("right", calibration.right_intrinsics)):

@@ -19,9 +19,10 @@ from ..views import ViewResult, dense_view_points
 
 __all__ = ["IntrinsicsCalibration", "calibrate_intrinsics_from_detections"]
 
+
 @dataclass
 class IntrinsicsCalibration:
-    """Intrinsic calibration from images (:func:`calibrate_intrinsics_from_images`).
+    """Intrinsic calibration from images (:func:`calibration.pipeline.calibrate_intrinsics_from_images`).
 
     ``result`` is the :class:`~calibration.intrinsics.IntrinsicsResult` (camera, RMS, per-view RMS,
     σ, poses, residuals, views dropped by outlier rejection — their indices refer to ``used``).
@@ -86,9 +87,9 @@ def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", rej
                                          max_view_rms: float | None = None, reject_points: float | None = 4.0,
                                          min_points: int = 6, dense_spacing: float = 75.0,
                                          weighting: str = "equal", name: str = "") -> IntrinsicsCalibration:
-    """The bundle of :func:`calibrate_intrinsics_from_images` on views already detected (a list of
-    :class:`ViewResult` from :func:`detect_views`, possibly of different targets or modes); same options
-    (``dense_spacing`` in screen px for dense views)."""
+    """The bundle of :func:`calibration.pipeline.calibrate_intrinsics_from_images` on views already
+    detected (a list of :class:`ViewResult` from :func:`calibration.pipeline.detect_views`, possibly of
+    different targets or modes); same options (``dense_spacing`` in screen px for dense views)."""
     if not isinstance(results, (list, tuple)) or not all(isinstance(r, ViewResult) for r in results):
         raise ValueError("results must be a list of ViewResult (from detect_views)")
     if model not in DISTORTION_MODELS:

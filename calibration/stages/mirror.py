@@ -24,9 +24,11 @@ from .intrinsics import _outlier_threshold
 
 __all__ = ["MirrorCalibration", "calibrate_mirror_from_detections"]
 
+
 @dataclass
 class MirrorCalibration:
-    """Pose of one camera relative to the monitor from K ≥ 3 mirror tilts (:func:`calibrate_mirror_from_images`).
+    """Pose of one camera relative to the monitor from K ≥ 3 mirror tilts
+    (:func:`calibration.pipeline.calibrate_mirror_from_images`).
 
     ``result`` is the :class:`~calibration.mirror.MirrorExtrinsicsResult` (``R_cam_target,
     t_cam_target``, mirror planes, closed form, RMS, covariance). ``point_ids`` are the target
@@ -91,8 +93,9 @@ class MirrorCalibration:
 def calibrate_mirror_from_detections(camera: Camera, results, target: PhaseTarget, *, dense_spacing: float | None = None,
                                      sigma_px: float | None = None, min_common: int = 6,
                                      reject_points: float | None = 4.0) -> MirrorCalibration:
-    """The adjustment of :func:`calibrate_mirror_from_images` on views already detected (a list of
-    :class:`ViewResult` of ``target``, all in the same mode); same options. The inputs are not modified."""
+    """The adjustment of :func:`calibration.pipeline.calibrate_mirror_from_images` on views already
+    detected (a list of :class:`ViewResult` of ``target``, all in the same mode); same options. The
+    inputs are not modified."""
     _check_phase_target(target)
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a calibration.camera.Camera, got {type(camera).__name__}")

@@ -25,6 +25,7 @@ from .mirror import MirrorCalibration
 
 __all__ = ["RigCalibration", "CheckerboardStereo", "calibrate_rig_from_mirrors"]
 
+
 @dataclass
 class RigCalibration:
     """The stereo rig from two mirror calibrations (:func:`calibrate_rig_from_mirrors`).
@@ -64,8 +65,8 @@ def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration
     Parameters
     ----------
     left, right : MirrorCalibration
-        From :func:`calibrate_mirror_from_images` (or :meth:`MirrorCalibration.load`), with the
-        monitor in the same place for both.
+        From :func:`calibration.pipeline.calibrate_mirror_from_images` (or
+        :meth:`MirrorCalibration.load`), with the monitor in the same place for both.
     far_views : list of StereoView
         Views of the target that both cameras see directly (the paper's last frame; e.g. the
         monitor at the working distance). With ``joint``, they enter the joint bundle adjustment
@@ -81,8 +82,8 @@ def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration
         Image noise (px) for the adjustment's covariance (default: from its residuals).
     intrinsic_uncertainty : bool
         When the cameras carry an intrinsic covariance (``Camera.covariance``, written by
-        :func:`calibrate_intrinsics_from_images` into the camera file; a camera without one counts as
-        exact), add its effect to the rig's covariance: the rig is re-solved with each camera's intrinsics moved ±1σ along the principal
+        :func:`calibration.pipeline.calibrate_intrinsics_from_images` into the camera file; a camera
+        without one counts as exact), add its effect to the rig's covariance: the rig is re-solved with each camera's intrinsics moved ±1σ along the principal
         axes of its covariance (4 × 9 re-solves for the 5-term model). In the rendered lab this term
         dominates the rotation σ (docs/calibration.md). False keeps the adjustment's covariance only.
     """
@@ -153,7 +154,8 @@ def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration
 
 @dataclass
 class CheckerboardStereo:
-    """Conventional stereo calibration from checkerboard pairs (:func:`stereo_from_checkerboards`)."""
+    """Conventional stereo calibration from checkerboard pairs
+    (:func:`calibration.pipeline.stereo_from_checkerboards`)."""
 
     result: StereoCalibrationResult
     names: list
