@@ -3,7 +3,7 @@
 See docs/calibration.md and docs/targets.md.
 """
 from .camera import Camera
-from .features import (
+from .detect import (
     DenseDecoding,
     DetectionError,
     DotDetection,

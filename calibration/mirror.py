@@ -35,17 +35,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import (
-    Camera,
-    distort_normalized,
-    nearest_rotation,
-    rigid_fit,
-    rotation_angle_deg,
-    rotation_from_vector,
-    transform_points,
-)
+from .bundle import RigBundle
+from .camera import Camera, nearest_rotation, rigid_fit, rotation_angle_deg, rotation_from_vector, transform_points
 from .intrinsics import MIRROR_FLIP
-from .uncertainty import covariance_from_jacobian
+from .stereo import StereoRig
 
 #: Smallest angle (deg) allowed between the mirror axes m_jk that define one normal.
 MIN_AXIS_ANGLE_DEG = 3.0
@@ -250,269 +243,6 @@ def mirror_closed_form(camera: Camera, mirrored_points, object_points) -> Mirror
                             points_cam=P, axis_angles_deg=np.asarray(axis_angles))
 
 
-# -- bundle adjustment -----------------------------------------------------------------------------
-def _tangent_basis(n):
-    a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-    u = np.cross(n, a)
-    u /= np.linalg.norm(u)
-    return u, np.cross(n, u)
-
-
-def _skew(v):
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    v = np.asarray(v, dtype=np.float64)
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
-def _left_jacobian(w):
-    """Left Jacobian of SO(3): d exp(w) = [J_l(w) dw]× exp(w)."""
-    th = float(np.linalg.norm(w))
-    W = _skew(w)
-    if th < 1e-8:
-        return np.eye(3) + 0.5 * W
-    return np.eye(3) + (1 - np.cos(th)) / th ** 2 * W + (th - np.sin(th)) / th ** 3 * W @ W
-
-
-def _reflect(P, n, d):
-    return P - 2.0 * (P @ n + d)[:, None] * n[None, :]
-
-
-def _project(camera, P, jacobian: bool = False):
-    """Pinhole + OpenCV distortion of camera-frame points (N, 3) -> pixels (N, 2), no input checks
-    (the inner loop of the bundle adjustments; same model as :meth:`Camera.project`). With
-    ``jacobian``, also returns d(pixels)/d(P), shape (N, 2, 3)."""
-    Z = P[:, 2]
-    x = P[:, 0] / Z
-    y = P[:, 1] / Z
-    xy = np.column_stack([x, y])
-    if jacobian:
-        distorted, D = distort_normalized(xy, camera.dist8, jacobian=True)  # D: d(xd, yd)/d(x, y)
-    else:
-        distorted = distort_normalized(xy, camera.dist8)
-    xd, yd = distorted[:, 0], distorted[:, 1]
-    K = camera.K
-    out = np.empty((P.shape[0], 2))
-    out[:, 0] = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
-    out[:, 1] = K[1, 1] * yd + K[1, 2]
-    if not jacobian:
-        return out
-    A = np.array([[K[0, 0], K[0, 1]], [0.0, K[1, 1]]])
-    G2 = np.einsum("ij,njk->nik", A, D)  # (N, 2, 2)
-    Pi = np.zeros((P.shape[0], 2, 3))  # d(x, y)/dP
-    Pi[:, 0, 0] = 1 / Z
-    Pi[:, 0, 2] = -x / Z
-    Pi[:, 1, 1] = 1 / Z
-    Pi[:, 1, 2] = -y / Z
-    return out, np.einsum("nij,njk->nik", G2, Pi)
-
-
-class _RigBundle:
-    """Bundle adjustment of a (stereo) camera system with fixed intrinsics, analytic Jacobian.
-
-    Parameter vector, in order (blocks present only when used):
-
-    * ``target``: ``[ω (3), t (3)]`` pose of the mirror target in the left (first) camera frame,
-      ``R = exp([ω]×) R0``;
-    * ``rig``: ``[ρ (3), t (3)]`` pose of the right camera in the left frame, ``R = exp([ρ]×) R0``;
-    * ``mirrors_left`` / ``mirrors_right``: ``[a, b, d]`` per plane, ``n = normalise(n0 + a u + b v)``
-      in that camera's frame;
-    * ``far``: ``[ω (3), t (3)]`` per directly seen view, its pose in the left frame.
-
-    Residuals (px, observed subtracted): left mirrored views, right mirrored views, then per far
-    view its left and right image points.
-    """
-
-    def __init__(self, left, right, X, left_obs, right_obs, far, target0, rig0, mirrors_left, mirrors_right, far0):
-        self.left, self.right, self.X = left, right, X
-        self.left_obs, self.right_obs, self.far = left_obs, right_obs, far
-        self.has_target = bool(left_obs) or bool(right_obs)
-        self.has_rig = right is not None
-        self.R_target0, self.R_rig0 = (target0[0] if target0 else None), (rig0[0] if rig0 else None)
-        self.mirror_bases = [[(m.normal.copy(), *_tangent_basis(m.normal)) for m in ms] for ms in (mirrors_left, mirrors_right)]
-        self.R_far0 = [R for R, _ in far0]
-        o = 0
-        self.sl = {}
-
-        def add(name, size):
-            nonlocal o
-            self.sl[name] = slice(o, o + size)
-            o += size
-
-        x0 = []
-        if self.has_target:
-            add("target", 6)
-            x0.append(np.concatenate([np.zeros(3), target0[1]]))
-        if self.has_rig:
-            add("rig", 6)
-            x0.append(np.concatenate([np.zeros(3), rig0[1]]))
-        for side, ms in (("L", mirrors_left), ("R", mirrors_right)):
-            for j, m in enumerate(ms):
-                add(f"m{side}{j}", 3)
-                x0.append(np.array([0.0, 0.0, m.d]))
-        for i, (_, t) in enumerate(far0):
-            add(f"far{i}", 6)
-            x0.append(np.concatenate([np.zeros(3), t]))
-        self.n_params = o
-        self.x0 = np.concatenate(x0) if x0 else np.zeros(0)
-        obs = np.concatenate([q.ravel() for q in left_obs] + [q.ravel() for q in right_obs]
-                             + [np.concatenate([ql.ravel(), qr.ravel()]) for _, ql, qr in far])
-        # points not seen in a view (NaN rows) have no residual: their rows are left out
-        self.seen = np.isfinite(obs)
-        self.obs = np.where(self.seen, obs, 0.0)
-        self._cache_x = None
-
-    # -- parameter access -------------------------------------------------------------------------
-    def _pose(self, x, name, R0):
-        p = x[self.sl[name]]
-        return rotation_from_vector(p[:3]) @ R0, p[3:6].copy(), p[:3]
-
-    def _plane(self, x, side, j):
-        n0, u, v = self.mirror_bases[0 if side == "L" else 1][j]
-        a, b, d = x[self.sl[f"m{side}{j}"]]
-        m = n0 + a * u + b * v
-        norm = np.linalg.norm(m)
-        n = m / norm
-        T = (np.eye(3) - np.outer(n, n)) / norm
-        return n, d, np.stack([T @ u, T @ v], axis=1)  # dn/d(a, b): (3, 2)
-
-    def unpack(self, x):
-        out = {}
-        if self.has_target:
-            out["target"] = self._pose(x, "target", self.R_target0)[:2]
-        if self.has_rig:
-            out["rig"] = self._pose(x, "rig", self.R_rig0)[:2]
-        out["mirrors_left"] = [self._plane(x, "L", j)[:2] for j in range(len(self.left_obs))]
-        out["mirrors_right"] = [self._plane(x, "R", j)[:2] for j in range(len(self.right_obs))]
-        out["far"] = [self._pose(x, f"far{i}", self.R_far0[i])[:2] for i in range(len(self.far))]
-        return out
-
-    def recenter(self, x):
-        """Move rotations into the reference matrices so that the rotation parameters are 0 at ``x``
-        (the covariance then refers to perturbations ``exp([δ]×) R̂`` of the estimate)."""
-        x = x.copy()
-        if self.has_target:
-            self.R_target0 = self._pose(x, "target", self.R_target0)[0]
-            x[self.sl["target"]][:3] = 0
-        if self.has_rig:
-            self.R_rig0 = self._pose(x, "rig", self.R_rig0)[0]
-            x[self.sl["rig"]][:3] = 0
-        for i in range(len(self.far)):
-            self.R_far0[i] = self._pose(x, f"far{i}", self.R_far0[i])[0]
-            x[self.sl[f"far{i}"]][:3] = 0
-        for side, n_obs in (("L", len(self.left_obs)), ("R", len(self.right_obs))):
-            for j in range(n_obs):
-                n, d, _ = self._plane(x, side, j)
-                self.mirror_bases[0 if side == "L" else 1][j] = (n, *_tangent_basis(n))
-                x[self.sl[f"m{side}{j}"]] = [0.0, 0.0, d]
-        self._cache_x = None
-        return x
-
-    # -- residuals and Jacobian -------------------------------------------------------------------
-    def evaluate(self, x):
-        if self._cache_x is not None and np.array_equal(x, self._cache_x):
-            return self._cache
-        rows_r, rows_J = [], []
-        N = self.X.shape[0]
-        if self.has_target:
-            R_t, t_t, w_t = self._pose(x, "target", self.R_target0)
-            RX = self.X @ R_t.T
-            PL = RX + t_t
-            dPL = np.zeros((N, 3, 6))  # dPL / d(target)
-            dPL[:, :, :3] = -_skew(RX) @ _left_jacobian(w_t)
-            dPL[:, :, 3:] = np.eye(3)
-        if self.has_rig:
-            R_r, t_r, w_r = self._pose(x, "rig", self.R_rig0)
-            Jl_r = _left_jacobian(w_r)
-
-        def block(J_full, name, J_part):
-            J_full[:, self.sl[name]] = J_part
-
-        def mirror_rows(camera, P, dP_dtarget, side, j, extra):
-            n, d, dn = self._plane(x, side, j)
-            Pm = _reflect(P, n, d)
-            q, G = _project(camera, Pm, jacobian=True)
-            H = np.eye(3) - 2 * np.outer(n, n)
-            J = np.zeros((2 * N, self.n_params))
-            GH = G @ H  # (N, 2, 3)
-            block(J, "target", (GH @ dP_dtarget).reshape(2 * N, 6))
-            s_ = P @ n + d
-            dPm_dn = -2 * (s_[:, None, None] * np.eye(3) + n[None, :, None] * P[:, None, :])  # (N, 3, 3)
-            dm = np.concatenate([dPm_dn @ dn, (-2 * n)[None, :, None].repeat(N, 0)], axis=2)  # (N, 3, 3)
-            block(J, f"m{side}{j}", (G @ dm).reshape(2 * N, 3))
-            for name, dP in extra:
-                block(J, name, (GH @ dP).reshape(2 * N, dP.shape[2]))
-            rows_r.append(q.ravel())
-            rows_J.append(J)
-
-        for j in range(len(self.left_obs)):
-            mirror_rows(self.left, PL, dPL, "L", j, [])
-        if self.right_obs:
-            PR = PL @ R_r.T + t_r
-            dPR_dt = np.einsum("ij,njk->nik", R_r, dPL)
-            dPR_drig = np.zeros((N, 3, 6))
-            dPR_drig[:, :, :3] = -_skew(PL @ R_r.T) @ Jl_r
-            dPR_drig[:, :, 3:] = np.eye(3)
-            for j in range(len(self.right_obs)):
-                mirror_rows(self.right, PR, dPR_dt, "R", j, [("rig", dPR_drig)])
-        for i, (Xf, _, _) in enumerate(self.far):
-            M = Xf.shape[0]
-            R_f, t_f, w_f = self._pose(x, f"far{i}", self.R_far0[i])
-            RXf = Xf @ R_f.T
-            P = RXf + t_f
-            dP = np.zeros((M, 3, 6))
-            dP[:, :, :3] = -_skew(RXf) @ _left_jacobian(w_f)
-            dP[:, :, 3:] = np.eye(3)
-            q, G = _project(self.left, P, jacobian=True)
-            J = np.zeros((2 * M, self.n_params))
-            block(J, f"far{i}", (G @ dP).reshape(2 * M, 6))
-            rows_r.append(q.ravel())
-            rows_J.append(J)
-            if self.has_rig:
-                PRf = P @ R_r.T + t_r
-                q, G = _project(self.right, PRf, jacobian=True)
-                J = np.zeros((2 * M, self.n_params))
-                block(J, f"far{i}", (G @ np.einsum("ij,njk->nik", R_r, dP)).reshape(2 * M, 6))
-                drig = np.zeros((M, 3, 6))
-                drig[:, :, :3] = -_skew(P @ R_r.T) @ Jl_r
-                drig[:, :, 3:] = np.eye(3)
-                block(J, "rig", (G @ drig).reshape(2 * M, 6))
-                rows_r.append(q.ravel())
-                rows_J.append(J)
-        r = np.concatenate(rows_r) - self.obs
-        J = np.concatenate(rows_J, axis=0)
-        self._cache_x, self._cache = x.copy(), (r[self.seen], J[self.seen])
-        self._full_r = np.where(self.seen, r, np.nan)
-        return self._cache
-
-    def full_residuals(self, x):
-        """Residuals (px) of every observation slot, NaN where the point was not seen."""
-        self.evaluate(x)
-        return self._full_r.copy()
-
-    def residuals(self, x):
-        return self.evaluate(x)[0]
-
-    def jacobian(self, x):
-        return self.evaluate(x)[1]
-
-    def solve(self, sigma_px=None, refine=True):
-        """Levenberg–Marquardt from ``x0``, then recentre and return ``(x, r, covariance)``."""
-        from scipy.optimize import least_squares
-
-        x = self.x0
-        if refine:
-            sol = least_squares(self.residuals, x, jac=self.jacobian, method="lm", x_scale="jac",
-                                xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * (x.size + 1))
-            x = sol.x
-        x = self.recenter(x)
-        r, J = self.evaluate(x)
-        return x, r, covariance_from_jacobian(J, r, sigma_px)
-
-
 def mirror_extrinsics(camera: Camera, mirrored_points, object_points, *, sigma_px: float | None = None,
                       refine: bool = True) -> MirrorExtrinsicsResult:
     """Pose of ``camera`` relative to a target it sees in K ≥ 3 mirror poses (closed form + bundle adjustment).
@@ -549,7 +279,7 @@ def mirror_extrinsics(camera: Camera, mirrored_points, object_points, *, sigma_p
     views, X = _validate(camera, mirrored_points, object_points)
     cf = mirror_closed_form(camera, views, X)
     K = len(views)
-    model = _RigBundle(camera, None, X, views, [], [], (cf.R_cam_target, cf.t_cam_target), None, cf.mirrors, [], [])
+    model = RigBundle(camera, None, X, views, [], [], (cf.R_cam_target, cf.t_cam_target), None, cf.mirrors, [], [])
     r0 = model.residuals(model.x0)  # seen points only
     cf_rms = float(np.sqrt(np.mean(np.sum(r0.reshape(-1, 2) ** 2, axis=1))))
     x, r, cov = model.solve(sigma_px, refine)
@@ -631,8 +361,6 @@ def joint_mirror_stereo(left: Camera, right: Camera, left_mirrored, right_mirror
     sigma_px : float, optional
         Image noise for the covariance (default: from the residuals).
     """
-    from .stereo import StereoRig
-
     lv, X = _validate(left, left_mirrored, object_points, "left_mirrored")
     rv, _ = _validate(right, right_mirrored, object_points, "right_mirrored")
     far = _validate_far(far_views)
@@ -645,7 +373,7 @@ def joint_mirror_stereo(left: Camera, right: Camera, left_mirrored, right_mirror
     t_rl0 = right_result.t_cam_target - R_rl0 @ t_lt0
     initial_rig = StereoRig(left, right, R_rl0, t_rl0)
     far0 = [_pnp(left, Xf, ql) for Xf, ql, _ in far]
-    model = _RigBundle(left, right, X, lv, rv, far, (R_lt0, t_lt0), (R_rl0, t_rl0), left_result.mirrors,
+    model = RigBundle(left, right, X, lv, rv, far, (R_lt0, t_lt0), (R_rl0, t_rl0), left_result.mirrors,
                        right_result.mirrors, far0)
     x, r, cov = model.solve(sigma_px)
     p = model.unpack(x)

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .bundle import RigBundle
 from .camera import (
     FRAME_CONVENTIONS,
     Camera,
@@ -310,9 +311,7 @@ def _cv_stereo(left, right, views, flags):
 
 
 def _stereo_ba(left, right, views, R0, t0, poses0, sigma_px):
-    from .mirror import _RigBundle
-
-    model = _RigBundle(left, right, np.zeros((0, 3)), [], [], views, None, (R0, t0), [], [], poses0)
+    model = RigBundle(left, right, np.zeros((0, 3)), [], [], views, None, (R0, t0), [], [], poses0)
     x, r, cov = model.solve(sigma_px)
     p = model.unpack(x)
     R, t = p["rig"]

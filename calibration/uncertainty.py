@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, vector_from_rotation
 
 
 # -- covariance ----------------------------------------------------------------------------------
@@ -85,8 +85,6 @@ def rig_covariance_from_intrinsics(solve, left: Camera, right: Camera, R_right_l
 
     Raises ``ValueError`` when neither camera has a covariance.
     """
-    from .camera import vector_from_rotation
-
     if not callable(solve):
         raise ValueError("solve must be a function (left_camera, right_camera) -> (R_right_left, t_right_left)")
     for nm, cam in (("left", left), ("right", right)):

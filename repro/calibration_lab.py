@@ -346,7 +346,7 @@ def run(scale: float, samples: int, cache: str | None, out_path: str, n_direct: 
         "direct_poses": [list(p) for p in poses], "extra_direct_poses": [list(p) for p in extra],
         "mirror_tilts_deg": [list(t) for t in S.tilts],
         "targets": {k: {"grid": list(t.grid), "pitch_px": t.pitch, "pitch_mm": t.spacing_mm} for k, t in targets.items()},
-        "detector": f"calibration.features.detect_dots(correct_blur={CORRECT_BLUR}), then "
+        "detector": f"calibration.detect.detect_dots(correct_blur={CORRECT_BLUR}), then "
                     "calibration.pipeline.filter_detection (vignetted dots: modulation slope > max(0.015, 3 x the view's "
                     "median); poor phase fit: misfit > 1.5 x median)",
         "dense_direct_poses": [i for i in DENSE_DIRECT_POSES if i < len(poses)] if dense_poses is None else list(dense_poses),

@@ -9,7 +9,7 @@ end-to-end demo):
    (intrinsics); optionally a far view both cameras see (joint adjustment), and checkerboard views
    at the far working distance (the conventional calibration, for comparison).
 2. **Calibration** with the project's own pipeline, :mod:`calibration.pipeline` (what ``specula
-   calibrate`` runs): dot centres (:mod:`calibration.features`, the pipeline's dot filters),
+   calibrate`` runs): dot centres (:mod:`calibration.detect`, the pipeline's dot filters),
    intrinsics from the direct + mirrored views (``calibrate_intrinsics_from_detections``), mirror
    extrinsics per camera (``calibrate_mirror_from_detections``: the paper's method + bundle
    adjustment), the rig (``calibrate_rig_from_mirrors``: per camera, and the joint adjustment with
@@ -311,7 +311,7 @@ class Experiment:
         :func:`calibration.pipeline.filter_detection` drops vignetted dots (fringe modulation falling
         off across the dot: the blur spot cut by a mirror's edge; in this rig a whole row or column
         of every mirrored view) and dots with a poor phase fit, as ``specula calibrate`` does."""
-        from calibration.features import detect_dots_in_images
+        from calibration.detect import detect_dots_in_images
         from calibration.pipeline import filter_detection
 
         kept, _, _ = filter_detection(detect_dots_in_images(stack, self.calib_target, device=self.cfg.device))
@@ -328,7 +328,7 @@ class Experiment:
         its recorded figures stay the same: no point-outlier rejection (``reject_points=None``), the
         mirror extrinsics on the dots every tilt shows (the joint adjustment: the dots both cameras'
         tilts show), and the rig's covariance without the intrinsics' share."""
-        from calibration.features import DetectionError
+        from calibration.detect import DetectionError
         from calibration.pipeline import (
             StereoView,
             ViewResult,
@@ -429,7 +429,7 @@ class Experiment:
         image unconstrained, where a 5-term fit can bend so much that it cannot be inverted; the
         2-term fit is what a careful user would choose with such views. ``(None, None)`` when fewer
         than 3 views are found in both cameras."""
-        from calibration.features import detect_checkerboard
+        from calibration.detect import detect_checkerboard
         from calibration.intrinsics import calibrate_intrinsics
         from calibration.stereo import stereo_calibrate
         from calibration.targets import CheckerboardTarget
@@ -475,7 +475,7 @@ class Experiment:
     # -- measurement images -------------------------------------------------------------------
     def dot_views(self, position: int):
         """Dot detections (left, right) of the 4 × 2 dot target at a monitor position."""
-        from calibration.features import detect_dots_in_images
+        from calibration.detect import detect_dots_in_images
 
         scene = self.lab.with_monitor_at(position)
         out = []
@@ -513,7 +513,7 @@ class Experiment:
 # metrics
 # ------------------------------------------------------------------------------------------------
 def _dots_with_ids(det, ids):
-    """The rows of a :class:`calibration.features.DotDetection` whose dot id is in ``ids``."""
+    """The rows of a :class:`calibration.detect.DotDetection` whose dot id is in ``ids``."""
     keep = np.isin(det.ids, ids)
     return replace(det, image_points=det.image_points[keep], ids=det.ids[keep], object_points=det.object_points[keep],
                    residual_rms=det.residual_rms[keep], sigma_px=det.sigma_px[keep], modulation=det.modulation[keep],

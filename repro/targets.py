@@ -47,7 +47,7 @@ def main(argv=None):
     from scipy.spatial import cKDTree
 
     from calibration.camera import Camera
-    from calibration.features import (
+    from calibration.detect import (
         DetectionError,
         decode_dense,
         detect_checkerboard,
@@ -166,7 +166,7 @@ def _figures(folder, rows, phase_t, cam):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calibration.features import demodulate_images, detect_dots
+    from calibration.detect import demodulate_images, detect_dots
     from calibration.targets import render_view
 
     os.makedirs(folder, exist_ok=True)

@@ -1,4 +1,4 @@
-"""Dot-centre extraction, dense decoding and OpenCV detectors (calibration/features.py) on
+"""Dot-centre extraction, dense decoding and OpenCV detectors (calibration/detect/) on
 synthetic camera views with exact ground truth (calibration.targets.render_view: every camera
 pixel evaluates the target's analytic pattern at its exact screen point, then Gaussian blur,
 ~1 grey level of noise and 8-bit quantisation)."""
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import Camera
-from calibration.features import (
+from calibration.detect import (
     DetectionError,
     decode_dense,
     dense_correspondences,
@@ -224,12 +224,12 @@ def test_vignetted_dots_flagged_by_modulation_slope_and_removed():
 def test_degenerate_dot_fit_drops_the_dot_not_the_run(monkeypatch):
     """A numerically singular dot fit (seen on 24 x 12 dots a few pixels apart in a quarter-size render)
     must drop that dot, and a view with no fittable dot must come back as a failed view with a reason."""
-    import calibration.features as features
+    import calibration.detect.dots as dots
     from calibration.pipeline import detect_view
 
     R, t = _pose(TARGET)
     imgs = render_view(TARGET, CAM, R, t, noise_sigma=1.0, seed=1, supersample=1)
-    real_fit = features._fit_dot
+    real_fit = dots._fit_dot
     calls = {"n": 0}
 
     def one_singular(*args, **kwargs):
@@ -238,23 +238,23 @@ def test_degenerate_dot_fit_drops_the_dot_not_the_run(monkeypatch):
             raise np.linalg.LinAlgError("Singular matrix")
         return real_fit(*args, **kwargs)
 
-    monkeypatch.setattr(features, "_fit_dot", one_singular)
+    monkeypatch.setattr(dots, "_fit_dot", one_singular)
     det = detect_dots_in_images(imgs, TARGET, device="cpu")
     assert len(det) == 17  # the dot whose fit failed is left out, the others are found
 
     def always_singular(*args, **kwargs):
         raise np.linalg.LinAlgError("Singular matrix")
 
-    monkeypatch.setattr(features, "_fit_dot", always_singular)
+    monkeypatch.setattr(dots, "_fit_dot", always_singular)
     res = detect_view(np.asarray(imgs), TARGET, name="degenerate")
     assert not res.ok and "target not found" in res.error
 
 
 def test_lattice_larger_than_the_target_is_a_detection_error(monkeypatch):
-    import calibration.features as features
+    import calibration.detect.dots as dots
 
     R, t = _pose(TARGET)
     imgs = render_view(TARGET, CAM, R, t, noise_sigma=1.0, seed=1, supersample=1)
-    monkeypatch.setattr(features, "_match_code", lambda *a, **k: [])  # no placement fits the grid
+    monkeypatch.setattr(dots, "_match_code", lambda *a, **k: [])  # no placement fits the grid
     with pytest.raises(DetectionError, match="span more rows or columns"):
         detect_dots_in_images(imgs, TARGET, device="cpu")

@@ -1,7 +1,7 @@
-"""Grid linking of dot candidates (calibration.features._grow_lattice): robust to a spurious candidate."""
+"""Grid linking of dot candidates (calibration.detect.lattice._grow_lattice): robust to a spurious candidate."""
 import numpy as np
 
-from calibration.features import _grow_lattice
+from calibration.detect.lattice import _grow_lattice
 
 
 def _grid(nx=8, ny=4, pitch=110.0, angle_deg=7.0):
@@ -40,7 +40,7 @@ def test_clean_grid_linked():
 
 def test_code_placement_rule():
     """The code decides ids only when the best placement is clearly unique (see _placement_is_unique)."""
-    from calibration.features import _placement_is_unique
+    from calibration.detect.lattice import _placement_is_unique
 
     assert _placement_is_unique(0, 2, 18)          # a full code window: unique
     assert _placement_is_unique(1, 3, 18)          # one misread dot, next placement 3 cells off
@@ -53,7 +53,7 @@ def test_code_placement_rule():
 
 def test_spurious_row_trimmed():
     """A candidate one pitch beyond the last row is linked as a 5th row of an 8 x 4 grid: trimmed."""
-    from calibration.features import _trim_spurious_lines
+    from calibration.detect.lattice import _trim_spurious_lines
 
     ij, pts = _grid()
     extra_ij = np.array([[3, 4]])

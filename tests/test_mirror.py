@@ -4,8 +4,9 @@ behind the cameras, 0.03 px image noise."""
 import numpy as np
 import pytest
 
+from calibration.bundle import RigBundle
 from calibration.camera import rotation_angle_deg, rotation_from_vector, transform_points, vector_from_rotation
-from calibration.mirror import MirrorPlane, _pnp, _RigBundle, joint_mirror_stereo, mirror_closed_form, mirror_extrinsics
+from calibration.mirror import MirrorPlane, _pnp, joint_mirror_stereo, mirror_closed_form, mirror_extrinsics
 from calibration.stereo import StereoRig, rig_from_mirror
 from repro.mirror_setup import grid_points, paper_mirror_setup, simulate_mirror_observations
 
@@ -54,9 +55,9 @@ def test_bundle_jacobian_matches_finite_differences(paper):
     R = mirror_closed_form(paper.right, obs["right_mirrored"], paper.object_points)
     R_rl = R.R_cam_target @ L.R_cam_target.T
     far = [(paper.far_object_points, obs["far_left"], obs["far_right"])]
-    model = _RigBundle(paper.left, paper.right, paper.object_points, obs["left_mirrored"], obs["right_mirrored"], far,
-                       (L.R_cam_target, L.t_cam_target), (R_rl, R.t_cam_target - R_rl @ L.t_cam_target),
-                       L.mirrors, R.mirrors, [_pnp(paper.left, paper.far_object_points, obs["far_left"])])
+    model = RigBundle(paper.left, paper.right, paper.object_points, obs["left_mirrored"], obs["right_mirrored"], far,
+                      (L.R_cam_target, L.t_cam_target), (R_rl, R.t_cam_target - R_rl @ L.t_cam_target),
+                      L.mirrors, R.mirrors, [_pnp(paper.left, paper.far_object_points, obs["far_left"])])
     x = model.x0 + np.random.default_rng(2).normal(0, 1e-3, model.x0.size)  # away from 0: exercises J_l(ω)
     r, J = model.evaluate(x)
     Jn = np.empty_like(J)
@@ -209,6 +210,22 @@ def test_bad_inputs(paper):
         joint_mirror_stereo(paper.left, paper.right, views, views, paper.object_points,
                             far_views=[(paper.far_object_points, np.zeros((3, 2)), np.zeros((3, 2)))])
 
+
+
+def test_rig_bundle_rejects_inconsistent_inputs(paper):
+    views = _left_views(paper)
+    L = mirror_closed_form(paper.left, views, paper.object_points)
+    pose = (L.R_cam_target, L.t_cam_target)
+    with pytest.raises(ValueError, match="Camera"):
+        RigBundle("left", None, paper.object_points, views, [], [], pose, None, L.mirrors, [], [])
+    with pytest.raises(ValueError, match="start planes"):
+        RigBundle(paper.left, None, paper.object_points, views, [], [], pose, None, L.mirrors[:-1], [], [])
+    with pytest.raises(ValueError, match=r"shape \(18, 2\)"):
+        RigBundle(paper.left, None, paper.object_points, [v[:-1] for v in views], [], [], pose, None, L.mirrors, [], [])
+    with pytest.raises(ValueError, match="target0"):
+        RigBundle(paper.left, None, paper.object_points, views, [], [], None, None, L.mirrors, [], [])
+    with pytest.raises(ValueError, match="rig0"):
+        RigBundle(paper.left, paper.right, paper.object_points, views, [], [], pose, None, L.mirrors, [], [])
 
 def test_report_mentions_rms_and_mirrors(paper):
     obs = simulate_mirror_observations(paper, NOISE, np.random.default_rng(5))

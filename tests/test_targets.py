@@ -95,7 +95,7 @@ def test_code_windows_are_unique_under_rotation_and_reflection():
 
 
 def test_dense_sequence_decodes_screen_coordinates():
-    from calibration.features import decode_dense
+    from calibration.detect import decode_dense
 
     tg = PhaseTarget(screen=(480, 270), pixel_pitch=0.5, grid=(3, 2), pitch=100, dense_fine_period=20)
     lv = tg.dense_levels
