@@ -277,7 +277,8 @@ class StereoCorrelation:
         self._ideal_left, _ = undistort_points(rig.left, self.points, device=self.device, margin_px=np.inf)
         self.match = self._match() if match is None else self._check_match(match)
         _warn_if_epipolar_mismatch(self.match, self.epipolar_tol_px)
-        _warn_if_mostly_invalid(self.match.status, "stereo matching (left -> right reference)")
+        # POIs outside the ROI are not failures: judge the run on the POIs it was asked for
+        _warn_if_mostly_invalid(self.match.status[self.in_roi], "stereo matching (left -> right reference)")
         ok = self.match.valid
         self._matched = np.flatnonzero(ok)
         self.right = self._correlator(right_ref, self.match.points_right[ok]) if ok.any() else None
@@ -444,9 +445,9 @@ class StereoCorrelation:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0
         f = self._field((tl, tr), index=index)
-        if np.count_nonzero(self.match.valid) >= MOSTLY_INVALID_FRACTION * self.points.shape[0]:
+        if np.count_nonzero(self.match.valid) >= MOSTLY_INVALID_FRACTION * np.count_nonzero(self.in_roi):
             # (a failed reference match has been reported already; this is about the tracks)
-            _warn_if_mostly_invalid(f.status, f"stereo tracking of state {index}")
+            _warn_if_mostly_invalid(f.status[self.in_roi], f"stereo tracking of state {index}")
         self._previous = (f.details["params_left"], f.details["params_right"])
         self._previous_images = (L, R)
         return f
