@@ -53,13 +53,16 @@ def _look_at(centre, target, roll):
 
 
 def long_range_rig() -> Rig:
+    """The paper's geometry (dic.lab.paper: baseline, working distance, sensor) with typical lens errors."""
+    from dic.lab.paper import BASELINE_MM, IMAGE_SIZE_PX, WORKING_DISTANCE_MM
+
     left = Camera(np.array([[4050.0, 0, 1176.3], [0, 4051.5, 861.2], [0, 0, 1]]),
-                  np.array([-0.085, 0.21, 2.1e-4, -3.3e-4, -0.35]), (2352, 1728), "left")
+                  np.array([-0.085, 0.21, 2.1e-4, -3.3e-4, -0.35]), tuple(IMAGE_SIZE_PX), "left")
     right = Camera(np.array([[4062.0, 0, 1170.9], [0, 4060.8, 866.4], [0, 0, 1]]),
-                   np.array([-0.078, 0.17, -1.5e-4, 2.4e-4, -0.22]), (2352, 1728), "right")
-    target = np.array([0.0, 150.0, 5400.0])
-    R_l, t_l = _look_at(np.array([-825.0, 0.0, 0.0]), target, 0.002)
-    R_r, t_r = _look_at(np.array([825.0, 0.0, 0.0]), target, -0.004)
+                   np.array([-0.078, 0.17, -1.5e-4, 2.4e-4, -0.22]), tuple(IMAGE_SIZE_PX), "right")
+    target = np.array([0.0, 150.0, WORKING_DISTANCE_MM])
+    R_l, t_l = _look_at(np.array([-BASELINE_MM / 2, 0.0, 0.0]), target, 0.002)
+    R_r, t_r = _look_at(np.array([BASELINE_MM / 2, 0.0, 0.0]), target, -0.004)
     R = R_r @ R_l.T
     return Rig(left, right, R, t_r - R @ t_l)
 

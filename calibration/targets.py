@@ -46,7 +46,12 @@ import numpy as np
 
 from kernels.checks import positive_float, positive_int
 
+#: the default monitor: a 27-inch 1920 x 1080 panel, 0.311 mm pixels (the paper's; dic.lab.paper uses these)
+MONITOR_RESOLUTION_PX = (1920, 1080)
+MONITOR_PIXEL_PITCH_MM = 0.311
+
 __all__ = [
+    "MONITOR_RESOLUTION_PX", "MONITOR_PIXEL_PITCH_MM",
     "PhaseTarget",
     "CheckerboardTarget",
     "CircleGridTarget",
@@ -338,7 +343,7 @@ class PhaseTarget(_ScreenTarget):
     def __init__(
         self,
         screen=(1920, 1080),
-        pixel_pitch: float = 0.311,
+        pixel_pitch: float = MONITOR_PIXEL_PITCH_MM,
         grid=(6, 3),
         pitch: float = 300,
         steps: int = 4,
@@ -684,7 +689,7 @@ class CheckerboardTarget(_ScreenTarget):
     the corner shared by squares (i, j) and (i + 1, j + 1).
     """
 
-    def __init__(self, screen=(1920, 1080), pixel_pitch: float = 0.311, corners=(9, 6), square: float = 100, *,
+    def __init__(self, screen=MONITOR_RESOLUTION_PX, pixel_pitch: float = MONITOR_PIXEL_PITCH_MM, corners=(9, 6), square: float = 100, *,
                  centre=None, dark: float = 0.0, light: float = 255.0):
         self.corners = _pair(corners, "corners", integer=True, minimum=2)
         self.square = positive_float(square, "square")
@@ -753,7 +758,7 @@ class CircleGridTarget(_ScreenTarget):
     ``findCirclesGrid(..., CALIB_CB_SYMMETRIC_GRID)`` target). ``grid = (nx, ny)`` circles,
     ``pitch`` and ``diameter`` in screen px. Id ``j * nx + i``."""
 
-    def __init__(self, screen=(1920, 1080), pixel_pitch: float = 0.311, grid=(6, 3), pitch: float = 300,
+    def __init__(self, screen=MONITOR_RESOLUTION_PX, pixel_pitch: float = MONITOR_PIXEL_PITCH_MM, grid=(6, 3), pitch: float = 300,
                  diameter: float | None = None, *, centre=None, dark: float = 0.0, light: float = 255.0):
         self.grid = _pair(grid, "grid", integer=True, minimum=2)
         self.pitch = positive_float(pitch, "pitch")

@@ -69,10 +69,10 @@ def _no_valid_hint(search, counts: dict[str, int]) -> str:
         return "Most subsets carry no texture: choose a region of interest (roi=, --roi) on the speckle pattern."
     if search is None:
         return ("IC-GN converges only from a few px: if the motion is larger, give an initial-guess search "
-                "(search='zncc' with search_radius >= the motion, 'fft', 'pyramid' or 'rg'; CLI --search), "
-                "or a guess; check also that the images belong together.")
-    return ("The initial-guess search found no start that converges: raise search_radius (--search-radius) "
-            "above the largest motion, try another search, check that the images belong together, "
+                "(search='pyramid', 'zncc', 'fft' or 'rg' with search_radius >= the motion in px; CLI: "
+                "--search RADIUS [--search-method NAME]) or a guess; check also that the images belong together.")
+    return ("The initial-guess search found no start that converges: raise search_radius (CLI: --search RADIUS) "
+            "above the largest motion, try another search method, check that the images belong together, "
             "or lower zncc_min if the images are noisy.")
 
 

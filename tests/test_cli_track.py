@@ -158,3 +158,16 @@ def test_search_option_finds_a_large_shift(tmp_path):
 
 def res_settings(path):
     return read_results(path).settings
+
+
+def test_no_valid_point_says_what_to_try(tmp_path):
+    """A 23 px motion without --search: no point is valid; the command says so and names --search
+    (before: 0 of 2304 valid, exit status 0 and no hint)."""
+    ref, cur = speckle_pair((128, 144), (23.0, 0.0), seed=6)
+    paths = [str(write_image(tmp_path / n, im, bits=8)) for n, im in [("r.tif", ref), ("c.tif", cur)]]
+    out = tmp_path / "res.h5"
+    r = run([*paths, "-o", str(out), "--step", "10", "--device", "cpu", "-q"])
+    assert r.exit_code == 0, r.output
+    assert "Warning: 2-D tracking: only" in r.output and "--search" in r.output
+    r = run([*paths, "-o", str(tmp_path / "ok.h5"), "--step", "10", "--search", "30", "--device", "cpu", "-q"])
+    assert r.exit_code == 0 and "Warning" not in r.output, r.output

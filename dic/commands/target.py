@@ -17,6 +17,8 @@ import os
 
 import click
 
+from calibration.targets import MONITOR_PIXEL_PITCH_MM
+
 
 def _pair(text: str, name: str, integer: bool):
     parts = str(text).lower().replace(",", "x").split("x")
@@ -51,7 +53,8 @@ def _write(target, out: str, prefix: str, dense: bool = False) -> None:
 
 def _common(f):
     f = click.option("--screen", default="1920x1080", show_default=True, help="Monitor resolution WxH (px).")(f)
-    f = click.option("--pixel-pitch", type=float, default=0.311, show_default=True, help="Monitor pixel pitch (mm).")(f)
+    f = click.option("--pixel-pitch", type=float, default=MONITOR_PIXEL_PITCH_MM, show_default=True,
+                     help="Monitor pixel pitch (mm).")(f)
     f = click.option("-o", "--out", required=True, type=click.Path(file_okay=False), help="Output folder.")(f)
     return f
 

@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Camera
+from calibration.targets import MONITOR_PIXEL_PITCH_MM
 from kernels.images import read_image
 
 from .camera import LabCamera, look_at
@@ -194,7 +195,7 @@ def _screen(sec: _Section, base: Path) -> Screen:
     res = sec.require("resolution")
     if not (isinstance(res, list) and len(res) == 2 and all(isinstance(r, int) and r > 0 for r in res)):
         raise ValueError(f"{sec.where}: 'resolution' must be [width, height] positive integers, got {res!r}")
-    pitch = sec.get("pixel_pitch_mm", 0.311)
+    pitch = sec.get("pixel_pitch_mm", MONITOR_PIXEL_PITCH_MM)
     if sec.has("image") and sec.has("fill"):
         raise ValueError(f"{sec.where}: give either 'image' (a file) or 'fill' (a constant in [0, 1]), not both")
     if sec.has("image"):

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from calibration.targets import MONITOR_PIXEL_PITCH_MM, MONITOR_RESOLUTION_PX
+
 from .camera import LabCamera
 from .scene import Mirror, Scene, Screen, rotation_about
 
@@ -44,8 +46,8 @@ BASELINE_MM = 1650.0
 WORKING_DISTANCE_MM = 5400.0
 MIRROR_DISTANCE_MM = 400.0
 MONITOR_BEHIND_MM = 650.0
-MONITOR_RESOLUTION = (1920, 1080)
-MONITOR_PITCH_MM = 0.311
+MONITOR_RESOLUTION = MONITOR_RESOLUTION_PX
+MONITOR_PITCH_MM = MONITOR_PIXEL_PITCH_MM
 GRID_SPACING_MM = (1000.0, 780.0, 900.0)
 #: The cameras' sensor (Dalsa Falcon 4M30): (width, height) px and pixel pitch, mm.
 IMAGE_SIZE_PX = (2352, 1728)

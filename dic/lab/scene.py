@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from calibration.targets import MONITOR_PIXEL_PITCH_MM
 from kernels.checks import in_range, positive_float
 
 from .camera import LabCamera, _vec3, check_rotation
@@ -301,7 +302,7 @@ class Screen:
     R_world_screen: np.ndarray
     t_world_screen: np.ndarray
     resolution: tuple[int, int] = (1920, 1080)
-    pixel_pitch_mm: float | tuple[float, float] = 0.311
+    pixel_pitch_mm: float | tuple[float, float] = MONITOR_PIXEL_PITCH_MM
     image: np.ndarray | None = None
     brightness: float = 1.0
     black_level: float = 0.0
