@@ -506,6 +506,21 @@ def speckle_image(shape, *, radius: float = 2.0, density: float = 0.5, radius_sp
                           full_well=full_well, bits=bits, seed=_seed_entropy(seed, 1), device=device)
 
 
+def _pair_model(shape, displacement, **pattern):
+    """The speckle model covering a reference image and its deformed counterpart, with both render plans.
+
+    ``pattern``: :func:`make_speckle`'s keywords (radius ... seed). Returns ``(model, ref_bounds,
+    cur_bounds, cur_plan)``; the model's region holds every disk either image can see, plus 1 px.
+    """
+    probe = make_speckle(region=(0.0, 0.0, 1.0, 1.0), **pattern)
+    ref_bounds, _ = _needed_bounds(probe, shape, None)
+    cur_bounds, cur_plan = _needed_bounds(probe, shape, displacement)
+    pad = 1.0
+    region = (min(ref_bounds[0], cur_bounds[0]) - pad, min(ref_bounds[1], cur_bounds[1]) - pad,
+              max(ref_bounds[2], cur_bounds[2]) + pad, max(ref_bounds[3], cur_bounds[3]) + pad)
+    return make_speckle(region=region, **pattern), ref_bounds, cur_bounds, cur_plan
+
+
 def speckle_pair(shape, displacement=None, *, radius: float = 2.0, density: float = 0.5,
                  radius_spread: float = 0.2, blur: float = 0.7, background: float | None = None,
                  contrast: float | None = None, noise_sigma: float = 0.0, poisson: bool = False,
@@ -533,15 +548,9 @@ def speckle_pair(shape, displacement=None, *, radius: float = 2.0, density: floa
     (reference, current) float32 (H, W) grey levels, plus the model when ``return_model``.
     """
     H, W = _check_shape(shape)
-    probe = make_speckle(region=(0.0, 0.0, 1.0, 1.0), radius=radius, density=density, radius_spread=radius_spread,
-                         blur=blur, background=background, contrast=contrast, bits=bits, samples=samples, seed=seed)
-    ref_bounds, _ = _needed_bounds(probe, (H, W), None)
-    cur_bounds, cur_plan = _needed_bounds(probe, (H, W), displacement)
-    pad = 1.0
-    region = (min(ref_bounds[0], cur_bounds[0]) - pad, min(ref_bounds[1], cur_bounds[1]) - pad,
-              max(ref_bounds[2], cur_bounds[2]) + pad, max(ref_bounds[3], cur_bounds[3]) + pad)
-    model = make_speckle(region=region, radius=radius, density=density, radius_spread=radius_spread, blur=blur,
-                         background=background, contrast=contrast, bits=bits, samples=samples, seed=seed)
+    model, ref_bounds, cur_bounds, cur_plan = _pair_model((H, W), displacement, radius=radius, density=density,
+                                                          radius_spread=radius_spread, blur=blur, background=background,
+                                                          contrast=contrast, bits=bits, samples=samples, seed=seed)
     noise = dict(noise_sigma=noise_sigma, poisson=poisson, full_well=full_well, bits=bits)
     reference = add_noise(_render_plan(model, (H, W), ref_bounds, None, device=device), seed=_seed_entropy(seed, 1), **noise)
     current = add_noise(_render_plan(model, (H, W), cur_bounds, cur_plan, device=device), seed=_seed_entropy(seed, 2), **noise)
@@ -658,15 +667,9 @@ def specimen_on_background(shape, displacement=None, *, specimen, background_lev
     if not (isinstance(blur, numbers.Real) and blur >= 0 and math.isfinite(blur)):
         raise ValueError(f"blur must be >= 0 px, got {blur!r}")
     inside = _specimen_inside(specimen)
-    probe = make_speckle(region=(0.0, 0.0, 1.0, 1.0), radius=radius, density=density, radius_spread=radius_spread,
-                         blur=blur, background=background, contrast=contrast, bits=bits, samples=samples, seed=seed)
-    ref_bounds, _ = _needed_bounds(probe, (H, W), None)
-    cur_bounds, cur_plan = _needed_bounds(probe, (H, W), displacement)
-    pad = 1.0
-    region = (min(ref_bounds[0], cur_bounds[0]) - pad, min(ref_bounds[1], cur_bounds[1]) - pad,
-              max(ref_bounds[2], cur_bounds[2]) + pad, max(ref_bounds[3], cur_bounds[3]) + pad)
-    model = make_speckle(region=region, radius=radius, density=density, radius_spread=radius_spread, blur=blur,
-                         background=background, contrast=contrast, bits=bits, samples=samples, seed=seed)
+    model, ref_bounds, cur_bounds, cur_plan = _pair_model((H, W), displacement, radius=radius, density=density,
+                                                          radius_spread=radius_spread, blur=blur, background=background,
+                                                          contrast=contrast, bits=bits, samples=samples, seed=seed)
     ref_speckle = _render_plan(model, (H, W), ref_bounds, None, device=device)
     cur_speckle = _render_plan(model, (H, W), cur_bounds, cur_plan, device=device)
     ref_fraction = _occupancy(inside, (H, W), None, int(samples), float(blur))
