@@ -5,6 +5,9 @@ Conventions (see docs/conventions.md): device arrays are float32, images are ind
 """
 from __future__ import annotations
 
+import os
+from contextlib import contextmanager
+
 import warp as wp
 
 # array validation lives with the image reader; re-exported for the launchers that import it from here
@@ -13,8 +16,45 @@ from .images import as_float32_image  # noqa: F401
 _initialised = False
 
 
-def _ensure_init() -> None:
-    """Initialise Warp once, quietly (importing our packages does not do this)."""
+def _cuda_driver_present() -> bool:
+    """Whether the NVIDIA CUDA driver library can be loaded here (without initialising it)."""
+    import ctypes
+    import sys
+
+    names = ("nvcuda.dll",) if sys.platform == "win32" else ("libcuda.so", "libcuda.so.1")
+    for name in names:
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+@contextmanager
+def _native_stderr_silenced():
+    """Silence file descriptor 2 (what native code prints with fprintf) inside the block."""
+    import sys
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _ensure_init(wants_cuda: bool = False) -> None:
+    """Initialise Warp once, quietly (importing our packages does not do this).
+
+    On a machine without the NVIDIA driver, Warp's native start-up prints "Warp CUDA warning: Could
+    not find or load the NVIDIA CUDA driver" on every run; that says nothing to a CPU user, so it is
+    silenced unless CUDA was asked for (``device="cuda..."``, which then fails with our own message).
+    """
     global _initialised
     if not _initialised:
         import logging
@@ -28,7 +68,11 @@ def _ensure_init() -> None:
         # Specula never differentiates through its kernels: skipping adjoint code generation
         # cuts CPU compile time about threefold.
         wp.config.enable_backward = False
-        wp.init()
+        if wants_cuda or _cuda_driver_present():
+            wp.init()
+        else:
+            with _native_stderr_silenced():
+                wp.init()
         _initialised = True
 
 
@@ -49,10 +93,10 @@ def resolve_device(device=None) -> str:
     device : None, str or warp.context.Device
         ``None`` picks ``"cuda:0"`` when a CUDA device is available, else ``"cpu"``.
     """
-    _ensure_init()
-    if device is None:
+    name = None if device is None else (str(device.alias) if hasattr(device, "alias") else str(device))
+    _ensure_init(wants_cuda=name is not None and name.startswith("cuda"))
+    if name is None:
         return "cuda:0" if wp.is_cuda_available() else "cpu"
-    name = str(device.alias) if hasattr(device, "alias") else str(device)
     if name == "cuda":
         name = "cuda:0"
     if name.startswith("cuda") and not wp.is_cuda_available():

@@ -40,3 +40,21 @@ def test_uint16_image_keeps_grey_levels():
     img = np.array([[0, 65535], [1000, 2]], dtype=np.uint16)
     out = as_float32_image(img)
     assert out.dtype == np.float32 and out[0, 1] == 65535.0
+
+
+def test_no_cuda_driver_warning_on_a_cpu_machine():
+    """Without the NVIDIA driver, Warp's start-up printed "Warp CUDA warning: Could not find or load the
+    NVIDIA CUDA driver" on every command; a CPU user who did not ask for CUDA must not see it."""
+    import subprocess
+    import sys
+
+    from kernels._device import _cuda_driver_present
+
+    if _cuda_driver_present():
+        pytest.skip("this machine has the NVIDIA driver: the warning never appears")
+    code = ("from kernels._device import resolve_device; "
+            "from dic.synth import speckle_pair; from dic.track import track; "
+            "r, c = speckle_pair((48, 48), (0.3, 0.1)); print(int(track(r, c, step=8).valid.sum()))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "CUDA" not in run.stderr and int(run.stdout.strip()) > 0
