@@ -10,6 +10,8 @@ import warnings
 
 import click
 
+from kernels.conventions import DISTRIBUTION_NAME
+
 # name -> "module:attribute" of a click command or group
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "track": ("dic.commands.track:track", "2D DIC: track a reference image into one or more current images"),
@@ -51,7 +53,7 @@ class LazyGroup(click.Group):
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(package_name="specula")
+@click.version_option(package_name=DISTRIBUTION_NAME, prog_name="specula")
 def main():
     """Specula: stereo digital image correlation on Warp kernels."""
     warnings.showwarning = _show_warning

@@ -194,6 +194,42 @@ class Tracker:
                                _no_valid_hint(search, counts), what="2-D tracking")
         return field
 
+    def track_tensors(self, current, *, guess=None) -> dict:
+        """Track into a torch tensor and return torch tensors, with no host copy of the image or results.
+
+        For pipelines that keep frames on the GPU (``torch.cuda`` tensors; CPU tensors work the same
+        way). ``current``: a 2-D float32 contiguous torch tensor on this tracker's device (other dtypes
+        and devices are converted on the device first). Warp views the tensor's memory
+        (``wp.from_torch``) and IC-GN reads it in place; the results are Warp's output buffers seen as
+        tensors (``wp.to_torch``): ``params`` (N, 6|12), ``zncc`` (N,), ``iterations`` (N,), ``status``
+        (N,) and ``valid`` (N,) bool (status CONVERGED or MAX_ITERATIONS and ZNCC >= ``zncc_min``).
+        They are overwritten by the next call: ``.clone()`` what you keep. Starts from ``guess``
+        (as in :meth:`track`) or zero; no search and no implausible-warp check (use :meth:`track`
+        for those). Only the finiteness check of the image reduces on the device to one scalar.
+        """
+        import torch
+        import warp as wp
+
+        if not isinstance(current, torch.Tensor):
+            raise ValueError(f"current must be a torch tensor, got {type(current).__name__}; use track() for arrays")
+        if current.ndim != 2 or tuple(current.shape) != tuple(self.shape):
+            raise ValueError(f"current must be a 2-D tensor of the reference's shape {self.shape}, "
+                             f"got shape {tuple(current.shape)}")
+        if current.is_complex() or current.dtype == torch.bool:
+            raise ValueError(f"current must hold real grey levels, got dtype {current.dtype}")
+        target = torch.device("cpu") if self.device == "cpu" else torch.device(self.device)
+        image = current.detach().to(device=target, dtype=torch.float32).contiguous()
+        if not bool(torch.isfinite(image).all()):
+            raise ValueError("current contains NaN or infinite values")
+        self._current_buf = prepare_current(wp.from_torch(image), device=self.device, out=self._current_buf)
+        n, k = self.n_points, n_params(self.order)
+        g = guess_params(guess, n, self.order)
+        res = self.correlator.run_device(self._current_buf, np.zeros((n, k)) if g is None else g)
+        out = {name: wp.to_torch(getattr(res, name)) for name in ("params", "zncc", "iterations", "status")}
+        good = (out["status"] == int(Status.CONVERGED)) | (out["status"] == int(Status.MAX_ITERATIONS))
+        out["valid"] = good & (out["zncc"] >= self.zncc_min)
+        return out
+
     def _field(self, r: dict) -> Field2D:
         k = n_params(self.order)
         params = r["params"].astype(np.float64)

@@ -36,3 +36,8 @@ class Status(IntEnum):
     NOT_COMPUTED = 6     #: not processed (e.g. masked out, or its guess failed)
     IMPLAUSIBLE_WARP = 7 #: converged, but to a warp its partly featureless subset cannot support
     #:                      (set by dic.correlation.acceptance, never by the kernels)
+
+
+#: the distribution name on PyPI (``pip install specula-dic``); the command and the packages keep the
+#: name Specula (``specula``, ``import dic``); "specula" on PyPI is an unrelated project
+DISTRIBUTION_NAME = "specula-dic"

@@ -923,8 +923,9 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
 
     Parameters
     ----------
-    image : array-like (H, W) grey image, or a :class:`kernels.interp.PaddedImage` of kind
-        ``"bspline"`` from :func:`kernels.interp.bspline_coefficients`.
+    image : array-like (H, W) grey image, a float32 ``wp.array2d`` already on ``device`` (used in
+        place, no host copy), or a :class:`kernels.interp.PaddedImage` of kind ``"bspline"`` from
+        :func:`kernels.interp.bspline_coefficients`.
     device : None or str
     out : CurrentImage, optional
         A previous result of the same shape and device whose buffer is reused.
@@ -936,6 +937,10 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
         device = coef.device if device is None else resolve_device(device)
         if device != coef.device:
             raise ValueError(f"coefficients are on {coef.device} but device={device!r}")
+    elif isinstance(image, wp.array):
+        # already on the device (e.g. wp.from_torch of a tensor): no host round trip
+        device = resolve_device(device)
+        coef = bspline_coefficients(image, device=device)
     else:
         device = resolve_device(device)
         coef = bspline_coefficients(as_float32_image(image, "current"), device=device)

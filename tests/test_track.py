@@ -220,3 +220,33 @@ def test_bad_input(device, translation_pairs):
     f = track(ref, cur, points=[[3.0, 100.0], [128.0, 128.0], [250.0, 5.0]], device=device)
     assert list(f.status) == [Status.OUT_OF_BOUNDS, Status.CONVERGED, Status.OUT_OF_BOUNDS]
     assert list(f.valid) == [False, True, False]
+
+
+def test_torch_tensors_in_and_out_without_a_host_copy(device, translation_pairs, monkeypatch):
+    """track_tensors: the current image is read in place from the tensor (no conversion to NumPy) and the
+    results are tensors on the same device; the numbers equal track()'s."""
+    torch = pytest.importorskip("torch")
+    import kernels.images
+
+    ref, cur = translation_pairs[0.7]
+    tracker = Tracker(ref, step=20, device=device)
+    expected = tracker.track(cur)
+    tdev = "cpu" if device == "cpu" else device
+    current = torch.from_numpy(cur.astype(np.float32)).to(tdev)
+
+    def no_host_copy(*args, **kwargs):
+        raise AssertionError("the image went through the host-side array check")
+
+    monkeypatch.setattr(kernels.images, "as_float32_image", no_host_copy)
+    monkeypatch.setattr("kernels.icgn.as_float32_image", no_host_copy)
+    out = tracker.track_tensors(current)
+    assert all(isinstance(v, torch.Tensor) and v.device.type == current.device.type for v in out.values())
+    np.testing.assert_array_equal(out["params"].cpu().numpy().astype(np.float64), expected.params)
+    np.testing.assert_array_equal(out["status"].cpu().numpy(), expected.status)
+    np.testing.assert_array_equal(out["valid"].cpu().numpy(), expected.valid)
+    with pytest.raises(ValueError, match="NaN"):
+        bad = current.clone()
+        bad[5, 5] = float("nan")
+        tracker.track_tensors(bad)
+    with pytest.raises(ValueError, match="shape"):
+        tracker.track_tensors(current[:-1])

@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from kernels.conventions import Status
-from kernels.icgn import icgn, n_params, prepare_reference, prepare_subsets
+from kernels.icgn import IcgnResult, icgn, n_params, prepare_reference, prepare_subsets
 
 from .acceptance import GOOD, accepted_mask, flag_implausible, second_opinion_candidates
 from .params import convert_order, extrapolate
@@ -87,6 +87,15 @@ class Correlator:
         res = icgn(self.subsets, current, guess=guess, max_iter=self.max_iter, tol=self.tol, out=self._out)
         self._out = res
         return {k: np.array(v, copy=True) for k, v in res.numpy().items()}
+
+    def run_device(self, current, guess) -> IcgnResult:
+        """IC-GN of every POI; the results stay on the device (:class:`kernels.icgn.IcgnResult`).
+
+        The result buffers are reused by the next call (copy what you keep).
+        """
+        res = icgn(self.subsets, current, guess=guess, max_iter=self.max_iter, tol=self.tol, out=self._out)
+        self._out = res
+        return res
 
     def run(self, current, idx: np.ndarray, guess: np.ndarray) -> dict:
         """IC-GN of the POIs ``idx`` (M,) from ``guess`` (M, k); host arrays of the M results."""

@@ -56,7 +56,9 @@ def specula_version() -> str:
     try:
         from importlib.metadata import version
 
-        return version("specula")
+        from kernels.conventions import DISTRIBUTION_NAME
+
+        return version(DISTRIBUTION_NAME)
     except Exception:  # pragma: no cover - not installed
         return "unknown"
 
