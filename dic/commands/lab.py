@@ -84,3 +84,29 @@ def paper_rig_cmd(out_path, scale, tilt, position, no_noise):
         raise click.ClickException(str(exc)) from None
     for f in files:
         click.echo(str(f))
+
+
+@lab.command(name="session")
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--scale", default=1.0, show_default=True, type=click.FloatRange(0.05, 1.0),
+              help="Camera resolution factor (1: 2352x1728 px; 0.25: 588x432 px, minutes instead of an hour).")
+@click.option("--samples", default=16, show_default=True, type=click.IntRange(1, 4096),
+              help="Render sub-samples per pixel (pixel area x lens aperture).")
+@click.option("--tilts", default=3, show_default=True, type=click.IntRange(3, 5), help="Mirror tilts per camera.")
+@click.option("--cache", default=None, type=click.Path(file_okay=False),
+              help="Folder for rendered stacks: an interrupted run resumes from it.")
+def session_cmd(out_dir, scale, samples, tilts, cache):
+    """Render a calibration session of the paper's rig into OUT_DIR (the image folders of a lab session).
+
+    OUT_DIR/fringes/fringes.json (the target), OUT_DIR/{left,right}/intrinsics/pose01..pose12 (direct
+    views), OUT_DIR/{left,right}/mirror/tilt1..tiltK (views in the mirror), OUT_DIR/far/{left,right},
+    OUT_DIR/check1/{left,right}, OUT_DIR/ground_truth.json (the lab's rig, for comparison): what the
+    walk-through of docs/calibration.md calibrates with 'specula calibrate'.
+    """
+    from dic.lab.session import export_session
+
+    try:
+        export_session(str(out_dir), scale=scale, samples=samples, cache=cache, n_tilts=tilts, log=click.echo)
+    except (ValueError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote the session to {out_dir}")
