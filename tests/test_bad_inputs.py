@@ -424,6 +424,24 @@ def test_cli_images_and_paths(images, tmp_path):
         _clean(runner.invoke(main, ["track", *args, "-q"]), code, fragment)
 
 
+def test_cli_stereo_rig_files(images, stereo_setup, tmp_path):
+    """``specula stereo --rig`` reads any rig format; a camera file or an unknown suffix is one clear error."""
+    from calibration.formats import save_opencv
+
+    d, (ref, cur) = images
+    rig = stereo_setup[0]
+    save_opencv(tmp_path / "cam.yml", rig.left)
+    (tmp_path / "rig.txt").write_text("R T")
+    runner = CliRunner()
+    for rig_file, fragment in ((tmp_path / "cam.yml", "holds one camera"), (tmp_path / "rig.txt", "unknown format"),
+                               (tmp_path / "none.json", "does not exist")):
+        r = runner.invoke(main, ["stereo", "--rig", str(rig_file), ref, cur, "-o", str(tmp_path / "s.h5"), "-q"])
+        _clean(r, 1, fragment)
+    save_opencv(tmp_path / "rig.yml", rig)  # read, then refused for the image size (64x72 images, 160x120 rig)
+    r = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.yml"), ref, cur, "-o", str(tmp_path / "s.h5"), "-q"])
+    _clean(r, 1, "calibrated for 160x120 px images")
+
+
 def test_cli_huge_search_is_clamped_and_quick(images, tmp_path):
     _, (ref, cur) = images
     t0 = time.perf_counter()

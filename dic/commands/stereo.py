@@ -82,7 +82,7 @@ def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_t
     try:
         rig = load_rig(rig_path)
     except ValueError as exc:
-        raise click.ClickException(f"rig file {rig_path}: {exc}") from None
+        raise click.ClickException(str(exc) if str(rig_path) in str(exc) else f"rig file {rig_path}: {exc}") from None
     pairs = [(images[i], images[i + 1]) for i in range(0, len(images), 2)]
     # check every file's size before any work (headers only): a long run should not stop at its last pair
     size = None
