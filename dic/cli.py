@@ -22,6 +22,21 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: exceptions a user can cause (bad values, missing or unwritable files, a full disk, a locked file):
+#: the CLI reports them as ``Error: <message>`` with exit status 1 and no traceback. Any other
+#: exception type is a bug and keeps its traceback.
+USER_ERRORS = (ValueError, OSError)
+
+
+def user_message(exc: BaseException) -> str:
+    """One line for a user error: the library's message, or ``path: reason`` for an OSError."""
+    if isinstance(exc, OSError) and exc.strerror:
+        names = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
+        return f"{' -> '.join(names)}: {exc.strerror}" if names else exc.strerror
+    text = str(exc).strip()
+    return text or type(exc).__name__
+
+
 class LazyGroup(click.Group):
     """A click group whose subcommands are imported on first use."""
 
@@ -45,6 +60,13 @@ class LazyGroup(click.Group):
 
             return unavailable
         return getattr(module, attr)
+
+    def invoke(self, ctx):
+        """Run the subcommand; an error the user can cause becomes one clear message (exit status 1)."""
+        try:
+            return super().invoke(ctx)
+        except USER_ERRORS as exc:
+            raise click.ClickException(user_message(exc)) from None
 
     def format_commands(self, ctx, formatter):
         rows = [(name, SUBCOMMANDS[name][1]) for name in self.list_commands(ctx)]

@@ -38,7 +38,8 @@ import numpy as np
 
 from kernels.checks import as_points, odd_int
 
-__all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "surface_strain_grid", "grid_neighbours", "scattered_neighbours",
+__all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "surface_strain_grid", "check_grid_window",
+           "grid_neighbours", "scattered_neighbours",
            "as_frame", "tangent_axis", "tangent_basis"]
 
 
@@ -121,14 +122,31 @@ def plane_frame(points, valid=None) -> tuple[np.ndarray, np.ndarray]:
 # neighbourhoods and strain
 
 
+def check_grid_window(window, grid_shape) -> int:
+    """The strain window (odd int >= 3, grid points per side) checked against a grid of ``(ny, nx)`` points.
+
+    A window of ``2·max(ny, nx) − 1`` already reaches the whole grid from every point; a larger
+    one is refused (``ValueError`` naming the largest useful window) rather than silently fitting
+    one plane to the whole surface.
+    """
+    window = odd_int(window, "strain window", detail=" (grid points)", integral_float=True)
+    ny, nx = (int(v) for v in grid_shape)
+    most = max(3, 2 * max(ny, nx) - 1)
+    if window > most:
+        raise ValueError(f"strain window {window} (grid points per side) is larger than the {ny} x {nx} grid of points: "
+                         f"a window of {most} already reaches every point of it; use a window of at most {most}")
+    return window
+
+
 def grid_neighbours(grid_shape, window: int) -> np.ndarray:
     """Indices (N, window²) of the ``window × window`` grid neighbours of each point of a grid.
 
     Points are numbered row-major over ``grid_shape = (ny, nx)``; neighbours outside the grid
-    are -1. ``window`` is odd (the point itself is the centre).
+    are -1. ``window`` is odd (the point itself is the centre) and at most ``2·max(ny, nx) − 1``
+    (:func:`check_grid_window`).
     """
     ny, nx = (int(v) for v in grid_shape)
-    window = odd_int(window, "strain window", detail=" (grid points)", integral_float=True)
+    window = check_grid_window(window, (ny, nx))
     h = int(window) // 2
     jj, ii = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
     off = np.arange(-h, h + 1)
@@ -291,7 +309,7 @@ def surface_strain_grid(X, U, valid, grid_shape, window: int, *, camera_center=(
     n_pts = ny * nx
     if X.shape != (n_pts, 3) or U.shape != (n_pts, 3):
         raise ValueError(f"X and U must be (ny*nx, 3) = ({n_pts}, 3), got {X.shape} and {U.shape}")
-    window = odd_int(window, "strain window", detail=" (grid points)", integral_float=True)
+    window = check_grid_window(window, (ny, nx))
     valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(U), axis=1)
     out = {k: np.full(n_pts, np.nan) for k in ("exx", "eyy", "exy")}
     out["normal"] = np.full((n_pts, 3), np.nan)

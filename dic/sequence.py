@@ -19,6 +19,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from calibration.rigfile import as_rig
+
 from .field3d import Field3D
 from .stereo import StereoCorrelation
 from .store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
@@ -44,7 +46,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
 
     Parameters
     ----------
-    rig : calibration.stereo.StereoRig
+    rig : calibration.stereo.StereoRig, or the path of a rig file (Specula JSON, OpenCV, DICe or
+        VIC-3D; :func:`calibration.rigfile.as_rig`)
     pairs : sequence of (left, right)
         Images (arrays or file paths: TIFF, PNG, BMP). ``pairs[0]`` is the reference state;
         state ``k`` is ``pairs[k]``. Each state is tracked from the reference with the previous
@@ -70,6 +73,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     """
     from tqdm import tqdm
 
+    rig = as_rig(rig)
     pairs = list(pairs)
     if not pairs:
         raise ValueError("pairs is empty: give at least the reference (left, right) pair")

@@ -33,10 +33,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration.rigfile import as_rig
 from kernels._device import resolve_device
-from kernels.checks import as_points, in_range, odd_int, positive_float, positive_int
+from kernels.checks import as_points, in_range, odd_int, positive_float
 from kernels.conventions import Status
-from kernels.icgn import check_subset_order, n_params, prepare_current
+from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image
 
 from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
@@ -50,6 +51,7 @@ from .field3d import (
     Field3D,
     StereoStatus,
     as_frame,
+    check_grid_window,
     plane_frame,
     scattered_neighbours,
     surface_strain,
@@ -208,7 +210,8 @@ class StereoCorrelation:
 
     Parameters
     ----------
-    rig : calibration.stereo.StereoRig
+    rig : calibration.stereo.StereoRig, or the path of a rig file (Specula JSON, OpenCV, DICe or
+        VIC-3D; :func:`calibration.rigfile.as_rig`)
     left_ref, right_ref : (H, W) grey images of the reference state (same size, the rig's size).
     points : (N, 2) px in the left reference image, optional. Default: a grid of ``step``.
     step : int, grid spacing (px) when ``points`` is None.
@@ -219,7 +222,7 @@ class StereoCorrelation:
     zncc_min : float, matches and tracks below it are ``LOW_ZNCC``.
     strain_window : odd int, grid points per side of the strain neighbourhood (scattered points:
         the ``strain_window²`` nearest).
-    max_iter, tol : IC-GN iteration limit and convergence threshold (px, see kernels/icgn.py).
+    max_iter, tol : IC-GN iteration limit (1..10000) and convergence threshold (px, see kernels/icgn.py).
     triangulation : "optimal" or "linear" (:func:`dic.triangulate.triangulate`).
     match : StereoMatch, optional: a reference match computed before (e.g. read back from a
         result file); skips the feature matching and the left -> right IC-GN.
@@ -235,13 +238,14 @@ class StereoCorrelation:
                  device=None):
         self.device = resolve_device(device)
         self.subset, self.order = check_subset_order(subset, order)
+        rig = as_rig(rig)
         left_ref, right_ref = _check_pair(left_ref, right_ref, "reference")
         check_rig_images(rig, left_ref.shape)
         self.rig = rig
         self.shape = left_ref.shape
         self.epipolar_tol_px = positive_float(epipolar_tol_px, "epipolar_tol_px")
         self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
-        self.max_iter = positive_int(max_iter, "max_iter")
+        self.max_iter = check_max_iter(max_iter)
         self.tol = positive_float(tol, "tol", detail=" of pixels")
         strain_window = odd_int(strain_window, "strain window", detail=" (grid points)", integral_float=True)
         if triangulation not in ("optimal", "linear"):
@@ -253,6 +257,7 @@ class StereoCorrelation:
             self.points, self.grid_shape, in_roi = grid_points(self.shape, step, self.subset, roi)
             self.step = int(step)
             self.neighbours = None
+            strain_window = check_grid_window(strain_window, self.grid_shape)
         else:
             if roi is not None:
                 raise ValueError("give either points or roi (the ROI selects grid points), not both")
@@ -574,7 +579,8 @@ def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=No
 
     Parameters
     ----------
-    rig : calibration.stereo.StereoRig (cameras ``left``, ``right``; ``R_right_left``, ``t_right_left`` mm).
+    rig : calibration.stereo.StereoRig (cameras ``left``, ``right``; ``R_right_left``, ``t_right_left`` mm),
+        or the path of a rig file (:func:`calibration.rigfile.as_rig`).
     left_ref, right_ref : (H, W) grey images of the reference state.
     left_cur, right_cur : (H, W) grey images of a current state, optional (both or neither).
     points, step, roi, subset, order, frame, epipolar_tol_px, zncc_min, strain_window, device :

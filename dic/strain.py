@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from kernels.checks import as_points, odd_int
+from kernels.checks import as_points, odd_int, positive_int
 
-__all__ = ["StrainField", "strain", "grid_layout"]
+__all__ = ["StrainField", "strain", "grid_layout", "check_strain_window"]
 
 
 @dataclass
@@ -145,6 +145,42 @@ def _field_arrays(field):
     return points, u, v, valid & np.isfinite(u) & np.isfinite(v)
 
 
+def _default_min_points(window: int) -> int:
+    return max(3, (window // 2 + 1) ** 2)  # a corner of the grid: a quarter window
+
+
+def check_strain_window(window, grid_shape, *, min_points: int | None = None) -> tuple[int, int]:
+    """``(window, min_points)`` checked for a grid of ``grid_shape = (ny, nx)`` points.
+
+    ``window`` must be odd and >= 3; ``min_points`` (default ``(window // 2 + 1)²``) in
+    ``[3, window²]``. A window for which no grid point could ever gather ``min_points`` points
+    (even with all of them valid) would give no strain at all: that is a ``ValueError`` naming the
+    largest window that works on this grid (e.g. ``2 n − 1`` on an ``n × n`` grid). A grid that no
+    window can serve (one row or one column of points: collinear) is not an error; its points
+    come out without strain (``valid`` False).
+    """
+    window = odd_int(window, "window", detail=" (grid points per side)")
+    given = min_points is not None
+    if not given:
+        min_points = _default_min_points(window)
+    mp = positive_int(min_points, "min_points") if given else min_points
+    if mp < 3 or mp > window * window:
+        raise ValueError(f"min_points must be in [3, {window * window}] for window {window}, got {min_points!r}")
+    ny, nx = (int(v) for v in grid_shape)
+
+    def reach(w: int) -> int:  # the most points a fit window of side w can hold on this grid
+        return min(ny, w) * min(nx, w)
+
+    if reach(window) < mp:
+        usable = [w for w in range(3, min(window, 2 * max(ny, nx) + 1), 2)
+                  if reach(w) >= (mp if given else _default_min_points(w))]
+        if usable:  # the window is to blame (a grid too thin for any window is not: its points come out invalid)
+            raise ValueError(f"strain window {window} needs {mp} valid points per fit, but no point of the {ny} x {nx} "
+                             f"grid has more than {reach(window)} within its window, so no strain could be computed; "
+                             f"use a window of at most {usable[-1]}")
+    return window, mp
+
+
 def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainField:
     """Pointwise least-squares strain (small and Green-Lagrange) of a displacement field.
 
@@ -158,18 +194,15 @@ def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainFi
         is about ``(window - 1) · step + subset`` px.
     min_points : int, optional
         Fewest valid points a fit needs (default ``(window // 2 + 1)²``, what a grid corner has).
+        A window that no grid point can fill is an error (:func:`check_strain_window`).
 
     Returns
     -------
     StrainField
     """
-    window = odd_int(window, "window", detail=" (grid points per side)")
-    if min_points is None:
-        min_points = max(3, (window // 2 + 1) ** 2)  # a corner of the grid: a quarter window
-    if min_points < 3 or min_points > window * window:
-        raise ValueError(f"min_points must be in [3, {window * window}] for window {window}, got {min_points}")
     points, u, v, valid = _field_arrays(field)
     index, shape, step = grid_layout(points)
+    window, min_points = check_strain_window(window, shape, min_points=min_points)
 
     mask = np.zeros(shape)
     ug = np.zeros(shape)

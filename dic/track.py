@@ -20,9 +20,9 @@ import os
 import numpy as np
 
 from kernels._device import resolve_device
-from kernels.checks import as_points, in_range, non_negative_int, positive_float, positive_int
+from kernels.checks import as_points, in_range, non_negative_int, positive_float
 from kernels.conventions import Status
-from kernels.icgn import check_subset_order, n_params, prepare_current
+from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image, read_image
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
@@ -121,7 +121,7 @@ class Tracker:
         self.subset, self.order = check_subset_order(subset, order)
         self.search = _check_search(search)
         self.search_radius = non_negative_int(search_radius, "search_radius", detail=" (px)")
-        self.max_iter = positive_int(max_iter, "max_iter")
+        self.max_iter = check_max_iter(max_iter)
         self.tol = positive_float(tol, "tol", detail=" of pixels")
         self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
         self.check_warps = bool(check_warps)

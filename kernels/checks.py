@@ -105,15 +105,20 @@ def _integer(value, integral_float: bool) -> int | None:
     return None
 
 
-def positive_int(value, name: str, *, minimum: int = 1, detail: str = "", integral_float: bool = False) -> int:
-    """``value`` as an ``int`` >= ``minimum`` (default 1).
+def positive_int(value, name: str, *, minimum: int = 1, maximum: int | None = None, detail: str = "",
+                 integral_float: bool = False) -> int:
+    """``value`` as an ``int`` >= ``minimum`` (default 1) and, when given, <= ``maximum``.
 
     Message: ``"{name} must be a positive integer{detail}, got {value!r}"`` (``"an integer >= m"``
-    for another minimum). ``integral_float=True`` also accepts floats such as ``4.0``.
+    for another minimum, ``"an integer in [m, M]"`` with a maximum). ``integral_float=True`` also
+    accepts floats such as ``4.0``.
     """
     v = _integer(value, integral_float)
-    if v is None or v < minimum:
-        need = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+    if v is None or v < minimum or (maximum is not None and v > maximum):
+        if maximum is not None:
+            need = f"an integer in [{minimum}, {maximum}]"
+        else:
+            need = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
         raise ValueError(f"{name} must be {need}{detail}, got {value!r}")
     return v
 

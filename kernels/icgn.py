@@ -1016,6 +1016,16 @@ def _as_guess(guess, n: int, k: int, device: str) -> wp.array:
     return wp.array(g.astype(np.float32), dtype=wp.float32, device=device)
 
 
+#: the largest IC-GN iteration limit accepted (``max_iter``, ``--max-iter``): far more than any
+#: converging POI needs (typically 3-30), and small enough for the kernel's 32-bit counter
+MAX_ITER = 10000
+
+
+def check_max_iter(max_iter) -> int:
+    """``max_iter`` as an ``int`` in ``[1, MAX_ITER]``, else ``ValueError`` naming the bound."""
+    return positive_int(max_iter, "max_iter", maximum=MAX_ITER, detail=" (IC-GN iterations per point)")
+
+
 def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol: float = 1e-3,
          out: IcgnResult | None = None) -> IcgnResult:
     """Track every POI of ``subsets`` into a current image with IC-GN / ZNSSD.
@@ -1028,7 +1038,9 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
     guess : array-like (N, 6|12), optional
         Initial parameters (PARAMS_1ST/PARAMS_2ND order, physical units); default zeros. IC-GN
         converges from guesses within a few pixels; use :mod:`kernels.search` for larger motion.
-    max_iter : int >= 1
+    max_iter : int in [1, MAX_ITER]
+        Iteration limit per POI (IC-GN converges in a few iterations from a good guess; the
+        bound keeps the kernel's 32-bit counter from wrapping).
     tol : float > 0
         Convergence threshold on the scaled update norm (px, see the module doc).
     out : IcgnResult, optional
@@ -1050,7 +1062,7 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         cur = prepare_current(current, device=device)
     if cur.shape != (h, w):
         raise ValueError(f"current image has shape {cur.shape} but the reference has shape {(h, w)}")
-    max_iter = positive_int(max_iter, "max_iter")
+    max_iter = check_max_iter(max_iter)
     tol = positive_float(tol, "tol", detail=" of pixels")
     n = subsets.n_points
     k = n_params(subsets.order)

@@ -183,11 +183,25 @@ def as_float32_image(image, name: str = "image") -> np.ndarray:
 
     ``image``: NumPy array (any real dtype or bool), torch tensor or ``wp.array``. Grey levels keep
     their scale. Raises ``ValueError`` for non-2-D input (colour arrays included: unlike files,
-    arrays are not inspected for grey stored as RGB), empty images and non-finite values.
+    arrays are not inspected for grey stored as RGB), empty images, non-finite values, complex
+    arrays (the imaginary part would be dropped silently: pass ``image.real`` or ``abs(image)``)
+    and masked arrays with masked pixels (the mask would be ignored: pass the mask as a region of
+    interest, ``roi=``, and the image as ``image.filled(...)``); a masked array with nothing masked
+    is its data.
     """
     if hasattr(image, "numpy") and not isinstance(image, np.ndarray):  # torch tensor / warp array
         image = image.detach().cpu().numpy() if hasattr(image, "detach") else image.numpy()
+    if isinstance(image, np.ma.MaskedArray):
+        if np.ma.is_masked(image):
+            raise ValueError(
+                f"{name} is a masked array with {int(np.ma.count_masked(image))} masked pixel(s); the mask would be "
+                "ignored. Pass the image as an ordinary array (e.g. image.filled(0)) and the pixels to measure as "
+                "a region of interest (roi=~image.mask)")
+        image = np.ma.getdata(image)
     arr = np.asarray(image)
+    if np.iscomplexobj(arr):
+        raise ValueError(f"{name} is complex (dtype {arr.dtype}); DIC needs real grey levels. Pass image.real "
+                         "or abs(image) explicitly")
     if arr.ndim == 3 and arr.shape[2] in (3, 4):
         raise ValueError(
             f"{name} is a colour image of shape {arr.shape}; a grey image (H, W) is expected. "

@@ -152,13 +152,48 @@ def _reduce_cols(offset: int, src: wp.array2d(dtype=float), dst: wp.array2d(dtyp
 # ----------------------------------------------------------------------------------------------
 
 
+#: the largest ``|start|`` (px) :func:`zncc_search` accepts: far beyond any image, and small enough
+#: that the window's bounds stay within the kernel's 32-bit integers
+MAX_START = 2**24
+
+
 def _int_pairs(a, n: int, name: str) -> np.ndarray:
     arr = np.asarray(a)
     if arr.shape != (n, 2):
         raise ValueError(f"{name} must have shape {(n, 2)}, got {arr.shape}")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or infinite values")
+    if arr.size and np.max(np.abs(arr)) > MAX_START:
+        raise ValueError(f"{name} must lie within +-{MAX_START} px, got a value of {np.max(np.abs(arr)):.6g}")
     return np.ascontiguousarray(np.rint(arr), dtype=np.int32)
+
+
+def useful_radius(shape, points, subset: int, start=None) -> int:
+    """The largest search radius that can still change :func:`zncc_search`'s result.
+
+    A candidate shift must keep the current subset on the image, so for a POI at ``(cx, cy)``
+    (rounded) with window centre ``start`` only shifts ``du`` in ``[r - cx, W - 1 - r - cx]`` (and
+    likewise ``dv``) are ever evaluated, ``r = subset // 2``. The returned radius is the smallest
+    one whose window contains all of them for every POI whose reference subset lies on the image
+    (at most about the image's larger side plus ``|start|``); a larger radius tries the same
+    candidates in the same order, so it gives the same result. 0 when no candidate fits.
+    """
+    h, w = (int(v) for v in shape)
+    r = odd_int(subset, "subset") // 2
+    c = np.rint(as_points(points, allow_empty=True)).astype(np.int64)
+    st = np.zeros_like(c) if start is None else _int_pairs(start, c.shape[0], "start").astype(np.int64)
+    inside = (c[:, 0] - r >= 0) & (c[:, 1] - r >= 0) & (c[:, 0] + r <= w - 1) & (c[:, 1] + r <= h - 1)
+    if not np.any(inside) or w < 2 * r + 1 or h < 2 * r + 1:
+        return 0
+    c, st = c[inside], st[inside]
+    need = 0
+    for axis, size in ((0, w), (1, h)):
+        lo = r - c[:, axis] - st[:, axis]              # lowest useful shift minus the window centre
+        hi = size - 1 - r - c[:, axis] - st[:, axis]   # highest useful shift minus the window centre
+        need = max(need, int(np.max(np.maximum(np.abs(lo), np.abs(hi)))))
+    return need
 
 
 def zncc_search(reference, current, points, radius: int, subset: int = 21, start=None, device=None):
@@ -170,7 +205,10 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
     points : array-like (N, 2)
         POIs ``(x, y)``; the subset is centred on ``round(x), round(y)``.
     radius : int >= 0
-        Half-width R of the search window: shifts ``start + (-R..R)^2`` are tried.
+        Half-width R of the search window: shifts ``start + (-R..R)^2`` are tried. Only shifts
+        that keep the subset on the image are evaluated, so R is clamped to
+        :func:`useful_radius` (about the image's larger side): a larger R gives the same result
+        in the same time.
     subset : odd int >= 3
     start : array-like (N, 2), optional
         Integer displacement at the window centre per POI (default zero; rounded).
@@ -195,6 +233,7 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
     n = pts.shape[0]
     st = np.zeros((n, 2), np.int32) if start is None else _int_pairs(start, n, "start")
     h, w = ref.shape
+    radius = min(radius, useful_radius((h, w), pts, subset, st))
     centres = wp.array(np.rint(pts).astype(np.int32), dtype=wp.vec2i, device=device)
     best = wp.empty(n, dtype=wp.vec2i, device=device)
     best_cc = wp.empty(n, dtype=wp.float32, device=device)
@@ -256,9 +295,19 @@ def reduce(image, device=None) -> np.ndarray:
 
 
 def pyramid(image, levels: int, device=None) -> list[np.ndarray]:
-    """``[image, reduce(image), reduce(reduce(image)), ...]`` with ``levels + 1`` entries (float32)."""
+    """``[image, reduce(image), reduce(reduce(image)), ...]`` with ``levels + 1`` entries (float32).
+
+    ``levels`` may not exceed the reductions the image allows (each needs at least 3x3 pixels).
+    """
     levels = non_negative_int(levels, "levels")
-    out = [as_float32_image(image, "image")]
+    img = as_float32_image(image, "image")
+    h, w, most = img.shape[0], img.shape[1], 0
+    while min(h, w) >= 3:
+        h, w, most = (h + 1) // 2, (w + 1) // 2, most + 1
+    if levels > most:
+        raise ValueError(f"levels must be <= {most} for a {img.shape[1]}x{img.shape[0]} px image "
+                         f"(each level halves it; 3x3 px is the smallest that reduces), got {levels}")
+    out = [img]
     for _ in range(levels):
         out.append(reduce(out[-1], device=device))
     return out

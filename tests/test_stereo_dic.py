@@ -342,6 +342,24 @@ def test_sequence_writes_resumes_and_reads_back(lab, tmp_path):
         read_stereo(tmp_path / "other.h5")
 
 
+def test_sequence_takes_the_rig_as_a_path(lab, tmp_path):
+    """A rig file (Specula JSON, OpenCV YAML) wherever a rig is taken; it gave AttributeError (issue 15)."""
+    from calibration.formats import save_opencv
+    from dic.sequence import stereo_sequence
+
+    rig = lab["rig"]
+    (l0, r0), (l1, r1), _ = lab["states"]
+    rig.save(tmp_path / "rig.json")
+    save_opencv(tmp_path / "rig.yml", rig)
+    ref = stereo_sequence(rig, [(l0, r0), (l1, r1)], tmp_path / "a.h5", step=40)
+    for k, path in enumerate((tmp_path / "rig.json", str(tmp_path / "rig.yml"))):
+        got = stereo_sequence(path, [(l0, r0), (l1, r1)], tmp_path / f"b{k}.h5", step=40)
+        assert np.array_equal(got[1].status, ref[1].status)
+        assert np.allclose(got[1].uvw, ref[1].uvw, equal_nan=True, atol=1e-9)
+    f = stereo(tmp_path / "rig.json", l0, r0, l1, r1, step=40)
+    assert np.allclose(f.uvw, ref[1].uvw, equal_nan=True, atol=1e-9)
+
+
 def test_sequence_interrupted_after_k_states_resumes_with_identical_results(lab, tmp_path):
     """A run cut after state 1 and rerun gives the same states as the uninterrupted run: the rerun
     reads back the reference match and state 1's parameters instead of recomputing them.

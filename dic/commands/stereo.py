@@ -31,7 +31,8 @@ def _image_shape(path) -> tuple[int, int]:
 
 @click.command(name="stereo", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Stereo rig JSON file (from 'specula calibrate').")
+              help="Stereo rig file: Specula JSON (from 'specula calibrate'), or an OpenCV (.yml/.xml/.json), "
+                   "DICe or VIC-3D (.xml) calibration, told apart from the file.")
 @click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="HDF5 result file (.h5); an existing compatible file is resumed.")
@@ -65,7 +66,7 @@ def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_t
     """
     import numpy as np
 
-    from calibration.stereo import StereoRig
+    from calibration.rigfile import load_rig
     from dic.io import read_image
     from dic.sequence import read_stereo, stereo_sequence
 
@@ -79,9 +80,9 @@ def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_t
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
     try:
-        rig = StereoRig.load(rig_path)
+        rig = load_rig(rig_path)
     except ValueError as exc:
-        raise click.ClickException(f"rig file {rig_path}: {exc}") from None
+        raise click.ClickException(str(exc) if str(rig_path) in str(exc) else f"rig file {rig_path}: {exc}") from None
     pairs = [(images[i], images[i + 1]) for i in range(0, len(images), 2)]
     # check every file's size before any work (headers only): a long run should not stop at its last pair
     size = None

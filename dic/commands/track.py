@@ -25,13 +25,14 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--step", default=5, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
 @click.option("--order", default="1", show_default=True, type=click.Choice(["1", "2"]),
               help="Shape function: 1 (affine, 6 parameters) or 2 (quadratic, 12 parameters).")
-@click.option("--search", default=None, type=click.IntRange(min=1),
+@click.option("--search", default=None, type=click.IntRange(min=1, max=2**31 - 1),
               help="Find an integer-pixel initial guess first, for displacements up to this many px "
-                   "(needed beyond about a third of the subset).")
+                   "(needed beyond about a third of the subset; a radius beyond the image is clamped to it).")
 @click.option("--search-method", default="pyramid", show_default=True, type=click.Choice(["pyramid", "zncc", "fft", "rg"]),
               help="Initial-guess strategy used with --search: pyramid (coarse-to-fine), zncc (window search "
                    "per point), fft (one global shift), rg (reliability-guided propagation).")
-@click.option("--max-iter", default=None, type=click.IntRange(min=1), help="IC-GN iteration limit per point.")
+@click.option("--max-iter", default=None, type=click.IntRange(min=1, max=10000),
+              help="IC-GN iteration limit per point (at most 10000).")
 @click.option("--tol", default=None, type=click.FloatRange(min=0, min_open=True), help="Convergence threshold on the parameter update norm.")
 @click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=0),
               help="Strain fit window in grid points (odd, >= 3); 0 skips strain.")
@@ -72,6 +73,13 @@ def track(reference, current, output, subset, step, order, search, search_method
                                 search_method=search_method, max_iter=max_iter, tol=tol, device=device)
     except ValueError as exc:
         raise _fail(exc) from None
+    if strain_window:
+        from dic.strain import check_strain_window, grid_layout
+
+        try:
+            check_strain_window(strain_window, grid_layout(tracker.points)[1])
+        except ValueError as exc:
+            raise click.BadParameter(f"{exc} (0 skips strain)", param_hint="--strain-window") from None
     try:
         writer = ResultWriter(output, reference_path=str(reference), reference_shape=ref.shape,
                               reference_sha256=image_digest(ref), settings=settings,

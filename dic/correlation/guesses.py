@@ -296,6 +296,9 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
     """
     from .engine import Correlator
 
+    # a radius beyond twice the image finds nothing more (the ZNCC search clamps its window to the
+    # image, kernels.search.useful_radius) and picks the same levels: clamp it, so that any int works
+    radius = min(int(radius), 2 * max(ref.shape))
     levels = max(0, math.ceil(math.log2(max(radius, 1) / 4.0)))
     while levels > 0 and min(ref.shape) / 2 ** levels < 2 * subset + 1:
         levels -= 1
