@@ -261,6 +261,11 @@ def test_a_real_full_disk_ends_the_run_with_one_message(small_fs):
     k = int(k)
     assert k >= 3 and message.startswith(f"could not write frame {k} to {out}: disk full")
     assert f"keeps its {k} finished frames (last: {k - 1})" in message
+    same = small_fs.parent / "same.h5"  # the same frames written where there is room, and closed
+    with ResultWriter(same, reference_path="r.tif", reference_shape=(10, 10), settings=SETTINGS) as w:
+        for i in range(k):
+            w.write_frame(i, fake_field(i, n_side=60))
+    assert out.stat().st_size <= same.stat().st_size + 65536  # the space reserved for frame k was given back
     res = read_results(out)
     assert sorted(res.frames) == list(range(k))
     for i in range(k):

@@ -140,7 +140,7 @@ class FileLock:
                 owner = _read_owner(fd)
                 os.close(fd)
                 raise ResultFileInUse(
-                    f"result file {self.target} is in use by another process{owner} (lock {self.path}); "
+                    f"result file {self.target} is in use by another process ({owner}lock {self.path}); "
                     "wait for that run to finish, or write to another file") from None
             except OSError:  # no flock on this file system (some network mounts): go on without it
                 os.close(fd)
@@ -175,7 +175,7 @@ def _read_owner(fd: int) -> str:
         pid = os.pread(fd, 32, 0).decode().strip()
     except (OSError, UnicodeDecodeError):
         return ""
-    return f" (pid {pid})" if pid.isdigit() else ""
+    return f"pid {pid}, " if pid.isdigit() else ""
 
 
 def fsync_folder(folder: Path) -> None:

@@ -224,7 +224,7 @@ class ResultWriter(_ResultFile):
         self._tmp: Path | None = None  # the temporary file of a new run, until it is renamed into place
         self._warned_paths_only = False
         files.check_output_path(self.path)
-        self._lock = files.FileLock(self.path)
+        self._lock = files.FileLock(Path(os.path.abspath(self.path)))
         self._lock.acquire()  # before anything is opened, truncated or replaced
         try:
             self._open(h5py, mode, paths, digests, shape, rig_json)
@@ -233,7 +233,7 @@ class ResultWriter(_ResultFile):
             raise
 
     def _open(self, h5py, mode, paths, digests, shape, rig_json) -> None:
-        tmp = files.temp_path(self.path)
+        tmp = files.temp_path(Path(os.path.abspath(self.path)))
         if tmp.exists():  # left by a run killed before its first frame (we hold the lock: nobody writes it)
             tmp.unlink()
         exists = self.path.exists()
@@ -305,6 +305,7 @@ class ResultWriter(_ResultFile):
         fd = self._fd()
         if fd is not None:
             os.fsync(fd)
+        self._synced_size = int(self._h5.id.get_filesize())  # all the file needs as of now (>= HDF5's end)
 
     def _reserve(self, nbytes: int) -> None:
         fd = self._fd()
@@ -314,8 +315,8 @@ class ResultWriter(_ResultFile):
     def _commit(self) -> None:
         """Rename a new run's temporary file into place (once it holds its reference data)."""
         if self._tmp is not None:
-            os.replace(self._tmp, self.path)
-            files.fsync_folder(self.path.parent)
+            os.replace(self._tmp, self._tmp.with_name(self.path.name))
+            files.fsync_folder(self._tmp.parent)
             self._tmp = None
 
     def _release(self) -> None:
@@ -344,6 +345,13 @@ class ResultWriter(_ResultFile):
         new = self._tmp is not None
         if self._h5 is not None:
             files.abandon(self._h5)
+            size = getattr(self, "_synced_size", None)
+            if not new and size is not None:  # give the space of the frame that failed back to the disk
+                try:
+                    if self.path.stat().st_size > size:
+                        os.truncate(self.path, size)
+                except OSError:
+                    pass
         self._release()
         noun = self.kind.frame_noun
         if new:
