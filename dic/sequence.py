@@ -55,8 +55,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     out : str or Path
         The ``.h5`` file (layout: docs/results_format.md). An existing file with the same rig,
         reference images and settings is resumed (finished states are skipped) unless
-        ``mode="overwrite"`` (``"new"`` refuses an existing file); an incompatible one raises
-        ``ValueError``.
+        ``mode="overwrite"`` (``"new"`` refuses an existing file); an incompatible one, or one
+        whose finished states were computed from other image pairs than those given now, raises
+        ``ValueError``; a file another process is writing raises
+        :class:`dic.store.ResultFileInUse`, a full disk :class:`dic.store.ResultWriteError`
+        (both ``ValueError``; finished states stay in the file).
     progress : bool
         Show a tqdm progress bar.
     callback : callable(Field3D), optional
@@ -87,19 +90,28 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     settings = {k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in sorted(options.items())}
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
+    ref_digests = (image_digest(left_ref), image_digest(right_ref))
     writer = ResultWriter(out, kind="stereo", reference_path=(lp, rp), reference_shape=np.shape(left_ref),
-                          reference_sha256=(image_digest(left_ref), image_digest(right_ref)), settings=settings,
-                          rig=rig, mode=mode)
+                          reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode)
     results = []
     with writer:
+        done = set(writer.done_frames())
+        # resuming: every finished state must have been computed from the pair given for it now
+        for k in sorted(d for d in done if d < len(pairs)):
+            if k == 0:
+                writer.check_frame(0, (lp, rp), ref_digests)
+                continue
+            (L, lpath), (R, rpath) = (_load(pairs[k][0], f"left image of pair {k}"),
+                                      _load(pairs[k][1], f"right image of pair {k}"))
+            writer.check_frame(k, (lpath, rpath), (image_digest(L), image_digest(R)))
         match = writer.read_match()
         t0 = time.perf_counter()
         sc = StereoCorrelation(rig, left_ref, right_ref, match=match, device=device, **options)
         if match is None:
             writer.write_match(sc.match)
-        done = set(writer.done_frames())
         if 0 not in done:
-            writer.write_frame(0, sc.reference, path=(lp, rp), attrs={"seconds": float(time.perf_counter() - t0)})
+            writer.write_frame(0, sc.reference, path=(lp, rp), sha256=ref_digests,
+                               attrs={"seconds": float(time.perf_counter() - t0)})
             results.append(sc.reference)
             if callback:
                 callback(sc.reference)
@@ -125,7 +137,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                     f = sc.measure(L, R, index=k)
                 except ValueError as exc:
                     raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
-                writer.write_frame(k, f, path=(lpath, rpath), attrs={"seconds": float(time.perf_counter() - t1)})
+                writer.write_frame(k, f, path=(lpath, rpath), sha256=(image_digest(L), image_digest(R)),
+                                   attrs={"seconds": float(time.perf_counter() - t1)})
                 done.add(k)
                 results.append(f)
                 if callback:

@@ -171,3 +171,78 @@ def test_no_valid_point_says_what_to_try(tmp_path):
     assert "Warning: 2-D tracking: only" in r.output and "--search" in r.output
     r = run([*paths, "-o", str(tmp_path / "ok.h5"), "--step", "10", "--search", "30", "--device", "cpu", "-q"])
     assert r.exit_code == 0 and "Warning" not in r.output, r.output
+
+
+def test_output_in_use_by_a_running_job_is_refused_not_truncated(images, tmp_path, fake):
+    """Before: --overwrite truncated the running job's file (unreadable afterwards) and printed a
+    BlockingIOError traceback."""
+    from dic.store import ResultWriter
+
+    out = tmp_path / "res.h5"
+    assert run([*images, "-o", str(out), "-q"]).exit_code == 0
+    with ResultWriter(out, reference_path="other.tif", reference_shape=(96, 112), mode="overwrite") as running:
+        running.write_frame(1, fake_field_for_test())
+        for extra in ([], ["--overwrite"]):
+            r = run([*images, "-o", str(out), "-q", *extra])
+            assert r.exit_code == 1 and "is in use by another process" in r.output, r.output
+            assert "corrupt" not in r.output and "Traceback" not in r.output
+        running.write_frame(2, fake_field_for_test())
+    res = read_results(out)
+    assert sorted(res.frames) == [1, 2] and res.reference["path"] == "other.tif"  # the running job's file, whole
+
+
+def fake_field_for_test():
+    pts = np.array([[10.0, 10.0], [20.0, 10.0]])
+    return SimpleNamespace(points=pts, u=np.zeros(2), v=np.zeros(2))
+
+
+def test_resume_with_other_images_is_refused(images, tmp_path, fake):
+    """Before: rerunning into a file with a different image list exited 0 and skipped every frame."""
+    out = tmp_path / "res.h5"
+    assert run([*images, "-o", str(out), "-q"]).exit_code == 0
+    r = run([images[0], images[2], images[1], "-o", str(out), "-q"])  # the current images swapped
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert f"holds frame 1 computed from {images[1]}, but this run gives {images[2]} for it (the images differ)" \
+        in r.output.replace("\n", " ")
+    assert "--overwrite" in r.output
+    # the same images under another name are the same frames: resumed
+    import shutil
+
+    copy = shutil.copy(images[1], tmp_path / "renamed.tif")
+    r = run([images[0], str(copy), "-o", str(out)])
+    assert r.exit_code == 0 and "1 frame(s) were already" in r.output
+    r = run([images[0], images[2], images[1], "-o", str(out), "-q", "--overwrite"])
+    assert r.exit_code == 0 and read_results(out).frames[1].path == images[2]
+
+
+def test_full_disk_ends_the_run_with_one_message_and_resumes(images, tmp_path, fake, monkeypatch):
+    import errno
+
+    import h5py
+
+    out = tmp_path / "res.h5"
+    original = h5py.Group.create_dataset
+
+    def full_at_frame_2(self, name, *args, **kw):
+        if "000002.partial" in self.name:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return original(self, name, *args, **kw)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", full_at_frame_2)
+    r = run([*images, "-o", str(out), "-q"])
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert f"could not write frame 2 to {out}: disk full (No space left on device)" in r.output.replace("\n", " ")
+    monkeypatch.undo()
+    assert sorted(read_results(out).frames) == [1]
+    u1 = read_results(out).frames[1].u
+    r = run([*images, "-o", str(out)])
+    assert r.exit_code == 0 and "1 frame(s) were already" in r.output
+    res = read_results(out)
+    assert sorted(res.frames) == [1, 2] and np.array_equal(res.frames[1].u, u1)
+
+
+def test_output_that_cannot_be_written(images, tmp_path, fake):
+    (tmp_path / "afile").write_text("x")
+    r = run([*images, "-o", str(tmp_path / "afile" / "res.h5")])
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert "afile is a file, not a folder" in r.output

@@ -413,6 +413,26 @@ def test_cli(lab, tmp_path):
                                "--vtk", str(tmp_path / "vtk"), "--figures", str(tmp_path / "fig"), "-q"])
     assert res.exit_code == 0, res.output
     assert out.exists() and (tmp_path / "vtk" / "out.pvd").exists() and (tmp_path / "fig" / "state_000001_W.png").exists()
+    # resuming with another pair for a finished state is refused (before: skipped silently), before any work
+    other = []
+    for side, img in (("L", lab["states"][2][0]), ("R", lab["states"][2][1])):
+        write_image(tmp_path / f"{side}2.png", img)
+        other.append(str(tmp_path / f"{side}2.png"))
+    res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths[:2], *other, "-o", str(out), "-q",
+                               "--step", "20"])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert (f"holds state 1 computed from ({paths[2]}, {paths[3]}), but this run gives ({other[0]}, {other[1]}) "
+            "for it (the images differ)") in res.output.replace("\n", " ")
+    # a running job's output is in use: refused, and the file is not touched
+    from calibration.stereo import StereoRig
+    from dic.store import ResultWriter
+
+    with ResultWriter(out, kind="stereo", rig=StereoRig.load(tmp_path / "rig.json"), reference_shape=l0.shape,
+                      reference_path=(paths[0], paths[1]), settings=read_stereo_settings(out)):
+        res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "-o", str(out), "-q",
+                                   "--step", "20", "--overwrite"])
+        assert res.exit_code == 1 and "is in use by another process" in res.output and "corrupt" not in res.output
+    assert read_stereo_indices(out) == [0, 1]
     # odd number of images
     res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths[:3], "-o", str(out)])
     assert res.exit_code != 0 and "LEFT RIGHT pairs" in res.output
@@ -437,6 +457,18 @@ def test_cli(lab, tmp_path):
     (tmp_path / "broken.json").write_text("{")
     res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / "broken.json"), *paths[:2], "-o", str(tmp_path / "z.h5")])
     assert res.exit_code != 0 and "not valid JSON" in res.output
+
+
+def read_stereo_settings(path):
+    from dic.sequence import read_stereo
+
+    return read_stereo(path).settings
+
+
+def read_stereo_indices(path):
+    from dic.sequence import read_stereo
+
+    return read_stereo(path).indices
 
 
 def test_specimen_edge_on_dark_background_is_flagged():

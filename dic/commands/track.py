@@ -91,6 +91,13 @@ def track(reference, current, output, subset, step, order, search, search_method
     summary = []
     previous = None  # (params, valid) of the last frame: the next frame's initial guess
     with writer, tqdm(total=len(current), unit="frame", disable=quiet, desc="track") as bar:
+        # resuming: every finished frame must have been computed from the image given for it now
+        for k, cur_path in enumerate(current):
+            if writer.is_done(k + 1):
+                try:
+                    writer.check_frame(k + 1, str(cur_path), image_digest(read_image(cur_path)))
+                except ValueError as exc:
+                    raise _fail(exc) from None
         for k, cur_path in enumerate(current):
             index = k + 1
             if writer.is_done(index):
@@ -118,7 +125,11 @@ def track(reference, current, output, subset, step, order, search, search_method
                     f"frame {index} ({cur_path}): {exc}" + (f"; frames before it are saved in {output}" if index > 1 else "")
                 ) from None
             seconds = time.perf_counter() - t0
-            writer.write_frame(index, field, strain=strain, path=str(cur_path), attrs={"seconds": seconds})
+            try:
+                writer.write_frame(index, field, strain=strain, path=str(cur_path), sha256=image_digest(cur),
+                                   attrs={"seconds": seconds})
+            except ValueError as exc:  # dic.store.ResultWriteError (a full disk): says what the file keeps
+                raise _fail(exc) from None
             if figure_dir is not None:
                 from dic.plots.fields import write_field_figure
 

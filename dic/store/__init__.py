@@ -13,10 +13,12 @@ kind        format attr        frame payload                                   m
 ==========  =================  ==============================================  ===========================
 
 Modules, lowest first: :mod:`~dic.store.layout` (shared names, digests, JSON),
-:mod:`~dic.store.dic2d` and :mod:`~dic.store.stereo` (payloads), :mod:`~dic.store.results`
+:mod:`~dic.store.dic2d` and :mod:`~dic.store.stereo` (payloads), :mod:`~dic.store.files` (lock,
+temporary file, space reservation, fsync, the in-use and write errors), :mod:`~dic.store.results`
 (writer, reader, whole-file readers).
 """
 from .dic2d import FORMAT_NAME, FrameResult, TrackResults
+from .files import ResultFileInUse, ResultWriteError
 from .layout import SCHEMA_VERSION, image_digest
 from .results import KINDS, ResultReader, ResultWriter, read_field, read_results, read_stereo
 from .stereo import FORMAT_NAME as STEREO_FORMAT_NAME
@@ -24,4 +26,4 @@ from .stereo import StereoResults
 
 __all__ = ["ResultWriter", "ResultReader", "read_results", "read_stereo", "read_field", "TrackResults",
            "FrameResult", "StereoResults", "SCHEMA_VERSION", "FORMAT_NAME", "STEREO_FORMAT_NAME", "KINDS",
-           "image_digest"]
+           "image_digest", "ResultFileInUse", "ResultWriteError"]

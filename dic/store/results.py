@@ -14,26 +14,36 @@ Both kinds share one root layout (docs/results_format.md)::
 
 The frame protocol is the same for both: a frame is written into ``/frames/<index>.partial``,
 renamed to ``/frames/<index>`` and marked ``complete`` only when it is whole; the file is
-flushed after every frame. An interrupted run therefore keeps every finished frame, and a rerun
-with the same output, reference image(s), settings (and rig) skips them
-(:meth:`ResultWriter.is_done`) and drops leftovers of the frame that was cut short.
+flushed and fsynced after every frame. An interrupted run therefore keeps every finished frame,
+and a rerun with the same output, reference image(s), settings (and rig) skips them
+(:meth:`ResultWriter.is_done`; :meth:`ResultWriter.check_frame` refuses a frame whose image
+differs) and drops leftovers of the frame that was cut short. The lock, the temporary file of a
+new run and the space reservation that keeps a full disk from corrupting a file are
+:mod:`dic.store.files`.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from . import dic2d, stereo
+from . import dic2d, files, stereo
 from .layout import SCHEMA_VERSION, StoreKind, frame_name, now, plain, role_attr, settings_json, specula_version
 
-__all__ = ["ResultWriter", "ResultReader", "KINDS", "read_results", "read_stereo", "read_field"]
+__all__ = ["ResultWriter", "ResultReader", "KINDS", "read_results", "read_stereo", "read_field", "ResultFileInUse",
+           "ResultWriteError"]
+
+ResultFileInUse = files.ResultFileInUse
+ResultWriteError = files.ResultWriteError
 
 KINDS: dict[str, StoreKind] = {dic2d.KIND.name: dic2d.KIND, stereo.KIND.name: stereo.KIND}
 _BY_FORMAT = {k.format: k for k in KINDS.values()}
 _MODES = ("resume", "overwrite", "new")
+_RESERVE_MARGIN = 1 << 20  # bytes reserved beyond a frame's arrays: its metadata, the groups' growth
 
 
 def _kind(kind) -> StoreKind:
@@ -185,7 +195,13 @@ class ResultWriter(_ResultFile):
         ``resume`` (default) opens an existing compatible file and keeps its complete frames;
         ``overwrite`` starts afresh; ``new`` refuses an existing file.
 
-    Use as a context manager; :meth:`write_frame` flushes the file after each frame.
+    The writer holds an exclusive lock (``<file>.lock``) while it is open: a second writer on the
+    same file gets :class:`dic.store.ResultFileInUse`. A new run (a new file, or ``overwrite``) is
+    written to ``<file>.tmp`` and renamed over ``<file>`` with its first frame (stereo: the
+    reference match), so a run that fails before that leaves an existing file untouched.
+    :meth:`write_frame` reserves the frame's space first, then flushes and fsyncs the file; a
+    write that fails (a full disk) raises :class:`dic.store.ResultWriteError` and closes the
+    writer, leaving every finished frame readable and resumable. Use as a context manager.
     """
 
     def __init__(self, path, *, reference_path="", reference_shape=None, reference_sha256="",
@@ -205,6 +221,21 @@ class ResultWriter(_ResultFile):
         if not self.kind.needs_rig and rig is not None:
             raise ValueError(f"a {self.kind.label} result file has no rig; pass rig=None")
         rig_json = json.dumps(_rig_dict(rig)) if rig is not None else None
+        self._tmp: Path | None = None  # the temporary file of a new run, until it is renamed into place
+        self._warned_paths_only = False
+        files.check_output_path(self.path)
+        self._lock = files.FileLock(Path(os.path.abspath(self.path)))
+        self._lock.acquire()  # before anything is opened, truncated or replaced
+        try:
+            self._open(h5py, mode, paths, digests, shape, rig_json)
+        except BaseException:
+            self._release()
+            raise
+
+    def _open(self, h5py, mode, paths, digests, shape, rig_json) -> None:
+        tmp = files.temp_path(Path(os.path.abspath(self.path)))
+        if tmp.exists():  # left by a run killed before its first frame (we hold the lock: nobody writes it)
+            tmp.unlink()
         exists = self.path.exists()
         if exists and mode == "new":
             raise ValueError(f"result file {self.path} already exists; choose another output or allow overwriting")
@@ -212,22 +243,34 @@ class ResultWriter(_ResultFile):
             try:
                 self._h5 = h5py.File(self.path, "a")
             except OSError as exc:
+                if files.is_lock_error(exc):
+                    raise files.ResultFileInUse(
+                        f"result file {self.path} is in use by another process (HDF5 could not lock it); wait for "
+                        "that process to finish or close it, or write to another file") from None
+                if files.os_errno(exc) in (errno.EACCES, errno.EPERM, errno.EROFS):
+                    raise ValueError(f"cannot open the result file {self.path} for writing to resume: "
+                                     f"{files.reason(exc)}") from None
                 raise ValueError(
                     f"cannot open the existing result file {self.path} to resume ({exc}); it may be corrupt: "
                     "delete it or write to another file") from None
             try:
                 self._check_compatible(paths, digests, shape, rig_json)
-            except ValueError:
+            except BaseException:
                 self._h5.close()
                 raise
-            frames = self._h5.require_group("frames")  # stereo files of v1 create it with the first state
-            for name in list(frames.keys()):  # leftovers of an interrupted frame
-                if name.endswith(".partial") or not frames[name].attrs.get("complete", 0):
-                    del frames[name]
-            self._h5.attrs["updated"] = now()
-        else:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._h5 = h5py.File(self.path, "w")
+            try:
+                frames = self._h5.require_group("frames")  # stereo files of v1 create it with the first state
+                for name in list(frames.keys()):  # leftovers of an interrupted frame
+                    if name.endswith(".partial") or not frames[name].attrs.get("complete", 0):
+                        del frames[name]
+                self._h5.attrs["updated"] = now()
+                self._sync()
+            except (OSError, RuntimeError) as exc:
+                raise self._fail(exc, "the resumed file's header") from None
+            return
+        self._tmp = tmp
+        try:
+            self._h5 = h5py.File(tmp, "w")
             f = self._h5
             f.attrs["format"] = self.kind.format
             f.attrs["schema_version"] = SCHEMA_VERSION
@@ -244,7 +287,112 @@ class ResultWriter(_ResultFile):
                 ref.attrs[role_attr(role, "sha256")] = d
             f.create_group("settings").attrs["json"] = self._settings_json
             f.create_group("frames")
+            self._sync()
+        except (OSError, RuntimeError) as exc:
+            raise self._fail(exc, "a new result file") from None
+
+    # -- the file on disk
+    def _fd(self) -> int | None:
+        try:
+            fd = self._h5.id.get_vfd_handle()
+        except Exception:  # noqa: BLE001 - a driver without a file descriptor
+            return None
+        return fd if isinstance(fd, int) else None
+
+    def _sync(self) -> None:
+        """Flush HDF5's buffers and fsync the file: what is written now survives a crash or a power cut."""
         self._h5.flush()
+        fd = self._fd()
+        if fd is not None:
+            os.fsync(fd)
+        self._synced_size = int(self._h5.id.get_filesize())  # all the file needs as of now (>= HDF5's end)
+
+    def _reserve(self, nbytes: int) -> None:
+        fd = self._fd()
+        if fd is not None:
+            files.reserve(fd, int(self._h5.id.get_filesize()), int(nbytes * 1.25) + _RESERVE_MARGIN)
+
+    def _commit(self) -> None:
+        """Rename a new run's temporary file into place (once it holds its reference data)."""
+        if self._tmp is not None:
+            os.replace(self._tmp, self._tmp.with_name(self.path.name))
+            files.fsync_folder(self._tmp.parent)
+            self._tmp = None
+
+    def _release(self) -> None:
+        """Give up the lock; a new run that never reached :meth:`_commit` is discarded."""
+        if self._h5 is not None and self._h5.id.valid:
+            try:
+                self._h5.close()
+            except Exception:  # noqa: BLE001 - discarded anyway
+                files.abandon(self._h5)
+        if self._tmp is not None:
+            try:
+                self._tmp.unlink()
+            except OSError:
+                pass
+            self._tmp = None
+        if getattr(self, "_lock", None) is not None:
+            self._lock.release()
+
+    def _fail(self, exc: BaseException, what: str) -> files.ResultWriteError:
+        """After a failed write: close without writing anything more, and the message to raise."""
+        done: list[int] = []
+        try:
+            done = self.done_frames()
+        except Exception:  # noqa: BLE001 - only for the message
+            pass
+        new = self._tmp is not None
+        if self._h5 is not None:
+            files.abandon(self._h5)
+            size = getattr(self, "_synced_size", None)
+            if not new and size is not None:  # give the space of the frame that failed back to the disk
+                try:
+                    if self.path.stat().st_size > size:
+                        os.truncate(self.path, size)
+                except OSError:
+                    pass
+        self._release()
+        noun = self.kind.frame_noun
+        if new:
+            kept = "Nothing was written" + (f"; the previous {self.path.name} is unchanged" if self.path.exists() else "")
+        elif done:
+            kept = (f"{self.path} keeps its {len(done)} finished {noun}{'s' if len(done) != 1 else ''} (last: {done[-1]}); "
+                    "make room and rerun the same command to resume")
+        else:
+            kept = f"{self.path} is as it was; make room and rerun the same command to resume"
+        return files.write_error(self.path, what, exc, kept)
+
+    def _writable(self):
+        if self._h5 is None or not self._h5.id.valid:
+            raise ValueError(f"the result writer of {self.path} is closed")
+        return self._h5
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        elif self._tmp is not None:  # a new run that failed before its first frame: keep any previous file
+            self._release()
+        else:
+            try:
+                self.close()
+            except files.ResultWriteError:
+                pass  # the error that ended the run is the one to report
+
+    def close(self) -> None:
+        """Flush, fsync and close the file, and release its lock; closing twice is harmless."""
+        h5 = self._h5
+        if h5 is not None and h5.id.valid:
+            try:
+                self._sync()
+                fd, end = self._fd(), int(h5.id.get_filesize())
+                if fd is not None and os.fstat(fd).st_size > end:  # the unused part of the last reservation
+                    os.ftruncate(fd, end)
+                h5.close()
+                self._commit()
+            except (OSError, RuntimeError) as exc:
+                raise self._fail(exc, "the end of the run") from None
+        self._release()
 
     def _check_compatible(self, paths, digests, shape, rig_json) -> None:
         f, kind = self._h5, self.kind
@@ -279,55 +427,138 @@ class ResultWriter(_ResultFile):
                                  "or overwrite it")
 
     # -- writing
-    def write_frame(self, index: int, field, *, strain=None, path="", attrs: dict | None = None) -> None:
-        """Write one frame, mark it complete, then flush.
+    def write_frame(self, index: int, field, *, strain=None, path="", sha256="", attrs: dict | None = None) -> None:
+        """Write one frame, mark it complete, then flush and fsync the file.
 
         ``field``: a :class:`dic.track.Field2D`-like object (``points``, ``u``, ``v`` and optionally
         ``params``, ``zncc``, ``iterations``, ``status``, ``valid``) for 2-D, with ``strain`` a
         :class:`dic.strain.StrainField` or None; a :class:`dic.field3d.Field3D` for stereo.
-        ``path``: the current image file (2-D) or (left, right) files (stereo). ``attrs``: extra
-        frame attributes (e.g. ``seconds``).
+        ``path``: the current image file (2-D) or (left, right) files (stereo). ``sha256``: the
+        :func:`dic.store.image_digest` of that image (or pair), stored so that a resumed run can
+        check it is given the same images (:meth:`check_frame`). ``attrs``: extra frame
+        attributes (e.g. ``seconds``).
+
+        Raises :class:`dic.store.ResultWriteError` (and closes the writer) when the file cannot
+        be written, e.g. on a full disk; the frames finished before stay readable and resumable.
         """
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
             raise ValueError(f"frame index must be a non-negative integer, got {index!r}")
         paths = _per_image(self.kind, path, "path")
-        frames = self._h5["frames"]
+        digests = _per_image(self.kind, sha256, "sha256")
+        frames = self._writable()["frames"]
         name = frame_name(index)
-        if name in frames:
-            del frames[name]
         tmp = name + ".partial"
-        if tmp in frames:
-            del frames[tmp]
-        g = frames.create_group(tmp)
+        what = f"{self.kind.frame_noun} {index}"
         try:
-            self.kind.write_payload(g, field, strain)
-        except BaseException:
-            del frames[tmp]
-            raise
-        g.attrs["index"] = int(index)
-        for role, p in zip(self.kind.image_roles, paths):
-            g.attrs[role_attr(role, "path")] = p
-        g.attrs["written"] = now()
-        for k, v in (attrs or {}).items():
-            g.attrs[k] = v
-        frames.move(tmp, name)
-        frames[name].attrs["complete"] = 1
-        self._h5.attrs["updated"] = now()
-        self._h5.flush()
+            self._reserve(_nbytes(field) + _nbytes(strain))
+            if name in frames:  # rewriting a finished frame: it is gone from the file first
+                del frames[name]
+                self._sync()
+            if tmp in frames:
+                del frames[tmp]
+            g = frames.create_group(tmp)
+            try:
+                self.kind.write_payload(g, field, strain)
+            except (OSError, RuntimeError):
+                raise
+            except BaseException:  # a field the payload refuses (ValueError), Ctrl-C: the writer stays usable
+                del frames[tmp]
+                raise
+            g.attrs["index"] = int(index)
+            for role, p in zip(self.kind.image_roles, paths):
+                g.attrs[role_attr(role, "path")] = p
+            for role, d in zip(self.kind.image_roles, digests):
+                if d:
+                    g.attrs[role_attr(role, "sha256")] = d
+            g.attrs["written"] = now()
+            for k, v in (attrs or {}).items():
+                g.attrs[k] = v
+            frames.move(tmp, name)
+            frames[name].attrs["complete"] = 1
+            self._h5.attrs["updated"] = now()
+            self._sync()
+        except (OSError, RuntimeError) as exc:
+            raise self._fail(exc, what) from None
+        self._commit()
 
     def write_match(self, match) -> None:
-        """Store the reference :class:`dic.stereo.StereoMatch` (stereo files, once), then flush."""
+        """Store the reference :class:`dic.stereo.StereoMatch` (stereo files, once), then flush and fsync."""
         if self.kind is not stereo.KIND:
             raise ValueError(f"a {self.kind.label} result file has no reference match")
-        if "reference/match" in self._h5:
+        h5 = self._writable()
+        if "reference/match" in h5:
             raise ValueError(f"{self.path} already holds a reference match")
-        g = self._h5["reference"].create_group("match")
         try:
-            stereo.write_match(g, match)
-        except BaseException:
-            del self._h5["reference/match"]
-            raise
-        self._h5.flush()
+            self._reserve(_nbytes(match))
+            g = h5["reference"].create_group("match")
+            try:
+                stereo.write_match(g, match)
+            except (OSError, RuntimeError):
+                raise
+            except BaseException:
+                del h5["reference/match"]
+                raise
+            self._sync()
+        except (OSError, RuntimeError) as exc:
+            raise self._fail(exc, "the reference match") from None
+        self._commit()
+
+    def check_frame(self, index: int, path="", sha256="") -> None:
+        """Refuse to resume past a finished frame that was computed from other image(s).
+
+        ``path`` and ``sha256`` are the image file(s) given for frame ``index`` now and their
+        :func:`dic.store.image_digest` (a pair for stereo). Nothing is checked when the frame is
+        not finished yet. When the frame and the caller both have digests, the digests decide (the
+        same image under another path is accepted); a frame without digests (files of older
+        Specula versions) is compared by path, and a warning says so once. Raises ValueError
+        naming the frame and both paths.
+        """
+        if not self.is_done(index):
+            return
+        roles = self.kind.image_roles
+        given = _per_image(self.kind, path, "path")
+        given_d = _per_image(self.kind, sha256, "sha256")
+        g = self._frames()[frame_name(index)]
+        stored = tuple(str(g.attrs.get(role_attr(r, "path"), "")) for r in roles)
+        stored_d = tuple(str(g.attrs.get(role_attr(r, "sha256"), "")) for r in roles)
+        if all(stored_d) and all(given_d):
+            same, how = stored_d == given_d, "the images differ"
+        else:
+            if not all(stored_d) and not self._warned_paths_only:
+                self._warned_paths_only = True
+                warnings.warn(f"{self.path} holds no image digests for its finished {self.kind.frame_noun}s (written "
+                              "by an older Specula): resuming compares their image paths only", stacklevel=2)
+            same, how = all(_same_path(a, b) for a, b in zip(stored, given)), "the image paths differ"
+        if not same:
+            raise ValueError(
+                f"{self.path} holds {self.kind.frame_noun} {index} computed from {_show(stored)}, but this run gives "
+                f"{_show(given)} for it ({how}); resume with the same images, write to another file, or start "
+                "afresh (--overwrite, mode='overwrite')")
+
+
+def _same_path(a: str, b: str) -> bool:
+    if a == b:
+        return True
+    try:
+        return bool(a and b) and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _show(paths: tuple[str, ...]) -> str:
+    shown = [p or "an array" for p in paths]
+    return shown[0] if len(shown) == 1 else "(" + ", ".join(shown) + ")"
+
+
+def _nbytes(obj) -> int:
+    """Bytes of the arrays of a field, strain or match (the space a frame may need, uncompressed)."""
+    if obj is None:
+        return 0
+    try:
+        values = obj.arrays().values() if callable(getattr(obj, "arrays", None)) else vars(obj).values()
+    except Exception:  # noqa: BLE001 - only an estimate; the payload writer checks the object
+        return 0
+    return sum(int(v.nbytes) for v in values if isinstance(v, np.ndarray))
 
 
 class ResultReader(_ResultFile):
@@ -349,6 +580,10 @@ class ResultReader(_ResultFile):
         try:
             self._h5 = h5py.File(self.path, "r")
         except OSError as exc:
+            if files.is_lock_error(exc):
+                raise files.ResultFileInUse(
+                    f"result file {self.path} is in use by another process (a run still writing it); read it when "
+                    "that run has finished") from None
             raise ValueError(f"cannot open result file {self.path}: {exc}") from None
         try:
             fmt = self._h5.attrs.get("format")
