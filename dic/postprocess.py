@@ -402,6 +402,9 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     if not isinstance(results, (str, os.PathLike)):
         raise ValueError(f"results must be the path of a 2-D result file, got {type(results).__name__}")
     src = Path(os.fspath(results))
+    dst = Path(os.fspath(output)) if output is not None else src
+    if dst.suffix.lower() not in (".h5", ".hdf5"):
+        raise ValueError(f"the output must be an HDF5 file ending in .h5, got {dst.name}")
     with ResultReader(src) as r:
         if r.kind.name != "dic2d":
             raise ValueError(f"{src} is a {r.kind.label} result file; recompute_strain recomputes the strain of "
@@ -417,13 +420,11 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     if scale is not None:
         settings[SCALE_KEY] = _scale_value(scale)
     strains = {i: strain(f, window=n, min_points=min_points) for i, f in res.frames.items()}
-    dst = Path(os.fspath(output)) if output is not None else src
-    if dst.suffix.lower() not in (".h5", ".hdf5"):
-        raise ValueError(f"the output must be an HDF5 file ending in .h5, got {dst.name}")
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".h5", prefix=f".{dst.stem}.", dir=dst.parent)
-    os.close(fd)
+    tmp = None
     try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".h5", prefix=f".{dst.stem}.", dir=dst.parent)
+        os.close(fd)
         ref = res.reference
         with ResultWriter(tmp, reference_path=ref.get("path", ""), reference_shape=ref.get("shape") or None,
                           reference_sha256=ref.get("sha256", ""), settings=settings, mode="overwrite") as w:
@@ -431,8 +432,10 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
                 attrs = {k: v for k, v in f.attrs.items() if k not in ("complete", "written")}
                 w.write_frame(i, f, strain=strains[i], path=f.path, attrs=attrs)
         os.replace(tmp, dst)
+    except OSError as exc:
+        raise ValueError(f"cannot write {dst}: {exc.strerror or exc}") from None
     finally:
-        if os.path.exists(tmp):
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
     return dst
 
@@ -469,7 +472,7 @@ class Extensometer:
     def table(self) -> tuple[list[str], np.ndarray]:
         """Column names and an (F, k) table (frame, length0, length, elongation, strain, end displacements)."""
         d = self.start_displacement.shape[1]
-        comps = "uvw"[:d] if self.unit == "px" or d == 2 else "UVW"
+        comps = "uv" if d == 2 else "UVW"
         names = ["frame", f"length0_{self.unit}", f"length_{self.unit}", f"elongation_{self.unit}", "strain"]
         names += [f"start_{c}_{self.unit}" for c in comps] + [f"end_{c}_{self.unit}" for c in comps]
         cols = [self.frames.astype(np.float64), self.length0, self.length, self.elongation, self.strain]

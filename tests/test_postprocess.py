@@ -239,6 +239,10 @@ def test_recompute_strain(sequence, tmp_path):
         recompute_strain(sequence, tmp_path / "x.csv", window=5)
     with pytest.raises(ValueError, match="result file not found"):
         recompute_strain(tmp_path / "missing.h5", tmp_path / "y.h5", window=5)
+    (tmp_path / "dir.h5").mkdir()
+    with pytest.raises(ValueError, match="cannot write .*dir.h5"):
+        recompute_strain(sequence, tmp_path / "dir.h5", window=5)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
 def test_errors_name_the_problem(sequence, tmp_path):
@@ -381,6 +385,8 @@ def test_cli_strain(sequence, tmp_path):
     assert r.exit_code == 1 and "window must be an odd integer >= 3" in r.output and "Traceback" not in r.output
     r = _invoke("strain", sequence, "--window", 5.5, "-o", out)
     assert r.exit_code == 2 and "odd integer >= 3" in r.output
+    r = _invoke("strain", sequence, "--window", "nan", "-o", out)
+    assert r.exit_code == 2 and "finite" in r.output and "Traceback" not in r.output
     r = _invoke("strain", tmp_path / "missing.h5", "--window", 5)
     assert r.exit_code == 1 and "result file not found" in r.output
 
@@ -411,6 +417,10 @@ def test_cli_extensometer_history_profile(sequence, tmp_path):
     assert r.exit_code == 2 and "frame indices" in r.output
     r = _invoke("extensometer", sequence, "--from", "40,60", "--to", "120,60", "--at", "mm")
     assert r.exit_code == 1 and "positions in mm need a scale" in r.output
+    r = _invoke("extensometer", sequence, "--from", "40,60", "--to", "120,60", "--plot", tmp_path / "e.csv" / "x.png")
+    assert r.exit_code == 1 and "cannot write" in r.output and "Traceback" not in r.output
+    r = _invoke("extensometer", sequence, "--from", "40,60", "--to", "120,60", "--plot", tmp_path / "e.xyz")
+    assert r.exit_code == 1 and "not supported" in r.output
     r = _invoke("extensometer", sequence, "--from", "1,1", "--to", "2,2")
     assert r.exit_code == 0 and "outside the valid points in every frame" in r.output
 

@@ -100,7 +100,10 @@ def _outputs(csv_path, plot_path, names, table, plot, obj, quiet) -> None:
     if csv_path is not None:
         _write_csv_checked(csv_path, names, table)
     if plot_path is not None:
-        _run(plot, plot_path, obj)
+        try:
+            _run(plot, plot_path, obj)
+        except OSError as exc:
+            raise click.ClickException(f"cannot write {plot_path}: {exc.strerror or exc}") from None
     if not quiet:
         if csv_path is None:
             _echo_table(names, table)
@@ -138,6 +141,8 @@ def strain(results, window, in_px, output, min_points, scale, quiet):
     from dic.postprocess import recompute_strain
     from dic.store import read_results
 
+    if not np.isfinite(window):
+        raise click.BadParameter(f"must be a finite number, got {window}", param_hint="--window")
     if not in_px:
         if window != int(window):
             raise click.BadParameter(f"a window in grid points must be an odd integer >= 3, got {window:g}",

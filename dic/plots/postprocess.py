@@ -29,6 +29,12 @@ def _label(name: str, unit: str) -> str:
     return f"{name} ({unit})" if unit else name
 
 
+def _integer_frames(ax) -> None:
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+
+
 def _pt(p, at: str) -> str:
     return f"({p[0]:g}, {p[1]:g}) {at}"
 
@@ -44,6 +50,7 @@ def extensometer_figure(ext, *, title: str | None = None, figsize=(6.4, 5.6)):
     ax2.plot(ext.frames, ext.elongation, "o-", color="C1")
     ax2.set_ylabel(_label("length change", ext.unit))
     ax2.set_xlabel("frame")
+    _integer_frames(ax2)
     ax2.axhline(0.0, color="0.6", lw=0.8)
     l0 = ext.length0[np.isfinite(ext.length0)]
     gauge = f"gauge {_pt(ext.start, ext.at)} -> {_pt(ext.end, ext.at)}"
@@ -75,6 +82,7 @@ def history_figure(histories, *, title: str | None = None, figsize=(6.4, 4.0)):
     names = {h.quantity for h in items}
     ax.set_ylabel(_label(", ".join(sorted(names)), units.pop() if len(units) == 1 else ""))
     ax.set_xlabel("frame")
+    _integer_frames(ax)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
     if title:
