@@ -425,6 +425,22 @@ def test_cli_extensometer_history_profile(sequence, tmp_path):
     assert r.exit_code == 0 and "outside the valid points in every frame" in r.output
 
 
+def test_cli_on_stereo_results(stereo_file, tmp_path):
+    r = _invoke("history", stereo_file, "--point", "100,80")  # default quantity: U for stereo
+    assert r.exit_code == 0, r.output
+    assert "U_mm" in r.output and len(r.output.strip().splitlines()) == 4
+    r = _invoke("extensometer", stereo_file, "--from", "40,50", "--to", "120,70", "--csv", tmp_path / "e.csv")
+    assert r.exit_code == 0, r.output
+    assert open(tmp_path / "e.csv").readline().strip().endswith("end_U_mm,end_V_mm,end_W_mm")
+    r = _invoke("profile", stereo_file, "--from", "40,50", "--to", "120,50", "--quantity", "von_mises", "-q",
+                "--plot", tmp_path / "p.png")
+    assert r.exit_code == 0 and r.output == "" and (tmp_path / "p.png").exists()
+    r = _invoke("strain", stereo_file, "--window", 5, "-o", tmp_path / "s.h5")
+    assert r.exit_code == 1 and "stereo result file" in r.output
+    r = _invoke("history", stereo_file, "--point", "100,80", "--scale", 0.1)
+    assert r.exit_code == 1 and "scale applies to 2-D results only" in r.output
+
+
 def test_cli_track_stores_the_scale(tmp_path):
     from dic.io import write_image
     from dic.synth import speckle_pair

@@ -96,6 +96,17 @@ def _run(fn, *args, **kwargs):
         raise click.ClickException(str(exc)) from None
 
 
+def _load(results, quantity=None):
+    """The result file read once, and the quantity (default: u for 2-D, U for stereo)."""
+    from dic.postprocess import load_results
+    from dic.store import TrackResults
+
+    res = _run(load_results, results)
+    if quantity is None:
+        quantity = "u" if isinstance(res, TrackResults) else "U"
+    return res, quantity
+
+
 def _outputs(csv_path, plot_path, names, table, plot, obj, quiet) -> None:
     if csv_path is not None:
         _write_csv_checked(csv_path, names, table)
@@ -191,9 +202,9 @@ def extensometer(results, start, end, at, scale, frames, csv_path, plot_path, qu
 @click.command(name="history", context_settings=CONTEXT)
 @click.argument("results", type=RESULTS)
 @click.option("--point", required=True, type=POINT, help="Reference position x,y.")
-@click.option("--quantity", default="u", show_default=True,
+@click.option("--quantity", default=None,
               help="u, v, magnitude, exx, eyy, exy, Exx, Eyy, Exy, e1, e2, angle, max_shear, von_mises, zncc "
-                   "(stereo: U, V, W, magnitude, X, Y, Z, exx, eyy, exy, e1, ...).")
+                   "(stereo: U, V, W, magnitude, X, Y, Z, exx, eyy, exy, e1, ...). Default: u (stereo: U).")
 @_AT
 @_SCALE
 @_FRAMES
@@ -205,7 +216,8 @@ def history(results, point, quantity, at, scale, frames, csv_path, plot_path, qu
     from dic.plots.postprocess import write_history_figure
     from dic.postprocess import point_history
 
-    h = _run(point_history, results, point, quantity, at=at, frames=_frames(frames), scale=scale)
+    res, quantity = _load(results, quantity)
+    h = _run(point_history, res, point, quantity, at=at, frames=_frames(frames), scale=scale)
     names, table = h.table()
     _outputs(csv_path, plot_path, names, table, write_history_figure, h, quiet)
 
@@ -214,7 +226,7 @@ def history(results, point, quantity, at, scale, frames, csv_path, plot_path, qu
 @click.argument("results", type=RESULTS)
 @click.option("--from", "start", required=True, type=POINT, help="Start of the line x,y (reference position).")
 @click.option("--to", "end", required=True, type=POINT, help="End of the line x,y (reference position).")
-@click.option("--quantity", default="u", show_default=True, help="As for specula history.")
+@click.option("--quantity", default=None, help="As for specula history. Default: u (stereo: U).")
 @click.option("--samples", default=None, type=click.IntRange(min=2),
               help="Points along the line (default: about one per grid step).")
 @_AT
@@ -228,7 +240,8 @@ def profile(results, start, end, quantity, samples, at, scale, frames, csv_path,
     from dic.plots.postprocess import write_profile_figure
     from dic.postprocess import line_profile
 
-    p = _run(line_profile, results, start, end, quantity, samples=samples, at=at, frames=_frames(frames),
+    res, quantity = _load(results, quantity)
+    p = _run(line_profile, res, start, end, quantity, samples=samples, at=at, frames=_frames(frames),
              scale=scale)
     names, table = p.table()
     _outputs(csv_path, plot_path, names, table, write_profile_figure, p, quiet)
