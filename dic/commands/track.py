@@ -36,13 +36,16 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--tol", default=None, type=click.FloatRange(min=0, min_open=True), help="Convergence threshold on the parameter update norm.")
 @click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=0),
               help="Strain fit window in grid points (odd, >= 3); 0 skips strain.")
+@click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Image scale in mm per px, stored with the results (post-processing then gives positions "
+                   "and displacements in mm).")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write a displacement/strain figure per frame (PNG) into this folder.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          device, figure_dir, overwrite, quiet):
+          scale, device, figure_dir, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
@@ -68,6 +71,14 @@ def track(reference, current, output, subset, step, order, search, search_method
     settings = {"subset": subset, "step": step, "order": order, "search": search,
                 "search_method": search_method if search else None, "max_iter": max_iter, "tol": tol,
                 "strain_window": strain_window}
+    if scale is not None:  # only when given, so files written without it still resume
+        from dic.postprocess import SCALE_KEY
+        from kernels.checks import positive_float
+
+        try:
+            settings[SCALE_KEY] = positive_float(scale, "the scale", detail=" (mm per px)")
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--scale") from None
     try:
         tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search,
                                 search_method=search_method, max_iter=max_iter, tol=tol, device=device)

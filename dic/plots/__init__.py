@@ -6,6 +6,8 @@
   (:func:`write_intrinsics_figures`, :func:`write_mirror_figures`, :func:`write_rig_figures`,
   :func:`write_check_figures`, :func:`view_mosaic`, :func:`view_detail`, :class:`FigureSkipped`).
 * :mod:`dic.plots.lab` — the layout of a virtual-lab scene (:func:`plot_layout`).
+* :mod:`dic.plots.postprocess` — virtual extensometers, point histories and line profiles
+  (:func:`extensometer_figure`, :func:`history_figure`, :func:`profile_figure` and their ``write_*``).
 * :mod:`dic.plots._common` — shared plumbing: figures on their own Agg canvas (no pyplot, no global
   backend change), colour limits, saving.
 
@@ -25,6 +27,9 @@ _EXPORTS = {
     "write_rig_figures": "calibration", "write_check_figures": "calibration",
     "view_mosaic": "calibration", "view_detail": "calibration", "FigureSkipped": "calibration",
     "plot_layout": "lab",
+    "extensometer_figure": "postprocess", "write_extensometer_figure": "postprocess",
+    "history_figure": "postprocess", "write_history_figure": "postprocess",
+    "profile_figure": "postprocess", "write_profile_figure": "postprocess",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -1,0 +1,247 @@
+"""Post-processing verbs: ``specula strain``, ``extensometer``, ``history`` and ``profile``.
+
+They read a result file (2-D or stereo), call :mod:`dic.postprocess` and write a result file,
+a CSV table and/or a figure (:mod:`dic.plots.postprocess`). docs/postprocessing.md has examples.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import click
+import numpy as np
+
+CONTEXT = {"help_option_names": ["-h", "--help"]}
+
+
+class PointType(click.ParamType):
+    """A point ``x,y`` (two numbers separated by a comma)."""
+
+    name = "x,y"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        parts = str(value).replace(" ", "").split(",")
+        try:
+            if len(parts) != 2:
+                raise ValueError
+            x, y = (float(p) for p in parts)
+            if not (np.isfinite(x) and np.isfinite(y)):
+                raise ValueError
+        except ValueError:
+            self.fail(f"expected a point x,y (two finite numbers separated by a comma), got {value!r}", param, ctx)
+        return x, y
+
+
+POINT = PointType()
+RESULTS = click.Path(dir_okay=False, path_type=Path)
+_AT = click.option("--at", default="px", show_default=True, type=click.Choice(["px", "mm"]),
+                   help="Units of the given positions: reference image px, or mm (2-D: with a scale; stereo: "
+                        "the X, Y coordinates of the result's frame).")
+_SCALE = click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
+                      help="mm per px of a 2-D result (default: the one stored in the file, else px).")
+_FRAMES = click.option("--frames", default=None,
+                       help="Frame indices to use, e.g. 1,2,5 or 2-6 (default: every finished frame).")
+_CSV = click.option("--csv", "csv_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
+                    help="Write the table to this CSV file.")
+_PLOT = click.option("--plot", "plot_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
+                     help="Write a figure (PNG, PDF, SVG: from the suffix).")
+
+
+def _frames(text):
+    """``"1,2,5"`` / ``"2-6"`` / ``"1,3-4"`` -> [indices], or None."""
+    if text is None:
+        return None
+    out = []
+    try:
+        for part in str(text).replace(" ", "").split(","):
+            if "-" in part:
+                lo, hi = (int(v) for v in part.split("-"))
+                if hi < lo:
+                    raise ValueError
+                out.extend(range(lo, hi + 1))
+            else:
+                out.append(int(part))
+    except ValueError:
+        raise click.BadParameter(f"expected frame indices such as 1,2,5 or 2-6, got {text!r}",
+                                 param_hint="--frames") from None
+    return out
+
+
+def _fmt(x) -> str:
+    return "nan" if not np.isfinite(x) else f"{x:.6g}"
+
+
+def _write_csv(path: Path, names, table) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(names)
+        for row in table:
+            w.writerow([int(v) if i == 0 else repr(float(v)) for i, v in enumerate(row)])
+
+
+def _echo_table(names, table) -> None:
+    click.echo("  ".join(f"{n:>14}" for n in names))
+    for row in table:
+        click.echo("  ".join(f"{int(row[0]):>14}" if i == 0 else f"{_fmt(v):>14}" for i, v in enumerate(row)))
+
+
+def _run(fn, *args, **kwargs):
+    """Call a library function; every ValueError (bad file, quantity, point ...) as one message."""
+    try:
+        return fn(*args, **kwargs)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def _load(results, quantity=None):
+    """The result file read once, and the quantity (default: u for 2-D, U for stereo)."""
+    from dic.postprocess import load_results
+    from dic.store import TrackResults
+
+    res = _run(load_results, results)
+    if quantity is None:
+        quantity = "u" if isinstance(res, TrackResults) else "U"
+    return res, quantity
+
+
+def _outputs(csv_path, plot_path, names, table, plot, obj, quiet) -> None:
+    if csv_path is not None:
+        _write_csv_checked(csv_path, names, table)
+    if plot_path is not None:
+        try:
+            _run(plot, plot_path, obj)
+        except OSError as exc:
+            raise click.ClickException(f"cannot write {plot_path}: {exc.strerror or exc}") from None
+    if not quiet:
+        if csv_path is None:
+            _echo_table(names, table)
+        else:
+            click.echo(f"table: {csv_path}")
+        if plot_path is not None:
+            click.echo(f"figure: {plot_path}")
+
+
+def _write_csv_checked(path, names, table) -> None:
+    try:
+        _write_csv(path, names, table)
+    except OSError as exc:
+        raise click.ClickException(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+@click.command(name="strain", context_settings=CONTEXT)
+@click.argument("results", type=RESULTS)
+@click.option("--window", required=True, type=float,
+              help="Strain fit window: grid points per side (odd >= 3), or its side in px with --px.")
+@click.option("--px/--grid-points", "in_px", default=False, show_default=True,
+              help="Whether --window is in px or in grid points.")
+@click.option("-o", "--output", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="New result file (.h5); default: rewrite RESULTS in place.")
+@click.option("--min-points", default=None, type=click.IntRange(min=3), help="Fewest valid points per fit.")
+@click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Also store this scale, mm per px (positions and displacements of post-processing in mm).")
+@click.option("-q", "--quiet", is_flag=True, help="No summary.")
+def strain(results, window, in_px, output, min_points, scale, quiet):
+    """Recompute the strain of a 2-D result file (specula track) with another window.
+
+    Everything but the strain is copied unchanged; the new window (grid points) is recorded in
+    the settings as strain_window.
+    """
+    from dic.postprocess import recompute_strain
+    from dic.store import read_results
+
+    if not np.isfinite(window):
+        raise click.BadParameter(f"must be a finite number, got {window}", param_hint="--window")
+    if not in_px:
+        if window != int(window):
+            raise click.BadParameter(f"a window in grid points must be an odd integer >= 3, got {window:g}",
+                                     param_hint="--window")
+        window = int(window)
+    path = _run(recompute_strain, results, output, window=window, unit="px" if in_px else "grid",
+                min_points=min_points, scale=scale)
+    if not quiet:
+        res = read_results(path)
+        n = res.settings.get("strain_window")
+        for i, f in res.frames.items():
+            ok = np.asarray(f.strain["valid"], bool)
+            exx = np.asarray(f.strain["exx"])[ok]
+            click.echo(f"frame {i}: strain at {int(ok.sum())}/{ok.size} points, "
+                       f"exx mean {_fmt(exx.mean()) if exx.size else 'nan'}")
+        click.echo(f"strain window {n} grid points; results: {path}")
+
+
+@click.command(name="extensometer", context_settings=CONTEXT)
+@click.argument("results", type=RESULTS)
+@click.option("--from", "start", required=True, type=POINT, help="First gauge end x,y (reference position).")
+@click.option("--to", "end", required=True, type=POINT, help="Second gauge end x,y (reference position).")
+@_AT
+@_SCALE
+@_FRAMES
+@_CSV
+@_PLOT
+@click.option("-q", "--quiet", is_flag=True, help="Do not print the table.")
+def extensometer(results, start, end, at, scale, frames, csv_path, plot_path, quiet):
+    """A virtual extensometer: gauge length, length change and strain per frame.
+
+    The displacement at each gauge end is interpolated linearly from the valid points of each
+    frame; strain = (length - length0) / length0.
+    """
+    from dic.plots.postprocess import write_extensometer_figure
+    from dic.postprocess import extensometer as run
+
+    ext = _run(run, results, start, end, at=at, frames=_frames(frames), scale=scale)
+    names, table = ext.table()
+    _outputs(csv_path, plot_path, names, table, write_extensometer_figure, ext, quiet)
+    if not ext.valid.any():
+        click.echo("Warning: a gauge end lies outside the valid points in every frame; move it inside the "
+                   "measured region", err=True)
+
+
+@click.command(name="history", context_settings=CONTEXT)
+@click.argument("results", type=RESULTS)
+@click.option("--point", required=True, type=POINT, help="Reference position x,y.")
+@click.option("--quantity", default=None,
+              help="u, v, magnitude, exx, eyy, exy, Exx, Eyy, Exy, e1, e2, angle, max_shear, von_mises, zncc "
+                   "(stereo: U, V, W, magnitude, X, Y, Z, exx, eyy, exy, e1, ...). Default: u (stereo: U).")
+@_AT
+@_SCALE
+@_FRAMES
+@_CSV
+@_PLOT
+@click.option("-q", "--quiet", is_flag=True, help="Do not print the table.")
+def history(results, point, quantity, at, scale, frames, csv_path, plot_path, quiet):
+    """A quantity at one point over the frames (linear interpolation of the valid points)."""
+    from dic.plots.postprocess import write_history_figure
+    from dic.postprocess import point_history
+
+    res, quantity = _load(results, quantity)
+    h = _run(point_history, res, point, quantity, at=at, frames=_frames(frames), scale=scale)
+    names, table = h.table()
+    _outputs(csv_path, plot_path, names, table, write_history_figure, h, quiet)
+
+
+@click.command(name="profile", context_settings=CONTEXT)
+@click.argument("results", type=RESULTS)
+@click.option("--from", "start", required=True, type=POINT, help="Start of the line x,y (reference position).")
+@click.option("--to", "end", required=True, type=POINT, help="End of the line x,y (reference position).")
+@click.option("--quantity", default=None, help="As for specula history. Default: u (stereo: U).")
+@click.option("--samples", default=None, type=click.IntRange(min=2),
+              help="Points along the line (default: about one per grid step).")
+@_AT
+@_SCALE
+@_FRAMES
+@_CSV
+@_PLOT
+@click.option("-q", "--quiet", is_flag=True, help="Do not print the table.")
+def profile(results, start, end, quantity, samples, at, scale, frames, csv_path, plot_path, quiet):
+    """A quantity along a line, per frame (one row per frame and sample)."""
+    from dic.plots.postprocess import write_profile_figure
+    from dic.postprocess import line_profile
+
+    res, quantity = _load(results, quantity)
+    p = _run(line_profile, res, start, end, quantity, samples=samples, at=at, frames=_frames(frames),
+             scale=scale)
+    names, table = p.table()
+    _outputs(csv_path, plot_path, names, table, write_profile_figure, p, quiet)

@@ -1,0 +1,632 @@
+"""Post-processing of result files: strain re-computation, derived strains, extensometers, histories.
+
+Works on 2-D results (``specula track``, :func:`dic.store.read_results`) and stereo results
+(``specula stereo``, :func:`dic.store.read_stereo`), given as a path or as the object read back.
+docs/postprocessing.md has worked examples; the CLI verbs are ``specula strain``, ``extensometer``,
+``history`` and ``profile`` (dic/commands/postprocess.py).
+
+* :func:`principal_strains` — principal strains ``e1 >= e2``, the angle of ``e1``, the maximum
+  shear and the von Mises equivalent strain of an in-plane strain tensor (definitions below).
+* :func:`recompute_strain` — the strain of a 2-D result file with another fit window (grid
+  points or px), written through the results store (:class:`dic.store.ResultWriter`).
+* :func:`extensometer` — a virtual extensometer: a gauge between two reference points, its
+  length, length change and engineering strain per frame.
+* :func:`point_history`, :func:`line_profile` — a quantity at a point over the frames, and
+  along a line per frame.
+
+Values at arbitrary points are interpolated linearly (:class:`scipy.interpolate.LinearNDInterpolator`,
+a Delaunay triangulation of the frame's valid points): exact for fields that are linear in the
+position, NaN outside the convex hull of the valid points.
+
+Derived strains (tensor shear ``exy``, as everywhere in Specula; the engineering shear strain is
+``γxy = 2 exy``)::
+
+    e1, e2     = (exx + eyy)/2 ± sqrt(((exx - eyy)/2)² + exy²)     (e1 >= e2)
+    angle      = ½ atan2(2 exy, exx - eyy)   in (-π/2, π/2], rad, from the x axis to e1's direction
+                 (towards +y; image y points down, so positive angles turn clockwise on screen)
+    max_shear  = (e1 - e2)/2                 tensor; the engineering maximum shear is e1 - e2
+    von_mises  = (2/√3) sqrt(e1² + e1 e2 + e2²) = (2/√3) sqrt(exx² + exx eyy + eyy² + exy²)
+
+``von_mises`` is the equivalent strain ``sqrt(2/3 ε:ε)`` of the in-plane tensor completed with
+the incompressible out-of-plane strain ``e3 = -(e1 + e2)`` (the convention of VIC-3D and of
+plasticity): it equals ``e`` for an incompressible uniaxial strain ``(e, -e/2)`` and ``γ/√3``
+for a pure engineering shear ``γ``.
+
+Units: 2-D positions and displacements are px, or mm with a scale (``scale=`` mm/px, or the
+``scale_mm_per_px`` a file stores in its settings, see :func:`results_scale`); strains are
+dimensionless and unchanged by a scale. Stereo results are in mm (docs/stereo.md).
+"""
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["PrincipalStrains", "principal_strains", "recompute_strain", "window_points", "results_scale",
+           "SCALE_KEY", "Extensometer", "extensometer", "History", "point_history", "Profile", "line_profile",
+           "quantities", "load_results"]
+
+#: the settings key of a result file that holds its mm/px scale (2-D; absent: pixels)
+SCALE_KEY = "scale_mm_per_px"
+
+_DERIVED = ("e1", "e2", "angle", "max_shear", "von_mises")
+_Q2D_DISP = ("u", "v", "magnitude")
+_Q2D_STRAIN = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy") + _DERIVED
+_Q3D_DISP = ("U", "V", "W", "magnitude", "X", "Y", "Z")
+_Q3D_STRAIN = ("exx", "eyy", "exy") + _DERIVED
+_Q3D_OTHER = ("zncc_stereo", "zncc_left", "zncc_right")
+
+
+# ------------------------------------------------------------------------------------------------
+# derived strains
+
+
+@dataclass
+class PrincipalStrains:
+    """Principal strains and derived measures of an in-plane strain tensor (module docstring).
+
+    Every attribute is a float64 array of the shape of the input components (NaN where an input
+    is NaN): ``e1 >= e2`` the principal strains, ``angle`` (rad, of ``e1``'s direction from the
+    x axis, in (-π/2, π/2]), ``max_shear`` the tensor maximum shear ``(e1 - e2)/2``,
+    ``von_mises`` the equivalent strain.
+    """
+
+    e1: np.ndarray
+    e2: np.ndarray
+    angle: np.ndarray
+    max_shear: np.ndarray
+    von_mises: np.ndarray
+
+
+def _components_of(source):
+    if isinstance(source, dict):
+        missing = [k for k in ("exx", "eyy", "exy") if k not in source]
+        if missing:
+            raise ValueError(f"the strain dict has no {', '.join(missing)}")
+        return source["exx"], source["eyy"], source["exy"]
+    try:
+        return source.exx, source.eyy, source.exy
+    except AttributeError:
+        raise ValueError("principal_strains takes exx, eyy, exy arrays, or one object with them (a "
+                         f"dic.strain.StrainField, a dic.field3d.Field3D, a strain dict); got {type(source).__name__}"
+                         ) from None
+
+
+def principal_strains(exx, eyy=None, exy=None) -> PrincipalStrains:
+    """Principal strains, angle, maximum shear and von Mises strain of ``(exx, eyy, exy)``.
+
+    Parameters
+    ----------
+    exx, eyy, exy : array-like of one shape (or scalars)
+        Normal strains and the **tensor** shear (``exy = γxy / 2``), e.g. a
+        :class:`dic.strain.StrainField`'s small strain or a :class:`dic.field3d.Field3D`'s
+        Green-Lagrange surface strain. Alternatively pass one object with attributes or keys
+        ``exx``, ``eyy``, ``exy`` as ``exx`` alone (then the Green-Lagrange ``Exx``... of a
+        StrainField are not used: call with ``s.Exx, s.Eyy, s.Exy`` for those).
+
+    Returns
+    -------
+    PrincipalStrains
+    """
+    if eyy is None and exy is None:
+        exx, eyy, exy = _components_of(exx)
+    elif eyy is None or exy is None:
+        raise ValueError("principal_strains needs all three components exx, eyy, exy (or one object holding them)")
+    try:
+        a, b, c = (np.asarray(x, dtype=np.float64) for x in (exx, eyy, exy))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"exx, eyy, exy must be numeric arrays: {exc}") from None
+    if not (a.shape == b.shape == c.shape):
+        raise ValueError(f"exx, eyy, exy must have one shape, got {a.shape}, {b.shape}, {c.shape}")
+    mean = 0.5 * (a + b)
+    radius = np.hypot(0.5 * (a - b), c)
+    e1, e2 = mean + radius, mean - radius
+    angle = 0.5 * np.arctan2(2.0 * c, a - b)
+    von_mises = 2.0 / math.sqrt(3.0) * np.sqrt(a * a + a * b + b * b + c * c)
+    return PrincipalStrains(e1=e1, e2=e2, angle=angle, max_shear=radius, von_mises=von_mises)
+
+
+# ------------------------------------------------------------------------------------------------
+# scale and loading
+
+
+def _scale_value(scale, what="scale") -> float:
+    from kernels.checks import positive_float
+
+    return positive_float(scale, what, detail=" (mm per px)")
+
+
+def results_scale(results) -> float | None:
+    """The mm/px scale a 2-D result stores (settings key :data:`SCALE_KEY`), or None (pixels)."""
+    settings = getattr(results, "settings", None) or {}
+    value = settings.get(SCALE_KEY)
+    return None if value is None else _scale_value(value, f"the stored {SCALE_KEY}")
+
+
+def load_results(results):
+    """A result file (path) read back, or ``results`` itself when already read.
+
+    Returns a :class:`dic.store.TrackResults` (2-D) or a :class:`dic.store.StereoResults`.
+    """
+    from .store import ResultReader, StereoResults, TrackResults, read_results, read_stereo
+
+    if isinstance(results, (TrackResults, StereoResults)):
+        return results
+    if isinstance(results, (str, os.PathLike)):
+        with ResultReader(results) as r:
+            kind = r.kind.name
+        return read_results(results) if kind == "dic2d" else read_stereo(results)
+    raise ValueError("results must be a result file (path) or what dic.store.read_results / read_stereo return, "
+                     f"got {type(results).__name__}")
+
+
+class _Source:
+    """The frames of a 2-D or stereo result, with quantities, validity and positions per frame."""
+
+    def __init__(self, results, scale=None):
+        from .store import TrackResults
+
+        self.results = load_results(results)
+        self.is_2d = isinstance(self.results, TrackResults)
+        if self.is_2d:
+            self.scale = _scale_value(scale) if scale is not None else results_scale(self.results)
+            self.frames = dict(sorted(self.results.frames.items()))
+            self.length_unit = "mm" if self.scale is not None else "px"
+        else:
+            if scale is not None:
+                raise ValueError("a scale applies to 2-D results only; stereo results are in mm already")
+            self.scale = None
+            self.frames = {i: self.results.fields[i] for i in self.results.indices}
+            self.length_unit = "mm"
+        if not self.frames:
+            raise ValueError("the results hold no finished frame")
+        self._interp_cache: dict = {}
+
+    @property
+    def kind(self) -> str:
+        return "2-D" if self.is_2d else "stereo"
+
+    def names(self) -> tuple[str, ...]:
+        if self.is_2d:
+            return _Q2D_DISP + _Q2D_STRAIN + ("zncc",)
+        return _Q3D_DISP + _Q3D_STRAIN + _Q3D_OTHER
+
+    def unit(self, name: str) -> str:
+        if name == "angle":
+            return "rad"
+        if name in ("u", "v", "magnitude", "U", "V", "W", "X", "Y", "Z"):
+            return self.length_unit
+        return ""
+
+    def select(self, frames) -> list[int]:
+        available = list(self.frames)
+        if frames is None:
+            return available
+        if isinstance(frames, (int, np.integer)) and not isinstance(frames, bool):
+            frames = [frames]
+        try:
+            wanted = [int(f) for f in frames]
+        except (TypeError, ValueError):
+            raise ValueError(f"frames must be frame indices, got {frames!r}") from None
+        missing = [f for f in wanted if f not in self.frames]
+        if missing:
+            raise ValueError(f"no finished frame {', '.join(map(str, missing))} in the results; "
+                             f"available: {available}")
+        if not wanted:
+            raise ValueError("frames is empty")
+        return wanted
+
+    def check_at(self, at: str) -> str:
+        if at not in ("px", "mm"):
+            raise ValueError(f"at must be 'px' (reference image pixels) or 'mm', got {at!r}")
+        if at == "mm" and self.is_2d and self.scale is None:
+            raise ValueError("positions in mm need a scale: pass scale= (mm per px; --scale) or store one with "
+                             "specula track --scale / recompute_strain(scale=)")
+        return at
+
+    def check_quantity(self, name: str) -> str:
+        if name not in self.names():
+            raise ValueError(f"unknown quantity {name!r} for {self.kind} results; choose one of "
+                             f"{', '.join(self.names())}")
+        return name
+
+    # -- per frame
+    def values(self, index: int, name: str):
+        """(values (N,), valid (N,)) of a quantity in frame ``index`` (displacements scaled)."""
+        f = self.frames[index]
+        if self.is_2d:
+            n = f.points.shape[0]
+            valid = np.ones(n, bool) if f.valid is None else np.asarray(f.valid, bool)
+            s = self.scale or 1.0
+            if name in _Q2D_DISP:
+                u, v = np.asarray(f.u, np.float64) * s, np.asarray(f.v, np.float64) * s
+                vals = {"u": u, "v": v}.get(name)
+                vals = np.hypot(u, v) if vals is None else vals
+            elif name == "zncc":
+                if f.zncc is None:
+                    raise ValueError(f"frame {index} has no zncc")
+                vals = np.asarray(f.zncc, np.float64)
+            else:
+                if f.strain is None:
+                    raise ValueError(f"frame {index} has no strain; recompute it with `specula strain` "
+                                     "(dic.postprocess.recompute_strain)")
+                valid = np.asarray(f.strain["valid"], bool)
+                if name in _DERIVED:
+                    vals = getattr(principal_strains(f.strain), name)
+                else:
+                    vals = np.asarray(f.strain[name], np.float64)
+        else:
+            valid = np.asarray(f.valid, bool)
+            if name == "magnitude":
+                vals = np.linalg.norm(f.uvw, axis=1)
+            elif name in _Q3D_STRAIN:
+                valid = np.asarray(f.strain_valid, bool)
+                vals = getattr(principal_strains(f), name) if name in _DERIVED else np.asarray(getattr(f, name), float)
+            else:
+                vals = np.asarray(getattr(f, name), np.float64)
+        vals = np.asarray(vals, np.float64)
+        return vals, valid & np.isfinite(vals)
+
+    def domain(self, index: int, at: str) -> np.ndarray:
+        """(N, 2) positions of the points in the units of ``at`` (where queries are given)."""
+        f = self.frames[index]
+        pts = np.asarray(f.points, np.float64)
+        if at == "px":
+            return pts
+        if self.is_2d:
+            return pts * self.scale
+        return np.column_stack([f.X, f.Y]).astype(np.float64)
+
+    def interpolate(self, index: int, at: str, values, valid, query) -> np.ndarray:
+        """Linear interpolation of ``values`` (N, k) over the valid points at ``query`` (M, 2); NaN outside."""
+        from scipy.interpolate import LinearNDInterpolator
+        from scipy.spatial import QhullError
+
+        dom = self.domain(index, at)
+        ok = valid & np.all(np.isfinite(dom), axis=1)
+        values = np.asarray(values, np.float64).reshape(dom.shape[0], -1)
+        query = np.asarray(query, np.float64).reshape(-1, 2)
+        out = np.full((query.shape[0], values.shape[1]), np.nan)
+        if ok.sum() < 3:
+            return out
+        key = (index, at, ok.tobytes())
+        tri = self._interp_cache.get(key)
+        if tri is None:
+            from scipy.spatial import Delaunay
+
+            try:
+                tri = Delaunay(dom[ok])
+            except (QhullError, ValueError):  # collinear or degenerate valid points
+                tri = False
+            self._interp_cache = {key: tri}  # one triangulation at a time: frames are visited in turn
+        if tri is False:
+            return out
+        return LinearNDInterpolator(tri, values[ok])(query)
+
+    def grid_spacing(self, at: str) -> float:
+        """Spacing of the points (in ``at`` units): the smallest nearest-neighbour distance's median."""
+        from scipy.spatial import cKDTree
+
+        index = next(iter(self.frames))
+        dom = self.domain(index, at)
+        dom = dom[np.all(np.isfinite(dom), axis=1)]
+        if dom.shape[0] < 2:
+            return 1.0
+        d, _ = cKDTree(dom).query(dom, k=2)
+        return float(np.median(d[:, 1])) or 1.0
+
+
+def quantities(results) -> tuple[str, ...]:
+    """Names of the quantities :func:`point_history` and :func:`line_profile` accept for ``results``."""
+    return _Source(results).names()
+
+
+def _xy(value, what: str) -> np.ndarray:
+    try:
+        p = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a point (x, y), got {value!r}") from None
+    if p.shape != (2,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"{what} must be a finite point (x, y), got {value!r}")
+    return p
+
+
+# ------------------------------------------------------------------------------------------------
+# strain with another window
+
+
+def window_points(window, step, unit: str = "grid") -> int:
+    """The strain fit window in grid points for a window given in grid points or in px.
+
+    ``unit="grid"``: ``window`` is the number of grid points per side (odd, >= 3), returned as is.
+    ``unit="px"``: ``window`` is a side length in px; the window is the largest odd number of grid
+    points ``n`` whose span ``(n - 1) · step`` does not exceed it (at least 3: a window narrower
+    than two grid steps is refused). ``step`` is the grid spacing in px (a number, or the
+    ``(dx, dy)`` of :func:`dic.strain.grid_layout`, which must then be equal).
+    """
+    from kernels.checks import odd_int
+
+    if unit == "grid":
+        return odd_int(window, "window", detail=" (grid points per side)")
+    if unit != "px":
+        raise ValueError(f"unit must be 'grid' (grid points) or 'px', got {unit!r}")
+    steps = np.atleast_1d(np.asarray(step, dtype=np.float64))
+    if steps.size not in (1, 2) or not np.all(np.isfinite(steps) & (steps > 0)):
+        raise ValueError(f"step must be a positive grid spacing in px, got {step!r}")
+    if steps.size == 2 and abs(steps[0] - steps[1]) > 1e-9 * steps.max():
+        raise ValueError(f"a window in px needs equal grid steps along x and y, got {steps[0]:g} and {steps[1]:g} px; "
+                         "give the window in grid points")
+    d = float(steps[0])
+    try:
+        w = float(window)
+    except (TypeError, ValueError):
+        raise ValueError(f"window must be a length in px, got {window!r}") from None
+    if not (math.isfinite(w) and w > 0):
+        raise ValueError(f"window must be a positive length in px, got {window!r}")
+    n = 2 * int(math.floor(w / (2 * d) + 1e-9)) + 1
+    if n < 3:
+        raise ValueError(f"a strain window of {w:g} px spans fewer than 3 grid points at a step of {d:g} px; "
+                         f"give at least {2 * d:g} px")
+    return n
+
+
+def recompute_strain(results, output=None, *, window, unit: str = "grid", min_points: int | None = None,
+                     scale=None) -> Path:
+    """Recompute the strain of a 2-D result file with another fit window; write it through the store.
+
+    Parameters
+    ----------
+    results : path of a 2-D result file (``specula track``)
+    output : path, optional
+        The new ``.h5`` file (overwritten if it exists). None: replace ``results`` in place (a new
+        file is written next to it and renamed over it only when complete).
+    window : int or float
+        The fit window of :func:`dic.strain.strain`: grid points per side (``unit="grid"``) or
+        its side in px (``unit="px"``, see :func:`window_points`).
+    min_points : int, optional
+        Passed to :func:`dic.strain.strain`.
+    scale : float, optional
+        Also store this mm/px scale (settings key :data:`SCALE_KEY`); None keeps the stored one.
+
+    Everything but the strain is copied unchanged (points, displacements, parameters, statuses,
+    frame attributes); the settings record the new ``strain_window`` (grid points). Returns the
+    path written.
+    """
+    from .store import ResultReader, ResultWriter, read_results
+    from .strain import grid_layout, strain
+
+    if not isinstance(results, (str, os.PathLike)):
+        raise ValueError(f"results must be the path of a 2-D result file, got {type(results).__name__}")
+    src = Path(os.fspath(results))
+    dst = Path(os.fspath(output)) if output is not None else src
+    if dst.suffix.lower() not in (".h5", ".hdf5"):
+        raise ValueError(f"the output must be an HDF5 file ending in .h5, got {dst.name}")
+    with ResultReader(src) as r:
+        if r.kind.name != "dic2d":
+            raise ValueError(f"{src} is a {r.kind.label} result file; recompute_strain recomputes the strain of "
+                             "2-D results (stereo surface strain is computed by the stereo run, strain_window=)")
+    res = read_results(src)
+    if not res.frames:
+        raise ValueError(f"{src} holds no finished frame")
+    first = next(iter(res.frames.values()))
+    _, _, step = grid_layout(first.points)
+    n = window_points(window, step, unit)
+    settings = dict(res.settings)
+    settings["strain_window"] = n
+    if scale is not None:
+        settings[SCALE_KEY] = _scale_value(scale)
+    strains = {i: strain(f, window=n, min_points=min_points) for i, f in res.frames.items()}
+    tmp = None
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".h5", prefix=f".{dst.stem}.", dir=dst.parent)
+        os.close(fd)
+        ref = res.reference
+        with ResultWriter(tmp, reference_path=ref.get("path", ""), reference_shape=ref.get("shape") or None,
+                          reference_sha256=ref.get("sha256", ""), settings=settings, mode="overwrite") as w:
+            for i, f in res.frames.items():
+                attrs = {k: v for k, v in f.attrs.items() if k not in ("complete", "written")}
+                w.write_frame(i, f, strain=strains[i], path=f.path, attrs=attrs)
+        os.replace(tmp, dst)
+    except OSError as exc:
+        raise ValueError(f"cannot write {dst}: {exc.strerror or exc}") from None
+    finally:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+    return dst
+
+
+# ------------------------------------------------------------------------------------------------
+# extensometers, histories, profiles
+
+
+@dataclass
+class Extensometer:
+    """A virtual extensometer over the frames of a result (:func:`extensometer`).
+
+    ``start``, ``end`` the gauge ends as given (reference positions, units ``at``); ``unit`` the
+    length unit of the lengths ("px", or "mm" for scaled 2-D and stereo results). Per frame
+    (arrays of length F, aligned with ``frames``): ``length0`` the reference gauge length,
+    ``length`` the deformed one, ``elongation = length - length0``, ``strain = elongation /
+    length0`` (engineering), ``start_displacement`` / ``end_displacement`` (F, 2 | 3) the
+    displacement of each end, ``valid`` both ends inside the valid points (NaN otherwise).
+    """
+
+    start: np.ndarray
+    end: np.ndarray
+    at: str
+    unit: str
+    frames: np.ndarray
+    length0: np.ndarray
+    length: np.ndarray
+    elongation: np.ndarray
+    strain: np.ndarray
+    start_displacement: np.ndarray
+    end_displacement: np.ndarray
+    valid: np.ndarray
+
+    def table(self) -> tuple[list[str], np.ndarray]:
+        """Column names and an (F, k) table (frame, length0, length, elongation, strain, end displacements)."""
+        d = self.start_displacement.shape[1]
+        comps = "uv" if d == 2 else "UVW"
+        names = ["frame", f"length0_{self.unit}", f"length_{self.unit}", f"elongation_{self.unit}", "strain"]
+        names += [f"start_{c}_{self.unit}" for c in comps] + [f"end_{c}_{self.unit}" for c in comps]
+        cols = [self.frames.astype(np.float64), self.length0, self.length, self.elongation, self.strain]
+        cols += list(self.start_displacement.T) + list(self.end_displacement.T)
+        return names, np.column_stack(cols)
+
+
+def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None) -> Extensometer:
+    """A virtual extensometer between two reference points, over the frames of a result.
+
+    Parameters
+    ----------
+    results : a result file (2-D or stereo) or what :func:`dic.store.read_results` /
+        :func:`dic.store.read_stereo` return.
+    start, end : (x, y)
+        The gauge ends in the reference state: reference image px (``at="px"``; stereo: the left
+        reference image), or mm (``at="mm"``; 2-D: px times the scale; stereo: the ``(X, Y)``
+        coordinates of the result's frame, best with ``frame="plane"``).
+    frames : frame indices, optional (default: every finished frame)
+    scale : float, optional
+        mm/px of a 2-D result (default: the stored one, else px).
+
+    The displacement at each end is interpolated linearly from the frame's valid points; the
+    gauge length is the distance between the ends (2-D in the image plane; stereo in 3-D).
+    """
+    src = _Source(results, scale)
+    at = src.check_at(at)
+    a, b = _xy(start, "start"), _xy(end, "end")
+    if np.allclose(a, b):
+        raise ValueError(f"the gauge ends coincide ({a[0]:g}, {a[1]:g}); give two distinct points")
+    idx = src.select(frames)
+    dim = 2 if src.is_2d else 3
+    F = len(idx)
+    L0, L = np.full(F, np.nan), np.full(F, np.nan)
+    dA, dB = np.full((F, dim), np.nan), np.full((F, dim), np.nan)
+    q = np.stack([a, b])
+    for k, i in enumerate(idx):
+        if src.is_2d:
+            u, valid_u = src.values(i, "u")
+            v, valid_v = src.values(i, "v")
+            s = src.scale or 1.0
+            q_px = q / s if at == "mm" else q
+            disp = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
+            ref = q_px * s
+        else:
+            f = src.frames[i]
+            valid = np.asarray(f.valid, bool) & np.all(np.isfinite(f.xyz), 1) & np.all(np.isfinite(f.uvw), 1)
+            both = src.interpolate(i, at, np.column_stack([f.xyz, f.uvw]), valid, q)
+            ref, disp = both[:, :3], both[:, 3:]
+        dA[k], dB[k] = disp[0], disp[1]
+        L0[k] = np.linalg.norm(ref[1] - ref[0])
+        L[k] = np.linalg.norm(ref[1] + disp[1] - ref[0] - disp[0])
+    ok = np.isfinite(L) & np.isfinite(L0)
+    L[~ok] = np.nan
+    elong = L - L0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        eps = elong / L0
+    return Extensometer(start=a, end=b, at=at, unit=src.length_unit, frames=np.asarray(idx, np.int64), length0=L0,
+                        length=L, elongation=elong, strain=eps, start_displacement=dA, end_displacement=dB, valid=ok)
+
+
+@dataclass
+class History:
+    """A quantity at one reference point over the frames (:func:`point_history`).
+
+    ``values`` (F,) aligned with ``frames``; NaN where the point is outside the frame's valid points.
+    """
+
+    quantity: str
+    unit: str
+    point: np.ndarray
+    at: str
+    frames: np.ndarray
+    values: np.ndarray
+
+    def table(self) -> tuple[list[str], np.ndarray]:
+        """Column names and the (F, 2) table (frame, value)."""
+        name = self.quantity + (f"_{self.unit}" if self.unit else "")
+        return ["frame", name], np.column_stack([self.frames.astype(np.float64), self.values])
+
+
+def point_history(results, point, quantity: str, *, at: str = "px", frames=None, scale=None) -> History:
+    """A quantity at one reference point over the frames of a result.
+
+    ``point`` (x, y) in reference image px (``at="px"``) or mm (``at="mm"``, see :func:`extensometer`);
+    ``quantity`` one of :func:`quantities` (2-D: u, v, magnitude, the strain components, e1, e2,
+    angle, max_shear, von_mises, zncc; stereo: U, V, W, magnitude, X, Y, Z, exx, eyy, exy, e1 ...).
+    Values are interpolated linearly from the frame's valid points (strain: its strain-valid points).
+    """
+    src = _Source(results, scale)
+    at = src.check_at(at)
+    quantity = src.check_quantity(quantity)
+    p = _xy(point, "point")
+    idx = src.select(frames)
+    out = np.full(len(idx), np.nan)
+    for k, i in enumerate(idx):
+        vals, valid = src.values(i, quantity)
+        out[k] = src.interpolate(i, at, vals, valid, p)[0, 0]
+    return History(quantity=quantity, unit=src.unit(quantity), point=p, at=at, frames=np.asarray(idx, np.int64),
+                   values=out)
+
+
+@dataclass
+class Profile:
+    """A quantity along a line, per frame (:func:`line_profile`).
+
+    ``positions`` (n, 2) the sample points (units ``at``), ``distance`` (n,) their distance from
+    ``start`` (units ``at``), ``values`` (F, n): row ``k`` is frame ``frames[k]``.
+    """
+
+    quantity: str
+    unit: str
+    start: np.ndarray
+    end: np.ndarray
+    at: str
+    positions: np.ndarray
+    distance: np.ndarray
+    frames: np.ndarray
+    values: np.ndarray
+
+    def table(self) -> tuple[list[str], np.ndarray]:
+        """Long-format column names and table: one row per (frame, sample): frame, distance, x, y, value."""
+        name = self.quantity + (f"_{self.unit}" if self.unit else "")
+        F, n = self.values.shape
+        cols = [np.repeat(self.frames.astype(np.float64), n), np.tile(self.distance, F),
+                np.tile(self.positions[:, 0], F), np.tile(self.positions[:, 1], F), self.values.reshape(-1)]
+        return ["frame", f"distance_{self.at}", f"x_{self.at}", f"y_{self.at}", name], np.column_stack(cols)
+
+
+def line_profile(results, start, end, quantity: str, *, samples: int | None = None, at: str = "px", frames=None,
+                 scale=None) -> Profile:
+    """A quantity along the segment ``start`` -> ``end`` (reference positions), per frame.
+
+    ``samples`` points evenly spaced from ``start`` to ``end`` (default: about one per grid step,
+    at least 2); the rest as :func:`point_history`.
+    """
+    from kernels.checks import positive_int
+
+    src = _Source(results, scale)
+    at = src.check_at(at)
+    quantity = src.check_quantity(quantity)
+    a, b = _xy(start, "start"), _xy(end, "end")
+    length = float(np.linalg.norm(b - a))
+    if length == 0:
+        raise ValueError(f"the line's ends coincide ({a[0]:g}, {a[1]:g}); give two distinct points")
+    if samples is None:
+        samples = max(2, int(round(length / src.grid_spacing(at))) + 1)
+    samples = positive_int(samples, "samples", minimum=2)
+    t = np.linspace(0.0, 1.0, samples)
+    pos = a[None, :] + t[:, None] * (b - a)[None, :]
+    idx = src.select(frames)
+    vals = np.full((len(idx), samples), np.nan)
+    for k, i in enumerate(idx):
+        v, valid = src.values(i, quantity)
+        vals[k] = src.interpolate(i, at, v, valid, pos)[:, 0]
+    return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
+                   distance=t * length, frames=np.asarray(idx, np.int64), values=vals)
