@@ -295,7 +295,7 @@ def test_cli_export_every_format(results2d, results3d, tmp_path):
 
     r = run([str(results2d), "--format", "csv", "-o", str(tmp_path / "csv")])
     assert r.exit_code == 0, r.output
-    assert "wrote 3 CSV files" in r.output
+    assert "wrote 3 CSV file(s), one per frame, to" in r.output
     assert np.array_equal(pd.read_csv(tmp_path / "csv" / "frame_000002.csv")["u"].to_numpy(), field2d(2).u)
     assert run([str(results3d), "-f", "mat", "-o", str(tmp_path / "r.mat"), "-q"]).exit_code == 0
     assert scipy.io.loadmat(tmp_path / "r.mat")["W"].shape == (3, 20)
@@ -304,6 +304,7 @@ def test_cli_export_every_format(results2d, results3d, tmp_path):
         assert ds.sizes["frame"] == 3
     r = run([str(results3d), "-f", "vtk", "-o", str(tmp_path / "vtk"), "--deformed"])
     assert r.exit_code == 0, r.output
+    assert "wrote 3 VTK file(s), one per frame, and a ParaView collection" in r.output
     assert "ParaView: open" in r.output and (tmp_path / "vtk" / "stereo.pvd").exists()
     assert len(meshio.read(tmp_path / "vtk" / "stereo_000002.vtu").points) == 19
     assert "export" in CliRunner().invoke(main, ["--help"]).output

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import click
 
-_WHAT = {"csv": "CSV files (one per frame)", "mat": "MATLAB file", "netcdf": "netCDF file",
-         "vtk": "VTK files (one per frame) and a ParaView collection"}
+_WHAT = {"csv": "CSV file(s), one per frame,", "mat": "MATLAB file", "netcdf": "netCDF file",
+         "vtk": "VTK file(s), one per frame, and a ParaView collection"}
 
 
 @click.command(name="export", context_settings={"help_option_names": ["-h", "--help"]})
@@ -45,6 +45,7 @@ def export(results, fmt, output, vtk_kind, deformed, quiet):
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     if not quiet:
-        click.echo(f"wrote {len(written)} {_WHAT[fmt]} to {output}")
+        n = len(written) - 1 if fmt == "vtk" else len(written)  # the .pvd is the collection
+        click.echo(f"wrote {n} {_WHAT[fmt]} to {output}")
         if fmt == "vtk":
             click.echo(f"ParaView: open {written[-1]}")
