@@ -69,10 +69,11 @@ class Field2D:
         text = f"Field2D: {n} points, {n_valid} valid{share}, subset {self.subset} px, order {self.order}"
         if self.step is not None:
             text += f", step {self.step} px"
-        if n_valid:
-            u, v = np.asarray(self.u)[self.valid], np.asarray(self.v)[self.valid]
-            text += (f"; valid u {np.nanmin(u):.4g}..{np.nanmax(u):.4g} px, "
-                     f"v {np.nanmin(v):.4g}..{np.nanmax(v):.4g} px")
+        u, v = np.asarray(self.u, dtype=np.float64), np.asarray(self.v, dtype=np.float64)
+        shown = np.asarray(self.valid, dtype=bool) & np.isfinite(u) & np.isfinite(v)
+        if np.any(shown):
+            u, v = u[shown], v[shown]
+            text += f"; valid u {u.min():.4g}..{u.max():.4g} px, v {v.min():.4g}..{v.max():.4g} px"
         return f"<{text}>"
 
     def _columns(self, strain=None) -> dict:
