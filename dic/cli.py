@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "extensometer": ("dic.commands.postprocess:extensometer", "Virtual extensometer: gauge length and strain per frame"),
     "history": ("dic.commands.postprocess:history", "A quantity at one point over the frames"),
     "profile": ("dic.commands.postprocess:profile", "A quantity along a line, per frame"),
+    "export": ("dic.commands.export:export", "Export a result file as CSV, MATLAB, netCDF or VTK (ParaView)"),
 }
 
 

@@ -1,15 +1,30 @@
-"""Exports of 3-D stereo-DIC results: VTK files for ParaView (meshio).
+"""Exports of DIC results that other tools open: CSV, MATLAB, netCDF/xarray and VTK (ParaView).
 
-* :func:`write_vtk` — one :class:`~dic.field3d.Field3D` as a VTK XML unstructured grid (``.vtu``):
-  ``kind="grid"`` gives a quad surface over the POI grid (a quad wherever its four corners are
-  valid), ``kind="points"`` a point cloud (one vertex cell per point). Only points with status
-  OK are written; every per-point field goes along as point data (``displacement`` and
-  ``normal`` as 3-vectors, the rest as scalars). Coordinates are the reference positions
-  (``deformed=True``: reference + displacement), in mm in the field's frame.
-* :func:`write_vtk_series` — a sequence of fields as one ``.vtu`` per state plus a ParaView
-  collection (``.pvd``) that plays them as time steps.
+Every export is written by the library that owns the format and starts from the one table of
+:mod:`dic.tabular` (same names and units everywhere; docs/exports.md):
 
-PNG maps of the same fields are drawn by :func:`dic.plots.fields.write_figures`.
+* :func:`to_xarray` / :func:`to_dataframe` — a field (:class:`~dic.field2d.Field2D`,
+  :class:`~dic.field3d.Field3D`, a result file's frame) or a whole result file
+  (:class:`~dic.store.TrackResults`, :class:`~dic.store.StereoResults`, or its path) as an xarray
+  Dataset (``frame`` x ``point``, coordinates ``x``, ``y`` and for stereo ``X``, ``Y``, ``Z``,
+  units and attributes) or a pandas DataFrame;
+* :func:`write_csv` — one CSV file per frame (pandas);
+* :func:`write_mat` — one MATLAB ``.mat`` file, a (frames x points) matrix per quantity (scipy.io);
+* :func:`write_netcdf` — the xarray Dataset as netCDF-4 (xarray, engine h5netcdf);
+* :func:`write_vtk` — one field as a VTK unstructured grid (meshio): ``kind="grid"`` a quad
+  surface over the POI grid (a quad wherever its four corners are written), ``kind="points"`` a
+  point cloud. By default only valid points are written (``invalid="drop"``); ``invalid="nan"``
+  writes every point that has a position, with NaN data where it is invalid. 3-D fields: positions
+  in mm in the field's frame (``deformed=True``: reference + displacement), every per-point field
+  as point data (``displacement``, ``normal`` as 3-vectors). 2-D fields: positions ``(x, y, 0)``
+  in px, point data ``u``, ``v``, ``displacement`` (u, v, 0), ``zncc``, ``iterations``, ``status``,
+  ``valid`` and the strains when there are any;
+* :func:`write_vtk_series` — a sequence (2-D or 3-D) as one ``.vtu`` per frame plus a ParaView
+  collection (``.pvd``): **the same points and cells at every time step**, NaN where a point is
+  invalid in that step, so ParaView's filters and probes follow each point through the sequence;
+* :func:`export_results` — any of these from a result file (``specula export``).
+
+PNG maps of the same fields are drawn by :mod:`dic.plots.fields`.
 """
 from __future__ import annotations
 
@@ -19,89 +34,369 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .field3d import Field3D
+from .field2d import Field2D
+from .field3d import SCALAR_FIELDS, Field3D
+from .store import FrameResult, ResultReader, StereoResults, TrackResults, read_results, read_stereo
 
-__all__ = ["write_vtk", "write_vtk_series"]
+__all__ = ["write_vtk", "write_vtk_series", "write_csv", "write_mat", "write_netcdf", "to_xarray", "to_dataframe",
+           "read_any", "export_results", "EXPORT_FORMATS", "NETCDF_ENGINE"]
 
-#: per-point scalars exported as VTK point data (besides the vectors)
-_VTK_SCALARS = ("X", "Y", "Z", "U", "V", "W", "exx", "eyy", "exy", "zncc_stereo", "zncc_left", "zncc_right",
-                "epipolar_ref_px", "epipolar_px", "reprojection_ref_px", "reprojection_px")
+#: formats of :func:`export_results` (``specula export --format``)
+EXPORT_FORMATS = ("csv", "mat", "netcdf", "vtk")
+#: the xarray engine of :func:`write_netcdf` (netCDF-4 on h5py, which Specula already uses)
+NETCDF_ENGINE = "h5netcdf"
 
-def _check_field(f) -> Field3D:
-    if not isinstance(f, Field3D):
-        raise ValueError(f"expected a dic.field3d.Field3D, got {type(f).__name__}")
+#: per-point scalars of a Field3D exported as VTK point data (besides the vectors)
+_VTK_SCALARS = SCALAR_FIELDS
+_STRAIN_2D = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy")
+_FIELDS = (Field2D, FrameResult, Field3D)
+#: point data that say where a point is (kept for invalid points in a series; the rest becomes NaN)
+_POSITION_DATA = frozenset({"X", "Y", "Z", "image_x", "image_y"})
+_RESULTS = (TrackResults, StereoResults)
+
+
+# ------------------------------------------------------------------------------------------------
+# results and tables
+
+
+def read_any(source):
+    """A result file's contents, whichever its kind: :class:`~dic.store.TrackResults` (2-D) or
+    :class:`~dic.store.StereoResults`; ``source`` is a path or already one of them."""
+    if isinstance(source, _RESULTS):
+        return source
+    if not isinstance(source, (str, os.PathLike)):
+        raise ValueError("expected a result file (path), dic.store.TrackResults or dic.store.StereoResults, "
+                         f"got {type(source).__name__}")
+    with ResultReader(source) as r:
+        kind = r.kind.name
+    return read_results(source) if kind == "dic2d" else read_stereo(source)
+
+
+def _tabular(obj):
+    if isinstance(obj, _FIELDS) or isinstance(obj, _RESULTS):
+        return obj
+    if isinstance(obj, (str, os.PathLike)):
+        return read_any(obj)
+    raise ValueError("expected a Field2D, Field3D, a result file's frame, TrackResults, StereoResults or a result "
+                     f"file path, got {type(obj).__name__}")
+
+
+def to_xarray(obj):
+    """An :class:`xarray.Dataset` of a field (over ``point``) or of a result file (over ``frame`` x
+    ``point``); ``obj`` is a field, a results object or the path of a result file."""
+    return _tabular(obj).to_xarray()
+
+
+def to_dataframe(obj):
+    """A :class:`pandas.DataFrame` of a field (index ``point``) or of a result file (index
+    ``frame``, ``point``); ``obj`` as for :func:`to_xarray`."""
+    return _tabular(obj).to_dataframe()
+
+
+def _out_path(path, suffixes: tuple[str, ...], what: str) -> Path:
+    p = Path(os.fspath(path))
+    if p.suffix.lower() not in suffixes:
+        raise ValueError(f"{what} output must end in {' or '.join(suffixes)}, got {p.name}")
+    if p.exists() and p.is_dir():
+        raise ValueError(f"{p} is a folder; give a file name ending in {' or '.join(suffixes)}")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def _frames_dataset(results):
+    res = read_any(results)
+    if not res.indices:
+        raise ValueError("the result file has no finished frame to export")
+    return res, res.to_xarray()
+
+
+def _stem(res) -> str:
+    return "stereo" if isinstance(res, StereoResults) else "frame"
+
+
+def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
+    """One CSV file per frame of a result file: ``<directory>/<stem>_<index>.csv`` (index 6 digits).
+
+    Columns: ``point`` (the row index), ``x``, ``y`` (px) (stereo: ``X``, ``Y``, ``Z`` mm), then
+    every quantity of :mod:`dic.tabular` (units in docs/exports.md); ``True``/``False`` flags,
+    empty cells for NaN. ``stem`` defaults to ``frame`` (2-D) or ``stereo``. Returns the paths.
+    For one field use ``field.to_dataframe().to_csv(path)``.
+    """
+    res, ds = _frames_dataset(results)
+    directory = Path(os.fspath(directory))
+    if directory.exists() and not directory.is_dir():
+        raise ValueError(f"the CSV output must be a folder, but {directory} is a file")
+    directory.mkdir(parents=True, exist_ok=True)
+    stem = _stem(res) if stem is None else str(stem)
+    if not stem or os.sep in stem or "/" in stem:
+        raise ValueError(f"stem must be a plain file name prefix, got {stem!r}")
+    from .tabular import dataframe
+
+    written = []
+    per_frame = [c for c in ds.coords if ds.coords[c].dims == ("frame",)]
+    for k, index in enumerate(ds["frame"].values):
+        one = ds.isel(frame=k).drop_vars(["frame", *[c for c in per_frame if c != "frame"]])
+        path = directory / f"{stem}_{int(index):06d}.csv"
+        dataframe(one).to_csv(path)
+        written.append(path)
+    return written
+
+
+def _grid_index(x, y):
+    """1-based (row, col) of each point and the grid shape, or None when the points are not a grid."""
+    from .strain import grid_layout
+
+    try:
+        index, shape, _ = grid_layout(np.column_stack([x, y]))
+    except ValueError:
+        return None
+    return index[:, 1] + 1, index[:, 0] + 1, shape
+
+
+def write_mat(results, path) -> Path:
+    """A MATLAB ``.mat`` file (v5, compressed; scipy.io.savemat) of a whole result file.
+
+    Variables: ``frame`` (1 x F) frame indices; ``x``, ``y`` (1 x N) px; each quantity as an
+    (F x N) matrix (row k = frame ``frame(k)``; stereo ``X``, ``Y``, ``Z`` too); flags as uint8;
+    ``grid_shape`` [rows cols], ``grid_row``, ``grid_col`` (1 x N, 1-based) when the points are a
+    grid (``M = nan(grid_shape); M(sub2ind(grid_shape, grid_row, grid_col)) = u(k, :)``); image
+    paths per frame as cell arrays; ``units`` and ``info`` (the file's attributes: settings,
+    reference, rig as text) as structs.
+    """
+    import scipy.io
+
+    res, ds = _frames_dataset(results)
+    p = _out_path(path, (".mat",), "the MATLAB")
+    out = {"frame": ds["frame"].values.astype(np.float64)}
+    units = {}
+    for name in list(ds.coords) + list(ds.data_vars):
+        if name in ("frame", "point"):
+            continue
+        arr = ds[name].values
+        if arr.dtype == bool:
+            arr = arr.astype(np.uint8)
+        elif arr.dtype.kind in "USO":
+            arr = np.asarray([str(v) for v in arr.ravel()], dtype=object).reshape(arr.shape)
+        out[name] = arr
+        unit = ds[name].attrs.get("units")
+        if unit:
+            units[name] = unit
+    grid = _grid_index(ds["x"].values, ds["y"].values)
+    if grid is not None:
+        out["grid_row"], out["grid_col"] = grid[0].astype(np.float64), grid[1].astype(np.float64)
+        out["grid_shape"] = np.asarray(grid[2], dtype=np.float64)
+    out["units"] = units
+    out["info"] = {str(k): (v if isinstance(v, str) else np.asarray(v)) for k, v in ds.attrs.items()}
+    scipy.io.savemat(p, out, do_compression=True, oned_as="row")
+    return p
+
+
+def write_netcdf(results, path) -> Path:
+    """The xarray Dataset of a result file (:func:`to_xarray`) as netCDF-4 (``.nc``), through
+    xarray's ``to_netcdf`` with the h5netcdf engine; ``xarray.open_dataset(path)`` reads it back
+    (flags as booleans, units and attributes kept). ``results`` may also be one field."""
+    obj = _tabular(results)
+    if isinstance(obj, _RESULTS) and not obj.indices:
+        raise ValueError("the result file has no finished frame to export")
+    ds = obj.to_xarray()
+    p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
+    ds.to_netcdf(p, engine=NETCDF_ENGINE)
+    return p
+
+
+# ------------------------------------------------------------------------------------------------
+# VTK (meshio)
+
+
+def _check_field(f):
+    if not isinstance(f, _FIELDS):
+        raise ValueError(f"expected a dic.field3d.Field3D, a dic.field2d.Field2D or a result file's frame, "
+                         f"got {type(f).__name__}")
     return f
 
 
-def _mesh(f: Field3D, kind: str, deformed: bool):
+class _Geometry:
+    """Positions, validity, grid and point data of one field, for VTK."""
+
+    def __init__(self, f, strain=None):
+        if isinstance(f, Field3D):
+            self.ref = f.xyz
+            self.cur = f.xyz_current
+            self.valid = f.valid & np.all(np.isfinite(self.ref), axis=1)
+            self.lattice = (np.arange(len(f)).reshape(f.grid_shape) if f.grid_shape is not None else None)
+            self.grid_hint = "grid_shape is None"
+            data = {name: np.asarray(getattr(f, name), dtype=np.float64) for name in _VTK_SCALARS}
+            data["displacement"] = f.uvw
+            data["normal"] = np.nan_to_num(f.normal)
+            data["strain_valid"] = f.strain_valid.astype(np.uint8)
+            data["status"] = f.status.astype(np.int32)
+            data["image_x"] = f.points[:, 0]
+            data["image_y"] = f.points[:, 1]
+            self.vectors_3d = True
+        else:
+            pts = np.asarray(f.points, dtype=np.float64)
+            n = pts.shape[0]
+            u = np.asarray(f.u, dtype=np.float64)
+            v = np.asarray(f.v, dtype=np.float64)
+            self.ref = np.column_stack([pts, np.zeros(n)])
+            self.cur = self.ref + np.column_stack([u, v, np.zeros(n)])
+            valid = np.ones(n, bool) if f.valid is None else np.asarray(f.valid, dtype=bool)
+            self.valid = valid & np.all(np.isfinite(pts), axis=1)
+            self.lattice = None
+            self.grid_hint = "the points are not on a regular grid"
+            try:
+                from .strain import grid_layout
+
+                index, shape, _ = grid_layout(pts)
+                lat = np.full(shape, -1, dtype=np.int64)
+                lat[index[:, 1], index[:, 0]] = np.arange(n)
+                self.lattice = lat
+            except ValueError:
+                pass
+            data = {"u": u, "v": v, "displacement": np.column_stack([u, v, np.zeros(n)])}
+            if getattr(f, "zncc", None) is not None:
+                data["zncc"] = np.asarray(f.zncc, dtype=np.float64)
+            if getattr(f, "iterations", None) is not None:
+                data["iterations"] = np.asarray(f.iterations).astype(np.int32)
+            if getattr(f, "status", None) is not None:
+                data["status"] = np.asarray(f.status).astype(np.int32)
+            data["valid"] = valid.astype(np.uint8)
+            strain = getattr(f, "strain", None) if strain is None else strain
+            if strain is not None:
+                get = strain.get if isinstance(strain, dict) else lambda k: getattr(strain, k)
+                for name in _STRAIN_2D:
+                    data[name] = np.asarray(get(name), dtype=np.float64)
+                data["strain_valid"] = np.asarray(get("valid")).astype(np.uint8)
+            self.vectors_3d = False
+        self.data = data
+        self.has_position = np.all(np.isfinite(self.ref), axis=1)
+
+
+def _cells(geo: _Geometry, keep: np.ndarray, new_index: np.ndarray, kind: str):
+    n_keep = int(np.count_nonzero(keep))
+    vertices = [("vertex", np.arange(n_keep, dtype=np.int64)[:, None])]
+    if kind == "points":
+        return vertices
+    if kind != "grid":
+        raise ValueError(f"kind must be 'grid' or 'points', got {kind!r}")
+    if geo.lattice is None:
+        raise ValueError(f"kind='grid' needs POIs on a regular grid ({geo.grid_hint}); use kind='points'")
+    idx = geo.lattice
+    quads = np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], axis=-1).reshape(-1, 4)
+    quads = quads[np.all(quads >= 0, axis=1)]
+    quads = quads[np.all(keep[quads], axis=1)]
+    quads = new_index[quads]
+    return [("quad", quads)] if quads.size else vertices
+
+
+def _mesh(f, kind: str, deformed: bool, invalid: str = "drop", strain=None, keep=None, positions=None):
+    """The meshio Mesh of one field. ``invalid="drop"``: valid points only; ``"nan"``: every point
+    of ``keep`` (default: those with a position) at ``positions`` (default: the field's own),
+    with NaN data where the point is not valid (its position data X, Y, Z, image_x, image_y kept)."""
     import meshio
 
-    valid = f.valid & np.all(np.isfinite(f.xyz), axis=1)
+    geo = _Geometry(f, strain)
+    if invalid not in ("drop", "nan"):
+        raise ValueError(f"invalid must be 'drop' or 'nan', got {invalid!r}")
+    good = geo.valid.copy()
     if deformed:
-        valid &= np.all(np.isfinite(f.uvw), axis=1)
-    if not np.any(valid):
-        raise ValueError("the field has no valid point to export (every status is an error); "
-                         f"status counts: {f.counts()}")
-    keep = np.flatnonzero(valid)
-    new_index = np.full(len(f), -1, dtype=np.int64)
-    new_index[keep] = np.arange(keep.size)
-    pts = (f.xyz_current if deformed else f.xyz)[keep]
-    if kind == "points":
-        cells = [("vertex", np.arange(keep.size, dtype=np.int64)[:, None])]
-    elif kind == "grid":
-        if f.grid_shape is None:
-            raise ValueError("kind='grid' needs POIs on a regular grid (grid_shape is None); use kind='points'")
-        ny, nx = f.grid_shape
-        idx = np.arange(ny * nx).reshape(ny, nx)
-        quads = np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], axis=-1).reshape(-1, 4)
-        quads = quads[np.all(valid[quads], axis=1)]
-        quads = new_index[quads]
-        cells = [("quad", quads)] if quads.size else [("vertex", np.arange(keep.size, dtype=np.int64)[:, None])]
+        good &= np.all(np.isfinite(geo.cur), axis=1)
+    if invalid == "drop":
+        keep = good
+        if not np.any(keep):
+            counts = f.counts() if isinstance(f, Field3D) else f"{int(np.count_nonzero(geo.valid))} valid"
+            raise ValueError("the field has no valid point to export (every status is an error); "
+                             f"status counts: {counts}")
+        pts_all = geo.cur if deformed else geo.ref
     else:
+        keep = geo.has_position if keep is None else keep
+        if not np.any(keep):
+            raise ValueError("the field has no point with a position to export")
+        base = geo.ref if positions is None else positions
+        pts_all = np.where(good[:, None], geo.cur, base) if deformed else base
+    if kind not in ("grid", "points"):
         raise ValueError(f"kind must be 'grid' or 'points', got {kind!r}")
-    data = {name: np.asarray(getattr(f, name), dtype=np.float64)[keep] for name in _VTK_SCALARS}
-    data["displacement"] = f.uvw[keep]
-    data["normal"] = np.nan_to_num(f.normal[keep])
-    data["strain_valid"] = f.strain_valid[keep].astype(np.uint8)
-    data["status"] = f.status[keep].astype(np.int32)
-    data["image_x"] = f.points[keep, 0]
-    data["image_y"] = f.points[keep, 1]
-    return meshio.Mesh(points=pts, cells=cells, point_data=data)
+    sel = np.flatnonzero(keep)
+    new_index = np.full(keep.shape[0], -1, dtype=np.int64)
+    new_index[sel] = np.arange(sel.size)
+    cells = _cells(geo, keep, new_index, kind)
+    data = {}
+    for name, arr in geo.data.items():
+        arr = np.asarray(arr)[sel]
+        if invalid == "nan" and arr.dtype.kind == "f" and name not in _POSITION_DATA:
+            arr = np.where((good[sel] if arr.ndim == 1 else good[sel][:, None]), arr, np.nan)
+        data[name] = arr
+    return meshio.Mesh(points=np.asarray(pts_all[sel], dtype=np.float64), cells=cells, point_data=data)
 
 
-def write_vtk(field: Field3D, path, *, kind: str = "grid", deformed: bool = False) -> Path:
-    """Write one Field3D as a VTK file for ParaView (module docstring); returns the path.
+def write_vtk(field, path, *, kind: str = "grid", deformed: bool = False, invalid: str = "drop",
+              strain=None) -> Path:
+    """Write one field as a VTK file for ParaView (module docstring); returns the path.
 
-    ``path`` ends in ``.vtu`` (XML, compressed) or ``.vtk`` (legacy). NaN strains (points with
-    too few neighbours, ``strain_valid == 0``) are kept as NaN, which ParaView shows as blank.
+    ``field``: a :class:`~dic.field3d.Field3D` (mm), a :class:`~dic.field2d.Field2D` or a result
+    file's frame (px, z = 0). ``path`` ends in ``.vtu`` (XML, compressed) or ``.vtk`` (legacy).
+    ``invalid``: ``"drop"`` writes the valid points only, ``"nan"`` every point with a position
+    (NaN data where invalid). ``strain``: a :class:`dic.strain.StrainField` to add to a Field2D.
+    NaN strains (too few neighbours) stay NaN, which ParaView shows as blank.
     """
     f = _check_field(field)
-    path = Path(os.fspath(path))
-    if path.suffix.lower() not in (".vtu", ".vtk"):
-        raise ValueError(f"VTK output must end in .vtu or .vtk, got {path.name}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    mesh = _mesh(f, kind, deformed)
-    mesh.write(path)
-    return path
+    p = _out_path(path, (".vtu", ".vtk"), "VTK")
+    mesh = _mesh(f, kind, deformed, invalid=invalid, strain=strain)
+    mesh.write(p)
+    return p
 
 
-def write_vtk_series(fields, directory, *, stem: str = "stereo", kind: str = "grid", deformed: bool = False) -> Path:
-    """Write a sequence of Field3D as ``<stem>_<index>.vtu`` files and a ``<stem>.pvd`` collection; returns the .pvd path.
+def write_vtk_series(fields, directory, *, stem: str | None = None, kind: str = "grid",
+                     deformed: bool = False) -> Path:
+    """Write a sequence of fields as ``<stem>_<index>.vtu`` files and a ``<stem>.pvd`` collection; returns the .pvd path.
 
-    Each state's ``index`` is its time step in ParaView. States without any valid point are skipped.
+    ``fields``: Field3D, Field2D or result-file frames (all of one kind, with the same points), or a
+    :class:`~dic.store.TrackResults` / :class:`~dic.store.StereoResults` / result file path. Every
+    step holds the same points (each point that has a position in any step, at its reference
+    position; ``deformed=True`` moves the valid ones) and the same cells; data are NaN where a
+    point is invalid in that step. Each field's ``index`` (a Field2D: its place in the sequence,
+    from 1) is its time step in ParaView. ``stem`` defaults to ``stereo`` (3-D) or ``frame`` (2-D).
     """
+    if isinstance(fields, (str, os.PathLike) + _RESULTS):
+        res = read_any(fields)
+        fields = [res.fields[i] for i in res.indices] if isinstance(res, StereoResults) else \
+            [res.frames[i] for i in res.indices]
+    fields = [_check_field(f) for f in fields]
+    if not fields:
+        raise ValueError("no field to export")
+    is3d = [isinstance(f, Field3D) for f in fields]
+    if any(is3d) and not all(is3d):
+        raise ValueError("a VTK series holds fields of one kind: all Field3D or all 2-D fields")
+    stem = ("stereo" if is3d[0] else "frame") if stem is None else str(stem)
+    if not stem or os.sep in stem or "/" in stem:
+        raise ValueError(f"stem must be a plain file name prefix, got {stem!r}")
+    first = np.asarray(fields[0].points, dtype=np.float64)
+    geos = []
+    for k, f in enumerate(fields):
+        pts = np.asarray(f.points, dtype=np.float64)
+        if pts.shape != first.shape or not np.array_equal(pts, first, equal_nan=True):
+            raise ValueError(f"field {k} of the series has other points than the first; a VTK series needs the same "
+                             "points in every step")
+        geos.append(_Geometry(f))
+    # the one point set of the series: every point with a position in some step, at its first known position
+    keep = np.zeros(first.shape[0], dtype=bool)
+    positions = np.full((first.shape[0], 3), np.nan)
+    for geo in geos:
+        new = geo.has_position & ~keep
+        positions[new] = geo.ref[new]
+        keep |= geo.has_position
+    if not np.any(keep):
+        raise ValueError("no point of the series has a position (every state failed); nothing to export")
     directory = Path(os.fspath(directory))
+    if directory.exists() and not directory.is_dir():
+        raise ValueError(f"the VTK output must be a folder, but {directory} is a file")
     directory.mkdir(parents=True, exist_ok=True)
     entries = []
-    for f in fields:
-        f = _check_field(f)
-        if not np.any(f.valid):
-            continue
-        name = f"{stem}_{f.index:06d}.vtu"
-        write_vtk(f, directory / name, kind=kind, deformed=deformed)
-        entries.append((f.index, name))
-    if not entries:
-        raise ValueError("no state with a valid point to export")
+    for k, f in enumerate(fields):
+        index = int(f.index) if getattr(f, "index", None) is not None and not isinstance(f, Field2D) else k + 1
+        name = f"{stem}_{index:06d}.vtu"
+        _mesh(f, kind, deformed, invalid="nan", keep=keep, positions=positions).write(directory / name)
+        entries.append((index, name))
     lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
     for index, name in entries:
         lines.append(f'    <DataSet timestep="{index}" group="" part="0" file={quoteattr(name)}/>')
@@ -109,3 +404,37 @@ def write_vtk_series(fields, directory, *, stem: str = "stereo", kind: str = "gr
     pvd = directory / f"{stem}.pvd"
     pvd.write_text("\n".join(lines), encoding="utf-8")
     return pvd
+
+
+# ------------------------------------------------------------------------------------------------
+# one entry point for the CLI
+
+
+def export_results(source, fmt: str, out, *, kind: str = "grid", deformed: bool = False) -> list[Path]:
+    """Export a result file (path or results object) as ``fmt`` into ``out``; returns the written paths.
+
+    ``csv``: one file per frame in the folder ``out``; ``mat``: the file ``out`` (``.mat``);
+    ``netcdf``: the file ``out`` (``.nc``); ``vtk``: a series (``.vtu`` per frame + ``.pvd``) in the
+    folder ``out`` (``kind``, ``deformed`` as in :func:`write_vtk_series`).
+    """
+    if fmt not in EXPORT_FORMATS:
+        raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
+    if kind not in ("grid", "points"):
+        raise ValueError(f"kind must be 'grid' or 'points', got {kind!r}")
+    out = Path(os.fspath(out))
+    suffixes = {"mat": (".mat",), "netcdf": (".nc", ".nc4", ".netcdf")}.get(fmt)
+    if suffixes is not None and out.suffix.lower() not in suffixes:
+        raise ValueError(f"a {fmt} export is one file ending in {' or '.join(suffixes)}, got {out.name}")
+    if suffixes is None and out.exists() and not out.is_dir():
+        raise ValueError(f"a {fmt} export is a folder of files, but {out} is a file")
+    res = read_any(source)
+    if not res.indices:
+        raise ValueError("the result file has no finished frame to export")
+    if fmt == "csv":
+        return write_csv(res, out)
+    if fmt == "mat":
+        return [write_mat(res, out)]
+    if fmt == "netcdf":
+        return [write_netcdf(res, out)]
+    pvd = write_vtk_series(res, out, kind=kind, deformed=deformed)
+    return sorted(pvd.parent.glob(f"{pvd.stem}_*.vtu")) + [pvd]

@@ -62,6 +62,51 @@ class Field2D:
     def n_points(self) -> int:
         return int(self.points.shape[0])
 
+    def __repr__(self) -> str:
+        n = self.n_points
+        n_valid = int(np.count_nonzero(self.valid))
+        share = f" ({100.0 * n_valid / n:.1f} %)" if n else ""
+        text = f"Field2D: {n} points, {n_valid} valid{share}, subset {self.subset} px, order {self.order}"
+        if self.step is not None:
+            text += f", step {self.step} px"
+        u, v = np.asarray(self.u, dtype=np.float64), np.asarray(self.v, dtype=np.float64)
+        shown = np.asarray(self.valid, dtype=bool) & np.isfinite(u) & np.isfinite(v)
+        if np.any(shown):
+            u, v = u[shown], v[shown]
+            text += f"; valid u {u.min():.4g}..{u.max():.4g} px, v {v.min():.4g}..{v.max():.4g} px"
+        return f"<{text}>"
+
+    def _columns(self, strain=None) -> dict:
+        from .tabular import columns_2d
+
+        return columns_2d(self.points, self.u, self.v, params=self.params, order=self.order, zncc=self.zncc,
+                          iterations=self.iterations, status=self.status, valid=self.valid, strain=strain)
+
+    def to_xarray(self, strain=None):
+        """An :class:`xarray.Dataset` over ``point``: coordinates ``x``, ``y`` (px); ``u``, ``v`` (px),
+        the other shape-function parameters, ``zncc``, ``iterations``, ``status``, ``valid`` and,
+        with ``strain`` (a :class:`dic.strain.StrainField`), the strain columns; units and
+        descriptions as attributes (:mod:`dic.tabular`)."""
+        from .tabular import point_dataset
+
+        return point_dataset(self._columns(strain), kind="dic2d",
+                             attrs={"title": "Specula 2-D DIC field", "subset_px": int(self.subset),
+                                    "order": int(self.order), "step_px": self.step, "zncc_min": float(self.zncc_min)})
+
+    def to_dataframe(self, strain=None):
+        """A :class:`pandas.DataFrame`, one row per point (index ``point``): the columns of :meth:`to_xarray`."""
+        from .tabular import dataframe
+
+        return dataframe(self.to_xarray(strain))
+
+    def plot(self, reference=None, strain=None, **kwargs):
+        """A Matplotlib Figure of the field (:func:`dic.plots.fields.field_figure`): u, v (and the
+        strains when ``strain`` is given) over ``reference`` (the reference image, optional).
+        Keywords go to ``field_figure`` (``components``, ``vmin``, ``vmax``, ``limits``, ``cmap``, ...)."""
+        from .plots.fields import field_figure
+
+        return field_figure(reference, self, strain, **kwargs)
+
     @property
     def param_names(self) -> tuple[str, ...]:
         return param_names(self.order)

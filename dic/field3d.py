@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
 from enum import IntEnum
+from typing import ClassVar
 
 import numpy as np
 
@@ -453,8 +454,53 @@ class Field3D:
     index: int = 0
     details: dict = field(default_factory=dict)
 
+    #: the codes of ``status``
+    status_codes: ClassVar[type] = StereoStatus
+
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+    def __repr__(self) -> str:
+        n = len(self)
+        ok = self.valid
+        n_ok = int(np.count_nonzero(ok))
+        grid = f" on a {self.grid_shape[0]} x {self.grid_shape[1]} grid" if self.grid_shape is not None else ""
+        share = f" ({100.0 * n_ok / n:.1f} %)" if n else ""
+        text = (f"Field3D: state {self.index}, {n} points{grid}, {n_ok} OK{share}, "
+                f"strain at {int(np.count_nonzero(self.strain_valid))}, {self.frame_name} frame (mm)")
+        if n_ok and self.index != 0:
+            w = np.asarray(self.W)[ok]
+            d = np.linalg.norm(self.uvw[ok], axis=1)
+            if np.any(np.isfinite(d)):
+                text += f"; |U| max {np.nanmax(d):.4g} mm, W {np.nanmin(w):.4g}..{np.nanmax(w):.4g} mm"
+        return f"<{text}>"
+
+    def to_xarray(self):
+        """An :class:`xarray.Dataset` over ``point``: coordinates ``x``, ``y`` (left reference image,
+        px) and ``X``, ``Y``, ``Z`` (mm); ``U``, ``V``, ``W`` (mm), ``exx``, ``eyy``, ``exy``,
+        ``normal_x|y|z``, the ZNCCs, epipolar and reprojection residuals (px), ``status``,
+        ``strain_valid``, ``valid``; units and descriptions as attributes (:mod:`dic.tabular`)."""
+        from .tabular import columns_3d, point_dataset
+
+        return point_dataset(columns_3d(self), kind="stereo", status_codes=StereoStatus,
+                             attrs={"title": "Specula stereo-DIC field", "state": int(self.index),
+                                    "frame_name": self.frame_name,
+                                    "R_frame_left": np.asarray(self.R_frame_left, np.float64).ravel(),
+                                    "t_frame_left": np.asarray(self.t_frame_left, np.float64)})
+
+    def to_dataframe(self):
+        """A :class:`pandas.DataFrame`, one row per point (index ``point``): the columns of :meth:`to_xarray`."""
+        from .tabular import dataframe
+
+        return dataframe(self.to_xarray())
+
+    def plot(self, quantity: str = "W", image=None, **kwargs):
+        """A Matplotlib Figure of one quantity (:func:`dic.plots.fields.field3d_figure`): ``Z``, ``U``,
+        ``V``, ``W``, ``exx``, ``eyy``, ``exy``, ``zncc_stereo`` or ``status``, over ``image`` (the
+        left reference image, optional); keywords ``vmin``, ``vmax``, ``cmap``, ``alpha``."""
+        from .plots.fields import field3d_figure
+
+        return field3d_figure(self, quantity, image, **kwargs)
 
     @property
     def valid(self) -> np.ndarray:

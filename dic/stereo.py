@@ -143,6 +143,15 @@ class StereoMatch:
         codes, counts = np.unique(self.status, return_counts=True)
         return {StereoStatus(int(c)).name: int(n) for c, n in zip(codes, counts)}
 
+    def __repr__(self) -> str:
+        n = int(np.asarray(self.status).shape[0])
+        n_ok = int(np.count_nonzero(self.valid))
+        share = f" ({100.0 * n_ok / n:.1f} %)" if n else ""
+        failed = {k: v for k, v in self.counts().items() if k != "OK"}
+        top = ", ".join(f"{k} {v}" for k, v in sorted(failed.items(), key=lambda kv: -kv[1])[:3])
+        return (f"<StereoMatch: {n} points, {n_ok} OK{share}, {self.n_features} feature matches, order {self.order}"
+                + (f"; not OK: {top}" if top else "") + ">")
+
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: getattr(self, k) for k in ("points_left", "points_right", "params", "zncc", "iterations",
                                                "icgn_status", "epipolar_px", "guess_source", "status")}

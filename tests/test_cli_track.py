@@ -85,6 +85,36 @@ def test_writes_frames_strain_and_figures(images, tmp_path, fake):
     assert "frame 2:" in r.output and "valid points" in r.output
 
 
+def test_figures_share_one_colour_range_over_the_sequence(images, tmp_path, fake, monkeypatch):
+    """The --figure maps rescaled their colours per frame (and drew signed strain on a sequential map)."""
+    import dic.plots.fields as plots
+
+    drawn = []
+    real = plots.write_field_figure
+
+    def spy(path, reference, field, strain=None, **kw):
+        fig = plots.field_figure(reference, field, strain, **{k: v for k, v in kw.items() if k != "dpi"})
+        drawn.append({ax.get_title(): (im.get_clim(), im.get_cmap().name) for ax in fig.axes for im in ax.images[1:]})
+        return real(path, reference, field, strain, **kw)
+
+    monkeypatch.setattr(plots, "write_field_figure", spy)
+    out = tmp_path / "res.h5"
+    r = run([*images, "-o", str(out), "--step", "8", "--figure", str(tmp_path / "figs"), "--figure-limits", "frame"])
+    assert r.exit_code == 0, r.output
+    assert drawn[0]["u (px)"][0] != drawn[1]["u (px)"][0]  # per frame: u (the frame's mean grey level) differs
+    assert all(cmap == "RdBu_r" for d in drawn for _, cmap in d.values())
+    drawn.clear()
+    r = run([*images, "-o", str(out), "--step", "8", "--figure", str(tmp_path / "figs2"), "--figure-limits", "sequence"])
+    assert r.exit_code == 0, r.output
+    assert len(drawn) == 2 and drawn[0] == drawn[1]  # resumed frames are drawn too, on one scale
+    lo, hi = drawn[0]["u (px)"][0]
+    us = [read_results(out).frames[k].u[1] for k in (1, 2)]
+    assert lo == -hi and hi >= max(abs(u) for u in us) * 0.99
+    assert sorted(p.name for p in (tmp_path / "figs2").iterdir()) == ["frame_000001.png", "frame_000002.png"]
+    r = run([*images, "-o", str(out), "--figure-limits", "global"])
+    assert r.exit_code == 2 and "--figure-limits" in r.output
+
+
 def test_resume_skips_finished_frames(images, tmp_path, fake):
     out = tmp_path / "res.h5"
     assert run([images[0], images[1], "-o", str(out), "-q"]).exit_code == 0

@@ -42,10 +42,13 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write a displacement/strain figure per frame (PNG) into this folder.")
+@click.option("--figure-limits", default="frame", show_default=True, type=click.Choice(["frame", "sequence"]),
+              help="Colour range of the --figure maps: per frame, or one range per quantity over every frame of "
+                   "the output (figures drawn once the run ends), so frames compare at a glance.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, device, figure_dir, overwrite, quiet):
+          scale, device, figure_dir, figure_limits, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
@@ -141,7 +144,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                                    attrs={"seconds": seconds})
             except ValueError as exc:  # dic.store.ResultWriteError (a full disk): says what the file keeps
                 raise _fail(exc) from None
-            if figure_dir is not None:
+            if figure_dir is not None and figure_limits == "frame":
                 from dic.plots.fields import write_field_figure
 
                 write_field_figure(figure_dir / f"frame_{index:06d}.png", ref, field, strain,
@@ -150,12 +153,30 @@ def track(reference, current, output, subset, step, order, search, search_method
             previous = (np.asarray(field.params, np.float64), valid)
             summary.append((index, int(valid.sum()), valid.size, seconds))
             bar.update(1)
+    if figure_dir is not None and figure_limits == "sequence":
+        _sequence_figures(output, ref, figure_dir)
     if not quiet:
         for index, n_valid, n, seconds in summary:
             click.echo(f"frame {index}: {n_valid}/{n} valid points, {seconds:.2f} s")
         if done_before:
             click.echo(f"{done_before} frame(s) were already in {output} and were skipped")
         click.echo(f"results: {output}")
+
+
+def _sequence_figures(output, ref, figure_dir) -> None:
+    """One figure per frame of the result file, with one colour range per quantity over all frames."""
+    from dic.plots.fields import sequence_limits, write_field_figure
+    from dic.store import read_results
+
+    res = read_results(output)
+    frames = [res.frames[i] for i in res.indices]
+    if not frames:
+        return
+    components = ["u", "v"] + (["exx", "eyy", "exy"] if all(f.strain is not None for f in frames) else [])
+    limits = sequence_limits(frames, components)
+    for f in frames:
+        write_field_figure(figure_dir / f"frame_{f.index:06d}.png", ref, f, f.strain, components=components,
+                           limits=limits, title=f"frame {f.index}: {Path(f.path).name}")
 
 
 def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device):

@@ -1,7 +1,8 @@
 """All of Specula's plotting (Matplotlib): the one place in kernels/, calibration/ and dic/ that draws.
 
 * :mod:`dic.plots.fields` — maps of 2-D fields (:func:`field_figure`, :func:`write_field_figure`)
-  and of 3-D stereo fields (:func:`write_figures`, :data:`FIGURE_QUANTITIES`) over the reference image.
+  and of 3-D stereo fields (:func:`field3d_figure`, :func:`write_figures`, :data:`FIGURE_QUANTITIES`)
+  over the reference image; :func:`sequence_limits` for one colour scale over a sequence.
 * :mod:`dic.plots.calibration` — the figures of ``specula calibrate ... --figures``
   (:func:`write_intrinsics_figures`, :func:`write_mirror_figures`, :func:`write_rig_figures`,
   :func:`write_check_figures`, :func:`view_mosaic`, :func:`view_detail`, :class:`FigureSkipped`).
@@ -23,6 +24,7 @@ import importlib
 #: public name -> submodule that defines it
 _EXPORTS = {
     "field_figure": "fields", "write_field_figure": "fields", "write_figures": "fields", "FIGURE_QUANTITIES": "fields",
+    "field3d_figure": "fields", "sequence_limits": "fields",
     "write_intrinsics_figures": "calibration", "write_mirror_figures": "calibration",
     "write_rig_figures": "calibration", "write_check_figures": "calibration",
     "view_mosaic": "calibration", "view_detail": "calibration", "FigureSkipped": "calibration",

@@ -42,16 +42,148 @@ class FrameResult:
     strain: dict | None = None
     attrs: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        n = int(np.asarray(self.points).shape[0])
+        text = f"FrameResult: frame {self.index}, {n} points"
+        if self.valid is not None and n:
+            n_valid = int(np.count_nonzero(self.valid))
+            text += f", {n_valid} valid ({100.0 * n_valid / n:.1f} %)"
+        text += ", strain" if self.strain is not None else ", no strain"
+        if self.path:
+            text += f", image {Path(self.path).name}"
+        return f"<{text}>"
+
+    def _columns(self) -> dict:
+        from ..tabular import columns_2d
+
+        return columns_2d(self.points, self.u, self.v, params=self.params, zncc=self.zncc,
+                          iterations=self.iterations, status=self.status, valid=self.valid, strain=self.strain)
+
+    def to_xarray(self):
+        """This frame as an :class:`xarray.Dataset` over ``point`` (the columns of
+        :meth:`dic.field2d.Field2D.to_xarray`, with the stored strain)."""
+        from ..tabular import point_dataset
+
+        return point_dataset(self._columns(), kind="dic2d",
+                             attrs={"title": "Specula 2-D DIC frame", "frame": int(self.index), "image_path": self.path})
+
+    def to_dataframe(self):
+        """This frame as a :class:`pandas.DataFrame`, one row per point."""
+        from ..tabular import dataframe
+
+        return dataframe(self.to_xarray())
+
+    def plot(self, reference=None, **kwargs):
+        """A Matplotlib Figure of this frame (:func:`dic.plots.fields.field_figure`): u, v and the
+        stored strains over ``reference`` (the reference image, optional). Keywords go to
+        ``field_figure`` (``components``, ``vmin``, ``vmax``, ``limits``, ``cmap``, ``title``, ...)."""
+        from ..plots.fields import field_figure
+
+        kwargs.setdefault("title", f"frame {self.index}" + (f": {Path(self.path).name}" if self.path else ""))
+        return field_figure(reference, self, self.strain, **kwargs)
+
+
+def _range_text(values, unit="") -> str:
+    lo, hi = min(values), max(values)
+    return f"{lo:.1f}{unit}" if abs(hi - lo) < 0.05 else f"{lo:.1f}-{hi:.1f}{unit}"
+
+
+def frames_text(indices) -> str:
+    """``"3 frames (1..3)"``-like summary of frame indices (for reprs)."""
+    indices = list(indices)
+    if not indices:
+        return "no finished frame"
+    span = f"{indices[0]}" if len(indices) == 1 else f"{indices[0]}..{indices[-1]}"
+    return f"{len(indices)} ({span})"
+
 
 @dataclass
 class TrackResults:
-    """Contents of a 2-D DIC result file (:func:`dic.store.read_results`); ``frames`` maps index -> FrameResult."""
+    """Contents of a 2-D DIC result file (:func:`dic.store.read_results`); ``frames`` maps index -> FrameResult.
+
+    ``to_xarray()`` / ``to_dataframe()`` give the whole file as a frame x point table,
+    ``plot(index)`` draws a frame (with one colour scale over the file on request).
+    """
 
     path: Path
     attrs: dict
     reference: dict
     settings: dict
     frames: dict[int, FrameResult]
+
+    @property
+    def indices(self) -> list[int]:
+        """The frame indices, ascending."""
+        return sorted(self.frames)
+
+    def __repr__(self) -> str:
+        idx = self.indices
+        parts = [f"TrackResults {str(self.path)!r}: 2-D DIC, frames {frames_text(idx)}"]
+        if idx:
+            n = int(np.asarray(self.frames[idx[0]].points).shape[0])
+            parts[0] += f", {n} points"
+            shares = [100.0 * np.count_nonzero(f.valid) / max(len(f.valid), 1)
+                      for f in self.frames.values() if f.valid is not None]
+            if shares:
+                parts.append(f"valid {_range_text(shares, ' %')} per frame")
+        shape = self.reference.get("shape") or ()
+        ref = Path(self.reference.get("path", "") or "?").name
+        parts.append(f"reference {ref}" + (f" ({shape[1]} x {shape[0]} px)" if len(shape) == 2 else ""))
+        s = self.settings
+        parts.append(", ".join(f"{k} {s[k]}" for k in ("subset", "step", "order") if s.get(k) is not None))
+        return "<" + "; ".join(p for p in parts if p) + ">"
+
+    def _frame(self, index):
+        if not self.frames:
+            raise ValueError(f"{self.path} has no finished frame")
+        if index is None:
+            return self.frames[self.indices[-1]]
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or int(index) not in self.frames:
+            raise ValueError(f"{self.path} has no frame {index!r}; frames: {self.indices}")
+        return self.frames[int(index)]
+
+    def to_xarray(self):
+        """The file as an :class:`xarray.Dataset` over ``frame`` x ``point``: coordinates ``frame``,
+        ``x``, ``y`` (px) and ``path`` (each frame's image); the columns of
+        :meth:`dic.field2d.Field2D.to_xarray` (strain included) with units; the file's reference,
+        settings (JSON) and version as attributes."""
+        from ..tabular import frame_dataset
+
+        idx = self.indices
+        shape = self.reference.get("shape") or ()
+        attrs = {"title": "Specula 2-D DIC results", "source": str(self.path), "source_format": FORMAT_NAME,
+                 "specula_version": self.attrs.get("specula_version"),
+                 "reference_path": self.reference.get("path", ""),
+                 "reference_shape": [int(v) for v in shape], "settings": self.settings}
+        return frame_dataset([(i, self.frames[i]._columns()) for i in idx], kind="dic2d", attrs=attrs,
+                             frame_coords={"path": [str(self.frames[i].path) for i in idx]})
+
+    def to_dataframe(self):
+        """The file as a :class:`pandas.DataFrame` indexed by (``frame``, ``point``)."""
+        from ..tabular import dataframe
+
+        return dataframe(self.to_xarray())
+
+    def plot(self, index: int | None = None, *, reference=None, limits="frame", **kwargs):
+        """A Matplotlib Figure of one frame (default: the last) over ``reference`` (optional image).
+
+        ``limits``: ``"frame"`` (each map spans its own values), ``"sequence"`` (one colour range
+        per component over every frame of the file: frames drawn this way compare at a glance),
+        or ``{component: (vmin, vmax)}``. Other keywords go to :func:`dic.plots.fields.field_figure`.
+        """
+        frame = self._frame(index)
+        if isinstance(limits, str):
+            if limits not in ("frame", "sequence"):
+                raise ValueError(f"limits must be 'frame', 'sequence' or {{component: (vmin, vmax)}}, got {limits!r}")
+            if limits == "sequence":
+                from ..plots.fields import sequence_limits
+
+                components = kwargs.get("components") or (["u", "v"] + (["exx", "eyy", "exy"] if frame.strain else []))
+                frames = [self.frames[i] for i in self.indices]
+                limits = sequence_limits(frames, components)
+            else:
+                limits = None
+        return frame.plot(reference, limits=limits, **kwargs)
 
 
 def _compressed(group, key, data) -> None:

@@ -53,6 +53,84 @@ class StereoResults:
     def indices(self) -> list[int]:
         return sorted(self.fields)
 
+    def __repr__(self) -> str:
+        idx = self.indices
+        span = "no finished state" if not idx else f"{len(idx)} ({idx[0]}..{idx[-1]})" if len(idx) > 1 else f"1 ({idx[0]})"
+        parts = [f"StereoResults: states {span}"]
+        if idx:
+            f0 = self.fields[idx[0]]
+            grid = f" on a {f0.grid_shape[0]} x {f0.grid_shape[1]} grid" if f0.grid_shape is not None else ""
+            parts[0] += f", {len(f0)} points{grid}, {f0.frame_name} frame (mm)"
+            shares = [100.0 * np.count_nonzero(f.valid) / max(len(f), 1) for f in self.fields.values()]
+            lo, hi = min(shares), max(shares)
+            parts.append(f"OK {lo:.1f} %" if hi - lo < 0.05 else f"OK {lo:.1f}-{hi:.1f} % per state")
+        if self.match is not None:
+            parts.append(f"reference match {int(np.count_nonzero(self.match.valid))}/{len(self.match.status)} OK")
+        if len(self.reference_shape) == 2:
+            parts.append(f"images {self.reference_shape[1]} x {self.reference_shape[0]} px")
+        s = self.settings or {}
+        parts.append(", ".join(f"{k} {s[k]}" for k in ("subset", "step", "order") if s.get(k) is not None))
+        return "<" + "; ".join(p for p in parts if p) + ">"
+
+    def _field(self, index):
+        if not self.fields:
+            raise ValueError("the stereo result file has no finished state")
+        if index is None:
+            return self.fields[self.indices[-1]]
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or int(index) not in self.fields:
+            raise ValueError(f"no state {index!r} in the stereo results; states: {self.indices}")
+        return self.fields[int(index)]
+
+    def to_xarray(self):
+        """The file as an :class:`xarray.Dataset` over ``frame`` (the states) x ``point``: coordinates
+        ``frame``, ``x``, ``y`` (left reference image, px), ``X``, ``Y``, ``Z`` (frame, point; mm),
+        ``left_path``, ``right_path``; the columns of :meth:`dic.field3d.Field3D.to_xarray` with
+        units; the rig and settings (JSON) as attributes."""
+        from ..field3d import StereoStatus
+        from ..tabular import columns_3d, frame_dataset
+
+        idx = self.indices
+        f0 = self.fields[idx[0]] if idx else None
+        rig = self.rig.to_dict() if hasattr(self.rig, "to_dict") else self.rig
+        attrs = {"title": "Specula stereo-DIC results", "source_format": FORMAT_NAME, "settings": self.settings,
+                 "rig": rig, "reference_shape": [int(v) for v in self.reference_shape],
+                 "frame_name": f0.frame_name if f0 is not None else None,
+                 "grid_shape": list(f0.grid_shape) if f0 is not None and f0.grid_shape is not None else None}
+        paths = [tuple(self.paths.get(i, ("", ""))) for i in idx]
+        return frame_dataset([(i, columns_3d(self.fields[i])) for i in idx], kind="stereo", attrs=attrs,
+                             status_codes=StereoStatus,
+                             frame_coords={"left_path": [str(p[0]) for p in paths],
+                                           "right_path": [str(p[1]) for p in paths]})
+
+    def to_dataframe(self):
+        """The file as a :class:`pandas.DataFrame` indexed by (``frame``, ``point``)."""
+        from ..tabular import dataframe
+
+        return dataframe(self.to_xarray())
+
+    def plot(self, index: int | None = None, quantity: str = "W", *, image=None, limits="frame", **kwargs):
+        """A Matplotlib Figure of one quantity of one state (default: the last) over ``image`` (the
+        left reference image, optional): :func:`dic.plots.fields.field3d_figure`.
+
+        ``limits``: ``"frame"`` (the state's own values), ``"sequence"`` (one range over every
+        state of the file) or ``(vmin, vmax)``. Other keywords go to ``field3d_figure``.
+        """
+        f = self._field(index)
+        if isinstance(limits, str):
+            if limits not in ("frame", "sequence"):
+                raise ValueError(f"limits must be 'frame', 'sequence' or (vmin, vmax), got {limits!r}")
+            if limits == "sequence" and quantity != "status":
+                from ..plots.fields import sequence_limits
+
+                kwargs["vmin"], kwargs["vmax"] = sequence_limits([self.fields[i] for i in self.indices],
+                                                                 [quantity])[quantity]
+        else:
+            try:
+                kwargs["vmin"], kwargs["vmax"] = limits
+            except (TypeError, ValueError):
+                raise ValueError(f"limits must be 'frame', 'sequence' or (vmin, vmax), got {limits!r}") from None
+        return f.plot(quantity, image, **kwargs)
+
 
 def write_field3d(group, field3d, strain=None) -> None:
     """Write one state's :class:`dic.field3d.Field3D` (arrays and details) into an empty h5py ``group``."""

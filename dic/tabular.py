@@ -1,0 +1,236 @@
+"""Tables of DIC results: per-point columns with units, as pandas DataFrames and xarray Datasets.
+
+The one place that turns results into tables. Each result type builds its columns here and the
+exports of :mod:`dic.export` (CSV, MATLAB, netCDF) are written from these tables, so a quantity has
+the same name and unit everywhere:
+
+* :meth:`dic.field2d.Field2D.to_dataframe` / ``to_xarray`` and the 2-D result file
+  (:meth:`dic.store.TrackResults.to_xarray`): ``x``, ``y`` (px), ``u``, ``v`` (px), the other
+  shape-function parameters (``ux``, ``uy``, ...), ``zncc``, ``iterations``, ``status``, ``valid``
+  and, with strain, ``dudx`` ... ``Exy`` and ``strain_valid``;
+* :meth:`dic.field3d.Field3D.to_dataframe` / ``to_xarray`` and the stereo result file
+  (:meth:`dic.store.StereoResults.to_xarray`): ``x``, ``y`` (left reference image, px), ``X``,
+  ``Y``, ``Z``, ``U``, ``V``, ``W`` (mm), ``exx``, ``eyy``, ``exy``, ``normal_x|y|z``, the ZNCCs,
+  epipolar and reprojection residuals (px), ``status``, ``strain_valid`` and ``valid``.
+
+A single field is a table over ``point``; a result file over ``frame`` x ``point`` (every frame has
+the same points; a state of a stereo file is a frame). pandas and xarray are imported on first use.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from kernels.conventions import Status, param_names
+
+__all__ = ["UNITS", "LONG_NAMES", "columns_2d", "columns_3d", "point_dataset", "frame_dataset", "dataframe",
+           "clean_attrs"]
+
+#: unit of each column ("1": dimensionless; "" for codes and flags)
+UNITS = {
+    "x": "px", "y": "px", "u": "px", "v": "px",
+    "ux": "1", "uy": "1", "vx": "1", "vy": "1",
+    "uxx": "1/px", "uxy": "1/px", "uyy": "1/px", "vxx": "1/px", "vxy": "1/px", "vyy": "1/px",
+    "zncc": "1", "iterations": "1", "status": "", "valid": "",
+    "dudx": "1", "dudy": "1", "dvdx": "1", "dvdy": "1",
+    "exx": "1", "eyy": "1", "exy": "1", "Exx": "1", "Eyy": "1", "Exy": "1", "strain_valid": "",
+    "X": "mm", "Y": "mm", "Z": "mm", "U": "mm", "V": "mm", "W": "mm",
+    "normal_x": "1", "normal_y": "1", "normal_z": "1",
+    "zncc_stereo": "1", "zncc_left": "1", "zncc_right": "1",
+    "epipolar_ref_px": "px", "epipolar_px": "px", "reprojection_ref_px": "px", "reprojection_px": "px",
+}
+
+#: description of each column (netCDF ``long_name``)
+LONG_NAMES = {
+    "x": "reference position x (right)", "y": "reference position y (down)",
+    "u": "displacement along x", "v": "displacement along y",
+    "zncc": "zero-normalised cross-correlation", "iterations": "IC-GN iterations",
+    "status": "status code", "valid": "valid point",
+    "dudx": "displacement gradient du/dx", "dudy": "displacement gradient du/dy",
+    "dvdx": "displacement gradient dv/dx", "dvdy": "displacement gradient dv/dy",
+    "exx": "strain xx", "eyy": "strain yy", "exy": "strain xy (tensor shear)",
+    "Exx": "Green-Lagrange strain xx", "Eyy": "Green-Lagrange strain yy",
+    "Exy": "Green-Lagrange strain xy (tensor shear)", "strain_valid": "valid strain",
+    "X": "reference position X", "Y": "reference position Y", "Z": "reference position Z",
+    "U": "displacement U", "V": "displacement V", "W": "displacement W",
+    "normal_x": "surface normal x", "normal_y": "surface normal y", "normal_z": "surface normal z",
+    "zncc_stereo": "ZNCC of the stereo match", "zncc_left": "ZNCC of the left track",
+    "zncc_right": "ZNCC of the right track",
+    "epipolar_ref_px": "epipolar distance, reference", "epipolar_px": "epipolar distance, current",
+    "reprojection_ref_px": "RMS reprojection residual, reference",
+    "reprojection_px": "RMS reprojection residual, current",
+}
+
+_STRAIN_2D = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy")
+_SCALARS_3D = ("X", "Y", "Z", "U", "V", "W", "exx", "eyy", "exy")
+_QUALITY_3D = ("zncc_stereo", "zncc_left", "zncc_right", "epipolar_ref_px", "epipolar_px", "reprojection_ref_px",
+               "reprojection_px")
+
+
+def _strain_get(strain, name):
+    if isinstance(strain, dict):
+        return strain.get(name)
+    return getattr(strain, name, None)
+
+
+def columns_2d(points, u, v, *, params=None, order=None, zncc=None, iterations=None, status=None, valid=None,
+               strain=None) -> dict[str, np.ndarray]:
+    """Per-point columns of a 2-D field (any of the optional arrays may be None).
+
+    ``strain`` is a :class:`dic.strain.StrainField` or the strain dict of a result file's frame.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must be (N, 2) px, got shape {pts.shape}")
+    n = pts.shape[0]
+    cols = {"x": pts[:, 0], "y": pts[:, 1], "u": np.asarray(u, np.float64), "v": np.asarray(v, np.float64)}
+    if params is not None:
+        p = np.asarray(params, np.float64)
+        if order is None:
+            order = {6: 1, 12: 2}.get(p.shape[1] if p.ndim == 2 else -1)
+            if order is None:
+                raise ValueError(f"params must be (N, 6) or (N, 12), got shape {p.shape}")
+        for k, name in enumerate(param_names(order)):
+            if name not in ("u", "v"):
+                cols[name] = p[:, k]
+    for name, arr, dtype in (("zncc", zncc, np.float64), ("iterations", iterations, np.int32),
+                             ("status", status, np.int8), ("valid", valid, bool)):
+        if arr is not None:
+            cols[name] = np.asarray(arr).astype(dtype)
+    if strain is not None:
+        for name in _STRAIN_2D:
+            cols[name] = np.asarray(_strain_get(strain, name), np.float64)
+        cols["strain_valid"] = np.asarray(_strain_get(strain, "valid")).astype(bool)
+    for name, arr in cols.items():
+        if arr.shape != (n,):
+            raise ValueError(f"{name} must have one value per point ({n}), got shape {arr.shape}")
+    return cols
+
+
+def columns_3d(field) -> dict[str, np.ndarray]:
+    """Per-point columns of a :class:`dic.field3d.Field3D` (its stage-by-stage details are left out)."""
+    pts = np.asarray(field.points, dtype=np.float64)
+    cols = {"x": pts[:, 0], "y": pts[:, 1]}
+    for name in _SCALARS_3D:
+        cols[name] = np.asarray(getattr(field, name), np.float64)
+    normal = np.asarray(field.normal, np.float64).reshape(-1, 3)
+    for k, axis in enumerate("xyz"):
+        cols[f"normal_{axis}"] = normal[:, k]
+    for name in _QUALITY_3D:
+        cols[name] = np.asarray(getattr(field, name), np.float64)
+    cols["status"] = np.asarray(field.status).astype(np.int8)
+    cols["strain_valid"] = np.asarray(field.strain_valid).astype(bool)
+    cols["valid"] = np.asarray(field.valid).astype(bool)
+    return cols
+
+
+def _status_attrs(codes) -> dict:
+    return {"flag_values": np.array([int(c) for c in codes], dtype=np.int8),
+            "flag_meanings": " ".join(c.name for c in codes)}
+
+
+def _var_attrs(name: str, codes) -> dict:
+    attrs = {}
+    if name in LONG_NAMES:
+        attrs["long_name"] = LONG_NAMES[name]
+    if UNITS.get(name):
+        attrs["units"] = UNITS[name]
+    if name == "status":
+        attrs.update(_status_attrs(codes))
+    return attrs
+
+
+def _coord_names(kind: str) -> tuple[str, ...]:
+    return ("x", "y", "X", "Y", "Z") if kind == "stereo" else ("x", "y")
+
+
+def clean_attrs(attrs: dict) -> dict:
+    """Dataset attributes that netCDF can hold: None dropped, dicts/lists of mixed types as JSON text."""
+    out = {}
+    for k, v in attrs.items():
+        if v is None:
+            continue
+        if isinstance(v, (dict, list, tuple)) and not (isinstance(v, (list, tuple)) and v
+                                                       and all(isinstance(e, (int, float)) for e in v)):
+            v = json.dumps(v, sort_keys=True, default=str)
+        elif isinstance(v, bool):
+            v = int(v)
+        out[str(k)] = v
+    return out
+
+
+def point_dataset(cols: dict[str, np.ndarray], *, kind: str, attrs: dict | None = None, status_codes=Status):
+    """An xarray Dataset over ``point`` from the columns of one field (coordinates x, y; X, Y, Z for stereo).
+
+    ``status_codes``: the IntEnum of the ``status`` column (its ``flag_values``, ``flag_meanings``).
+    """
+    import xarray as xr
+
+    n = len(cols["x"])
+    coords = {"point": ("point", np.arange(n))}
+    data = {}
+    for name, arr in cols.items():
+        target = coords if name in _coord_names(kind) else data
+        target[name] = ("point", arr, _var_attrs(name, status_codes))
+    return xr.Dataset(data, coords=coords, attrs=clean_attrs(attrs or {}))
+
+
+def frame_dataset(frames: list[tuple[int, dict[str, np.ndarray]]], *, kind: str, attrs: dict | None = None,
+                  frame_coords: dict | None = None, status_codes=Status):
+    """An xarray Dataset over ``frame`` x ``point`` from ``[(index, columns), ...]`` of one result file.
+
+    Every frame must have the same points (``x``, ``y``); the reference position coordinates of a
+    stereo file (``X``, ``Y``, ``Z``) are (frame, point). ``frame_coords`` adds per-frame
+    coordinates (e.g. the image paths). A column missing from some frames (strain) is NaN (False
+    for flags) there.
+    """
+    import xarray as xr
+
+    if not frames:
+        raise ValueError("the result file has no finished frame to export")
+    first = frames[0][1]
+    n = len(first["x"])
+    names: list[str] = []
+    for _, cols in frames:
+        for name in cols:
+            if name not in names:
+                names.append(name)
+    for index, cols in frames:
+        same = (len(cols["x"]) == n and np.array_equal(cols["x"], first["x"], equal_nan=True)
+                and np.array_equal(cols["y"], first["y"], equal_nan=True))
+        if not same:
+            raise ValueError(f"frame {index} has other points than frame {frames[0][0]}; a frame x point table "
+                             "needs the same points in every frame (export the frames one by one)")
+    coords = {"frame": ("frame", np.array([i for i, _ in frames], dtype=np.int64)),
+              "point": ("point", np.arange(n))}
+    coords["x"] = ("point", first["x"], _var_attrs("x", status_codes))
+    coords["y"] = ("point", first["y"], _var_attrs("y", status_codes))
+    data = {}
+    for name in names:
+        if name in ("x", "y"):
+            continue
+        like = next(cols[name] for _, cols in frames if name in cols)
+        rows = []
+        for _, cols in frames:
+            if name in cols:
+                rows.append(cols[name])
+            else:
+                rows.append(np.zeros(n, bool) if like.dtype == bool else np.full(n, np.nan))
+        stacked = np.stack(rows)
+        if stacked.dtype != like.dtype and like.dtype != bool:
+            stacked = stacked.astype(np.result_type(like.dtype, np.float64))
+        target = coords if name in _coord_names(kind) else data
+        target[name] = (("frame", "point"), stacked, _var_attrs(name, status_codes))
+    for name, values in (frame_coords or {}).items():
+        coords[name] = ("frame", np.asarray(values))
+    return xr.Dataset(data, coords=coords, attrs=clean_attrs(attrs or {}))
+
+
+def dataframe(dataset):
+    """The Dataset as a pandas DataFrame: index ``point`` (one field) or (``frame``, ``point``); the
+    coordinates x, y (X, Y, Z) first, then the quantities."""
+    df = dataset.to_dataframe()
+    first = [c for c in ("x", "y", "X", "Y", "Z") if c in df.columns]
+    rest = [c for c in df.columns if c not in first]
+    return df[first + rest]
