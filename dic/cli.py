@@ -17,6 +17,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "target": ("dic.commands.target:target", "Calibration targets: write phase-fringe / dot / checkerboard images"),
     "calibrate": ("dic.commands.calibrate:calibrate", "Calibrate intrinsics, mirror extrinsics or a stereo rig"),
     "stereo": ("dic.commands.stereo:stereo", "Stereo-DIC: 3D shape, displacement and strain"),
+    "speckle": ("dic.commands.speckle:speckle", "Speckle quality (MIG, SSSIG) and a subset size for a target uncertainty"),
 }
 
 

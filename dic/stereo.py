@@ -55,6 +55,7 @@ from .field3d import (
     surface_strain,
     surface_strain_grid,
 )
+from .quality import check_noise_sigma, displacement_sigma
 from .triangulate import TriangulationStatus, triangulate, undistort_points
 
 __all__ = [
@@ -225,6 +226,9 @@ class StereoCorrelation:
         result file); skips the feature matching and the left -> right IC-GN.
     check_warps : bool, flag matches and tracks that converged to a warp their partly featureless
         subset cannot support as ``IMPLAUSIBLE_WARP`` (:mod:`dic.correlation.plausibility`). Default True.
+    noise_sigma : float, optional: grey-level noise std of each image, for the per-point image-plane
+        uncertainty in ``Field3D.details`` (``sigma_match_px``, ``sigma_left_px``, ``sigma_right_px``,
+        :mod:`dic.quality`); default: estimated from each stage's correlation residuals.
     device : None, "cpu" or "cuda:N".
     """
 
@@ -232,8 +236,9 @@ class StereoCorrelation:
                  order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
-                 device=None):
+                 noise_sigma: float | None = None, device=None):
         self.device = resolve_device(device)
+        self.noise_sigma = check_noise_sigma(noise_sigma)
         self.subset, self.order = check_subset_order(subset, order)
         left_ref, right_ref = _check_pair(left_ref, right_ref, "reference")
         check_rig_images(rig, left_ref.shape)
@@ -469,6 +474,23 @@ class StereoCorrelation:
         self._previous = (pl, pr)
         self._previous_images = (None, None) if images is None else _check_pair(images[0], images[1], "previous")
 
+    def _sigmas(self, tracks) -> dict[str, np.ndarray]:
+        """Per-point image-plane std (N, 2) px of the match and of both tracks, and the noise (3,) behind them."""
+        n = self.points.shape[0]
+        m = self.match
+        sig_m, noise_m, _ = displacement_sigma(self.left.subsets, m.zncc, m.valid, self.noise_sigma)
+        sig_l = np.full((n, 2), np.nan)
+        sig_r = np.full((n, 2), np.nan)
+        noise_l = noise_r = np.nan
+        if tracks is not None:
+            tl, tr = tracks
+            sig_l, noise_l, _ = displacement_sigma(self.left.subsets, tl.zncc, tl.accepted, self.noise_sigma)
+            if tr is not None:
+                sr, noise_r, _ = displacement_sigma(self.right.subsets, tr.zncc, tr.accepted, self.noise_sigma)
+                sig_r[self._matched] = sr
+        return {"sigma_match_px": sig_m, "sigma_left_px": sig_l, "sigma_right_px": sig_r,
+                "noise_sigma_grey": np.array([noise_m, noise_l, noise_r])}
+
     # -------------------------------------------------------------------------------------------
     def _field(self, tracks, index: int) -> Field3D:
         n = self.points.shape[0]
@@ -555,6 +577,7 @@ class StereoCorrelation:
             strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center)
         self.timings["strain_s"] = time.perf_counter() - t0
         details.update(triangulation_status=tri_cur, points_left_cur=pl_cur, points_right_cur=pr_cur)
+        details.update(self._sigmas(tracks))
         zs = np.where(np.isfinite(m.zncc), m.zncc, np.nan)
         return Field3D(
             points=self.points, grid_shape=self.grid_shape,
