@@ -458,3 +458,32 @@ def test_specimen_edge_on_dark_background_is_flagged():
     assert np.count_nonzero(checked.valid & on_plate) >= np.count_nonzero(raw.valid & on_plate) - 3
     good = checked.valid & on_plate & interior
     assert np.sqrt(np.mean(error[good] ** 2)) < 0.03
+
+
+def test_image_plane_uncertainty_in_details(lab, measured):
+    """Per-point sigma of the match and of both tracks (dic.quality) sit in the details, NaN where not valid,
+    and the match sigma predicts the matching error against the exact projections."""
+    sc, f, _ = measured
+    ref = sc.reference
+    d = f.details
+    for key in ("sigma_match_px", "sigma_left_px", "sigma_right_px"):
+        assert d[key].shape == (len(f), 2)
+        assert np.all(np.isfinite(d[key][f.valid])) and np.all(d[key][f.valid] > 0), key
+    assert np.all(np.isnan(d["sigma_match_px"][~sc.match.valid]))
+    assert d["noise_sigma_grey"].shape == (3,) and np.all(np.isfinite(d["noise_sigma_grey"]))
+    assert np.all(np.isnan(ref.details["sigma_left_px"])) and np.isnan(ref.details["noise_sigma_grey"][1])
+    ok = sc.match.valid
+    normal, centre = lab["plane"]
+    _, right_true = _exact_points(lab["rig"], normal, centre, ref.points[ok])
+    err = sc.match.points_right[ok] - right_true
+    predicted = np.sqrt(np.mean(ref.details["sigma_match_px"][ok] ** 2, axis=0))
+    ratio = err.std(axis=0) / predicted
+    print(f"\nstereo match: error std {err.std(axis=0)}, predicted {predicted}, ratio {ratio}")
+    # the renders' noise is the 16-sample quadrature, not white Gaussian noise: a loose bound
+    assert np.all((ratio > 0.5) & (ratio < 2.0))
+    (l0, r0), (l1, r1), _ = lab["states"]
+    given = StereoCorrelation(lab["rig"], l0, r0, step=20, subset=21, order=2, noise_sigma=1.5, match=None,
+                              device="cpu")
+    assert np.allclose(given.reference.details["noise_sigma_grey"][0], 1.5)
+    with pytest.raises(ValueError, match="noise_sigma must be a positive finite number"):
+        StereoCorrelation(lab["rig"], l0, r0, step=20, noise_sigma=-1.0, device="cpu")
