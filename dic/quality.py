@@ -37,7 +37,7 @@ from .correlation.engine import Correlator
 from .correlation.points import grid
 
 __all__ = ["NOISE_SOURCES", "estimate_noise", "hessian_inverse_uv", "residual_variance", "displacement_sigma",
-           "predicted_sigma", "SpeckleQuality", "speckle_quality", "SubsetSuggestion", "suggest_subset"]
+           "SigmaBasis", "sigma_basis", "triangulation_jacobian", "propagate_stereo_sigma", "predicted_sigma", "SpeckleQuality", "speckle_quality", "SubsetSuggestion", "suggest_subset"]
 
 #: how the noise behind a field's ``sigma_u``/``sigma_v`` was obtained
 NOISE_SOURCES = ("given", "residual")
@@ -145,12 +145,33 @@ def residual_variance(zncc, fnorm, subset: int, order: int) -> np.ndarray:
     return 2.0 * df ** 2 * np.clip(1.0 - z, 0.0, None) / dof
 
 
+@dataclass(frozen=True)
+class SigmaBasis:
+    """What the uncertainty needs from prepared subsets, read back once (:func:`sigma_basis`).
+
+    hinv_uv (N, 2): ``(H^-1)_uu, (H^-1)_vv`` (NaN where not ready); fnorm (N,): ``df`` of each
+    reference subset; subset, order.
+    """
+
+    hinv_uv: np.ndarray
+    fnorm: np.ndarray
+    subset: int
+    order: int
+
+
+def sigma_basis(subsets) -> SigmaBasis:
+    """Read ``diag H^-1`` of u, v and ``df`` from a :class:`kernels.icgn.ReferenceSubsets` once (one host copy)."""
+    hinv = hessian_inverse_uv(subsets)
+    return SigmaBasis(hinv, subsets.refdata.numpy()[:, -1].astype(np.float64), subsets.subset, subsets.order)
+
+
 def displacement_sigma(subsets, zncc=None, valid=None, noise_sigma=None) -> tuple[np.ndarray, float, str]:
     """Per-POI displacement standard deviation ``(sigma_u, sigma_v)`` of one tracked image.
 
     Parameters
     ----------
-    subsets : kernels.icgn.ReferenceSubsets of the tracked POIs.
+    subsets : kernels.icgn.ReferenceSubsets of the tracked POIs, or its :class:`SigmaBasis`
+        (read once and reused for every image of a sequence: no device-to-host copy per image).
     zncc, valid : (N,) the tracking result (needed when ``noise_sigma`` is None).
     noise_sigma : float, optional - grey-level noise std of each image; default: estimated from
         the residuals of the valid POIs.
@@ -158,10 +179,12 @@ def displacement_sigma(subsets, zncc=None, valid=None, noise_sigma=None) -> tupl
     Returns
     -------
     (sigma (N, 2) px, NaN where the subset is not ready or, if ``valid`` is given, not valid;
-    noise_sigma (grey levels, per image); source "given" or "residual")
+    noise_sigma (grey levels, per image; NaN when estimated and no POI is valid);
+    source "given" or "residual")
     """
     noise_sigma = check_noise_sigma(noise_sigma)
-    hinv = hessian_inverse_uv(subsets)
+    basis = subsets if isinstance(subsets, SigmaBasis) else sigma_basis(subsets)
+    hinv = basis.hinv_uv
     n = hinv.shape[0]
     if valid is not None:
         valid = np.asarray(valid, dtype=bool)
@@ -172,9 +195,10 @@ def displacement_sigma(subsets, zncc=None, valid=None, noise_sigma=None) -> tupl
     else:
         if zncc is None or valid is None:
             raise ValueError("give noise_sigma, or zncc and valid to estimate it from the residuals")
-        fnorm = subsets.refdata.numpy()[:, -1]
-        r2 = residual_variance(np.nan_to_num(np.asarray(zncc, dtype=np.float64), nan=-1.0), fnorm, subsets.subset,
-                               subsets.order)
+        z = np.asarray(zncc, dtype=np.float64)
+        if z.shape != (n,):
+            raise ValueError(f"zncc must have shape ({n},), got {z.shape}")
+        r2 = residual_variance(np.nan_to_num(z, nan=-1.0), basis.fnorm, basis.subset, basis.order)
         use = valid & np.isfinite(r2) & np.all(np.isfinite(hinv), axis=1)
         s2 = float(np.median(r2[use])) if use.any() else np.nan
         source = "residual"
@@ -183,6 +207,60 @@ def displacement_sigma(subsets, zncc=None, valid=None, noise_sigma=None) -> tupl
     if valid is not None:
         sigma[~valid] = np.nan
     return sigma, float(np.sqrt(s2 / 2.0)), source
+
+
+def triangulation_jacobian(triangulate, points_left, points_right, step_px: float = 0.05) -> np.ndarray:
+    """(N, 3, 4) derivatives of triangulated points by ``(x_left, y_left, x_right, y_right)`` (central differences).
+
+    ``triangulate(points_left, points_right) -> (N, 3)`` is the stereo layer's triangulation;
+    rows with a non-finite input or output are NaN.
+    """
+    pl = np.asarray(points_left, dtype=np.float64)
+    pr = np.asarray(points_right, dtype=np.float64)
+    if pl.ndim != 2 or pl.shape[1] != 2 or pr.shape != pl.shape:
+        raise ValueError(f"points_left and points_right must both have shape (N, 2), got {pl.shape} and {pr.shape}")
+    h = positive_float(step_px, "step_px", detail=" (px)")
+    jac = np.empty((pl.shape[0], 3, 4))
+    for c in range(4):
+        d = np.zeros((pl.shape[0], 4))
+        d[:, c] = h
+        plus = np.asarray(triangulate(pl + d[:, :2], pr + d[:, 2:]), dtype=np.float64)
+        minus = np.asarray(triangulate(pl - d[:, :2], pr - d[:, 2:]), dtype=np.float64)
+        jac[:, :, c] = (plus - minus) / (2.0 * h)
+    return jac
+
+
+def propagate_stereo_sigma(jac_ref, sigma_match, jac_cur=None, sigma_left=None, sigma_right=None,
+                           rotation=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Std (mm) of the reference positions ``X, Y, Z`` and of the displacements ``U, V, W`` of stereo DIC.
+
+    The left reference POI is exact; the match puts the right reference point at ``p_r + e_m``;
+    the tracks put the current points at ``p_l + d_l + e_l`` and ``p_r + e_m + d_r + e_r`` (the
+    right track follows the texture at the matched point, so the match error moves with it).
+    With ``A = dX/dp_left``, ``B = dX/dp_right`` (``jac`` columns 0-1 and 2-3) of the reference
+    (``ref``) and current (``cur``) state and independent (u, v) errors of std ``sigma_*`` (N, 2) px:
+
+        Cov(X_ref) = B_ref S_m B_ref^T
+        Cov(U)     = A_cur S_l A_cur^T + B_cur S_r B_cur^T + (B_cur - B_ref) S_m (B_cur - B_ref)^T
+
+    ``rotation`` (3, 3): the output frame's rotation from the left camera frame. Returns
+    ``(sigma_xyz (N, 3), sigma_uvw (N, 3) or None)``; NaN where an input is NaN.
+    """
+    def cov(j, s):
+        return np.einsum("nik,nk,njk->nij", j, np.asarray(s, dtype=np.float64) ** 2, j)
+
+    R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+
+    def sigma(c):
+        return np.sqrt(np.einsum("ik,nkl,il->ni", R, c, R))
+
+    b_ref = jac_ref[:, :, 2:]
+    xyz = sigma(cov(b_ref, sigma_match))
+    if jac_cur is None:
+        return xyz, None
+    b_cur = jac_cur[:, :, 2:]
+    c = cov(jac_cur[:, :, :2], sigma_left) + cov(b_cur, sigma_right) + cov(b_cur - b_ref, sigma_match)
+    return xyz, sigma(c)
 
 
 def _correlator(ref: np.ndarray, pts: np.ndarray, subset: int, order: int, device) -> Correlator:

@@ -55,7 +55,7 @@ from .field3d import (
     surface_strain,
     surface_strain_grid,
 )
-from .quality import check_noise_sigma, displacement_sigma
+from .quality import check_noise_sigma, displacement_sigma, propagate_stereo_sigma, sigma_basis, triangulation_jacobian
 from .triangulate import TriangulationStatus, triangulate, undistort_points
 
 __all__ = [
@@ -293,6 +293,8 @@ class StereoCorrelation:
         self._frame = self._choose_frame(frame)
         self._previous = None          # (params_left (N, k), params_right (N, k)) of the last state
         self._previous_images = (None, None)
+        self._jac_ref = None           # d(X_ref)/d(image points), for the uncertainty (dic.quality)
+        self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
@@ -474,22 +476,43 @@ class StereoCorrelation:
         self._previous = (pl, pr)
         self._previous_images = (None, None) if images is None else _check_pair(images[0], images[1], "previous")
 
-    def _sigmas(self, tracks) -> dict[str, np.ndarray]:
-        """Per-point image-plane std (N, 2) px of the match and of both tracks, and the noise (3,) behind them."""
+    def _tri_points(self, pl: np.ndarray, pr: np.ndarray) -> np.ndarray:
+        return self._triangulate(pl, pr)[0]
+
+    def _sigmas(self, tracks, pl_cur: np.ndarray, pr_cur: np.ndarray, valid: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-point std of the match and both tracks (N, 2) px, the noise (N, 3) behind them, and
+        their propagation to the reference positions and displacements (N, 3) mm in the output frame."""
         n = self.points.shape[0]
         m = self.match
-        sig_m, noise_m, _ = displacement_sigma(self.left.subsets, m.zncc, m.valid, self.noise_sigma)
+        for side, corr in (("left", self.left), ("right", self.right)):
+            if side not in self._basis and corr is not None:
+                self._basis[side] = sigma_basis(corr.subsets)
+        sig_m, noise_m, _ = displacement_sigma(self._basis["left"], m.zncc, m.valid, self.noise_sigma)
         sig_l = np.full((n, 2), np.nan)
         sig_r = np.full((n, 2), np.nan)
         noise_l = noise_r = np.nan
         if tracks is not None:
             tl, tr = tracks
-            sig_l, noise_l, _ = displacement_sigma(self.left.subsets, tl.zncc, tl.accepted, self.noise_sigma)
+            sig_l, noise_l, _ = displacement_sigma(self._basis["left"], tl.zncc, tl.accepted, self.noise_sigma)
             if tr is not None:
-                sr, noise_r, _ = displacement_sigma(self.right.subsets, tr.zncc, tr.accepted, self.noise_sigma)
+                sr, noise_r, _ = displacement_sigma(self._basis["right"], tr.zncc, tr.accepted, self.noise_sigma)
                 sig_r[self._matched] = sr
+        if self._jac_ref is None:
+            self._jac_ref = triangulation_jacobian(self._tri_points, self.points, m.points_right)
+        R = self._frame[0]
+        jac_cur = None
+        if tracks is not None:
+            use = np.where(valid[:, None], 1.0, np.nan)
+            jac_cur = triangulation_jacobian(self._tri_points, pl_cur * use, pr_cur * use)
+        sig_xyz, sig_uvw = propagate_stereo_sigma(self._jac_ref, sig_m, jac_cur, sig_l, sig_r, rotation=R)
+        if sig_uvw is None:
+            sig_uvw = np.full((n, 3), np.nan)
+        sig_xyz[~valid] = np.nan
+        sig_uvw[~valid] = np.nan
         return {"sigma_match_px": sig_m, "sigma_left_px": sig_l, "sigma_right_px": sig_r,
-                "noise_sigma_grey": np.array([noise_m, noise_l, noise_r])}
+                # per point like every details array (exports expect N rows); the same in every row
+                "noise_sigma_grey": np.tile([noise_m, noise_l, noise_r], (n, 1)), "sigma_xyz_mm": sig_xyz,
+                "sigma_uvw_mm": sig_uvw}
 
     # -------------------------------------------------------------------------------------------
     def _field(self, tracks, index: int) -> Field3D:
@@ -568,6 +591,9 @@ class StereoCorrelation:
         uvw[~valid] = np.nan
         # reference positions are kept wherever the reference match and its triangulation are good
         xyz_ref_f[~(m.valid & (tri_ref == TriangulationStatus.OK))] = np.nan
+        t0 = time.perf_counter()
+        details.update(self._sigmas(tracks, pl_cur, pr_cur, valid))
+        self.timings["uncertainty_s"] = time.perf_counter() - t0
         camera_center = t  # the left camera centre (origin of the left frame) in the output frame
         t0 = time.perf_counter()
         if self.grid_shape is not None:
@@ -577,7 +603,6 @@ class StereoCorrelation:
             strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center)
         self.timings["strain_s"] = time.perf_counter() - t0
         details.update(triangulation_status=tri_cur, points_left_cur=pl_cur, points_right_cur=pr_cur)
-        details.update(self._sigmas(tracks))
         zs = np.where(np.isfinite(m.zncc), m.zncc, np.nan)
         return Field3D(
             points=self.points, grid_shape=self.grid_shape,

@@ -31,7 +31,7 @@ from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_gues
 from .correlation.params import guess_params
 from .correlation.points import check_step, grid
 from .field2d import Field2D
-from .quality import check_noise_sigma, displacement_sigma
+from .quality import check_noise_sigma, displacement_sigma, sigma_basis
 
 __all__ = ["Field2D", "Tracker", "grid", "track", "SEARCH_METHODS"]
 
@@ -145,6 +145,7 @@ class Tracker:
         self.correlator = Correlator(self.reference, self.points, subset=self.subset, order=self.order,
                                      max_iter=self.max_iter, tol=self.tol, device=self.device, flat_std=flat_std)
         self._current_buf = None
+        self._sigma_basis = None  # diag H^-1 and df of the reference subsets, read back once (dic.quality)
 
     @property
     def n_points(self) -> int:
@@ -210,7 +211,9 @@ class Tracker:
             implausible = flag_implausible(self.correlator, params, valid, self.order)
             status[implausible] = int(Status.IMPLAUSIBLE_WARP)
             valid &= ~implausible
-        sigma, noise, source = displacement_sigma(self.correlator.subsets, zncc, valid, self.noise_sigma)
+        if self._sigma_basis is None:
+            self._sigma_basis = sigma_basis(self.correlator.subsets)
+        sigma, noise, source = displacement_sigma(self._sigma_basis, zncc, valid, self.noise_sigma)
         return Field2D(self.points.copy(), params[:, 0].copy(), params[:, k // 2].copy(), params, zncc,
                        r["iterations"].astype(np.int32), status, valid, self.subset, self.order, self.step,
                        self.zncc_min, {}, sigma_u=sigma[:, 0].copy(), sigma_v=sigma[:, 1].copy(), noise_sigma=noise,

@@ -15,9 +15,12 @@ from dic.quality import (
     estimate_noise,
     hessian_inverse_uv,
     predicted_sigma,
+    propagate_stereo_sigma,
     residual_variance,
+    sigma_basis,
     speckle_quality,
     suggest_subset,
+    triangulation_jacobian,
 )
 from dic.store import ResultWriter, read_results
 from dic.synth import speckle_pair
@@ -117,6 +120,56 @@ def test_hessian_inverse_against_numpy(device, order, noisy_pairs):
     assert np.all(np.isnan(got[3]))
     with pytest.raises(ValueError, match="ReferenceSubsets"):
         hessian_inverse_uv(np.zeros((3, 3)))
+
+
+def test_sigma_basis_is_read_once_and_gives_the_same_sigma(device, noisy_pairs):
+    ref, cur = noisy_pairs[2.0]
+    tracker = Tracker(ref, step=16, device=device)
+    f = tracker.track(cur)
+    subsets = tracker.correlator.subsets
+    basis = sigma_basis(subsets)
+    a = displacement_sigma(subsets, f.zncc, f.valid)
+    b = displacement_sigma(basis, f.zncc, f.valid)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[1:] == b[1:] and tracker._sigma_basis is not None
+    np.testing.assert_array_equal(basis.hinv_uv, hessian_inverse_uv(subsets))
+    with pytest.raises(ValueError, match="zncc and valid"):
+        displacement_sigma(basis)
+    with pytest.raises(ValueError, match="valid must have shape"):
+        displacement_sigma(basis, f.zncc, f.valid[:3])
+    with pytest.raises(ValueError, match="zncc must have shape"):
+        displacement_sigma(basis, f.zncc[:3], f.valid)
+    # no valid POI: the estimated noise and every sigma are NaN, nothing raises
+    sig, noise, _ = displacement_sigma(basis, f.zncc, np.zeros(f.n_points, bool))
+    assert np.isnan(noise) and np.all(np.isnan(sig))
+
+
+def test_stereo_propagation_against_monte_carlo():
+    """A linear 'triangulation' X = M p: the propagated std equals the scatter of simulated errors."""
+    rng = np.random.default_rng(1)
+    n = 4
+    m_ref = rng.normal(size=(n, 3, 4))
+    m_cur = m_ref + 0.3 * rng.normal(size=(n, 3, 4))
+    pl, pr = rng.normal(size=(n, 2)), rng.normal(size=(n, 2))
+
+    def linear(m):
+        return lambda a, b: np.einsum("nij,nj->ni", m, np.c_[a, b])
+
+    jr = triangulation_jacobian(linear(m_ref), pl, pr)
+    jc = triangulation_jacobian(linear(m_cur), pl, pr)
+    np.testing.assert_allclose(jr, m_ref, atol=1e-12)
+    sm, sl, sr = (rng.uniform(0.01, 0.05, (n, 2)) for _ in range(3))
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    xyz, uvw = propagate_stereo_sigma(jr, sm, jc, sl, sr, rotation=R)
+    k = 200000
+    em, el, er = (rng.normal(size=(k, n, 2)) * s for s in (sm, sl, sr))
+    x_ref = np.einsum("nij,knj->kni", m_ref[:, :, 2:], em)
+    x_cur = np.einsum("nij,knj->kni", m_cur[:, :, :2], el) + np.einsum("nij,knj->kni", m_cur[:, :, 2:], em + er)
+    np.testing.assert_allclose(xyz, (x_ref @ R.T).std(axis=0), rtol=0.01)
+    np.testing.assert_allclose(uvw, ((x_cur - x_ref) @ R.T).std(axis=0), rtol=0.01)
+    assert propagate_stereo_sigma(jr, sm)[1] is None
+    with pytest.raises(ValueError, match="shape"):
+        triangulation_jacobian(linear(m_ref), pl, pr[:2])
 
 
 def test_residual_variance_formula():
