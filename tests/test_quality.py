@@ -257,6 +257,9 @@ def test_suggest_subset_meets_the_target_when_tracked(device, noisy_pairs):
     assert suggest_subset(ref, target, noise_sigma=2.0, order=2, step=12, device=device).subset > s.subset
     none = suggest_subset(ref, 1e-5, noise_sigma=2.0, step=40, max_subset=31, device=device)
     assert none.subset is None and max(none.tried) == 31
+    # a small ROI: sizes stop where no POI of it keeps its subset inside the image
+    corner = suggest_subset(ref, 1e-5, noise_sigma=2.0, step=4, roi=(0, 0, 20, 20), device=device)
+    assert corner.subset is None and max(corner.tried) == 41
     pts, sig = predicted_sigma(ref, s.subset, 1, 2.0, step=12, device=device)
     assert np.quantile(sig.max(axis=1), 0.95) == pytest.approx(s.tried[s.subset])
 
@@ -269,6 +272,8 @@ def test_suggest_subset_meets_the_target_when_tracked(device, noisy_pairs):
     ({"target_sigma_px": 0.01, "step": 0}, "step must be a positive integer"),
     ({"target_sigma_px": 0.01, "min_subset": 8}, "subset"),
     ({"target_sigma_px": 0.01, "min_subset": 21, "max_subset": 11}, "max_subset"),
+    ({"target_sigma_px": 0.01, "roi": np.zeros((10, 10), bool)}, "mask"),
+    ({"target_sigma_px": 0.01, "roi": (318, 318, 319, 319)}, "no POI|empty"),
 ])
 def test_suggest_subset_bad_input(kwargs, message, noisy_pairs):
     ref, _ = noisy_pairs[2.0]
