@@ -403,6 +403,7 @@ def suggest_subset(reference, target_sigma_px: float, noise_sigma=None, *, order
     if hi < lo:
         raise ValueError(f"max_subset ({hi}) must be >= min_subset ({lo})")
     noise = check_noise_sigma(noise_sigma)
+    grid(ref.shape, step, margin=lo // 2, roi=roi)  # a bad ROI or an image too small fails here, with its reason
     noise = estimate_noise(ref) if noise is None else noise
     out = SubsetSuggestion(None, target, coverage, order, float(noise))
     for s in range(lo, hi + 1, 2):
@@ -411,7 +412,7 @@ def suggest_subset(reference, target_sigma_px: float, noise_sigma=None, *, order
         try:
             pts = grid(ref.shape, step, margin=s // 2, roi=roi)
         except ValueError:
-            break  # no POI fits any more
+            break  # no POI of the ROI keeps its subset inside the image any more
         sig = np.sqrt(2.0 * noise ** 2 * hessian_inverse_uv(_correlator(ref, pts, s, order, device).subsets)).max(axis=1)
         sig[~np.isfinite(sig)] = np.inf
         q = float(np.quantile(sig, coverage))
