@@ -3,7 +3,7 @@
 ``dic.track``, ``dic.strain``, ``dic.stereo`` and ``dic.triangulate`` are the functions; their modules
 stay importable as ``from dic.track import Tracker`` etc. Importing compiles no kernel.
 """
-from . import synth
+from . import quality, synth
 from .export import write_vtk, write_vtk_series
 from .field3d import Field3D, StereoStatus
 from .io import read_image, write_image
@@ -16,7 +16,7 @@ from .track import Field2D, Tracker, grid, track
 from .triangulate import Triangulation, triangulate, undistort_points
 
 __all__ = [
-    "synth",
+    "synth", "quality",
     "Field2D", "Tracker", "grid", "track",
     "StrainField", "strain",
     "ResultWriter", "read_results", "read_image", "write_image",

@@ -42,6 +42,15 @@ class Field2D:
         Grid spacing when the points come from :func:`grid` (used by :meth:`to_grid`).
     zncc_min : float
         ZNCC threshold behind ``valid``.
+    sigma_u, sigma_v : (N,) float64 or None
+        Predicted standard deviation of ``u``, ``v`` (px) from the IC-GN Hessian and the image
+        noise, ``sqrt(2 noise_sigma^2 diag H^-1)`` (:mod:`dic.quality`, docs/dic2d.md
+        "Uncertainty"); NaN where not valid.
+    noise_sigma : float or None
+        The grey-level noise std of each image behind ``sigma_u``/``sigma_v``.
+    noise_source : str or None
+        ``"given"`` (the user's ``noise_sigma``) or ``"residual"`` (estimated from the valid
+        subsets' ZNSSD residuals).
     """
 
     points: np.ndarray
@@ -57,6 +66,10 @@ class Field2D:
     step: int | None = None
     zncc_min: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+    sigma_u: np.ndarray | None = None
+    sigma_v: np.ndarray | None = None
+    noise_sigma: float | None = None
+    noise_source: str | None = None
 
     @property
     def n_points(self) -> int:
@@ -152,10 +165,12 @@ class Field2D:
         if isinstance(values, str):
             if values in ("u", "v", "zncc", "status", "valid", "iterations"):
                 arr = np.asarray(getattr(self, values))
+            elif values in ("sigma_u", "sigma_v") and getattr(self, values) is not None:
+                arr = np.asarray(getattr(self, values))
             elif values in self.param_names:
                 arr = self.params[:, self.param_names.index(values)]
             else:
-                raise ValueError(f"unknown quantity {values!r}; use u, v, zncc, status, valid, iterations or "
+                raise ValueError(f"unknown quantity {values!r}; use u, v, zncc, status, valid, iterations, sigma_u, sigma_v or "
                                  f"one of {self.param_names}")
         else:
             arr = np.asarray(values)

@@ -57,6 +57,7 @@ from .field3d import (
     surface_strain,
     surface_strain_grid,
 )
+from .quality import check_noise_sigma, displacement_sigma, propagate_stereo_sigma, sigma_basis, triangulation_jacobian
 from .triangulate import TriangulationStatus, triangulate, undistort_points
 
 __all__ = [
@@ -237,6 +238,9 @@ class StereoCorrelation:
         result file); skips the feature matching and the left -> right IC-GN.
     check_warps : bool, flag matches and tracks that converged to a warp their partly featureless
         subset cannot support as ``IMPLAUSIBLE_WARP`` (:mod:`dic.correlation.plausibility`). Default True.
+    noise_sigma : float, optional: grey-level noise std of each image, for the per-point image-plane
+        uncertainty in ``Field3D.details`` (``sigma_match_px``, ``sigma_left_px``, ``sigma_right_px``,
+        :mod:`dic.quality`); default: estimated from each stage's correlation residuals.
     device : None, "cpu" or "cuda:N".
     """
 
@@ -244,8 +248,9 @@ class StereoCorrelation:
                  order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
-                 device=None):
+                 noise_sigma: float | None = None, device=None):
         self.device = resolve_device(device)
+        self.noise_sigma = check_noise_sigma(noise_sigma)
         self.subset, self.order = check_subset_order(subset, order)
         rig = as_rig(rig)
         left_ref, right_ref = _check_pair(left_ref, right_ref, "reference")
@@ -302,6 +307,8 @@ class StereoCorrelation:
         self._frame = self._choose_frame(frame)
         self._previous = None          # (params_left (N, k), params_right (N, k)) of the last state
         self._previous_images = (None, None)
+        self._jac_ref = None           # d(X_ref)/d(image points), for the uncertainty (dic.quality)
+        self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
@@ -483,6 +490,44 @@ class StereoCorrelation:
         self._previous = (pl, pr)
         self._previous_images = (None, None) if images is None else _check_pair(images[0], images[1], "previous")
 
+    def _tri_points(self, pl: np.ndarray, pr: np.ndarray) -> np.ndarray:
+        return self._triangulate(pl, pr)[0]
+
+    def _sigmas(self, tracks, pl_cur: np.ndarray, pr_cur: np.ndarray, valid: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-point std of the match and both tracks (N, 2) px, the noise (N, 3) behind them, and
+        their propagation to the reference positions and displacements (N, 3) mm in the output frame."""
+        n = self.points.shape[0]
+        m = self.match
+        for side, corr in (("left", self.left), ("right", self.right)):
+            if side not in self._basis and corr is not None:
+                self._basis[side] = sigma_basis(corr.subsets)
+        sig_m, noise_m, _ = displacement_sigma(self._basis["left"], m.zncc, m.valid, self.noise_sigma)
+        sig_l = np.full((n, 2), np.nan)
+        sig_r = np.full((n, 2), np.nan)
+        noise_l = noise_r = np.nan
+        if tracks is not None:
+            tl, tr = tracks
+            sig_l, noise_l, _ = displacement_sigma(self._basis["left"], tl.zncc, tl.accepted, self.noise_sigma)
+            if tr is not None:
+                sr, noise_r, _ = displacement_sigma(self._basis["right"], tr.zncc, tr.accepted, self.noise_sigma)
+                sig_r[self._matched] = sr
+        if self._jac_ref is None:
+            self._jac_ref = triangulation_jacobian(self._tri_points, self.points, m.points_right)
+        R = self._frame[0]
+        jac_cur = None
+        if tracks is not None:
+            use = np.where(valid[:, None], 1.0, np.nan)
+            jac_cur = triangulation_jacobian(self._tri_points, pl_cur * use, pr_cur * use)
+        sig_xyz, sig_uvw = propagate_stereo_sigma(self._jac_ref, sig_m, jac_cur, sig_l, sig_r, rotation=R)
+        if sig_uvw is None:
+            sig_uvw = np.full((n, 3), np.nan)
+        sig_xyz[~valid] = np.nan
+        sig_uvw[~valid] = np.nan
+        return {"sigma_match_px": sig_m, "sigma_left_px": sig_l, "sigma_right_px": sig_r,
+                # per point like every details array (exports expect N rows); the same in every row
+                "noise_sigma_grey": np.tile([noise_m, noise_l, noise_r], (n, 1)), "sigma_xyz_mm": sig_xyz,
+                "sigma_uvw_mm": sig_uvw}
+
     # -------------------------------------------------------------------------------------------
     def _field(self, tracks, index: int) -> Field3D:
         n = self.points.shape[0]
@@ -560,6 +605,9 @@ class StereoCorrelation:
         uvw[~valid] = np.nan
         # reference positions are kept wherever the reference match and its triangulation are good
         xyz_ref_f[~(m.valid & (tri_ref == TriangulationStatus.OK))] = np.nan
+        t0 = time.perf_counter()
+        details.update(self._sigmas(tracks, pl_cur, pr_cur, valid))
+        self.timings["uncertainty_s"] = time.perf_counter() - t0
         camera_center = t  # the left camera centre (origin of the left frame) in the output frame
         t0 = time.perf_counter()
         if self.grid_shape is not None:

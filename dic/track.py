@@ -31,6 +31,7 @@ from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_gues
 from .correlation.params import guess_params
 from .correlation.points import check_step, grid
 from .field2d import Field2D
+from .quality import check_noise_sigma, displacement_sigma, sigma_basis
 
 __all__ = ["Field2D", "Tracker", "grid", "track", "SEARCH_METHODS"]
 
@@ -111,14 +112,19 @@ class Tracker:
     check_warps : bool
         Flag converged POIs whose warp a partly featureless subset cannot support as
         IMPLAUSIBLE_WARP (:mod:`dic.correlation.plausibility`). Default True.
+    noise_sigma : float, optional
+        Grey-level noise std of each image, for the per-POI uncertainty ``Field2D.sigma_u``,
+        ``sigma_v`` (:mod:`dic.quality`). Default: estimated per image from the residuals of the
+        valid POIs.
     device : None or str
     """
 
     def __init__(self, reference, *, points=None, step: int | None = None, roi=None, subset: int = 21,
                  order: int = 1, search: str | None = None, search_radius: int = 32, max_iter: int = 30,
                  tol: float = 1e-3, zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True,
-                 device=None):
+                 noise_sigma: float | None = None, device=None):
         self.subset, self.order = check_subset_order(subset, order)
+        self.noise_sigma = check_noise_sigma(noise_sigma)
         self.search = _check_search(search)
         self.search_radius = non_negative_int(search_radius, "search_radius", detail=" (px)")
         self.max_iter = check_max_iter(max_iter)
@@ -139,6 +145,7 @@ class Tracker:
         self.correlator = Correlator(self.reference, self.points, subset=self.subset, order=self.order,
                                      max_iter=self.max_iter, tol=self.tol, device=self.device, flat_std=flat_std)
         self._current_buf = None
+        self._sigma_basis = None  # diag H^-1 and df of the reference subsets, read back once (dic.quality)
 
     @property
     def n_points(self) -> int:
@@ -240,14 +247,19 @@ class Tracker:
             implausible = flag_implausible(self.correlator, params, valid, self.order)
             status[implausible] = int(Status.IMPLAUSIBLE_WARP)
             valid &= ~implausible
+        if self._sigma_basis is None:
+            self._sigma_basis = sigma_basis(self.correlator.subsets)
+        sigma, noise, source = displacement_sigma(self._sigma_basis, zncc, valid, self.noise_sigma)
         return Field2D(self.points.copy(), params[:, 0].copy(), params[:, k // 2].copy(), params, zncc,
                        r["iterations"].astype(np.int32), status, valid, self.subset, self.order, self.step,
-                       self.zncc_min, {})
+                       self.zncc_min, {}, sigma_u=sigma[:, 0].copy(), sigma_v=sigma[:, 1].copy(), noise_sigma=noise,
+                       noise_source=source)
 
 
 def track(reference, current, *, points=None, step: int | None = None, roi=None, subset: int = 21, order: int = 1,
           guess=None, search: str | None = None, search_radius: int = 32, max_iter: int = 30, tol: float = 1e-3,
-          zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True, device=None) -> Field2D:
+          zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True, noise_sigma=None,
+          device=None) -> Field2D:
     """Track POIs of ``reference`` into ``current`` with IC-GN (see :class:`Tracker` for parameters).
 
     Returns a :class:`Field2D`. For several current images of one reference, build a
@@ -261,5 +273,5 @@ def track(reference, current, *, points=None, step: int | None = None, roi=None,
     """
     tracker = Tracker(reference, points=points, step=step, roi=roi, subset=subset, order=order, search=search,
                       search_radius=search_radius, max_iter=max_iter, tol=tol, zncc_min=zncc_min,
-                      flat_std=flat_std, check_warps=check_warps, device=device)
+                      flat_std=flat_std, check_warps=check_warps, noise_sigma=noise_sigma, device=device)
     return tracker.track(current, guess=guess)

@@ -508,3 +508,45 @@ def test_specimen_edge_on_dark_background_is_flagged():
     assert np.count_nonzero(checked.valid & on_plate) >= np.count_nonzero(raw.valid & on_plate) - 3
     good = checked.valid & on_plate & interior
     assert np.sqrt(np.mean(error[good] ** 2)) < 0.03
+
+
+def test_image_plane_uncertainty_in_details(lab, measured):
+    """Per-point sigma of the match and of both tracks (dic.quality) sit in the details, NaN where not valid,
+    and the match sigma predicts the matching error against the exact projections."""
+    sc, f, _ = measured
+    ref = sc.reference
+    d = f.details
+    for key in ("sigma_match_px", "sigma_left_px", "sigma_right_px"):
+        assert d[key].shape == (len(f), 2)
+        assert np.all(np.isfinite(d[key][f.valid])) and np.all(d[key][f.valid] > 0), key
+    assert np.all(np.isnan(d["sigma_match_px"][~sc.match.valid]))
+    assert d["noise_sigma_grey"].shape == (len(f), 3) and np.all(np.isfinite(d["noise_sigma_grey"]))
+    assert np.all(d["noise_sigma_grey"] == d["noise_sigma_grey"][0])
+    assert np.all(np.isnan(ref.details["sigma_left_px"])) and np.all(np.isnan(ref.details["noise_sigma_grey"][:, 1]))
+    ok = sc.match.valid
+    normal, centre = lab["plane"]
+    _, right_true = _exact_points(lab["rig"], normal, centre, ref.points[ok])
+    err = sc.match.points_right[ok] - right_true
+    predicted = np.sqrt(np.mean(ref.details["sigma_match_px"][ok] ** 2, axis=0))
+    ratio = err.std(axis=0) / predicted
+    print(f"\nstereo match: error std {err.std(axis=0)}, predicted {predicted}, ratio {ratio}")
+    # the renders' noise is the 16-sample quadrature, not white Gaussian noise: a loose bound
+    assert np.all((ratio > 0.5) & (ratio < 2.0))
+    # propagated to 3-D: the translation's scatter against the predicted std of U, V, W
+    assert np.all(np.isfinite(d["sigma_uvw_mm"][f.valid])) and np.all(np.isnan(d["sigma_uvw_mm"][~f.valid]))
+    assert np.all(np.isnan(ref.details["sigma_uvw_mm"])) and np.all(np.isfinite(ref.details["sigma_xyz_mm"][ref.valid]))
+    err3 = f.uvw[f.valid] - lab["R_left_world"] @ TRANSLATION_WORLD
+    pred3 = np.sqrt(np.mean(d["sigma_uvw_mm"][f.valid] ** 2, axis=0))
+    ratio3 = err3.std(axis=0) / pred3
+    print(f"U, V, W: error std {err3.std(axis=0)} mm, predicted {pred3} mm, ratio {ratio3}; timings {sc.timings}")
+    assert pred3[2] > 2 * pred3[0]  # depth is the weak direction (2.03 vs 0.61 mm/px)
+    assert np.all((ratio3 > 0.4) & (ratio3 < 2.0))
+    # reference positions: the depth std follows the match std through dZ/d(disparity) = 2.03 mm/px
+    zs = ref.details["sigma_xyz_mm"][ref.valid, 2] / ref.details["sigma_match_px"][ref.valid, 0]
+    assert np.all((zs > 0.7 * DEPTH_MM_PER_PX) & (zs < 1.3 * DEPTH_MM_PER_PX))
+    (l0, r0), (l1, r1), _ = lab["states"]
+    given = StereoCorrelation(lab["rig"], l0, r0, step=20, subset=21, order=2, noise_sigma=1.5, match=None,
+                              device="cpu")
+    assert np.allclose(given.reference.details["noise_sigma_grey"][:, 0], 1.5)
+    with pytest.raises(ValueError, match="noise_sigma must be a positive finite number"):
+        StereoCorrelation(lab["rig"], l0, r0, step=20, noise_sigma=-1.0, device="cpu")

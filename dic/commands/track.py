@@ -39,6 +39,9 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image scale in mm per px, stored with the results (post-processing then gives positions "
                    "and displacements in mm).")
+@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Image noise std in grey levels, for the per-point uncertainty sigma_u, sigma_v "
+                   "(default: estimated from the correlation residuals of each frame).")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write a displacement/strain figure per frame (PNG) into this folder.")
@@ -48,7 +51,7 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, device, figure_dir, figure_limits, overwrite, quiet):
+          scale, noise_sigma, device, figure_dir, figure_limits, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
@@ -82,9 +85,12 @@ def track(reference, current, output, subset, step, order, search, search_method
             settings[SCALE_KEY] = positive_float(scale, "the scale", detail=" (mm per px)")
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--scale") from None
+    if noise_sigma is not None:  # (the key is absent by default, so files of earlier runs still resume)
+        settings["noise_sigma"] = noise_sigma
     try:
         tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search,
-                                search_method=search_method, max_iter=max_iter, tol=tol, device=device)
+                                search_method=search_method, max_iter=max_iter, tol=tol, device=device,
+                                noise_sigma=noise_sigma)
     except ValueError as exc:
         raise _fail(exc) from None
     if strain_window:
@@ -179,11 +185,11 @@ def _sequence_figures(output, ref, figure_dir) -> None:
                            limits=limits, title=f"frame {f.index}: {Path(f.path).name}")
 
 
-def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device):
+def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, noise_sigma=None):
     """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
     from dic.track import Tracker
 
-    kwargs = {"step": step, "subset": subset, "order": order, "device": device}
+    kwargs = {"step": step, "subset": subset, "order": order, "device": device, "noise_sigma": noise_sigma}
     if search is not None:
         kwargs["search"] = search_method
         kwargs["search_radius"] = int(search)

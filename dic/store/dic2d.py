@@ -4,6 +4,8 @@ Per frame ``/frames/<index>``::
 
     points (N, 2) f8, u (N,), v (N,), params (N, 6|12), zncc (N,), iterations (N,), status (N,) i1,
     valid (N,) bool                  every dataset gzip level 4 + byte shuffle
+    sigma_u, sigma_v (N,) f8         optional: predicted displacement std (px, NaN where not valid);
+                                     attrs noise_sigma (grey levels), noise_source ("given" | "residual")
     strain/                          optional: dudx, dudy, dvdx, dvdy, exx, eyy, exy, Exx, Eyy, Exy (N,) f8,
                                      valid (N,) bool; attrs window, step (dx, dy) px
 
@@ -21,7 +23,9 @@ from .layout import StoreKind, plain
 __all__ = ["FORMAT_NAME", "KIND", "FrameResult", "TrackResults", "write_field2d", "read_field2d"]
 
 FORMAT_NAME = "specula-dic2d"
-FIELD_DATASETS = ("points", "u", "v", "params", "zncc", "iterations", "status", "valid")
+FIELD_DATASETS = ("points", "u", "v", "params", "zncc", "iterations", "status", "valid", "sigma_u", "sigma_v")
+#: frame attributes taken from the field when it has them (dic.quality: the noise behind sigma_u, sigma_v)
+FIELD_ATTRS = ("noise_sigma", "noise_source")
 STRAIN_DATASETS = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy", "valid")
 
 
@@ -41,6 +45,8 @@ class FrameResult:
     valid: np.ndarray | None = None
     strain: dict | None = None
     attrs: dict = field(default_factory=dict)
+    sigma_u: np.ndarray | None = None
+    sigma_v: np.ndarray | None = None
 
     def __repr__(self) -> str:
         n = int(np.asarray(self.points).shape[0])
@@ -194,7 +200,8 @@ def write_field2d(group, field2d, strain=None) -> None:
     """Write one frame's displacement field (and optional strain) into an empty h5py ``group``.
 
     ``field2d`` has ``points`` (N, 2), ``u``, ``v`` (N,) px and optionally ``params``, ``zncc``,
-    ``iterations``, ``status``, ``valid`` (a :class:`dic.track.Field2D`); ``strain`` is a
+    ``iterations``, ``status``, ``valid``, ``sigma_u``, ``sigma_v``, ``noise_sigma``, ``noise_source``
+    (a :class:`dic.track.Field2D`); ``strain`` is a
     :class:`dic.strain.StrainField` or None.
     """
     n = None
@@ -213,6 +220,10 @@ def write_field2d(group, field2d, strain=None) -> None:
         if arr.shape[0] != n:
             raise ValueError(f"field arrays disagree in length: {key} has {arr.shape[0]}, expected {n}")
         _compressed(group, key, arr)
+    for key in FIELD_ATTRS:
+        val = getattr(field2d, key, None)
+        if val is not None:
+            group.attrs[key] = val
     if strain is not None:
         sg = group.create_group("strain")
         for key in STRAIN_DATASETS:
