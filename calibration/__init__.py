@@ -15,7 +15,16 @@ from .detect import (
     detect_dots,
     detect_dots_in_images,
 )
-from .formats import load_dice_xml, load_opencv, load_vic3d_xml, save_dice_xml, save_opencv, save_vic3d_xml
+from .formats import (
+    load_camera,
+    load_dice_xml,
+    load_opencv,
+    load_rig,
+    load_vic3d_xml,
+    save_dice_xml,
+    save_opencv,
+    save_vic3d_xml,
+)
 from .intrinsics import IntrinsicsResult, calibrate_intrinsics
 from .mirror import MirrorPlane, joint_mirror_stereo, mirror_closed_form, mirror_extrinsics
 from .stereo import StereoRig, reconstruct_target, rig_from_mirror, stereo_calibrate
@@ -30,4 +39,5 @@ __all__ = [
     "MirrorPlane", "joint_mirror_stereo", "mirror_closed_form", "mirror_extrinsics",
     "StereoRig", "reconstruct_target", "rig_from_mirror", "stereo_calibrate",
     "load_dice_xml", "load_opencv", "load_vic3d_xml", "save_dice_xml", "save_opencv", "save_vic3d_xml",
+    "load_rig", "load_camera",
 ]

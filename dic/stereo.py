@@ -28,6 +28,7 @@ centre of the top-left pixel; 3-D in mm in the left camera frame (or a chosen ob
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
@@ -59,7 +60,7 @@ from .triangulate import TriangulationStatus, triangulate, undistort_points
 
 __all__ = [
     "StereoStatus", "StereoMatch", "StereoCorrelation", "stereo", "fundamental_matrix", "epipolar_distance",
-    "epipolar_residuals", "feature_matches", "affine_guess", "grid_points", "check_rig_images",
+    "epipolar_residuals", "feature_matches", "affine_guess", "grid_points", "check_rig_images", "as_rig",
 ]
 
 
@@ -69,6 +70,18 @@ __all__ = [
 
 def _image(img, name: str) -> np.ndarray:
     return as_float32_image(img, name)
+
+
+def as_rig(rig, shape: tuple[int, int] | None = None):
+    """``rig`` as a :class:`calibration.stereo.StereoRig`: a rig object as it is, a file path read by
+    :func:`calibration.formats.load_rig` (Specula JSON, OpenCV YAML/XML, VIC-3D XML, DICe XML,
+    detected from the content). ``shape`` (H, W) of the images stands in for an image size the file
+    does not record."""
+    if isinstance(rig, (str, os.PathLike)):
+        from calibration.formats import load_rig
+
+        return load_rig(rig, image_size=None if shape is None else (int(shape[1]), int(shape[0])))
+    return rig
 
 
 def check_rig_images(rig, shape: tuple[int, int]) -> None:
@@ -208,11 +221,14 @@ class StereoCorrelation:
 
     Parameters
     ----------
-    rig : calibration.stereo.StereoRig
+    rig : calibration.stereo.StereoRig, or the path of a rig file in any format Specula reads
+        (Specula JSON, OpenCV YAML/XML/JSON, VIC-3D XML, DICe XML; :func:`as_rig`).
     left_ref, right_ref : (H, W) grey images of the reference state (same size, the rig's size).
     points : (N, 2) px in the left reference image, optional. Default: a grid of ``step``.
     step : int, grid spacing (px) when ``points`` is None.
-    roi : (x0, y0, x1, y1) or bool mask (H, W), optional: grid POIs outside are ``NOT_COMPUTED``.
+    roi : optional, in the left reference image: an inclusive box ``(x0, y0, x1, y1)``, a polygon
+        ``[(x, y), ...]``, an (H, W) mask or a mask image file (:mod:`dic.correlation.points`; the
+        same rule as 2-D tracking); grid POIs outside are ``NOT_COMPUTED``.
     subset : odd int, subset size (px); order : 1 or 2 (shape function; 2 recommended for stereo).
     frame : "left", "plane" or (R_obj_left, t_obj_left): output frame (see :class:`Field3D`).
     epipolar_tol_px : float, px (undistorted right image) beyond which a match is ``EPIPOLAR_VIOLATION``.
@@ -236,6 +252,7 @@ class StereoCorrelation:
         self.device = resolve_device(device)
         self.subset, self.order = check_subset_order(subset, order)
         left_ref, right_ref = _check_pair(left_ref, right_ref, "reference")
+        rig = as_rig(rig, left_ref.shape)
         check_rig_images(rig, left_ref.shape)
         self.rig = rig
         self.shape = left_ref.shape
@@ -574,7 +591,8 @@ def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=No
 
     Parameters
     ----------
-    rig : calibration.stereo.StereoRig (cameras ``left``, ``right``; ``R_right_left``, ``t_right_left`` mm).
+    rig : calibration.stereo.StereoRig (cameras ``left``, ``right``; ``R_right_left``, ``t_right_left`` mm),
+        or a rig file in any format Specula reads (:func:`as_rig`).
     left_ref, right_ref : (H, W) grey images of the reference state.
     left_cur, right_cur : (H, W) grey images of a current state, optional (both or neither).
     points, step, roi, subset, order, frame, epipolar_tol_px, zncc_min, strain_window, device :

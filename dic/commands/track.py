@@ -11,6 +11,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ._region import parse_region, region_options
+
 
 def _fail(exc: Exception) -> click.ClickException:
     return click.ClickException(str(exc))
@@ -35,18 +37,20 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--tol", default=None, type=click.FloatRange(min=0, min_open=True), help="Convergence threshold on the parameter update norm.")
 @click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=0),
               help="Strain fit window in grid points (odd, >= 3); 0 skips strain.")
+@region_options
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write a displacement/strain figure per frame (PNG) into this folder.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          device, figure_dir, overwrite, quiet):
+          roi, roi_polygon, mask, device, figure_dir, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
     result (or from --search). Per point the file holds u, v, the shape-function parameters, ZNCC,
-    iterations, a status code and a validity flag, plus strain.
+    iterations, a status code and a validity flag, plus strain. A region of interest (--roi,
+    --roi-polygon or --mask, in the reference image) keeps only the grid points inside it.
     """
     from tqdm import tqdm
 
@@ -60,16 +64,23 @@ def track(reference, current, output, subset, step, order, search, search_method
         raise click.BadParameter(f"must be 0 or an odd number >= 3, got {strain_window}", param_hint="--strain-window")
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
+    region = parse_region(roi, roi_polygon, mask)
     try:
         ref = read_image(reference)
+        if region is not None:
+            from dic.correlation.points import region as check_region
+
+            region = check_region(region, ref.shape)
     except ValueError as exc:
         raise _fail(exc) from None
     settings = {"subset": subset, "step": step, "order": order, "search": search,
                 "search_method": search_method if search else None, "max_iter": max_iter, "tol": tol,
                 "strain_window": strain_window}
+    if region is not None:  # only when given: files written without a region resume as before
+        settings["roi"] = region.settings()
     try:
         tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search,
-                                search_method=search_method, max_iter=max_iter, tol=tol, device=device)
+                                search_method=search_method, max_iter=max_iter, tol=tol, device=device, roi=region)
     except ValueError as exc:
         raise _fail(exc) from None
     try:
@@ -128,11 +139,13 @@ def track(reference, current, output, subset, step, order, search, search_method
         click.echo(f"results: {output}")
 
 
-def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device):
+def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, roi=None):
     """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
     from dic.track import Tracker
 
     kwargs = {"step": step, "subset": subset, "order": order, "device": device}
+    if roi is not None:
+        kwargs["roi"] = roi
     if search is not None:
         kwargs["search"] = search_method
         kwargs["search_radius"] = int(search)
