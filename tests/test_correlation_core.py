@@ -91,6 +91,29 @@ def test_polygon_and_mask_file_regions_have_one_meaning(tmp_path):
             grid(shape, 10, margin=10, roi=bad)
 
 
+def test_polygon_rule_matches_opencv(rng):
+    """The vectorised polygon rule gives cv2.pointPolygonTest(...) >= 0 (inside or on the edge) on random
+    polygons, convex or not, self-intersecting or not, with vertices in whole and half pixels."""
+    import cv2
+
+    from dic.correlation.points import lattice, roi_mask
+
+    shape = (60, 80)
+    pts, _ = lattice(shape, 1)
+    for k in range(40):
+        n = int(rng.integers(3, 9))
+        v = np.round(rng.uniform([-5, -5], [85, 65], size=(n, 2)) * (2 if k % 2 else 1)) / (2 if k % 2 else 1)
+        if k % 5 == 0:  # axis-aligned edges through many lattice points
+            v = np.array([[10, 5], [60, 5], [60, 40], [30, 40], [30, 20], [10, 20]], float) + k // 5
+        contour = v.astype(np.float32).reshape(-1, 1, 2)
+        try:
+            mine = roi_mask(pts, v, shape)
+        except ValueError:  # zero area: refused
+            continue
+        ref = np.array([cv2.pointPolygonTest(contour, (float(x), float(y)), False) >= 0 for x, y in pts])
+        assert np.array_equal(mine, ref), (k, v.tolist(), np.flatnonzero(mine != ref)[:5])
+
+
 def test_guesses_by_name_and_extensible():
     assert {"prior", "zncc", "fft", "pyramid", "rg", "shift", "features", "epipolar"} <= set(available_guesses())
     with pytest.raises(ValueError, match="unknown initial-guess strategy 'nope'.*zncc"):
