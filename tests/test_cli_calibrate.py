@@ -189,6 +189,27 @@ def test_mirror_command(data, poses, name):
     assert (root / f"fig_{name}" / "mirror_residuals.png").stat().st_size > 1000
 
 
+def test_mirror_command_takes_a_camera_in_any_format(data, poses, tmp_path):
+    """--camera reads OpenCV files too (detected from the content); the pose is the one the JSON camera gives."""
+    from calibration.formats import save_opencv
+
+    root, views, _ = data
+    save_opencv(tmp_path / "right_camera.txt", RIGHT)
+    out = tmp_path / "pose.json"
+    res = _run("mirror", "--camera", tmp_path / "right_camera.txt", "--target", root / "target.json",
+               *views["right"]["mirror"], "-o", out, "-q")
+    assert res.exit_code == 0, res.output
+    a, b = json.loads(out.read_text()), json.loads(poses["right"][0].read_text())
+    np.testing.assert_allclose(a["R_cam_target"], b["R_cam_target"], atol=1e-12)
+    np.testing.assert_allclose(a["t_cam_target"], b["t_cam_target"], atol=1e-9)
+    save_opencv(tmp_path / "rig.yml", StereoRig(LEFT, RIGHT, R_RL, T_RL))
+    (tmp_path / "notes.txt").write_text("focal length about 700 px")
+    for cam, msg in [(tmp_path / "rig.yml", "holds a stereo rig"), (tmp_path / "notes.txt", "DICe camera-system XML")]:
+        res = _run("mirror", "--camera", cam, "--target", root / "target.json", *views["right"]["mirror"],
+                   "-o", tmp_path / "p2.json", "-q")
+        assert res.exit_code == 1 and msg in res.output and "Traceback" not in res.output, res.output
+
+
 def test_stereo_command(data, poses):
     root, views, _ = data
     truth = StereoRig(LEFT, RIGHT, R_RL, T_RL)
