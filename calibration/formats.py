@@ -63,7 +63,8 @@ def _rig_from_world_poses(cam0, cam1, R0, t0, R1, t1, metadata):
 def _exists(path, what):
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise ValueError(f"{what} file {path!r} does not exist")
+        raise ValueError(f"{what} file {path!r} " + ("is not a file (a folder?)" if os.path.exists(path)
+                                                     else "does not exist"))
     return path
 
 
@@ -312,7 +313,10 @@ def save_vic3d_xml(path, rig: StereoRig, *, allow_lossy: bool = False) -> None:
 
 
 def load_vic3d_xml(path, image_size=None) -> StereoRig:
-    """Read the calibration of a VIC-3D project / calibration XML (two cameras).
+    """Read the calibration of a VIC-3D project / calibration XML (two cameras), in either layout:
+    ``<camera id="i">CX CY FX FY FS κ1 κ2 κ3<orientation>…</orientation></camera>`` or
+    ``<camera id="i"><intrinsics>CX CY FX FY FS</intrinsics><orientation>α β γ tx ty tz</orientation>
+    <distortion>κ1 κ2 κ3</distortion></camera>`` (see :func:`_vic3d_split_camera`).
 
     ``image_size`` (width, height) is needed when the file has no ``<polygonmask>`` with the size.
     """
@@ -330,6 +334,11 @@ def load_vic3d_xml(path, image_size=None) -> StereoRig:
         image_size = (int(pm.get("width")), int(pm.get("height")))
     cams, poses = [], []
     for el in cam_els:
+        if el.find("intrinsics") is not None:  # the <intrinsics>/<orientation>/<distortion> layout
+            cam, pose = _vic3d_split_camera(el, image_size, path)
+            cams.append(cam)
+            poses.append(pose)
+            continue
         vals = (el.text or "").split()
         orient = el.find("orientation")
         if len(vals) != 8 or orient is None:
@@ -344,3 +353,248 @@ def load_vic3d_xml(path, image_size=None) -> StereoRig:
         poses.append((rotation_from_euler(*o[:3]), np.array(o[3:])))
     return _rig_from_world_poses(cams[0], cams[1], *poses[0], *poses[1],
                                  {"imported_from": os.fspath(path), "format": "VIC-3D"})
+
+
+def _vic3d_numbers(el, what: str, path) -> list[float]:
+    try:
+        return [float(v) for v in (el.text or "").split()]
+    except ValueError:
+        raise ValueError(f"{os.fspath(path)!r}: <{what}> must hold numbers, got {(el.text or '').strip()!r}") from None
+
+
+def _vic3d_split_camera(el, image_size, path):
+    """One camera of the ``<intrinsics>/<orientation>/<distortion>`` layout of VIC-3D project files.
+
+    ``<intrinsics>``: CX CY FX FY FS (5 numbers, FS = ``K[0, 1]``); ``<orientation>``: α β γ (degrees,
+    ``R = Rz(γ) Ry(β) Rx(α)``, world→camera) tx ty tz (mm), as in the other layout; ``<distortion>``
+    (optional): κ1 [κ2 [κ3]] on r², r⁴, r⁶ of normalised coordinates (= OpenCV k1 k2 k3; the same
+    assumption as the other layout). Further distortion terms are refused unless they are zero: we
+    could not verify what VIC-3D means by them. Returns ``(Camera, (R, t))``.
+    """
+    cid = el.get("id")
+    intr = _vic3d_numbers(el.find("intrinsics"), "intrinsics", path)
+    if len(intr) != 5:
+        raise ValueError(f"{os.fspath(path)!r}: camera {cid}: <intrinsics> must hold CX CY FX FY FS (5 numbers), "
+                         f"got {len(intr)}")
+    orient = el.find("orientation")
+    if orient is None:
+        raise ValueError(f"{os.fspath(path)!r}: camera {cid} has <intrinsics> but no <orientation>")
+    o = _vic3d_numbers(orient, "orientation", path)
+    if len(o) != 6:
+        raise ValueError(f"{os.fspath(path)!r}: camera {cid}: <orientation> must hold α β γ tx ty tz, got {len(o)} values")
+    dist_el = el.find("distortion")
+    kappa = _vic3d_numbers(dist_el, "distortion", path) if dist_el is not None else []
+    if any(k != 0.0 for k in kappa[3:]):
+        raise ValueError(f"{os.fspath(path)!r}: camera {cid}: <distortion> holds {len(kappa)} terms; Specula reads "
+                         "κ1 κ2 κ3 (radial) only and the further terms are not zero")
+    k1, k2, k3 = (kappa + [0.0, 0.0, 0.0])[:3]
+    cx, cy, fx, fy, fs = intr
+    cam = Camera([[fx, fs, cx], [0, fy, cy], [0, 0, 1]], [k1, k2, 0.0, 0.0, k3], image_size, f"camera {cid}")
+    return cam, (rotation_from_euler(*o[:3]), np.array(o[3:]))
+
+
+# -- one entry point: the format detected from the content ------------------------------------------
+#: the calibration formats :func:`load_rig` and :func:`load_camera` recognise, as named in messages
+CALIBRATION_FORMATS = (
+    "Specula JSON (camera or stereo rig, from 'specula calibrate')",
+    "OpenCV FileStorage YAML/XML/JSON (camera_matrix/distortion_coefficients, or M1 D1 M2 D2 R T)",
+    "VIC-3D calibration or project XML (<camera> with 8 numbers + <orientation>, or "
+    "<intrinsics>/<orientation>/<distortion>)",
+    "DICe camera-system XML (<ParameterList> with xml_file_format = DICe_xml_camera_system_file)",
+)
+
+_OPENCV_KEYS = ("camera_matrix", "cameraMatrix", "K", "M1", "K1", "cameraMatrix1", "camera_matrix_1")
+
+
+def _opencv_has_camera(path) -> bool:
+    """Whether cv2.FileStorage reads ``path`` and finds a camera matrix in it."""
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except Exception:  # cv2.error, or SystemError from the binding when parsing fails
+        return False
+    try:
+        return fs.isOpened() and any(not fs.getNode(k).empty() for k in _OPENCV_KEYS)
+    except cv2.error:
+        return False
+    finally:
+        fs.release()
+
+
+def _unknown_format(path, why: str) -> ValueError:
+    return ValueError(f"{path!r} is not a calibration file Specula reads ({why}); the formats recognised from the "
+                      "content are: " + "; ".join(CALIBRATION_FORMATS))
+
+
+def detect_calibration_format(path) -> str:
+    """The format of a camera or rig file, from its content (never its suffix).
+
+    Returns ``"specula-camera"``, ``"specula-rig"``, ``"opencv"``, ``"vic3d"`` or ``"dice"``. Raises
+    ``ValueError`` for a missing file, malformed JSON/XML, or content that fits none of
+    :data:`CALIBRATION_FORMATS` (the message names them).
+    """
+    return _detect(path)[0]
+
+
+def _detect(path):
+    """(format, parsed JSON dict or None)."""
+    from .camera import CAMERA_SCHEMA
+    from .stereo import RIG_SCHEMA
+
+    path = _exists(path, "calibration")
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise ValueError(f"cannot read {path!r} ({exc.strerror})") from None
+    text = raw.decode("utf-8", errors="replace").lstrip("\ufeff \t\r\n")
+    if not text:
+        raise _unknown_format(path, "the file is empty")
+    if text.startswith("{"):
+        import json
+
+        try:
+            data = json.loads(raw.decode("utf-8-sig"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            if _opencv_has_camera(path):  # OpenCV writes JSON with // comments
+                return "opencv", None
+            raise ValueError(f"calibration file {path!r} is not valid JSON ({exc}); is it truncated?") from None
+        if not isinstance(data, dict):
+            raise _unknown_format(path, "a JSON file that is not an object")
+        schema = data.get("schema")
+        if schema == CAMERA_SCHEMA:
+            return "specula-camera", data
+        if schema == RIG_SCHEMA:
+            return "specula-rig", data
+        if schema is not None:
+            raise _unknown_format(path, f"a JSON file of schema {schema!r}, neither {CAMERA_SCHEMA!r} nor {RIG_SCHEMA!r}")
+        if any(k in data for k in _OPENCV_KEYS):
+            return "opencv", None
+        raise _unknown_format(path, "a JSON file without a Specula schema or OpenCV camera matrices")
+    if text.startswith("%YAML"):
+        return "opencv", None
+    if text.startswith("<"):
+        root = _parse_xml(path, "calibration")
+        if root.tag == "opencv_storage":
+            return "opencv", None
+        if root.tag == "ParameterList":
+            return "dice", None
+        cal = root if root.tag == "calibration" else root.find(".//calibration")
+        if cal is not None and cal.find("camera") is not None:
+            return "vic3d", None
+        raise _unknown_format(path, f"an XML file with root <{root.tag}> and no <calibration><camera>")
+    if _opencv_has_camera(path):  # YAML without its %YAML header
+        return "opencv", None
+    raise _unknown_format(path, "neither JSON, YAML nor XML with camera parameters")
+
+
+def _fill_size(cam: Camera, image_size) -> Camera:
+    if image_size is None or tuple(cam.size) != (0, 0):
+        return cam
+    import dataclasses
+
+    return dataclasses.replace(cam, size=tuple(int(s) for s in image_size))
+
+
+def _check_image_size(image_size):
+    if image_size is None:
+        return None
+    try:
+        w, h = (int(s) for s in image_size)
+    except (TypeError, ValueError):
+        raise ValueError(f"image_size must be (width, height) in px, got {image_size!r}") from None
+    if w <= 0 or h <= 0:
+        raise ValueError(f"image_size must be positive (width, height) in px, got {image_size!r}")
+    return w, h
+
+
+def _load_any(path, image_size):
+    """Camera or StereoRig from any format (see :func:`load_rig`) and the format's name."""
+    image_size = _check_image_size(image_size)
+    fmt, data = _detect(path)
+    if fmt == "specula-camera":
+        return Camera.from_dict(data), fmt
+    if fmt == "specula-rig":
+        return StereoRig.from_dict(data), fmt
+    if fmt == "opencv":
+        obj = load_opencv(path)
+    elif fmt == "dice":
+        obj = load_dice_xml(path)
+    else:
+        obj = _vic3d_sized(path, image_size)
+    if isinstance(obj, Camera):
+        return _fill_size(obj, image_size), fmt
+    left, right = _fill_size(obj.left, image_size), _fill_size(obj.right, image_size)
+    if left is not obj.left or right is not obj.right:
+        obj = StereoRig(left, right, obj.R_right_left, obj.t_right_left, covariance=obj.covariance,
+                        metadata={**obj.metadata, "image_size": "not in the file; taken from the images"})
+    return obj, fmt
+
+
+def _vic3d_sized(path, image_size):
+    """A VIC-3D rig with the image size the file records, else ``image_size``."""
+    try:
+        return load_vic3d_xml(path)
+    except ValueError as exc:
+        if "pass image_size" not in str(exc):
+            raise
+        if image_size is None:
+            raise ValueError(f"{os.fspath(path)!r} (VIC-3D) does not record the image size; pass "
+                             "image_size=(width, height)") from None
+    rig = load_vic3d_xml(path, image_size=image_size)
+    rig.metadata["image_size"] = "not in the file; taken from the images"
+    return rig
+
+
+def load_rig(path, *, image_size=None) -> StereoRig:
+    """Read a stereo rig from a file in any format Specula reads, detected from the content.
+
+    Formats (:data:`CALIBRATION_FORMATS`): Specula's rig JSON, OpenCV FileStorage (YAML/XML/JSON as
+    ``stereo_calib.cpp`` writes it), VIC-3D calibration/project XML (both layouts) and DICe
+    camera-system XML. ``image_size`` (width, height) is used only where the file records no image
+    size (VIC-3D files without ``<polygonmask>``, OpenCV files without ``image_width``): DIC passes
+    its images' size. Raises ``ValueError`` naming the formats when none fits, or saying that the
+    file holds one camera, not a rig.
+    """
+    obj, fmt = _load_any(path, image_size)
+    if not isinstance(obj, StereoRig):
+        raise ValueError(f"{os.fspath(path)!r} holds one camera ({fmt}), not a stereo rig; a rig file comes from "
+                         "'specula calibrate stereo' (or another tool's two-camera calibration)")
+    return obj
+
+
+def as_rig(rig_or_path, *, image_size=None):
+    """``rig_or_path`` as a rig: a :class:`StereoRig` (or an object with its attributes) as it is, a file
+    path read with :func:`load_rig` (any format, detected from the content; ``image_size`` (width,
+    height) stands in where the file records no size). Anything else raises ``ValueError``.
+
+    Every function that takes a rig calls this (``dic.stereo.StereoCorrelation``, ``stereo``,
+    ``dic.sequence.stereo_sequence``, ``specula stereo --rig``), so a rig may be given as an object
+    or as the path of its file.
+    """
+    if isinstance(rig_or_path, (str, os.PathLike)):
+        return load_rig(rig_or_path, image_size=image_size)
+    if isinstance(rig_or_path, StereoRig) or all(
+            hasattr(rig_or_path, a) for a in ("left", "right", "R_right_left", "t_right_left")):
+        return rig_or_path
+    raise ValueError("rig must be a calibration.stereo.StereoRig or the path of a rig file (Specula JSON, "
+                     f"OpenCV YAML/XML/JSON, VIC-3D XML or DICe XML), got {type(rig_or_path).__name__}")
+
+
+def load_camera(path, *, which: str | None = None, image_size=None) -> Camera:
+    """Read one camera from a file in any format Specula reads, detected from the content.
+
+    A camera file (Specula camera JSON, OpenCV ``calibration.cpp`` keys) gives its camera; a rig
+    file (any format of :func:`load_rig`) gives its ``which`` camera (``"left"`` or ``"right"``) and
+    is refused without ``which``. ``image_size`` as in :func:`load_rig`.
+    """
+    if which not in (None, "left", "right"):
+        raise ValueError(f"which must be None, 'left' or 'right', got {which!r}")
+    obj, fmt = _load_any(path, image_size)
+    if isinstance(obj, Camera):
+        return obj
+    if which is None:
+        raise ValueError(f"{os.fspath(path)!r} holds a stereo rig ({fmt}), not one camera; give a camera file "
+                         "(from 'specula calibrate intrinsics') or choose the rig's camera (which='left' or 'right')")
+    return getattr(obj, which)

@@ -411,7 +411,7 @@ def detect_stereo_view(left_source, right_source, target: PhaseTarget, *, name: 
 
     Raises ``ValueError`` when the target is not found in one image, when a view is mirrored, or
     when fewer than ``min_points`` dots are common to both."""
-    out = []
+    out, sizes = [], []
     for side, src in (("left", left_source), ("right", right_source)):
         r = detect_view(src, target, name=f"{name or 'stereo view'} ({side})", correct_blur=correct_blur,
                         min_modulation=min_modulation, max_misfit=max_misfit, device=device)
@@ -420,6 +420,7 @@ def detect_stereo_view(left_source, right_source, target: PhaseTarget, *, name: 
         if r.mirrored:
             raise ValueError(f"{r.name}: the target appears mirrored; a stereo view must show the target directly")
         out.append(r.detection)
+        sizes.append(r.image_size)
     dl, dr = out
     common = np.intersect1d(dl.ids, dr.ids)
     if len(common) < min_points:
@@ -428,12 +429,29 @@ def detect_stereo_view(left_source, right_source, target: PhaseTarget, *, name: 
     ir = {int(d): n for n, d in enumerate(dr.ids)}
     ql = dl.image_points[[il[int(i)] for i in common]]
     qr = dr.image_points[[ir[int(i)] for i in common]]
-    return StereoView(common.astype(np.int64), target.object_points[common], ql, qr, name)
+    return StereoView(common.astype(np.int64), target.object_points[common], ql, qr, name,
+                      image_sizes=tuple(sizes) if all(sz is not None for sz in sizes) else None)
 
 
 # ------------------------------------------------------------------------------------------------
 # conventional: checkerboard pairs
 # ------------------------------------------------------------------------------------------------
+def _check_board_image_size(sizes: dict, side: str, image: np.ndarray, camera: Camera | None, name: str) -> None:
+    """Every image of a side has one size, and a given camera was calibrated for it (else ValueError)."""
+    if image.ndim != 2:
+        raise ValueError(f"{name}: the {side} image must be a grey (H, W) image, got shape {image.shape}")
+    size = (int(image.shape[1]), int(image.shape[0]))
+    if sizes[side] is None:
+        sizes[side] = size
+        if camera is not None and tuple(camera.size) != (0, 0) and tuple(camera.size) != size:
+            raise ValueError(f"the {side} camera was calibrated for {camera.size[0]}x{camera.size[1]} px images but the "
+                             f"{side} board images are {size[0]}x{size[1]} px ({name}); use the camera file made for "
+                             "these images, or images of the calibrated size")
+    elif size != sizes[side]:
+        raise ValueError(f"{name}: the {side} image is {size[0]}x{size[1]} px but the first {side} image is "
+                         f"{sizes[side][0]}x{sizes[side][1]} px; every {side} image must have the same size")
+
+
 def stereo_from_checkerboards(left_images, right_images, target: CheckerboardTarget, *, left_camera: Camera | None = None,
                               right_camera: Camera | None = None, names=None, model: str = "opencv5",
                               uncertainty: str = "jacobian") -> CheckerboardStereo:
@@ -447,6 +465,10 @@ def stereo_from_checkerboards(left_images, right_images, target: CheckerboardTar
     left_camera, right_camera : Camera, optional
         Known intrinsics (held fixed). When omitted, each camera is first calibrated from its board
         views (Zhang, :func:`calibration.intrinsics.calibrate_intrinsics`), the conventional way.
+
+    Raises ``ValueError`` when a given camera was calibrated for another image size than its board
+    images (the message names both sizes), when the images of one side differ in size, or when the
+    board is found in too few pairs.
     """
     if not isinstance(target, CheckerboardTarget):
         raise ValueError(f"target must be a CheckerboardTarget, got {type(target).__name__}")
@@ -456,12 +478,16 @@ def stereo_from_checkerboards(left_images, right_images, target: CheckerboardTar
     names = names or [f"pair{i}" if not isinstance(a, (str, os.PathLike))
                       else f"{os.path.basename(os.fspath(a))} | {os.path.basename(os.fspath(b))}"
                       for i, (a, b) in enumerate(zip(left_images, right_images))]
-    objs, ql, qr, kept, dropped, size = [], [], [], [], [], None
+    for side, cam in (("left", left_camera), ("right", right_camera)):
+        if cam is not None and not isinstance(cam, Camera):
+            raise ValueError(f"{side}_camera must be a calibration.camera.Camera, got {type(cam).__name__}")
+    objs, ql, qr, kept, dropped = [], [], [], [], []
+    sizes = {"left": None, "right": None}
     for nm, a, b in zip(names, left_images, right_images):
         ia = _read_image(os.fspath(a)) if isinstance(a, (str, os.PathLike)) else np.asarray(a)
         ib = _read_image(os.fspath(b)) if isinstance(b, (str, os.PathLike)) else np.asarray(b)
-        if size is None:
-            size = (ia.shape[1], ia.shape[0])
+        for side, img, cam in (("left", ia, left_camera), ("right", ib, right_camera)):
+            _check_board_image_size(sizes, side, img, cam, nm)
         ca = _board_corners(ia, target)
         cb = _board_corners(ib, target)
         if ca is None or cb is None:
@@ -476,10 +502,10 @@ def stereo_from_checkerboards(left_images, right_images, target: CheckerboardTar
                          f"({'; '.join(f'{n}: {w}' for n, w in dropped)})")
     li = ri = None
     if left_camera is None:
-        li = calibrate_intrinsics(objs, ql, size, model=model, reject=None, name="left")
+        li = calibrate_intrinsics(objs, ql, sizes["left"], model=model, reject=None, name="left")
         left_camera = li.camera
     if right_camera is None:
-        ri = calibrate_intrinsics(objs, qr, size, model=model, reject=None, name="right")
+        ri = calibrate_intrinsics(objs, qr, sizes["right"], model=model, reject=None, name="right")
         right_camera = ri.camera
     res = stereo_calibrate(left_camera, right_camera, objs, ql, qr, uncertainty=uncertainty)
     return CheckerboardStereo(result=res, names=kept, dropped=dropped, left_intrinsics=li, right_intrinsics=ri)

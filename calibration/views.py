@@ -294,13 +294,15 @@ def dense_view_points(decoding: DenseDecoding, spacing: float) -> tuple[np.ndarr
 
 @dataclass
 class StereoView:
-    """A target both cameras see: common dot ids, object points (N, 3) mm and image points (N, 2) in each camera."""
+    """A target both cameras see: common dot ids, object points (N, 3) mm and image points (N, 2) in each camera;
+    ``image_sizes`` ((w, h) left, (w, h) right) of the images it was detected in, when known."""
 
     ids: np.ndarray
     object_points: np.ndarray
     left_points: np.ndarray
     right_points: np.ndarray
     name: str = ""
+    image_sizes: tuple | None = None
 
     def as_tuple(self):
         return self.object_points, self.left_points, self.right_points

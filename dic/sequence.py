@@ -19,10 +19,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from calibration.rigfile import as_rig
-
+from .correlation.points import Region, region
 from .field3d import Field3D
-from .stereo import StereoCorrelation
+from .stereo import StereoCorrelation, as_rig
 from .store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from .store import STEREO_FORMAT_NAME as FORMAT_NAME
 
@@ -46,8 +45,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
 
     Parameters
     ----------
-    rig : calibration.stereo.StereoRig, or the path of a rig file (Specula JSON, OpenCV, DICe or
-        VIC-3D; :func:`calibration.rigfile.as_rig`)
+    rig : calibration.stereo.StereoRig, or a rig file in any format Specula reads (Specula JSON,
+        OpenCV YAML/XML/JSON, VIC-3D XML, DICe XML; :func:`dic.stereo.as_rig`)
     pairs : sequence of (left, right)
         Images (arrays or file paths: TIFF, PNG, BMP). ``pairs[0]`` is the reference state;
         state ``k`` is ``pairs[k]``. Each state is tracked from the reference with the previous
@@ -76,7 +75,6 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     """
     from tqdm import tqdm
 
-    rig = as_rig(rig)
     pairs = list(pairs)
     if not pairs:
         raise ValueError("pairs is empty: give at least the reference (left, right) pair")
@@ -87,7 +85,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     left_ref, lp = _load(pairs[0][0], "reference left image")
     right_ref, rp = _load(pairs[0][1], "reference right image")
     device = options.pop("device", None)
-    settings = {k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in sorted(options.items())}
+    rig = as_rig(rig, image_size=(np.shape(left_ref)[1], np.shape(left_ref)[0]))
+    if options.get("roi") is not None:  # checked once (a mask file is read once); stored in its JSON form
+        options["roi"] = region(options["roi"], np.shape(left_ref))
+    settings = {k: (v.settings() if isinstance(v, Region) else np.asarray(v).tolist() if isinstance(v, np.ndarray)
+                    else v) for k, v in sorted(options.items())}
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
     ref_digests = (image_digest(left_ref), image_digest(right_ref))

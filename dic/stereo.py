@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.rigfile import as_rig
+from calibration.formats import as_rig  # re-exported: dic.stereo.as_rig
 from kernels._device import resolve_device
 from kernels.checks import as_points, in_range, odd_int, positive_float
 from kernels.conventions import Status
@@ -62,7 +62,7 @@ from .triangulate import TriangulationStatus, triangulate, undistort_points
 
 __all__ = [
     "StereoStatus", "StereoMatch", "StereoCorrelation", "stereo", "fundamental_matrix", "epipolar_distance",
-    "epipolar_residuals", "feature_matches", "affine_guess", "grid_points", "check_rig_images",
+    "epipolar_residuals", "feature_matches", "affine_guess", "grid_points", "check_rig_images", "as_rig",
 ]
 
 
@@ -220,12 +220,14 @@ class StereoCorrelation:
 
     Parameters
     ----------
-    rig : calibration.stereo.StereoRig, or the path of a rig file (Specula JSON, OpenCV, DICe or
-        VIC-3D; :func:`calibration.rigfile.as_rig`)
+    rig : calibration.stereo.StereoRig, or the path of a rig file in any format Specula reads
+        (Specula JSON, OpenCV YAML/XML/JSON, VIC-3D XML, DICe XML; :func:`as_rig`).
     left_ref, right_ref : (H, W) grey images of the reference state (same size, the rig's size).
     points : (N, 2) px in the left reference image, optional. Default: a grid of ``step``.
     step : int, grid spacing (px) when ``points`` is None.
-    roi : (x0, y0, x1, y1) or bool mask (H, W), optional: grid POIs outside are ``NOT_COMPUTED``.
+    roi : optional, in the left reference image: an inclusive box ``(x0, y0, x1, y1)``, a polygon
+        ``[(x, y), ...]``, an (H, W) mask or a mask image file (:mod:`dic.correlation.points`; the
+        same rule as 2-D tracking); grid POIs outside are ``NOT_COMPUTED``.
     subset : odd int, subset size (px); order : 1 or 2 (shape function; 2 recommended for stereo).
     frame : "left", "plane" or (R_obj_left, t_obj_left): output frame (see :class:`Field3D`).
     epipolar_tol_px : float, px (undistorted right image) beyond which a match is ``EPIPOLAR_VIOLATION``.
@@ -252,8 +254,9 @@ class StereoCorrelation:
         self.device = resolve_device(device)
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.subset, self.order = check_subset_order(subset, order)
-        rig = as_rig(rig)
         left_ref, right_ref = _check_pair(left_ref, right_ref, "reference")
+        # the images' size stands in where a rig file records none
+        rig = as_rig(rig, image_size=(left_ref.shape[1], left_ref.shape[0]))
         check_rig_images(rig, left_ref.shape)
         self.rig = rig
         self.shape = left_ref.shape
@@ -637,7 +640,7 @@ def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=No
     Parameters
     ----------
     rig : calibration.stereo.StereoRig (cameras ``left``, ``right``; ``R_right_left``, ``t_right_left`` mm),
-        or the path of a rig file (:func:`calibration.rigfile.as_rig`).
+        or a rig file in any format Specula reads (:func:`as_rig`).
     left_ref, right_ref : (H, W) grey images of the reference state.
     left_cur, right_cur : (H, W) grey images of a current state, optional (both or neither).
     points, step, roi, subset, order, frame, epipolar_tol_px, zncc_min, strain_window, device :

@@ -88,8 +88,10 @@ class Tracker:
         Integer or sub-pixel positions. Default: ``grid(shape, step, margin=subset // 2, roi=roi)``.
     step : int, optional
         Grid spacing when ``points`` is not given (default ``subset // 2``).
-    roi : (H, W) mask or (x0, y0, x1, y1) inclusive box, optional
-        Region of interest for the default grid (:mod:`dic.correlation.points`).
+    roi : optional
+        Region of interest for the default grid (:mod:`dic.correlation.points`): an inclusive box
+        ``(x0, y0, x1, y1)``, a polygon ``[(x, y), ...]`` (POIs inside or on the edge), an (H, W)
+        mask array or a mask image file (non-zero inside).
     subset : odd int >= 3
         Subset size (px). Default 21.
     order : 1 or 2

@@ -134,7 +134,7 @@ OPTION_CASES = [
     ("roi=empty box", {"roi": (40, 40, 10, 10)}, "is empty"),
     ("roi=mask of another shape", {"roi": np.ones((3, 3), bool)}, "roi mask must have the image shape"),
     ("roi=all False", {"roi": np.zeros((H, W), bool)}, "no POI left"),
-    ("roi=str", {"roi": "x"}, "roi must be an"),
+    ("roi=missing mask file", {"roi": "x"}, "roi mask file: image file not found"),
     ("points and roi", {"points": [[20.0, 20.0]], "roi": (0, 0, 10, 10)}, "either points or roi"),
     ("points=empty", {"points": np.zeros((0, 2))}, "points is empty"),
     ("points=nan", {"points": [[np.nan, 1.0]]}, "NaN"),
@@ -342,7 +342,7 @@ def test_as_rig(stereo_setup, tmp_path):
     with pytest.raises(ValueError, match="holds one camera"):
         load_rig(tmp_path / "cam.yml")
     (tmp_path / "r.txt").write_text("x")
-    with pytest.raises(ValueError, match="unknown format"):
+    with pytest.raises(ValueError, match="is not a calibration file Specula reads"):
         load_rig(tmp_path / "r.txt")
     (tmp_path / "bad.xml").write_text("<a><b>")
     with pytest.raises(ValueError, match="not well-formed XML"):
@@ -433,7 +433,7 @@ def test_cli_stereo_rig_files(images, stereo_setup, tmp_path):
     save_opencv(tmp_path / "cam.yml", rig.left)
     (tmp_path / "rig.txt").write_text("R T")
     runner = CliRunner()
-    for rig_file, fragment in ((tmp_path / "cam.yml", "holds one camera"), (tmp_path / "rig.txt", "unknown format"),
+    for rig_file, fragment in ((tmp_path / "cam.yml", "holds one camera"), (tmp_path / "rig.txt", "is not a calibration file Specula reads"),
                                (tmp_path / "none.json", "does not exist")):
         r = runner.invoke(main, ["stereo", "--rig", str(rig_file), ref, cur, "-o", str(tmp_path / "s.h5"), "-q"])
         _clean(r, 1, fragment)

@@ -9,6 +9,7 @@ cameras see at 1.5 m. The virtual-lab
 acceptance (thin-lens optics, real mirror geometry) is tests/test_calibration_lab.py.
 """
 import json
+from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -188,6 +189,27 @@ def test_mirror_command(data, poses, name):
     assert (root / f"fig_{name}" / "mirror_residuals.png").stat().st_size > 1000
 
 
+def test_mirror_command_takes_a_camera_in_any_format(data, poses, tmp_path):
+    """--camera reads OpenCV files too (detected from the content); the pose is the one the JSON camera gives."""
+    from calibration.formats import save_opencv
+
+    root, views, _ = data
+    save_opencv(tmp_path / "right_camera.txt", RIGHT)
+    out = tmp_path / "pose.json"
+    res = _run("mirror", "--camera", tmp_path / "right_camera.txt", "--target", root / "target.json",
+               *views["right"]["mirror"], "-o", out, "-q")
+    assert res.exit_code == 0, res.output
+    a, b = json.loads(out.read_text()), json.loads(poses["right"][0].read_text())
+    np.testing.assert_allclose(a["R_cam_target"], b["R_cam_target"], atol=1e-12)
+    np.testing.assert_allclose(a["t_cam_target"], b["t_cam_target"], atol=1e-9)
+    save_opencv(tmp_path / "rig.yml", StereoRig(LEFT, RIGHT, R_RL, T_RL))
+    (tmp_path / "notes.txt").write_text("focal length about 700 px")
+    for cam, msg in [(tmp_path / "rig.yml", "holds a stereo rig"), (tmp_path / "notes.txt", "DICe camera-system XML")]:
+        res = _run("mirror", "--camera", cam, "--target", root / "target.json", *views["right"]["mirror"],
+                   "-o", tmp_path / "p2.json", "-q")
+        assert res.exit_code == 1 and msg in res.output and "Traceback" not in res.output, res.output
+
+
 def test_stereo_command(data, poses):
     root, views, _ = data
     truth = StereoRig(LEFT, RIGHT, R_RL, T_RL)
@@ -247,7 +269,8 @@ def test_stereo_export_refused(poses, data):
     assert vic.exists()
 
 
-def test_stereo_checkerboard(tmp_path):
+def _board_pairs(tmp_path):
+    """Five checkerboard pairs seen by LEFT and RIGHT, in tmp_path/L and tmp_path/R, and the board file."""
     board = CheckerboardTarget(corners=(9, 6), square=80)  # 24.9 mm squares
     board.save_json(tmp_path / "board.json")
     (tmp_path / "L").mkdir()
@@ -259,6 +282,10 @@ def test_stereo_checkerboard(tmp_path):
         iio.imwrite(tmp_path / "L" / f"b{i}.png", render_view(board, LEFT, R, t, supersample=2, noise_sigma=1.0, seed=i)[0])
         iio.imwrite(tmp_path / "R" / f"b{i}.png",
                     render_view(board, RIGHT, R_RL @ R, R_RL @ t + T_RL, supersample=2, noise_sigma=1.0, seed=i + 50)[0])
+
+
+def test_stereo_checkerboard(tmp_path):
+    _board_pairs(tmp_path)
     LEFT.save(tmp_path / "cl.json")
     RIGHT.save(tmp_path / "cr.json")
     res = _run("stereo", "--checkerboard", "--target", tmp_path / "board.json", "--left", tmp_path / "L",
@@ -269,6 +296,74 @@ def test_stereo_checkerboard(tmp_path):
     # 5 board pairs of 54 corners with known intrinsics: rotation to a few 0.001 deg; assert 0.05 deg / 0.2 %
     assert e["rotation_deg"] < 0.05 and abs(e["baseline_percent"]) < 0.2
     assert "checkerboard pairs" in res.output
+    # the cameras may come in any calibration format; a rig file gives its left / right camera
+    from calibration.formats import save_opencv
+
+    save_opencv(tmp_path / "rig_in.yml", StereoRig(LEFT, RIGHT, R_RL, T_RL))
+    res = _run("stereo", "--checkerboard", "--target", tmp_path / "board.json", "--left", tmp_path / "L",
+               "--right", tmp_path / "R", "--left-camera", tmp_path / "rig_in.yml", "--right-camera",
+               tmp_path / "rig_in.yml", "-o", tmp_path / "rig_cv.json")
+    assert res.exit_code == 0, res.output
+    a, b = StereoRig.load(tmp_path / "rig.json"), StereoRig.load(tmp_path / "rig_cv.json")
+    np.testing.assert_allclose(b.R_right_left, a.R_right_left, atol=1e-12)
+    np.testing.assert_allclose(b.t_right_left, a.t_right_left, atol=1e-9)
+
+
+def test_camera_files_for_other_image_sizes_are_refused(tmp_path):
+    """Cameras calibrated for another image size than the board images: an error naming both sizes (before:
+    cameras of 588x432 px with 320x240 px boards ran and gave a 242 mm baseline for a 300 mm rig)."""
+    from dataclasses import replace
+
+    from calibration.pipeline import stereo_from_checkerboards
+    from calibration.targets import load_target
+
+    _board_pairs(tmp_path)
+    replace(LEFT, size=(588, 432)).save(tmp_path / "cl588.json")
+    RIGHT.save(tmp_path / "cr.json")
+    res = _run("stereo", "--checkerboard", "--target", tmp_path / "board.json", "--left", tmp_path / "L",
+               "--right", tmp_path / "R", "--left-camera", tmp_path / "cl588.json", "--right-camera", tmp_path / "cr.json",
+               "-o", tmp_path / "rig.json")
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert "left camera was calibrated for 588x432 px images but the left board images are 480x360 px" in res.output
+    assert not (tmp_path / "rig.json").exists()
+    board = load_target(str(tmp_path / "board.json"))
+    lf, rf = sorted((tmp_path / "L").iterdir()), sorted((tmp_path / "R").iterdir())
+    with pytest.raises(ValueError, match="right camera was calibrated for 588x432 px images but the right board "
+                                         "images are 480x360 px"):
+        stereo_from_checkerboards(lf, rf, board, left_camera=LEFT, right_camera=replace(RIGHT, size=(588, 432)))
+    # the images of one side must share one size (the intrinsics are calibrated for it)
+    iio.imwrite(tmp_path / "small.png", np.zeros((240, 320), np.uint8))
+    with pytest.raises(ValueError, match="the right image is 320x240 px but the first right image is 480x360 px"):
+        stereo_from_checkerboards(lf, rf[:-1] + [tmp_path / "small.png"], board)
+
+
+def test_far_views_of_another_size_are_refused(data, poses):
+    """Mirror mode: --far/--check views must come from images of the pose files' cameras' size."""
+    from calibration.pipeline import MirrorCalibration, StereoView, calibrate_rig_from_mirrors, detect_stereo_view
+    from calibration.targets import PhaseTarget
+
+    root, views, _ = data
+    ml, mr = MirrorCalibration.load(poses["left"][0]), MirrorCalibration.load(poses["right"][0])
+    far = detect_stereo_view(*views["far"], PhaseTarget.from_dict(ml.target), name="far")
+    assert far.image_sizes == (SIZE, SIZE)
+    small = StereoView(far.ids, far.object_points, far.left_points, far.right_points, "far",
+                       image_sizes=(SIZE, (320, 240)))
+    for kw in ({"far_views": [small]}, {"check_views": [small]}):
+        with pytest.raises(ValueError, match="the right image is 320x240 px but the right camera was calibrated for "
+                                             "480x360 px images"):
+            calibrate_rig_from_mirrors(ml, mr, **kw)
+    # the CLI: far-view images of another size than the cameras
+    small_dirs = []
+    for side, src in zip(("left", "right"), views["far"]):
+        d = root / f"far_small_{side}"
+        d.mkdir(exist_ok=True)
+        for f in sorted(Path(src).iterdir()):
+            iio.imwrite(d / f.name, np.ascontiguousarray(iio.imread(f)[:, :400]))
+        small_dirs.append(d)
+    res = _run("stereo", "--left", poses["left"][0], "--right", poses["right"][0], "--far", *small_dirs,
+               "-o", root / "rig_small.json")
+    assert res.exit_code == 1 and "Traceback" not in res.output, res.output
+    assert "is 400x360 px but the left camera was calibrated for 480x360 px images" in res.output
 
 
 def test_bad_input_messages(data, cameras, tmp_path):

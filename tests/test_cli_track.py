@@ -276,3 +276,50 @@ def test_output_that_cannot_be_written(images, tmp_path, fake):
     r = run([*images, "-o", str(tmp_path / "afile" / "res.h5")])
     assert r.exit_code == 1 and "Traceback" not in r.output
     assert "afile is a file, not a folder" in r.output
+
+
+def test_regions_of_interest(images, tmp_path):
+    """--roi, --roi-polygon (inline, JSON and CSV file) and --mask keep the grid points inside the region, the
+    same as the library's roi= (dic.correlation.points), and are stored in the file's settings."""
+    import json
+
+    from dic.correlation.points import grid
+    from dic.track import track
+
+    shape = (96, 112)
+    mask = np.zeros(shape, np.uint8)
+    mask[20:70, 30:90] = 1
+    write_image(tmp_path / "mask.png", mask, bits=8)
+    (tmp_path / "poly.json").write_text(json.dumps({"polygon": [[15, 15], [95, 20], [60, 80]]}))
+    (tmp_path / "poly.csv").write_text("x,y\n15,15\n95,20\n60,80\n")
+    cases = [(["--roi", "20", "15", "70", "60"], (20.0, 15.0, 70.0, 60.0), [20.0, 15.0, 70.0, 60.0]),
+             (["--roi-polygon", "15,15; 95,20; 60,80"], [(15, 15), (95, 20), (60, 80)],
+              {"polygon": [[15.0, 15.0], [95.0, 20.0], [60.0, 80.0]]}),
+             (["--roi-polygon", str(tmp_path / "poly.json")], [(15, 15), (95, 20), (60, 80)], None),
+             (["--roi-polygon", str(tmp_path / "poly.csv")], [(15, 15), (95, 20), (60, 80)], None),
+             (["--mask", str(tmp_path / "mask.png")], mask, None)]
+    for k, (opts, roi, stored) in enumerate(cases):
+        out = tmp_path / f"r{k}.h5"
+        r = run([images[0], images[1], "-o", str(out), "--step", "5", "--device", "cpu", "-q", *opts])
+        assert r.exit_code == 0, r.output
+        res = read_results(out)
+        expected = grid(shape, 5, margin=10, roi=roi)
+        assert np.array_equal(res.frames[1].points, expected) and 0 < len(expected) < len(grid(shape, 5, margin=10))
+        assert np.array_equal(track(images[0], images[1], step=5, roi=roi, device="cpu").points, expected)
+        if stored is not None:
+            assert res.settings["roi"] == stored
+    assert read_results(tmp_path / "r4.h5").settings["roi"]["mask"] == str(tmp_path / "mask.png")
+    # without a region the settings have no "roi" (files written before resume as they were)
+    r = run([images[0], images[1], "-o", str(tmp_path / "all.h5"), "--step", "5", "--device", "cpu", "-q"])
+    assert r.exit_code == 0 and "roi" not in read_results(tmp_path / "all.h5").settings
+    # clear errors, no traceback
+    write_image(tmp_path / "small.png", mask[:50], bits=8)
+    for opts, code, msg in [(["--roi", "1", "2", "3", "4", "--mask", str(tmp_path / "mask.png")], 2,
+                             "give one region of interest, not --roi and --mask"),
+                            (["--roi-polygon", "1,2;3"], 2, "x,y;x,y"),
+                            (["--roi-polygon", "10,10;20,20"], 1, "at least 3 vertices"),
+                            (["--mask", str(tmp_path / "small.png")], 1, "is 112x50 px but the images are 112x96 px"),
+                            (["--mask", str(tmp_path / "none.png")], 1, "image file not found"),
+                            (["--roi", "200", "200", "300", "300"], 1, "empty ROI")]:
+        r = run([images[0], images[1], "-o", str(tmp_path / "bad.h5"), "--device", "cpu", "-q", *opts])
+        assert r.exit_code == code and msg in r.output and "Traceback" not in r.output, (opts, r.output)

@@ -47,6 +47,73 @@ def test_roi_has_one_meaning_for_2d_and_stereo():
             make(np.ones((10, 10), bool))
 
 
+def test_polygon_and_mask_file_regions_have_one_meaning(tmp_path):
+    """Polygons (inside or on the edge) and mask image files select the same POIs in the 2-D grid and the
+    stereo lattice; the polygon rule is checked against exact integer arithmetic."""
+    from dic.correlation.points import region
+    from kernels.images import write_image
+
+    shape = (100, 160)
+    # a triangle with integer vertices: lattice point (x, y) is inside or on the edge iff x >= 30, y >= 10 and
+    # 80 (x - 30) + 100 (y - 10) <= 8000 (exact, no rounding)
+    tri = [(30, 10), (130, 10), (30, 90)]
+    pts2d = grid(shape, 10, margin=10, roi=tri)
+    x, y = pts2d[:, 0], pts2d[:, 1]
+    assert np.all((x >= 30) & (y >= 10) & (80 * (x - 30) + 100 * (y - 10) <= 8000))
+    full = grid(shape, 10, margin=10)
+    fx, fy = full[:, 0], full[:, 1]
+    expected = full[(fx >= 30) & (fy >= 10) & (80 * (fx - 30) + 100 * (fy - 10) <= 8000)]
+    assert np.array_equal(pts2d, expected) and len(expected) == 50
+    assert [50.0, 10.0] in pts2d.tolist() and [80.0, 50.0] in pts2d.tolist()  # on the edges: inside
+    # a polygon that is the box, in any vertex order, selects what the box selects
+    box = (40, 20, 80, 60)
+    for poly in ([(40, 20), (80, 20), (80, 60), (40, 60)], np.array([(40, 60), (80, 60), (80, 20), (40, 20)], float)):
+        assert np.array_equal(grid(shape, 10, margin=10, roi=poly), grid(shape, 10, margin=10, roi=box))
+    mask = np.zeros(shape, np.uint8)
+    mask[:50, 70:] = 255
+    write_image(tmp_path / "mask.png", mask)
+    assert np.array_equal(grid(shape, 10, margin=10, roi=tmp_path / "mask.png"), grid(shape, 10, margin=10, roi=mask))
+    for roi in (tri, tmp_path / "mask.png", str(tmp_path / "mask.png"), region(tri, shape)):
+        pts, _, in_roi = grid_points(shape, 10, 21, roi=roi)
+        assert np.array_equal(grid(shape, 10, margin=10, roi=roi), pts[in_roi])
+    assert region(tri, shape).settings() == {"polygon": [[30.0, 10.0], [130.0, 10.0], [30.0, 90.0]]}
+    s = region(tmp_path / "mask.png", shape).settings()
+    assert s["mask"] == str(tmp_path / "mask.png") and s["shape"] == [100, 160] and len(s["sha256"]) == 64
+    assert s["sha256"] == region(mask, shape).settings()["sha256"]
+    # clear errors
+    write_image(tmp_path / "small.png", mask[:50])
+    for bad, msg in [([(0, 0), (10, 0)], "at least 3 vertices"), ([(0, 0), (5, 5), (10, 10)], "zero area"),
+                     ([(0, 0), (10, 0), (np.nan, 5)], "finite"), ([1, 2, 3], "a polygon"),
+                     (tmp_path / "nope.png", "image file not found"),
+                     (tmp_path / "small.png", "is 160x50 px but the images are 160x100 px"),
+                     ([(200, 200), (210, 200), (210, 210)], "empty ROI")]:
+        with pytest.raises(ValueError, match=msg):
+            grid(shape, 10, margin=10, roi=bad)
+
+
+def test_polygon_rule_matches_opencv(rng):
+    """The vectorised polygon rule gives cv2.pointPolygonTest(...) >= 0 (inside or on the edge) on random
+    polygons, convex or not, self-intersecting or not, with vertices in whole and half pixels."""
+    import cv2
+
+    from dic.correlation.points import lattice, roi_mask
+
+    shape = (60, 80)
+    pts, _ = lattice(shape, 1)
+    for k in range(40):
+        n = int(rng.integers(3, 9))
+        v = np.round(rng.uniform([-5, -5], [85, 65], size=(n, 2)) * (2 if k % 2 else 1)) / (2 if k % 2 else 1)
+        if k % 5 == 0:  # axis-aligned edges through many lattice points
+            v = np.array([[10, 5], [60, 5], [60, 40], [30, 40], [30, 20], [10, 20]], float) + k // 5
+        contour = v.astype(np.float32).reshape(-1, 1, 2)
+        try:
+            mine = roi_mask(pts, v, shape)
+        except ValueError:  # zero area: refused
+            continue
+        ref = np.array([cv2.pointPolygonTest(contour, (float(x), float(y)), False) >= 0 for x, y in pts])
+        assert np.array_equal(mine, ref), (k, v.tolist(), np.flatnonzero(mine != ref)[:5])
+
+
 def test_guesses_by_name_and_extensible():
     assert {"prior", "zncc", "fft", "pyramid", "rg", "shift", "features", "epipolar"} <= set(available_guesses())
     with pytest.raises(ValueError, match="unknown initial-guess strategy 'nope'.*zncc"):

@@ -198,3 +198,102 @@ def test_vic3d_refuses_what_it_cannot_hold(rig, radial_rig, tmp_path):
                     "<camera id=\"1\">1 2 3<orientation>0 0 0 1 0 0</orientation></camera></calibration>")
     with pytest.raises(ValueError, match="expected 8 intrinsics"):
         load_vic3d_xml(path, image_size=(100, 80))
+
+
+VIC_SPLIT = """<?xml version="1.0" encoding="ISO-8859-1"?>
+<!DOCTYPE vpml>
+<project>
+ <calibration lri="calibration">
+  <camera id="0"><intrinsics>640.0 400.0 2400.0 2401.0 0.5</intrinsics><orientation>180.0 9.0 0.0 -63.0 0.0 18.0</orientation><distortion>-0.1 0.05 0.002</distortion></camera>
+  <camera id="1">
+   <intrinsics>630.0 390.0 2380.0 2380.0 0.0</intrinsics>
+   <orientation>-180.0 -9.0 0.0 65.0 -0.5 15.0</orientation>
+   <distortion>-0.09</distortion>
+  </camera>
+ </calibration>
+ <projectaois lri="projectaois"><aoinode><polygonmask width="1280" height="800" lri="polygonmask"/></aoinode></projectaois>
+</project>
+"""
+
+
+def test_vic3d_intrinsics_orientation_distortion_layout(tmp_path):
+    """The <intrinsics>/<orientation>/<distortion> layout of VIC-3D project files (before: refused with
+    'expected 8 intrinsics'); the same rig as the one-line layout with the same numbers."""
+    path = tmp_path / "project.xml"
+    path.write_text(VIC_SPLIT, encoding="iso-8859-1")
+    rig = load_vic3d_xml(path)
+    R0 = Rotation.from_euler("xyz", [180.0, 9.0, 0.0], degrees=True).as_matrix()
+    R1 = Rotation.from_euler("xyz", [-180.0, -9.0, 0.0], degrees=True).as_matrix()
+    assert np.allclose(rig.R_right_left, R1 @ R0.T, atol=1e-12)
+    assert np.allclose(rig.t_right_left, np.array([65.0, -0.5, 15.0]) - R1 @ R0.T @ [-63.0, 0.0, 18.0], atol=1e-9)
+    assert np.allclose(rig.left.K, [[2400.0, 0.5, 640.0], [0, 2401.0, 400.0], [0, 0, 1]])
+    assert np.allclose(rig.left.dist, [-0.1, 0.05, 0, 0, 0.002]) and np.allclose(rig.right.dist, [-0.09, 0, 0, 0, 0])
+    assert rig.left.size == (1280, 800)
+    one_line = tmp_path / "one_line.xml"
+    one_line.write_text(VIC_SPLIT.replace(
+        '<intrinsics>640.0 400.0 2400.0 2401.0 0.5</intrinsics><orientation>180.0 9.0 0.0 -63.0 0.0 18.0</orientation>'
+        '<distortion>-0.1 0.05 0.002</distortion>',
+        '640.0 400.0 2400.0 2401.0 0.5 -0.1 0.05 0.002<orientation>180.0 9.0 0.0 -63.0 0.0 18.0</orientation>'))
+    assert np.array_equal(load_vic3d_xml(one_line).left.K, rig.left.K)
+    assert np.array_equal(load_vic3d_xml(one_line).left.dist, rig.left.dist)
+    for old, new, msg in [("<distortion>-0.09</distortion>", "<distortion>-0.09 0 0 0.01</distortion>", "not zero"),
+                          ("630.0 390.0 2380.0 2380.0 0.0", "630.0 390.0 2380.0", "CX CY FX FY FS"),
+                          ("<orientation>-180.0 -9.0 0.0 65.0 -0.5 15.0</orientation>", "", "no <orientation>"),
+                          ("630.0 390.0", "630.0 abc", "must hold numbers")]:
+        path.write_text(VIC_SPLIT.replace(old, new))
+        with pytest.raises(ValueError, match=msg):
+            load_vic3d_xml(path)
+    path.write_text(VIC_SPLIT.replace("<distortion>-0.09 0 0 0.01</distortion>", "").replace(
+        "<distortion>-0.09</distortion>", "<distortion>-0.09 0 0 0</distortion>"))
+    assert np.allclose(load_vic3d_xml(path).right.dist, [-0.09, 0, 0, 0, 0])  # further terms that are zero
+
+
+def test_load_rig_detects_every_format_from_the_content(rig, radial_rig, tmp_path):
+    """One entry point for every format, whatever the file is called (before: 'specula stereo --rig' read
+    only Specula's JSON and refused a VIC-3D, OpenCV or DICe file as 'not valid JSON')."""
+    from calibration.formats import CALIBRATION_FORMATS, detect_calibration_format, load_camera, load_rig
+
+    writers = {"specula-rig": lambda p: radial_rig.save(p), "opencv": lambda p: save_opencv(p, radial_rig),
+               "dice": lambda p: save_dice_xml(p, radial_rig), "vic3d": lambda p: save_vic3d_xml(p, radial_rig)}
+    for fmt, write in writers.items():
+        for name in ("rig.json", "rig.yml", "rig.xml", "rig.cal"):  # the suffix says nothing
+            path = tmp_path / f"{fmt}_{name}"
+            write(path)
+            assert detect_calibration_format(path) == fmt
+            _same(load_rig(path), radial_rig, tol=1e-9)
+            assert np.array_equal(load_camera(path, which="right").K, load_rig(path).right.K)
+    for ext in ("yml", "xml", "json"):  # OpenCV's three syntaxes (its JSON has // comments)
+        save_opencv(tmp_path / f"cv.{ext}", rig)
+        _same(load_rig(tmp_path / f"cv.{ext}"), rig, tol=1e-12)
+    (tmp_path / "split.txt").write_text(VIC_SPLIT)
+    assert detect_calibration_format(tmp_path / "split.txt") == "vic3d"
+    # cameras
+    rig.left.save(tmp_path / "cam.yml")
+    save_opencv(tmp_path / "cam.json", rig.left)
+    for p in ("cam.yml", "cam.json"):
+        cam = load_camera(tmp_path / p)
+        assert np.array_equal(cam.K, rig.left.K) and np.array_equal(cam.dist, rig.left.dist)
+    with pytest.raises(ValueError, match="holds a stereo rig .*which='left' or 'right'"):
+        load_camera(tmp_path / "dice_rig.xml")
+    with pytest.raises(ValueError, match="holds one camera .*not a stereo rig"):
+        load_rig(tmp_path / "cam.yml")
+    # a file that fits no format names them all
+    for text in ("hello", "<foo/>", '{"a": 1}', '{"schema": "specula.mirror_pose", "schema_version": 1}', ""):
+        (tmp_path / "other.txt").write_text(text)
+        with pytest.raises(ValueError, match="not a calibration file Specula reads") as err:
+            load_rig(tmp_path / "other.txt")
+        assert all(f.split(" (")[0] in str(err.value) for f in CALIBRATION_FORMATS)
+    (tmp_path / "broken.json").write_text("{")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_rig(tmp_path / "broken.json")
+    with pytest.raises(ValueError, match="does not exist"):
+        load_rig(tmp_path / "missing.xml")
+    # the image size: from the file, else from image_size (DIC passes its images' size)
+    nosize = tmp_path / "nosize.xml"
+    nosize.write_text(VIC_SPLIT.replace('<polygonmask width="1280" height="800" lri="polygonmask"/>', ""))
+    with pytest.raises(ValueError, match=r"does not record the image size; pass image_size"):
+        load_rig(nosize)
+    assert load_rig(nosize, image_size=(1280, 800)).right.size == (1280, 800)
+    assert load_rig(tmp_path / "split.txt", image_size=(64, 48)).left.size == (1280, 800)  # the file's size wins
+    with pytest.raises(ValueError, match="image_size must be"):
+        load_rig(nosize, image_size=(0, 5))

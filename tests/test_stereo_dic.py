@@ -550,3 +550,67 @@ def test_image_plane_uncertainty_in_details(lab, measured):
     assert np.allclose(given.reference.details["noise_sigma_grey"][:, 0], 1.5)
     with pytest.raises(ValueError, match="noise_sigma must be a positive finite number"):
         StereoCorrelation(lab["rig"], l0, r0, step=20, noise_sigma=-1.0, device="cpu")
+
+
+def test_regions_and_rig_files_in_any_format(lab, tmp_path):
+    """Stereo takes the same regions as 2-D (box, polygon, mask array, mask file: the same POIs as the 2-D
+    grid) and a rig in any calibration format, as an object or a file path (library and CLI)."""
+    from click.testing import CliRunner
+
+    from calibration.formats import save_dice_xml, save_opencv, save_vic3d_xml
+    from dic.cli import main
+    from dic.correlation.points import grid
+    from dic.io import write_image
+    from dic.sequence import read_stereo, stereo_sequence
+
+    rig = lab["rig"]
+    (l0, r0), (l1, r1), _ = lab["states"]
+    shape = l0.shape
+    poly = [(120, 80), (210, 90), (190, 170), (110, 150)]
+    mask = np.zeros(shape, np.uint8)
+    mask[90:160, 130:200] = 255
+    write_image(tmp_path / "mask.png", mask)
+    save_vic3d_xml(tmp_path / "rig_vic.xml", rig)
+    save_opencv(tmp_path / "rig_cv.yml", rig)
+    save_dice_xml(tmp_path / "rig_dice.xml", rig)
+    for roi, rig_arg in [(poly, tmp_path / "rig_vic.xml"), (str(tmp_path / "mask.png"), str(tmp_path / "rig_dice.xml"))]:
+        sc = StereoCorrelation(rig_arg, l0, r0, step=20, roi=roi, device="cpu")
+        assert np.array_equal(sc.points[sc.in_roi], grid(shape, 20, margin=10, roi=roi))
+        assert sc.rig.baseline == pytest.approx(rig.baseline, rel=1e-9)
+        f = sc.reference
+        assert np.all(f.status[~sc.in_roi] == StereoStatus.NOT_COMPUTED) and f.valid[sc.in_roi].mean() > 0.8
+    # a sequence with a rig file and a mask file: the mask's JSON form is stored, not the file name alone
+    out = tmp_path / "seq.h5"
+    stereo_sequence(tmp_path / "rig_cv.yml", [(l0, r0), (l1, r1)], out, step=20, roi=tmp_path / "mask.png")
+    st = read_stereo(out)
+    assert st.settings["roi"]["mask"] == str(tmp_path / "mask.png") and len(st.settings["roi"]["sha256"]) == 64
+    assert st.rig.baseline == pytest.approx(rig.baseline, rel=1e-9)
+    # CLI: --rig in OpenCV / VIC-3D / DICe format, --roi-polygon and --mask
+    paths = []
+    for k, (a, b) in enumerate(((l0, r0), (l1, r1))):
+        for side, img in (("L", a), ("R", b)):
+            write_image(tmp_path / f"{side}{k}.png", img)
+            paths.append(str(tmp_path / f"{side}{k}.png"))
+    runner = CliRunner()
+    cases = [("rig_cv.yml", ["--roi-polygon", "120,80;210,90;190,170;110,150"], poly),
+             ("rig_vic.xml", ["--mask", str(tmp_path / "mask.png")], mask),
+             ("rig_dice.xml", ["--roi", "100", "80", "200", "160"], (100, 80, 200, 160))]
+    for k, (rig_file, opts, roi) in enumerate(cases):
+        out = tmp_path / f"cli{k}.h5"
+        res = runner.invoke(main, ["stereo", "--rig", str(tmp_path / rig_file), *paths, "-o", str(out), "--step", "20",
+                                   "--device", "cpu", "-q", *opts])
+        assert res.exit_code == 0, res.output
+        f = read_stereo(out).fields[1]
+        inside = (f.status != StereoStatus.NOT_COMPUTED)
+        assert np.array_equal(f.points[inside], grid(shape, 20, margin=10, roi=roi))
+    assert read_stereo(tmp_path / "cli0.h5").settings["roi"] == {"polygon": [list(map(float, v)) for v in poly]}
+    # errors: a camera file where the rig goes, a file of no known format, two regions
+    rig.left.save(tmp_path / "cam.json")
+    (tmp_path / "notes.txt").write_text("not a rig")
+    for args, msg in [(["--rig", str(tmp_path / "cam.json")], "holds one camera"),
+                      (["--rig", str(tmp_path / "notes.txt")], "VIC-3D calibration or project XML"),
+                      (["--rig", str(tmp_path / "rig_cv.yml"), "--roi", "1", "2", "3", "4", "--roi-polygon", "1,1;5,1;1,5"],
+                       "give one region of interest")]:
+        res = runner.invoke(main, ["stereo", *args, *paths[:2], "-o", str(tmp_path / "x.h5")])
+        assert res.exit_code in (1, 2) and msg in res.output, res.output
+        assert res.exception is None or isinstance(res.exception, SystemExit)  # a clear message, not a crash

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..camera import Camera
 from ..intrinsics import IntrinsicsResult
 from ..mirror import JointMirrorResult, joint_mirror_stereo, mirror_extrinsics
 from ..reports import checkerboard_stereo_report, rig_report
@@ -57,6 +58,16 @@ class RigCalibration:
         return rig_report(self)
 
 
+def _check_view_sizes(view: StereoView, left: Camera, right: Camera) -> None:
+    """A view seen by both cameras must come from images of the sizes the cameras were calibrated for."""
+    if view.image_sizes is None:
+        return
+    for side, cam, size in (("left", left, view.image_sizes[0]), ("right", right, view.image_sizes[1])):
+        if size is not None and tuple(cam.size) != (0, 0) and tuple(size) != tuple(cam.size):
+            raise ValueError(f"view {view.name or '(unnamed)'}: the {side} image is {size[0]}x{size[1]} px but the {side} "
+                             f"camera was calibrated for {cam.size[0]}x{cam.size[1]} px images")
+
+
 def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration, *, far_views=(), check_views=(),
                                joint: bool = True, sigma_px: float | None = None,
                                intrinsic_uncertainty: bool = True) -> RigCalibration:
@@ -95,6 +106,7 @@ def calibrate_rig_from_mirrors(left: MirrorCalibration, right: MirrorCalibration
         for v in vs:
             if not isinstance(v, StereoView):
                 raise ValueError(f"{nm} must hold StereoView objects (from detect_stereo_view), got {type(v).__name__}")
+            _check_view_sizes(v, left.camera, right.camera)
     if left.mode != right.mode:
         raise ValueError(f"the left and right mirror calibrations use different modes ({left.mode} / {right.mode})")
     per_camera = rig_from_mirror(left.result, right.result)

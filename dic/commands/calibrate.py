@@ -140,7 +140,8 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
 @calibrate.command(name="mirror", epilog=_view_help)
 @click.argument("views", nargs=-1, required=True)
 @click.option("--camera", "camera_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="Camera file of this camera (from 'specula calibrate intrinsics').")
+              help="Camera file of this camera (from 'specula calibrate intrinsics', or OpenCV YAML/XML; "
+                   "the format is read from the content).")
 @click.option("--target", "target_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Target file (target.json).")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -170,14 +171,14 @@ def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, si
     different axes between the views (paper Step 2). Run it once per camera with the monitor in the
     same place, then 'specula calibrate stereo --left ... --right ...'.
     """
-    from calibration.camera import Camera
+    from calibration.formats import load_camera
     from calibration.pipeline import calibrate_mirror_from_images
 
     _check_output(output)
     if len(views) < 3:
         raise click.UsageError(f"the mirror calibration needs at least 3 views (mirror tilts), got {len(views)}")
     try:
-        cam = Camera.load(camera_path)
+        cam = load_camera(camera_path)
         target = _load_phase_target(target_path)
         mc = calibrate_mirror_from_images(cam, list(views), target, mode="dense" if dense else "dots",
                                           dense_spacing=dense_spacing, sigma_px=sigma_px, correct_blur=correct_blur,
@@ -213,9 +214,10 @@ def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, si
                                                "--far views are then ignored.")
 @click.option("--checkerboard", is_flag=True, help="Conventional calibration (cv2.stereoCalibrate) from checkerboard pairs.")
 @click.option("--left-camera", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="With --checkerboard: left camera file (intrinsics held fixed); default: calibrate from the boards.")
+              help="With --checkerboard: left camera file (intrinsics held fixed; any calibration format, a rig file "
+                   "gives its left camera); default: calibrate from the boards.")
 @click.option("--right-camera", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="With --checkerboard: right camera file.")
+              help="With --checkerboard: right camera file (a rig file gives its right camera).")
 @click.option("--sigma-px", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image noise (px) for the rig covariance (default: from the residuals).")
 @click.option("--intrinsic-uncertainty/--no-intrinsic-uncertainty", default=True,
@@ -328,7 +330,7 @@ def _expand(source):
 
 
 def _stereo_checkerboard(left, right, target_path, left_camera, right_camera):
-    from calibration.camera import Camera
+    from calibration.formats import load_camera
     from calibration.pipeline import stereo_from_checkerboards
     from calibration.targets import CheckerboardTarget, load_target
 
@@ -340,7 +342,8 @@ def _stereo_checkerboard(left, right, target_path, left_camera, right_camera):
     lf, rf = _expand(left), _expand(right)
     if len(lf) != len(rf):
         raise ValueError(f"{len(lf)} left images but {len(rf)} right images; they are paired in sorted order")
-    cl = Camera.load(left_camera) if left_camera else None
-    cr = Camera.load(right_camera) if right_camera else None
+    # any calibration format; a rig file gives its left / right camera
+    cl = load_camera(left_camera, which="left") if left_camera else None
+    cr = load_camera(right_camera, which="right") if right_camera else None
     cs = stereo_from_checkerboards(lf, rf, board, left_camera=cl, right_camera=cr)
     return cs.rig, cs.report(), None

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from ._region import parse_region, region_options
+
 
 def _image_shape(path) -> tuple[int, int]:
     """(H, W) of an image file from its header (the pixels are read later, one pair at a time)."""
@@ -31,8 +33,8 @@ def _image_shape(path) -> tuple[int, int]:
 
 @click.command(name="stereo", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Stereo rig file: Specula JSON (from 'specula calibrate'), or an OpenCV (.yml/.xml/.json), "
-                   "DICe or VIC-3D (.xml) calibration, told apart from the file.")
+              help="Stereo rig file: Specula JSON (from 'specula calibrate'), OpenCV YAML/XML, VIC-3D XML or DICe XML "
+                   "(the format is read from the content).")
 @click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="HDF5 result file (.h5); an existing compatible file is resumed.")
@@ -40,8 +42,7 @@ def _image_shape(path) -> tuple[int, int]:
 @click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
 @click.option("--order", default="2", show_default=True, type=click.Choice(["1", "2"]),
               help="Shape function: 1 (affine) or 2 (quadratic; recommended for the left-right match).")
-@click.option("--roi", nargs=4, type=float, default=None, metavar="X0 Y0 X1 Y1",
-              help="Region of interest in the left reference image, px.")
+@region_options
 @click.option("--frame", default="left", show_default=True, type=click.Choice(["left", "plane"]),
               help="Output coordinates: left camera frame, or the best-fit plane of the reference shape.")
 @click.option("--epipolar-tol", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
@@ -57,16 +58,17 @@ def _image_shape(path) -> tuple[int, int]:
               help="Also write PNG maps (depth, displacements, strains, status) per state into this folder.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
-def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_tol, zncc_min, strain_window, device,
-           vtk_dir, figure_dir, overwrite, quiet):
+def stereo(rig_path, images, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
+           strain_window, device, vtk_dir, figure_dir, overwrite, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The first pair is the reference state (state 0: the shape); later pairs are states 1, 2, ...
-    (shape, 3-D displacement and surface strain). Coordinates are in mm.
+    (shape, 3-D displacement and surface strain). Coordinates are in mm. A region of interest
+    (--roi, --roi-polygon or --mask) is given in the left reference image: the grid points outside
+    it are kept in the file and flagged NOT_COMPUTED.
     """
     import numpy as np
 
-    from calibration.rigfile import load_rig
     from dic.io import read_image
     from dic.sequence import read_stereo, stereo_sequence
 
@@ -79,10 +81,8 @@ def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_t
         raise click.BadParameter(f"must be an odd number >= 3, got {strain_window}", param_hint="--strain-window")
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
-    try:
-        rig = load_rig(rig_path)
-    except ValueError as exc:
-        raise click.ClickException(str(exc) if str(rig_path) in str(exc) else f"rig file {rig_path}: {exc}") from None
+    region = parse_region(roi, roi_polygon, mask)
+    rig = None
     pairs = [(images[i], images[i + 1]) for i in range(0, len(images), 2)]
     # check every file's size before any work (headers only): a long run should not stop at its last pair
     size = None
@@ -94,9 +94,14 @@ def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_t
                 raise click.ClickException(str(exc)) from None
             if size is None:
                 size = shape
-                try:
-                    from dic.stereo import check_rig_images
+                from dic.stereo import as_rig, check_rig_images
 
+                try:  # any calibration format; the images' size stands in where the file records none
+                    rig = as_rig(rig_path, image_size=(size[1], size[0]))
+                except ValueError as exc:
+                    msg = str(exc)  # name the file once
+                    raise click.ClickException(msg if str(rig_path) in msg else f"rig file {rig_path}: {msg}") from None
+                try:
                     check_rig_images(rig, size)
                 except ValueError as exc:
                     raise click.ClickException(f"{rig_path} does not fit {p}: {exc}") from None
@@ -106,8 +111,8 @@ def stereo(rig_path, images, output, step, subset, order, roi, frame, epipolar_t
                     f"{size[1]}x{size[0]} px; every image must have the same size")
     options = dict(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
                    zncc_min=zncc_min, strain_window=strain_window)
-    if roi:
-        options["roi"] = list(roi)
+    if region is not None:
+        options["roi"] = region
     written = []
 
     def after(field):

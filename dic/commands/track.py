@@ -11,6 +11,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ._region import parse_region, region_options
+
 
 def _fail(exc: Exception) -> click.ClickException:
     return click.ClickException(str(exc))
@@ -42,6 +44,7 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image noise std in grey levels, for the per-point uncertainty sigma_u, sigma_v "
                    "(default: estimated from the correlation residuals of each frame).")
+@region_options
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write a displacement/strain figure per frame (PNG) into this folder.")
@@ -51,12 +54,13 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, noise_sigma, device, figure_dir, figure_limits, overwrite, quiet):
+          scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
     result (or from --search). Per point the file holds u, v, the shape-function parameters, ZNCC,
-    iterations, a status code and a validity flag, plus strain.
+    iterations, a status code and a validity flag, plus strain. A region of interest (--roi,
+    --roi-polygon or --mask, in the reference image) keeps only the grid points inside it.
     """
     from tqdm import tqdm
 
@@ -70,8 +74,13 @@ def track(reference, current, output, subset, step, order, search, search_method
         raise click.BadParameter(f"must be 0 or an odd number >= 3, got {strain_window}", param_hint="--strain-window")
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
+    region = parse_region(roi, roi_polygon, mask)
     try:
         ref = read_image(reference)
+        if region is not None:
+            from dic.correlation.points import region as check_region
+
+            region = check_region(region, ref.shape)
     except ValueError as exc:
         raise _fail(exc) from None
     settings = {"subset": subset, "step": step, "order": order, "search": search,
@@ -87,10 +96,12 @@ def track(reference, current, output, subset, step, order, search, search_method
             raise click.BadParameter(str(exc), param_hint="--scale") from None
     if noise_sigma is not None:  # (the key is absent by default, so files of earlier runs still resume)
         settings["noise_sigma"] = noise_sigma
+    if region is not None:  # only when given: files written without a region resume as before
+        settings["roi"] = region.settings()
     try:
         tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search,
                                 search_method=search_method, max_iter=max_iter, tol=tol, device=device,
-                                noise_sigma=noise_sigma)
+                                noise_sigma=noise_sigma, roi=region)
     except ValueError as exc:
         raise _fail(exc) from None
     if strain_window:
@@ -185,11 +196,14 @@ def _sequence_figures(output, ref, figure_dir) -> None:
                            limits=limits, title=f"frame {f.index}: {Path(f.path).name}")
 
 
-def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, noise_sigma=None):
+def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, noise_sigma=None,
+                  roi=None):
     """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
     from dic.track import Tracker
 
     kwargs = {"step": step, "subset": subset, "order": order, "device": device, "noise_sigma": noise_sigma}
+    if roi is not None:
+        kwargs["roi"] = roi
     if search is not None:
         kwargs["search"] = search_method
         kwargs["search_radius"] = int(search)
