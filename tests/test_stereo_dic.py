@@ -614,3 +614,36 @@ def test_regions_and_rig_files_in_any_format(lab, tmp_path):
         res = runner.invoke(main, ["stereo", *args, *paths[:2], "-o", str(tmp_path / "x.h5")])
         assert res.exit_code in (1, 2) and msg in res.output, res.output
         assert res.exception is None or isinstance(res.exception, SystemExit)  # a clear message, not a crash
+
+
+def test_cli_figures_with_one_colour_range_over_the_sequence(lab, tmp_path, monkeypatch):
+    """specula stereo --figure-limits sequence: every state's figures get the same colour range per quantity,
+    spanning all states (before, each figure was scaled on its own state)."""
+    from click.testing import CliRunner
+
+    import dic.plots.fields as fields
+    from dic.cli import main
+    from dic.io import write_image
+
+    (l0, r0), (l1, r1), (l2, r2) = lab["states"]
+    paths = []
+    for k, (a, b) in enumerate(((l0, r0), (l1, r1), (l2, r2))):
+        for side, img in (("L", a), ("R", b)):
+            paths.append(str(write_image(tmp_path / f"{side}{k}.png", img)))
+    lab["rig"].save(tmp_path / "rig.json")
+    seen = []
+    original = fields.write_figures
+
+    def spy(field, image, directory, **kw):
+        seen.append((field.index, kw.get("limits")))
+        return original(field, image, directory, **kw)
+
+    monkeypatch.setattr(fields, "write_figures", spy)
+    res = CliRunner().invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "-o",
+                                    str(tmp_path / "s.h5"), "--step", "20", "--figures", str(tmp_path / "fig"),
+                                    "--figure-limits", "sequence", "-q"])
+    assert res.exit_code == 0, res.output
+    limits = [lim for index, lim in seen if index > 0]
+    assert len(limits) == 2 and limits[0] == limits[1] and "U" in limits[0]
+    lo, hi = limits[0]["U"]
+    assert lo == -hi and hi > 0  # signed: centred on zero

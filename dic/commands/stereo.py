@@ -56,10 +56,13 @@ def _image_shape(path) -> tuple[int, int]:
               help="Also write ParaView files (one .vtu per state and a .pvd collection) into this folder.")
 @click.option("--figures", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write PNG maps (depth, displacements, strains, status) per state into this folder.")
+@click.option("--figure-limits", default="frame", show_default=True, type=click.Choice(["frame", "sequence"]),
+              help="Colour range of the figures: per state, or one range per quantity over the whole sequence "
+                   "(signed quantities are centred on zero either way).")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
-           strain_window, device, vtk_dir, figure_dir, overwrite, quiet):
+           strain_window, device, vtk_dir, figure_dir, figure_limits, overwrite, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The first pair is the reference state (state 0: the shape); later pairs are states 1, 2, ...
@@ -136,11 +139,15 @@ def stereo(rig_path, images, output, step, subset, order, roi, roi_polygon, mask
             if not quiet:
                 click.echo(f"ParaView: {pvd}")
         if figure_dir is not None:
-            from dic.plots.fields import write_figures
+            from dic.plots.fields import FIGURE_QUANTITIES, sequence_limits, write_figures
 
             left_ref = read_image(pairs[0][0])
+            limits = None
+            if figure_limits == "sequence":
+                moving = [q for q in FIGURE_QUANTITIES if q not in ("X", "Y", "Z", "status")]
+                limits = sequence_limits([f for f in fields if f.index > 0], moving)
             for f in fields:
-                write_figures(f, left_ref, figure_dir, prefix=f"state_{f.index:06d}_")
+                write_figures(f, left_ref, figure_dir, prefix=f"state_{f.index:06d}_", limits=limits)
             if not quiet:
                 click.echo(f"figures: {figure_dir}")
     if not quiet:
