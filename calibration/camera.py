@@ -248,6 +248,8 @@ class Camera:
             raise ValueError(f"Camera.K focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
         if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
             raise ValueError(f"Camera.K must be upper triangular with last row [0, 0, 1], got\n{K}")
+        K = K.copy()
+        K[2] = (0.0, 0.0, 1.0)  # exactly (a file's rounding of it is accepted, not kept)
         try:
             dist = np.asarray(self.dist, dtype=np.float64).ravel()
         except (TypeError, ValueError):
@@ -275,7 +277,7 @@ class Camera:
                                  f"({INTRINSIC_PARAMETERS[:4 + dist.size]}), got {names}")
             if not np.allclose(C, C.T, rtol=1e-6, atol=1e-9 * float(np.max(np.abs(C), initial=0.0))) or np.min(np.diag(C)) < 0:
                 raise ValueError("Camera.covariance must be symmetric with a non-negative diagonal")
-            self.covariance, self.covariance_names = 0.5 * (C + C.T), names
+            self.covariance, self.covariance_names = 0.5 * C + 0.5 * C.T, names  # no overflow near 1e308
         elif self.covariance_names:
             raise ValueError("Camera.covariance_names given without a covariance")
 

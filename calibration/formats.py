@@ -113,6 +113,8 @@ def _rotation(R, field):
         raise ValueError(f"{field} must be a 3x3 rotation matrix, got shape {R.shape}")
     if not np.all(np.isfinite(R)):
         raise ValueError(f"{field} holds non-finite numbers")
+    if np.max(np.abs(R)) > 1.0 + ROTATION_TOLERANCE:
+        raise ValueError(f"{field} is not a rotation matrix (an entry of magnitude {np.max(np.abs(R)):.6g} > 1)")
     dev = float(np.max(np.abs(R @ R.T - np.eye(3))))
     if dev > ROTATION_TOLERANCE:
         raise ValueError(f"{field} is not a rotation matrix (max |R R^T - I| = {dev:.3g} > {ROTATION_TOLERANCE:g})")
@@ -203,6 +205,9 @@ def _load_opencv(path, image_size):
         fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
     except cv2.error as exc:
         raise ValueError(f"not a readable OpenCV FileStorage file ({exc.err})") from None
+    except SystemError as exc:  # OpenCV's binding reports some parse errors so, with the cv2.error as the cause
+        cause = getattr(exc.__cause__, "err", None) or exc.__cause__ or exc
+        raise ValueError(f"not a readable OpenCV FileStorage file ({cause})") from None
     if not fs.isOpened():
         raise ValueError("not a readable OpenCV FileStorage file")
     try:
@@ -223,10 +228,7 @@ def _load_opencv(path, image_size):
                 if required:
                     raise ValueError(f"{names[0]} is missing")
                 return None
-            m = nd.mat() if nd.isMap() else None
-            if m is None:
-                raise ValueError(f"{n} is not an OpenCV matrix")
-            m = np.asarray(m, dtype=np.float64)
+            m = _read_matrix(nd, n)
             if not np.all(np.isfinite(m)):
                 raise ValueError(f"{n} holds non-finite numbers")
             return m
@@ -276,6 +278,35 @@ def _load_opencv(path, image_size):
         raise ValueError(f"unreadable entry ({exc.err})") from None
     finally:
         fs.release()
+
+
+#: Element types of a one-channel ``opencv-matrix`` (``dt``).
+_MATRIX_TYPES = ("u", "c", "w", "s", "i", "f", "d", "h")
+
+
+def _read_matrix(node, name) -> np.ndarray:
+    """An ``!!opencv-matrix`` node as a float64 array, read element by element after checking that
+    ``rows x cols`` matches the data: ``FileNode.mat()`` trusts the header and corrupts memory (a
+    crash) when it does not."""
+    if not node.isMap():
+        raise ValueError(f"{name} is not an OpenCV matrix")
+    rows, cols, dt, data = (node.getNode(k) for k in ("rows", "cols", "dt", "data"))
+    for k, nd in (("rows", rows), ("cols", cols)):
+        if nd.empty() or not nd.isInt() or not 0 <= nd.real() <= 1000:
+            raise ValueError(f"{name} is not an OpenCV matrix ({k} is missing or not a count)")
+    if dt.empty() or not dt.isString() or dt.string() not in _MATRIX_TYPES:
+        raise ValueError(f"{name} is not a one-channel OpenCV matrix (dt = {dt.string() if dt.isString() else None!r})")
+    r, c = int(rows.real()), int(cols.real())
+    if not data.isSeq() or data.size() != r * c:
+        n = data.size() if data.isSeq() else None
+        raise ValueError(f"{name}: the matrix is {r}x{c} but its data holds {n} numbers")
+    vals = []
+    for i in range(r * c):
+        el = data.at(i)
+        if not (el.isInt() or el.isReal()):
+            raise ValueError(f"{name}: data element {i} is not a number")
+        vals.append(el.real())
+    return np.asarray(vals, dtype=np.float64).reshape(r, c)
 
 
 def _dist(D, field="distortion"):
@@ -334,6 +365,8 @@ def _parse_xml(path):
         raise ValueError(f"not well-formed XML ({exc}); is it truncated?") from None
     except RecursionError:
         raise ValueError("XML nested too deeply") from None
+    except LookupError as exc:  # an unknown encoding in the XML declaration
+        raise ValueError(f"not readable XML ({exc})") from None
 
 
 def _brace_numbers(text, n, what):

@@ -82,6 +82,33 @@ def test_opencv_bad_rig_files(tmp_path, case):
         assert w in str(err.value), (case, str(err.value))
 
 
+OPENCV_TEXT_CASES = {
+    # name: (text replaced in a valid YAML rig, replacement, words). FileNode.mat() corrupted memory (a
+    # crash: "malloc(): invalid size") on a matrix whose header does not match its data
+    "matrix without cols": ("cols: 3", "cMls: 3", ["M1 is not an OpenCV matrix (cols is missing"]),
+    "matrix with too much data": ("rows: 3", "rows: 2", ["M1: the matrix is 2x3 but its data holds 9 numbers"]),
+    "matrix of unknown type": ("dt: d", "dt: x", ["M1 is not a one-channel OpenCV matrix"]),
+    "text in the data": ("2400.,", "abc,", ["M1: data element 0 is not a number"]),
+    # the binding raised SystemError ("returned a result with an exception set") for some parse errors
+    "broken YAML": ("image_width: 1280", "image_width: [1280", ["not a readable OpenCV FileStorage file"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(OPENCV_TEXT_CASES))
+def test_opencv_malformed_text(tmp_path, case):
+    old, new, words = OPENCV_TEXT_CASES[case]
+    path = tmp_path / "rig.yml"
+    _write_opencv(path, _opencv_entries())
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(ValueError) as err:
+        load_opencv(path)
+    assert str(path) in str(err.value), err.value
+    for w in words:
+        assert w in str(err.value), (case, str(err.value))
+
+
 def test_opencv_valid_files_still_load(tmp_path):
     path = tmp_path / "rig.yml"
     _write_opencv(path, _opencv_entries())
@@ -150,6 +177,13 @@ def _reflect_rotation(tree):
     _param(rot, "ROW 2").set("value", "{ " + ", ".join(repr(float(-v)) for v in R_RL[2]) + " }")
 
 
+def _set_row0(value):
+    def edit(tree):
+        rot = _cam(tree, 1).find("ParameterList[@name='rotation_3x3_matrix']")
+        _param(rot, "ROW 0").set("value", value)
+    return edit
+
+
 def _add_euler(tree):
     ET.SubElement(_cam(tree, 1), "Parameter", name="ALPHA", type="double", value="1.0")
 
@@ -174,6 +208,7 @@ DICE_CASES = {
     "CY outside": (_set("CY", "1e6", 0), ["CAMERA 0", "principal point"]),
     "unknown model": (_set("LENS_DISTORTION_MODEL", "FISHEYE"), ["lens distortion model 'FISHEYE'"]),
     "no CAMERA 1": (lambda t: t.getroot().remove(_cam(t, 1)), ["lacks the sublist 'CAMERA 1'"]),
+    "huge rotation entries": (_set_row0("{ 1e308, 0, 0 }"), ["rotation_3x3_matrix is not a rotation matrix"]),
 }
 
 
@@ -189,6 +224,14 @@ def test_dice_bad_files(tmp_path, case):
     assert str(path) in str(err.value), err.value
     for w in words:
         assert w in str(err.value), (case, str(err.value))
+
+
+def test_xml_with_an_unknown_encoding(tmp_path):
+    path = tmp_path / "enc.xml"
+    path.write_text('<?xml version="1.0" encoding="ISOinf-1"?><ParameterList/>')
+    for load in (load_dice_xml, load_vic3d_xml):
+        with pytest.raises(ValueError, match="unknown encoding"):  # was LookupError
+            load(path)
 
 
 def test_dice_omitted_zero_distortion_is_the_format(tmp_path):
@@ -311,6 +354,9 @@ JSON_CASES = {
     "rig right not a dict": ("rig", _set_key("right", value=[1, 2]), ["right camera", "must be a dict"]),
     "rig metadata list": ("rig", _set_key("metadata", value=[1]), ["'metadata' must be a dict"]),
     "rig covariance text": ("rig", _set_key("covariance", value=[["a"]]), ["covariance"]),
+    "K last row rounded": ("camera", _set_key("K", value=[[2400.0, 0, 640.5], [0, 2399.0, 400.25], [1e-320, 0, 1]]),
+                           None),
+    "covariance 1e308": ("camera", _set_key("covariance", value={"names": ["fx"], "matrix": [[1e308]]}), None),
 }
 
 
@@ -321,8 +367,14 @@ def test_json_bad_files(tmp_path, case):
     edit(d)
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(d))
+    cls = Camera if kind == "camera" else StereoRig
+    if words is None:  # valid: loads, and what it holds is exact and finite
+        cam = cls.load(path)
+        assert np.array_equal(cam.K[2], [0, 0, 1])  # the file's rounding of the last row is not kept
+        assert cam.covariance is None or np.all(np.isfinite(cam.covariance))  # was inf (0.5 (C + Cᵀ) overflowed)
+        return
     with pytest.raises(ValueError) as err:
-        (Camera if kind == "camera" else StereoRig).load(path)
+        cls.load(path)
     assert str(path) in str(err.value), err.value
     for w in words:
         assert w in str(err.value), (case, str(err.value))
