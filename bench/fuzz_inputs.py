@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    .venv/bin/python -m bench.fuzz_inputs                  # full: 500 mutants per seed file (8000 files)
+    .venv/bin/python -m bench.fuzz_inputs                  # full: 500 mutants per seed file (9500 files)
     .venv/bin/python -m bench.fuzz_inputs --per-seed 30    # reduced (tests/test_fuzz_inputs.py)
     .venv/bin/python -m bench.fuzz_inputs --seed 7 --keep failures/   # other mutants; keep failing files
 
@@ -10,7 +10,8 @@ Seed files (written fresh into a temporary folder each run): OpenCV FileStorage 
 JSON) and a camera (YAML), DICe camera systems (world extrinsics with a rotation matrix; camera-to-
 camera extrinsics with Euler angles), VIC-3D calibrations (the project layout with its
 ``<polygonmask>`` size and the bare ``<calibration>`` layout with the size given), Specula camera
-and rig JSON (with covariances), and images (PNG 8/16 bit, TIFF 8/16 bit and float32, BMP 8 bit).
+and rig JSON (with covariances), Specula target JSON (phase, checkerboard, circle grid), and images
+(PNG 8/16 bit, TIFF 8/16 bit and float32, BMP 8 bit): 19 seed files.
 
 Each mutant applies 1-3 random edits to one seed: for text files byte flips, truncation, deleted /
 duplicated / swapped lines, a number replaced by an "interesting" token (0, -1, nan, inf, 1e308,
@@ -58,6 +59,7 @@ import numpy as np
 from calibration.camera import Camera, rotation_from_vector
 from calibration.formats import load_dice_xml, load_opencv, load_vic3d_xml, save_dice_xml, save_opencv, save_vic3d_xml
 from calibration.stereo import StereoRig
+from calibration.targets import CheckerboardTarget, CircleGridTarget, PhaseTarget, load_target
 from kernels.images import read_image
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
@@ -138,6 +140,9 @@ def make_seeds(folder) -> list[dict]:
     rig.left.save(add("camera.json", "json", Camera.load, lambda c: check_camera(c, foreign=False)))
     rig.save(add("rig.json", "json", StereoRig.load, lambda r: check_rig(r, foreign=False)))
 
+    for t in (PhaseTarget(grid=(6, 3), pitch=300, steps=3), CheckerboardTarget(corners=(9, 6), square=100),
+              CircleGridTarget(grid=(6, 4), pitch=150)):
+        t.save_json(add(f"target_{type(t).__name__}.json", "json", load_target, check_target))
     rng = np.random.default_rng(5)
     img8 = rng.integers(0, 256, (30, 40), dtype=np.uint8)
     img16 = rng.integers(0, 65536, (30, 40), dtype=np.uint16)
@@ -181,6 +186,14 @@ def check_rig(rig, foreign=True):
     assert t.shape == (3,) and np.all(np.isfinite(t)) and np.linalg.norm(t) > 0, f"t {t}"
     if rig.covariance is not None:
         assert rig.covariance.shape == (6, 6) and np.all(np.isfinite(rig.covariance)), "covariance"
+
+
+def check_target(t):
+    assert isinstance(t, (PhaseTarget, CheckerboardTarget, CircleGridTarget)), type(t).__name__
+    assert len(t.screen) == 2 and min(t.screen) > 0 and t.pixel_pitch > 0 and np.isfinite(t.pixel_pitch), \
+        f"screen {t.screen}, pixel pitch {t.pixel_pitch}"
+    X = t.object_points
+    assert X.ndim == 2 and X.shape[1] == 3 and len(X) > 0 and np.all(np.isfinite(X)), "object points"
 
 
 def check_image(arr):
@@ -465,12 +478,12 @@ def main(argv=None) -> int:
         lim = int(args.max_memory_gb * 2 ** 30)
         resource.setrlimit(resource.RLIMIT_AS, (lim, resource.getrlimit(resource.RLIMIT_AS)[1]))
     res = run(args.per_seed, args.seed, args.keep, args.timeout)
-    print(f"{'seed file':24s} {'files':>6s} {'loaded':>7s} {'ValueError':>10s} {'non-finite px':>13s} {'FAIL':>5s}")
+    print(f"{'seed file':30s} {'files':>6s} {'loaded':>7s} {'ValueError':>10s} {'non-finite px':>13s} {'FAIL':>5s}")
     for name, c in res["by_seed_file"].items():
-        print(f"{name:24s} {c['files']:6d} {c['loaded']:7d} {c['value_error']:10d} {c['nonfinite_pixels']:13d} "
+        print(f"{name:30s} {c['files']:6d} {c['loaded']:7d} {c['value_error']:10d} {c['nonfinite_pixels']:13d} "
               f"{c['failures']:5d}")
     t = res["total"]
-    print(f"{'total':24s} {t['files']:6d} {t['loaded']:7d} {t['value_error']:10d} {t['nonfinite_pixels']:13d} "
+    print(f"{'total':30s} {t['files']:6d} {t['loaded']:7d} {t['value_error']:10d} {t['nonfinite_pixels']:13d} "
           f"{t['failures']:5d}   in {res['seconds']:.1f} s")
     if not args.no_save:
         os.makedirs(RESULTS, exist_ok=True)

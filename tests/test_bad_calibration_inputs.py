@@ -463,3 +463,34 @@ def test_poorly_conditioned_results_are_refused(case):
         assert w in str(err.value), (case, str(err.value))
     assert "tilted by 10-45 deg" in str(err.value)
     _check_determined(POSES_OK, K_OK, STD_OK, TRUE.size)  # the same poses with a sound result pass
+
+
+# -- target and mirror pose files ----------------------------------------------------------------------
+def test_target_files(tmp_path):
+    from calibration.targets import CheckerboardTarget, load_target
+
+    path = tmp_path / "board.json"
+    CheckerboardTarget(corners=(9, 6), square=100).save_json(path)
+    d = json.loads(path.read_text())
+    for edit, words in ((lambda d: d.pop("square"), "lacks the key 'square'"),  # was KeyError
+                        (lambda d: d.update(corners=5), "bad.json"),  # was TypeError
+                        (lambda d: d.update(type=["phase"]), "unknown type")):  # was TypeError (unhashable)
+        bad = json.loads(json.dumps(d))
+        edit(bad)
+        (tmp_path / "bad.json").write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=words.replace(".", r"\.")):
+            load_target(tmp_path / "bad.json")
+    (tmp_path / "deep.json").write_text("[" * 200_000 + "]" * 200_000)
+    with pytest.raises(ValueError, match="nested too deeply"):  # was RecursionError
+        load_target(tmp_path / "deep.json")
+
+
+def test_mirror_pose_file_of_wrong_types(tmp_path):
+    from calibration.posefiles import MIRROR_POSE_SCHEMA, MIRROR_POSE_SCHEMA_VERSION, read_mirror_pose_fields
+
+    d = {"schema": MIRROR_POSE_SCHEMA, "schema_version": MIRROR_POSE_SCHEMA_VERSION, "camera": LEFT.to_dict(),
+         "observations": {"object_points": [[0, 0, 0]], "mirrored_points": 5, "point_ids": [0], "views": ["a"]}}
+    path = tmp_path / "pose.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="pose.json"):  # was TypeError: 'int' object is not iterable
+        read_mirror_pose_fields(path)

@@ -4,7 +4,7 @@ Every mutated OpenCV/DICe/VIC-3D/JSON calibration file and PNG/TIFF/BMP image mu
 object or raise ValueError: no other exception, no crash, no invalid value. Run in a subprocess:
 the pass limits its address space (a header claiming a huge image must fail to allocate, not
 exhaust the machine), and a crash in a native library must fail this test, not the session.
-Full mode (8 000 files, by hand): ``python -m bench.fuzz_inputs``.
+Full mode (9 500 files, by hand): ``python -m bench.fuzz_inputs``.
 """
 import os
 import subprocess
@@ -20,9 +20,14 @@ def test_fuzz_pass_reduced(tmp_path):
                            "--no-save", "--keep", str(tmp_path / "failures")],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    total = [line for line in proc.stdout.splitlines() if line.startswith("total")]
-    files, loaded, value_errors, _, failures = (int(v) for v in total[0].split()[1:6])
-    assert files == 16 * 60 and failures == 0 and loaded > 0 and value_errors > 0, proc.stdout
+    lines = proc.stdout.splitlines()
+    rows = lines[lines.index(next(s for s in lines if s.startswith("seed file"))) + 1:]
+    seeds = [r for r in rows if not r.startswith("total")]
+    files, loaded, value_errors, _, failures = (int(v) for v in rows[len(seeds)].split()[1:6])
+    assert len(seeds) >= 19 and files == len(seeds) * 60, proc.stdout
+    assert failures == 0 and loaded > 0 and value_errors > 0, proc.stdout
+    for r in seeds:  # every kind of file both loads and is refused
+        assert int(r.split()[2]) > 0 and int(r.split()[3]) > 0, r
 
 
 def test_fuzz_checks_are_strict():
