@@ -844,7 +844,10 @@ def load_target(path):
     if not isinstance(kind, str) or kind not in kinds:
         raise ValueError(f"target file {path} has unknown type {kind!r}; expected one of {sorted(kinds)}")
     try:
-        return kinds[kind].from_dict(data)
+        target = kinds[kind].from_dict(data)
+        if not np.all(np.isfinite(target.object_points)):
+            raise ValueError("its sizes overflow (the target's points in mm are not finite)")
+        return target
     except KeyError as exc:
         raise ValueError(f"target file {path} lacks the key {exc}") from None
     except (ValueError, TypeError, IndexError, OverflowError) as exc:

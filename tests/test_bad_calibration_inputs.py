@@ -474,7 +474,8 @@ def test_target_files(tmp_path):
     d = json.loads(path.read_text())
     for edit, words in ((lambda d: d.pop("square"), "lacks the key 'square'"),  # was KeyError
                         (lambda d: d.update(corners=5), "bad.json"),  # was TypeError
-                        (lambda d: d.update(type=["phase"]), "unknown type")):  # was TypeError (unhashable)
+                        (lambda d: d.update(type=["phase"]), "unknown type"),  # was TypeError (unhashable)
+                        (lambda d: d.update(pixel_pitch=1e308), "overflow")):  # was accepted: points of inf mm
         bad = json.loads(json.dumps(d))
         edit(bad)
         (tmp_path / "bad.json").write_text(json.dumps(bad))
