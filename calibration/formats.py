@@ -105,6 +105,13 @@ def _side(value, field):
     return int(v)
 
 
+def _image_size_arg(image_size) -> tuple[int, int]:
+    """The ``image_size=(width, height)`` argument of a reader, checked."""
+    if isinstance(image_size, (str, bytes)) or not hasattr(image_size, "__len__") or len(image_size) != 2:
+        raise ValueError(f"image_size must be (width, height) in pixels, got {image_size!r}")
+    return _side(image_size[0], "image_size width"), _side(image_size[1], "image_size height")
+
+
 def _rotation(R, field):
     """A proper rotation read from a file: finite 3x3, orthonormal within :data:`ROTATION_TOLERANCE`,
     det +1; returned re-orthonormalised (the deviation is rounding only)."""
@@ -244,14 +251,14 @@ def _load_opencv(path, image_size):
         if node("R", "T")[1] is None and node("camera_matrix", "cameraMatrix", "K")[1] is None:
             raise ValueError("has neither camera_matrix nor M1/M2 with R/T")
         w, h = num("image_width", "imageWidth", "width"), num("image_height", "imageHeight", "height")
+        given = None if image_size is None else _image_size_arg(image_size)
         if w is None or h is None:
-            if image_size is None:
+            if given is None:
                 missing = "image_width" if w is None else "image_height"
                 raise ValueError(f"{missing} is missing (the image size is required); pass image_size=(width, height)")
-            try:
-                w, h = (_side(v, "image_size") for v in image_size)
-            except TypeError:
-                raise ValueError(f"image_size must be (width, height), got {image_size!r}") from None
+            w, h = given
+        elif given is not None and given != (w, h):
+            raise ValueError(f"image_size={given} differs from the file's image_width x image_height {(w, h)}")
         size = (w, h)
         R, T = mat("R", required=False), mat("T", required=False)
         if (R is None) != (T is None):
@@ -558,12 +565,7 @@ def _load_vic3d_xml(path, image_size) -> StereoRig:
                              "pass image_size=(width, height)")
         image_size = (_side(pm.get("width"), "polygonmask width"), _side(pm.get("height"), "polygonmask height"))
     else:
-        try:
-            image_size = tuple(_side(v, "image_size") for v in image_size)
-        except TypeError:
-            raise ValueError(f"image_size must be (width, height), got {image_size!r}") from None
-        if len(image_size) != 2:
-            raise ValueError(f"image_size must be (width, height), got {image_size!r}")
+        image_size = _image_size_arg(image_size)
     cams, poses = [], []
     for el in cam_els:
         where = f"camera {el.get('id')}"

@@ -845,7 +845,9 @@ def load_target(path):
         raise ValueError(f"target file {path} has unknown type {kind!r}; expected one of {sorted(kinds)}")
     try:
         target = kinds[kind].from_dict(data)
-        if not np.all(np.isfinite(target.object_points)):
+        with np.errstate(over="ignore", invalid="ignore"):
+            finite = bool(np.all(np.isfinite(target.object_points)))
+        if not finite:
             raise ValueError("its sizes overflow (the target's points in mm are not finite)")
         return target
     except KeyError as exc:

@@ -119,6 +119,12 @@ def test_opencv_valid_files_still_load(tmp_path):
     del entries["image_width"], entries["image_height"]
     _write_opencv(path, entries)
     assert load_opencv(path, image_size=(1280, 800)).left.size == (1280, 800)
+    for size in ((1280, 0), (1280, 800, 3), "1280x800", 1280):
+        with pytest.raises(ValueError, match="image_size"):
+            load_opencv(path, image_size=size)
+    _write_opencv(path, _opencv_entries())
+    with pytest.raises(ValueError, match="differs from the file's"):
+        load_opencv(path, image_size=(640, 400))
     # a single camera: the distortion coefficients are required
     _write_opencv(path, {"image_width": 1280, "image_height": 800, "camera_matrix": LEFT.K})
     with pytest.raises(ValueError, match="distortion_coefficients is missing"):
@@ -307,7 +313,7 @@ def test_vic3d_bare_calibration_layout(tmp_path):
     cal = text[text.index("<calibration"):text.index("</calibration>") + len("</calibration>")]
     (tmp_path / "cal.xml").write_text(cal, encoding="iso-8859-1")
     assert load_vic3d_xml(tmp_path / "cal.xml", image_size=(1280, 800)).right.size == (1280, 800)
-    for size in ((0, 800), (1280,), "1280x800", (1280.5, 800)):
+    for size in ((0, 800), (1280,), "1280x800", (1280.5, 800), 5):
         with pytest.raises(ValueError, match="image_size"):
             load_vic3d_xml(tmp_path / "cal.xml", image_size=size)
 
