@@ -181,6 +181,32 @@ def distort_normalized(xy, dist, jacobian: bool = False):
     return distorted, J
 
 
+#: Largest image side (px) a camera accepts.
+MAX_IMAGE_SIDE = 1 << 20
+
+
+def _image_size(size) -> tuple[int, int]:
+    """``(width, height)`` in whole pixels, both positive or both 0 (size unknown)."""
+    bad = ValueError(f"Camera.size must be (width, height) in whole pixels, both positive (or both 0: "
+                     f"unknown), got {size!r:.80}")
+    if isinstance(size, (str, bytes, dict)) or not hasattr(size, "__len__") or len(size) != 2:
+        raise bad
+    out = []
+    for v in size:
+        if isinstance(v, (bool, np.bool_)):
+            raise bad
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise bad from None
+        if not np.isfinite(f) or f != int(f) or not 0 <= f <= MAX_IMAGE_SIDE:
+            raise bad
+        out.append(int(f))
+    if (out[0] == 0) != (out[1] == 0):
+        raise bad
+    return out[0], out[1]
+
+
 @dataclass
 class Camera:
     """Intrinsic model of one camera.
@@ -212,25 +238,36 @@ class Camera:
     covariance_names: tuple = ()
 
     def __post_init__(self):
-        K = np.asarray(self.K, dtype=np.float64)
+        try:
+            K = np.asarray(self.K, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"Camera.K must be a finite 3x3 matrix of numbers, got {self.K!r:.80}") from None
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             raise ValueError(f"Camera.K must be a finite 3x3 matrix, got {np.shape(self.K)}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"Camera.K focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
         if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
             raise ValueError(f"Camera.K must be upper triangular with last row [0, 0, 1], got\n{K}")
-        dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        K = K.copy()
+        K[2] = (0.0, 0.0, 1.0)  # exactly (a file's rounding of it is accepted, not kept)
+        try:
+            dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            raise ValueError(f"Camera.dist must be a list of numbers, got {self.dist!r:.80}") from None
         if dist.size not in (0, 4, 5, 8) or not np.all(np.isfinite(dist)):
             raise ValueError(
                 f"Camera.dist must hold 0, 4, 5 or 8 finite OpenCV coefficients (k1 k2 p1 p2 k3 k4 k5 k6), got {dist.size}"
             )
-        size = tuple(int(s) for s in self.size)
-        if len(size) != 2 or min(size) < 0:
-            raise ValueError(f"Camera.size must be (width, height) in pixels, got {self.size}")
+        size = _image_size(self.size)
+
         self.K, self.dist, self.size = K, dist, size
         if self.covariance is not None:
-            C = np.asarray(self.covariance, dtype=np.float64)
-            names = tuple(str(n) for n in self.covariance_names)
+            try:
+                C = np.asarray(self.covariance, dtype=np.float64)
+                names = tuple(str(n) for n in self.covariance_names)
+            except (TypeError, ValueError):
+                raise ValueError("Camera.covariance must be a square matrix of numbers and covariance_names "
+                                 "a list of parameter names") from None
             if C.ndim != 2 or C.shape[0] != C.shape[1] or C.shape[0] != len(names) or not np.all(np.isfinite(C)):
                 raise ValueError(f"Camera.covariance must be a finite square matrix with one row per name in "
                                  f"covariance_names ({len(names)}), got shape {C.shape}")
@@ -240,7 +277,7 @@ class Camera:
                                  f"({INTRINSIC_PARAMETERS[:4 + dist.size]}), got {names}")
             if not np.allclose(C, C.T, rtol=1e-6, atol=1e-9 * float(np.max(np.abs(C), initial=0.0))) or np.min(np.diag(C)) < 0:
                 raise ValueError("Camera.covariance must be symmetric with a non-negative diagonal")
-            self.covariance, self.covariance_names = 0.5 * (C + C.T), names
+            self.covariance, self.covariance_names = 0.5 * C + 0.5 * C.T, names  # no overflow near 1e308
         elif self.covariance_names:
             raise ValueError("Camera.covariance_names given without a covariance")
 
@@ -452,9 +489,13 @@ class Camera:
         if missing:
             raise ValueError(f"camera description lacks the keys {missing}")
         cov = data.get("covariance")
-        if cov is not None and not (isinstance(cov, dict) and "names" in cov and "matrix" in cov):
+        if cov is not None and not (isinstance(cov, dict) and "names" in cov and "matrix" in cov
+                                    and isinstance(cov["names"], list)):
             raise ValueError("camera description: 'covariance' must be {'names': [...], 'matrix': [[...]]}")
-        return cls(K=data["K"], dist=data["dist"], size=tuple(data["size"]), name=str(data.get("name", "")),
+        name = data.get("name", "")
+        if not isinstance(name, str):
+            raise ValueError(f"camera description: 'name' must be a string, got {type(name).__name__}")
+        return cls(K=data["K"], dist=data["dist"], size=data["size"], name=name,
                    covariance=None if cov is None else cov["matrix"],
                    covariance_names=() if cov is None else tuple(cov["names"]))
 
@@ -464,8 +505,13 @@ class Camera:
 
     @classmethod
     def load(cls, path) -> "Camera":
-        """Read a camera JSON file written by :meth:`save`."""
-        return cls.from_dict(_read_json(path, "camera"))
+        """Read a camera JSON file written by :meth:`save`; a malformed file raises ``ValueError``
+        naming the file and the field."""
+        data = _read_json(path, "camera")
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"camera file {os.fspath(path)!r}: {exc}") from None
 
 
 def _check_schema(data: dict, schema: str, version: int, what: str) -> None:
@@ -496,5 +542,14 @@ def _read_json(path, what: str) -> dict:
             return json.load(f)
     except FileNotFoundError:
         raise ValueError(f"{what} file {path!r} does not exist") from None
+    except IsADirectoryError:
+        raise ValueError(f"{what} file {path!r} is a directory") from None
+    except PermissionError:
+        raise ValueError(f"{what} file {path!r} cannot be read (permission denied)") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{what} file {path!r} is not UTF-8 text ({exc.reason} at byte {exc.start}); "
+                         "is it a JSON file?") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{what} file {path!r} is not valid JSON ({exc}); is it truncated?") from None
+    except RecursionError:
+        raise ValueError(f"{what} file {path!r} is not a valid {what} file (JSON nested too deeply)") from None

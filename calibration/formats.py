@@ -55,6 +55,14 @@ def rotation_from_euler(alpha: float, beta: float, gamma: float) -> np.ndarray:
     return Rz @ Ry @ Rx
 
 
+#: Largest deviation ``max |R Rᵀ − I|`` accepted for a rotation matrix read from a file (the entries
+#: of a rotation written with 5 significant digits); beyond it the file is refused, never repaired.
+ROTATION_TOLERANCE = 1e-4
+
+#: Largest image side (px) accepted from a file.
+MAX_IMAGE_SIDE = 1 << 20
+
+
 def _rig_from_world_poses(cam0, cam1, R0, t0, R1, t1, metadata):
     R = R1 @ R0.T
     return StereoRig(cam0, cam1, nearest_rotation(R), t1 - R @ t0, metadata=metadata)
@@ -66,6 +74,86 @@ def _exists(path, what):
         raise ValueError(f"{what} file {path!r} " + ("is not a file (a folder?)" if os.path.exists(path)
                                                      else "does not exist"))
     return path
+
+
+def _guarded(what, path, load, *args):
+    """Run ``load(path, *args)``; any error about the file's content becomes one ``ValueError`` that
+    names the file (the inner messages name the field)."""
+    path = _exists(path, what)
+    try:
+        return load(path, *args)
+    except (ValueError, TypeError, KeyError, IndexError, OverflowError, AttributeError, UnicodeError) as exc:
+        msg = str(exc) if isinstance(exc, ValueError) else f"malformed content ({type(exc).__name__}: {exc})"
+        raise ValueError(f"{what} file {path!r}: {msg}") from None
+
+
+def _number(text, field):
+    """A finite float from a file's text (``field`` names it in the error)."""
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{field} must be a number, got {text!r}") from None
+    if not np.isfinite(v):
+        raise ValueError(f"{field} must be finite, got {text!r}")
+    return v
+
+
+def _side(value, field):
+    """A positive integral image side in pixels."""
+    v = _number(value, field)
+    if v != int(v) or not 0 < v <= MAX_IMAGE_SIDE:
+        raise ValueError(f"{field} must be a positive whole number of pixels (<= {MAX_IMAGE_SIDE}), got {value!r}")
+    return int(v)
+
+
+def _image_size_arg(image_size) -> tuple[int, int]:
+    """The ``image_size=(width, height)`` argument of a reader, checked."""
+    if isinstance(image_size, (str, bytes)) or not hasattr(image_size, "__len__") or len(image_size) != 2:
+        raise ValueError(f"image_size must be (width, height) in pixels, got {image_size!r}")
+    return _side(image_size[0], "image_size width"), _side(image_size[1], "image_size height")
+
+
+def _rotation(R, field):
+    """A proper rotation read from a file: finite 3x3, orthonormal within :data:`ROTATION_TOLERANCE`,
+    det +1; returned re-orthonormalised (the deviation is rounding only)."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"{field} must be a 3x3 rotation matrix, got shape {R.shape}")
+    if not np.all(np.isfinite(R)):
+        raise ValueError(f"{field} holds non-finite numbers")
+    if np.max(np.abs(R)) > 1.0 + ROTATION_TOLERANCE:
+        raise ValueError(f"{field} is not a rotation matrix (an entry of magnitude {np.max(np.abs(R)):.6g} > 1)")
+    dev = float(np.max(np.abs(R @ R.T - np.eye(3))))
+    if dev > ROTATION_TOLERANCE:
+        raise ValueError(f"{field} is not a rotation matrix (max |R R^T - I| = {dev:.3g} > {ROTATION_TOLERANCE:g})")
+    if np.linalg.det(R) < 0:
+        raise ValueError(f"{field} is a reflection (det = {np.linalg.det(R):.6g}), not a proper rotation")
+    return nearest_rotation(R)
+
+
+def _vector3(t, field):
+    t = np.asarray(t, dtype=np.float64).ravel()
+    if t.shape != (3,):
+        raise ValueError(f"{field} must hold 3 numbers, got {t.size}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{field} holds non-finite numbers")
+    return t
+
+
+def _camera(K, dist, size, name, field):
+    """A :class:`Camera` from a file: positive size, positive focal lengths, finite numbers, principal
+    point inside the image; errors name ``field``."""
+    try:
+        cam = Camera(K, dist, size, name)
+    except ValueError as exc:
+        raise ValueError(f"{field}: {exc}") from None
+    w, h = cam.size
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{field}: the image size must be positive, got {cam.size}")
+    if not (-0.5 <= cam.cx <= w - 0.5 and -0.5 <= cam.cy <= h - 0.5):
+        raise ValueError(f"{field}: the principal point ({cam.cx:.6g}, {cam.cy:.6g}) px lies outside the "
+                         f"{w}x{h} image")
+    return cam
 
 
 # -- OpenCV ----------------------------------------------------------------------------------------
@@ -102,70 +190,140 @@ def save_opencv(path, obj) -> None:
         fs.release()
 
 
-def load_opencv(path):
+def load_opencv(path, image_size=None):
     """Read a camera or a rig written by OpenCV tools or :func:`save_opencv`.
 
     Returns a :class:`StereoRig` when ``R`` and ``T`` are present, else a :class:`Camera`. Accepts
     the key sets ``camera_matrix``/``distortion_coefficients`` and ``M1 D1 M2 D2`` (also
-    ``K1``/``cameraMatrix1``-style aliases).
+    ``K1``/``cameraMatrix1``-style aliases). ``image_size`` (width, height) is needed when the file
+    has no ``image_width``/``image_height`` (OpenCV's stereo sample writes none); the right camera
+    takes ``right_image_width``/``right_image_height`` when present, else the same size.
+
+    Nothing missing is filled in: the camera matrices, the distortion coefficients, the image size
+    and, for a rig, ``R`` (a proper rotation within :data:`ROTATION_TOLERANCE`) and ``T`` (3 finite
+    numbers) must be present and valid, else ``ValueError`` names the file and the field.
     """
+    return _guarded("OpenCV calibration", path, _load_opencv, image_size)
+
+
+def _load_opencv(path, image_size):
     import cv2
 
-    path = _exists(path, "OpenCV calibration")
     try:
         fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
     except cv2.error as exc:
-        raise ValueError(f"{path!r} is not a readable OpenCV FileStorage file ({exc.err})") from None
+        raise ValueError(f"not a readable OpenCV FileStorage file ({exc.err})") from None
+    except SystemError as exc:  # OpenCV's binding reports some parse errors so, with the cv2.error as the cause
+        cause = getattr(exc.__cause__, "err", None) or exc.__cause__ or exc
+        raise ValueError(f"not a readable OpenCV FileStorage file ({cause})") from None
     if not fs.isOpened():
-        raise ValueError(f"{path!r} is not a readable OpenCV FileStorage file")
+        raise ValueError("not a readable OpenCV FileStorage file")
     try:
-        def mat(*names):
+        root = fs.root()
+        if not root.isMap():
+            raise ValueError("not an OpenCV FileStorage map of named entries")
+
+        def node(*names):
             for n in names:
-                node = fs.getNode(n)
-                if not node.empty():
-                    m = node.mat()
-                    if m is not None:
-                        return np.asarray(m, dtype=np.float64)
-            return None
+                nd = fs.getNode(n)
+                if not nd.empty() and not nd.isNone():
+                    return n, nd
+            return None, None
+
+        def mat(*names, required=True):
+            n, nd = node(*names)
+            if nd is None:
+                if required:
+                    raise ValueError(f"{names[0]} is missing")
+                return None
+            m = _read_matrix(nd, n)
+            if not np.all(np.isfinite(m)):
+                raise ValueError(f"{n} holds non-finite numbers")
+            return m
 
         def num(*names):
-            for n in names:
-                node = fs.getNode(n)
-                if not node.empty():
-                    return int(node.real())
-            return None
+            n, nd = node(*names)
+            if nd is None:
+                return None
+            if not (nd.isInt() or nd.isReal()):
+                raise ValueError(f"{n} must be a number")
+            return _side(nd.real(), n)
 
+        if node("R", "T")[1] is None and node("camera_matrix", "cameraMatrix", "K")[1] is None:
+            raise ValueError("has neither camera_matrix nor M1/M2 with R/T")
         w, h = num("image_width", "imageWidth", "width"), num("image_height", "imageHeight", "height")
-        size = (w or 0, h or 0)
-        R, T = mat("R"), mat("T")
-        if R is not None and T is not None:
-            K1, D1 = mat("M1", "K1", "cameraMatrix1", "camera_matrix_1"), mat("D1", "distCoeffs1", "distortion_coefficients_1")
-            K2, D2 = mat("M2", "K2", "cameraMatrix2", "camera_matrix_2"), mat("D2", "distCoeffs2", "distortion_coefficients_2")
-            if K1 is None or K2 is None:
-                raise ValueError(f"{path!r} has R and T but no camera matrices (M1/M2)")
+        given = None if image_size is None else _image_size_arg(image_size)
+        if w is None or h is None:
+            if given is None:
+                missing = "image_width" if w is None else "image_height"
+                raise ValueError(f"{missing} is missing (the image size is required); pass image_size=(width, height)")
+            w, h = given
+        elif given is not None and given != (w, h):
+            raise ValueError(f"image_size={given} differs from the file's image_width x image_height {(w, h)}")
+        size = (w, h)
+        R, T = mat("R", required=False), mat("T", required=False)
+        if (R is None) != (T is None):
+            raise ValueError(f"{'T' if T is None else 'R'} is missing (a rig needs both R and T)")
+        if R is not None:
+            K1 = mat("M1", "K1", "cameraMatrix1", "camera_matrix_1")
+            D1 = mat("D1", "distCoeffs1", "distortion_coefficients_1")
+            K2 = mat("M2", "K2", "cameraMatrix2", "camera_matrix_2")
+            D2 = mat("D2", "distCoeffs2", "distortion_coefficients_2")
             w2, h2 = num("right_image_width"), num("right_image_height")
-            left = Camera(K1, _dist(D1), size, "left")
-            right = Camera(K2, _dist(D2), (w2 or size[0], h2 or size[1]), "right")
-            return StereoRig(left, right, nearest_rotation(R), T.ravel(), metadata={"imported_from": path})
+            if (w2 is None) != (h2 is None):
+                raise ValueError("right_image_width and right_image_height must be given together")
+            left = _camera(K1, _dist(D1, "D1"), size, "left", "M1/D1")
+            right = _camera(K2, _dist(D2, "D2"), (w2, h2) if w2 is not None else size, "right", "M2/D2")
+            return StereoRig(left, right, _rotation(R, "R"), _vector3(T, "T"), metadata={"imported_from": path})
         K = mat("camera_matrix", "cameraMatrix", "K")
-        if K is None:
-            raise ValueError(f"{path!r} has neither camera_matrix nor M1/M2 with R/T")
-        name = fs.getNode("camera_name")
-        return Camera(K, _dist(mat("distortion_coefficients", "distCoeffs", "D")), size,
-                      name.string() if not name.empty() else "")
+        D = mat("distortion_coefficients", "distCoeffs", "D")
+        n, name = node("camera_name")
+        if name is not None and not name.isString():
+            raise ValueError("camera_name must be a string")
+        return _camera(K, _dist(D, "distortion_coefficients"), size, name.string() if name is not None else "",
+                       "camera_matrix/distortion_coefficients")
+    except cv2.error as exc:
+        raise ValueError(f"unreadable entry ({exc.err})") from None
     finally:
         fs.release()
 
 
-def _dist(D):
-    if D is None:
-        return np.zeros(5)
+#: Element types of a one-channel ``opencv-matrix`` (``dt``).
+_MATRIX_TYPES = ("u", "c", "w", "s", "i", "f", "d", "h")
+
+
+def _read_matrix(node, name) -> np.ndarray:
+    """An ``!!opencv-matrix`` node as a float64 array, read element by element after checking that
+    ``rows x cols`` matches the data: ``FileNode.mat()`` trusts the header and corrupts memory (a
+    crash) when it does not."""
+    if not node.isMap():
+        raise ValueError(f"{name} is not an OpenCV matrix")
+    rows, cols, dt, data = (node.getNode(k) for k in ("rows", "cols", "dt", "data"))
+    for k, nd in (("rows", rows), ("cols", cols)):
+        if nd.empty() or not nd.isInt() or not 0 <= nd.real() <= 1000:
+            raise ValueError(f"{name} is not an OpenCV matrix ({k} is missing or not a count)")
+    if dt.empty() or not dt.isString() or dt.string() not in _MATRIX_TYPES:
+        raise ValueError(f"{name} is not a one-channel OpenCV matrix (dt = {dt.string() if dt.isString() else None!r})")
+    r, c = int(rows.real()), int(cols.real())
+    if not data.isSeq() or data.size() != r * c:
+        n = data.size() if data.isSeq() else None
+        raise ValueError(f"{name}: the matrix is {r}x{c} but its data holds {n} numbers")
+    vals = []
+    for i in range(r * c):
+        el = data.at(i)
+        if not (el.isInt() or el.isReal()):
+            raise ValueError(f"{name}: data element {i} is not a number")
+        vals.append(el.real())
+    return np.asarray(vals, dtype=np.float64).reshape(r, c)
+
+
+def _dist(D, field="distortion"):
     d = np.asarray(D, dtype=np.float64).ravel()
     if d.size in (0, 4, 5, 8):
         return d
     if d.size > 8 and np.allclose(d[8:], 0):
         return d[:8]
-    raise ValueError(f"unsupported number of distortion coefficients {d.size} (Specula supports 4, 5 or 8)")
+    raise ValueError(f"{field}: unsupported number of distortion coefficients {d.size} (Specula supports 4, 5 or 8)")
 
 
 # -- DICe ------------------------------------------------------------------------------------------
@@ -208,69 +366,136 @@ def save_dice_xml(path, rig: StereoRig) -> None:
     ET.ElementTree(root).write(os.fspath(path), encoding="utf-8", xml_declaration=True)
 
 
-def _parse_xml(path, what):
-    path = _exists(path, what)
+def _parse_xml(path):
     try:
         return ET.parse(path).getroot()
     except ET.ParseError as exc:
-        raise ValueError(f"{path!r} is not well-formed XML ({exc}); is it truncated?") from None
+        raise ValueError(f"not well-formed XML ({exc}); is it truncated?") from None
+    except RecursionError:
+        raise ValueError("XML nested too deeply") from None
+    except LookupError as exc:  # an unknown encoding in the XML declaration
+        raise ValueError(f"not readable XML ({exc})") from None
 
 
 def _brace_numbers(text, n, what):
-    vals = [float(v) for v in text.replace("{", " ").replace("}", " ").replace(",", " ").split()]
+    if text is None:
+        raise ValueError(f"{what} has no value")
+    vals = [_number(v, what) for v in text.replace("{", " ").replace("}", " ").replace(",", " ").split()]
     if len(vals) != n:
         raise ValueError(f"{what}: expected {n} numbers, got {text!r}")
     return vals
 
 
 def load_dice_xml(path) -> StereoRig:
-    """Read a two-camera DICe camera-system XML file (OpenCV or no distortion model)."""
-    root = _parse_xml(path, "DICe camera system")
+    """Read a two-camera DICe camera-system XML file (OpenCV or no distortion model).
+
+    Required in each ``CAMERA i`` sublist: ``CX CY FX FY``, ``IMAGE_HEIGHT_WIDTH``, and the
+    extrinsics ``TX TY TZ`` with a rotation (``rotation_3x3_matrix`` with ``ROW 0..2``, a proper
+    rotation within :data:`ROTATION_TOLERANCE`, or ``ALPHA BETA GAMMA``), as DICe always writes them
+    (with ``extrinsics_relative_camera_to_camera = true`` camera 0 is the reference and has none).
+    ``FS``, ``K1..K6``, ``P1 P2`` may be omitted when 0 (DICe's format: DICe writes only the non-zero
+    intrinsics). A missing or malformed value raises ``ValueError`` naming the file and the field.
+    """
+    return _guarded("DICe camera system", path, _load_dice_xml)
+
+
+def _load_dice_xml(path) -> StereoRig:
+    root = _parse_xml(path)
     if root.tag != "ParameterList":
-        raise ValueError(f"{os.fspath(path)!r} is not a DICe ParameterList file (root <{root.tag}>)")
+        raise ValueError(f"not a DICe ParameterList file (root <{root.tag}>)")
 
-    def params(el):
-        return {p.get("name"): (p.get("type"), p.get("value")) for p in el.findall("Parameter")}
+    def params(el, where):
+        out = {}
+        for p in el.findall("Parameter"):
+            name = p.get("name")
+            if name is None:
+                raise ValueError(f"{where}: a <Parameter> has no name")
+            if name in out:
+                raise ValueError(f"{where}: parameter {name!r} appears twice")
+            out[name] = (p.get("type"), p.get("value"))
+        return out
 
-    top = params(root)
+    top = params(root, "top level")
     fmt = top.get("xml_file_format", top.get("cal_file_ID", (None, None)))[1]
     if fmt not in ("DICe_xml_camera_system_file", "DICe_XML_Calibration_File"):
-        raise ValueError(f"{os.fspath(path)!r} is not a DICe camera-system file (xml_file_format = {fmt!r})")
-    relative = top.get("extrinsics_relative_camera_to_camera", ("bool", "false"))[1].strip().lower() == "true"
+        raise ValueError(f"not a DICe camera-system file (xml_file_format = {fmt!r})")
+    rel = top.get("extrinsics_relative_camera_to_camera", ("bool", "false"))[1]
+    if rel is None or rel.strip().lower() not in ("true", "false"):
+        raise ValueError(f"extrinsics_relative_camera_to_camera must be true or false, got {rel!r}")
+    relative = rel.strip().lower() == "true"
     cams, poses = [], []
     for i in range(2):
-        pl = root.find(f"ParameterList[@name='CAMERA {i}']")
-        if pl is None:
-            raise ValueError(f"{os.fspath(path)!r} lacks the sublist 'CAMERA {i}' (a stereo rig needs two cameras)")
-        p = params(pl)
-        model = p.get("LENS_DISTORTION_MODEL", p.get("LD_MODEL", ("string", "NO_LENS_DISTORTION")))[1]
-        if model not in ("OPENCV_LENS_DISTORTION", "OPENCV_DIS", "NO_LENS_DISTORTION", "NONE"):
-            raise ValueError(f"CAMERA {i}: lens distortion model {model!r} is not supported (OpenCV or none only)")
-        v = {k: float(p[k][1]) if k in p else 0.0 for k in _DICE_INTRINSICS}
+        where = f"CAMERA {i}"
+        found = root.findall(f"ParameterList[@name='CAMERA {i}']")
+        if not found:
+            raise ValueError(f"lacks the sublist 'CAMERA {i}' (a stereo rig needs two cameras)")
+        if len(found) > 1:
+            raise ValueError(f"the sublist 'CAMERA {i}' appears {len(found)} times")
+        pl = found[0]
+        p = params(pl, where)
+
+        def value(k, required=True):
+            if k not in p:
+                if required:
+                    raise ValueError(f"{where}: {k} is missing")
+                return None
+            return _number(p[k][1], f"{where}: {k}")
+
+        model = p.get("LENS_DISTORTION_MODEL", p.get("LD_MODEL", ("string", None)))[1]
+        opencv = model in ("OPENCV_LENS_DISTORTION", "OPENCV_DIS")
+        if model is None:
+            present = [k for k in ("K1", "K2", "K3", "K4", "K5", "K6", "P1", "P2") if value(k, False)]
+            if present:
+                raise ValueError(f"{where}: LENS_DISTORTION_MODEL is missing but distortion terms {present} are given")
+        elif not opencv and model not in ("NO_LENS_DISTORTION", "NONE"):
+            raise ValueError(f"{where}: lens distortion model {model!r} is not supported (OpenCV or none only)")
         for k in ("S1", "S2", "S3", "S4", "T1", "T2"):
-            if k in p and float(p[k][1]) != 0.0:
-                raise ValueError(f"CAMERA {i}: thin-prism / tilted-sensor term {k} is not supported by Specula")
+            if value(k, False):
+                raise ValueError(f"{where}: thin-prism / tilted-sensor term {k} is not supported by Specula")
+        fx, fy, cx, cy = (value(k) for k in ("FX", "FY", "CX", "CY"))
+        fs = value("FS", False) or 0.0
         if "IMAGE_HEIGHT_WIDTH" not in p:
-            raise ValueError(f"CAMERA {i} lacks IMAGE_HEIGHT_WIDTH")
-        h, w = (int(x) for x in _brace_numbers(p["IMAGE_HEIGHT_WIDTH"][1], 2, "IMAGE_HEIGHT_WIDTH"))
-        K = [[v["FX"], v["FS"], v["CX"]], [0, v["FY"], v["CY"]], [0, 0, 1]]
-        rational = any(v[k] for k in ("K4", "K5", "K6"))
-        dist = [v["K1"], v["K2"], v["P1"], v["P2"], v["K3"]] + ([v["K4"], v["K5"], v["K6"]] if rational else [])
-        if model in ("NO_LENS_DISTORTION", "NONE"):
-            dist = [0.0] * 5
-        name = p.get("CAMERA_ID", ("string", ""))[1]
-        cams.append(Camera(K, dist, (w, h), name))
-        t = np.array([float(p[k][1]) if k in p else 0.0 for k in ("TX", "TY", "TZ")])
-        rot = pl.find("ParameterList[@name='rotation_3x3_matrix']")
-        if rot is not None:
-            rp = params(rot)
-            R = np.array([_brace_numbers(rp[f"ROW {r}"][1], 3, f"ROW {r}") for r in range(3)])
+            raise ValueError(f"{where}: IMAGE_HEIGHT_WIDTH is missing")
+        h, w = (_side(x, f"{where}: IMAGE_HEIGHT_WIDTH")
+                for x in _brace_numbers(p["IMAGE_HEIGHT_WIDTH"][1], 2, f"{where}: IMAGE_HEIGHT_WIDTH"))
+        K = [[fx, fs, cx], [0, fy, cy], [0, 0, 1]]
+        if opencv:  # DICe's format: a distortion term with the value 0 may be omitted (DICe writes only the others)
+            k1, k2, k3, p1, p2, k4, k5, k6 = (value(k, False) or 0.0 for k in ("K1", "K2", "K3", "P1", "P2", "K4", "K5", "K6"))
+            dist = [k1, k2, p1, p2, k3] + ([k4, k5, k6] if any((k4, k5, k6)) else [])
         else:
-            R = rotation_from_euler(*(float(p[k][1]) if k in p else 0.0 for k in ("ALPHA", "BETA", "GAMMA")))
+            dist = [0.0] * 5
+        name = p.get("CAMERA_ID", ("string", ""))[1] or ""
+        cams.append(_camera(K, dist, (w, h), name, where))
+        rots = pl.findall("ParameterList[@name='rotation_3x3_matrix']")
+        if len(rots) > 1:
+            raise ValueError(f"{where}: rotation_3x3_matrix appears {len(rots)} times")
+        eulers = [k for k in ("ALPHA", "BETA", "GAMMA") if k in p]
+        if rots and eulers:
+            raise ValueError(f"{where}: both rotation_3x3_matrix and {' '.join(eulers)} are given (DICe allows one)")
+        if relative and i == 0:  # the reference camera: its pose is the identity, if given at all
+            given = [value(k) for k in ("TX", "TY", "TZ") if k in p]
+            if any(given) or any(value(k) for k in eulers) or rots:
+                raise ValueError(f"{where}: with extrinsics_relative_camera_to_camera = true, camera 0 is the "
+                                 "reference; its extrinsics must be absent or zero")
+            poses.append((np.eye(3), np.zeros(3)))
+            continue
+        t = np.array([value(k) for k in ("TX", "TY", "TZ")])
+        if rots:
+            rp = params(rots[0], f"{where}: rotation_3x3_matrix")
+            rows = []
+            for r in range(3):
+                if f"ROW {r}" not in rp:
+                    raise ValueError(f"{where}: rotation_3x3_matrix: ROW {r} is missing")
+                rows.append(_brace_numbers(rp[f"ROW {r}"][1], 3, f"{where}: rotation_3x3_matrix: ROW {r}"))
+            R = _rotation(rows, f"{where}: rotation_3x3_matrix")
+        else:
+            if not eulers:
+                raise ValueError(f"{where}: the rotation is missing (rotation_3x3_matrix or ALPHA BETA GAMMA)")
+            R = rotation_from_euler(*(value(k) for k in ("ALPHA", "BETA", "GAMMA")))
         poses.append((R, t))
-    meta = {"imported_from": os.fspath(path), "format": "DICe camera system"}
+    meta = {"imported_from": path, "format": "DICe camera system"}
     if relative:  # camera 1 extrinsics are already camera 0 -> camera 1
-        return StereoRig(cams[0], cams[1], nearest_rotation(poses[1][0]), poses[1][1], metadata=meta)
+        return StereoRig(cams[0], cams[1], poses[1][0], poses[1][1], metadata=meta)
     return _rig_from_world_poses(cams[0], cams[1], *poses[0], *poses[1], meta)
 
 
@@ -313,83 +538,92 @@ def save_vic3d_xml(path, rig: StereoRig, *, allow_lossy: bool = False) -> None:
 
 
 def load_vic3d_xml(path, image_size=None) -> StereoRig:
-    """Read the calibration of a VIC-3D project / calibration XML (two cameras), in either layout:
+    """Read the calibration of a VIC-3D project / calibration XML (two cameras, ids 0 and 1), in either layout:
     ``<camera id="i">CX CY FX FY FS κ1 κ2 κ3<orientation>…</orientation></camera>`` or
     ``<camera id="i"><intrinsics>CX CY FX FY FS</intrinsics><orientation>α β γ tx ty tz</orientation>
     <distortion>κ1 κ2 κ3</distortion></camera>`` (see :func:`_vic3d_split_camera`).
 
-    ``image_size`` (width, height) is needed when the file has no ``<polygonmask>`` with the size.
+    ``image_size`` (width, height) is needed when the file has no ``<polygonmask>`` with the size
+    (``width`` and ``height``). A missing or malformed value raises ``ValueError`` naming the file
+    and the field.
     """
-    root = _parse_xml(path, "VIC-3D calibration")
+    return _guarded("VIC-3D calibration", path, _load_vic3d_xml, image_size)
+
+
+def _load_vic3d_xml(path, image_size) -> StereoRig:
+    root = _parse_xml(path)
     cal = root if root.tag == "calibration" else root.find(".//calibration")
     if cal is None:
-        raise ValueError(f"{os.fspath(path)!r} has no <calibration> element (is it a VIC-3D project file?)")
-    cam_els = sorted(cal.findall("camera"), key=lambda e: int(e.get("id", "0")))
+        raise ValueError("has no <calibration> element (is it a VIC-3D project file?)")
+    cam_els = cal.findall("camera")
     if len(cam_els) != 2:
-        raise ValueError(f"{os.fspath(path)!r}: expected two <camera> elements, found {len(cam_els)}")
+        raise ValueError(f"expected two <camera> elements, found {len(cam_els)}")
+    ids = [el.get("id") for el in cam_els]
+    if sorted(str(i).strip() for i in ids) != ["0", "1"]:
+        raise ValueError(f"the <camera> ids must be 0 and 1, got {ids}")
+    cam_els = sorted(cam_els, key=lambda e: int(e.get("id")))
     if image_size is None:
         pm = root.find(".//polygonmask")
-        if pm is None or pm.get("width") is None:
-            raise ValueError(f"{os.fspath(path)!r} does not record the image size; pass image_size=(width, height)")
-        image_size = (int(pm.get("width")), int(pm.get("height")))
+        if pm is None or pm.get("width") is None or pm.get("height") is None:
+            raise ValueError("does not record the image size (<polygonmask width= height=>); "
+                             "pass image_size=(width, height)")
+        image_size = (_side(pm.get("width"), "polygonmask width"), _side(pm.get("height"), "polygonmask height"))
+    else:
+        image_size = _image_size_arg(image_size)
     cams, poses = [], []
     for el in cam_els:
+        where = f"camera {el.get('id')}"
         if el.find("intrinsics") is not None:  # the <intrinsics>/<orientation>/<distortion> layout
-            cam, pose = _vic3d_split_camera(el, image_size, path)
+            cam, pose = _vic3d_split_camera(el, image_size, where)
             cams.append(cam)
             poses.append(pose)
             continue
         vals = (el.text or "").split()
-        orient = el.find("orientation")
-        if len(vals) != 8 or orient is None:
-            raise ValueError(f"camera {el.get('id')}: expected 8 intrinsics (CX CY FX FY FS κ1 κ2 κ3) and an "
-                             f"<orientation>, got {len(vals)} values")
-        cx, cy, fx, fy, fs, k1, k2, k3 = (float(v) for v in vals)
-        o = [float(v) for v in (orient.text or "").split()]
+        orient = el.findall("orientation")
+        if len(vals) != 8 or len(orient) != 1:
+            raise ValueError(f"{where}: expected 8 intrinsics (CX CY FX FY FS κ1 κ2 κ3) and one <orientation>, "
+                             f"got {len(vals)} values and {len(orient)} <orientation>")
+        cx, cy, fx, fy, fs, k1, k2, k3 = (_number(v, f"{where}: intrinsic {j}") for j, v in enumerate(vals))
+        o = [_number(v, f"{where}: <orientation>") for v in (orient[0].text or "").split()]
         if len(o) != 6:
-            raise ValueError(f"camera {el.get('id')}: <orientation> must hold α β γ tx ty tz, got {len(o)} values")
-        cams.append(Camera([[fx, fs, cx], [0, fy, cy], [0, 0, 1]], [k1, k2, 0.0, 0.0, k3], image_size,
-                           f"camera {el.get('id')}"))
+            raise ValueError(f"{where}: <orientation> must hold α β γ tx ty tz, got {len(o)} values")
+        cams.append(_camera([[fx, fs, cx], [0, fy, cy], [0, 0, 1]], [k1, k2, 0.0, 0.0, k3], image_size, where, where))
         poses.append((rotation_from_euler(*o[:3]), np.array(o[3:])))
     return _rig_from_world_poses(cams[0], cams[1], *poses[0], *poses[1],
-                                 {"imported_from": os.fspath(path), "format": "VIC-3D"})
+                                 {"imported_from": path, "format": "VIC-3D"})
 
 
-def _vic3d_numbers(el, what: str, path) -> list[float]:
-    try:
-        return [float(v) for v in (el.text or "").split()]
-    except ValueError:
-        raise ValueError(f"{os.fspath(path)!r}: <{what}> must hold numbers, got {(el.text or '').strip()!r}") from None
+def _vic3d_numbers(el, what: str, where: str) -> list[float]:
+    return [_number(v, f"{where}: <{what}>") for v in (el.text or "").split()]
 
 
-def _vic3d_split_camera(el, image_size, path):
+def _vic3d_split_camera(el, image_size, where: str):
     """One camera of the ``<intrinsics>/<orientation>/<distortion>`` layout of VIC-3D project files.
 
     ``<intrinsics>``: CX CY FX FY FS (5 numbers, FS = ``K[0, 1]``); ``<orientation>``: α β γ (degrees,
     ``R = Rz(γ) Ry(β) Rx(α)``, world→camera) tx ty tz (mm), as in the other layout; ``<distortion>``
     (optional): κ1 [κ2 [κ3]] on r², r⁴, r⁶ of normalised coordinates (= OpenCV k1 k2 k3; the same
     assumption as the other layout). Further distortion terms are refused unless they are zero: we
-    could not verify what VIC-3D means by them. Returns ``(Camera, (R, t))``.
+    could not verify what VIC-3D means by them. Returns ``(Camera, (R, t))``; errors name ``where``.
     """
-    cid = el.get("id")
-    intr = _vic3d_numbers(el.find("intrinsics"), "intrinsics", path)
+    intr = _vic3d_numbers(el.find("intrinsics"), "intrinsics", where)
     if len(intr) != 5:
-        raise ValueError(f"{os.fspath(path)!r}: camera {cid}: <intrinsics> must hold CX CY FX FY FS (5 numbers), "
-                         f"got {len(intr)}")
-    orient = el.find("orientation")
-    if orient is None:
-        raise ValueError(f"{os.fspath(path)!r}: camera {cid} has <intrinsics> but no <orientation>")
-    o = _vic3d_numbers(orient, "orientation", path)
+        raise ValueError(f"{where}: <intrinsics> must hold CX CY FX FY FS (5 numbers), got {len(intr)}")
+    orient = el.findall("orientation")
+    if len(orient) != 1:
+        raise ValueError(f"{where} has <intrinsics> but " + ("no <orientation>" if not orient else
+                                                             f"{len(orient)} <orientation> elements (needs one)"))
+    o = _vic3d_numbers(orient[0], "orientation", where)
     if len(o) != 6:
-        raise ValueError(f"{os.fspath(path)!r}: camera {cid}: <orientation> must hold α β γ tx ty tz, got {len(o)} values")
+        raise ValueError(f"{where}: <orientation> must hold α β γ tx ty tz, got {len(o)} values")
     dist_el = el.find("distortion")
-    kappa = _vic3d_numbers(dist_el, "distortion", path) if dist_el is not None else []
+    kappa = _vic3d_numbers(dist_el, "distortion", where) if dist_el is not None else []
     if any(k != 0.0 for k in kappa[3:]):
-        raise ValueError(f"{os.fspath(path)!r}: camera {cid}: <distortion> holds {len(kappa)} terms; Specula reads "
-                         "κ1 κ2 κ3 (radial) only and the further terms are not zero")
+        raise ValueError(f"{where}: <distortion> holds {len(kappa)} terms; Specula reads κ1 κ2 κ3 (radial) only "
+                         "and the further terms are not zero")
     k1, k2, k3 = (kappa + [0.0, 0.0, 0.0])[:3]
     cx, cy, fx, fy, fs = intr
-    cam = Camera([[fx, fs, cx], [0, fy, cy], [0, 0, 1]], [k1, k2, 0.0, 0.0, k3], image_size, f"camera {cid}")
+    cam = _camera([[fx, fs, cx], [0, fy, cy], [0, 0, 1]], [k1, k2, 0.0, 0.0, k3], image_size, where, where)
     return cam, (rotation_from_euler(*o[:3]), np.array(o[3:]))
 
 
@@ -475,7 +709,10 @@ def _detect(path):
     if text.startswith("%YAML"):
         return "opencv", None
     if text.startswith("<"):
-        root = _parse_xml(path, "calibration")
+        try:
+            root = _parse_xml(path)
+        except ValueError as exc:
+            raise ValueError(f"calibration file {path!r}: {exc}") from None
         if root.tag == "opencv_storage":
             return "opencv", None
         if root.tag == "ParameterList":
@@ -518,7 +755,7 @@ def _load_any(path, image_size):
     if fmt == "specula-rig":
         return StereoRig.from_dict(data), fmt
     if fmt == "opencv":
-        obj = load_opencv(path)
+        obj = _opencv_sized(path, image_size)
     elif fmt == "dice":
         obj = load_dice_xml(path)
     else:
@@ -530,6 +767,16 @@ def _load_any(path, image_size):
         obj = StereoRig(left, right, obj.R_right_left, obj.t_right_left, covariance=obj.covariance,
                         metadata={**obj.metadata, "image_size": "not in the file; taken from the images"})
     return obj, fmt
+
+
+def _opencv_sized(path, image_size):
+    """An OpenCV camera or rig with the image size the file records, else ``image_size``."""
+    try:
+        return load_opencv(path)
+    except ValueError as exc:
+        if "pass image_size" not in str(exc) or image_size is None:
+            raise
+    return load_opencv(path, image_size=image_size)
 
 
 def _vic3d_sized(path, image_size):

@@ -57,6 +57,62 @@ def _model_flags():
 DISTORTION_MODELS = ("none", "radial1", "radial2", "radial3", "radial2+tangential", "opencv5", "rational")
 
 
+#: Fewest degrees between the target normals of two views for the views to determine the intrinsics
+#: (views whose target planes are all parallel - e.g. all fronto-parallel - leave the focal length free).
+MIN_VIEW_ANGLE_DEG = 10.0
+#: Largest relative standard deviation of fx and fy accepted from a calibration (the test suite's valid
+#: calibrations reach 0.3 %).
+MAX_RELATIVE_FOCAL_STD = 0.05
+#: Range of the focal lengths accepted, as a multiple of the larger image side (a 120 deg lens ~ 0.29,
+#: an 850 mm lens on 3.45 um pixels of a 2448 px sensor ~ 100).
+FOCAL_RANGE = (0.1, 100.0)
+
+_VIEWS_TO_ADD = ("add at least 3 views tilted by 10-45 deg in different directions (left/right and up/down) "
+                 "to the views you have")
+
+
+def _distinct_orientations(poses, min_angle_deg: float) -> tuple[int, float]:
+    """Number of distinct target orientations (greedy clusters of target normals ``min_angle_deg`` wide)
+    and the largest angle (deg) between the target normals of two views."""
+    normals = np.array([np.asarray(R)[:, 2] for R, _ in poses])
+    cos = np.clip(np.abs(normals @ normals.T), 0.0, 1.0)  # a plane's normal has no sign
+    angles = np.degrees(np.arccos(cos))
+    centres: list[int] = []
+    for v in range(len(poses)):
+        if all(angles[v, c] >= min_angle_deg for c in centres):
+            centres.append(v)
+    return len(centres), float(angles.max(initial=0.0))
+
+
+def _check_determined(poses, K, std: dict, size) -> None:
+    """Refuse a calibration whose views cannot determine the intrinsics (``ValueError`` saying which
+    views to add): target planes all (nearly) parallel, a NaN/infinite or large standard deviation, a
+    focal length outside :data:`FOCAL_RANGE` times the image size."""
+    n_orient, widest = _distinct_orientations(poses, MIN_VIEW_ANGLE_DEG)
+    if n_orient < 2:
+        raise ValueError(
+            f"the views cannot determine the intrinsics: the target planes of all {len(poses)} views are (nearly) "
+            f"parallel (largest angle between two views' target normals {widest:.1f} deg, needs >= "
+            f"{MIN_VIEW_ANGLE_DEG:g} deg; fronto-parallel or merely shifted views leave the focal length free); "
+            + _VIEWS_TO_ADD)
+    bad = [nm for nm, v in std.items() if not np.isfinite(v)]
+    if bad:
+        raise ValueError(
+            f"the views cannot determine the intrinsics: the standard deviation of {', '.join(bad)} is undefined "
+            f"(the bundle is singular); {_VIEWS_TO_ADD}, or choose a distortion model with fewer terms")
+    side = max(size)
+    for nm, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not FOCAL_RANGE[0] * side <= f <= FOCAL_RANGE[1] * side:
+            raise ValueError(
+                f"the views cannot determine the intrinsics: {nm} = {f:.6g} px is outside {FOCAL_RANGE[0]:g}-"
+                f"{FOCAL_RANGE[1]:g} times the image side ({side} px); {_VIEWS_TO_ADD}")
+        rel = std.get(nm, 0.0) / f
+        if rel > MAX_RELATIVE_FOCAL_STD:
+            raise ValueError(
+                f"the views cannot determine the intrinsics: {nm} = {f:.6g} ± {std[nm]:.3g} px (relative standard "
+                f"deviation {rel:.1%} > {MAX_RELATIVE_FOCAL_STD:.0%}); {_VIEWS_TO_ADD}")
+
+
 @dataclass
 class DroppedView:
     """A view removed by outlier rejection: its index in the input, its RMS (px) and why."""
@@ -224,8 +280,12 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
     Raises
     ------
     ValueError
-        Mismatched/invalid inputs, unknown model, too few views (before or after rejection), or a
-        non-planar target.
+        Mismatched/invalid inputs, unknown model, too few views (before or after rejection), a
+        non-planar target, or views that cannot determine the intrinsics: fewer than two target
+        orientations :data:`MIN_VIEW_ANGLE_DEG` apart (all planes parallel, e.g. all fronto-parallel),
+        an undefined (NaN) standard deviation, ``fx``/``fy`` with a relative standard deviation above
+        :data:`MAX_RELATIVE_FOCAL_STD`, or outside :data:`FOCAL_RANGE` times the larger image side.
+        The message says which views to add.
     """
     import cv2
 
@@ -308,6 +368,7 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
     for i, nm in enumerate(STD_NAMES):
         if nm in estimated and i < std_raw.size:
             std[nm] = float(std_raw[i])
+    _check_determined(sol["poses"], K, std, (w, h))
     return IntrinsicsResult(
         camera=camera,
         rms=sol["rms"],

@@ -7,6 +7,8 @@ Units in the file: mm, rad, px; conventions: docs/conventions.md (``x_cam = R_ca
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from .camera import Camera, _check_schema, _read_json, _write_json
@@ -106,5 +108,11 @@ def mirror_pose_fields(data: dict) -> dict:
 
 
 def read_mirror_pose_fields(path) -> dict:
-    """:func:`mirror_pose_fields` of the pose file at ``path``."""
-    return mirror_pose_fields(_read_json(path, "mirror calibration"))
+    """:func:`mirror_pose_fields` of the pose file at ``path``; a malformed file raises ``ValueError``
+    naming it."""
+    data = _read_json(path, "mirror calibration")
+    try:
+        return mirror_pose_fields(data)
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError) as exc:
+        msg = str(exc) if isinstance(exc, ValueError) else f"malformed content ({type(exc).__name__}: {exc})"
+        raise ValueError(f"mirror calibration file {os.fspath(path)!r}: {msg}") from None

@@ -15,6 +15,7 @@
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,8 +60,13 @@ class StereoRig:
     def __post_init__(self):
         if not isinstance(self.left, Camera) or not isinstance(self.right, Camera):
             raise ValueError("StereoRig.left and .right must be calibration.camera.Camera instances")
-        R = np.asarray(self.R_right_left, dtype=np.float64)
-        t = np.asarray(self.t_right_left, dtype=np.float64).reshape(-1)
+        try:
+            R = np.asarray(self.R_right_left, dtype=np.float64)
+            t = np.asarray(self.t_right_left, dtype=np.float64).reshape(-1)
+            c = None if self.covariance is None else np.asarray(self.covariance, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("R_right_left, t_right_left and covariance must be arrays of numbers "
+                             "(3x3, 3 and 6x6)") from None
         if R.shape != (3, 3) or not np.all(np.isfinite(R)):
             raise ValueError(f"R_right_left must be a finite 3x3 matrix, got shape {R.shape}")
         if np.max(np.abs(R @ R.T - np.eye(3))) > 1e-6 or np.linalg.det(R) < 0:
@@ -70,8 +76,7 @@ class StereoRig:
         if np.linalg.norm(t) == 0:
             raise ValueError("t_right_left is zero: the two cameras cannot share one centre")
         self.R_right_left, self.t_right_left = nearest_rotation(R), t
-        if self.covariance is not None:
-            c = np.asarray(self.covariance, dtype=np.float64)
+        if c is not None:
             if c.shape != (6, 6) or not np.all(np.isfinite(c)):
                 raise ValueError(f"covariance must be a finite 6x6 matrix, got shape {c.shape}")
             self.covariance = c
@@ -190,8 +195,17 @@ class StereoRig:
         missing = [k for k in ("left", "right", "R_right_left", "t_right_left") if k not in data]
         if missing:
             raise ValueError(f"stereo rig description lacks the keys {missing}")
-        return cls(Camera.from_dict(data["left"]), Camera.from_dict(data["right"]), data["R_right_left"],
-                   data["t_right_left"], covariance=data.get("covariance"), metadata=data.get("metadata", {}))
+        metadata = data.get("metadata", {})
+        if not isinstance(metadata, dict):
+            raise ValueError(f"stereo rig description: 'metadata' must be a dict, got {type(metadata).__name__}")
+        cams = []
+        for side in ("left", "right"):
+            try:
+                cams.append(Camera.from_dict(data[side]))
+            except ValueError as exc:
+                raise ValueError(f"{side} camera: {exc}") from None
+        return cls(cams[0], cams[1], data["R_right_left"], data["t_right_left"], covariance=data.get("covariance"),
+                   metadata=metadata)
 
     def save(self, path) -> None:
         """Write the rig as JSON (schema ``specula.stereo_rig`` version 1)."""
@@ -199,8 +213,13 @@ class StereoRig:
 
     @classmethod
     def load(cls, path) -> "StereoRig":
-        """Read a rig JSON file; another schema version raises ``ValueError``."""
-        return cls.from_dict(_read_json(path, "stereo rig"))
+        """Read a rig JSON file; another schema version or a malformed file raises ``ValueError``
+        naming the file and the field."""
+        data = _read_json(path, "stereo rig")
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"stereo rig file {os.fspath(path)!r}: {exc}") from None
 
 
 # -- rig from mirrors ------------------------------------------------------------------------------

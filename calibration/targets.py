@@ -835,13 +835,25 @@ def load_target(path):
     try:
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"cannot read target file {path}: {exc}") from exc
+    except (OSError, ValueError) as exc:  # json.JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise ValueError(f"cannot read target file {path}: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"cannot read target file {path}: JSON nested too deeply") from None
     kinds = {"phase": PhaseTarget, "checkerboard": CheckerboardTarget, "circles": CircleGridTarget}
     kind = data.get("type") if isinstance(data, dict) else None
-    if kind not in kinds:
+    if not isinstance(kind, str) or kind not in kinds:
         raise ValueError(f"target file {path} has unknown type {kind!r}; expected one of {sorted(kinds)}")
-    return kinds[kind].from_dict(data)
+    try:
+        target = kinds[kind].from_dict(data)
+        with np.errstate(over="ignore", invalid="ignore"):
+            finite = bool(np.all(np.isfinite(target.object_points)))
+        if not finite:
+            raise ValueError("its sizes overflow (the target's points in mm are not finite)")
+        return target
+    except KeyError as exc:
+        raise ValueError(f"target file {path} lacks the key {exc}") from None
+    except (ValueError, TypeError, IndexError, OverflowError) as exc:
+        raise ValueError(f"target file {path}: {exc}") from None
 
 
 # ------------------------------------------------------------------------------------------------

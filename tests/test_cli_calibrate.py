@@ -392,6 +392,12 @@ def test_bad_input_messages(data, cameras, tmp_path):
         iio.imwrite(bad / f"i{k}.png", np.zeros((360, 480), np.uint8))
     res = _run("intrinsics", "--target", target, bad, *views["left"]["direct"][:2], "-o", tmp_path / "c.json")
     assert res.exit_code == 1 and f"holds {STEPS + 1} images but the target needs {STEPS}" in res.output
+    # three identical fronto-parallel views (issue 15): they leave the focal length free; refused, nothing written
+    d0 = views["left"]["direct"][0]
+    res = _run("intrinsics", "--target", target, d0, d0, d0, "-o", tmp_path / "flat.json")
+    assert res.exit_code == 1 and "cannot determine the intrinsics" in res.output, res.output
+    assert "at least 3 views tilted by 10-45 deg" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "flat.json").exists()
     # stereo: pose files that are not files
     res = _run("stereo", "--left", views["left"]["direct"][0], "--right", views["left"]["direct"][1],
                "-o", tmp_path / "r.json")

@@ -239,7 +239,7 @@ def test_vic3d_intrinsics_orientation_distortion_layout(tmp_path):
     for old, new, msg in [("<distortion>-0.09</distortion>", "<distortion>-0.09 0 0 0.01</distortion>", "not zero"),
                           ("630.0 390.0 2380.0 2380.0 0.0", "630.0 390.0 2380.0", "CX CY FX FY FS"),
                           ("<orientation>-180.0 -9.0 0.0 65.0 -0.5 15.0</orientation>", "", "no <orientation>"),
-                          ("630.0 390.0", "630.0 abc", "must hold numbers")]:
+                          ("630.0 390.0", "630.0 abc", "<intrinsics> must be a number")]:
         path.write_text(VIC_SPLIT.replace(old, new))
         with pytest.raises(ValueError, match=msg):
             load_vic3d_xml(path)
