@@ -46,7 +46,7 @@ def _fail(exc: Exception) -> click.ClickException:
                    "(default: estimated from the correlation residuals of each frame).")
 @region_options
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
-@click.option("--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--figures", "--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write a displacement/strain figure per frame (PNG) into this folder.")
 @click.option("--figure-limits", default="frame", show_default=True, type=click.Choice(["frame", "sequence"]),
               help="Colour range of the --figure maps: per frame, or one range per quantity over every frame of "
