@@ -516,22 +516,23 @@ class _ChainFrames(FrameSource):
         return None if any(n is None for n in lengths) else sum(lengths)
 
     def _load(self, index, name, loader):
-        return loader()  # validated by the source it comes from
+        return loader()  # validated by the source it comes from (with its as_grey), numbered here
 
     def _raw(self):
         offset = 0
         for src in self.sources:
             n = 0
-            it = iter(src)
+            raw = src._raw()
             while True:
                 try:
-                    frame = next(it)
+                    index, name, loader = next(raw)
                 except StopIteration:
                     break
-                except FrameError as exc:  # renumber the frame in the joined sequence
+                except FrameError as exc:  # opening or decoding failed: renumber the frame in the joined sequence
                     raise FrameError(str(exc).replace(f"frame {exc.index}", f"frame {offset + exc.index}", 1),
                                      offset + exc.index, exc.name) from None
-                yield offset + frame.index, frame.name, (lambda image=frame.image: image)
+                k = offset + index
+                yield k, name, (lambda src=src, k=k, name=name, loader=loader: src._load(k, name, loader))
                 n += 1
             offset += n
 
