@@ -176,6 +176,8 @@ class FrameSource:
         if n is not None and not -n <= k < n:
             raise IndexError(f"frame {k} is out of range: {self.description} holds {n} frame(s)")
         if k < 0:
+            if n is None:
+                raise ValueError(f"{self.description} has no known length: count frames from 0")
             k += n
         name, loader = self._item(k)
         image = self._load(k, name, loader)
@@ -457,7 +459,7 @@ def _first_line(exc: BaseException) -> str:
 class _IterFrames(FrameSource):
     """Any iterable of images (arrays or files); a generator can be iterated once."""
 
-    def __init__(self, iterable, *, label: str = "item", as_grey: bool = False):
+    def __init__(self, iterable, *, label: str = "array", as_grey: bool = False):
         super().__init__(as_grey=as_grey)
         self.iterable = iterable
         self.label = label

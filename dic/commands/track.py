@@ -138,9 +138,10 @@ def track(reference, current, output, subset, step, order, search, search_method
         # resuming: every finished frame must have been computed from the image given for it now
         done = [index for index in range(1, n_frames) if writer.is_done(index)]
         if done:
+            done_set = set(done)
             try:
                 for frame in source:
-                    if frame.index in done:
+                    if frame.index in done_set:
                         writer.check_frame(frame.index, frame.name, image_digest(frame.image))
                     if frame.index >= done[-1]:
                         break
