@@ -488,8 +488,22 @@ class _IterFrames(FrameSource):
             yield from self.iterable
 
     def _raw(self):
-        for k, item in enumerate(self._items()):
+        items = self._items()
+        k = 0
+        while True:
+            try:
+                item = next(items)
+            except StopIteration:
+                return
+            except ValueError as exc:
+                if self._started and k == 0 and "already been read" in str(exc):
+                    raise
+                raise _frame_error(k, f"{self.label}[{k}]", f"the iterable failed: {exc}") from None
+            except Exception as exc:  # the user's generator failed while making frame k
+                raise _frame_error(k, f"{self.label}[{k}]", f"the iterable failed: {type(exc).__name__}: {exc}") \
+                    from None
             yield (k,) + _item_loader(item, k, self.label, self.as_grey)
+            k += 1
 
     def _probe_shape(self):
         if self._one_shot:
@@ -543,7 +557,10 @@ class _ChainFrames(FrameSource):
         for src in self.sources:
             n = len(src)
             if k < offset + n:
-                f = src[k - offset]
+                try:
+                    f = src[k - offset]
+                except FrameError as exc:
+                    raise FrameError(str(exc).replace(f"frame {exc.index}", f"frame {k}", 1), k, exc.name) from None
                 return f.name, (lambda image=f.image: image)
             offset += n
         raise IndexError(k)

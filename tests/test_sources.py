@@ -465,3 +465,24 @@ def test_cli_stereo_two_sequences(tmp_path, monkeypatch):
     assert r.exit_code == 2 and "--left and --right go together" in r.output
     r = CliRunner().invoke(main, [*base, "a.png", "b.png", "--left", str(tmp_path / "left")])
     assert r.exit_code == 2 and "not both" in r.output
+
+
+def test_a_failing_generator_and_a_bad_frame_of_joined_inputs_are_named(folder, tmp_path):
+    def gen():
+        yield np.zeros((H, W))
+        raise OSError("camera disconnected")
+
+    got = []
+    with pytest.raises(FrameError, match=r"frame 1 \(array\[1\]\): the iterable failed: OSError: camera disconnected"):
+        for f in open_frames(gen()):
+            got.append(f.index)
+    assert got == [0]
+    d, ims = folder
+    first = write_image(tmp_path / "ref.png", ims[0])
+    (d / "img_2.png").write_bytes(b"broken")
+    src = open_inputs([first, d])
+    with pytest.raises(FrameError, match=r"frame 3: cannot read image .*img_2.png") as err:
+        src[3]
+    assert err.value.index == 3
+    with pytest.raises(FrameError, match=r"frame 3: cannot read image .*img_2.png"):
+        list(src)
