@@ -53,12 +53,11 @@ from __future__ import annotations
 
 import glob
 import os
-import re
 
 import numpy as np
 
 # the one image reader (same rules as DIC); IMAGE_SUFFIXES: the files a view folder or glob may hold
-from kernels.images import IMAGE_SUFFIXES, read_image
+from kernels.images import IMAGE_SUFFIXES, natural_key, read_image
 
 from .camera import Camera
 from .intrinsics import DISTORTION_MODELS, calibrate_intrinsics
@@ -123,11 +122,6 @@ __all__ = [
 # ------------------------------------------------------------------------------------------------
 # reading views
 # ------------------------------------------------------------------------------------------------
-def _natural_key(path: str):
-    parts = re.split(r"(\d+)", os.path.basename(path))
-    return [int(p) if p.isdigit() else p.lower() for p in parts], path
-
-
 def list_view_files(source) -> list[str]:
     """The image files of one view, in natural order (``img_2`` before ``img_10``).
 
@@ -145,7 +139,7 @@ def list_view_files(source) -> list[str]:
         files = [os.path.join(src, f) for f in os.listdir(src) if f.lower().endswith(IMAGE_SUFFIXES)]
         if not files:
             raise ValueError(f"view folder {src!r} holds no image files ({', '.join(IMAGE_SUFFIXES)})")
-        return sorted(files, key=_natural_key)
+        return sorted(files, key=natural_key)
     if os.path.isfile(src):
         raise ValueError(
             f"{src!r} is a single file; a view is a folder or a glob pattern of its N phase-shifted images "
@@ -154,7 +148,7 @@ def list_view_files(source) -> list[str]:
         files = [f for f in glob.glob(src) if os.path.isfile(f)]
         if not files:
             raise ValueError(f"the pattern {src!r} matches no files")
-        return sorted(files, key=_natural_key)
+        return sorted(files, key=natural_key)
     raise ValueError(f"view {src!r} is neither a folder, nor an existing glob pattern, nor a file list")
 
 

@@ -15,17 +15,29 @@ needs only NumPy (tifffile and imageio are imported on first use) and runs no ke
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["IMAGE_SUFFIXES", "as_float32_image", "read_image", "write_image"]
+__all__ = ["IMAGE_SUFFIXES", "as_float32_image", "grey_image", "natural_key", "read_image", "write_image"]
 
 #: file name suffixes read_image and write_image accept (case-insensitive)
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp")
 
 # ITU-R BT.601 luma weights, used only when a colour image is converted on request
 _LUMA = np.array([0.299, 0.587, 0.114])
+
+
+def natural_key(path) -> tuple:
+    """Sort key of file names in natural order (``img_2`` before ``img_10``; case-insensitive).
+
+    Compares the base names with their digit runs as numbers, then the whole path (so that equal
+    base names in different folders keep a fixed order). Used for every folder or glob of images.
+    """
+    text = os.fspath(path)
+    parts = re.split(r"(\d+)", os.path.basename(text))
+    return [int(p) if p.isdigit() else p.lower() for p in parts], text
 
 
 def _unsupported_suffix(p: Path) -> str:
@@ -106,22 +118,34 @@ def read_image(path, *, as_grey: bool = False) -> np.ndarray:
         raise ValueError(f"cannot read image {p} (truncated or corrupt file?): {exc}") from exc
     except Exception as exc:  # tifffile.TiffFileError, OSError from Pillow, ...
         raise ValueError(f"cannot read image {p} (truncated or corrupt file?): {exc}") from exc
+    return grey_image(arr, p, as_grey=as_grey,
+                      hint="(read_image(path, as_grey=True) uses BT.601 luma) or save it as grey")
+
+
+def grey_image(arr, name, *, as_grey: bool = False, hint: str = "(as_grey=True uses BT.601 luma)") -> np.ndarray:
+    """The grey levels of a decoded image array, by the rules of :func:`read_image`.
+
+    ``arr``: (H, W), (H, W, 1) or (H, W, 3|4) as a decoder returns it (a file, a TIFF page, a video
+    frame). Grey stored as RGB(A) (identical R, G, B) is grey in its own dtype; true colour is
+    converted to float32 BT.601 luma with ``as_grey=True`` and refused otherwise (``ValueError``
+    naming ``name``, followed by ``hint``). Boolean images become uint8 0/1.
+    """
+    arr = np.asarray(arr)
     if arr.ndim == 3:
         grey = arr[:, :, 0] if arr.shape[2] == 1 else _grey_channels(arr)
         if grey is not None:
             arr = grey
         elif as_grey:
-            arr = _to_grey(arr, p)
+            arr = _to_grey(arr, name)
         else:
             raise ValueError(
-                f"{p} is a colour image of shape {arr.shape}; DIC needs grey levels. Convert it "
-                "(read_image(path, as_grey=True) uses BT.601 luma) or save it as grey")
+                f"{name} is a colour image of shape {arr.shape}; DIC needs grey levels. Convert it {hint}")
     if arr.ndim != 2 or arr.size == 0:
-        raise ValueError(f"{p}: expected a 2-D grey image, got shape {arr.shape}")
+        raise ValueError(f"{name}: expected a 2-D grey image, got shape {arr.shape}")
     if arr.dtype == bool:
         arr = arr.astype(np.uint8)
     if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
-        raise ValueError(f"{p}: unsupported pixel type {arr.dtype}")
+        raise ValueError(f"{name}: unsupported pixel type {arr.dtype}")
     return arr
 
 

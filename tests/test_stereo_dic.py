@@ -647,3 +647,36 @@ def test_cli_figures_with_one_colour_range_over_the_sequence(lab, tmp_path, monk
     assert len(limits) == 2 and limits[0] == limits[1] and "U" in limits[0]
     lo, hi = limits[0]["U"]
     assert lo == -hi and hi > 0  # signed: centred on zero
+
+
+def test_cli_sequences_as_a_folder_and_a_multi_page_tiff(lab, tmp_path):
+    """``specula stereo`` with the left images in a folder and the right ones in a multi-page TIFF gives the
+    same states as the same images given as LEFT RIGHT files (frames read on demand, dic.sources)."""
+    import tifffile
+    from click.testing import CliRunner
+
+    from dic.cli import main
+    from dic.io import write_image
+    from dic.store import read_stereo
+
+    rig = lab["rig"]
+    rig.save(tmp_path / "rig.json")
+    (tmp_path / "left").mkdir()
+    paths, right = [], []
+    for k, (a, b) in enumerate(lab["states"]):
+        paths += [str(write_image(tmp_path / "left" / f"L{k}.png", a, bits=8)),
+                  str(write_image(tmp_path / f"R{k}.png", b, bits=8))]
+        right.append(np.clip(np.rint(b), 0, 255).astype(np.uint8))
+    tifffile.imwrite(tmp_path / "right.tif", np.stack(right), photometric="minisblack")
+    runner = CliRunner()
+    base = ["stereo", "--rig", str(tmp_path / "rig.json"), "--step", "20", "-q"]
+    res = runner.invoke(main, [*base, *paths, "-o", str(tmp_path / "files.h5")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(main, [*base, "--left", str(tmp_path / "left"), "--right", str(tmp_path / "right.tif"),
+                               "-o", str(tmp_path / "seq.h5")])
+    assert res.exit_code == 0, res.output
+    a, b = read_stereo(tmp_path / "files.h5"), read_stereo(tmp_path / "seq.h5")
+    assert a.indices == b.indices == [0, 1, 2]
+    for k in a.indices:
+        for q in ("X", "Y", "Z", "U", "V", "W"):
+            assert np.array_equal(getattr(a.fields[k], q), getattr(b.fields[k], q), equal_nan=True), (k, q)

@@ -12,30 +12,45 @@ import click
 from ._region import parse_region, region_options
 
 
-def _image_shape(path) -> tuple[int, int]:
-    """(H, W) of an image file from its header (the pixels are read later, one pair at a time)."""
-    from dic.io import read_image
+def _single_image(path) -> bool:
+    """Whether a command-line input names one image file (not a folder, pattern, video or multi-page TIFF)."""
+    from dic.sources import is_single_image
 
-    try:
-        if path.suffix.lower() in (".tif", ".tiff"):
-            import tifffile
+    return is_single_image(path)
 
-            with tifffile.TiffFile(path) as tif:
-                shape = tif.series[0].shape
-                return int(shape[0]), int(shape[1])
-        from PIL import Image
 
-        with Image.open(path) as im:
-            return int(im.size[1]), int(im.size[0])
-    except Exception:
-        return read_image(path).shape  # raises a clear ValueError for missing/corrupt files
+class _LazyImage:
+    """One frame of a source, read when the engine asks for its pixels (``np.asarray``)."""
+
+    def __init__(self, source, index: int):
+        self.source, self.index = source, index
+
+    def __array__(self, dtype=None, copy=None):
+        import numpy as np
+
+        image = self.source[self.index].image
+        return image if dtype is None else np.asarray(image, dtype=dtype)
+
+
+def _engine_pairs(pairs) -> list:
+    """The (left, right) items of every state for stereo_sequence: the image files when the frames are files
+    (as before), else frames read on demand."""
+    sides = []
+    for src in (pairs.left, pairs.right):
+        files = src.files
+        sides.append(files if files is not None else [_LazyImage(src, k) for k in range(len(src))])
+    return list(zip(*sides))
 
 
 @click.command(name="stereo", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Stereo rig file: Specula JSON (from 'specula calibrate'), OpenCV YAML/XML, VIC-3D XML or DICe XML "
                    "(the format is read from the content).")
-@click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("images", nargs=-1)
+@click.option("--left", "left_inputs", multiple=True,
+              help="Left images instead of IMAGES: a folder, a quoted glob pattern, a multi-page TIFF, a video or an "
+                   "image file (repeat the option to join several); needs --right with as many frames.")
+@click.option("--right", "right_inputs", multiple=True, help="Right images, as --left.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="HDF5 result file (.h5); an existing compatible file is resumed.")
 @click.option("--step", default=10, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
@@ -61,9 +76,13 @@ def _image_shape(path) -> tuple[int, int]:
                    "(signed quantities are centred on zero either way).")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
-def stereo(rig_path, images, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
+def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
            strain_window, device, vtk_dir, figure_dir, figure_limits, overwrite, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
+
+    The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
+    RIGHT_SEQUENCE, or with --left and --right: each a folder (natural order), a quoted glob
+    pattern ('left/*.tif'), a multi-page TIFF or a video, with as many frames on each side.
 
     The first pair is the reference state (state 0: the shape); later pairs are states 1, 2, ...
     (shape, 3-D displacement and surface strain). Coordinates are in mm. A region of interest
@@ -72,10 +91,20 @@ def stereo(rig_path, images, output, step, subset, order, roi, roi_polygon, mask
     """
     import numpy as np
 
-    from dic.io import read_image
     from dic.sequence import read_stereo, stereo_sequence
+    from dic.sources import open_inputs, open_pairs
 
-    if len(images) < 2 or len(images) % 2:
+    if left_inputs or right_inputs:
+        if images:
+            raise click.UsageError("give the images either as IMAGES or with --left and --right, not both")
+        if not (left_inputs and right_inputs):
+            raise click.UsageError("--left and --right go together: give both")
+    elif not images:
+        raise click.UsageError("give the images: LEFT RIGHT [LEFT RIGHT ...], two sequences (folders, patterns, "
+                               "videos, multi-page TIFFs) or --left and --right")
+    elif len(images) == 2 and not all(_single_image(p) for p in images):
+        left_inputs, right_inputs = (images[0],), (images[1],)  # two sequences
+    elif len(images) < 2 or len(images) % 2:
         raise click.BadParameter(f"give the images as LEFT RIGHT pairs (an even number, at least 2); got {len(images)}",
                                  param_hint="IMAGES")
     if subset < 5 or subset % 2 == 0:
@@ -85,33 +114,30 @@ def stereo(rig_path, images, output, step, subset, order, roi, roi_polygon, mask
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
     region = parse_region(roi, roi_polygon, mask)
-    rig = None
-    pairs = [(images[i], images[i + 1]) for i in range(0, len(images), 2)]
-    # check every file's size before any work (headers only): a long run should not stop at its last pair
-    size = None
-    for k, (lp, rp) in enumerate(pairs):
-        for side, p in (("left", lp), ("right", rp)):
-            try:
-                shape = _image_shape(p) if size is not None else read_image(p).shape
-            except ValueError as exc:
-                raise click.ClickException(str(exc)) from None
-            if size is None:
-                size = shape
-                from dic.stereo import as_rig, check_rig_images
+    try:
+        if left_inputs:
+            sources = open_pairs(open_inputs(left_inputs), open_inputs(right_inputs))
+        else:
+            sources = open_pairs([(images[i], images[i + 1]) for i in range(0, len(images), 2)])
+        # every frame's size before any work (headers only): a long run should not stop at its last pair
+        sources.check_shapes()
+        first_left = sources.left[0]
+        size = first_left.image.shape
+        sources.right[0]  # a missing or unreadable right reference image: one clear error now
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+    from dic.stereo import as_rig, check_rig_images
 
-                try:  # any calibration format; the images' size stands in where the file records none
-                    rig = as_rig(rig_path, image_size=(size[1], size[0]))
-                except ValueError as exc:
-                    msg = str(exc)  # name the file once
-                    raise click.ClickException(msg if str(rig_path) in msg else f"rig file {rig_path}: {msg}") from None
-                try:
-                    check_rig_images(rig, size)
-                except ValueError as exc:
-                    raise click.ClickException(f"{rig_path} does not fit {p}: {exc}") from None
-            elif shape != size:
-                raise click.ClickException(
-                    f"{p} ({side} image of pair {k}) is {shape[1]}x{shape[0]} px but {pairs[0][0]} is "
-                    f"{size[1]}x{size[0]} px; every image must have the same size")
+    try:  # any calibration format; the images' size stands in where the file records none
+        rig = as_rig(rig_path, image_size=(size[1], size[0]))
+    except ValueError as exc:
+        msg = str(exc)  # name the file once
+        raise click.ClickException(msg if str(rig_path) in msg else f"rig file {rig_path}: {msg}") from None
+    try:
+        check_rig_images(rig, size)
+    except ValueError as exc:
+        raise click.ClickException(f"{rig_path} does not fit {first_left.name}: {exc}") from None
+    pairs = _engine_pairs(sources)
     options = dict(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
                    zncc_min=zncc_min, strain_window=strain_window)
     if region is not None:
@@ -141,7 +167,7 @@ def stereo(rig_path, images, output, step, subset, order, roi, roi_polygon, mask
         if figure_dir is not None:
             from dic.plots.fields import FIGURE_QUANTITIES, sequence_limits, write_figures
 
-            left_ref = read_image(pairs[0][0])
+            left_ref = first_left.image
             limits = None
             if figure_limits == "sequence":
                 moving = [q for q in FIGURE_QUANTITIES if q not in ("X", "Y", "Z", "status")]

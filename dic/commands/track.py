@@ -19,8 +19,8 @@ def _fail(exc: Exception) -> click.ClickException:
 
 
 @click.command(name="track", context_settings={"help_option_names": ["-h", "--help"]})
-@click.argument("reference", type=click.Path(dir_okay=False, path_type=Path))
-@click.argument("current", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("reference")
+@click.argument("current", nargs=-1)
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="HDF5 result file (.h5); an existing compatible file is resumed.")
 @click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
@@ -57,14 +57,17 @@ def track(reference, current, output, subset, step, order, search, search_method
           scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
-    Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
+    Each argument may also be a folder (its images in natural order), a quoted glob pattern
+    ('run/*.tif'), a multi-page TIFF or a video: the arguments, expanded in order, make one
+    sequence whose first frame is the reference (so 'specula track film.mp4' tracks every frame
+    of the video against its first). Frames are numbered 1, 2, ... in that order; each frame starts from the previous frame's
     result (or from --search). Per point the file holds u, v, the shape-function parameters, ZNCC,
     iterations, a status code and a validity flag, plus strain. A region of interest (--roi,
     --roi-polygon or --mask, in the reference image) keeps only the grid points inside it.
     """
     from tqdm import tqdm
 
-    from dic.io import read_image
+    from dic.sources import open_inputs
     from dic.store import ResultWriter, image_digest
 
     order = int(order)
@@ -76,7 +79,17 @@ def track(reference, current, output, subset, step, order, search, search_method
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
     region = parse_region(roi, roi_polygon, mask)
     try:
-        ref = read_image(reference)
+        source = open_inputs([reference, *current])
+        n_frames = len(source)
+    except ValueError as exc:
+        raise _fail(exc) from None
+    if n_frames < 2:
+        raise click.UsageError(f"{reference} is a single image: give CURRENT images after it (or a folder, quoted "
+                               "pattern, multi-page TIFF or video holding the reference and the frames)")
+    try:
+        source.check_shapes()  # file headers only: a mixed-size sequence is refused before any work
+        ref_frame = source[0]
+        ref = ref_frame.image
         if region is not None:
             from dic.correlation.points import region as check_region
 
@@ -112,7 +125,7 @@ def track(reference, current, output, subset, step, order, search, search_method
         except ValueError as exc:
             raise click.BadParameter(f"{exc} (0 skips strain)", param_hint="--strain-window") from None
     try:
-        writer = ResultWriter(output, reference_path=str(reference), reference_shape=ref.shape,
+        writer = ResultWriter(output, reference_path=ref_frame.name, reference_shape=ref.shape,
                               reference_sha256=image_digest(ref), settings=settings,
                               mode="overwrite" if overwrite else "resume")
     except ValueError as exc:
@@ -121,16 +134,32 @@ def track(reference, current, output, subset, step, order, search, search_method
     done_before = 0
     summary = []
     previous = None  # (params, valid) of the last frame: the next frame's initial guess
-    with writer, tqdm(total=len(current), unit="frame", disable=quiet, desc="track") as bar:
+    with writer, tqdm(total=n_frames - 1, unit="frame", disable=quiet, desc="track") as bar:
         # resuming: every finished frame must have been computed from the image given for it now
-        for k, cur_path in enumerate(current):
-            if writer.is_done(k + 1):
-                try:
-                    writer.check_frame(k + 1, str(cur_path), image_digest(read_image(cur_path)))
-                except ValueError as exc:
-                    raise _fail(exc) from None
-        for k, cur_path in enumerate(current):
-            index = k + 1
+        done = [index for index in range(1, n_frames) if writer.is_done(index)]
+        if done:
+            done_set = set(done)
+            try:
+                for frame in source:
+                    if frame.index in done_set:
+                        writer.check_frame(frame.index, frame.name, image_digest(frame.image))
+                    if frame.index >= done[-1]:
+                        break
+            except ValueError as exc:
+                raise _fail(exc) from None
+        frames = iter(source)
+        while True:
+            try:
+                frame = next(frames)
+            except StopIteration:
+                break
+            except ValueError as exc:  # an unreadable frame (dic.sources.FrameError names it)
+                saved = any(writer.is_done(i) for i in range(1, n_frames))
+                raise click.ClickException(f"{exc}" + (f"; frames before it are saved in {output}" if saved else "")) \
+                    from None
+            index, cur_path = frame.index, frame.name
+            if index == 0:
+                continue
             if writer.is_done(index):
                 done_before += 1
                 previous = None
@@ -140,11 +169,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                 previous = _stored_guess(writer, index - 1)
             t0 = time.perf_counter()
             try:
-                cur = read_image(cur_path)
-                if cur.shape != ref.shape:
-                    raise ValueError(
-                        f"{cur_path} is {cur.shape[1]}x{cur.shape[0]} px but the reference {reference} is "
-                        f"{ref.shape[1]}x{ref.shape[0]} px; all images must have the same size")
+                cur = frame.image
                 field = tracker.track(cur, guess=_guess(previous))
                 strain = None
                 if strain_window:
