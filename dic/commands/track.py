@@ -5,11 +5,9 @@ each frame finishes; rerunning the same command resumes after the last finished 
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import click
-import numpy as np
 
 from ._region import parse_region, region_options
 
@@ -51,23 +49,37 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--figure-limits", default="frame", show_default=True, type=click.Choice(["frame", "sequence"]),
               help="Colour range of the --figure maps: per frame, or one range per quantity over every frame of "
                    "the output (figures drawn once the run ends), so frames compare at a glance.")
+@click.option("--figure-every", default=1, show_default=True, type=click.IntRange(min=1),
+              help="With --figure (per-frame limits): draw every Nth frame only.")
+@click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Also write frame_<index>.vtu per frame into this folder as it finishes (ParaView; every point "
+                   "at its reference position, NaN where invalid).")
+@click.option("--reference", "reference_strategy", default="fixed", show_default=True, metavar="fixed|incremental|every:N|auto",
+              help="What each frame is correlated against: the reference image (fixed), the previous frame "
+                   "(incremental), a new reference every N frames (every:N), or a new one when the valid fraction or "
+                   "the median ZNCC drops below 0.95 (auto). Results are always relative to the reference image.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, overwrite, quiet):
+          scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
+          reference_strategy, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
-    result (or from --search). Per point the file holds u, v, the shape-function parameters, ZNCC,
+    result (or from --search). The next frames are read while one is correlated, and finished
+    frames are written (with --vtk and --figure files) while the next one is; --reference chooses
+    what each frame is correlated against (results are always relative to REFERENCE). Per point the file holds u, v, the shape-function parameters, ZNCC,
     iterations, a status code and a validity flag, plus strain. A region of interest (--roi,
     --roi-polygon or --mask, in the reference image) keeps only the grid points inside it.
     """
-    from tqdm import tqdm
-
     from dic.io import read_image
-    from dic.store import ResultWriter, image_digest
+    from dic.sequence import parse_reference
 
     order = int(order)
+    try:
+        parse_reference(reference_strategy)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--reference") from None
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window and (strain_window < 3 or strain_window % 2 == 0):
@@ -111,72 +123,32 @@ def track(reference, current, output, subset, step, order, search, search_method
             check_strain_window(strain_window, grid_layout(tracker.points)[1])
         except ValueError as exc:
             raise click.BadParameter(f"{exc} (0 skips strain)", param_hint="--strain-window") from None
+    from dic.sequence import track_sequence
+
+    def make_tracker(image, points):
+        if points is None:
+            return tracker
+        return _make_tracker(image, subset=subset, step=step, order=order, search=search, search_method=search_method,
+                             max_iter=max_iter, tol=tol, device=device, noise_sigma=noise_sigma, points=points)
+
     try:
-        writer = ResultWriter(output, reference_path=str(reference), reference_shape=ref.shape,
-                              reference_sha256=image_digest(ref), settings=settings,
-                              mode="overwrite" if overwrite else "resume")
+        result = track_sequence(
+            reference, list(current), output, reference=reference_strategy,
+            mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
+            vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
+            settings=settings, make_tracker=make_tracker)
     except ValueError as exc:
         raise _fail(exc) from None
-
-    done_before = 0
-    summary = []
-    previous = None  # (params, valid) of the last frame: the next frame's initial guess
-    with writer, tqdm(total=len(current), unit="frame", disable=quiet, desc="track") as bar:
-        # resuming: every finished frame must have been computed from the image given for it now
-        for k, cur_path in enumerate(current):
-            if writer.is_done(k + 1):
-                try:
-                    writer.check_frame(k + 1, str(cur_path), image_digest(read_image(cur_path)))
-                except ValueError as exc:
-                    raise _fail(exc) from None
-        for k, cur_path in enumerate(current):
-            index = k + 1
-            if writer.is_done(index):
-                done_before += 1
-                previous = None
-                bar.update(1)
-                continue
-            if previous is None and index > 1 and writer.is_done(index - 1):
-                previous = _stored_guess(writer, index - 1)
-            t0 = time.perf_counter()
-            try:
-                cur = read_image(cur_path)
-                if cur.shape != ref.shape:
-                    raise ValueError(
-                        f"{cur_path} is {cur.shape[1]}x{cur.shape[0]} px but the reference {reference} is "
-                        f"{ref.shape[1]}x{ref.shape[0]} px; all images must have the same size")
-                field = tracker.track(cur, guess=_guess(previous))
-                strain = None
-                if strain_window:
-                    from dic.strain import strain as compute_strain
-
-                    strain = compute_strain(field, window=strain_window)
-            except ValueError as exc:
-                raise click.ClickException(
-                    f"frame {index} ({cur_path}): {exc}" + (f"; frames before it are saved in {output}" if index > 1 else "")
-                ) from None
-            seconds = time.perf_counter() - t0
-            try:
-                writer.write_frame(index, field, strain=strain, path=str(cur_path), sha256=image_digest(cur),
-                                   attrs={"seconds": seconds})
-            except ValueError as exc:  # dic.store.ResultWriteError (a full disk): says what the file keeps
-                raise _fail(exc) from None
-            if figure_dir is not None and figure_limits == "frame":
-                from dic.plots.fields import write_field_figure
-
-                write_field_figure(figure_dir / f"frame_{index:06d}.png", ref, field, strain,
-                                   title=f"frame {index}: {Path(cur_path).name}")
-            valid = np.asarray(field.valid, bool)
-            previous = (np.asarray(field.params, np.float64), valid)
-            summary.append((index, int(valid.sum()), valid.size, seconds))
-            bar.update(1)
     if figure_dir is not None and figure_limits == "sequence":
         _sequence_figures(output, ref, figure_dir)
     if not quiet:
-        for index, n_valid, n, seconds in summary:
-            click.echo(f"frame {index}: {n_valid}/{n} valid points, {seconds:.2f} s")
-        if done_before:
-            click.echo(f"{done_before} frame(s) were already in {output} and were skipped")
+        for f in result.frames:
+            ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
+            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points, {f['seconds']:.2f} s{ref_note}")
+        if result.skipped:
+            click.echo(f"{result.skipped} frame(s) were already in {output} and were skipped")
+        if result.frames:
+            click.echo(f"{len(result.frames)} frame(s) in {result.seconds:.1f} s ({result.frames_per_second:.2f} frames/s)")
         click.echo(f"results: {output}")
 
 
@@ -197,13 +169,15 @@ def _sequence_figures(output, ref, figure_dir) -> None:
 
 
 def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, noise_sigma=None,
-                  roi=None):
+                  roi=None, points=None):
     """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
     from dic.track import Tracker
 
     kwargs = {"step": step, "subset": subset, "order": order, "device": device, "noise_sigma": noise_sigma}
     if roi is not None:
         kwargs["roi"] = roi
+    if points is not None:  # a moved reference (dic.sequence.reference): the original POIs where they are now
+        kwargs["points"] = points
     if search is not None:
         kwargs["search"] = search_method
         kwargs["search_radius"] = int(search)
@@ -213,26 +187,3 @@ def _make_tracker(reference, *, subset, step, order, search, search_method, max_
         kwargs["tol"] = tol
     return Tracker(reference, **kwargs)
 
-
-def _guess(previous):
-    """Initial parameters from the previous frame: its valid points as they are, the others at
-    the mean displacement of the valid ones (None for the first frame or when none is valid)."""
-    if previous is None:
-        return None
-    params, valid = previous
-    if not np.any(valid) or params.ndim != 2:
-        return None
-    guess = params.copy()
-    k = params.shape[1]
-    guess[~valid] = 0.0
-    guess[~valid, 0] = params[valid, 0].mean()
-    guess[~valid, k // 2] = params[valid, k // 2].mean()
-    return guess
-
-
-def _stored_guess(writer, index):
-    """(params, valid) of a finished frame in the result file (resuming a sequence), or None."""
-    stored = writer.frame_arrays(index, ("params", "valid"))
-    if stored is None:
-        return None
-    return np.asarray(stored[0], np.float64), np.asarray(stored[1], bool)

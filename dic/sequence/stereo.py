@@ -19,11 +19,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .correlation.points import Region, region
-from .field3d import Field3D
-from .stereo import StereoCorrelation, as_rig
-from .store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
-from .store import STEREO_FORMAT_NAME as FORMAT_NAME
+from ..correlation.points import Region, region
+from ..field3d import Field3D
+from ..stereo import StereoCorrelation, as_rig
+from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
+from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
 
 __all__ = ["stereo_sequence", "read_stereo", "read_field", "StereoResults", "FORMAT_NAME", "SCHEMA_VERSION"]
 
@@ -31,7 +31,7 @@ __all__ = ["stereo_sequence", "read_stereo", "read_field", "StereoResults", "FOR
 def _load(item, what: str) -> tuple[np.ndarray, str]:
     """An image given as an array or a file path -> (array, path or '')."""
     if isinstance(item, (str, os.PathLike)):
-        from .io import read_image
+        from ..io import read_image
 
         return read_image(item), os.fspath(item)
     if item is None:
