@@ -225,3 +225,55 @@ def test_cli_reference_and_vtk(sequence, tmp_path):
     assert r.exit_code == 1 and "different settings" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(main, ["track", *paths, "-o", str(out), "--reference", "every:x"])
     assert r.exit_code == 2 and "--reference" in r.output and "whole number" in r.output
+
+
+@pytest.mark.parametrize("strategy, search", [("fixed", None), ("every:3", "zncc")])
+def test_chunks_under_a_memory_budget_give_identical_results(sequence, tmp_path, strategy, search, monkeypatch):
+    from dic.sequence import chunks
+    from dic.sequence.chunks import bytes_per_poi
+
+    built = []
+    real = chunks.ChunkedTracker.track
+
+    def spy(self, current, guess=None):
+        built.append(self.n_chunks)
+        return real(self, current, guess=guess)
+
+    monkeypatch.setattr(chunks.ChunkedTracker, "track", spy)
+
+    ref, frames = sequence
+    kw = dict(reference=strategy, step=8, device="cpu", search=search, search_radius=4, order=2)
+    whole = track_sequence(ref, frames[:6], tmp_path / "whole.h5", **kw)
+    budget = 37 * bytes_per_poi(2)  # 37 POIs at a time: 4 chunks of the 120
+    assert built == []
+    chunked = track_sequence(ref, frames[:6], tmp_path / "chunked.h5", max_memory=budget, **kw)
+    assert built == [4] * 6  # every frame in 4 chunks
+    assert [f["n_valid"] for f in whole.frames] == [f["n_valid"] for f in chunked.frames]
+    _same_frames(tmp_path / "whole.h5", tmp_path / "chunked.h5")
+    with pytest.raises(ValueError, match="cannot run on POIs in chunks"):
+        track_sequence(ref, frames[:2], tmp_path / "rg.h5", step=8, search="rg", max_memory=budget)
+    with pytest.raises(ValueError, match="max_memory"):
+        track_sequence(ref, frames[:2], tmp_path / "x.h5", step=8, max_memory=0)
+
+
+def test_cli_max_memory_chunks_with_the_same_results(sequence, tmp_path, monkeypatch):
+    from dic.cli import main
+    from dic.io import write_image
+    from dic.sequence import chunks
+
+    built = []
+    real = chunks.ChunkedTracker.track
+    monkeypatch.setattr(chunks.ChunkedTracker, "track", lambda self, cur, guess=None: built.append(self.n_chunks) or
+                        real(self, cur, guess=guess))
+
+    ref, frames = sequence
+    paths = [str(write_image(tmp_path / f"f{k:02d}.tif", img, bits=8)) for k, img in enumerate([ref, *frames[:3]])]
+    base = ["track", *paths, "--step", "8", "--device", "cpu", "-q", "--reference", "every:2"]
+    assert CliRunner().invoke(main, [*base, "-o", str(tmp_path / "a.h5")]).exit_code == 0
+    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 35 POIs a chunk
+    assert r.exit_code == 0, r.output
+    assert built == [4, 4, 4]
+    _same_frames(tmp_path / "a.h5", tmp_path / "b.h5")
+    for bad in ("0", "lots", "-5M"):
+        r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "c.h5"), "--max-memory", bad])
+        assert r.exit_code == 2 and "--max-memory" in r.output and "Traceback" not in r.output

@@ -58,11 +58,15 @@ def _fail(exc: Exception) -> click.ClickException:
               help="What each frame is correlated against: the reference image (fixed), the previous frame "
                    "(incremental), a new reference every N frames (every:N), or a new one when the valid fraction or "
                    "the median ZNCC drops below 0.95 (auto). Results are always relative to the reference image.")
+@click.option("--max-memory", default=None, metavar="SIZE",
+              help="Budget for the per-point working data of the correlation: bytes, or with a unit K, M, G (binary, "
+                   "e.g. 512M; default: a quarter of the machine's memory); beyond it the points are prepared and "
+                   "tracked in chunks, with the same results.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
-          reference_strategy, overwrite, quiet):
+          reference_strategy, max_memory, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Frames are numbered 1, 2, ... in the order given; each frame starts from the previous frame's
@@ -75,6 +79,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     from dic.io import read_image
     from dic.sequence import parse_reference
 
+    budget = _size(max_memory) if max_memory is not None else None
     order = int(order)
     try:
         parse_reference(reference_strategy)
@@ -110,33 +115,33 @@ def track(reference, current, output, subset, step, order, search, search_method
         settings["noise_sigma"] = noise_sigma
     if region is not None:  # only when given: files written without a region resume as before
         settings["roi"] = region.settings()
-    try:
-        tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search,
-                                search_method=search_method, max_iter=max_iter, tol=tol, device=device,
-                                noise_sigma=noise_sigma, roi=region)
+    try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
+        from dic.correlation.points import grid
+
+        planned = grid(ref.shape, step, margin=subset // 2, roi=region)
     except ValueError as exc:
         raise _fail(exc) from None
     if strain_window:
         from dic.strain import check_strain_window, grid_layout
 
         try:
-            check_strain_window(strain_window, grid_layout(tracker.points)[1])
+            check_strain_window(strain_window, grid_layout(planned)[1])
         except ValueError as exc:
             raise click.BadParameter(f"{exc} (0 skips strain)", param_hint="--strain-window") from None
     from dic.sequence import track_sequence
 
     def make_tracker(image, points):
-        if points is None:
-            return tracker
         return _make_tracker(image, subset=subset, step=step, order=order, search=search, search_method=search_method,
-                             max_iter=max_iter, tol=tol, device=device, noise_sigma=noise_sigma, points=points)
+                             max_iter=max_iter, tol=tol, device=device, noise_sigma=noise_sigma,
+                             roi=region if points is None else None, points=points)
 
     try:
         result = track_sequence(
             reference, list(current), output, reference=reference_strategy,
             mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
             vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
-            settings=settings, make_tracker=make_tracker)
+            settings=settings, make_tracker=make_tracker, points=planned, order=order,
+            max_memory=budget, search=search_method if search else None)
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
@@ -150,6 +155,22 @@ def track(reference, current, output, subset, step, order, search, search_method
         if result.frames:
             click.echo(f"{len(result.frames)} frame(s) in {result.seconds:.1f} s ({result.frames_per_second:.2f} frames/s)")
         click.echo(f"results: {output}")
+
+
+def _size(text: str) -> int:
+    """``--max-memory``: bytes, or a number with a binary unit K, M, G (``512M``)."""
+    t = str(text).strip().upper().removesuffix("B").removesuffix("I")
+    units = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+    scale = units.get(t[-1:], 1)
+    number = t[:-1] if t[-1:] in units else t
+    try:
+        value = float(number)
+    except ValueError:
+        value = float("nan")
+    if not (value * scale >= 1):
+        raise click.BadParameter(f"must be a size in bytes (e.g. 2000000, 512K, 512M, 2G), got {text!r}",
+                                 param_hint="--max-memory")
+    return int(value * scale)
 
 
 def _sequence_figures(output, ref, figure_dir) -> None:

@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import (
     AUTO_VALID,
@@ -174,7 +175,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                    progress: bool = False, callback: Callable | None = None, strain_window: int = 5,
                    vtk_dir=None, figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
                    auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
-                   make_tracker: Callable | None = None, **options) -> SequenceSummary:
+                   make_tracker: Callable | None = None, max_memory: int | None = None, **options) -> SequenceSummary:
     """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
 
     Parameters
@@ -209,9 +210,15 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         Write ``frame_<index>.png`` (u, v and strain maps) every ``figure_every`` frames as they finish.
     settings : dict, optional
         The settings stored in the file (and compared on resume); default: ``options`` and the strategy.
+    max_memory : int, optional
+        Budget in bytes for the per-POI working data of the correlation (default: a quarter of the
+        machine's memory); beyond it the POIs are prepared and tracked in chunks for every frame
+        (:mod:`dic.sequence.chunks`), with results identical to an unchunked run.
     make_tracker : callable(image, points) -> tracker, optional
         Builds the tracker of a reference image (``points`` None: the default grid of ``options``;
-        otherwise the moved POIs). Default: :class:`dic.track.Tracker` with ``options``.
+        otherwise the moved POIs or a chunk of them). Default: :class:`dic.track.Tracker` with
+        ``options``. With a custom one, ``options`` are only used to plan chunks: give ``points`` and
+        ``order`` (the POIs it would use) so that an over-budget run is chunked from the start.
     options
         :class:`dic.track.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``noise_sigma``, ``device``, ...).
@@ -248,6 +255,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     ref_img, ref_path = load_image(reference_image, "the reference image")
     if ref_img.ndim != 2:
         raise ValueError(f"the reference image must be a grey (H, W) image, got shape {ref_img.shape}")
+    custom_tracker = make_tracker
     if make_tracker is None:
         if options.get("roi") is not None:
             from ..correlation.points import region
@@ -271,9 +279,39 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         if policy.kind == "auto":
             settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
 
-    tracker0 = make_tracker(ref_img, None)
+    budget = default_max_memory() if max_memory is None else positive_int(max_memory, "max_memory", detail=" (bytes)")
+    # the POIs, known without preparing them (a custom tracker's only when options give points and order)
+    planned = _planned_points(ref_img.shape, options) if custom_tracker is None or \
+        (options.get("points") is not None and options.get("order") is not None) else None
+    if planned is not None and len(planned[0]) * bytes_per_poi(planned[1]) > budget:  # chunked from the start
+        tracker0 = ChunkedTracker(make_tracker, ref_img, planned[0], order=planned[1],
+                                  chunk=budget // bytes_per_poi(planned[1]), search=options.get("search"))
+    else:
+        tracker0 = make_tracker(ref_img, None)
+        if len(tracker0.points) * bytes_per_poi(int(tracker0.order)) > budget:
+            tracker0 = ChunkedTracker(make_tracker, ref_img, tracker0.points, order=int(tracker0.order),
+                                      chunk=budget // bytes_per_poi(int(tracker0.order)),
+                                      search=getattr(tracker0, "search", None))
     points0 = np.array(tracker0.points, dtype=np.float64)
     order = int(tracker0.order)
+    search_name = options.get("search") if custom_tracker is None else getattr(tracker0, "search", None)
+
+    def tracker_for(image, points):
+        """A tracker of ``image`` at ``points`` (the moved POIs), in chunks when over the memory budget."""
+        if len(points) * bytes_per_poi(order) > budget:
+            return ChunkedTracker(make_tracker, image, points, order=order, chunk=budget // bytes_per_poi(order),
+                                  search=search_name)
+        return make_tracker(image, points)
+
+    tracker0_holder = [tracker0]  # the reference image's tracker, freed once the reference has moved on
+    del tracker0
+
+    def reference_tracker():
+        if tracker0_holder[0] is None:
+            over = len(points0) * bytes_per_poi(order) > budget
+            tracker0_holder[0] = tracker_for(ref_img, points0) if over else make_tracker(ref_img, None)
+        return tracker0_holder[0]
+
     n = len(points0)
     if strain_window:
         from ..strain import check_strain_window, grid_layout
@@ -301,7 +339,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 f = writer.read_frame(index)
             return _state_of(index, f, int(f.attrs.get("reference_index", 0)))
 
-        current = _Ref(0, ref_img, zero, tracker0)
+        current = _Ref(0, ref_img, zero, reference_tracker())
         prev: _State | None = None  # the last frame's state (computed or read back)
         images: dict[int, Any] = {}  # images of frames that may serve as a reference: bounded (<= 2)
 
@@ -311,7 +349,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             if r == current.index:
                 return current
             if r == 0:
-                current = _Ref(0, ref_img, zero, tracker0)
+                current = _Ref(0, ref_img, zero, reference_tracker())
                 return current
             state = prev if prev is not None and prev.index == r and prev.params is not zero.params else stored_state(r)
             if r not in images:
@@ -324,7 +362,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                     raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
                 return get_ref(fallback)
             whole = np.round(pts)
-            current = _Ref(r, images[r], state, make_tracker(images[r], whole), pts - whole)
+            tracker0_holder[0] = current = None  # free the previous reference's data before preparing the new one
+            current = _Ref(r, images[r], state, tracker_for(images[r], whole), pts - whole)
             return current
 
         def finish(k: int, lag, raw_seconds: float, ref_index: int, item: Loaded):
@@ -417,6 +456,25 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     trim_memory()
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+def _planned_points(shape, options: dict):
+    """(POIs, order) the default tracker would use, without preparing anything (None if options are bad:
+    the tracker then says why)."""
+    from kernels.checks import as_points
+    from kernels.icgn import check_subset_order
+
+    from ..correlation.points import check_step, grid
+
+    try:
+        subset, order = check_subset_order(options.get("subset", 21), options.get("order", 1))
+        if options.get("points") is not None:
+            return as_points(options["points"]), order
+        step = options.get("step")
+        step = check_step(step) if step is not None else max(1, subset // 2)
+        return grid(shape, step, margin=subset // 2, roi=options.get("roi")), order
+    except ValueError:
+        return None
 
 
 def _guess_for(ref: _Ref, prev: _State | None, k: int, order: int):
