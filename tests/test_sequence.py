@@ -100,8 +100,8 @@ def test_unreadable_frame_in_the_middle_keeps_the_frames_before(sequence, tmp_pa
     with pytest.raises(ValueError, match="frame 3 .*all images must have the same size"):
         track_sequence(ref, [frames[0], frames[1], frames[2][:50]], tmp_path / "b.h5", step=8, device="cpu")
     assert sorted(read_results(tmp_path / "b.h5").frames) == [1, 2]
-    s = track_sequence(ref, frames[:6], out, reference="incremental", step=8, device="cpu")  # resumes
-    assert s.skipped == 4 and len(s.frames) == 2
+    s = track_sequence(ref, np.stack(frames[:6]), out, reference="incremental", step=8, device="cpu")  # resumes
+    assert s.skipped == 4 and len(s.frames) == 2  # a (T, H, W) array is a sequence of frames too
 
 
 def test_streaming_vtk_and_figures(sequence, tmp_path):
