@@ -157,6 +157,13 @@ def test_bad_arguments(sequence, tmp_path):
     for kw, msg in cases:
         with pytest.raises(ValueError, match=msg):
             track_sequence(ref, frames[:2], tmp_path / "r.h5", step=8, device="cpu", **kw)
+    with pytest.raises(ValueError, match="frames is empty"):
+        track_sequence(ref, [], tmp_path / "r.h5", step=8)
+    assert not (tmp_path / "r.h5").exists()
+    pts = np.array([[30.0, 30.0], [50.5, 40.0], [70.0, 60.0]])  # given POIs: stored as a digest, and tracked
+    track_sequence(ref, frames[:1], tmp_path / "p.h5", points=pts, strain_window=0, device="cpu")
+    res = read_results(tmp_path / "p.h5")
+    assert res.settings["points"]["shape"] == [3, 2] and np.array_equal(res.frames[1].points, pts)
     with pytest.raises(ValueError, match="not one path"):
         track_sequence(ref, "frames/*.tif", tmp_path / "r.h5", step=8)
     with pytest.raises(ValueError, match=".h5"):

@@ -167,6 +167,12 @@ def _settings_from(options: dict, policy) -> dict:
     for k, v in sorted(options.items()):
         if k == "device":
             continue
+        if k == "points" and v is not None:  # a digest, not the coordinates (millions of POIs would bloat the header)
+            import hashlib
+
+            pts = np.ascontiguousarray(np.asarray(v, dtype=np.float64))
+            out[k] = {"shape": list(pts.shape), "sha256": hashlib.sha256(pts.tobytes()).hexdigest()}
+            continue
         out[k] = v.settings() if isinstance(v, Region) else np.asarray(v).tolist() if isinstance(v, np.ndarray) else v
     return out
 
@@ -252,6 +258,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
     if isinstance(frames, (str, os.PathLike)):
         raise ValueError("frames must be a list of images (paths or arrays) or an iterable of arrays, not one path")
+    if hasattr(frames, "__len__") and len(frames) == 0:
+        raise ValueError("frames is empty: give at least one image to track")
     ref_img, ref_path = load_image(reference_image, "the reference image")
     if ref_img.ndim != 2:
         raise ValueError(f"the reference image must be a grey (H, W) image, got shape {ref_img.shape}")
