@@ -8,7 +8,7 @@ from .export import write_vtk, write_vtk_series
 from .field3d import Field3D, StereoStatus
 from .io import read_image, write_image
 from .plots.fields import write_figures
-from .sequence import read_stereo, stereo_sequence
+from .sequence import read_stereo, stereo_sequence, track_sequence
 from .stereo import StereoCorrelation, stereo
 from .store import ResultWriter, read_results
 from .strain import StrainField, strain
@@ -21,6 +21,6 @@ __all__ = [
     "StrainField", "strain",
     "ResultWriter", "read_results", "read_image", "write_image",
     "Triangulation", "triangulate", "undistort_points",
-    "Field3D", "StereoStatus", "StereoCorrelation", "stereo", "read_stereo", "stereo_sequence",
+    "Field3D", "StereoStatus", "StereoCorrelation", "stereo", "read_stereo", "stereo_sequence", "track_sequence",
     "write_figures", "write_vtk", "write_vtk_series",
 ]

@@ -379,8 +379,12 @@ def test_sequence_interrupted_after_k_states_resumes_with_identical_results(lab,
         if field.index == 1:
             shutil.copyfile(full, cut)  # what an interruption right after state 1 leaves on disk
 
-    stereo_sequence(rig, pairs, full, step=20, callback=snapshot_after_state_1)
+    stereo_sequence(rig, pairs, full, step=20, callback=snapshot_after_state_1, vtk_dir=tmp_path / "vtk")
     assert read_stereo(cut).indices == [0, 1]
+    import meshio  # each later state's VTK file, written as it finished: one point set, NaN where invalid
+
+    meshes = [meshio.read(tmp_path / "vtk" / f"stereo_{k:06d}.vtu") for k in (1, 2)]
+    assert np.array_equal(meshes[0].points, meshes[1].points, equal_nan=True)
     resumed = stereo_sequence(rig, pairs, cut, step=20)
     assert [f.index for f in resumed] == [2]
     a, b = read_stereo(full), read_stereo(cut)

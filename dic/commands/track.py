@@ -5,11 +5,9 @@ each frame finishes; rerunning the same command resumes after the last finished 
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import click
-import numpy as np
 
 from ._region import parse_region, region_options
 
@@ -51,26 +49,45 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--figure-limits", default="frame", show_default=True, type=click.Choice(["frame", "sequence"]),
               help="Colour range of the --figure maps: per frame, or one range per quantity over every frame of "
                    "the output (figures drawn once the run ends), so frames compare at a glance.")
+@click.option("--figure-every", default=1, show_default=True, type=click.IntRange(min=1),
+              help="With --figure (per-frame limits): draw every Nth frame only.")
+@click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Also write frame_<index>.vtu per frame into this folder as it finishes (ParaView; every point "
+                   "at its reference position, NaN where invalid).")
+@click.option("--reference", "reference_strategy", default="fixed", show_default=True, metavar="fixed|incremental|every:N|auto",
+              help="What each frame is correlated against: the reference image (fixed), the previous frame "
+                   "(incremental), a new reference every N frames (every:N), or a new one when the valid fraction or "
+                   "the median ZNCC drops below 0.95 (auto). Results are always relative to the reference image.")
+@click.option("--max-memory", default=None, metavar="SIZE",
+              help="Budget for the per-point working data of the correlation: bytes, or with a unit K, M, G (binary, "
+                   "e.g. 512M; default: a quarter of the machine's memory); beyond it the points are prepared and "
+                   "tracked in chunks, with the same results.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, overwrite, quiet):
+          scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
+          reference_strategy, max_memory, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
     ('run/*.tif'), a multi-page TIFF or a video: the arguments, expanded in order, make one
     sequence whose first frame is the reference (so 'specula track film.mp4' tracks every frame
     of the video against its first). Frames are numbered 1, 2, ... in that order; each frame starts from the previous frame's
-    result (or from --search). Per point the file holds u, v, the shape-function parameters, ZNCC,
+    result (or from --search). The next frames are read while one is correlated, and finished
+    frames are written (with --vtk and --figures files) while the next one is; --reference chooses
+    what each frame is correlated against (results are always relative to the reference). Per point the file holds u, v, the shape-function parameters, ZNCC,
     iterations, a status code and a validity flag, plus strain. A region of interest (--roi,
     --roi-polygon or --mask, in the reference image) keeps only the grid points inside it.
     """
-    from tqdm import tqdm
-
+    from dic.sequence import parse_reference
     from dic.sources import open_inputs
-    from dic.store import ResultWriter, image_digest
 
+    budget = _size(max_memory) if max_memory is not None else None
     order = int(order)
+    try:
+        parse_reference(reference_strategy)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--reference") from None
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window and (strain_window < 3 or strain_window % 2 == 0):
@@ -111,98 +128,75 @@ def track(reference, current, output, subset, step, order, search, search_method
         settings["noise_sigma"] = noise_sigma
     if region is not None:  # only when given: files written without a region resume as before
         settings["roi"] = region.settings()
-    try:
-        tracker = _make_tracker(ref, subset=subset, step=step, order=order, search=search,
-                                search_method=search_method, max_iter=max_iter, tol=tol, device=device,
-                                noise_sigma=noise_sigma, roi=region)
+    try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
+        from dic.correlation.points import grid
+
+        planned = grid(ref.shape, step, margin=subset // 2, roi=region)
     except ValueError as exc:
         raise _fail(exc) from None
     if strain_window:
         from dic.strain import check_strain_window, grid_layout
 
         try:
-            check_strain_window(strain_window, grid_layout(tracker.points)[1])
+            check_strain_window(strain_window, grid_layout(planned)[1])
         except ValueError as exc:
             raise click.BadParameter(f"{exc} (0 skips strain)", param_hint="--strain-window") from None
+    from dic.sequence import track_sequence
+
+    def make_tracker(image, points):
+        return _make_tracker(image, subset=subset, step=step, order=order, search=search, search_method=search_method,
+                             max_iter=max_iter, tol=tol, device=device, noise_sigma=noise_sigma,
+                             roi=region if points is None else None, points=points)
+
     try:
-        writer = ResultWriter(output, reference_path=ref_frame.name, reference_shape=ref.shape,
-                              reference_sha256=image_digest(ref), settings=settings,
-                              mode="overwrite" if overwrite else "resume")
+        result = track_sequence(
+            ref_frame, _Frames(source), output, reference=reference_strategy,
+            mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
+            vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
+            settings=settings, make_tracker=make_tracker, points=planned, order=order,
+            max_memory=budget, search=search_method if search else None)
     except ValueError as exc:
         raise _fail(exc) from None
-
-    done_before = 0
-    summary = []
-    previous = None  # (params, valid) of the last frame: the next frame's initial guess
-    with writer, tqdm(total=n_frames - 1, unit="frame", disable=quiet, desc="track") as bar:
-        # resuming: every finished frame must have been computed from the image given for it now
-        done = [index for index in range(1, n_frames) if writer.is_done(index)]
-        if done:
-            done_set = set(done)
-            try:
-                for frame in source:
-                    if frame.index in done_set:
-                        writer.check_frame(frame.index, frame.name, image_digest(frame.image))
-                    if frame.index >= done[-1]:
-                        break
-            except ValueError as exc:
-                raise _fail(exc) from None
-        frames = iter(source)
-        while True:
-            try:
-                frame = next(frames)
-            except StopIteration:
-                break
-            except ValueError as exc:  # an unreadable frame (dic.sources.FrameError names it)
-                saved = any(writer.is_done(i) for i in range(1, n_frames))
-                raise click.ClickException(f"{exc}" + (f"; frames before it are saved in {output}" if saved else "")) \
-                    from None
-            index, cur_path = frame.index, frame.name
-            if index == 0:
-                continue
-            if writer.is_done(index):
-                done_before += 1
-                previous = None
-                bar.update(1)
-                continue
-            if previous is None and index > 1 and writer.is_done(index - 1):
-                previous = _stored_guess(writer, index - 1)
-            t0 = time.perf_counter()
-            try:
-                cur = frame.image
-                field = tracker.track(cur, guess=_guess(previous))
-                strain = None
-                if strain_window:
-                    from dic.strain import strain as compute_strain
-
-                    strain = compute_strain(field, window=strain_window)
-            except ValueError as exc:
-                raise click.ClickException(
-                    f"frame {index} ({cur_path}): {exc}" + (f"; frames before it are saved in {output}" if index > 1 else "")
-                ) from None
-            seconds = time.perf_counter() - t0
-            try:
-                writer.write_frame(index, field, strain=strain, path=str(cur_path), sha256=image_digest(cur),
-                                   attrs={"seconds": seconds})
-            except ValueError as exc:  # dic.store.ResultWriteError (a full disk): says what the file keeps
-                raise _fail(exc) from None
-            if figure_dir is not None and figure_limits == "frame":
-                from dic.plots.fields import write_field_figure
-
-                write_field_figure(figure_dir / f"frame_{index:06d}.png", ref, field, strain,
-                                   title=f"frame {index}: {Path(cur_path).name}")
-            valid = np.asarray(field.valid, bool)
-            previous = (np.asarray(field.params, np.float64), valid)
-            summary.append((index, int(valid.sum()), valid.size, seconds))
-            bar.update(1)
     if figure_dir is not None and figure_limits == "sequence":
         _sequence_figures(output, ref, figure_dir)
     if not quiet:
-        for index, n_valid, n, seconds in summary:
-            click.echo(f"frame {index}: {n_valid}/{n} valid points, {seconds:.2f} s")
-        if done_before:
-            click.echo(f"{done_before} frame(s) were already in {output} and were skipped")
+        for f in result.frames:
+            ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
+            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points, {f['seconds']:.2f} s{ref_note}")
+        if result.skipped:
+            click.echo(f"{result.skipped} frame(s) were already in {output} and were skipped")
+        if result.frames:
+            click.echo(f"{len(result.frames)} frame(s) in {result.seconds:.1f} s ({result.frames_per_second:.2f} frames/s)")
         click.echo(f"results: {output}")
+
+
+class _Frames:
+    """The frames after the reference of a :class:`dic.sources.FrameSource`, read lazily (sized)."""
+
+    def __init__(self, source):
+        self.source = source
+
+    def __len__(self) -> int:
+        return len(self.source) - 1
+
+    def __iter__(self):
+        return (frame for frame in self.source if frame.index > 0)
+
+
+def _size(text: str) -> int:
+    """``--max-memory``: bytes, or a number with a binary unit K, M, G (``512M``)."""
+    t = str(text).strip().upper().removesuffix("B").removesuffix("I")
+    units = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+    scale = units.get(t[-1:], 1)
+    number = t[:-1] if t[-1:] in units else t
+    try:
+        value = float(number)
+    except ValueError:
+        value = float("nan")
+    if not (value * scale >= 1):
+        raise click.BadParameter(f"must be a size in bytes (e.g. 2000000, 512K, 512M, 2G), got {text!r}",
+                                 param_hint="--max-memory")
+    return int(value * scale)
 
 
 def _sequence_figures(output, ref, figure_dir) -> None:
@@ -222,13 +216,15 @@ def _sequence_figures(output, ref, figure_dir) -> None:
 
 
 def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, noise_sigma=None,
-                  roi=None):
+                  roi=None, points=None):
     """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
     from dic.track import Tracker
 
     kwargs = {"step": step, "subset": subset, "order": order, "device": device, "noise_sigma": noise_sigma}
     if roi is not None:
         kwargs["roi"] = roi
+    if points is not None:  # a moved reference (dic.sequence.reference): the original POIs where they are now
+        kwargs["points"] = points
     if search is not None:
         kwargs["search"] = search_method
         kwargs["search_radius"] = int(search)
@@ -238,26 +234,3 @@ def _make_tracker(reference, *, subset, step, order, search, search_method, max_
         kwargs["tol"] = tol
     return Tracker(reference, **kwargs)
 
-
-def _guess(previous):
-    """Initial parameters from the previous frame: its valid points as they are, the others at
-    the mean displacement of the valid ones (None for the first frame or when none is valid)."""
-    if previous is None:
-        return None
-    params, valid = previous
-    if not np.any(valid) or params.ndim != 2:
-        return None
-    guess = params.copy()
-    k = params.shape[1]
-    guess[~valid] = 0.0
-    guess[~valid, 0] = params[valid, 0].mean()
-    guess[~valid, k // 2] = params[valid, k // 2].mean()
-    return guess
-
-
-def _stored_guess(writer, index):
-    """(params, valid) of a finished frame in the result file (resuming a sequence), or None."""
-    stored = writer.frame_arrays(index, ("params", "valid"))
-    if stored is None:
-        return None
-    return np.asarray(stored[0], np.float64), np.asarray(stored[1], bool)

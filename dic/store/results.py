@@ -156,6 +156,10 @@ class _ResultFile:
         g = self._complete_group(index)
         return tuple(str(g.attrs.get(role_attr(r, "path"), "")) for r in self.kind.image_roles)
 
+    def frame_attrs(self, index: int) -> dict:
+        """The attributes of a complete frame (index, path(s), written, seconds, reference_index, ...)."""
+        return {k: plain(v) for k, v in self._complete_group(index).attrs.items()}
+
     def frame_arrays(self, index: int, names) -> tuple | None:
         """Datasets ``names`` of a complete frame (e.g. the parameters to resume from), or None
         when the frame is not complete or lacks one of them."""
@@ -565,7 +569,7 @@ class ResultReader(_ResultFile):
     """Open a result file read-only: ``kind`` "dic2d", "stereo", or None for whichever it is.
 
     Offers :attr:`attrs`, :attr:`reference`, :attr:`settings`, :attr:`rig`, :meth:`done_frames`,
-    :meth:`read_frame`, :meth:`frame_paths`, :meth:`frame_arrays` and :meth:`read_match`;
+    :meth:`read_frame`, :meth:`frame_paths`, :meth:`frame_attrs`, :meth:`frame_arrays` and :meth:`read_match`;
     incomplete frames are invisible. Files of a newer schema version are refused. Use as a
     context manager.
     """

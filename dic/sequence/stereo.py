@@ -1,5 +1,8 @@
 """Stereo-DIC sequences: match the reference pair once, track every later pair, write as you go.
 
+On the sequence engine's pipeline (:mod:`dic.sequence.pipeline`): the next pairs are read on a
+thread ahead of the correlation, the finished states written on a thread behind it.
+
 :func:`stereo_sequence` runs :class:`dic.stereo.StereoCorrelation` over a list of image pairs
 (arrays or image files; the first pair is the reference) and writes each state through the
 results store (:class:`dic.store.ResultWriter`, kind ``stereo``) as soon as it is finished, so
@@ -13,34 +16,27 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from .correlation.points import Region, region
-from .field3d import Field3D
-from .stereo import StereoCorrelation, as_rig
-from .store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
-from .store import STEREO_FORMAT_NAME as FORMAT_NAME
+from ..correlation.points import Region, region
+from ..field3d import Field3D
+from ..stereo import StereoCorrelation, as_rig
+from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
+from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
+from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 
 __all__ = ["stereo_sequence", "read_stereo", "read_field", "StereoResults", "FORMAT_NAME", "SCHEMA_VERSION"]
 
 
-def _load(item, what: str) -> tuple[np.ndarray, str]:
-    """An image given as an array or a file path -> (array, path or '')."""
-    if isinstance(item, (str, os.PathLike)):
-        from .io import read_image
-
-        return read_image(item), os.fspath(item)
-    if item is None:
-        raise ValueError(f"{what} is missing")
-    return np.asarray(item), ""
+_load = load_image
+_TRIM_EVERY = 10  # states between two malloc_trim calls
 
 
 def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress: bool = False,
-                    callback: Callable[[Field3D], None] | None = None, **options) -> list[Field3D]:
+                    callback: Callable[[Field3D], None] | None = None, vtk_dir=None, **options) -> list[Field3D]:
     """Stereo DIC of an image-pair sequence, written state by state to an HDF5 file.
 
     Parameters
@@ -62,7 +58,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     progress : bool
         Show a tqdm progress bar.
     callback : callable(Field3D), optional
-        Called with each state's result after it is written (not for skipped states).
+        Called with each state's result after it is written (not for skipped states; later states
+        are called on the writer thread, in order).
+    vtk_dir : folder, optional
+        Write ``stereo_<index>.vtu`` per later state as it finishes (every point with a position, NaN
+        where invalid).
     options
         :class:`dic.stereo.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
@@ -98,14 +98,10 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     results = []
     with writer:
         done = set(writer.done_frames())
-        # resuming: every finished state must have been computed from the pair given for it now
-        for k in sorted(d for d in done if d < len(pairs)):
-            if k == 0:
-                writer.check_frame(0, (lp, rp), ref_digests)
-                continue
-            (L, lpath), (R, rpath) = (_load(pairs[k][0], f"left image of pair {k}"),
-                                      _load(pairs[k][1], f"right image of pair {k}"))
-            writer.check_frame(k, (lpath, rpath), (image_digest(L), image_digest(R)))
+        # resuming: every finished state must have been computed from the pair given for it now (the later
+        # states are checked as they are read, below)
+        if 0 in done:
+            writer.check_frame(0, (lp, rp), ref_digests)
         match = writer.read_match()
         t0 = time.perf_counter()
         sc = StereoCorrelation(rig, left_ref, right_ref, match=match, device=device, **options)
@@ -117,33 +113,64 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
             results.append(sc.reference)
             if callback:
                 callback(sc.reference)
-        todo = [k for k in range(1, len(pairs)) if k not in done]
-        with ThreadPoolExecutor(max_workers=1) as io_pool, \
-                tqdm(total=len(pairs), initial=len(pairs) - len(todo), unit="pair", desc="stereo",
-                     disable=not progress) as bar:
-            def load(k):
-                return _load(pairs[k][0], f"left image of pair {k}"), _load(pairs[k][1], f"right image of pair {k}")
+        # the later states: the next pairs are read on a thread ahead, the finished ones written on one behind
+        wb = WriteBehind(depth=2)
 
-            pending = io_pool.submit(load, todo[0]) if todo else None
-            for j, k in enumerate(todo):
-                (L, lpath), (R, rpath) = pending.result()
-                pending = io_pool.submit(load, todo[j + 1]) if j + 1 < len(todo) else None  # overlap I/O
-                prev = max((d for d in done if d < k and d > 0), default=None)
-                if sc._previous is None and prev is not None:  # resuming: start from the last stored state
-                    params_left, params_right = writer.frame_arrays(prev, ("params_left", "params_right"))
-                    imgs = (_load(pairs[prev][0], "left image")[0], _load(pairs[prev][1], "right image")[0]) \
-                        if prev < len(pairs) else None
-                    sc.set_previous(params_left, params_right, images=imgs)
-                t1 = time.perf_counter()
-                try:
-                    f = sc.measure(L, R, index=k)
-                except ValueError as exc:
-                    raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
-                writer.write_frame(k, f, path=(lpath, rpath), sha256=(image_digest(L), image_digest(R)),
-                                   attrs={"seconds": float(time.perf_counter() - t1)})
-                done.add(k)
-                results.append(f)
-                if callback:
-                    callback(f)
-                bar.update(1)
+        def finish(k, f, lpath, rpath, digests, seconds):
+            writer.write_frame(k, f, path=(lpath, rpath), sha256=digests, attrs={"seconds": seconds})
+            if vtk_dir is not None:
+                from ..export import write_vtk
+
+                write_vtk(f, Path(vtk_dir) / f"stereo_{k:06d}.vtu", invalid="nan")
+            if callback:
+                callback(f)
+
+        def load(k, pair) -> Loaded:
+            (L, lpath), (R, rpath) = _load(pair[0], f"left image of pair {k}"), _load(pair[1], f"right image of pair {k}")
+            return Loaded(k, (L, R), (lpath, rpath), (image_digest(L), image_digest(R)))
+
+        if vtk_dir is not None:
+            Path(vtk_dir).mkdir(parents=True, exist_ok=True)
+        last_images = None  # the pair of the last state skipped (resuming starts from it)
+        computed = 0
+        reader = read_ahead(pairs[1:], load, first=1)
+        with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
+                  disable=not progress) as bar:
+            try:
+                for item in reader:
+                    k = item.index
+                    if item.error is not None:
+                        wb.close()
+                        raise item.error
+                    (L, R), (lpath, rpath) = item.image, item.path
+                    if k in done:  # resuming: the finished state must come from the pair given for it now
+                        with wb.lock:
+                            writer.check_frame(k, (lpath, rpath), item.digest)
+                        last_images = (L, R)
+                        bar.update(1)
+                        continue
+                    prev = max((d for d in done if d < k and d > 0), default=None)
+                    if sc._previous is None and prev is not None:  # resuming: start from the last stored state
+                        with wb.lock:
+                            params_left, params_right = writer.frame_arrays(prev, ("params_left", "params_right"))
+                        sc.set_previous(params_left, params_right, images=last_images if prev == k - 1 else None)
+                    t1 = time.perf_counter()
+                    try:
+                        f = sc.measure(L, R, index=k)
+                    except ValueError as exc:
+                        wb.close()
+                        raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
+                    wb.submit(lambda k=k, f=f, lp=lpath, rp=rpath, d=item.digest, s=float(time.perf_counter() - t1):
+                              finish(k, f, lp, rp, d, s))
+                    done.add(k)
+                    results.append(f)
+                    computed += 1
+                    if computed % _TRIM_EVERY == 0:
+                        trim_memory()
+                    bar.update(1)
+                wb.close()
+            finally:
+                reader.close()
+                wb.close(raise_error=False)
+        trim_memory()
     return results

@@ -1,0 +1,16 @@
+"""Image sequences, 2-D and stereo, on one pipelined engine (docs/dic2d.md "Sequences", docs/stereo.md).
+
+- :func:`track_sequence` (:mod:`dic.sequence.track2d`): 2-D DIC of a sequence against a reference
+  image, with the reference strategies of :mod:`dic.sequence.reference` ("fixed", "incremental",
+  "every:N", "auto"; results always Lagrangian), streaming VTK files and figures, resume.
+- :func:`stereo_sequence` (:mod:`dic.sequence.stereo`): stereo DIC of a sequence of image pairs.
+- :mod:`dic.sequence.pipeline`: the reader thread ahead, the writer thread behind, ``malloc_trim``.
+"""
+from __future__ import annotations
+
+from .reference import ReferencePolicy, parse_reference
+from .stereo import FORMAT_NAME, SCHEMA_VERSION, StereoResults, read_field, read_stereo, stereo_sequence
+from .track2d import SequenceSummary, track_sequence
+
+__all__ = ["track_sequence", "SequenceSummary", "stereo_sequence", "read_stereo", "read_field", "StereoResults",
+           "FORMAT_NAME", "SCHEMA_VERSION", "ReferencePolicy", "parse_reference"]

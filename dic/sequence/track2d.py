@@ -1,0 +1,500 @@
+"""2-D DIC of an image sequence: :func:`track_sequence` (docs/dic2d.md, "Sequences").
+
+One engine for every 2-D sequence, used by the library and by ``specula track``: the reference's
+per-POI data are prepared once per reference (a :class:`dic.track.Tracker`), the next frames are
+read on a thread ahead of the correlation and the finished ones are written (strain, result file,
+VTK, figures, callback) on a thread behind it (:mod:`dic.sequence.pipeline`), with bounded queues,
+so memory does not grow with the sequence. Reference strategies and the Lagrangian composition of
+the results: :mod:`dic.sequence.reference`.
+"""
+from __future__ import annotations
+
+import copy
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory
+from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
+from .reference import (
+    AUTO_VALID,
+    AUTO_ZNCC,
+    compose_params,
+    moved_points,
+    parse_reference,
+    relative_params,
+    shift_params,
+)
+
+__all__ = ["track_sequence", "SequenceSummary"]
+
+_TRIM_EVERY = 10  # frames between two malloc_trim calls
+
+
+@dataclass
+class SequenceSummary:
+    """What :func:`track_sequence` did: ``frames`` (one dict per frame computed in this call: ``index``,
+    ``n_valid``, ``n_points``, ``seconds``, ``reference_index``), ``skipped`` (finished frames already in
+    the file), ``path`` (the result file), ``seconds`` (the whole call) and ``frames_per_second``."""
+
+    path: Path
+    frames: list[dict] = field(default_factory=list)
+    skipped: int = 0
+    seconds: float = 0.0
+
+    @property
+    def frames_per_second(self) -> float:
+        return len(self.frames) / self.seconds if self.seconds > 0 else float("nan")
+
+
+@dataclass
+class _State:
+    """A frame's Lagrangian result at the original POIs (what later frames compose with)."""
+
+    index: int
+    params: np.ndarray
+    valid: np.ndarray
+    status: np.ndarray
+    sigma_u: np.ndarray | None = None
+    sigma_v: np.ndarray | None = None
+    reference_index: int = 0
+
+    @property
+    def u(self):
+        return self.params[:, 0]
+
+    @property
+    def v(self):
+        return self.params[:, self.params.shape[1] // 2]
+
+
+@dataclass
+class _Ref:
+    index: int
+    image: Any
+    state: _State
+    tracker: Any
+    offset: np.ndarray | None = None  # (N, 2) moved POI - tracked (whole-pixel) POI
+
+
+def _state_of(index: int, f, reference_index: int) -> _State:
+    n = len(f.u)
+    params = getattr(f, "params", None)
+    if params is None:  # a frame without parameters (files of other writers): translation only
+        params = np.zeros((n, 6))
+        params[:, 0], params[:, 3] = f.u, f.v
+    valid = getattr(f, "valid", None)
+    status = getattr(f, "status", None)
+    return _State(index, np.asarray(params, np.float64), np.ones(n, bool) if valid is None else np.asarray(valid, bool),
+                  np.zeros(n, np.int32) if status is None else np.asarray(status, np.int32),
+                  getattr(f, "sigma_u", None), getattr(f, "sigma_v", None), int(reference_index))
+
+
+def _guess(previous):
+    """Initial parameters from the previous frame: its valid points as they are, the others at
+    the mean displacement of the valid ones (None for the first frame or when none is valid)."""
+    if previous is None:
+        return None
+    params, valid = previous
+    if not np.any(valid) or params.ndim != 2:
+        return None
+    guess = params.copy()
+    k = params.shape[1]
+    guess[~valid] = 0.0
+    guess[~valid, 0] = params[valid, 0].mean()
+    guess[~valid, k // 2] = params[valid, k // 2].mean()
+    return guess
+
+
+def _quality(raw, ref_valid) -> tuple[float, float]:
+    """Valid fraction (among the points valid in the reference) and median ZNCC of the valid points."""
+    valid = np.asarray(raw.valid, bool) & ref_valid
+    n_ref = int(np.count_nonzero(ref_valid))
+    frac = np.count_nonzero(valid) / n_ref if n_ref else 0.0
+    z = np.asarray(raw.zncc, np.float64)[valid]
+    return float(frac), float(np.median(z)) if z.size else 0.0
+
+
+def _compose(ref: _Ref, raw, points0, order: int):
+    """The frame's result against a moved reference, in the original configuration (Lagrangian)."""
+    out = copy.copy(raw)
+    s = ref.state
+    inc = np.asarray(raw.params, np.float64)
+    if ref.offset is not None:  # tracked at whole pixels: the warp at the moved POI itself
+        inc = shift_params(inc, ref.offset, order)
+    params = compose_params(s.params, inc, order)
+    valid = np.asarray(raw.valid, bool) & s.valid
+    status = np.where(s.valid, np.asarray(raw.status, np.int32), s.status).astype(np.int32)
+    out.points = np.array(points0, dtype=np.float64)
+    out.params = params
+    out.u = params[:, 0].copy()
+    out.v = params[:, params.shape[1] // 2].copy()
+    out.valid = valid
+    out.status = status
+    for name, prev in (("sigma_u", s.sigma_u), ("sigma_v", s.sigma_v)):
+        cur = getattr(raw, name, None)
+        if cur is not None and prev is not None:
+            setattr(out, name, np.hypot(np.asarray(cur, np.float64), np.asarray(prev, np.float64)))
+    return out
+
+
+def _digest(image) -> str:
+    from ..store import image_digest
+
+    return image_digest(image)
+
+
+def _frame_loader(shape, reference_name: str):
+    def load(index: int, item) -> Loaded:
+        img, path = load_image(item, f"frame {index}")
+        if img.ndim != 2 or img.shape != tuple(shape):
+            got = f"{img.shape[1]}x{img.shape[0]} px" if img.ndim == 2 else f"of shape {img.shape}"
+            raise ValueError(f"{path or f'frame {index}'} is {got} but the reference {reference_name} is "
+                             f"{shape[1]}x{shape[0]} px; all images must have the same size")
+        return Loaded(index, img, path, _digest(img))
+
+    return load
+
+
+def _settings_from(options: dict, policy) -> dict:
+    from ..correlation.points import Region
+
+    out = {}
+    for k, v in sorted(options.items()):
+        if k == "device":
+            continue
+        if k == "points" and v is not None:  # a digest, not the coordinates (millions of POIs would bloat the header)
+            import hashlib
+
+            pts = np.ascontiguousarray(np.asarray(v, dtype=np.float64))
+            out[k] = {"shape": list(pts.shape), "sha256": hashlib.sha256(pts.tobytes()).hexdigest()}
+            continue
+        out[k] = v.settings() if isinstance(v, Region) else np.asarray(v).tolist() if isinstance(v, np.ndarray) else v
+    return out
+
+
+def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mode: str = "resume",
+                   progress: bool = False, callback: Callable | None = None, strain_window: int = 5,
+                   vtk_dir=None, figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
+                   auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
+                   make_tracker: Callable | None = None, max_memory: int | None = None, **options) -> SequenceSummary:
+    """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
+
+    Parameters
+    ----------
+    reference_image : path or array (H, W)
+        The reference image (frame 0).
+    frames : list of paths/arrays, any iterable of arrays (a generator, a (T, H, W) array, a
+        :class:`dic.sources.FrameSource`), or one path of a folder, glob pattern, multi-page TIFF or
+        video (read with :func:`dic.sources.open_frames`)
+        Frame ``k`` (from 1) is the k-th item. Read lazily, a couple of frames ahead of the correlation.
+    out : str or Path
+        The ``.h5`` result file (docs/results_format.md); an existing compatible file is resumed
+        (finished frames are skipped; they must come from the same images) unless ``mode="overwrite"``
+        (``"new"`` refuses an existing file).
+    reference : "fixed" | "incremental" | "every:N" | "auto"
+        Which image each frame is correlated against (:mod:`dic.sequence.reference`). Results are
+        always reported at the original POIs in the original reference (Lagrangian); each frame's
+        ``reference_index`` attribute says which frame served as its reference (0: the reference image).
+    auto_valid, auto_zncc : float in [0, 1]
+        ``reference="auto"``: the valid fraction and the median ZNCC below which the reference moves to
+        the previous frame (defaults 0.95 and 0.95).
+    mode : "resume" | "overwrite" | "new"
+    progress : bool
+        A tqdm progress bar (frames/s and time left when the length is known).
+    callback : callable(index, field, strain), optional
+        Called with each computed frame's Lagrangian field (a :class:`dic.field2d.Field2D`) and strain
+        (or None) once the frame is in the file (on the writer thread, in frame order).
+    strain_window : int
+        Strain fit window in grid points (odd >= 3), 0 for no strain.
+    vtk_dir : folder, optional
+        Write ``frame_<index>.vtu`` per frame as it finishes (every POI at its reference position, NaN
+        where invalid: the same point set at every step).
+    figure_dir : folder, optional
+        Write ``frame_<index>.png`` (u, v and strain maps) every ``figure_every`` frames as they finish.
+    settings : dict, optional
+        The settings stored in the file (and compared on resume); default: ``options`` and the strategy.
+    max_memory : int, optional
+        Budget in bytes for the per-POI working data of the correlation (default: a quarter of the
+        machine's memory); beyond it the POIs are prepared and tracked in chunks for every frame
+        (:mod:`dic.sequence.chunks`), with results identical to an unchunked run.
+    make_tracker : callable(image, points) -> tracker, optional
+        Builds the tracker of a reference image (``points`` None: the default grid of ``options``;
+        otherwise the moved POIs or a chunk of them). Default: :class:`dic.track.Tracker` with
+        ``options``. With a custom one, ``options`` are only used to plan chunks: give ``points`` and
+        ``order`` (the POIs it would use) so that an over-budget run is chunked from the start.
+    options
+        :class:`dic.track.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
+        ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``noise_sigma``, ``device``, ...).
+
+    Returns
+    -------
+    SequenceSummary
+
+    Raises
+    ------
+    ValueError
+        Bad options or images, a frame that cannot be read (``"frame k (path): ..."``; the frames
+        before it are in the file), an incompatible result file; :class:`dic.store.ResultWriteError`
+        (a ValueError) when the file cannot be written.
+    """
+    from tqdm import tqdm
+
+    from kernels.checks import non_negative_int, positive_int
+
+    from ..store import ResultWriter
+
+    t_start = time.perf_counter()
+    policy = parse_reference(reference, auto_valid=auto_valid, auto_zncc=auto_zncc)
+    mode = str(mode)
+    strain_window = non_negative_int(strain_window, "strain_window")
+    figure_every = positive_int(figure_every, "figure_every")
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable, got {type(callback).__name__}")
+    out = Path(os.fspath(out))
+    if out.suffix.lower() not in (".h5", ".hdf5"):
+        raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
+    if isinstance(frames, (str, os.PathLike)):
+        # a folder, a glob pattern, a multi-page TIFF or a video: every frame it holds (dic.sources)
+        from ..sources import open_frames
+
+        frames = open_frames(frames)
+    if hasattr(frames, "__len__") and len(frames) == 0:
+        raise ValueError("frames is empty: give at least one image to track")
+    ref_img, ref_path = load_image(reference_image, "the reference image")
+    if ref_img.ndim != 2:
+        raise ValueError(f"the reference image must be a grey (H, W) image, got shape {ref_img.shape}")
+    custom_tracker = make_tracker
+    if make_tracker is None:
+        if options.get("roi") is not None:
+            from ..correlation.points import region
+
+            options["roi"] = region(options["roi"], ref_img.shape)
+
+        def make_tracker(image, points, _opts=dict(options)):
+            from ..track import Tracker
+
+            kw = dict(_opts)
+            if points is not None:
+                kw.pop("roi", None)
+                kw["points"] = points
+            return Tracker(image, **kw)
+    if settings is None:
+        settings = _settings_from(options, policy)
+        settings["strain_window"] = strain_window
+    settings = dict(settings)
+    if policy.kind != "fixed":  # only when not fixed: files of earlier runs resume as before
+        settings["reference"] = policy.text
+        if policy.kind == "auto":
+            settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
+
+    budget = default_max_memory() if max_memory is None else positive_int(max_memory, "max_memory", detail=" (bytes)")
+    # the POIs, known without preparing them (a custom tracker's only when options give points and order)
+    planned = _planned_points(ref_img.shape, options) if custom_tracker is None or \
+        (options.get("points") is not None and options.get("order") is not None) else None
+    if planned is not None and len(planned[0]) * bytes_per_poi(planned[1]) > budget:  # chunked from the start
+        tracker0 = ChunkedTracker(make_tracker, ref_img, planned[0], order=planned[1],
+                                  chunk=budget // bytes_per_poi(planned[1]), search=options.get("search"))
+    else:
+        tracker0 = make_tracker(ref_img, None)
+        if len(tracker0.points) * bytes_per_poi(int(tracker0.order)) > budget:
+            tracker0 = ChunkedTracker(make_tracker, ref_img, tracker0.points, order=int(tracker0.order),
+                                      chunk=budget // bytes_per_poi(int(tracker0.order)),
+                                      search=getattr(tracker0, "search", None))
+    points0 = np.array(tracker0.points, dtype=np.float64)
+    order = int(tracker0.order)
+    search_name = options.get("search") if custom_tracker is None else getattr(tracker0, "search", None)
+
+    def tracker_for(image, points):
+        """A tracker of ``image`` at ``points`` (the moved POIs), in chunks when over the memory budget."""
+        if len(points) * bytes_per_poi(order) > budget:
+            return ChunkedTracker(make_tracker, image, points, order=order, chunk=budget // bytes_per_poi(order),
+                                  search=search_name)
+        return make_tracker(image, points)
+
+    tracker0_holder = [tracker0]  # the reference image's tracker, freed once the reference has moved on
+    del tracker0
+
+    def reference_tracker():
+        if tracker0_holder[0] is None:
+            over = len(points0) * bytes_per_poi(order) > budget
+            tracker0_holder[0] = tracker_for(ref_img, points0) if over else make_tracker(ref_img, None)
+        return tracker0_holder[0]
+
+    n = len(points0)
+    if strain_window:
+        from ..strain import check_strain_window, grid_layout
+
+        try:
+            check_strain_window(strain_window, grid_layout(points0)[1])
+        except ValueError as exc:
+            raise ValueError(f"{exc} (strain_window=0 skips strain)") from None
+    zero = _State(0, np.zeros((n, 6 if order == 1 else 12)), np.ones(n, bool), np.zeros(n, np.int32))
+    ref_name = ref_path or "(array)"
+    writer = ResultWriter(out, reference_path=ref_path, reference_shape=ref_img.shape,
+                          reference_sha256=_digest(ref_img), settings=settings, mode=mode)
+    summary = SequenceSummary(path=out)
+    total = len(frames) if hasattr(frames, "__len__") else None
+    for d in (vtk_dir, figure_dir):
+        if d is not None:
+            Path(d).mkdir(parents=True, exist_ok=True)
+
+    with writer:
+        done = set(writer.done_frames())
+        wb = WriteBehind(depth=2)
+
+        def stored_state(index: int) -> _State:
+            with wb.lock:
+                f = writer.read_frame(index)
+            return _state_of(index, f, int(f.attrs.get("reference_index", 0)))
+
+        current = _Ref(0, ref_img, zero, reference_tracker())
+        prev: _State | None = None  # the last frame's state (computed or read back)
+        images: dict[int, Any] = {}  # images of frames that may serve as a reference: bounded (<= 2)
+
+        def get_ref(r: int, fallback: int | None = None) -> _Ref:
+            """The reference frame r (built when it changes); ``fallback`` when frame r has no valid point."""
+            nonlocal current
+            if r == current.index:
+                return current
+            if r == 0:
+                current = _Ref(0, ref_img, zero, reference_tracker())
+                return current
+            state = prev if prev is not None and prev.index == r and prev.params is not zero.params else stored_state(r)
+            if r not in images:
+                raise ValueError(f"cannot resume {out}: the image of frame {r}, the reference of the next frame, "
+                                 "was not given again; give the same frames as the run that wrote the file")
+            try:
+                pts = moved_points(points0, state.u, state.v, state.valid)
+            except ValueError:  # a frame with no valid point cannot serve as a reference: keep the previous one
+                if fallback is None or fallback == r:
+                    raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
+                return get_ref(fallback)
+            whole = np.round(pts)
+            tracker0_holder[0] = current = None  # free the previous reference's data before preparing the new one
+            current = _Ref(r, images[r], state, tracker_for(images[r], whole), pts - whole)
+            return current
+
+        def finish(k: int, lag, raw_seconds: float, ref_index: int, item: Loaded):
+            strain = None
+            if strain_window:
+                from ..strain import strain as compute_strain
+
+                try:
+                    strain = compute_strain(lag, window=strain_window)
+                except ValueError as exc:
+                    raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
+            writer.write_frame(k, lag, strain=strain, path=item.path, sha256=item.digest,
+                               attrs={"seconds": raw_seconds, "reference_index": int(ref_index)})
+            if vtk_dir is not None:
+                from ..export import write_vtk
+
+                write_vtk(lag, Path(vtk_dir) / f"frame_{k:06d}.vtu", invalid="nan", strain=strain)
+            if figure_dir is not None and k % figure_every == 0:
+                from ..plots.fields import write_field_figure
+
+                write_field_figure(Path(figure_dir) / f"frame_{k:06d}.png", ref_img, lag, strain,
+                                   title=f"frame {k}" + (f": {Path(item.path).name}" if item.path else ""))
+            if callback is not None:
+                callback(k, lag, strain)
+
+        bar = tqdm(total=total, unit="frame", desc="track", disable=not progress)
+        computed = 0
+        reader = read_ahead(frames, _frame_loader(ref_img.shape, ref_name))
+        try:
+            for item in reader:
+                k = item.index
+                if item.error is not None:
+                    wb.close(raise_error=True)  # the frames before it are written first
+                    exc = item.error
+                    saved = f"; frames before it are saved in {out}" if k > 1 else ""
+                    if isinstance(exc, (ValueError, OSError)):
+                        raise ValueError(f"frame {k} ({os.fspath(item.path) or 'array'}): {exc}{saved}") from None
+                    raise exc
+                if k in done:  # resuming: the finished frame must come from the image given for it now
+                    with wb.lock:
+                        writer.check_frame(k, item.path, item.digest)
+                        attrs = writer.frame_attrs(k)
+                    r_k = int(attrs.get("reference_index", 0))
+                    prev = None if k + 1 in done else stored_state(k)
+                    keep = {policy.start(k + 1, r_k), k, current.index}
+                    images[k] = item.image
+                    for i in [i for i in images if i not in keep]:
+                        del images[i]
+                    if prev is None:  # the next frame is done too: a placeholder with its reference index
+                        prev = _State(k, zero.params, zero.valid, zero.status, reference_index=r_k)
+                    summary.skipped += 1
+                    bar.update(1)
+                    continue
+                t0 = time.perf_counter()
+                prev_ref = prev.reference_index if prev is not None else 0
+                ref = get_ref(policy.start(k, prev_ref), prev_ref)
+                guess = _guess_for(ref, prev, k, order)
+                try:
+                    raw = ref.tracker.track(item.image, guess=guess)
+                    if policy.kind == "auto" and ref.index != k - 1 and k > 1:
+                        frac, med = _quality(raw, ref.state.valid)
+                        if policy.needs_update(frac, med):
+                            newer = get_ref(k - 1, ref.index)
+                            if newer.index != ref.index:
+                                ref = newer
+                                raw = ref.tracker.track(item.image, guess=None)
+                except ValueError as exc:
+                    wb.close(raise_error=True)
+                    saved = f"; frames before it are saved in {out}" if k > 1 else ""
+                    raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}{saved}") from None
+                lag = raw if ref.index == 0 else _compose(ref, raw, points0, order)
+                seconds = time.perf_counter() - t0
+                wb.submit(lambda k=k, lag=lag, s=seconds, r=ref.index, it=item: finish(k, lag, s, r, it))
+                prev = _state_of(k, lag, ref.index)
+                images[k] = item.image
+                for i in [i for i in images if i not in (k, ref.index)]:
+                    del images[i]
+                valid = np.asarray(lag.valid, bool)
+                summary.frames.append({"index": k, "n_valid": int(valid.sum()), "n_points": int(valid.size),
+                                       "seconds": seconds, "reference_index": int(ref.index)})
+                computed += 1
+                if computed % _TRIM_EVERY == 0:
+                    trim_memory()
+                bar.update(1)
+            wb.close(raise_error=True)
+        finally:
+            reader.close()
+            wb.close(raise_error=False)
+            bar.close()
+    trim_memory()
+    summary.seconds = time.perf_counter() - t_start
+    return summary
+
+
+def _planned_points(shape, options: dict):
+    """(POIs, order) the default tracker would use, without preparing anything (None if options are bad:
+    the tracker then says why)."""
+    from kernels.checks import as_points
+    from kernels.icgn import check_subset_order
+
+    from ..correlation.points import check_step, grid
+
+    try:
+        subset, order = check_subset_order(options.get("subset", 21), options.get("order", 1))
+        if options.get("points") is not None:
+            return as_points(options["points"]), order
+        step = options.get("step")
+        step = check_step(step) if step is not None else max(1, subset // 2)
+        return grid(shape, step, margin=subset // 2, roi=options.get("roi")), order
+    except ValueError:
+        return None
+
+
+def _guess_for(ref: _Ref, prev: _State | None, k: int, order: int):
+    """The initial guess of frame k against ``ref``, from the previous frame's (Lagrangian) result."""
+    if prev is None or prev.index != k - 1 or prev.index == ref.index:
+        return None
+    if ref.index == 0:
+        return _guess((prev.params, prev.valid))
+    valid = prev.valid & ref.state.valid
+    return _guess((relative_params(ref.state.params, prev.params, order), valid))

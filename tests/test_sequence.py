@@ -1,0 +1,295 @@
+"""The sequence engine (dic/sequence/): dic.sequence.track_sequence, reference strategies, resume, streaming outputs,
+bounded memory; and ``specula track --reference/--vtk/--figure-every``."""
+import os
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dic.sequence import parse_reference, track_sequence
+from dic.sequence.reference import compose_params, relative_params, shift_params
+from dic.store import read_results
+from dic.synth import speckle_pair
+
+SHAPE = (96, 112)
+N_FRAMES = 20
+# translation increments alternate 0.35 / 0.65 px (opposite interpolation biases), plus a growing stretch
+STEPS = np.cumsum([0.0] + [0.35 if j % 2 else 0.65 for j in range(1, N_FRAMES + 1)])
+
+
+def truth(k):
+    return lambda x, y: (STEPS[k] + 0.003 * k * (x - 56), -STEPS[k] + 0.0015 * k * (y - 48))
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    ref, _ = speckle_pair(SHAPE, (0, 0), seed=3)
+    return ref, [speckle_pair(SHAPE, truth(k), seed=3)[1] for k in range(1, N_FRAMES + 1)]
+
+
+def _rms_error(frame, k):
+    p, v = frame.points, frame.valid
+    tu, tv = truth(k)(p[:, 0], p[:, 1])
+    return float(np.sqrt(np.mean((frame.u[v] - tu[v]) ** 2 + (frame.v[v] - tv[v]) ** 2)))
+
+
+def _same_frames(a, b):
+    ra, rb = read_results(a), read_results(b)
+    assert sorted(ra.frames) == sorted(rb.frames)
+    for k in ra.frames:
+        fa, fb = ra.frames[k], rb.frames[k]
+        for name in ("points", "u", "v", "params", "zncc", "status", "valid", "sigma_u", "sigma_v"):
+            assert np.array_equal(getattr(fa, name), getattr(fb, name), equal_nan=True), (k, name)
+        for name in fa.strain:
+            assert np.array_equal(fa.strain[name], fb.strain[name], equal_nan=True), (k, name)
+        assert fa.attrs["reference_index"] == fb.attrs["reference_index"]
+
+
+@pytest.mark.parametrize("strategy", ["fixed", "incremental", "every:5", "auto"])
+def test_every_strategy_follows_the_exact_field(sequence, tmp_path, strategy):
+    ref, frames = sequence
+    out = tmp_path / "r.h5"
+    s = track_sequence(ref, frames, out, reference=strategy, step=8, device="cpu")
+    assert [f["index"] for f in s.frames] == list(range(1, N_FRAMES + 1)) and s.skipped == 0
+    res = read_results(out)
+    refs = [res.frames[k].attrs["reference_index"] for k in range(1, N_FRAMES + 1)]
+    expected = {"fixed": [0] * N_FRAMES, "incremental": list(range(N_FRAMES)),
+                "every:5": [5 * ((k - 1) // 5) for k in range(1, N_FRAMES + 1)]}
+    if strategy in expected:
+        assert refs == expected[strategy]
+    else:  # auto: some update, never ahead of the frame, never backwards
+        assert refs[-1] > 0 and all(0 <= r < k for k, r in enumerate(refs, 1)) and refs == sorted(refs)
+    for k in range(1, N_FRAMES + 1):
+        f = res.frames[k]
+        assert np.array_equal(f.points, res.frames[1].points)  # the same (original) POIs at every step
+        assert f.valid.mean() > 0.6 and _rms_error(f, k) < 0.02, (strategy, k, _rms_error(f, k))
+    assert res.settings.get("reference", "fixed") == strategy
+
+
+@pytest.mark.parametrize("strategy", ["incremental", "every:3", "auto"])
+def test_resume_after_a_crash_gives_identical_results(sequence, tmp_path, strategy):
+    ref, frames = sequence
+    frames = frames[:10]
+    whole = tmp_path / "whole.h5"
+    track_sequence(ref, frames, whole, reference=strategy, step=8, device="cpu")
+
+    def crash(k, field, strain):
+        if k == 6:
+            raise RuntimeError("killed")
+
+    out = tmp_path / "cut.h5"
+    with pytest.raises(RuntimeError, match="killed"):
+        track_sequence(ref, frames, out, reference=strategy, step=8, device="cpu", callback=crash)
+    assert sorted(read_results(out).frames) == [1, 2, 3, 4, 5, 6]
+    s = track_sequence(ref, frames, out, reference=strategy, step=8, device="cpu")
+    assert s.skipped == 6 and [f["index"] for f in s.frames] == [7, 8, 9, 10]
+    _same_frames(whole, out)
+
+
+def test_unreadable_frame_in_the_middle_keeps_the_frames_before(sequence, tmp_path):
+    ref, frames = sequence
+
+    def source():
+        yield from frames[:4]
+        raise OSError("the camera stopped")
+
+    out = tmp_path / "r.h5"
+    with pytest.raises(ValueError, match=r"frame 5 \(array\): the camera stopped; frames before it are saved in"):
+        track_sequence(ref, source(), out, reference="incremental", step=8, device="cpu")
+    assert sorted(read_results(out).frames) == [1, 2, 3, 4]
+    with pytest.raises(ValueError, match="frame 3 .*all images must have the same size"):
+        track_sequence(ref, [frames[0], frames[1], frames[2][:50]], tmp_path / "b.h5", step=8, device="cpu")
+    assert sorted(read_results(tmp_path / "b.h5").frames) == [1, 2]
+    s = track_sequence(ref, np.stack(frames[:6]), out, reference="incremental", step=8, device="cpu")  # resumes
+    assert s.skipped == 4 and len(s.frames) == 2  # a (T, H, W) array is a sequence of frames too
+
+
+def test_streaming_vtk_and_figures(sequence, tmp_path):
+    import meshio
+
+    ref, frames = sequence
+    seen = []
+
+    def spy(k, field, strain):  # the frame's files exist when it is handed over: written as it finishes
+        seen.append((k, (tmp_path / "vtk" / f"frame_{k:06d}.vtu").exists()))
+
+    track_sequence(ref, frames[:6], tmp_path / "r.h5", reference="every:2", step=8, device="cpu",
+                   vtk_dir=tmp_path / "vtk", figure_dir=tmp_path / "figs", figure_every=2, callback=spy)
+    assert seen == [(k, True) for k in range(1, 7)]
+    assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == [f"frame_{k:06d}.png" for k in (2, 4, 6)]
+    res = read_results(tmp_path / "r.h5")
+    first = None
+    for k in range(1, 7):
+        mesh = meshio.read(tmp_path / "vtk" / f"frame_{k:06d}.vtu")
+        first = mesh.points if first is None else first
+        assert np.array_equal(mesh.points, first)  # one point set for every step
+        u = mesh.point_data["u"]
+        invalid = ~res.frames[k].valid
+        assert len(u) == len(invalid) and np.array_equal(np.isnan(u), invalid) and invalid.any()
+
+
+def test_memory_does_not_grow_with_the_sequence(tmp_path):
+    """RSS after 200 frames stays within a few MB of RSS after 50 (no per-frame accumulation; the
+    first ~40 frames fill HDF5's metadata cache of the growing file, a bounded cost)."""
+    ref, cur = speckle_pair((128, 128), (0.4, -0.3), seed=5)
+    rss = {}
+
+    def measure(k, field, strain):
+        if k in (50, 200):
+            with open("/proc/self/statm") as f:
+                rss[k] = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+    def frames():
+        rng = np.random.default_rng(0)
+        for _ in range(200):
+            yield cur + rng.normal(0, 0.5, cur.shape).astype(np.float32)
+
+    track_sequence(ref, frames(), tmp_path / "r.h5", step=6, device="cpu", callback=measure)
+    assert rss[200] <= rss[50] + 4 * 2**20, (rss[50] / 2**20, rss[200] / 2**20)
+
+
+def test_bad_arguments(sequence, tmp_path):
+    ref, frames = sequence
+    cases = [({"reference": "every:0"}, "whole number N >= 1"), ({"reference": "sometimes"}, "'fixed', 'incremental'"),
+             ({"reference": 3}, "'fixed', 'incremental'"), ({"figure_every": 0}, "figure_every"),
+             ({"auto_valid": 1.5}, "auto_valid"), ({"callback": 3}, "callback must be callable"),
+             ({"strain_window": 4}, "odd"), ({"mode": "sometimes"}, "mode must be")]
+    for kw, msg in cases:
+        with pytest.raises(ValueError, match=msg):
+            track_sequence(ref, frames[:2], tmp_path / "r.h5", step=8, device="cpu", **kw)
+    with pytest.raises(ValueError, match="frames is empty"):
+        track_sequence(ref, [], tmp_path / "r.h5", step=8)
+    assert not (tmp_path / "r.h5").exists()
+    pts = np.array([[30.0, 30.0], [50.5, 40.0], [70.0, 60.0]])  # given POIs: stored as a digest, and tracked
+    track_sequence(ref, frames[:1], tmp_path / "p.h5", points=pts, strain_window=0, device="cpu")
+    res = read_results(tmp_path / "p.h5")
+    assert res.settings["points"]["shape"] == [3, 2] and np.array_equal(res.frames[1].points, pts)
+    with pytest.raises(ValueError, match="matches no files"):  # one path is a folder/pattern/stack/video
+        track_sequence(ref, str(tmp_path / "nothing" / "*.tif"), tmp_path / "r.h5", step=8)
+    import tifffile
+
+    (tmp_path / "seq").mkdir()
+    for k, f in enumerate(frames[:2]):  # float32 TIFFs: the same grey levels as the arrays
+        tifffile.imwrite(tmp_path / "seq" / f"f{k + 1}.tif", np.asarray(f, np.float32))
+    from_folder = track_sequence(ref, tmp_path / "seq", tmp_path / "folder.h5", step=8, strain_window=0, device="cpu")
+    track_sequence(ref, list(frames[:2]), tmp_path / "list.h5", step=8, strain_window=0, device="cpu")
+    a, b = read_results(tmp_path / "folder.h5"), read_results(tmp_path / "list.h5")
+    assert len(from_folder.frames) == 2 and np.array_equal(a.frames[2].u, b.frames[2].u)
+    with pytest.raises(ValueError, match=".h5"):
+        track_sequence(ref, frames[:2], tmp_path / "r.txt", step=8)
+    assert parse_reference(" Every:4 ").every == 4
+
+
+def test_composition_is_the_chain_rule():
+    """compose_params(d_r, w) = the parameters of X -> d_r(X) + w(X + d_r(X)) at X = 0, by finite differences."""
+    rng = np.random.default_rng(1)
+    for order in (1, 2):
+        k = 6 if order == 1 else 12
+        pr, pw = rng.normal(0, 0.05, (1, k)), rng.normal(0, 0.05, (1, k))
+        pr[0, 0], pw[0, 0] = 1.3, -0.4
+
+        def warp(p, x, y):
+            h = k // 2
+            out = []
+            for b in (0, h):
+                val = p[0, b] + p[0, b + 1] * x + p[0, b + 2] * y
+                if order == 2:
+                    val = val + 0.5 * p[0, b + 3] * x * x + p[0, b + 4] * x * y + 0.5 * p[0, b + 5] * y * y
+                out.append(val)
+            return np.array(out)
+
+        d0 = warp(pr, 0, 0)  # w's shape function is centred on the moved point X + d_r(X) (where it is tracked)
+
+        def total(x, y):
+            d = warp(pr, x, y)
+            return d + warp(pw, x + d[0] - d0[0], y + d[1] - d0[1])
+
+        c = compose_params(pr, pw, order)[0]
+        e = 1e-4
+        assert np.allclose(total(0, 0), [c[0], c[k // 2]], atol=1e-12)
+        gx = (total(e, 0) - total(-e, 0)) / (2 * e)
+        gy = (total(0, e) - total(0, -e)) / (2 * e)
+        assert np.allclose([gx[0], gy[0], gx[1], gy[1]], [c[1], c[2], c[k // 2 + 1], c[k // 2 + 2]], atol=1e-7)
+        if order == 2:
+            hxx = (total(e, 0) - 2 * total(0, 0) + total(-e, 0)) / e**2
+            hxy = (total(e, e) - total(e, -e) - total(-e, e) + total(-e, -e)) / (4 * e**2)
+            assert np.allclose([hxx[0], hxy[0], hxx[1], hxy[1]], [c[3], c[4], c[9], c[10]], atol=1e-5)
+        # shift_params: the same warp seen from another point
+        s = shift_params(pw, np.array([[0.3, -0.2]]), order)[0]
+        assert np.allclose([s[0], s[k // 2]], warp(pw, 0.3, -0.2), atol=1e-12)
+        # relative_params inverts the translation and the gradient
+        r = relative_params(pr, c[None], order)
+        assert np.allclose(r[0, [0, 1, 2, k // 2, k // 2 + 1, k // 2 + 2]], pw[0, [0, 1, 2, k // 2, k // 2 + 1, k // 2 + 2]],
+                           atol=1e-12)
+
+
+def test_cli_reference_and_vtk(sequence, tmp_path):
+    from dic.cli import main
+    from dic.io import write_image
+
+    ref, frames = sequence
+    paths = [str(write_image(tmp_path / f"f{k:02d}.tif", img, bits=8)) for k, img in enumerate([ref, *frames[:4]])]
+    out = tmp_path / "r.h5"
+    r = CliRunner().invoke(main, ["track", *paths, "-o", str(out), "--step", "8", "--device", "cpu",
+                                  "--reference", "incremental", "--vtk", str(tmp_path / "vtk")])
+    assert r.exit_code == 0, r.output
+    res = read_results(out)
+    assert [res.frames[k].attrs["reference_index"] for k in (1, 2, 3, 4)] == [0, 1, 2, 3]
+    assert res.settings["reference"] == "incremental" and "frames/s" in r.output and "(reference: frame 3)" in r.output
+    assert len(list((tmp_path / "vtk").glob("frame_*.vtu"))) == 4
+    r = CliRunner().invoke(main, ["track", *paths, "-o", str(out), "--step", "8", "--reference", "fixed"])
+    assert r.exit_code == 1 and "different settings" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(main, ["track", *paths, "-o", str(out), "--reference", "every:x"])
+    assert r.exit_code == 2 and "--reference" in r.output and "whole number" in r.output
+
+
+@pytest.mark.parametrize("strategy, search", [("fixed", None), ("every:3", "zncc")])
+def test_chunks_under_a_memory_budget_give_identical_results(sequence, tmp_path, strategy, search, monkeypatch):
+    from dic.sequence import chunks
+    from dic.sequence.chunks import bytes_per_poi
+
+    built = []
+    real = chunks.ChunkedTracker.track
+
+    def spy(self, current, guess=None):
+        built.append(self.n_chunks)
+        return real(self, current, guess=guess)
+
+    monkeypatch.setattr(chunks.ChunkedTracker, "track", spy)
+
+    ref, frames = sequence
+    kw = dict(reference=strategy, step=8, device="cpu", search=search, search_radius=4, order=2)
+    whole = track_sequence(ref, frames[:6], tmp_path / "whole.h5", **kw)
+    budget = 37 * bytes_per_poi(2)  # 37 POIs at a time: 4 chunks of the 120
+    assert built == []
+    chunked = track_sequence(ref, frames[:6], tmp_path / "chunked.h5", max_memory=budget, **kw)
+    assert built == [4] * 6  # every frame in 4 chunks
+    assert [f["n_valid"] for f in whole.frames] == [f["n_valid"] for f in chunked.frames]
+    _same_frames(tmp_path / "whole.h5", tmp_path / "chunked.h5")
+    with pytest.raises(ValueError, match="cannot run on POIs in chunks"):
+        track_sequence(ref, frames[:2], tmp_path / "rg.h5", step=8, search="rg", max_memory=budget)
+    with pytest.raises(ValueError, match="max_memory"):
+        track_sequence(ref, frames[:2], tmp_path / "x.h5", step=8, max_memory=0)
+
+
+def test_cli_max_memory_chunks_with_the_same_results(sequence, tmp_path, monkeypatch):
+    from dic.cli import main
+    from dic.io import write_image
+    from dic.sequence import chunks
+
+    built = []
+    real = chunks.ChunkedTracker.track
+    monkeypatch.setattr(chunks.ChunkedTracker, "track", lambda self, cur, guess=None: built.append(self.n_chunks) or
+                        real(self, cur, guess=guess))
+
+    ref, frames = sequence
+    paths = [str(write_image(tmp_path / f"f{k:02d}.tif", img, bits=8)) for k, img in enumerate([ref, *frames[:3]])]
+    base = ["track", *paths, "--step", "8", "--device", "cpu", "-q", "--reference", "every:2"]
+    assert CliRunner().invoke(main, [*base, "-o", str(tmp_path / "a.h5")]).exit_code == 0
+    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 35 POIs a chunk
+    assert r.exit_code == 0, r.output
+    assert built == [4, 4, 4]
+    _same_frames(tmp_path / "a.h5", tmp_path / "b.h5")
+    for bad in ("0", "lots", "-5M"):
+        r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "c.h5"), "--max-memory", bad])
+        assert r.exit_code == 2 and "--max-memory" in r.output and "Traceback" not in r.output
