@@ -446,12 +446,14 @@ class StereoCorrelation:
                          radius=self.radius, fallback=fallback, max_seeds=max(64, n),
                          min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps)
 
-    def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True) -> Field3D:
+    def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True, warn: bool = True) -> Field3D:
         """Track a current pair from the reference pair and return its :class:`Field3D`.
 
         ``use_previous``: start IC-GN from the parameters of the last measured state (a sequence's
         previous frame); otherwise from zero displacement. POIs that fail are retried from SIFT
-        feature matches and from converged neighbours.
+        feature matches and from converged neighbours. ``warn=False``: no warning when the tracks
+        leave (almost) every point invalid (a caller that may track the state again from another
+        reference calls :meth:`warn_if_mostly_invalid` for the result it keeps).
         """
         L, R = _check_pair(left_cur, right_cur, "current")
         if L.shape != self.shape:
@@ -487,12 +489,20 @@ class StereoCorrelation:
             tl = mv.compose(tl, "left", self.order)
             tr = None if tr is None else mv.compose(tr, "right", self.order)
         f = self._field((tl, tr), index=index)
-        if np.count_nonzero(self.match.valid) >= MOSTLY_INVALID_FRACTION * np.count_nonzero(self.in_roi):
-            # (a failed reference match has been reported already; this is about the tracks)
+        if warn and self._tracks_judged():
             _warn_if_mostly_invalid(f.status[self.in_roi], f"stereo tracking of state {index}")
         self._previous = (f.details["params_left"], f.details["params_right"])
         self._previous_images = (L, R)
         return f
+
+    def _tracks_judged(self) -> bool:
+        # (a failed reference match has been reported already; the warning is about the tracks)
+        return np.count_nonzero(self.match.valid) >= MOSTLY_INVALID_FRACTION * np.count_nonzero(self.in_roi)
+
+    def warn_if_mostly_invalid(self, field: Field3D) -> None:
+        """The warning :meth:`measure` gives when a state's tracks leave (almost) every point invalid."""
+        if self._tracks_judged():
+            _warn_if_mostly_invalid(field.status[self.in_roi], f"stereo tracking of state {field.index}")
 
     def set_previous(self, params_left, params_right, images=None) -> None:
         """Set the initial guess of the next :meth:`measure`: parameters (N, 6|12) of the left and right tracks.

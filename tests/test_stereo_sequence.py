@@ -239,6 +239,11 @@ def test_vtk_and_figures_exist_when_each_state_is_handed_over(lab, tmp_path):
     assert (fig / "state_000002_W.png").exists() and not (fig / "state_000003_W.png").exists()
     meshes = [meshio.read(vtk / f"run_{k:06d}.vtu") for k in range(N_STATES)]
     assert all(np.array_equal(m.points, meshes[0].points) for m in meshes)
+    # resuming into another VTK folder: the finished states' files are written there first
+    stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "run.h5", reference="every:2", step=STEP,
+                    vtk_dir=tmp_path / "vtk2", vtk_stem="run")
+    assert sorted(p.name for p in (tmp_path / "vtk2").iterdir()) == ["run.pvd"] + [f"run_{k:06d}.vtu"
+                                                                                   for k in range(N_STATES)]
     with pytest.raises(ValueError, match="figure_every must be"):
         stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "x.h5", step=STEP, figure_every=0)
     with pytest.raises(ValueError, match="reference must be 'fixed', 'incremental', 'every:N' or 'auto'"):

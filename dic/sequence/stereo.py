@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -85,7 +84,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     vtk_dir : folder, optional
         Write ``<vtk_stem>_<index>.vtu`` per state as it finishes (every point with a position, NaN
         where invalid: the same point set at every state) and keep ``<vtk_stem>.pvd`` (the ParaView
-        collection of the states written so far) up to date.
+        collection of the states written so far) up to date. Resuming, the finished states that
+        have no file there yet get theirs first.
     figure_dir : folder, optional
         Write the PNG maps of :func:`dic.plots.fields.write_figures`
         (``state_<index>_<quantity>.png``) of every ``figure_every``-th state as it finishes.
@@ -153,8 +153,14 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         if match is None:
             writer.write_match(sc.match)
         vtk_written: set[int] = set()  # states with a VTK file of this run or of the run before (resuming)
-        if vtk_dir is not None:
+        if vtk_dir is not None and done:
+            from ..export import write_pvd, write_vtk
+
             vtk_written = {k for k in done if (Path(vtk_dir) / f"{vtk_stem}_{k:06d}.vtu").exists()}
+            for k in sorted(done - vtk_written):  # resuming into a new VTK folder: the finished states first
+                write_vtk(writer.read_frame(k), Path(vtk_dir) / f"{vtk_stem}_{k:06d}.vtu", invalid="nan")
+                vtk_written.add(k)
+            write_pvd(vtk_dir, [(i, f"{vtk_stem}_{i:06d}.vtu") for i in sorted(vtk_written)], stem=vtk_stem)
 
         def finish(k, f, lpath, rpath, digests, seconds):
             writer.write_frame(k, f, path=(lpath, rpath), sha256=digests,
@@ -246,16 +252,13 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
                         r = use_reference(policy.start(k, prev_ref), prev_ref)
                         if policy.kind == "auto" and r != k - 1 and k > 1:
                             saved = (sc._previous, sc._previous_images)
-                            with warnings.catch_warnings(record=True) as caught:
-                                warnings.simplefilter("always")
-                                f = sc.measure(L, R, index=k)
+                            f = sc.measure(L, R, index=k, warn=False)
                             if policy.needs_update(*_quality(f, reference_valid())) and \
                                     use_reference(k - 1, r) != r:
                                 sc._previous, sc._previous_images = saved
                                 f = sc.measure(L, R, index=k)
-                            else:  # kept: its warnings are the state's
-                                for w in caught:
-                                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                            else:  # kept
+                                sc.warn_if_mostly_invalid(f)
                         else:
                             f = sc.measure(L, R, index=k)
                     except ValueError as exc:
