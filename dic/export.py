@@ -38,7 +38,7 @@ from .field2d import Field2D
 from .field3d import SCALAR_FIELDS, Field3D
 from .store import FrameResult, ResultReader, StereoResults, TrackResults, read_results, read_stereo
 
-__all__ = ["write_vtk", "write_vtk_series", "write_csv", "write_mat", "write_netcdf", "to_xarray", "to_dataframe",
+__all__ = ["write_vtk", "write_vtk_series", "write_pvd", "write_csv", "write_mat", "write_netcdf", "to_xarray", "to_dataframe",
            "read_any", "export_results", "EXPORT_FORMATS", "NETCDF_ENGINE"]
 
 #: formats of :func:`export_results` (``specula export --format``)
@@ -397,12 +397,24 @@ def write_vtk_series(fields, directory, *, stem: str | None = None, kind: str = 
         name = f"{stem}_{index:06d}.vtu"
         _mesh(f, kind, deformed, invalid="nan", keep=keep, positions=positions).write(directory / name)
         entries.append((index, name))
+    return write_pvd(directory, entries, stem=stem)
+
+
+def write_pvd(directory, entries, *, stem: str) -> Path:
+    """Write the ParaView collection ``<directory>/<stem>.pvd`` of ``entries`` ``[(time step, file name), ...]``
+    (VTK files in ``directory``); returns its path. Rewritten as a whole (a sequence run refreshes it after
+    every state, so ParaView can open the states written so far)."""
+    stem = str(stem)
+    if not stem or os.sep in stem or "/" in stem:
+        raise ValueError(f"stem must be a plain file name prefix, got {stem!r}")
     lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
     for index, name in entries:
-        lines.append(f'    <DataSet timestep="{index}" group="" part="0" file={quoteattr(name)}/>')
+        lines.append(f'    <DataSet timestep="{int(index)}" group="" part="0" file={quoteattr(str(name))}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
-    pvd = directory / f"{stem}.pvd"
-    pvd.write_text("\n".join(lines), encoding="utf-8")
+    pvd = Path(os.fspath(directory)) / f"{stem}.pvd"
+    tmp = pvd.with_name(pvd.name + ".tmp")
+    tmp.write_text("\n".join(lines), encoding="utf-8")
+    os.replace(tmp, pvd)  # a reader never sees half a file
     return pvd
 
 

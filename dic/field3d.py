@@ -419,6 +419,11 @@ class Field3D:
         ``"left"`` (left camera), ``"plane"`` (best-fit plane of the reference shape) or ``"custom"``.
     index : int
         State index in a sequence (0 = reference).
+    reference_index : int
+        The state whose images the temporal tracks used as their reference (0: the reference pair;
+        a later state with ``reference="incremental"``, ``"every:N"`` or ``"auto"`` of
+        :func:`dic.sequence.stereo_sequence`). Whatever it is, every quantity is relative to the
+        reference state (Lagrangian).
     details : dict
         Stage-by-stage codes: ``match_status``, ``track_left_status``, ``track_right_status``
         (:class:`kernels.conventions.Status`), ``triangulation_ref_status``,
@@ -453,6 +458,7 @@ class Field3D:
     frame_name: str = "left"
     index: int = 0
     details: dict = field(default_factory=dict)
+    reference_index: int = 0
 
     #: the codes of ``status``
     status_codes: ClassVar[type] = StereoStatus

@@ -16,7 +16,10 @@ Pipeline (docs/stereo.md, sections "Stereo matching" and "3-D fields"):
    ``epipolar_tol_px`` of the epipolar line; the others keep a :class:`StereoStatus` saying why.
 2. **Temporal tracking.** Each later state is tracked left-reference -> left-current and
    right-reference -> right-current (reference subsets precomputed once, the previous state's
-   parameters as initial guess, features and propagation for POIs that fail).
+   parameters as initial guess, features and propagation for POIs that fail). The tracks may start
+   from a later state's pair instead (:meth:`StereoCorrelation.move_reference`, the reference
+   strategies of :func:`dic.sequence.stereo_sequence`); their results are composed back onto the
+   reference pair, so every state stays relative to the reference state (Lagrangian).
 3. **Triangulation and fields.** Matched positions (reference position + displacement, float64)
    are triangulated (:func:`dic.triangulate.triangulate`, optimal method); displacements are
    current minus reference positions; surface strains come from :mod:`dic.field3d`.
@@ -29,7 +32,7 @@ centre of the top-left pixel; 3-D in mm in the left camera frame (or a chosen ob
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -312,6 +315,7 @@ class StereoCorrelation:
         self._previous_images = (None, None)
         self._jac_ref = None           # d(X_ref)/d(image points), for the uncertainty (dic.quality)
         self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
+        self._moved: _TrackReference | None = None  # the temporal tracks' reference when not the reference pair
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
@@ -442,12 +446,14 @@ class StereoCorrelation:
                          radius=self.radius, fallback=fallback, max_seeds=max(64, n),
                          min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps)
 
-    def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True) -> Field3D:
+    def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True, warn: bool = True) -> Field3D:
         """Track a current pair from the reference pair and return its :class:`Field3D`.
 
         ``use_previous``: start IC-GN from the parameters of the last measured state (a sequence's
         previous frame); otherwise from zero displacement. POIs that fail are retried from SIFT
-        feature matches and from converged neighbours.
+        feature matches and from converged neighbours. ``warn=False``: no warning when the tracks
+        leave (almost) every point invalid (a caller that may track the state again from another
+        reference calls :meth:`warn_if_mostly_invalid` for the result it keeps).
         """
         L, R = _check_pair(left_cur, right_cur, "current")
         if L.shape != self.shape:
@@ -456,25 +462,47 @@ class StereoCorrelation:
         prev = self._previous if use_previous else None
         prev_images = self._previous_images if prev is not None else (None, None)
         matched = self._matched
+        mv = self._moved
+        if mv is None:  # the reference pair
+            corr_l, corr_r, ref_l, ref_r = self.left, self.right, self._left_ref, self._right_ref
+            eligible_l, eligible_r = self.match.valid, np.ones(matched.size, dtype=bool)
+            guess_l = None if prev is None else prev[0]
+            guess_r = None if prev is None else prev[1][matched]
+        else:  # a later state's pair (move_reference): the points valid there, from their positions there
+            corr_l, corr_r, ref_l, ref_r = mv.left, mv.right, mv.left_image, mv.right_image
+            eligible_l, eligible_r = self.match.valid & mv.valid, mv.valid[matched]
+            guess_l = guess_r = None
+            if prev is not None:
+                guess_l = mv.relative(prev[0], "left", self.order)
+                guess_r = mv.relative(prev[1][matched], "right", self.order)
         self.timings = {}
         t0 = time.perf_counter()
-        tl = self._track(self.left, L, None if prev is None else prev[0], self.match.valid, self._left_ref,
-                         prev_images[0])
+        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0])
         self.timings["track_left_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if self.right is not None:
-            tr = self._track(self.right, R, None if prev is None else prev[1][matched],
-                             np.ones(matched.size, dtype=bool), self._right_ref, prev_images[1])
+        if corr_r is not None:
+            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1])
         else:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0
+        if mv is not None:  # back to the reference state (Lagrangian)
+            tl = mv.compose(tl, "left", self.order)
+            tr = None if tr is None else mv.compose(tr, "right", self.order)
         f = self._field((tl, tr), index=index)
-        if np.count_nonzero(self.match.valid) >= MOSTLY_INVALID_FRACTION * np.count_nonzero(self.in_roi):
-            # (a failed reference match has been reported already; this is about the tracks)
+        if warn and self._tracks_judged():
             _warn_if_mostly_invalid(f.status[self.in_roi], f"stereo tracking of state {index}")
         self._previous = (f.details["params_left"], f.details["params_right"])
         self._previous_images = (L, R)
         return f
+
+    def _tracks_judged(self) -> bool:
+        # (a failed reference match has been reported already; the warning is about the tracks)
+        return np.count_nonzero(self.match.valid) >= MOSTLY_INVALID_FRACTION * np.count_nonzero(self.in_roi)
+
+    def warn_if_mostly_invalid(self, field: Field3D) -> None:
+        """The warning :meth:`measure` gives when a state's tracks leave (almost) every point invalid."""
+        if self._tracks_judged():
+            _warn_if_mostly_invalid(field.status[self.in_roi], f"stereo tracking of state {field.index}")
 
     def set_previous(self, params_left, params_right, images=None) -> None:
         """Set the initial guess of the next :meth:`measure`: parameters (N, 6|12) of the left and right tracks.
@@ -493,6 +521,44 @@ class StereoCorrelation:
         self._previous = (pl, pr)
         self._previous_images = (None, None) if images is None else _check_pair(images[0], images[1], "previous")
 
+    @property
+    def reference_index(self) -> int:
+        """The state whose images the temporal tracks use as their reference (0: the reference pair)."""
+        return 0 if self._moved is None else self._moved.index
+
+    def move_reference(self, left_image=None, right_image=None, state: Field3D | None = None) -> None:
+        """Track the next states from a later state's image pair instead of the reference pair.
+
+        ``state``: that pair's :class:`Field3D` (measured by this object or read back from a result
+        file; its ``details`` hold ``params_left``, ``params_right``). The left and right tracks get
+        new reference subsets, in ``left_image`` and ``right_image``, at the positions the original
+        POIs have in that state (points not valid there: the displacement interpolated from valid
+        neighbours, :func:`dic.correlation.lagrangian.moved_points`); each later state's parameters
+        are composed back onto that state's, so every :meth:`measure` stays relative to the
+        reference pair (Lagrangian) and records ``reference_index``. A point not valid in
+        ``state`` is not tracked again and keeps that state's status. The left -> right match of
+        the reference pair is kept. ``move_reference()`` (no state) goes back to the reference pair.
+
+        Raises ``ValueError`` for images of another size, a state of other points or without
+        parameters, or a state with no valid point.
+        """
+        self._moved = None  # the previous moved reference's data are freed before the new ones are prepared
+        if state is None:
+            if left_image is not None or right_image is not None:
+                raise ValueError("move_reference: give the state measured on these images (a Field3D) with them")
+            return
+        if left_image is None or right_image is None:
+            raise ValueError("move_reference: give the state's left and right images")
+        L, R = _check_pair(left_image, right_image, "new reference")
+        if L.shape != self.shape:
+            raise ValueError(f"the new reference images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
+                             f"{self.shape[1]}x{self.shape[0]} px")
+        self._moved = _TrackReference.build(self, L, R, state)
+
+    def _correlators_at(self, left_image, right_image, points_left, points_right):
+        return (self._correlator(left_image, points_left),
+                self._correlator(right_image, points_right) if points_right.shape[0] else None)
+
     def _tri_points(self, pl: np.ndarray, pr: np.ndarray) -> np.ndarray:
         return self._triangulate(pl, pr)[0]
 
@@ -510,10 +576,14 @@ class StereoCorrelation:
         noise_l = noise_r = np.nan
         if tracks is not None:
             tl, tr = tracks
-            sig_l, noise_l, _ = displacement_sigma(self._basis["left"], tl.zncc, tl.accepted, self.noise_sigma)
+            mv = self._moved
+            basis = self._basis if mv is None else mv.basis()
+            sig_l, noise_l, _ = displacement_sigma(basis["left"], tl.zncc, tl.accepted, self.noise_sigma)
             if tr is not None:
-                sr, noise_r, _ = displacement_sigma(self._basis["right"], tr.zncc, tr.accepted, self.noise_sigma)
+                sr, noise_r, _ = displacement_sigma(basis["right"], tr.zncc, tr.accepted, self.noise_sigma)
                 sig_r[self._matched] = sr
+            if mv is not None:  # the moved reference's own uncertainty adds in quadrature
+                sig_l, sig_r = mv.add_sigma(sig_l, sig_r)
         if self._jac_ref is None:
             self._jac_ref = triangulation_jacobian(self._tri_points, self.points, m.points_right)
         R = self._frame[0]
@@ -583,6 +653,9 @@ class StereoCorrelation:
             for stage, failed in ((fl, StereoStatus.TRACK_LEFT_FAILED), (fr, StereoStatus.TRACK_RIGHT_FAILED)):
                 worse = (status == StereoStatus.OK) & (stage != StereoStatus.OK)
                 status[worse] = np.where(np.isin(stage, kept), stage, failed)[worse]
+            if self._moved is not None:  # lost before the moved reference: that state's status
+                lost = m.valid & ~self._moved.valid
+                status[lost] = self._moved.status[lost]
             both = left_ok & right_ok
             use_l = np.where(both[:, None], pl_cur, np.nan)
             use_r = np.where(both[:, None], pr_cur, np.nan)
@@ -628,8 +701,109 @@ class StereoCorrelation:
             zncc_stereo=zs, zncc_left=z_left, zncc_right=z_right,
             epipolar_ref_px=m.epipolar_px, epipolar_px=epi_cur, reprojection_ref_px=res_ref, reprojection_px=res_cur,
             status=status, strain_valid=strain["strain_valid"], R_frame_left=R, t_frame_left=t, frame_name=name,
-            index=int(index), details=details,
+            index=int(index), details=details, reference_index=self.reference_index if tracks is not None else 0,
         )
+
+
+@dataclass
+class _TrackReference:
+    """The temporal tracks' reference when it is a later state (:meth:`StereoCorrelation.move_reference`).
+
+    ``params_*`` are that state's Lagrangian parameters (N, k); the new reference subsets sit at the
+    whole pixels nearest to the POIs' positions in that state, ``offset_*`` (moved - whole, px) the
+    rest, so the warp measured at a whole pixel is carried to the moved point exactly
+    (:func:`dic.correlation.lagrangian.shift_params`) before it is composed.
+    """
+
+    index: int
+    left: Correlator
+    right: Correlator | None
+    left_image: np.ndarray
+    right_image: np.ndarray
+    params_left: np.ndarray
+    params_right: np.ndarray
+    valid: np.ndarray
+    status: np.ndarray
+    matched: np.ndarray
+    offset_left: np.ndarray
+    offset_right: np.ndarray
+    sigma_left: np.ndarray | None = None
+    sigma_right: np.ndarray | None = None
+    _basis: dict = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, sc: "StereoCorrelation", L: np.ndarray, R: np.ndarray, state) -> "_TrackReference":
+        from .correlation.lagrangian import moved_points
+
+        details = getattr(state, "details", None)
+        status = getattr(state, "status", None)
+        if not isinstance(details, dict) or status is None:
+            raise ValueError(f"move_reference: state must be a Field3D, got {type(state).__name__}")
+        n, k = sc.points.shape[0], n_params(sc.order)
+        pl, pr = details.get("params_left"), details.get("params_right")
+        if pl is None or pr is None:
+            raise ValueError("move_reference: the state has no track parameters (params_left, params_right in its details)")
+        pl, pr = np.asarray(pl, dtype=np.float64), np.asarray(pr, dtype=np.float64)
+        status = np.asarray(status, dtype=np.int8)
+        if pl.shape != (n, k) or pr.shape != (n, k) or status.shape != (n,):
+            raise ValueError(f"move_reference: the state has {status.shape[0]} points and parameters of shape "
+                             f"{pl.shape}; this correlation has {n} points and {k} parameters per point")
+        index = int(getattr(state, "index", -1))
+        valid = status == StereoStatus.OK
+        if not np.any(valid):
+            raise ValueError(f"state {index} has no valid point and cannot serve as a reference")
+        matched = sc._matched
+        dl, dr = _displacement(pl, sc.order), _displacement(pr, sc.order)
+        moved_l = moved_points(sc.points, dl[:, 0], dl[:, 1], valid)
+        moved_r = moved_points(sc.match.points_right[matched], dr[matched, 0], dr[matched, 1], valid[matched])
+        whole_l, whole_r = np.round(moved_l), np.round(moved_r)
+        left, right = sc._correlators_at(L, R, whole_l, whole_r)
+        sig = [details.get(name) for name in ("sigma_left_px", "sigma_right_px")]
+        sig = [None if s is None or np.shape(s) != (n, 2) else np.asarray(s, dtype=np.float64) for s in sig]
+        return cls(index, left, right, L, R, pl, pr, valid, status, matched, moved_l - whole_l, moved_r - whole_r,
+                   sig[0], sig[1])
+
+    def _side(self, side: str):
+        if side == "left":
+            return self.params_left, self.offset_left
+        return self.params_right[self.matched], self.offset_right
+
+    def relative(self, params: np.ndarray, side: str, order: int) -> np.ndarray:
+        """A later state's Lagrangian parameters as seen from this reference's (whole-pixel) points:
+        the initial guess of the next state. NaN where either is unknown."""
+        from .correlation.lagrangian import relative_params, shift_params
+
+        ref, offset = self._side(side)
+        params = np.asarray(params, dtype=np.float64)
+        out = np.full(params.shape, np.nan)
+        ok = np.all(np.isfinite(ref), axis=1) & np.all(np.isfinite(params), axis=1)
+        if np.any(ok):
+            rel = relative_params(ref[ok], params[ok], order)
+            out[ok] = shift_params(rel, -offset[ok], order)
+        return out
+
+    def compose(self, res, side: str, order: int):
+        """A track result against this reference, back on the reference pair (Lagrangian)."""
+        from .correlation.lagrangian import compose_params, shift_params
+
+        ref, offset = self._side(side)
+        valid = self.valid if side == "left" else self.valid[self.matched]
+        params = compose_params(ref, shift_params(res.params, offset, order), order)
+        return replace(res, params=params, accepted=res.accepted & valid)
+
+    def basis(self) -> dict:
+        if not self._basis:
+            self._basis["left"] = sigma_basis(self.left.subsets)
+            if self.right is not None:
+                self._basis["right"] = sigma_basis(self.right.subsets)
+        return self._basis
+
+    def add_sigma(self, sig_l: np.ndarray, sig_r: np.ndarray):
+        if self.sigma_left is not None:
+            sig_l = np.hypot(sig_l, self.sigma_left)
+        if self.sigma_right is not None:
+            sig_r = np.hypot(sig_r, self.sigma_right)
+        return sig_l, sig_r
 
 
 def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=None, step: int = 10, roi=None,

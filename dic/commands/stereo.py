@@ -68,16 +68,27 @@ def _engine_pairs(pairs) -> list:
               help="Strain fit window in grid points (odd).")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
-              help="Also write ParaView files (one .vtu per state and a .pvd collection) into this folder.")
+              help="Also write ParaView files into this folder as each state finishes: <output>_<index>.vtu per "
+                   "state (every point at its reference position, NaN where invalid) and the <output>.pvd collection.")
 @click.option("--figures", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
-              help="Also write PNG maps (depth, displacements, strains, status) per state into this folder.")
+              help="Also write PNG maps (depth, displacements, strains, status) per state into this folder, as each "
+                   "state finishes.")
 @click.option("--figure-limits", default="frame", show_default=True, type=click.Choice(["frame", "sequence"]),
               help="Colour range of the figures: per state, or one range per quantity over the whole sequence "
-                   "(signed quantities are centred on zero either way).")
+                   "(figures drawn once the run ends; signed quantities are centred on zero either way).")
+@click.option("--figure-every", default=1, show_default=True, type=click.IntRange(min=1),
+              help="With --figures: draw every Nth state only (state 0, N, 2N, ...).")
+@click.option("--reference", "reference_strategy", default="fixed", show_default=True,
+              metavar="fixed|incremental|every:N|auto",
+              help="What the left and right tracks of each state start from: the reference pair (fixed), the previous "
+                   "pair (incremental), a new pair every N states (every:N), or a new one when the valid fraction or "
+                   "the median track ZNCC drops below 0.95 (auto). The left-right match is done once; results are "
+                   "always relative to the reference state.")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
-           strain_window, device, vtk_dir, figure_dir, figure_limits, overwrite, quiet):
+           strain_window, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, overwrite,
+           quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -91,9 +102,13 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     """
     import numpy as np
 
-    from dic.sequence import read_stereo, stereo_sequence
+    from dic.sequence import parse_reference, read_stereo, stereo_sequence
     from dic.sources import open_inputs, open_pairs
 
+    try:
+        parse_reference(reference_strategy)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--reference") from None
     if left_inputs or right_inputs:
         if images:
             raise click.UsageError("give the images either as IMAGES or with --left and --right, not both")
@@ -145,40 +160,33 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     written = []
 
     def after(field):
-        written.append((field.index, int(np.count_nonzero(field.valid)), len(field)))
+        written.append((field.index, int(np.count_nonzero(field.valid)), len(field), int(field.reference_index)))
 
+    streamed_figures = figure_dir if figure_limits == "frame" else None  # "sequence": drawn at the end
     try:
-        stereo_sequence(rig, pairs, output, mode="overwrite" if overwrite else "resume", progress=not quiet,
-                        callback=after, device=device, **options)
+        stereo_sequence(rig, pairs, output, reference=reference_strategy, mode="overwrite" if overwrite else "resume",
+                        progress=not quiet, callback=after, vtk_dir=vtk_dir, vtk_stem=output.stem,
+                        figure_dir=streamed_figures, figure_every=figure_every, device=device, **options)
     except ValueError as exc:
         raise click.ClickException(f"{exc}" + (f"; finished states are saved in {output}" if written else "")) from None
-    if vtk_dir is not None or figure_dir is not None:
+    if figure_dir is not None and figure_limits == "sequence":
+        from dic.plots.fields import FIGURE_QUANTITIES, sequence_limits, write_figures
+
         results = read_stereo(output)
         fields = [results.fields[i] for i in results.indices]
-        if vtk_dir is not None:
-            from dic.export import write_vtk_series
-
-            try:
-                pvd = write_vtk_series(fields, vtk_dir, stem=output.stem)
-            except ValueError as exc:
-                raise click.ClickException(f"VTK export: {exc}") from None
-            if not quiet:
-                click.echo(f"ParaView: {pvd}")
-        if figure_dir is not None:
-            from dic.plots.fields import FIGURE_QUANTITIES, sequence_limits, write_figures
-
-            left_ref = first_left.image
-            limits = None
-            if figure_limits == "sequence":
-                moving = [q for q in FIGURE_QUANTITIES if q not in ("X", "Y", "Z", "status")]
-                limits = sequence_limits([f for f in fields if f.index > 0], moving)
-            for f in fields:
-                write_figures(f, left_ref, figure_dir, prefix=f"state_{f.index:06d}_", limits=limits)
-            if not quiet:
-                click.echo(f"figures: {figure_dir}")
+        moving = [q for q in FIGURE_QUANTITIES if q not in ("X", "Y", "Z", "status")]
+        limits = sequence_limits([f for f in fields if f.index > 0], moving)
+        for f in fields:
+            if f.index % figure_every == 0:
+                write_figures(f, first_left.image, figure_dir, prefix=f"state_{f.index:06d}_", limits=limits)
     if not quiet:
-        for index, n_valid, n in written:
-            click.echo(f"state {index}: {n_valid}/{n} valid points")
+        if vtk_dir is not None and (vtk_dir / f"{output.stem}.pvd").exists():
+            click.echo(f"ParaView: {vtk_dir / f'{output.stem}.pvd'}")
+        if figure_dir is not None:
+            click.echo(f"figures: {figure_dir}")
+        for index, n_valid, n, ref_index in written:
+            ref_note = f" (reference: state {ref_index})" if ref_index else ""
+            click.echo(f"state {index}: {n_valid}/{n} valid points{ref_note}")
         skipped = len(pairs) - len(written)
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")

@@ -3,7 +3,9 @@
 - :func:`track_sequence` (:mod:`dic.sequence.track2d`): 2-D DIC of a sequence against a reference
   image, with the reference strategies of :mod:`dic.sequence.reference` ("fixed", "incremental",
   "every:N", "auto"; results always Lagrangian), streaming VTK files and figures, resume.
-- :func:`stereo_sequence` (:mod:`dic.sequence.stereo`): stereo DIC of a sequence of image pairs.
+- :func:`stereo_sequence` (:mod:`dic.sequence.stereo`): stereo DIC of a sequence of image pairs, with
+  the same reference strategies for its temporal tracks (the left -> right match done once; results
+  Lagrangian, ``reference_index`` per state), streaming VTK files and figures, resume.
 - :mod:`dic.sequence.pipeline`: the reader thread ahead, the writer thread behind, ``malloc_trim``.
 """
 from __future__ import annotations

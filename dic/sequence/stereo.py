@@ -1,5 +1,11 @@
 """Stereo-DIC sequences: match the reference pair once, track every later pair, write as you go.
 
+Reference strategies (``reference=``, :mod:`dic.sequence.reference`): the temporal tracks of
+:class:`dic.stereo.StereoCorrelation` follow the reference pair ("fixed") or move to a later state's
+pair (:meth:`~dic.stereo.StereoCorrelation.move_reference`: "incremental", "every:N", "auto"); the
+left -> right match of the reference pair is done once, and every state is reported relative to the
+reference state (Lagrangian), with the state its tracks used in ``reference_index``.
+
 On the sequence engine's pipeline (:mod:`dic.sequence.pipeline`): the next pairs are read on a
 thread ahead of the correlation, the finished states written on a thread behind it.
 
@@ -27,6 +33,7 @@ from ..stereo import StereoCorrelation, as_rig
 from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
+from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
 __all__ = ["stereo_sequence", "read_stereo", "read_field", "StereoResults", "FORMAT_NAME", "SCHEMA_VERSION"]
 
@@ -35,8 +42,10 @@ _load = load_image
 _TRIM_EVERY = 10  # states between two malloc_trim calls
 
 
-def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress: bool = False,
-                    callback: Callable[[Field3D], None] | None = None, vtk_dir=None, **options) -> list[Field3D]:
+def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode: str = "resume",
+                    progress: bool = False, callback: Callable[[Field3D], None] | None = None, vtk_dir=None,
+                    vtk_stem: str = "stereo", figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
+                    auto_zncc: float = AUTO_ZNCC, **options) -> list[Field3D]:
     """Stereo DIC of an image-pair sequence, written state by state to an HDF5 file.
 
     Parameters
@@ -45,8 +54,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
         OpenCV YAML/XML/JSON, VIC-3D XML, DICe XML; :func:`dic.stereo.as_rig`)
     pairs : sequence of (left, right)
         Images (arrays or file paths: TIFF, PNG, BMP). ``pairs[0]`` is the reference state;
-        state ``k`` is ``pairs[k]``. Each state is tracked from the reference with the previous
-        state's parameters as initial guess (the reference match is done once).
+        state ``k`` is ``pairs[k]``. Each state is tracked with the previous state's parameters
+        as initial guess (the reference match left -> right is done once).
     out : str or Path
         The ``.h5`` file (layout: docs/results_format.md). An existing file with the same rig,
         reference images and settings is resumed (finished states are skipped) unless
@@ -55,14 +64,31 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
         ``ValueError``; a file another process is writing raises
         :class:`dic.store.ResultFileInUse`, a full disk :class:`dic.store.ResultWriteError`
         (both ``ValueError``; finished states stay in the file).
+    reference : "fixed" | "incremental" | "every:N" | "auto"
+        Which pair the left and right temporal tracks of state ``k`` start from
+        (:mod:`dic.sequence.reference`): the reference pair (fixed), pair ``k - 1`` (incremental),
+        pair ``N * floor((k - 1) / N)`` (every:N), or the previous state's until its valid fraction
+        (among the points valid in that reference) falls below ``auto_valid`` or the median track
+        ZNCC (the lower of left and right) below ``auto_zncc``, then pair ``k - 1`` (auto). Results
+        are always relative to the reference state at the original points (Lagrangian); each
+        state's ``reference_index`` (in the file and on the :class:`Field3D`) says which pair its
+        tracks used. A point lost on the way stays invalid with the status it had then.
+    auto_valid, auto_zncc : float in [0, 1]
+        The thresholds of ``reference="auto"`` (defaults 0.95 and 0.95).
+    mode : "resume" | "overwrite" | "new"
     progress : bool
         Show a tqdm progress bar.
     callback : callable(Field3D), optional
-        Called with each state's result after it is written (not for skipped states; later states
-        are called on the writer thread, in order).
+        Called with each state's result once it is in the file and its VTK and figure files are
+        written (not for skipped states; later states are called on the writer thread, in order).
     vtk_dir : folder, optional
-        Write ``stereo_<index>.vtu`` per later state as it finishes (every point with a position, NaN
-        where invalid).
+        Write ``<vtk_stem>_<index>.vtu`` per state as it finishes (every point with a position, NaN
+        where invalid: the same point set at every state) and keep ``<vtk_stem>.pvd`` (the ParaView
+        collection of the states written so far) up to date. Resuming, the finished states that
+        have no file there yet get theirs first.
+    figure_dir : folder, optional
+        Write the PNG maps of :func:`dic.plots.fields.write_figures`
+        (``state_<index>_<quantity>.png``) of every ``figure_every``-th state as it finishes.
     options
         :class:`dic.stereo.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
@@ -75,6 +101,15 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     """
     from tqdm import tqdm
 
+    from kernels.checks import positive_int
+
+    policy = parse_reference(reference, auto_valid=auto_valid, auto_zncc=auto_zncc)
+    figure_every = positive_int(figure_every, "figure_every")
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable, got {type(callback).__name__}")
+    vtk_stem = str(vtk_stem)
+    if not vtk_stem or os.sep in vtk_stem or "/" in vtk_stem:
+        raise ValueError(f"vtk_stem must be a plain file name prefix, got {vtk_stem!r}")
     pairs = list(pairs)
     if not pairs:
         raise ValueError("pairs is empty: give at least the reference (left, right) pair")
@@ -82,6 +117,9 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
         if not isinstance(p, (tuple, list)) or len(p) != 2:
             raise ValueError(f"pairs[{k}] must be a (left, right) pair, got {type(p).__name__}")
     out = Path(os.fspath(out))
+    for d, what in ((vtk_dir, "vtk_dir"), (figure_dir, "figure_dir")):
+        if d is not None and Path(os.fspath(d)).exists() and not Path(os.fspath(d)).is_dir():
+            raise ValueError(f"{what} must be a folder, but {d} is a file")
     left_ref, lp = _load(pairs[0][0], "reference left image")
     right_ref, rp = _load(pairs[0][1], "reference right image")
     device = options.pop("device", None)
@@ -90,11 +128,18 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
         options["roi"] = region(options["roi"], np.shape(left_ref))
     settings = {k: (v.settings() if isinstance(v, Region) else np.asarray(v).tolist() if isinstance(v, np.ndarray)
                     else v) for k, v in sorted(options.items())}
+    if policy.kind != "fixed":  # only when not fixed: files of earlier runs resume as before
+        settings["reference"] = policy.text
+        if policy.kind == "auto":
+            settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
     ref_digests = (image_digest(left_ref), image_digest(right_ref))
     writer = ResultWriter(out, kind="stereo", reference_path=(lp, rp), reference_shape=np.shape(left_ref),
                           reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode)
+    for d in (vtk_dir, figure_dir):
+        if d is not None:
+            Path(os.fspath(d)).mkdir(parents=True, exist_ok=True)
     results = []
     with writer:
         done = set(writer.done_frames())
@@ -107,35 +152,78 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
         sc = StereoCorrelation(rig, left_ref, right_ref, match=match, device=device, **options)
         if match is None:
             writer.write_match(sc.match)
-        if 0 not in done:
-            writer.write_frame(0, sc.reference, path=(lp, rp), sha256=ref_digests,
-                               attrs={"seconds": float(time.perf_counter() - t0)})
-            results.append(sc.reference)
-            if callback:
-                callback(sc.reference)
-        # the later states: the next pairs are read on a thread ahead, the finished ones written on one behind
-        wb = WriteBehind(depth=2)
+        vtk_written: set[int] = set()  # states with a VTK file of this run or of the run before (resuming)
+        if vtk_dir is not None and done:
+            from ..export import write_pvd, write_vtk
+
+            vtk_written = {k for k in done if (Path(vtk_dir) / f"{vtk_stem}_{k:06d}.vtu").exists()}
+            for k in sorted(done - vtk_written):  # resuming into a new VTK folder: the finished states first
+                write_vtk(writer.read_frame(k), Path(vtk_dir) / f"{vtk_stem}_{k:06d}.vtu", invalid="nan")
+                vtk_written.add(k)
+            write_pvd(vtk_dir, [(i, f"{vtk_stem}_{i:06d}.vtu") for i in sorted(vtk_written)], stem=vtk_stem)
 
         def finish(k, f, lpath, rpath, digests, seconds):
-            writer.write_frame(k, f, path=(lpath, rpath), sha256=digests, attrs={"seconds": seconds})
+            writer.write_frame(k, f, path=(lpath, rpath), sha256=digests,
+                               attrs={"seconds": seconds, "reference_index": int(f.reference_index)})
             if vtk_dir is not None:
-                from ..export import write_vtk
+                from ..export import write_pvd, write_vtk
 
-                write_vtk(f, Path(vtk_dir) / f"stereo_{k:06d}.vtu", invalid="nan")
+                name = f"{vtk_stem}_{k:06d}.vtu"
+                write_vtk(f, Path(vtk_dir) / name, invalid="nan")
+                vtk_written.add(k)
+                write_pvd(vtk_dir, [(i, f"{vtk_stem}_{i:06d}.vtu") for i in sorted(vtk_written)], stem=vtk_stem)
+            if figure_dir is not None and k % figure_every == 0:
+                from ..plots import fields as plots
+
+                plots.write_figures(f, left_ref, figure_dir, prefix=f"state_{k:06d}_")
             if callback:
                 callback(f)
+
+        if 0 not in done:
+            finish(0, sc.reference, lp, rp, ref_digests, float(time.perf_counter() - t0))
+            results.append(sc.reference)
+        # the later states: the next pairs are read on a thread ahead, the finished ones written on one behind
+        wb = WriteBehind(depth=2)
 
         def load(k, pair) -> Loaded:
             (L, lpath), (R, rpath) = _load(pair[0], f"left image of pair {k}"), _load(pair[1], f"right image of pair {k}")
             return Loaded(k, (L, R), (lpath, rpath), (image_digest(L), image_digest(R)))
 
-        if vtk_dir is not None:
-            Path(vtk_dir).mkdir(parents=True, exist_ok=True)
+        images: dict[int, tuple] = {}  # pairs that may serve as a reference: bounded (<= 3)
+        last: Field3D | None = None    # the last state computed in this call
+        prev_ref = 0                    # the reference index of the state before the next one
+
+        def stored_state(r: int) -> Field3D:
+            if last is not None and last.index == r:
+                return last
+            with wb.lock:
+                return writer.read_frame(r)
+
+        def use_reference(r: int, fallback: int) -> int:
+            """Move the tracks to pair r (a state with no valid point cannot: ``fallback`` then); its index."""
+            if r == sc.reference_index:
+                return r
+            if r == 0:
+                sc.move_reference()
+                return 0
+            if r not in images:
+                raise ValueError(f"cannot resume {out}: the images of state {r}, the reference of the next state, "
+                                 "were not given again; give the same pairs as the run that wrote the file")
+            state = stored_state(r)
+            if not np.any(state.valid):
+                if fallback == r:
+                    raise ValueError(f"state {r} has no valid point and cannot serve as a reference")
+                return use_reference(fallback, fallback)
+            sc.move_reference(images[r][0], images[r][1], state)
+            return r
+
+        def reference_valid() -> np.ndarray:
+            return sc.reference.valid if sc.reference_index == 0 else sc._moved.valid
+
         last_images = None  # the pair of the last state skipped (resuming starts from it)
         computed = 0
         reader = read_ahead(pairs[1:], load, first=1)
-        with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
-                  disable=not progress) as bar:
+        with tqdm(total=len(pairs), initial=1, unit="pair", desc="stereo", disable=not progress) as bar:
             try:
                 for item in reader:
                     k = item.index
@@ -146,7 +234,12 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                     if k in done:  # resuming: the finished state must come from the pair given for it now
                         with wb.lock:
                             writer.check_frame(k, (lpath, rpath), item.digest)
+                            prev_ref = int(writer.frame_attrs(k).get("reference_index", 0))
                         last_images = (L, R)
+                        images[k] = (L, R)
+                        keep = {policy.start(k + 1, prev_ref), k, sc.reference_index}
+                        for i in [i for i in images if i not in keep]:
+                            del images[i]
                         bar.update(1)
                         continue
                     prev = max((d for d in done if d < k and d > 0), default=None)
@@ -156,7 +249,18 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                         sc.set_previous(params_left, params_right, images=last_images if prev == k - 1 else None)
                     t1 = time.perf_counter()
                     try:
-                        f = sc.measure(L, R, index=k)
+                        r = use_reference(policy.start(k, prev_ref), prev_ref)
+                        if policy.kind == "auto" and r != k - 1 and k > 1:
+                            saved = (sc._previous, sc._previous_images)
+                            f = sc.measure(L, R, index=k, warn=False)
+                            if policy.needs_update(*_quality(f, reference_valid())) and \
+                                    use_reference(k - 1, r) != r:
+                                sc._previous, sc._previous_images = saved
+                                f = sc.measure(L, R, index=k)
+                            else:  # kept
+                                sc.warn_if_mostly_invalid(f)
+                        else:
+                            f = sc.measure(L, R, index=k)
                     except ValueError as exc:
                         wb.close()
                         raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
@@ -164,6 +268,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                               finish(k, f, lp, rp, d, s))
                     done.add(k)
                     results.append(f)
+                    last, prev_ref = f, f.reference_index
+                    images[k] = (L, R)
+                    keep = {policy.start(k + 1, prev_ref), k, sc.reference_index}
+                    for i in [i for i in images if i not in keep]:
+                        del images[i]
                     computed += 1
                     if computed % _TRIM_EVERY == 0:
                         trim_memory()
@@ -174,3 +283,13 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                 wb.close(raise_error=False)
         trim_memory()
     return results
+
+
+def _quality(f: Field3D, reference_valid: np.ndarray) -> tuple[float, float]:
+    """Valid fraction (among the points valid in the tracks' reference) and median track ZNCC (the lower of
+    left and right) of the valid points."""
+    valid = np.asarray(f.valid, bool) & reference_valid
+    n_ref = int(np.count_nonzero(reference_valid))
+    frac = np.count_nonzero(valid) / n_ref if n_ref else 0.0
+    z = np.fmin(np.asarray(f.zncc_left, np.float64), np.asarray(f.zncc_right, np.float64))[valid]
+    return float(frac), float(np.median(z)) if z.size else 0.0

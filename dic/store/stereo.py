@@ -6,7 +6,8 @@ Beyond the common layout a stereo file has::
     /reference/match       points_left, points_right, params, zncc, iterations, icgn_status,
                            epipolar_px, guess_source, status; attrs n_features, order
     /frames/<index>        one group per state ("000000" = the reference shape)
-        attrs: grid_shape, frame_name, R_frame_left, t_frame_left (besides the common ones)
+        attrs: grid_shape, frame_name, R_frame_left, t_frame_left (besides the common ones); reference_index
+               (written by dic.sequence.stereo_sequence; read as Field3D.reference_index, 0 when absent)
         datasets: every per-point array of the Field3D (points, X ... W, exx, eyy, exy, normal,
                   zncc_*, epipolar_*, reprojection_*, status, strain_valid) and its details
                   (match_status, track_left_status, ..., params_left, params_right, ...);
@@ -159,7 +160,8 @@ def read_field3d(group):
     return Field3D(**arrays, grid_shape=tuple(gs) if gs else None,
                    R_frame_left=np.asarray(group.attrs["R_frame_left"]),
                    t_frame_left=np.asarray(group.attrs["t_frame_left"]), frame_name=str(group.attrs["frame_name"]),
-                   index=int(group.attrs["index"]), details=details)
+                   index=int(group.attrs["index"]), details=details,
+                   reference_index=int(group.attrs.get("reference_index", 0)))
 
 
 def write_match(group, match) -> None:

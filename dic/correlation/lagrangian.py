@@ -1,0 +1,107 @@
+"""Lagrangian composition of shape-function parameters across reference updates (pure NumPy).
+
+Used by the sequence engine's reference strategies (:mod:`dic.sequence.reference`, 2-D) and by the
+moved references of stereo tracks (:meth:`dic.stereo.StereoCorrelation.move_reference`): a
+displacement ``w`` measured against a reference at the moved points ``X_r = X0 + d_r(X0)``
+composes as ``d(X0) = d_r(X0) + w(X_r)``, the gradients by the chain rule.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["compose_params", "relative_params", "moved_points", "shift_params"]
+
+
+def _gradients(params: np.ndarray, order: int):
+    """(N, 2) displacement, (N, 2, 2) gradient G[i, a] = d u_i / d x_a and, for order 2, (N, 2, 2, 2) Hessians."""
+    h = params.shape[1] // 2
+    d = np.stack([params[:, 0], params[:, h]], 1)
+    G = np.stack([params[:, 1:3], params[:, h + 1:h + 3]], 1)
+    H = None
+    if order == 2:
+        H = np.empty((params.shape[0], 2, 2, 2))
+        for i, base in enumerate((0, h)):
+            xx, xy, yy = params[:, base + 3], params[:, base + 4], params[:, base + 5]
+            H[:, i] = np.stack([np.stack([xx, xy], -1), np.stack([xy, yy], -1)], -2)
+    return d, G, H
+
+
+def _pack(d, G, H, order: int) -> np.ndarray:
+    n = d.shape[0]
+    out = np.zeros((n, 6 if order == 1 else 12))
+    h = out.shape[1] // 2
+    for i, base in enumerate((0, h)):
+        out[:, base] = d[:, i]
+        out[:, base + 1:base + 3] = G[:, i]
+        if order == 2:
+            out[:, base + 3] = H[:, i, 0, 0]
+            out[:, base + 4] = H[:, i, 0, 1]
+            out[:, base + 5] = H[:, i, 1, 1]
+    return out
+
+
+def compose_params(ref_params: np.ndarray, inc_params: np.ndarray, order: int) -> np.ndarray:
+    """Parameters of ``d(X) = d_r(X) + w(X + d_r(X))`` from those of ``d_r`` (at X) and ``w`` (at X + d_r(X)).
+
+    Chain rule: gradient ``G = G_r + G_w F_r`` (``F_r = I + G_r``); second order
+    ``H_i = H_r,i + F_r^T H_w,i F_r + sum_a G_w[i, a] H_r,a``.
+    """
+    dr, Gr, Hr = _gradients(np.asarray(ref_params, np.float64), order)
+    dw, Gw, Hw = _gradients(np.asarray(inc_params, np.float64), order)
+    F = np.eye(2)[None] + Gr
+    G = Gr + np.einsum("nia,nab->nib", Gw, F)
+    H = None
+    if order == 2:
+        H = Hr + np.einsum("nab,niac,ncd->nibd", F, Hw, F) + np.einsum("nia,nabc->nibc", Gw, Hr)
+    return _pack(dr + dw, G, H, order)
+
+
+def relative_params(ref_params: np.ndarray, params: np.ndarray, order: int) -> np.ndarray:
+    """The inverse of :func:`compose_params` to first order: ``w`` with ``d = d_r ∘ w`` (translation and
+    gradient; second-order terms zero), used as the initial guess against a moved reference."""
+    dr, Gr, _ = _gradients(np.asarray(ref_params, np.float64), order)
+    d, G, _ = _gradients(np.asarray(params, np.float64), order)
+    F = np.eye(2)[None] + Gr
+    with np.errstate(all="ignore"):
+        Gw = np.einsum("nia,nab->nib", G - Gr, np.linalg.inv(F))
+    return _pack(d - dr, Gw, np.zeros((d.shape[0], 2, 2, 2)), order)
+
+
+def moved_points(points0: np.ndarray, u: np.ndarray, v: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Where the original POIs are in a frame: ``X0 + (u, v)``; points not valid there get the displacement
+    interpolated linearly from the valid ones (nearest valid one outside their hull)."""
+    pts = np.asarray(points0, np.float64)
+    d = np.stack([u, v], 1).astype(np.float64)
+    good = np.asarray(valid, bool) & np.all(np.isfinite(d), axis=1)
+    if not np.any(good):
+        raise ValueError("no valid point to move the reference with")
+    bad = ~good
+    if np.any(bad):
+        from scipy.interpolate import griddata
+
+        filled = None
+        if np.count_nonzero(good) >= 3:
+            try:
+                filled = griddata(pts[good], d[good], pts[bad], method="linear")
+            except Exception:  # noqa: BLE001 - collinear valid points (Qhull): nearest below
+                filled = None
+        near = griddata(pts[good], d[good], pts[bad], method="nearest")
+        if filled is None:
+            filled = near
+        filled = np.where(np.isfinite(filled), filled, near)
+        d = d.copy()
+        d[bad] = filled
+    return pts + d
+
+
+def shift_params(params: np.ndarray, delta: np.ndarray, order: int) -> np.ndarray:
+    """Shape-function parameters of the same warp seen from a point ``delta`` (N, 2) px away: the
+    displacement and gradient evaluated there (exact for the affine and quadratic shape functions)."""
+    d, G, H = _gradients(np.asarray(params, np.float64), order)
+    delta = np.asarray(delta, np.float64)
+    d2 = d + np.einsum("nia,na->ni", G, delta)
+    G2 = G
+    if order == 2:
+        d2 = d2 + 0.5 * np.einsum("niab,na,nb->ni", H, delta, delta)
+        G2 = G + np.einsum("niab,nb->nia", H, delta)
+    return _pack(d2, G2, H, order)

@@ -1,0 +1,288 @@
+"""Stereo sequences on the sequence engine: reference strategies, resume, streaming VTK and figures.
+
+Scene: the virtual lab of tests/test_stereo_dic.py (two 320x240 px cameras 300 mm apart, a speckled
+plane at 1000 mm; no noise, 16 samples per pixel) in 4 states: state k (k = 0..3) moves the plane by
+k/3 of a rigid translation and stretches it by k/3 of a uniform 0.6 % along its x axis, so each
+state is a small step from the one before and the last one is far from the reference. The exact
+3-D displacement of every point is known.
+
+Error budget (test_stereo_dic.py): 0.05 px RMS per matched coordinate -> about 0.15 mm in depth and
+0.05 mm laterally for a state against the reference. A moved reference adds the error of the state
+it starts from (Lagrangian composition), so the strategies get 2x the fixed reference's error bound.
+"""
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calibration.stereo import StereoRig
+from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.synth import make_speckle
+
+W_PX, H_PX = 320, 240
+TRANSLATION_WORLD = np.array([1.5, -0.9, 3.0])  # mm, at the last state
+STRETCH = 0.006                                  # at the last state, along the plane's x axis
+N_STATES = 4
+STEP = 20
+
+
+def _cameras():
+    return [LabCamera.from_lens(name=name, size=(W_PX, H_PX), focal_length_mm=12.0, f_number=float("inf"),
+                                focus_distance_mm=1000.0, position=(x, 0.0, 0.0), look_at_point=(0.0, 0.0, 1000.0),
+                                exposure_dn=200.0, bit_depth=8)
+            for name, x in (("left", -150.0), ("right", 150.0))]
+
+
+@pytest.fixture(scope="module")
+def lab():
+    cams = _cameras()
+    speckle = make_speckle(region=(-5, -5, 305, 255), radius=1.2, density=0.5, bits=None, seed=3)
+    plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(300.0, 250.0), speckle=speckle)
+    t_local = plane.R_world_surface.T @ TRANSLATION_WORLD
+    states = []
+    for k in range(N_STATES):
+        a = k / (N_STATES - 1)
+        moved = replace(plane, displacement=Displacement.from_function(
+            lambda X, Y, a=a: (a * t_local[0] + a * STRETCH * (X - 150.0), a * t_local[1] + 0.0 * Y,
+                               a * t_local[2] + 0.0 * X), extent=(0, 300, 0, 250), step=10.0))
+        scene = Scene(cameras=cams, planes=[moved])
+        states.append(tuple(render(scene, i, samples=16, seed=10 * k + i) for i in range(2)))
+    left, right = cams
+    R = right.R_cam_world @ left.R_cam_world.T
+    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    return {"rig": rig, "states": states, "plane": plane, "left": left, "t_local": t_local}
+
+
+def _exact_uvw(lab, f):
+    """The exact displacement (left camera frame, mm) of the material point each POI sees in the reference."""
+    plane, left = lab["plane"], lab["left"]
+    world = (f.xyz - left.t_cam_world) @ left.R_cam_world           # reference points in the world frame
+    XY = (world - plane.t_world_surface) @ plane.R_world_surface     # material coordinates (Z ~ 0)
+    a = f.index / (N_STATES - 1)
+    t = lab["t_local"]
+    local = np.column_stack([a * t[0] + a * STRETCH * (XY[:, 0] - 150.0), np.full(len(XY), a * t[1]),
+                             np.full(len(XY), a * t[2])])
+    return local @ plane.R_world_surface.T @ left.R_cam_world.T
+
+
+def _errors(lab, fields):
+    """Per state: valid fraction, mean error (3,) and error std (3,) in mm against the exact displacement."""
+    out = {}
+    for f in fields:
+        ok = f.valid
+        err = f.uvw[ok] - _exact_uvw(lab, f)[ok]
+        out[f.index] = (ok.mean(), err.mean(axis=0), err.std(axis=0))
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(lab, tmp_path_factory):
+    """Every strategy on the 4 states ("auto" with thresholds that force an update at every state)."""
+    from dic.sequence import stereo_sequence
+
+    tmp = tmp_path_factory.mktemp("strategies")
+    pairs = list(lab["states"])
+    out = {}
+    for name, kw in (("fixed", {}), ("incremental", {}), ("every:2", {}), ("auto", {"auto_zncc": 0.99999})):
+        path = tmp / f"{name.replace(':', '_')}.h5"
+        fields = stereo_sequence(lab["rig"], pairs, path, reference=name, step=STEP, **kw)
+        out[name] = (path, fields)
+    return out
+
+
+def test_every_strategy_follows_translation_and_stretch(lab, runs):
+    from dic.field3d import StereoStatus
+    from dic.store import read_stereo
+
+    expected_refs = {"fixed": [0, 0, 0], "incremental": [0, 1, 2], "every:2": [0, 0, 2], "auto": [0, 1, 2]}
+    fixed = _errors(lab, runs["fixed"][1])
+    for name, (path, fields) in runs.items():
+        assert [f.index for f in fields] == list(range(N_STATES))
+        assert [f.reference_index for f in fields[1:]] == expected_refs[name], name
+        back = read_stereo(path)
+        assert [back.fields[k].reference_index for k in range(1, N_STATES)] == expected_refs[name]
+        assert back.settings.get("reference", "fixed") == name
+        errs = _errors(lab, fields)
+        for k in range(1, N_STATES):
+            frac, mean, std = errs[k]
+            # the same points as the fixed reference (only border subsets leaving the image fail)
+            assert frac > 0.8 and frac >= fixed[k][0] - 0.05, (name, k, frac)
+            # the fixed reference's bounds (test_stereo_dic.py: mean 0.01 mm lateral, 0.04 mm depth;
+            # std 0.05 / 0.15 mm), doubled for the moved references (their error adds to the state they start from)
+            bound_mean = np.array([0.01, 0.01, 0.04]) * (1 if name == "fixed" else 2)
+            bound_std = np.array([0.05, 0.05, 0.15]) * (1 if name == "fixed" else 2)
+            assert np.all(np.abs(mean) < bound_mean), (name, k, mean)
+            assert np.all(std < bound_std), (name, k, std)
+            # and relative to what the fixed reference measured (the moved ones: 1.0-1.8x on this scene)
+            assert np.all(std <= 2.5 * fixed[k][2] + 0.002), (name, k, std, fixed[k][2])
+        # the stretch: mean exx of the last state against the exact 0.6 % (strain noise ~5e-4 per point)
+        f = fields[-1]
+        s = f.valid & f.strain_valid
+        assert abs(np.mean(f.exx[s]) - STRETCH) < 5e-4, (name, np.mean(f.exx[s]))
+        assert set(np.unique(f.status[~f.valid])) <= {StereoStatus.MATCH_FAILED, StereoStatus.TRACK_LEFT_FAILED,
+                                                       StereoStatus.TRACK_RIGHT_FAILED, StereoStatus.NOT_COMPUTED}
+        # Lagrangian: the same reference positions in every state, whatever the tracks started from
+        ref = runs["fixed"][1][0]
+        assert np.array_equal(f.points, ref.points)
+        assert np.allclose(f.xyz[f.valid], fields[0].xyz[f.valid], atol=1e-9)
+
+
+def test_moved_reference_directly_on_stereo_correlation(lab):
+    """StereoCorrelation.move_reference: tracking state 3 from state 2's pair gives state 3 relative to state 0."""
+    from dic.stereo import StereoCorrelation
+
+    (l0, r0), _, (l2, r2), (l3, r3) = lab["states"]
+    sc = StereoCorrelation(lab["rig"], l0, r0, step=STEP)
+    f2 = sc.measure(l2, r2, index=2)
+    direct = sc.measure(l3, r3, index=3, use_previous=False)
+    sc.move_reference(l2, r2, f2)
+    assert sc.reference_index == 2
+    moved = sc.measure(l3, r3, index=3, use_previous=False)
+    assert moved.reference_index == 2 and direct.reference_index == 0
+    ok = moved.valid & direct.valid
+    assert ok.mean() > 0.8
+    assert np.sqrt(np.mean((moved.uvw[ok] - direct.uvw[ok]) ** 2, axis=0)).max() < 0.15
+    assert np.all(np.isfinite(moved.details["sigma_uvw_mm"][moved.valid]))
+    sc.move_reference()  # back to the reference pair
+    again = sc.measure(l3, r3, index=3, use_previous=False)
+    assert again.reference_index == 0
+    assert np.allclose(again.uvw, direct.uvw, equal_nan=True, atol=1e-9)
+    with pytest.raises(ValueError, match="new reference images are 312x240 px"):
+        sc.move_reference(l2[:, :-8], r2[:, :-8], f2)
+    with pytest.raises(ValueError, match="state must be a Field3D"):
+        sc.move_reference(l2, r2, "f2")
+    with pytest.raises(ValueError, match="give the state's left and right images"):
+        sc.move_reference(l2, None, f2)
+    dead = replace(f2, status=np.full_like(f2.status, 3))
+    with pytest.raises(ValueError, match="state 2 has no valid point"):
+        sc.move_reference(l2, r2, dead)
+
+
+@pytest.mark.parametrize("reference,cut,kw", [("incremental", 1, {}), ("every:2", 2, {}),
+                                              ("auto", 2, {"auto_zncc": 0.99999})])
+def test_resume_after_an_interruption_is_identical(lab, tmp_path, reference, cut, kw):
+    """A run cut after state ``cut`` and rerun gives the same states as the uninterrupted run: the rerun reads
+    the moved reference's state and its images back (the cut file is a copy taken when that state was written,
+    so both share one reference match: see test_stereo_dic.py)."""
+    from dic.sequence import stereo_sequence
+    from dic.store import read_stereo
+
+    pairs = list(lab["states"])
+    full, part = tmp_path / "full.h5", tmp_path / "cut.h5"
+
+    def snapshot(field):
+        if field.index == cut:
+            shutil.copyfile(full, part)
+
+    stereo_sequence(lab["rig"], pairs, full, reference=reference, step=STEP, callback=snapshot, **kw)
+    assert read_stereo(part).indices == list(range(cut + 1))
+    resumed = stereo_sequence(lab["rig"], pairs, part, reference=reference, step=STEP, **kw)
+    assert [f.index for f in resumed] == list(range(cut + 1, N_STATES))
+    a, b = read_stereo(full), read_stereo(part)
+    assert a.indices == b.indices == list(range(N_STATES))
+    for k in a.indices:
+        assert a.fields[k].reference_index == b.fields[k].reference_index
+        fa, fb = a.fields[k].arrays(), b.fields[k].arrays()
+        assert fa.keys() == fb.keys()
+        for key in fa:
+            assert np.array_equal(fa[key], fb[key], equal_nan=True), (k, key)
+
+
+def test_exception_at_a_state_keeps_the_finished_ones_and_resumes(lab, tmp_path):
+    """An exception while state 2 is handed over (here in the callback) stops the run with states 0-2 in the
+    file; the rerun computes state 3 only, from state 2's pair (incremental), as an uninterrupted run does."""
+    from dic.sequence import stereo_sequence
+    from dic.store import read_stereo
+
+    pairs = list(lab["states"])
+    out = tmp_path / "run.h5"
+
+    def stop(field):
+        if field.index == 2:
+            raise RuntimeError("killed at state 2")
+
+    with pytest.raises(RuntimeError, match="killed at state 2"):
+        stereo_sequence(lab["rig"], pairs, out, reference="incremental", step=STEP, callback=stop)
+    assert read_stereo(out).indices == [0, 1, 2]
+    resumed = stereo_sequence(lab["rig"], pairs, out, reference="incremental", step=STEP)
+    assert [(f.index, f.reference_index) for f in resumed] == [(3, 2)]
+    full = stereo_sequence(lab["rig"], pairs, tmp_path / "full.h5", reference="incremental", step=STEP)
+    a, b = full[3], read_stereo(out).fields[3]
+    assert np.array_equal(a.status, b.status)
+    assert np.allclose(a.uvw, b.uvw, equal_nan=True, atol=1e-6)
+    # another strategy on the same file: refused (it is part of the settings)
+    with pytest.raises(ValueError, match="different settings"):
+        stereo_sequence(lab["rig"], pairs, out, reference="every:2", step=STEP)
+
+
+def test_vtk_and_figures_exist_when_each_state_is_handed_over(lab, tmp_path):
+    import meshio
+
+    from dic.sequence import stereo_sequence
+
+    vtk, fig = tmp_path / "vtk", tmp_path / "fig"
+    seen = []
+
+    def check(field):
+        k = field.index
+        assert (vtk / f"run_{k:06d}.vtu").exists()
+        pvd = (vtk / "run.pvd").read_text()
+        assert all(f'file="run_{i:06d}.vtu"' in pvd for i in range(k + 1))
+        assert (fig / f"state_{k:06d}_Z.png").exists() == (k % 2 == 0)
+        assert not (vtk / f"run_{k + 1:06d}.vtu").exists()
+        seen.append(k)
+
+    stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "run.h5", reference="every:2", step=STEP,
+                    callback=check, vtk_dir=vtk, vtk_stem="run", figure_dir=fig, figure_every=2)
+    assert seen == list(range(N_STATES))
+    assert (fig / "state_000002_W.png").exists() and not (fig / "state_000003_W.png").exists()
+    meshes = [meshio.read(vtk / f"run_{k:06d}.vtu") for k in range(N_STATES)]
+    assert all(np.array_equal(m.points, meshes[0].points) for m in meshes)
+    # resuming into another VTK folder: the finished states' files are written there first
+    stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "run.h5", reference="every:2", step=STEP,
+                    vtk_dir=tmp_path / "vtk2", vtk_stem="run")
+    assert sorted(p.name for p in (tmp_path / "vtk2").iterdir()) == ["run.pvd"] + [f"run_{k:06d}.vtu"
+                                                                                   for k in range(N_STATES)]
+    with pytest.raises(ValueError, match="figure_every must be"):
+        stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "x.h5", step=STEP, figure_every=0)
+    with pytest.raises(ValueError, match="reference must be 'fixed', 'incremental', 'every:N' or 'auto'"):
+        stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "x.h5", step=STEP, reference="sometimes")
+    with pytest.raises(ValueError, match="whole number N >= 1"):
+        stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "x.h5", step=STEP, reference="every:0")
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(ValueError, match="vtk_dir must be a folder"):
+        stereo_sequence(lab["rig"], list(lab["states"]), tmp_path / "x.h5", step=STEP, vtk_dir=tmp_path / "afile")
+
+
+def test_cli_reference_and_streaming_outputs(lab, tmp_path):
+    from click.testing import CliRunner
+
+    from dic.cli import main
+    from dic.io import write_image
+    from dic.store import read_stereo
+
+    lab["rig"].save(tmp_path / "rig.json")
+    paths = []
+    for k, (a, b) in enumerate(lab["states"]):
+        paths += [str(write_image(tmp_path / f"L{k}.png", a)), str(write_image(tmp_path / f"R{k}.png", b))]
+    runner = CliRunner()
+    base = ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "--step", str(STEP)]
+    res = runner.invoke(main, [*base, "-o", str(tmp_path / "inc.h5"), "--reference", "incremental",
+                               "--vtk", str(tmp_path / "vtk"), "--figures", str(tmp_path / "fig"),
+                               "--figure-every", "3"])
+    assert res.exit_code == 0, res.output
+    assert "state 3: " in res.output and "(reference: state 2)" in res.output
+    back = read_stereo(tmp_path / "inc.h5")
+    assert [back.fields[k].reference_index for k in back.indices] == [0, 0, 1, 2]
+    assert back.settings["reference"] == "incremental"
+    assert sorted(p.name for p in (tmp_path / "vtk").iterdir()) == ["inc.pvd"] + [f"inc_{k:06d}.vtu" for k in range(4)]
+    figs = {p.name.split("_")[1] for p in (tmp_path / "fig").iterdir()}
+    assert figs == {"000000", "000003"}
+    res = runner.invoke(main, [*base, "-o", str(tmp_path / "bad.h5"), "--reference", "every:x"])
+    assert res.exit_code == 2 and "--reference" in res.output and "whole number N >= 1" in res.output
+    res = runner.invoke(main, [*base, "-o", str(tmp_path / "bad.h5"), "--figure-every", "0"])
+    assert res.exit_code == 2 and "--figure-every" in res.output
+    (tmp_path / "afile").write_text("")
+    res = runner.invoke(main, [*base, "-o", str(tmp_path / "bad2.h5"), "--vtk", str(tmp_path / "afile")])
+    assert res.exit_code != 0 and "Traceback" not in res.output
