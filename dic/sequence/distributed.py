@@ -1,0 +1,111 @@
+"""Sequences beyond one machine, on Dask (``client=`` of :func:`dic.sequence.track_sequence`; docs/dic2d.md,
+"Sequences on several machines (Dask)").
+
+The client reads the frames and writes the results (the one writer, in frame order); the workers
+correlate. Each worker prepares a reference once and keeps it in :data:`_CACHE` (a per-process dict
+keyed by the run's settings digest, the reference frame and its image digest), so a frame costs one
+task: the frame travels with its task (so a task whose worker dies is retried on another worker with
+its frame; distributed reschedules it), the reference image is scattered to every worker once.
+
+Distributed frames cannot wait for their predecessor's result, so a distributed run starts every
+frame from the tracker's own start (its ``search``, or zero against the reference, which for
+``every:N`` is the block's key frame moved to where the points are): ``guess="none"`` of the
+single-process engine, which gives identical results.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+
+__all__ = ["connect", "local_client", "n_workers", "track_on_worker", "ReferenceBuilder", "CONNECT_TIMEOUT"]
+
+CONNECT_TIMEOUT = 5.0  # seconds to reach a scheduler
+_CACHE_SIZE = 2  # references kept per worker process (the current block's and the one before)
+_CACHE: OrderedDict = OrderedDict()
+_LOCK = threading.Lock()
+
+
+def _distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise ValueError("client= needs dask.distributed: pip install 'specula-dic[dask]'") from None
+    return distributed
+
+
+def connect(client, *, timeout: float = CONNECT_TIMEOUT):
+    """A :class:`distributed.Client` from ``client``: a Client as it is, or a scheduler address
+    (``"tcp://host:8786"``) connected within ``timeout`` seconds (ValueError when it cannot be reached)."""
+    distributed = _distributed()
+    if isinstance(client, distributed.Client):
+        return client
+    if isinstance(client, str) and client.strip():
+        address = client.strip()
+        try:
+            return distributed.Client(address, timeout=timeout, set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise ValueError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s "
+                             f"({type(exc).__name__}: {exc})") from None
+    raise ValueError(f"client must be a distributed.Client or a scheduler address such as 'tcp://host:8786', "
+                     f"got {client!r}")
+
+
+def local_client(n_workers: int):
+    """A client of a new local cluster of ``n_workers`` worker processes (one thread each; closed with
+    the client's ``_specula_cluster``)."""
+    from kernels.checks import positive_int
+
+    n_workers = positive_int(n_workers, "n_workers")
+    distributed = _distributed()
+    cluster = distributed.LocalCluster(n_workers=n_workers, processes=True, threads_per_worker=1,
+                                       dashboard_address=None)
+    client = distributed.Client(cluster, set_as_default=False)
+    client._specula_cluster = cluster
+    return client
+
+
+def n_workers(client) -> int:
+    """The number of worker threads of ``client``'s cluster (at least 1)."""
+    try:
+        return max(1, sum(client.nthreads().values()))
+    except Exception:
+        return 1
+
+
+def track_on_worker(key: str, build, ref_image, points, image):
+    """(raw field, seconds): ``image`` tracked against the reference ``key``, prepared once per worker
+    process by ``build(ref_image, points)`` and kept for the next frames."""
+    with _LOCK:  # one frame at a time per process (a worker's threads would share a tracker)
+        tracker = _CACHE.get(key)
+        if tracker is None:
+            tracker = build(ref_image, points)
+            _CACHE[key] = tracker
+            while len(_CACHE) > _CACHE_SIZE:
+                _CACHE.popitem(last=False)
+        else:
+            _CACHE.move_to_end(key)
+        t0 = time.perf_counter()
+        raw = tracker.track(image, guess=None)
+        return raw, time.perf_counter() - t0
+
+
+class ReferenceBuilder:
+    """Builds the tracker of a reference on a worker: ``make_tracker(image, points)``, in chunks of the
+    memory budget when over it (as :func:`dic.sequence.track_sequence` does on one machine)."""
+
+    def __init__(self, make_tracker, budget: int, order: int, search=None):
+        self.make_tracker, self.budget, self.order, self.search = make_tracker, int(budget), int(order), search
+
+    def over_budget(self, n_points: int) -> bool:
+        from .chunks import bytes_per_poi
+
+        return n_points * bytes_per_poi(self.order) > self.budget
+
+    def __call__(self, image, points):
+        from .chunks import ChunkedTracker, bytes_per_poi
+
+        if points is not None and self.over_budget(len(points)):
+            return ChunkedTracker(self.make_tracker, image, points, order=self.order,
+                                  chunk=self.budget // bytes_per_poi(self.order), search=self.search)
+        return self.make_tracker(image, points)

@@ -1,0 +1,176 @@
+"""Sequences on Dask (dic.sequence.distributed): ``track_sequence(client=)`` and ``specula track --workers/--scheduler``
+on a LocalCluster of 2 worker processes: results identical to one process (guess="none"), resume, a worker
+killed mid-run, an unreachable scheduler. About 30-60 s in all (one cluster for the module)."""
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+distributed = pytest.importorskip("distributed")
+
+from dic.sequence import track_sequence  # noqa: E402
+from dic.store import read_results  # noqa: E402
+from dic.synth import speckle_pair  # noqa: E402
+
+pytestmark = pytest.mark.dask
+
+SHAPE = (96, 112)
+N_FRAMES = 8
+
+
+def truth(k):
+    return lambda x, y: (0.25 * k + 0.002 * k * (x - 56), -0.2 * k + 0.001 * k * (y - 48))
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    ref, _ = speckle_pair(SHAPE, (0, 0), seed=5)
+    return ref, [speckle_pair(SHAPE, truth(k), seed=5)[1] for k in range(1, N_FRAMES + 1)]
+
+
+@pytest.fixture(scope="module")
+def client():
+    with distributed.LocalCluster(n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as c:
+        import dic
+
+        # the worker processes import this checkout's packages
+        assert set(c.run(lambda: __import__("dic").__file__).values()) == {dic.__file__}
+        yield c
+
+
+def _same(a, b, frames=None):
+    ra, rb = read_results(a), read_results(b)
+    assert sorted(ra.frames) == sorted(rb.frames) == (frames or list(range(1, N_FRAMES + 1)))
+    for k in ra.frames:
+        fa, fb = ra.frames[k], rb.frames[k]
+        for name in ("points", "u", "v", "params", "zncc", "status", "valid", "sigma_u", "sigma_v"):
+            assert np.array_equal(getattr(fa, name), getattr(fb, name), equal_nan=True), (k, name)
+        for name in fa.strain:
+            assert np.array_equal(fa.strain[name], fb.strain[name], equal_nan=True), (k, name)
+        assert fa.attrs["reference_index"] == fb.attrs["reference_index"]
+    assert ra.settings == rb.settings
+
+
+@pytest.mark.parametrize("strategy", ["fixed", "every:3"])
+def test_identical_to_one_process(sequence, client, tmp_path, strategy):
+    ref, frames = sequence
+    seen = []
+    s = track_sequence(ref, frames, tmp_path / "d.h5", reference=strategy, step=8, device="cpu", client=client,
+                       callback=lambda k, f, e: seen.append(k))
+    one = track_sequence(ref, frames, tmp_path / "one.h5", reference=strategy, step=8, device="cpu", guess="none")
+    _same(tmp_path / "d.h5", tmp_path / "one.h5")
+    assert seen == list(range(1, N_FRAMES + 1))  # written in frame order
+    assert [f["index"] for f in s.frames] == list(range(1, N_FRAMES + 1))
+    assert [f["reference_index"] for f in s.frames] == [f["reference_index"] for f in one.frames]
+    res = read_results(tmp_path / "d.h5")
+    assert res.settings["guess"] == "none"
+    for k in (1, N_FRAMES):  # and the exact field is followed
+        f = res.frames[k]
+        tu, tv = truth(k)(f.points[:, 0], f.points[:, 1])
+        assert f.valid.mean() >= 0.85 and np.sqrt(np.mean((f.u[f.valid] - tu[f.valid]) ** 2)) < 0.05
+
+
+def test_resume_on_dask(sequence, client, tmp_path):
+    ref, frames = sequence
+    out = tmp_path / "r.h5"
+    track_sequence(ref, frames[:3], out, reference="every:2", step=8, device="cpu", guess="none")  # one process
+    s = track_sequence(ref, frames, out, reference="every:2", step=8, device="cpu", client=client)
+    assert s.skipped == 3 and [f["index"] for f in s.frames] == list(range(4, N_FRAMES + 1))
+    track_sequence(ref, frames, tmp_path / "one.h5", reference="every:2", step=8, device="cpu", guess="none")
+    _same(out, tmp_path / "one.h5")
+    other = [frames[0], frames[0] + 1.0] + frames[2:]  # a finished frame's image changed: refused, as on one machine
+    with pytest.raises(ValueError, match="frame 2"):
+        track_sequence(ref, other, out, reference="every:2", step=8, device="cpu", client=client)
+
+
+def test_worker_killed_mid_run(sequence, client, tmp_path):
+    """The first frame tracked kills its worker process: the frame is retried on another worker, nothing is
+    lost or written twice, results as on one process."""
+    ref, frames = sequence
+    marker = tmp_path / "killed"
+
+    def make_tracker(image, points, marker=str(marker)):
+        import os
+
+        from dic.track import Tracker
+
+        class KillsItsWorkerOnce:
+            def __init__(self, tracker):
+                self.tracker, self.points, self.order = tracker, tracker.points, tracker.order
+
+            def track(self, image, guess=None):
+                if not os.path.exists(marker):
+                    open(marker, "w").close()
+                    os._exit(1)
+                return self.tracker.track(image, guess=guess)
+
+        kw = {"step": 8} if points is None else {"points": points}
+        return KillsItsWorkerOnce(Tracker(image, device="cpu", **kw))
+
+    seen = []
+    s = track_sequence(ref, frames, tmp_path / "k.h5", client=client, make_tracker=make_tracker, settings={"step": 8},
+                       callback=lambda k, f, e: seen.append(k))
+    assert marker.exists()  # a worker died
+    assert seen == list(range(1, N_FRAMES + 1)) and [f["index"] for f in s.frames] == seen
+    track_sequence(ref, frames, tmp_path / "one.h5", step=8, device="cpu", guess="none", settings={"step": 8})
+    _same(tmp_path / "k.h5", tmp_path / "one.h5")
+    deadline = time.time() + 30  # the nanny restarts the worker
+    while len(client.scheduler_info()["workers"]) < 2 and time.time() < deadline:
+        time.sleep(0.2)
+
+
+def test_refused_settings(sequence, client, tmp_path):
+    ref, frames = sequence
+    for kw, match in ((dict(reference="incremental"), "'incremental' cannot be distributed"),
+                      (dict(reference="auto"), "'auto' cannot be distributed"),
+                      (dict(guess="previous"), "guess='previous' chains"),
+                      (dict(client=12), "client must be a distributed.Client or a scheduler address")):
+        with pytest.raises(ValueError, match=match):
+            track_sequence(ref, frames, tmp_path / "x.h5", step=8, device="cpu", **{"client": client, **kw})
+    with pytest.raises(ValueError, match="guess must be 'previous' or 'none'"):
+        track_sequence(ref, frames, tmp_path / "x.h5", step=8, device="cpu", guess="chain")
+    assert not (tmp_path / "x.h5").exists()
+
+
+def _images(tmp_path, sequence):
+    from dic.io import write_image
+
+    ref, frames = sequence
+    paths = []
+    for k, img in enumerate([ref, *frames]):
+        paths.append(str(tmp_path / f"img_{k:02d}.tif"))
+        write_image(paths[-1], np.clip(np.round(img), 0, 255).astype(np.uint8))
+    return paths
+
+
+def test_cli_workers_and_unreachable_scheduler(sequence, tmp_path):
+    from dic.cli import main
+
+    paths = _images(tmp_path, sequence)
+    runner = CliRunner()
+    out = tmp_path / "cli.h5"
+    r = runner.invoke(main, ["track", *paths, "-o", str(out), "--step", "8", "--device", "cpu", "--workers", "2",
+                             "--reference", "every:4", "-q"])
+    assert r.exit_code == 0, r.output
+    track_sequence(paths[0], paths[1:], tmp_path / "one.h5", reference="every:4", guess="none", step=8, device="cpu",
+                   subset=21, order=1)
+    ra, rb = read_results(out), read_results(tmp_path / "one.h5")
+    for k in range(1, N_FRAMES + 1):
+        for name in ("u", "v", "params", "status", "valid"):
+            assert np.array_equal(getattr(ra.frames[k], name), getattr(rb.frames[k], name), equal_nan=True)
+
+    t0 = time.perf_counter()
+    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "s.h5"), "--device", "cpu",
+                             "--scheduler", "tcp://127.0.0.1:1", "-q"])
+    assert r.exit_code == 1 and isinstance(r.exception, SystemExit), r.output  # a message, no traceback
+    assert "Error: cannot reach the Dask scheduler at tcp://127.0.0.1:1 within 5 s" in r.output
+    assert time.perf_counter() - t0 < 20
+    assert not (tmp_path / "s.h5").exists()
+
+    for args, match in ((["--workers", "2", "--reference", "incremental"], "cannot be distributed"),
+                        (["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "not both"),
+                        (["--workers", "0"], "--workers")):
+        r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "s.h5"), *args])
+        assert r.exit_code == 2 and match in r.output, r.output
