@@ -121,6 +121,40 @@ def test_worker_killed_mid_run(sequence, client, tmp_path):
         time.sleep(0.2)
 
 
+def test_frame_that_keeps_killing_its_workers(sequence, client, tmp_path):
+    """A frame whose every try kills its worker: a clear message after distributed's retries, and every frame
+    before it in the file (written once)."""
+    ref, frames = sequence
+    out = tmp_path / "k.h5"
+
+    def make_tracker(image, points, bad=frames[3]):
+        import os
+
+        import numpy as np
+
+        from dic.track import Tracker
+
+        class KillsOnFrame4:
+            def __init__(self, tracker):
+                self.tracker, self.points, self.order = tracker, tracker.points, tracker.order
+
+            def track(self, image, guess=None):
+                if np.array_equal(image, bad):
+                    os._exit(1)
+                return self.tracker.track(image, guess=guess)
+
+        kw = {"step": 8} if points is None else {"points": points}
+        return KillsOnFrame4(Tracker(image, device="cpu", **kw))
+
+    with pytest.raises(ValueError, match=r"^frame 4 \(array\): the Dask cluster could not compute it \(KilledWorker: .*"
+                                         r"frames before it are saved in .*k\.h5$"):
+        track_sequence(ref, frames, out, client=client, make_tracker=make_tracker, settings={"step": 8})
+    assert sorted(read_results(out).frames) == [1, 2, 3]
+    deadline = time.time() + 30  # the nanny restarts the worker
+    while len(client.scheduler_info()["workers"]) < 2 and time.time() < deadline:
+        time.sleep(0.2)
+
+
 def test_refused_settings(sequence, client, tmp_path):
     ref, frames = sequence
     for kw, match in ((dict(reference="incremental"), "'incremental' cannot be distributed"),

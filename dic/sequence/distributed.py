@@ -4,8 +4,9 @@
 The client reads the frames and writes the results (the one writer, in frame order); the workers
 correlate. Each worker prepares a reference once and keeps it in :data:`_CACHE` (a per-process dict
 keyed by the run's settings digest, the reference frame and its image digest), so a frame costs one
-task: the frame travels with its task (so a task whose worker dies is retried on another worker with
-its frame; distributed reschedules it), the reference image is scattered to every worker once.
+task: the frame travels with its task and the reference image with a task of its own, fetched once by
+each worker (so a task whose worker dies is retried on another worker with its frame, distributed
+reschedules it; data scattered with ``client.scatter`` would be lost with the last worker holding it).
 
 Distributed frames cannot wait for their predecessor's result, so a distributed run starts every
 frame from the tracker's own start (its ``search``, or zero against the reference, which for
@@ -18,7 +19,7 @@ import threading
 import time
 from collections import OrderedDict
 
-__all__ = ["connect", "local_client", "n_workers", "track_on_worker", "ReferenceBuilder", "CONNECT_TIMEOUT"]
+__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "ReferenceBuilder", "CONNECT_TIMEOUT"]
 
 CONNECT_TIMEOUT = 5.0  # seconds to reach a scheduler
 _CACHE_SIZE = 2  # references kept per worker process (the current block's and the one before)
@@ -32,6 +33,25 @@ def _distributed():
     except ImportError:
         raise ValueError("client= needs dask.distributed: pip install 'specula-dic[dask]'") from None
     return distributed
+
+
+def LOST() -> tuple:
+    """The exception types of a frame the cluster lost (not of the frame itself): a worker that kept
+    dying on it (``KilledWorker`` after ``distributed.scheduler.allowed-failures`` retries), a cancelled
+    future (a scheduler gone), a connection closed or timed out."""
+    import asyncio
+    import concurrent.futures
+
+    _distributed()
+    from distributed.scheduler import KilledWorker
+
+    try:
+        from distributed.client import FutureCancelledError
+    except ImportError:  # older distributed: a plain CancelledError
+        FutureCancelledError = asyncio.CancelledError
+    # (distributed's CommClosedError is an OSError)
+    return (KilledWorker, FutureCancelledError, asyncio.CancelledError, concurrent.futures.CancelledError,
+            OSError, TimeoutError)
 
 
 def connect(client, *, timeout: float = CONNECT_TIMEOUT):
@@ -71,6 +91,11 @@ def n_workers(client) -> int:
         return max(1, sum(client.nthreads().values()))
     except Exception:
         return 1
+
+
+def held(obj):
+    """``obj`` itself: a task whose result is ``obj`` puts it on the cluster and can be computed again."""
+    return obj
 
 
 def track_on_worker(key: str, build, ref_image, points, image):

@@ -531,20 +531,26 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     import uuid
     from collections import OrderedDict
 
-    from .distributed import n_workers, track_on_worker
+    from .distributed import LOST, held, n_workers, track_on_worker
+
+    lost = LOST()
 
     token = _sha256_text(json.dumps(settings, sort_keys=True, default=str) + _digest(ref_img))[:16] + "-" + \
         uuid.uuid4().hex[:8]
     window = 2 * n_workers(client) + 1
-    build = client.scatter(builder, broadcast=True, hash=False)
+    # the reference data go to the cluster as the results of tasks that hold them (not scattered): if
+    # every worker holding them dies, the scheduler computes them again instead of cancelling the frames
+    build = client.submit(held, builder, key=f"specula-{token}-builder", pure=False)
     pending: OrderedDict = OrderedDict()  # frame -> (future, Loaded, _Ref)
     key_states: dict[int, _State] = {}  # every:N: the key frames computed in this call
     images: dict[int, Any] = {}  # images of key frames (the next block's reference): bounded
     done = set(writer.done_frames())
 
     def scattered(index: int, image, points, digest: str) -> dict:
-        futs = client.scatter([image] if points is None else [image, points], broadcast=True, hash=False)
-        return {"key": f"{token}:{index}:{digest}", "image": futs[0], "points": None if points is None else futs[1]}
+        return {"key": f"{token}:{index}:{digest}",
+                "image": client.submit(held, image, key=f"specula-{token}-reference-{index}", pure=False),
+                "points": None if points is None else client.submit(held, points, key=f"specula-{token}-points-{index}",
+                                                                   pure=False)}
 
     over = builder.over_budget(len(points0))
     cur = _Ref(0, ref_img, zero, None)
@@ -561,6 +567,9 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
         except ValueError as exc:
             wb.close(raise_error=True)  # the frames before it are written first
             fail(k, item, exc)
+        except lost as exc:  # workers that kept dying on this frame, a scheduler gone, a cancelled run
+            wb.close(raise_error=True)
+            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
         lag = raw if ref.index == 0 else _compose(ref, raw, points0, order)
         wb.submit(lambda k=k, lag=lag, s=seconds, r=ref.index, it=item: finish(k, lag, s, r, it))
         if policy.kind == "every" and k % policy.every == 0:
