@@ -168,6 +168,35 @@ def test_refused_settings(sequence, client, tmp_path):
     assert not (tmp_path / "x.h5").exists()
 
 
+def test_address_that_is_not_a_scheduler(sequence, tmp_path):
+    """A server that answers something else (here an HTTP error page) at the address: the same clear message."""
+    import socket
+    import threading
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen()
+    port = server.getsockname()[1]
+
+    def answer():
+        for _ in range(5):
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            conn.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n" * 8)
+            conn.close()
+
+    threading.Thread(target=answer, daemon=True).start()
+    ref, frames = sequence
+    try:
+        with pytest.raises(ValueError, match=rf"^cannot reach the Dask scheduler at tcp://127.0.0.1:{port} within 5 s "):
+            track_sequence(ref, frames, tmp_path / "x.h5", step=8, device="cpu", client=f"tcp://127.0.0.1:{port}")
+    finally:
+        server.close()
+    assert not (tmp_path / "x.h5").exists()
+
+
 def _images(tmp_path, sequence):
     from dic.io import write_image
 

@@ -62,11 +62,16 @@ def connect(client, *, timeout: float = CONNECT_TIMEOUT):
         return client
     if isinstance(client, str) and client.strip():
         address = client.strip()
-        try:
+        try:  # a handshake first: a Client that fails half-way leaves a client object that complains when collected
+            _probe(address, timeout)
             return distributed.Client(address, timeout=timeout, set_as_default=False)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise ValueError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s "
-                             f"({type(exc).__name__}: {exc})") from None
+        except Exception as exc:  # refused, timed out, not a Dask scheduler (any reply it cannot read), a bad address
+            reason = f"{type(exc).__name__}: {exc}"
+            if not isinstance(exc, (OSError, TimeoutError, ValueError)):  # something answered, not in Dask's protocol
+                reason = f"something answered there, but not a Dask scheduler: {type(exc).__name__}"
+            if len(reason) > 200:
+                reason = reason[:200] + "..."
+            raise ValueError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s ({reason})") from None
     raise ValueError(f"client must be a distributed.Client or a scheduler address such as 'tcp://host:8786', "
                      f"got {client!r}")
 
@@ -83,6 +88,22 @@ def local_client(n_workers: int):
     client = distributed.Client(cluster, set_as_default=False)
     client._specula_cluster = cluster
     return client
+
+
+def _probe(address: str, timeout: float) -> None:
+    """Open and close one connection to ``address`` (distributed's handshake), on a thread of its own (the
+    caller may be running an event loop)."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed.comm import connect as comm_connect
+
+    async def probe():
+        comm = await comm_connect(address, timeout=timeout)
+        await comm.close()
+
+    with ThreadPoolExecutor(1) as pool:
+        pool.submit(asyncio.run, asyncio.wait_for(probe(), timeout + 1.0)).result()
 
 
 def n_workers(client) -> int:
