@@ -1,6 +1,7 @@
 """Sequences on Dask (dic.sequence.distributed): ``track_sequence(client=)`` and ``specula track --workers/--scheduler``
 on a LocalCluster of 2 worker processes: results identical to one process (guess="none"), resume, a worker
 killed mid-run, an unreachable scheduler. About 30-60 s in all (one cluster for the module)."""
+import threading
 import time
 
 import numpy as np
@@ -163,6 +164,16 @@ def test_refused_settings(sequence, client, tmp_path):
                       (dict(client=12), "client must be a distributed.Client or a scheduler address")):
         with pytest.raises(ValueError, match=match):
             track_sequence(ref, frames, tmp_path / "x.h5", step=8, device="cpu", **{"client": client, **kw})
+    lock = threading.Lock()
+
+    def make_tracker(image, points, lock=lock):  # holds a lock: cannot go to the workers
+        from dic.track import Tracker
+
+        return Tracker(image, device="cpu", **({"step": 8} if points is None else {"points": points}))
+
+    with pytest.raises(ValueError, match=r"make_tracker cannot be sent to the Dask workers \(TypeError: cannot pickle "
+                                         r"'_thread.lock' object\); with client= it must be picklable"):
+        track_sequence(ref, frames, tmp_path / "x.h5", client=client, make_tracker=make_tracker, settings={})
     with pytest.raises(ValueError, match="guess must be 'previous' or 'none'"):
         track_sequence(ref, frames, tmp_path / "x.h5", step=8, device="cpu", guess="chain")
     assert not (tmp_path / "x.h5").exists()

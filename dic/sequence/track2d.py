@@ -540,6 +540,13 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     window = 2 * n_workers(client) + 1
     # the reference data go to the cluster as the results of tasks that hold them (not scattered): if
     # every worker holding them dies, the scheduler computes them again instead of cancelling the frames
+    import cloudpickle
+
+    try:
+        cloudpickle.dumps(builder)
+    except Exception as exc:  # a make_tracker that cannot be pickled (it holds a lock, an open file, ...)
+        raise ValueError(f"make_tracker cannot be sent to the Dask workers ({type(exc).__name__}: {exc}); with client= "
+                         "it must be picklable by cloudpickle (create what it holds inside it)") from None
     build = client.submit(held, builder, key=f"specula-{token}-builder", pure=False)
     pending: OrderedDict = OrderedDict()  # frame -> (future, Loaded, _Ref)
     key_states: dict[int, _State] = {}  # every:N: the key frames computed in this call
