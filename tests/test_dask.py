@@ -248,3 +248,82 @@ def test_cli_workers_and_unreachable_scheduler(sequence, tmp_path):
                         (["--workers", "0"], "--workers")):
         r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "s.h5"), *args])
         assert r.exit_code == 2 and match in r.output, r.output
+
+
+@pytest.fixture(scope="module")
+def stereo_lab():
+    """A 320 x 240 px stereo rig looking at a speckled plane, in 4 states (rigid translations)."""
+    from dataclasses import replace
+
+    from calibration.stereo import StereoRig
+    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+    from dic.synth import make_speckle
+
+    cams = [LabCamera.from_lens(name=name, size=(320, 240), focal_length_mm=12.0, f_number=float("inf"),
+                                focus_distance_mm=1000.0, position=(x, 0.0, 0.0), look_at_point=(0.0, 0.0, 1000.0),
+                                exposure_dn=200.0, bit_depth=8)
+            for name, x in (("left", -150.0), ("right", 150.0))]
+    speckle = make_speckle(region=(-5, -5, 305, 255), radius=1.2, density=0.5, bits=None, seed=3)
+    plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(300.0, 250.0), speckle=speckle)
+    states = []
+    for k in range(4):
+        t_local = plane.R_world_surface.T @ (np.array([0.4, -0.2, 0.8]) * k)
+        p = replace(plane, displacement=Displacement(np.broadcast_to(t_local, (2, 2, 3)).copy(), (0.0, 0.0),
+                                                     (300.0, 250.0)))
+        states.append(tuple(render(Scene(cameras=cams, planes=[p]), i, samples=4, seed=10 * k + i) for i in range(2)))
+    left, right = cams
+    R = right.R_cam_world @ left.R_cam_world.T
+    return StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world), states
+
+
+def test_stereo_identical_to_one_process(stereo_lab, client, tmp_path):
+    from dic.sequence import read_stereo, stereo_sequence
+
+    rig, pairs = stereo_lab
+    seen = []
+    d = stereo_sequence(rig, pairs, tmp_path / "d.h5", step=20, device="cpu", client=client,
+                        callback=lambda f: seen.append(f.index))
+    one = stereo_sequence(rig, pairs, tmp_path / "one.h5", step=20, device="cpu", guess="none")
+    assert seen == [0, 1, 2, 3] and [f.index for f in d] == [f.index for f in one] == [0, 1, 2, 3]
+    a, b = read_stereo(tmp_path / "d.h5"), read_stereo(tmp_path / "one.h5")
+    assert a.settings == b.settings and a.settings["guess"] == "none"
+    from dic.field3d import SCALAR_FIELDS
+
+    assert sorted(a.fields) == sorted(b.fields) == [0, 1, 2, 3]
+    for k in a.fields:
+        fa, fb = a.fields[k], b.fields[k]
+        for name in ("points", "status", "strain_valid", *SCALAR_FIELDS):
+            assert np.array_equal(getattr(fa, name), getattr(fb, name), equal_nan=True), (k, name)
+    last = a.fields[3]
+    assert np.count_nonzero(np.isfinite(last.U)) > 0.5 * last.U.size
+    # resume on the cluster: the finished states are skipped
+    stereo_sequence(rig, pairs[:2], tmp_path / "r.h5", step=20, device="cpu", guess="none")
+    r = stereo_sequence(rig, pairs, tmp_path / "r.h5", step=20, device="cpu", client=client)
+    assert [f.index for f in r] == [2, 3]
+    with pytest.raises(ValueError, match="guess='previous' chains each state"):
+        stereo_sequence(rig, pairs, tmp_path / "x.h5", step=20, device="cpu", client=client, guess="previous")
+
+
+def test_stereo_cli_on_a_scheduler(stereo_lab, client, tmp_path):
+    from dic.cli import main
+    from dic.io import write_image
+    from dic.sequence import read_stereo
+
+    rig, pairs = stereo_lab
+    paths = []
+    for k, (a, b) in enumerate(pairs):
+        for side, img in (("L", a), ("R", b)):
+            paths.append(str(tmp_path / f"{side}{k}.png"))
+            write_image(paths[-1], img)
+    rig.save(tmp_path / "rig.json")
+    runner = CliRunner()
+    base = ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "--step", "20", "--device", "cpu", "-q"]
+    r = runner.invoke(main, [*base, "-o", str(tmp_path / "s.h5"), "--scheduler", client.scheduler.address])
+    assert r.exit_code == 0, r.output
+    res = read_stereo(tmp_path / "s.h5")
+    assert res.indices == [0, 1, 2, 3] and res.settings["guess"] == "none"
+    r = runner.invoke(main, [*base, "-o", str(tmp_path / "x.h5"), "--scheduler", "tcp://127.0.0.1:1"])
+    assert r.exit_code == 1 and "Error: cannot reach the Dask scheduler at tcp://127.0.0.1:1 within 5 s" in r.output
+    r = runner.invoke(main, [*base, "-o", str(tmp_path / "x.h5"), "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"])
+    assert r.exit_code == 2 and "not both" in r.output
+    assert not (tmp_path / "x.h5").exists()

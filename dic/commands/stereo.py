@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from ._dask import check as check_dask
+from ._dask import dask_client, dask_options
 from ._region import parse_region, region_options
 
 
@@ -74,10 +76,11 @@ def _engine_pairs(pairs) -> list:
 @click.option("--figure-limits", default="frame", show_default=True, type=click.Choice(["frame", "sequence"]),
               help="Colour range of the figures: per state, or one range per quantity over the whole sequence "
                    "(signed quantities are centred on zero either way).")
+@dask_options("state")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
-           strain_window, device, vtk_dir, figure_dir, figure_limits, overwrite, quiet):
+           strain_window, device, vtk_dir, figure_dir, figure_limits, scheduler, workers, overwrite, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -91,6 +94,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     """
     import numpy as np
 
+    check_dask(scheduler, workers)
     from dic.sequence import read_stereo, stereo_sequence
     from dic.sources import open_inputs, open_pairs
 
@@ -148,8 +152,9 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         written.append((field.index, int(np.count_nonzero(field.valid)), len(field)))
 
     try:
-        stereo_sequence(rig, pairs, output, mode="overwrite" if overwrite else "resume", progress=not quiet,
-                        callback=after, device=device, **options)
+        with dask_client(scheduler, workers) as client:
+            stereo_sequence(rig, pairs, output, mode="overwrite" if overwrite else "resume", progress=not quiet,
+                            callback=after, device=device, client=client, **options)
     except ValueError as exc:
         raise click.ClickException(f"{exc}" + (f"; finished states are saved in {output}" if written else "")) from None
     if vtk_dir is not None or figure_dir is not None:

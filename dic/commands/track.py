@@ -5,11 +5,12 @@ each frame finishes; rerunning the same command resumes after the last finished 
 """
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 
 import click
 
+from ._dask import check as check_dask
+from ._dask import dask_client, dask_options
 from ._region import parse_region, region_options
 
 
@@ -63,12 +64,7 @@ def _fail(exc: Exception) -> click.ClickException:
               help="Budget for the per-point working data of the correlation: bytes, or with a unit K, M, G (binary, "
                    "e.g. 512M; default: a quarter of the machine's memory); beyond it the points are prepared and "
                    "tracked in chunks, with the same results.")
-@click.option("--scheduler", default=None, metavar="ADDRESS",
-              help="Correlate the frames on the Dask cluster of this scheduler (tcp://host:8786); this process reads "
-                   "and writes. Each frame then starts from --search or zero, not from the previous frame "
-                   "(docs/dic2d.md, Sequences on several machines). --reference fixed or every:N.")
-@click.option("--workers", default=None, type=click.IntRange(min=1, max=1024),
-              help="Correlate the frames on a local Dask cluster of this many worker processes (as --scheduler).")
+@dask_options("frame")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
@@ -95,9 +91,7 @@ def track(reference, current, output, subset, step, order, search, search_method
         policy = parse_reference(reference_strategy)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--reference") from None
-    if scheduler is not None and workers is not None:
-        raise click.UsageError("give --scheduler (an existing cluster) or --workers (a local one), not both")
-    if (scheduler is not None or workers is not None) and policy.kind not in ("fixed", "every"):
+    if check_dask(scheduler, workers) and policy.kind not in ("fixed", "every"):
         raise click.BadParameter(f"{policy.text!r} cannot be distributed (each frame waits for the one before it); "
                                  "use fixed or every:N with --scheduler/--workers", param_hint="--reference")
     if subset < 5 or subset % 2 == 0:
@@ -161,7 +155,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                              roi=region if points is None else None, points=points)
 
     try:
-        with _dask_client(scheduler, workers) as client:
+        with dask_client(scheduler, workers) as client:
             result = track_sequence(
                 ref_frame, _Frames(source), output, reference=reference_strategy,
                 mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
@@ -181,25 +175,6 @@ def track(reference, current, output, subset, step, order, search, search_method
         if result.frames:
             click.echo(f"{len(result.frames)} frame(s) in {result.seconds:.1f} s ({result.frames_per_second:.2f} frames/s)")
         click.echo(f"results: {output}")
-
-
-@contextlib.contextmanager
-def _dask_client(scheduler, workers):
-    """None (one process), a client of the scheduler at ``scheduler``, or of a local cluster of ``workers``
-    processes (closed afterwards)."""
-    if scheduler is None and workers is None:
-        yield None
-        return
-    from dic.sequence.distributed import connect, local_client
-
-    client = connect(scheduler) if scheduler is not None else local_client(workers)
-    try:
-        yield client
-    finally:
-        cluster = getattr(client, "_specula_cluster", None)
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 class _Frames:

@@ -36,7 +36,8 @@ _TRIM_EVERY = 10  # states between two malloc_trim calls
 
 
 def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress: bool = False,
-                    callback: Callable[[Field3D], None] | None = None, vtk_dir=None, **options) -> list[Field3D]:
+                    callback: Callable[[Field3D], None] | None = None, vtk_dir=None, guess: str | None = None,
+                    client=None, **options) -> list[Field3D]:
     """Stereo DIC of an image-pair sequence, written state by state to an HDF5 file.
 
     Parameters
@@ -63,6 +64,14 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     vtk_dir : folder, optional
         Write ``stereo_<index>.vtu`` per later state as it finishes (every point with a position, NaN
         where invalid).
+    guess : "previous" | "none", optional
+        ``"previous"`` (default without ``client``): each state starts from the previous state's
+        parameters; ``"none"`` (default, and the only choice, with ``client``): from zero and the
+        global shift, so states are independent (stored in the settings).
+    client : distributed.Client or scheduler address, optional
+        Measure the states on a Dask cluster (docs/dic2d.md, "Sequences on several machines"): the
+        reference match is done here once, each worker prepares the reference pair once and keeps it,
+        the states are written here in order; results identical to ``guess="none"`` on one process.
     options
         :class:`dic.stereo.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
@@ -92,6 +101,19 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                     else v) for k, v in sorted(options.items())}
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
+    if guess is None:
+        guess = "previous" if client is None else "none"
+    if guess not in ("previous", "none"):
+        raise ValueError(f"guess must be 'previous' or 'none', got {guess!r}")
+    if client is not None:
+        if guess != "none":
+            raise ValueError("guess='previous' chains each state to the one before it and cannot be distributed: "
+                             "with client= every state starts from guess='none' (leave guess out)")
+        from .distributed import connect
+
+        client = connect(client)
+    if guess == "none":  # only when not chained: files of earlier runs resume as before
+        settings["guess"] = "none"
     ref_digests = (image_digest(left_ref), image_digest(right_ref))
     writer = ResultWriter(out, kind="stereo", reference_path=(lp, rp), reference_shape=np.shape(left_ref),
                           reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode)
@@ -134,6 +156,17 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
         last_images = None  # the pair of the last state skipped (resuming starts from it)
         computed = 0
         reader = read_ahead(pairs[1:], load, first=1)
+        if client is not None:
+            with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
+                      disable=not progress) as bar:
+                try:
+                    _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out,
+                                    _StereoBuilder(rig, left_ref, right_ref, sc.match, device, options))
+                finally:
+                    reader.close()
+                    wb.close(raise_error=False)
+            trim_memory()
+            return results
         with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
                   disable=not progress) as bar:
             try:
@@ -156,7 +189,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                         sc.set_previous(params_left, params_right, images=last_images if prev == k - 1 else None)
                     t1 = time.perf_counter()
                     try:
-                        f = sc.measure(L, R, index=k)
+                        f = sc.measure(L, R, index=k, use_previous=guess == "previous")
                     except ValueError as exc:
                         wb.close()
                         raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
@@ -174,3 +207,91 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
                 wb.close(raise_error=False)
         trim_memory()
     return results
+
+
+class _StereoBuilder:
+    """A worker's :class:`dic.stereo.StereoCorrelation` of the reference pair with the client's match
+    (the builder interface of :func:`dic.sequence.distributed.track_on_worker`)."""
+
+    def __init__(self, rig, left, right, match, device, options):
+        self.rig, self.left, self.right, self.match, self.device, self.options = rig, left, right, match, device, options
+
+    def __call__(self, _image, _points):
+        return _StereoMeasure(StereoCorrelation(self.rig, self.left, self.right, match=self.match, device=self.device,
+                                                **self.options))
+
+
+class _StereoMeasure:
+    def __init__(self, sc):
+        self.sc = sc
+
+    def track(self, item, guess=None):
+        k, L, R = item
+        return self.sc.measure(L, R, index=k, use_previous=False)
+
+
+def _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out, builder):
+    """The later states of :func:`stereo_sequence` measured on a Dask cluster, written here in order."""
+    import uuid
+    from collections import OrderedDict
+
+    import cloudpickle
+
+    from .distributed import LOST, held, n_workers, track_on_worker
+
+    lost = LOST()
+    token = uuid.uuid4().hex[:16]
+    try:
+        cloudpickle.dumps(builder)
+    except Exception as exc:
+        raise ValueError(f"the stereo settings cannot be sent to the Dask workers ({type(exc).__name__}: {exc})") from None
+    build = client.submit(held, builder, key=f"specula-{token}-stereo-builder", pure=False)
+    window = 2 * n_workers(client) + 1
+    pending: OrderedDict = OrderedDict()  # state -> (future, Loaded)
+
+    def fail(k, item, exc):
+        (lpath, rpath) = item.path if item.path else (None, None)
+        raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
+
+    def drain_one():
+        k, (fut, item) = pending.popitem(last=False)
+        try:
+            f, seconds = fut.result()
+        except ValueError as exc:
+            wb.close()
+            fail(k, item, exc)
+        except lost as exc:
+            wb.close()
+            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
+        lpath, rpath = item.path
+        wb.submit(lambda k=k, f=f, lp=lpath, rp=rpath, d=item.digest, s=float(seconds): finish(k, f, lp, rp, d, s))
+        done.add(k)
+        results.append(f)
+        if len(results) % _TRIM_EVERY == 0:
+            trim_memory()
+        bar.update(1)
+
+    try:
+        for item in reader:
+            k = item.index
+            if item.error is not None:
+                while pending:
+                    drain_one()
+                wb.close()
+                raise item.error
+            if k in done:  # resuming: the finished state must come from the pair given for it now
+                with wb.lock:
+                    writer.check_frame(k, item.path, item.digest)
+                bar.update(1)
+                continue
+            while len(pending) >= window:
+                drain_one()
+            L, R = item.image
+            pending[k] = (client.submit(track_on_worker, f"{token}:stereo", build, None, None, (k, L, R),
+                                        key=f"specula-{token}-pair-{k}", pure=False), item)
+        while pending:
+            drain_one()
+        wb.close()
+    finally:
+        if pending:
+            client.cancel([f for f, _ in pending.values()])
