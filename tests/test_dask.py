@@ -73,6 +73,23 @@ def test_identical_to_one_process(sequence, client, tmp_path, strategy):
         assert f.valid.mean() >= 0.85 and np.sqrt(np.mean((f.u[f.valid] - tu[f.valid]) ** 2)) < 0.05
 
 
+def test_scheduler_address_connected_and_closed(sequence, client, tmp_path):
+    """client= as an address: connected for the run and closed after it (no client left on the scheduler)."""
+    ref, frames = sequence
+
+    def n_clients():
+        return client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.clients))
+
+    before = n_clients()
+    track_sequence(ref, frames[:3], tmp_path / "a.h5", step=8, device="cpu", client=client.scheduler.address)
+    track_sequence(ref, frames[:3], tmp_path / "one.h5", step=8, device="cpu", guess="none")
+    _same(tmp_path / "a.h5", tmp_path / "one.h5", frames=[1, 2, 3])
+    deadline = time.time() + 10
+    while n_clients() > before and time.time() < deadline:
+        time.sleep(0.1)
+    assert n_clients() == before
+
+
 def test_resume_on_dask(sequence, client, tmp_path):
     ref, frames = sequence
     out = tmp_path / "r.h5"

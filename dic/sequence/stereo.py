@@ -82,6 +82,14 @@ def stereo_sequence(rig, pairs: Sequence, out, *, mode: str = "resume", progress
     list of Field3D
         The states computed in this call (skipped states are not read back; use :func:`read_stereo`).
     """
+    if isinstance(client, str):  # a scheduler address: connected here, closed when the run ends
+        from .distributed import connect
+
+        given = dict(locals())
+        given.pop("connect")
+        opts = given.pop("options")
+        with connect(client) as given["client"]:
+            return stereo_sequence(**given, **opts)
     from tqdm import tqdm
 
     pairs = list(pairs)

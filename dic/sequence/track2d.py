@@ -255,6 +255,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         before it are in the file), an incompatible result file; :class:`dic.store.ResultWriteError`
         (a ValueError) when the file cannot be written.
     """
+    if isinstance(client, str):  # a scheduler address: connected here, closed when the run ends
+        from .distributed import connect
+
+        given = dict(locals())
+        given.pop("connect")
+        opts = given.pop("options")
+        with connect(client) as given["client"]:
+            return track_sequence(**given, **opts)
     from tqdm import tqdm
 
     from kernels.checks import non_negative_int, positive_int
