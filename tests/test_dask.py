@@ -65,6 +65,9 @@ def test_identical_to_one_process(sequence, client, tmp_path, strategy):
     assert seen == list(range(1, N_FRAMES + 1))  # written in frame order
     assert [f["index"] for f in s.frames] == list(range(1, N_FRAMES + 1))
     assert [f["reference_index"] for f in s.frames] == [f["reference_index"] for f in one.frames]
+    from dic.sequence import distributed as dd
+
+    assert set(client.run(lambda: len(dd._CACHE)).values()) == {0}  # the workers let the run's references go
     res = read_results(tmp_path / "d.h5")
     assert res.settings["guess"] == "none"
     for k in (1, N_FRAMES):  # and the exact field is followed

@@ -19,7 +19,7 @@ import threading
 import time
 from collections import OrderedDict
 
-__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "ReferenceBuilder", "CONNECT_TIMEOUT"]
+__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "forget", "release", "ReferenceBuilder", "CONNECT_TIMEOUT"]
 
 CONNECT_TIMEOUT = 5.0  # seconds to reach a scheduler
 _CACHE_SIZE = 2  # references kept per worker process (the current block's and the one before)
@@ -117,6 +117,23 @@ def n_workers(client) -> int:
 def held(obj):
     """``obj`` itself: a task whose result is ``obj`` puts it on the cluster and can be computed again."""
     return obj
+
+
+def forget(prefix: str) -> int:
+    """Drop this process's cached references whose key starts with ``prefix`` (a finished run's); the count."""
+    with _LOCK:
+        keys = [k for k in _CACHE if k.startswith(prefix)]
+        for k in keys:
+            del _CACHE[k]
+    return len(keys)
+
+
+def release(client, prefix: str) -> None:
+    """:func:`forget` on every worker (a run's references are not kept once it ends); best effort."""
+    try:
+        client.run(forget, prefix)
+    except Exception:  # a cluster gone or a worker lost: its cache went with it
+        pass
 
 
 def track_on_worker(key: str, build, ref_image, points, image):

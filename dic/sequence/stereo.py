@@ -245,7 +245,7 @@ def _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out,
 
     import cloudpickle
 
-    from .distributed import LOST, held, n_workers, track_on_worker
+    from .distributed import LOST, held, n_workers, release, track_on_worker
 
     lost = LOST()
     token = uuid.uuid4().hex[:16]
@@ -303,3 +303,4 @@ def _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out,
     finally:
         if pending:
             client.cancel([f for f, _ in pending.values()])
+        release(client, token + ":")

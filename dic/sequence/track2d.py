@@ -539,7 +539,7 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     import uuid
     from collections import OrderedDict
 
-    from .distributed import LOST, held, n_workers, track_on_worker
+    from .distributed import LOST, held, n_workers, release, track_on_worker
 
     lost = LOST()
 
@@ -653,6 +653,7 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     finally:
         if pending:
             client.cancel([f for f, _, _ in pending.values()])
+        release(client, token + ":")
 
 
 def _sha256_text(text: str) -> str:
