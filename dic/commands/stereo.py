@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from ._dask import check as check_dask
+from ._dask import dask_client, dask_options
 from ._region import parse_region, region_options
 
 
@@ -84,11 +86,12 @@ def _engine_pairs(pairs) -> list:
                    "pair (incremental), a new pair every N states (every:N), or a new one when the valid fraction or "
                    "the median track ZNCC drops below 0.95 (auto). The left-right match is done once; results are "
                    "always relative to the reference state.")
+@dask_options("state")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
-           strain_window, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, overwrite,
-           quiet):
+           strain_window, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
+           overwrite, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -102,6 +105,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     """
     import numpy as np
 
+    check_dask(scheduler, workers)
     from dic.sequence import parse_reference, read_stereo, stereo_sequence
     from dic.sources import open_inputs, open_pairs
 
@@ -164,9 +168,11 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
 
     streamed_figures = figure_dir if figure_limits == "frame" else None  # "sequence": drawn at the end
     try:
-        stereo_sequence(rig, pairs, output, reference=reference_strategy, mode="overwrite" if overwrite else "resume",
-                        progress=not quiet, callback=after, vtk_dir=vtk_dir, vtk_stem=output.stem,
-                        figure_dir=streamed_figures, figure_every=figure_every, device=device, **options)
+        with dask_client(scheduler, workers) as client:
+            stereo_sequence(rig, pairs, output, reference=reference_strategy,
+                            mode="overwrite" if overwrite else "resume", progress=not quiet, callback=after,
+                            vtk_dir=vtk_dir, vtk_stem=output.stem, figure_dir=streamed_figures,
+                            figure_every=figure_every, device=device, client=client, **options)
     except ValueError as exc:
         raise click.ClickException(f"{exc}" + (f"; finished states are saved in {output}" if written else "")) from None
     if figure_dir is not None and figure_limits == "sequence":

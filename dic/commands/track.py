@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from ._dask import check as check_dask
+from ._dask import dask_client, dask_options
 from ._region import parse_region, region_options
 
 
@@ -62,11 +64,12 @@ def _fail(exc: Exception) -> click.ClickException:
               help="Budget for the per-point working data of the correlation: bytes, or with a unit K, M, G (binary, "
                    "e.g. 512M; default: a quarter of the machine's memory); beyond it the points are prepared and "
                    "tracked in chunks, with the same results.")
+@dask_options("frame")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
-          reference_strategy, max_memory, overwrite, quiet):
+          reference_strategy, max_memory, scheduler, workers, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -85,9 +88,12 @@ def track(reference, current, output, subset, step, order, search, search_method
     budget = _size(max_memory) if max_memory is not None else None
     order = int(order)
     try:
-        parse_reference(reference_strategy)
+        policy = parse_reference(reference_strategy)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--reference") from None
+    if check_dask(scheduler, workers) and policy.kind not in ("fixed", "every"):
+        raise click.BadParameter(f"{policy.text!r} cannot be distributed (each frame waits for the one before it); "
+                                 "use fixed or every:N with --scheduler/--workers", param_hint="--reference")
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window and (strain_window < 3 or strain_window % 2 == 0):
@@ -149,12 +155,13 @@ def track(reference, current, output, subset, step, order, search, search_method
                              roi=region if points is None else None, points=points)
 
     try:
-        result = track_sequence(
-            ref_frame, _Frames(source), output, reference=reference_strategy,
-            mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
-            vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
-            settings=settings, make_tracker=make_tracker, points=planned, order=order,
-            max_memory=budget, search=search_method if search else None)
+        with dask_client(scheduler, workers) as client:
+            result = track_sequence(
+                ref_frame, _Frames(source), output, reference=reference_strategy,
+                mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
+                vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
+                settings=settings, make_tracker=make_tracker, points=planned, order=order,
+                max_memory=budget, search=search_method if search else None, client=client)
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":

@@ -45,7 +45,7 @@ _TRIM_EVERY = 10  # states between two malloc_trim calls
 def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode: str = "resume",
                     progress: bool = False, callback: Callable[[Field3D], None] | None = None, vtk_dir=None,
                     vtk_stem: str = "stereo", figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
-                    auto_zncc: float = AUTO_ZNCC, **options) -> list[Field3D]:
+                    auto_zncc: float = AUTO_ZNCC, guess: str | None = None, client=None, **options) -> list[Field3D]:
     """Stereo DIC of an image-pair sequence, written state by state to an HDF5 file.
 
     Parameters
@@ -89,6 +89,15 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     figure_dir : folder, optional
         Write the PNG maps of :func:`dic.plots.fields.write_figures`
         (``state_<index>_<quantity>.png``) of every ``figure_every``-th state as it finishes.
+    guess : "previous" | "none", optional
+        ``"previous"`` (default without ``client``): each state starts from the previous state's
+        parameters; ``"none"`` (default, and the only choice, with ``client``): from zero and the
+        global shift, so states are independent (stored in the settings).
+    client : distributed.Client or scheduler address, optional
+        Measure the states on a Dask cluster (docs/dic2d.md, "Sequences on several machines"): the
+        reference match is done here once, each worker prepares the reference pair once and keeps it,
+        the states are written here in order; results identical to ``guess="none"`` on one process.
+        Only ``reference="fixed"`` can be distributed (every other strategy waits for earlier states).
     options
         :class:`dic.stereo.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
@@ -99,6 +108,14 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     list of Field3D
         The states computed in this call (skipped states are not read back; use :func:`read_stereo`).
     """
+    if isinstance(client, str):  # a scheduler address: connected here, closed when the run ends
+        from .distributed import connect
+
+        given = dict(locals())
+        given.pop("connect")
+        opts = given.pop("options")
+        with connect(client) as given["client"]:
+            return stereo_sequence(**given, **opts)
     from tqdm import tqdm
 
     from kernels.checks import positive_int
@@ -134,6 +151,22 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
+    if guess is None:
+        guess = "previous" if client is None else "none"
+    if guess not in ("previous", "none"):
+        raise ValueError(f"guess must be 'previous' or 'none', got {guess!r}")
+    if client is not None and policy.kind != "fixed":
+        raise ValueError(f"reference={policy.text!r} cannot be distributed: each state may wait for the ones before "
+                         "it; use reference='fixed' with client=, or run without client")
+    if client is not None:
+        if guess != "none":
+            raise ValueError("guess='previous' chains each state to the one before it and cannot be distributed: "
+                             "with client= every state starts from guess='none' (leave guess out)")
+        from .distributed import connect
+
+        client = connect(client)
+    if guess == "none":  # only when not chained: files of earlier runs resume as before
+        settings["guess"] = "none"
     ref_digests = (image_digest(left_ref), image_digest(right_ref))
     writer = ResultWriter(out, kind="stereo", reference_path=(lp, rp), reference_shape=np.shape(left_ref),
                           reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode)
@@ -223,7 +256,19 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         last_images = None  # the pair of the last state skipped (resuming starts from it)
         computed = 0
         reader = read_ahead(pairs[1:], load, first=1)
-        with tqdm(total=len(pairs), initial=1, unit="pair", desc="stereo", disable=not progress) as bar:
+        if client is not None:
+            with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
+                      disable=not progress) as bar:
+                try:
+                    _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out,
+                                    _StereoBuilder(rig, left_ref, right_ref, sc.match, device, options))
+                finally:
+                    reader.close()
+                    wb.close(raise_error=False)
+            trim_memory()
+            return results
+        with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
+                  disable=not progress) as bar:
             try:
                 for item in reader:
                     k = item.index
@@ -252,15 +297,15 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
                         r = use_reference(policy.start(k, prev_ref), prev_ref)
                         if policy.kind == "auto" and r != k - 1 and k > 1:
                             saved = (sc._previous, sc._previous_images)
-                            f = sc.measure(L, R, index=k, warn=False)
+                            f = sc.measure(L, R, index=k, warn=False, use_previous=guess == "previous")
                             if policy.needs_update(*_quality(f, reference_valid())) and \
                                     use_reference(k - 1, r) != r:
                                 sc._previous, sc._previous_images = saved
-                                f = sc.measure(L, R, index=k)
+                                f = sc.measure(L, R, index=k, use_previous=guess == "previous")
                             else:  # kept
                                 sc.warn_if_mostly_invalid(f)
                         else:
-                            f = sc.measure(L, R, index=k)
+                            f = sc.measure(L, R, index=k, use_previous=guess == "previous")
                     except ValueError as exc:
                         wb.close()
                         raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
@@ -293,3 +338,92 @@ def _quality(f: Field3D, reference_valid: np.ndarray) -> tuple[float, float]:
     frac = np.count_nonzero(valid) / n_ref if n_ref else 0.0
     z = np.fmin(np.asarray(f.zncc_left, np.float64), np.asarray(f.zncc_right, np.float64))[valid]
     return float(frac), float(np.median(z)) if z.size else 0.0
+
+
+class _StereoBuilder:
+    """A worker's :class:`dic.stereo.StereoCorrelation` of the reference pair with the client's match
+    (the builder interface of :func:`dic.sequence.distributed.track_on_worker`)."""
+
+    def __init__(self, rig, left, right, match, device, options):
+        self.rig, self.left, self.right, self.match, self.device, self.options = rig, left, right, match, device, options
+
+    def __call__(self, _image, _points):
+        return _StereoMeasure(StereoCorrelation(self.rig, self.left, self.right, match=self.match, device=self.device,
+                                                **self.options))
+
+
+class _StereoMeasure:
+    def __init__(self, sc):
+        self.sc = sc
+
+    def track(self, item, guess=None):
+        k, L, R = item
+        return self.sc.measure(L, R, index=k, use_previous=False)
+
+
+def _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out, builder):
+    """The later states of :func:`stereo_sequence` measured on a Dask cluster, written here in order."""
+    import uuid
+    from collections import OrderedDict
+
+    import cloudpickle
+
+    from .distributed import LOST, held, n_workers, release, track_on_worker
+
+    lost = LOST()
+    token = uuid.uuid4().hex[:16]
+    try:
+        cloudpickle.dumps(builder)
+    except Exception as exc:
+        raise ValueError(f"the stereo settings cannot be sent to the Dask workers ({type(exc).__name__}: {exc})") from None
+    build = client.submit(held, builder, key=f"specula-{token}-stereo-builder", pure=False)
+    window = 2 * n_workers(client) + 1
+    pending: OrderedDict = OrderedDict()  # state -> (future, Loaded)
+
+    def fail(k, item, exc):
+        (lpath, rpath) = item.path if item.path else (None, None)
+        raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
+
+    def drain_one():
+        k, (fut, item) = pending.popitem(last=False)
+        try:
+            f, seconds = fut.result()
+        except ValueError as exc:
+            wb.close()
+            fail(k, item, exc)
+        except lost as exc:
+            wb.close()
+            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
+        lpath, rpath = item.path
+        wb.submit(lambda k=k, f=f, lp=lpath, rp=rpath, d=item.digest, s=float(seconds): finish(k, f, lp, rp, d, s))
+        done.add(k)
+        results.append(f)
+        if len(results) % _TRIM_EVERY == 0:
+            trim_memory()
+        bar.update(1)
+
+    try:
+        for item in reader:
+            k = item.index
+            if item.error is not None:
+                while pending:
+                    drain_one()
+                wb.close()
+                raise item.error
+            if k in done:  # resuming: the finished state must come from the pair given for it now
+                with wb.lock:
+                    writer.check_frame(k, item.path, item.digest)
+                bar.update(1)
+                continue
+            while len(pending) >= window:
+                drain_one()
+            L, R = item.image
+            pending[k] = (client.submit(track_on_worker, f"{token}:stereo", build, None, None, (k, L, R),
+                                        key=f"specula-{token}-pair-{k}", pure=False), item)
+        while pending:
+            drain_one()
+        wb.close()
+    finally:
+        if pending:
+            client.cancel([f for f, _ in pending.values()])
+        release(client, token + ":")

@@ -181,7 +181,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                    progress: bool = False, callback: Callable | None = None, strain_window: int = 5,
                    vtk_dir=None, figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
                    auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
-                   make_tracker: Callable | None = None, max_memory: int | None = None, **options) -> SequenceSummary:
+                   make_tracker: Callable | None = None, max_memory: int | None = None, guess: str | None = None,
+                   client=None, **options) -> SequenceSummary:
     """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
 
     Parameters
@@ -227,6 +228,18 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         otherwise the moved POIs or a chunk of them). Default: :class:`dic.track.Tracker` with
         ``options``. With a custom one, ``options`` are only used to plan chunks: give ``points`` and
         ``order`` (the POIs it would use) so that an over-budget run is chunked from the start.
+    guess : "previous" | "none", optional
+        Where each frame's correlation starts: ``"previous"`` (default without ``client``) from the
+        previous frame's result (a chain: frame k waits for frame k-1); ``"none"`` (default, and the
+        only choice, with ``client``) from the tracker's own start, its ``search`` or zero against the
+        reference (for ``every:N`` the block's key frame, moved to where the points are), so frames
+        are independent. ``"none"`` is stored in the file's settings.
+    client : distributed.Client or scheduler address, optional
+        Distribute the frames over a Dask cluster (:mod:`dic.sequence.distributed`): each worker
+        prepares the reference once and keeps it, the frames go to the workers, the results come
+        back to this process, which writes them in frame order (resume as without a client). Results
+        are identical to a single-process run with ``guess="none"``. ``"fixed"`` and ``"every:N"``
+        only (every:N waits for each key frame before its block); an address is connected within 5 s.
     options
         :class:`dic.track.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``noise_sigma``, ``device``, ...).
@@ -242,6 +255,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         before it are in the file), an incompatible result file; :class:`dic.store.ResultWriteError`
         (a ValueError) when the file cannot be written.
     """
+    if isinstance(client, str):  # a scheduler address: connected here, closed when the run ends
+        from .distributed import connect
+
+        given = dict(locals())
+        given.pop("connect")
+        opts = given.pop("options")
+        with connect(client) as given["client"]:
+            return track_sequence(**given, **opts)
     from tqdm import tqdm
 
     from kernels.checks import non_negative_int, positive_int
@@ -250,6 +271,21 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
     t_start = time.perf_counter()
     policy = parse_reference(reference, auto_valid=auto_valid, auto_zncc=auto_zncc)
+    if guess is None:
+        guess = "previous" if client is None else "none"
+    if guess not in ("previous", "none"):
+        raise ValueError(f"guess must be 'previous' or 'none', got {guess!r}")
+    if client is not None:
+        if guess != "none":
+            raise ValueError("guess='previous' chains each frame to the one before it and cannot be distributed: "
+                             "with client= every frame starts from guess='none' (leave guess out)")
+        if policy.kind not in ("fixed", "every"):
+            raise ValueError(f"reference={policy.text!r} cannot be distributed: each frame waits for the one before it; "
+                             "use 'fixed' or 'every:N' (the chain split every N frames) with client=, or run "
+                             "without client")
+        from .distributed import connect
+
+        client = connect(client)
     mode = str(mode)
     strain_window = non_negative_int(strain_window, "strain_window")
     figure_every = positive_int(figure_every, "figure_every")
@@ -289,6 +325,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     settings = dict(settings)
     if policy.kind != "fixed":  # only when not fixed: files of earlier runs resume as before
         settings["reference"] = policy.text
+    if guess == "none":  # only when not chained: files of earlier runs resume as before
+        settings["guess"] = "none"
         if policy.kind == "auto":
             settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
 
@@ -405,6 +443,19 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         bar = tqdm(total=total, unit="frame", desc="track", disable=not progress)
         computed = 0
         reader = read_ahead(frames, _frame_loader(ref_img.shape, ref_name))
+        if client is not None:
+            tracker0_holder[0] = current = None  # the workers prepare the reference
+            try:
+                _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state,
+                             builder=_builder(make_tracker, budget, order, search_name), ref_img=ref_img,
+                             zero=zero, points0=points0, order=order, settings=settings, out=out)
+            finally:
+                reader.close()
+                wb.close(raise_error=False)
+                bar.close()
+            trim_memory()
+            summary.seconds = time.perf_counter() - t_start
+            return summary
         try:
             for item in reader:
                 k = item.index
@@ -433,9 +484,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 t0 = time.perf_counter()
                 prev_ref = prev.reference_index if prev is not None else 0
                 ref = get_ref(policy.start(k, prev_ref), prev_ref)
-                guess = _guess_for(ref, prev, k, order)
+                start = _guess_for(ref, prev, k, order) if guess == "previous" else None
                 try:
-                    raw = ref.tracker.track(item.image, guess=guess)
+                    raw = ref.tracker.track(item.image, guess=start)
                     if policy.kind == "auto" and ref.index != k - 1 and k > 1:
                         frac, med = _quality(raw, ref.state.valid)
                         if policy.needs_update(frac, med):
@@ -469,6 +520,146 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     trim_memory()
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+def _builder(make_tracker, budget, order, search):
+    from .distributed import ReferenceBuilder
+
+    return ReferenceBuilder(make_tracker, budget, order, search)
+
+
+def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state, *, builder, ref_img, zero,
+                 points0, order, settings, out):
+    """The frames of :func:`track_sequence` correlated on a Dask cluster, written here in frame order.
+
+    A window of frames is in flight at once (two per worker thread, plus one); the oldest is written
+    first. ``every:N``: the frames of a block go out once the block's key frame (its reference) is known.
+    """
+    import json
+    import uuid
+    from collections import OrderedDict
+
+    from .distributed import LOST, held, n_workers, release, track_on_worker
+
+    lost = LOST()
+
+    token = _sha256_text(json.dumps(settings, sort_keys=True, default=str) + _digest(ref_img))[:16] + "-" + \
+        uuid.uuid4().hex[:8]
+    window = 2 * n_workers(client) + 1
+    # the reference data go to the cluster as the results of tasks that hold them (not scattered): if
+    # every worker holding them dies, the scheduler computes them again instead of cancelling the frames
+    import cloudpickle
+
+    try:
+        cloudpickle.dumps(builder)
+    except Exception as exc:  # a make_tracker that cannot be pickled (it holds a lock, an open file, ...)
+        raise ValueError(f"make_tracker cannot be sent to the Dask workers ({type(exc).__name__}: {exc}); with client= "
+                         "it must be picklable by cloudpickle (create what it holds inside it)") from None
+    build = client.submit(held, builder, key=f"specula-{token}-builder", pure=False)
+    pending: OrderedDict = OrderedDict()  # frame -> (future, Loaded, _Ref)
+    key_states: dict[int, _State] = {}  # every:N: the key frames computed in this call
+    images: dict[int, Any] = {}  # images of key frames (the next block's reference): bounded
+    done = set(writer.done_frames())
+
+    def scattered(index: int, image, points, digest: str) -> dict:
+        return {"key": f"{token}:{index}:{digest}",
+                "image": client.submit(held, image, key=f"specula-{token}-reference-{index}", pure=False),
+                "points": None if points is None else client.submit(held, points, key=f"specula-{token}-points-{index}",
+                                                                   pure=False)}
+
+    over = builder.over_budget(len(points0))
+    cur = _Ref(0, ref_img, zero, None)
+    cur_data = scattered(0, ref_img, points0 if over else None, "")
+
+    def fail(k: int, item, exc):
+        saved = f"; frames before it are saved in {out}" if k > 1 else ""
+        raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}{saved}") from None
+
+    def drain_one():
+        k, (fut, item, ref) = pending.popitem(last=False)
+        try:
+            raw, seconds = fut.result()
+        except ValueError as exc:
+            wb.close(raise_error=True)  # the frames before it are written first
+            fail(k, item, exc)
+        except lost as exc:  # workers that kept dying on this frame, a scheduler gone, a cancelled run
+            wb.close(raise_error=True)
+            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
+        lag = raw if ref.index == 0 else _compose(ref, raw, points0, order)
+        wb.submit(lambda k=k, lag=lag, s=seconds, r=ref.index, it=item: finish(k, lag, s, r, it))
+        if policy.kind == "every" and k % policy.every == 0:
+            key_states[k] = _state_of(k, lag, ref.index)
+        valid = np.asarray(lag.valid, bool)
+        summary.frames.append({"index": k, "n_valid": int(valid.sum()), "n_points": int(valid.size),
+                               "seconds": seconds, "reference_index": int(ref.index)})
+        if len(summary.frames) % _TRIM_EVERY == 0:
+            trim_memory()
+        bar.update(1)
+
+    def reference(r: int):
+        """The reference frame r of the next block (its key frame's result known: waited for)."""
+        nonlocal cur, cur_data
+        while r not in key_states and r in pending:
+            drain_one()
+        state = key_states.get(r) or stored_state(r)
+        if r not in images:
+            raise ValueError(f"cannot resume {out}: the image of frame {r}, the reference of the next frame, "
+                             "was not given again; give the same frames as the run that wrote the file")
+        try:
+            pts = moved_points(points0, state.u, state.v, state.valid)
+        except ValueError:  # no valid point: the key frame's own reference stays (as on one machine)
+            if state.reference_index != cur.index or r == cur.index:
+                raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
+            return
+        whole = np.round(pts)
+        cur = _Ref(r, images[r], state, None, pts - whole)
+        cur_data = scattered(r, images[r], whole, _digest(images[r]))
+
+    try:
+        for item in reader:
+            k = item.index
+            if item.error is not None:
+                while pending:
+                    drain_one()
+                wb.close(raise_error=True)
+                if isinstance(item.error, (ValueError, OSError)):
+                    fail(k, item, item.error)
+                raise item.error
+            if policy.kind == "every":
+                r = policy.start(k, 0)
+                if r != cur.index and r != getattr(cur, "skipped_for", None):
+                    before = cur.index
+                    reference(r)
+                    if cur.index == before:  # the key frame could not serve: remember not to try again
+                        cur.skipped_for = r
+                if k % policy.every == 0:
+                    images[k] = item.image
+                for i in [i for i in images if i not in (k, cur.index)]:
+                    del images[i]
+            if k in done:  # resuming: the finished frame must come from the image given for it now
+                with wb.lock:
+                    writer.check_frame(k, item.path, item.digest)
+                summary.skipped += 1
+                bar.update(1)
+                continue
+            while len(pending) >= window:
+                drain_one()
+            fut = client.submit(track_on_worker, cur_data["key"], build, cur_data["image"], cur_data["points"],
+                                item.image, key=f"specula-{token}-frame-{k}", pure=False)
+            pending[k] = (fut, item, cur)
+        while pending:
+            drain_one()
+        wb.close(raise_error=True)
+    finally:
+        if pending:
+            client.cancel([f for f, _, _ in pending.values()])
+        release(client, token + ":")
+
+
+def _sha256_text(text: str) -> str:
+    import hashlib
+
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _planned_points(shape, options: dict):

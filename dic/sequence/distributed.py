@@ -1,0 +1,174 @@
+"""Sequences beyond one machine, on Dask (``client=`` of :func:`dic.sequence.track_sequence`; docs/dic2d.md,
+"Sequences on several machines (Dask)").
+
+The client reads the frames and writes the results (the one writer, in frame order); the workers
+correlate. Each worker prepares a reference once and keeps it in :data:`_CACHE` (a per-process dict
+keyed by the run's settings digest, the reference frame and its image digest), so a frame costs one
+task: the frame travels with its task and the reference image with a task of its own, fetched once by
+each worker (so a task whose worker dies is retried on another worker with its frame, distributed
+reschedules it; data scattered with ``client.scatter`` would be lost with the last worker holding it).
+
+Distributed frames cannot wait for their predecessor's result, so a distributed run starts every
+frame from the tracker's own start (its ``search``, or zero against the reference, which for
+``every:N`` is the block's key frame moved to where the points are): ``guess="none"`` of the
+single-process engine, which gives identical results.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+
+__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "forget", "release", "ReferenceBuilder", "CONNECT_TIMEOUT"]
+
+CONNECT_TIMEOUT = 5.0  # seconds to reach a scheduler
+_CACHE_SIZE = 2  # references kept per worker process (the current block's and the one before)
+_CACHE: OrderedDict = OrderedDict()
+_LOCK = threading.Lock()
+
+
+def _distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise ValueError("client= needs dask.distributed: pip install 'specula-dic[dask]'") from None
+    return distributed
+
+
+def LOST() -> tuple:
+    """The exception types of a frame the cluster lost (not of the frame itself): a worker that kept
+    dying on it (``KilledWorker`` after ``distributed.scheduler.allowed-failures`` retries), a cancelled
+    future (a scheduler gone), a connection closed or timed out."""
+    import asyncio
+    import concurrent.futures
+
+    _distributed()
+    from distributed.scheduler import KilledWorker
+
+    try:
+        from distributed.client import FutureCancelledError
+    except ImportError:  # older distributed: a plain CancelledError
+        FutureCancelledError = asyncio.CancelledError
+    # (distributed's CommClosedError is an OSError)
+    return (KilledWorker, FutureCancelledError, asyncio.CancelledError, concurrent.futures.CancelledError,
+            OSError, TimeoutError)
+
+
+def connect(client, *, timeout: float = CONNECT_TIMEOUT):
+    """A :class:`distributed.Client` from ``client``: a Client as it is, or a scheduler address
+    (``"tcp://host:8786"``) connected within ``timeout`` seconds (ValueError when it cannot be reached)."""
+    distributed = _distributed()
+    if isinstance(client, distributed.Client):
+        return client
+    if isinstance(client, str) and client.strip():
+        address = client.strip()
+        try:  # a handshake first: a Client that fails half-way leaves a client object that complains when collected
+            _probe(address, timeout)
+            return distributed.Client(address, timeout=timeout, set_as_default=False)
+        except Exception as exc:  # refused, timed out, not a Dask scheduler (any reply it cannot read), a bad address
+            reason = f"{type(exc).__name__}: {exc}"
+            if not isinstance(exc, (OSError, TimeoutError, ValueError)):  # something answered, not in Dask's protocol
+                reason = f"something answered there, but not a Dask scheduler: {type(exc).__name__}"
+            if len(reason) > 200:
+                reason = reason[:200] + "..."
+            raise ValueError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s ({reason})") from None
+    raise ValueError(f"client must be a distributed.Client or a scheduler address such as 'tcp://host:8786', "
+                     f"got {client!r}")
+
+
+def local_client(n_workers: int):
+    """A client of a new local cluster of ``n_workers`` worker processes (one thread each; closed with
+    the client's ``_specula_cluster``)."""
+    from kernels.checks import positive_int
+
+    n_workers = positive_int(n_workers, "n_workers")
+    distributed = _distributed()
+    cluster = distributed.LocalCluster(n_workers=n_workers, processes=True, threads_per_worker=1,
+                                       dashboard_address=None)
+    client = distributed.Client(cluster, set_as_default=False)
+    client._specula_cluster = cluster
+    return client
+
+
+def _probe(address: str, timeout: float) -> None:
+    """Open and close one connection to ``address`` (distributed's handshake), on a thread of its own (the
+    caller may be running an event loop)."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed.comm import connect as comm_connect
+
+    async def probe():
+        comm = await comm_connect(address, timeout=timeout)
+        await comm.close()
+
+    with ThreadPoolExecutor(1) as pool:
+        pool.submit(asyncio.run, asyncio.wait_for(probe(), timeout + 1.0)).result()
+
+
+def n_workers(client) -> int:
+    """The number of worker threads of ``client``'s cluster (at least 1)."""
+    try:
+        return max(1, sum(client.nthreads().values()))
+    except Exception:
+        return 1
+
+
+def held(obj):
+    """``obj`` itself: a task whose result is ``obj`` puts it on the cluster and can be computed again."""
+    return obj
+
+
+def forget(prefix: str) -> int:
+    """Drop this process's cached references whose key starts with ``prefix`` (a finished run's); the count."""
+    with _LOCK:
+        keys = [k for k in _CACHE if k.startswith(prefix)]
+        for k in keys:
+            del _CACHE[k]
+    return len(keys)
+
+
+def release(client, prefix: str) -> None:
+    """:func:`forget` on every worker (a run's references are not kept once it ends); best effort."""
+    try:
+        client.run(forget, prefix)
+    except Exception:  # a cluster gone or a worker lost: its cache went with it
+        pass
+
+
+def track_on_worker(key: str, build, ref_image, points, image):
+    """(raw field, seconds): ``image`` tracked against the reference ``key``, prepared once per worker
+    process by ``build(ref_image, points)`` and kept for the next frames."""
+    with _LOCK:  # one frame at a time per process (a worker's threads would share a tracker)
+        tracker = _CACHE.get(key)
+        if tracker is None:
+            tracker = build(ref_image, points)
+            _CACHE[key] = tracker
+            while len(_CACHE) > _CACHE_SIZE:
+                _CACHE.popitem(last=False)
+        else:
+            _CACHE.move_to_end(key)
+        t0 = time.perf_counter()
+        raw = tracker.track(image, guess=None)
+        return raw, time.perf_counter() - t0
+
+
+class ReferenceBuilder:
+    """Builds the tracker of a reference on a worker: ``make_tracker(image, points)``, in chunks of the
+    memory budget when over it (as :func:`dic.sequence.track_sequence` does on one machine)."""
+
+    def __init__(self, make_tracker, budget: int, order: int, search=None):
+        self.make_tracker, self.budget, self.order, self.search = make_tracker, int(budget), int(order), search
+
+    def over_budget(self, n_points: int) -> bool:
+        from .chunks import bytes_per_poi
+
+        return n_points * bytes_per_poi(self.order) > self.budget
+
+    def __call__(self, image, points):
+        from .chunks import ChunkedTracker, bytes_per_poi
+
+        if points is not None and self.over_budget(len(points)):
+            return ChunkedTracker(self.make_tracker, image, points, order=self.order,
+                                  chunk=self.budget // bytes_per_poi(self.order), search=self.search)
+        return self.make_tracker(image, points)
