@@ -18,7 +18,7 @@
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-PART_MB="${PART_MB:-56}"
+PART_MB="${PART_MB:-50}"
 ARCH="${ARCH:-90}"
 cmd="${1:-}"
 shift || true
@@ -62,7 +62,7 @@ run)
     export PYTHONUNBUFFERED=1
     PY="${PYTHON:-python3}"
     cd "$ROOT"
-    "$PY" -c 'import warp as wp; wp.init(); print("warp", wp.config.version, "devices", [d.alias for d in wp.get_devices()])'
+    "$PY" -c 'import warp as wp; wp.init(); print("warp", wp.config.version, "from", wp.__file__, "devices", [d.alias for d in wp.get_devices()])'
     nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader || true
     # 8 minutes at most: bench.gpu keeps its own budget (the tests get what is left), timeout is the backstop
     timeout 480 "$PY" -m bench.gpu --device cuda:0 --budget 450 "$@"
