@@ -37,3 +37,23 @@ def test_bad_arguments_are_one_clear_message(tmp_path):
     assert p.returncode == 2 and "usage" in p.stderr
     p = subprocess.run(["bash", str(ROOT / "bench" / "gpu.sh"), "run", str(tmp_path)], capture_output=True, text=True)
     assert p.returncode == 2 and "gather the carried parts" in p.stderr
+
+
+def test_device_fixture_tests_on_cuda_are_marked_cuda():
+    """tests/conftest.py marks every ``device``-fixture test that runs on CUDA with ``cuda`` (bench/gpu.sh runs
+    ``pytest -m cuda``), and no other."""
+    import types
+
+    import conftest
+
+    class Item:
+        def __init__(self, params):
+            self.callspec = types.SimpleNamespace(params=params) if params is not None else None
+            self.markers = []
+
+        def add_marker(self, marker):
+            self.markers.append(marker.name)
+
+    items = [Item({"device": "cuda:0"}), Item({"device": "cpu"}), Item({"order": 2}), Item(None)]
+    conftest.pytest_collection_modifyitems(None, items)
+    assert [i.markers for i in items] == [["cuda"], [], [], []]
