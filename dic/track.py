@@ -23,7 +23,7 @@ from kernels._device import resolve_device
 from kernels.checks import as_points, in_range, non_negative_int, positive_float
 from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
-from kernels.images import as_float32_image, read_image
+from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor, read_image
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
 from .correlation.engine import Correlator, reliability_guided
@@ -147,6 +147,7 @@ class Tracker:
         self.correlator = Correlator(self.reference, self.points, subset=self.subset, order=self.order,
                                      max_iter=self.max_iter, tol=self.tol, device=self.device, flat_std=flat_std)
         self._current_buf = None
+        self._current_tensor = None  # the last torch image read in place (kept alive until the next one)
         self._sigma_basis = None  # diag H^-1 and df of the reference subsets, read back once (dic.quality)
 
     @property
@@ -179,13 +180,27 @@ class Tracker:
         Parameters
         ----------
         current : array-like (H, W), path or torch tensor, same shape as the reference.
+            A torch tensor (CPU or CUDA) is read in place on the device when no search runs
+            (``search`` None or ``"prior"``): a float32 contiguous tensor on this tracker's device is
+            viewed by Warp (``wp.from_torch``) without any copy, other dtypes (8/16-bit, float64) are
+            converted on the device by torch, a tensor on another device is moved there first; the
+            finiteness check runs on the device, and only the results come back to the host. With a
+            search (``"zncc"``, ``"fft"``, ...; they run on the host) the image goes to the host once.
         guess : None, (u, v), (N, 2), (N, 6|12) parameters or a Field2D (e.g. the previous frame)
         search : initial-guess strategy for this image; default: the tracker's ``search``.
 
         Warns (RuntimeWarning) when fewer than 5 % of the POIs come out valid, saying why and what to try.
         """
         search = self.search if search == "default" else _check_search(search)
-        cur = self._check_current(current)
+        if is_torch_tensor(current) and search in (None, "prior"):
+            # read in place on the device: no host copy of the image (only the results come back)
+            self._current_buf = prepare_current(self._device_view(current), device=self.device,
+                                                out=self._current_buf)
+            g = guess_params(guess, self.n_points, self.order)
+            r = self.correlator.run_all(self._current_buf, np.zeros((self.n_points, n_params(self.order)))
+                                        if g is None else g)
+            return self._finish(r, search)
+        cur = self._check_current(current)  # a tensor with a search: to the host once (the searches run there)
         self._current_buf = prepare_current(cur, device=self.device, out=self._current_buf)
         strategy = get_guess(search) if search is not None else None
         if strategy is not None and strategy.propagates:
@@ -197,6 +212,21 @@ class Tracker:
         else:
             g = self.initial_guess(cur, guess, search)
             r = self.correlator.run_all(self._current_buf, g)
+        return self._finish(r, search)
+
+    def _device_view(self, current):
+        """A torch tensor -> a Warp array viewing its float32 copy or itself on this tracker's device (checked there)."""
+        import warp as wp
+
+        image = as_float32_tensor(current, self.device, "current")
+        if tuple(image.shape) != tuple(self.shape):
+            raise ValueError(f"current image has shape {tuple(image.shape)} but the reference has shape {self.shape}; "
+                             "DIC needs images of the same size")
+        # held until the next image: Warp may still read it on its own stream after this call returns
+        self._current_tensor = image
+        return wp.from_torch(image)
+
+    def _finish(self, r: dict, search) -> Field2D:
         field = self._field(r)
         counts = status_counts(field.status[~field.valid], Status)
         warn_if_mostly_invalid(int(np.count_nonzero(field.valid)), field.n_points, counts,
@@ -226,11 +256,7 @@ class Tracker:
                              f"got shape {tuple(current.shape)}")
         if current.is_complex() or current.dtype == torch.bool:
             raise ValueError(f"current must hold real grey levels, got dtype {current.dtype}")
-        target = torch.device("cpu") if self.device == "cpu" else torch.device(self.device)
-        image = current.detach().to(device=target, dtype=torch.float32).contiguous()
-        if not bool(torch.isfinite(image).all()):
-            raise ValueError("current contains NaN or infinite values")
-        self._current_buf = prepare_current(wp.from_torch(image), device=self.device, out=self._current_buf)
+        self._current_buf = prepare_current(self._device_view(current), device=self.device, out=self._current_buf)
         n, k = self.n_points, n_params(self.order)
         g = guess_params(guess, n, self.order)
         res = self.correlator.run_device(self._current_buf, np.zeros((n, k)) if g is None else g)

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["IMAGE_SUFFIXES", "as_float32_image", "grey_image", "natural_key", "read_image", "write_image"]
+__all__ = ["IMAGE_SUFFIXES", "as_float32_image", "as_float32_tensor", "grey_image", "is_torch_tensor", "natural_key",
+           "read_image", "write_image"]
 
 #: file name suffixes read_image and write_image accept (case-insensitive)
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp")
@@ -239,5 +241,43 @@ def as_float32_image(image, name: str = "image") -> np.ndarray:
         raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
     out = np.ascontiguousarray(arr, dtype=np.float32)
     if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name} contains NaN or infinite values; DIC needs finite grey levels")
+    return out
+
+
+def is_torch_tensor(obj) -> bool:
+    """Whether ``obj`` is a torch tensor (without importing torch: a tensor exists only if torch is loaded)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(obj, torch.Tensor)
+
+
+def as_float32_tensor(image, device: str, name: str = "image"):
+    """Validate a 2-D grey torch tensor and return it as a contiguous float32 tensor on ``device``, on the device.
+
+    The tensor counterpart of :func:`as_float32_image`, with the same rules and messages, for images
+    that never go through the host: ``image`` already float32, contiguous and on ``device`` (a Warp
+    device name, ``"cpu"`` or ``"cuda:N"``) is returned as it is (no copy); another dtype (8/16-bit,
+    float64, bool) is converted on its device by torch; a tensor on another device is moved there
+    first (one copy). The finiteness check reduces on the device to one scalar, which is the only
+    value read back; reading it also waits for the work that produced the tensor on torch's stream,
+    so a kernel launched afterwards on another stream sees the finished image.
+    """
+    import torch
+
+    if not isinstance(image, torch.Tensor):
+        raise ValueError(f"{name} must be a torch tensor, got {type(image).__name__}")
+    if image.is_complex():
+        raise ValueError(f"{name} is complex (dtype {image.dtype}); DIC needs real grey levels. Pass image.real "
+                         "or abs(image) explicitly")
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        raise ValueError(f"{name} is a colour image of shape {tuple(image.shape)}; a grey image (H, W) is expected. "
+                         "Convert it first (e.g. a weighted sum of the channels)")
+    if image.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D array (H, W), got shape {tuple(image.shape)}")
+    if image.numel() == 0:
+        raise ValueError(f"{name} is empty (shape {tuple(image.shape)})")
+    target = torch.device("cpu") if str(device) == "cpu" else torch.device(str(device))
+    out = image.detach().to(device=target, dtype=torch.float32).contiguous()
+    if not bool(torch.isfinite(out).all()):
         raise ValueError(f"{name} contains NaN or infinite values; DIC needs finite grey levels")
     return out

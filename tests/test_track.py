@@ -4,6 +4,8 @@ Accuracy requirements of issue 2 (21x21 subsets): sub-pixel translations, noise 
 sinusoidal field for the 2nd-order shape function, 30 px motions through the initial-guess stage;
 plus POI grids, input types, Tracker reuse and bad input.
 """
+import importlib
+
 import numpy as np
 import pytest
 
@@ -250,3 +252,53 @@ def test_torch_tensors_in_and_out_without_a_host_copy(device, translation_pairs,
         tracker.track_tensors(bad)
     with pytest.raises(ValueError, match="shape"):
         tracker.track_tensors(current[:-1])
+
+
+@pytest.mark.parametrize("dtype", ["float32", "uint8", "uint16"])
+def test_track_reads_torch_tensors_in_place(device, translation_pairs, monkeypatch, dtype):
+    """track() with a torch tensor and no search: the image never goes through the host-side array check
+    (it is read in place on the device; 8/16-bit converted there by torch), and the Field2D is bitwise the
+    one of the same image given as a NumPy array."""
+    torch = pytest.importorskip("torch")
+    import kernels.images
+
+    ref, cur = translation_pairs[0.4]
+    cur = np.round(cur).astype(dtype) if dtype != "float32" else cur.astype(np.float32)
+    tracker = Tracker(ref, step=20, device=device)
+    expected = tracker.track(cur, guess=(0.3, 0.1))
+    expected_prior = tracker.track(cur, search="prior")
+    tdev = "cpu" if device == "cpu" else device
+    current = torch.from_numpy(cur).to(tdev)
+
+    def no_host_copy(*args, **kwargs):
+        raise AssertionError("the image went through the host-side array check")
+
+    monkeypatch.setattr(kernels.images, "as_float32_image", no_host_copy)
+    monkeypatch.setattr("kernels.icgn.as_float32_image", no_host_copy)
+    monkeypatch.setattr(importlib.import_module("dic.track"), "as_float32_image", no_host_copy)
+    got = tracker.track(current, guess=(0.3, 0.1))
+    got_prior = tracker.track(current, search="prior")
+    for a, b in ((got, expected), (got_prior, expected_prior)):
+        for name in ("params", "u", "v", "zncc", "iterations", "status", "valid", "sigma_u", "sigma_v"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    with pytest.raises(ValueError, match="NaN"):
+        bad = current.to(torch.float32).clone()
+        bad[5, 5] = float("inf")
+        tracker.track(bad)
+    with pytest.raises(ValueError, match="same size"):
+        tracker.track(current[:-1])
+    with pytest.raises(ValueError, match="colour"):
+        tracker.track(torch.stack([current] * 3, dim=-1))
+    with pytest.raises(ValueError, match="complex"):
+        tracker.track(current.to(torch.complex64))
+
+
+def test_track_tensor_with_a_search_goes_to_the_host_once(translation_pairs):
+    """With a search the image is needed on the host: a tensor is copied there (same results as NumPy)."""
+    torch = pytest.importorskip("torch")
+    ref, cur = translation_pairs[0.4]
+    tracker = Tracker(ref, step=20, search="zncc", search_radius=3, device="cpu")
+    expected = tracker.track(cur)
+    got = tracker.track(torch.from_numpy(cur.astype(np.float32)))
+    np.testing.assert_array_equal(got.params, expected.params)
+    np.testing.assert_array_equal(got.status, expected.status)

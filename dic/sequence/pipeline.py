@@ -34,17 +34,26 @@ class Loaded:
     error: BaseException | None = None
 
 
-def load_image(item, what: str) -> tuple[np.ndarray, str]:
-    """An image given as an array or a file path -> (array, path or '')."""
+def load_image(item, what: str, *, keep_tensors: bool = False) -> tuple[Any, str]:
+    """An image given as an array, a torch tensor or a file path -> (array, path or '').
+
+    A torch tensor is passed through untouched with ``keep_tensors`` (frames a tracker reads in place
+    on its device: no host copy); otherwise it is copied to the host once (a NumPy array).
+    """
+    from kernels.images import is_torch_tensor
+
     if isinstance(item, (str, os.PathLike)):
         from kernels.images import read_image
 
         return read_image(item), os.fspath(item)
     if item is None:
         raise ValueError(f"{what} is missing")
+    name = ""
     if hasattr(item, "image") and hasattr(item, "name"):  # a dic.sources.Frame: its image and its name
-        return np.asarray(item.image), str(item.name)
-    return np.asarray(item), ""
+        item, name = item.image, str(item.name)
+    if is_torch_tensor(item):
+        return (item if keep_tensors else item.detach().cpu().numpy()), name
+    return np.asarray(item), name
 
 
 def read_ahead(items: Iterable, load: Callable[[int, Any], Loaded], *, first: int = 1, depth: int = 2):

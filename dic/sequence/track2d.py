@@ -143,16 +143,40 @@ def _compose(ref: _Ref, raw, points0, order: int):
 
 
 def _digest(image) -> str:
-    from ..store import image_digest
+    """A frame's digest for the resume check: SHA-256 of a host image; of a torch tensor (kept on its
+    device) the device-computed checksum, so that no frame is copied to the host just to be hashed."""
+    from kernels.images import is_torch_tensor
 
-    return image_digest(image)
+    from ..store import device_checksum, image_digest
+
+    return device_checksum(image) if is_torch_tensor(image) else image_digest(image)
+
+
+def _digest_like(stored: str, image, given: str) -> str:
+    """The digest of ``image`` of the kind the file holds for it (resuming a run whose frames were given
+    as tensors with arrays, or the other way round); ``given`` when the kinds already agree."""
+    from ..store import DEVICE_CHECKSUM_PREFIX, device_checksum, image_digest
+
+    if not stored or stored.startswith(DEVICE_CHECKSUM_PREFIX) == given.startswith(DEVICE_CHECKSUM_PREFIX):
+        return given
+    if stored.startswith(DEVICE_CHECKSUM_PREFIX):
+        return device_checksum(image)
+    # the file holds a SHA-256: a tensor frame goes to the host once, for this check only
+    return image_digest(image.detach().cpu().numpy() if hasattr(image, "detach") else image)
+
+
+def _host(image):
+    """A frame image on the host (a torch tensor copied there once, as float32 like every tracker input)."""
+    from kernels.images import as_float32_image, is_torch_tensor
+
+    return as_float32_image(image, "a new reference") if is_torch_tensor(image) else image
 
 
 def _frame_loader(shape, reference_name: str):
     def load(index: int, item) -> Loaded:
-        img, path = load_image(item, f"frame {index}")
-        if img.ndim != 2 or img.shape != tuple(shape):
-            got = f"{img.shape[1]}x{img.shape[0]} px" if img.ndim == 2 else f"of shape {img.shape}"
+        img, path = load_image(item, f"frame {index}", keep_tensors=True)
+        if img.ndim != 2 or tuple(img.shape) != tuple(shape):
+            got = f"{img.shape[1]}x{img.shape[0]} px" if img.ndim == 2 else f"of shape {tuple(img.shape)}"
             raise ValueError(f"{path or f'frame {index}'} is {got} but the reference {reference_name} is "
                              f"{shape[1]}x{shape[0]} px; all images must have the same size")
         return Loaded(index, img, path, _digest(img))
@@ -414,7 +438,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 return get_ref(fallback)
             whole = np.round(pts)
             tracker0_holder[0] = current = None  # free the previous reference's data before preparing the new one
-            current = _Ref(r, images[r], state, tracker_for(images[r], whole), pts - whole)
+            image = _host(images[r])  # a reference is prepared on the host (once per reference)
+            current = _Ref(r, image, state, tracker_for(image, whole), pts - whole)
             return current
 
         def finish(k: int, lag, raw_seconds: float, ref_index: int, item: Loaded):
@@ -468,8 +493,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                     raise exc
                 if k in done:  # resuming: the finished frame must come from the image given for it now
                     with wb.lock:
-                        writer.check_frame(k, item.path, item.digest)
                         attrs = writer.frame_attrs(k)
+                        writer.check_frame(k, item.path, _digest_like(str(attrs.get("sha256", "")), item.image,
+                                                                      item.digest))
                     r_k = int(attrs.get("reference_index", 0))
                     prev = None if k + 1 in done else stored_state(k)
                     keep = {policy.start(k + 1, r_k), k, current.index}

@@ -1,0 +1,354 @@
+"""The GPU path measured in one run (issue 13, item 7): CUDA tests, CPU-vs-GPU agreement, throughput.
+
+Run by ``bench/gpu.sh run`` on a machine with an NVIDIA GPU (see bench/README.md, "GPU"), or directly::
+
+    python -m bench.gpu --device cuda:0                  # everything, under --budget seconds (470)
+    python -m bench.gpu --device cpu --quick --out DIR   # the smoke test CI runs (tests/test_gpu_script.py)
+    python -m bench.gpu --device cpu --save-reference    # rewrite bench/results/gpu_reference_cpu.npz
+    python -m bench.gpu --prebuild-cache --arch 90       # compile every kernel module for sm_90 into
+                                                         # the Warp kernel cache (WARP_CACHE_PATH)
+
+Sections, in this order, the JSON (``gpu_<device>.json``, e.g. ``bench/results/gpu_cuda.json``)
+written again after each one, so that a run cut short keeps what it measured:
+
+1. ``environment``: device name, Warp/torch/NumPy versions, the kernel cache in use.
+2. ``reference``: a fixed synthetic pair (256 x 256 8-bit speckle, seed 2024, shift (0.35, -0.2) px,
+   step 8, 21 px subsets, zero guess, orders 1 and 2) tracked on the device and compared with the
+   CPU results carried in ``bench/results/gpu_reference_cpu.npz``: statuses, iteration counts
+   and the largest parameter difference (float32 kernels: the GPU's fused multiply-adds and another
+   summation order give differences of about 1e-6 px, not bitwise equality); and the same image
+   given as a torch tensor on the device (read in place) must give bitwise the NumPy input's results.
+3. ``icgn``: single-frame IC-GN throughput (:func:`bench.icgn.bench_device`: 2048^2, step 2,
+   1 028 196 POIs, both orders; ``--quick``: 256^2, step 4).
+4. ``sequence``: :func:`dic.sequence.track_sequence` on a synthetic 1024^2 sequence of 50 frames
+   (a rigid motion growing by (0.1, -0.05) px per frame), step 5, fixed reference, strain and the
+   result file included, frames given as torch tensors on the device and as NumPy arrays; reported as
+   POI/s over the whole run against the track-only rate of one frame (``Tracker.track`` of a
+   tensor) measured in the same run (``--quick``: 128^2, 4 frames, step 8).
+5. ``tests``: ``pytest -m cuda`` (tests marked ``cuda`` and every test of the ``device`` fixture on
+   ``cuda:0``, marked by tests/conftest.py) in a subprocess with the time left of ``--budget``
+   (skipped on the CPU and with ``--quick``).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import pkgutil
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RESULTS = os.path.join(ROOT, "bench", "results")
+REFERENCE = os.path.join(RESULTS, "gpu_reference_cpu.npz")
+REF_CASE = {"size": 256, "shift": (0.35, -0.2), "seed": 2024, "step": 8, "subset": 21}
+
+
+def _label(device: str) -> str:
+    return "cuda" if device.startswith("cuda") else device.replace(":", "")
+
+
+def _versions() -> dict:
+    import warp as wp
+
+    out = {"python": sys.version.split()[0], "numpy": np.__version__, "warp": wp.config.version}
+    try:
+        import torch
+
+        out["torch"] = torch.__version__
+    except ImportError:
+        out["torch"] = None
+    return out
+
+
+def _torch_device(device: str):
+    import torch
+
+    return torch.device("cpu") if device == "cpu" else torch.device(device)
+
+
+def _sync(device: str) -> None:
+    import warp as wp
+
+    wp.synchronize_device(device)
+    if device.startswith("cuda"):
+        import torch
+
+        torch.cuda.synchronize()
+
+
+def prebuild_cache(arch: int = 90) -> list[str]:
+    """Compile every kernel module of ``kernels`` for ``sm_<arch>`` into Warp's kernel cache (no GPU needed).
+
+    The cache is ``WARP_CACHE_PATH`` (or Warp's default); Warp then loads these binaries on a GPU of that
+    architecture instead of compiling the kernels there. Returns the modules compiled.
+    """
+    import warp as wp
+
+    import kernels
+    from kernels._device import _ensure_init
+
+    _ensure_init()
+    done = []
+    for _, name, _ in pkgutil.iter_modules(kernels.__path__):
+        if name.startswith("_") or name == "conventions":
+            continue
+        module = importlib.import_module(f"kernels.{name}")
+        if any(isinstance(getattr(module, a), wp.Kernel) for a in dir(module)):
+            # both forms Warp may look for on that GPU: CUBIN (a driver older than Warp's CUDA) and PTX
+            wp.compile_aot_module(module, arch=int(arch), use_ptx=False)
+            wp.compile_aot_module(module, arch=int(arch), use_ptx=True)
+            done.append(name)
+    return done
+
+
+def reference_case(device: str, images=None) -> dict:
+    """The fixed pair (rendered here, or ``images``: the carried 8-bit pair) tracked on ``device``:
+    the images and, per order, params, zncc, status and iterations (host arrays)."""
+    from dic.track import Tracker
+
+    c = REF_CASE
+    if images is None:
+        from dic.synth import speckle_pair
+
+        images = speckle_pair((c["size"], c["size"]), c["shift"], seed=c["seed"], bits=8, device=device)
+    ref, cur = (np.asarray(a, np.uint8) for a in images)  # 8-bit grey levels: exact in the file
+    out = {"reference": ref, "current": cur}
+    for order in (1, 2):
+        f = Tracker(ref, step=c["step"], subset=c["subset"], order=order, check_warps=False, device=device).track(cur)
+        out.update({f"params{order}": f.params, f"zncc{order}": f.zncc, f"status{order}": f.status,
+                    f"iterations{order}": f.iterations})
+    return out
+
+
+def section_reference(device: str) -> dict:
+    import torch
+
+    from dic.track import Tracker
+
+    if not os.path.exists(REFERENCE):
+        return {"error": f"{REFERENCE} is missing (python -m bench.gpu --device cpu --save-reference)"}
+    carried = np.load(REFERENCE)
+    t0 = time.perf_counter()
+    got = reference_case(device, (carried["reference"], carried["current"]))  # the CPU's own images
+    res = {"case": {**REF_CASE, "image": "dic.synth.speckle_pair 8-bit, carried in the npz"},
+           "seconds": time.perf_counter() - t0}
+    ok = True
+    for order in (1, 2):
+        p, q = got[f"params{order}"], carried[f"params{order}"]
+        same_status = got[f"status{order}"] == carried[f"status{order}"]
+        both = same_status & np.isin(got[f"status{order}"], (0, 1))
+        dp = np.abs(p[both] - q[both]) if both.any() else np.zeros(1)
+        r = {"n_points": int(len(p)),
+             "status_agreement": float(same_status.mean()),
+             "iterations_equal_fraction": float(np.mean(got[f"iterations{order}"] == carried[f"iterations{order}"])),
+             "max_abs_param_diff": float(dp.max()),
+             "max_abs_uv_diff_px": float(max(dp[:, 0].max(), dp[:, p.shape[1] // 2].max())),
+             "max_abs_zncc_diff": float(np.abs(got[f"zncc{order}"] - carried[f"zncc{order}"])[both].max()
+                                        if both.any() else 0.0),
+             "bitwise_equal": bool(np.array_equal(p, q) and same_status.all())}
+        r["ok"] = r["status_agreement"] >= 0.999 and r["max_abs_uv_diff_px"] <= 1e-3
+        ok &= r["ok"]
+        res[f"order{order}"] = r
+    # the same current image as a torch tensor on the device, read in place: bitwise the NumPy input's result
+    tracker = Tracker(got["reference"], step=REF_CASE["step"], check_warps=False, device=device)
+    a = tracker.track(got["current"])
+    b = tracker.track(torch.from_numpy(got["current"]).to(_torch_device(device)))
+    res["tensor_input_bitwise_equal"] = bool(np.array_equal(a.params, b.params) and np.array_equal(a.status, b.status))
+    res["ok"] = bool(ok and res["tensor_input_bitwise_equal"])
+    res["tolerance"] = "status agreement >= 99.9 %, |du|, |dv| <= 1e-3 px where both converged"
+    return res
+
+
+def section_icgn(device: str, quick: bool) -> dict:
+    from bench.icgn import bench_device
+    from dic.synth import speckle_pair
+    from dic.track import grid
+
+    size, step, repeats = (256, 4, 1) if quick else (2048, 2, 3)
+    shift = (0.35, -0.2)
+    ref, cur = speckle_pair((size, size), shift, seed=2024, bits=8, device=device)
+    points = grid(ref.shape, step, margin=10)
+    rows = bench_device(device, ref, cur, points, shift, 21, 30, 1e-3, repeats)
+    return {"parameters": {"size": size, "step": step, "subset": 21, "n_points": int(len(points)),
+                           "repeats": repeats, "max_iter": 30, "tol_px": 1e-3, "initial_guess": "zero"},
+            "orders": {str(o): r for o, r in rows.items()}}
+
+
+def _sequence_frames(size: int, n: int, device: str):
+    from dic.synth import deformed_image, make_speckle
+
+    du, dv = 0.1, -0.05
+    model = make_speckle((size, size), margin=abs(du) * n + 8, seed=7, bits=8)
+    ref = deformed_image(model, (size, size), None, seed=0, device=device)
+    frames = [deformed_image(model, (size, size), (du * k, dv * k), seed=k, device=device) for k in range(1, n + 1)]
+    return ref, frames, (du, dv)
+
+
+def section_sequence(device: str, quick: bool, workdir: str) -> dict:
+    import torch
+
+    from dic.sequence import track_sequence
+    from dic.track import Tracker
+
+    size, n, step = (128, 4, 8) if quick else (1024, 50, 5)
+    t0 = time.perf_counter()
+    ref, frames, motion = _sequence_frames(size, n, device)
+    t_render = time.perf_counter() - t0
+    tdev = _torch_device(device)
+    tensors = [torch.from_numpy(f).to(tdev) for f in frames]
+    _sync(device)
+    # the track-only rate of one frame: Tracker.track of a tensor on the device (after a warm-up)
+    tracker = Tracker(ref, step=step, device=device)
+    tracker.track(tensors[0])
+    times = []
+    for t in tensors[: min(3, n)]:
+        _sync(device)
+        s = time.perf_counter()
+        tracker.track(t)
+        _sync(device)
+        times.append(time.perf_counter() - s)
+    n_poi = tracker.n_points
+    del tracker
+    one = n_poi / min(times)
+    res = {"parameters": {"size": size, "frames": n, "step": step, "subset": 21, "n_points": int(n_poi),
+                          "motion_per_frame_px": list(motion), "reference": "fixed", "strain_window": 5,
+                          "image": "dic.synth Boolean speckle, 8-bit, noise-free"},
+           "render_seconds": t_render, "track_only_poi_per_s": one, "track_only_seconds": times}
+    for name, given in (("tensors", tensors), ("numpy", frames)):
+        out = os.path.join(workdir, f"sequence_{name}.h5")
+        _sync(device)
+        s = time.perf_counter()
+        summary = track_sequence(ref, given, out, mode="overwrite", step=step, device=device)
+        _sync(device)
+        wall = time.perf_counter() - s
+        valid = float(np.mean([f["n_valid"] / f["n_points"] for f in summary.frames]))
+        res[name] = {"seconds": wall, "frames_per_s": n / wall, "poi_per_s": n * n_poi / wall,
+                     "ratio_to_track_only": (n * n_poi / wall) / one, "mean_valid_fraction": valid}
+    return res
+
+
+def section_tests(device: str, seconds: float) -> dict:
+    if not device.startswith("cuda"):
+        return {"skipped": "the CUDA tests need a CUDA device"}
+    if seconds < 30:
+        return {"skipped": f"only {seconds:.0f} s of the budget left"}
+    cmd = [sys.executable, "-m", "pytest", "-m", "cuda", "-q", "-p", "no:cacheprovider", "--continue-on-collection-errors",
+           "-o", "addopts=", "-rfE", "tests"]
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=seconds)
+        out, rc = p.stdout + p.stderr, p.returncode
+    except subprocess.TimeoutExpired as exc:
+        out = (exc.stdout or b"").decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+        rc = "timeout"
+    lines = [ln for ln in out.splitlines() if ln.strip()]
+    summary = next((ln for ln in reversed(lines) if " in " in ln and ("passed" in ln or "failed" in ln
+                                                                    or "error" in ln)), "")
+    return {"command": " ".join(cmd), "returncode": rc, "seconds": time.perf_counter() - t0, "summary": summary,
+            "failures": [ln for ln in lines if ln.startswith(("FAILED", "ERROR"))][:50], "tail": lines[-40:]}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cuda:0", help="Warp device (default cuda:0)")
+    ap.add_argument("--quick", action="store_true", help="small sizes, no tests (the CI smoke test, < 30 s on a CPU)")
+    ap.add_argument("--out", default=RESULTS, help="folder of the JSON (default bench/results)")
+    ap.add_argument("--budget", type=float, default=470.0, help="seconds for the whole run; the tests get what is left")
+    ap.add_argument("--sections", default="reference,icgn,sequence,tests",
+                    help="comma-separated subset of reference,icgn,sequence,tests")
+    ap.add_argument("--save-reference", action="store_true", help="write the CPU reference npz and stop")
+    ap.add_argument("--prebuild-cache", action="store_true", help="compile the kernels for --arch into the cache and stop")
+    ap.add_argument("--arch", type=int, default=90, help="CUDA architecture of --prebuild-cache (default 90)")
+    args = ap.parse_args(argv)
+    t_start = time.perf_counter()
+    if args.prebuild_cache:
+        import warp as wp
+
+        names = prebuild_cache(args.arch)
+        print(f"compiled {len(names)} kernel modules for sm_{args.arch} into {wp.config.kernel_cache_dir}: "
+              f"{', '.join(names)}")
+        return {"prebuilt": names}
+    from kernels._device import resolve_device
+
+    try:
+        device = resolve_device(args.device)
+    except ValueError as exc:
+        raise SystemExit(f"bench.gpu: {exc}") from None
+    if args.save_reference:
+        if device != "cpu":
+            raise SystemExit("bench.gpu: the carried reference is computed on the CPU (--device cpu)")
+        got = reference_case("cpu")
+        np.savez_compressed(REFERENCE, **got)
+        print(f"wrote {REFERENCE}")
+        return {}
+    sections = [s.strip() for s in args.sections.split(",") if s.strip()]
+    unknown = set(sections) - {"reference", "icgn", "sequence", "tests"}
+    if unknown:
+        raise SystemExit(f"bench.gpu: unknown section(s) {sorted(unknown)}")
+    import warp as wp
+
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, f"gpu_{_label(device)}.json")
+    result = {"benchmark": "gpu", "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+              "device": device, "quick": bool(args.quick),
+              "environment": {"device_name": wp.get_device(device).name, "versions": _versions(),
+                              "platform": platform.platform(), "cpu_count": os.cpu_count(),
+                              "kernel_cache": wp.config.kernel_cache_dir or os.environ.get("WARP_CACHE_PATH")}}
+
+    def save():
+        result["seconds_so_far"] = time.perf_counter() - t_start
+        with open(path, "w") as fh:
+            json.dump(result, fh, indent=2, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+
+    save()
+    print(f"bench.gpu on {device} ({result['environment']['device_name']}), writing {path}", flush=True)
+    with tempfile.TemporaryDirectory(prefix="specula-gpu-") as work:
+        for name in sections:
+            s = time.perf_counter()
+            try:
+                if name == "reference":
+                    result[name] = section_reference(device)
+                elif name == "icgn":
+                    result[name] = section_icgn(device, args.quick)
+                elif name == "sequence":
+                    result[name] = section_sequence(device, args.quick, work)
+                elif name == "tests":
+                    result[name] = ({"skipped": "--quick"} if args.quick else
+                                    section_tests(device, args.budget - (time.perf_counter() - t_start) - 10))
+            except Exception as exc:  # noqa: BLE001 - one broken section must not lose the others
+                import traceback
+
+                result[name] = {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()[-4000:]}
+            result[name]["section_seconds"] = time.perf_counter() - s
+            save()
+            print(f"  {name}: {_brief(name, result[name])} ({result[name]['section_seconds']:.1f} s)", flush=True)
+    print(f"wrote {path} in {time.perf_counter() - t_start:.0f} s")
+    return result
+
+
+def _brief(name: str, r: dict) -> str:
+    if "error" in r or "skipped" in r:
+        return r.get("error") or f"skipped: {r['skipped']}"
+    if name == "reference":
+        return (f"ok={r['ok']} order1 max|du,dv|={r['order1']['max_abs_uv_diff_px']:.2e} px, order2 "
+                f"{r['order2']['max_abs_uv_diff_px']:.2e} px, tensor bitwise={r['tensor_input_bitwise_equal']}")
+    if name == "icgn":
+        return ", ".join(f"order {o}: {v['poi_per_s_tracking']:.3g} POI/s track, {v['poi_per_s_end_to_end']:.3g} e2e"
+                         for o, v in r["orders"].items())
+    if name == "sequence":
+        return (f"track-only {r['track_only_poi_per_s']:.3g} POI/s; sequence tensors {r['tensors']['poi_per_s']:.3g} "
+                f"({r['tensors']['ratio_to_track_only']:.2f}x), numpy {r['numpy']['poi_per_s']:.3g} "
+                f"({r['numpy']['ratio_to_track_only']:.2f}x)")
+    return f"{r.get('summary', '')} (rc {r.get('returncode')})"
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,59 @@
+"""bench/gpu.py, the GPU measurement script, in its CPU smoke mode (``--device cpu --quick``, < 30 s): every
+section runs and is saved; the carried CPU reference agrees with this machine's CPU results."""
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from bench import gpu
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_quick_cpu_run_writes_every_section(tmp_path):
+    pytest.importorskip("torch")
+    result = gpu.main(["--device", "cpu", "--quick", "--out", str(tmp_path)])
+    saved = json.loads((tmp_path / "gpu_cpu.json").read_text())
+    for name in ("environment", "reference", "icgn", "sequence", "tests"):
+        assert name in saved and "error" not in saved[name], (name, saved.get(name))
+    ref = saved["reference"]
+    assert ref["tensor_input_bitwise_equal"] and ref["ok"]
+    for order in ("order1", "order2"):
+        assert ref[order]["status_agreement"] >= 0.999 and ref[order]["max_abs_uv_diff_px"] <= 1e-3
+    assert saved["icgn"]["orders"]["1"]["poi_per_s_tracking"] > 0
+    seq = saved["sequence"]
+    assert seq["tensors"]["poi_per_s"] > 0 and seq["numpy"]["mean_valid_fraction"] > 0.9
+    assert saved["tests"]["skipped"] == "--quick"
+    assert result["device"] == "cpu"
+
+
+def test_bad_arguments_are_one_clear_message(tmp_path):
+    with pytest.raises(SystemExit, match="unknown section"):
+        gpu.main(["--device", "cpu", "--sections", "icgn,magic", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="device must be"):
+        gpu.main(["--device", "nonsense", "--out", str(tmp_path)])
+    p = subprocess.run(["bash", str(ROOT / "bench" / "gpu.sh"), "frobnicate"], capture_output=True, text=True)
+    assert p.returncode == 2 and "usage" in p.stderr
+    p = subprocess.run(["bash", str(ROOT / "bench" / "gpu.sh"), "run", str(tmp_path)], capture_output=True, text=True)
+    assert p.returncode == 2 and "gather the carried parts" in p.stderr
+
+
+def test_device_fixture_tests_on_cuda_are_marked_cuda():
+    """tests/conftest.py marks every ``device``-fixture test that runs on CUDA with ``cuda`` (bench/gpu.sh runs
+    ``pytest -m cuda``), and no other."""
+    import types
+
+    import conftest
+
+    class Item:
+        def __init__(self, params):
+            self.callspec = types.SimpleNamespace(params=params) if params is not None else None
+            self.markers = []
+
+        def add_marker(self, marker):
+            self.markers.append(marker.name)
+
+    items = [Item({"device": "cuda:0"}), Item({"device": "cpu"}), Item({"order": 2}), Item(None)]
+    conftest.pytest_collection_modifyitems(None, items)
+    assert [i.markers for i in items] == [["cuda"], [], [], []]
