@@ -46,6 +46,8 @@ __all__ = [
     "inverse_displacement",
     "render",
     "specimen_on_background",
+    "EvolvingSequence",
+    "evolving_sequence",
 ]
 
 #: tile side in units of the mean radius: disks are drawn tile by tile with per-tile seeds, so a
@@ -679,3 +681,315 @@ def specimen_on_background(shape, displacement=None, *, specimen, background_lev
     reference = add_noise(ref_fraction * ref_speckle + (1.0 - ref_fraction) * bg, seed=_seed_entropy(seed, 1), **noise)
     current = add_noise(cur_fraction * cur_speckle + (1.0 - cur_fraction) * bg, seed=_seed_entropy(seed, 2), **noise)
     return reference, current, ref_fraction
+
+
+# ---------------------------------------------------------------------------------------------
+# long sequences: a growing affine deformation of a speckle pattern whose speckles fade and appear
+
+
+def _real(value, name: str, *, lo: float | None = None, hi: float | None = None, detail: str = "") -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number{detail}, got {value!r}")
+    value = float(value)
+    if lo is not None and not value > lo:
+        raise ValueError(f"{name} must be > {lo}{detail}, got {value!r}")
+    if hi is not None and not value < hi:
+        raise ValueError(f"{name} must be < {hi}{detail}, got {value!r}")
+    return value
+
+
+class FrameIndexError(IndexError, ValueError):
+    """A frame index outside a sequence (an ``IndexError`` for the sequence protocol, a ``ValueError`` too)."""
+
+
+class EvolvingSequence:
+    """A synthetic image sequence: a growing stretch of a speckle pattern whose speckles fade and appear.
+
+    Made by :func:`evolving_sequence` (see there for the parameters). Frame ``k`` shows the material
+    point ``X`` at ``x = X + u(X, k)``, with the exact affine displacement relative to frame 0
+
+        ``u(X, Y, k) = a_k (X - cx) + tx_k``,  ``v(X, Y, k) = b_k (Y - cy) + ty_k``,
+
+    ``a_k = stretch_final · t``, ``b_k = transverse_final · t``, ``(tx_k, ty_k) =
+    translation_final · t``, ``t = k / (n_frames - 1)``, about the image centre ``(cx, cy) =
+    ((W - 1) / 2, (H - 1) / 2)``. The pattern is a Boolean model (:func:`make_speckle`) whose disks
+    live in material coordinates: from frame 1 on, each frame removes ``round(fade_fraction · M)``
+    of its ``M`` alive disks (drawn at random) and adds as many new ones (uniform in the pattern's
+    region, radii from the same distribution), so the density stays the same while the texture
+    decorrelates from frame 0 (paint cracking, light drift). Frame ``k`` is rendered exactly from
+    the disks alive at ``k`` (:meth:`alive`), never by interpolating another frame.
+
+    Frames are rendered on demand (``seq[k]``, ``for image in seq``); nothing is cached but the
+    disk pool (births and deaths of every disk that ever lives: about ``M (1 + fade_fraction ·
+    n_frames)`` disks), so memory does not grow with the frames rendered. Rendering is
+    deterministic: the same arguments give the same frames, in any order.
+
+    Attributes
+    ----------
+    shape : (H, W)
+    n_frames : int
+    centre : (cx, cy) px
+    pattern : BooleanSpeckle
+        Every disk that is ever alive (``centres``, ``radii``) and the imaging parameters.
+    born, dies : (P,) int32
+        Disk ``i`` is alive in frames ``born[i] <= k < dies[i]`` (``dies = n_frames``: to the end).
+    """
+
+    def __init__(self, shape, n_frames, *, stretch_final, transverse_final, translation_final, fade_fraction,
+                 pattern_kwargs, noise_sigma, poisson, full_well, seed, device):
+        self.shape = _check_shape(shape)
+        self.n_frames = positive_int(n_frames, "n_frames")
+        self.stretch_final = _real(stretch_final, "stretch_final", lo=-0.5, detail=" (relative stretch along x)")
+        self.transverse_final = _real(transverse_final, "transverse_final", lo=-0.5,
+                                      detail=" (relative stretch along y)")
+        try:
+            tr = np.asarray(translation_final, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            tr = np.zeros(0)
+        if tr.shape != (2,) or not np.all(np.isfinite(tr)):
+            raise ValueError(f"translation_final must be a finite (tx, ty) pair in px, got {translation_final!r}")
+        self.translation_final = (float(tr[0]), float(tr[1]))
+        self.fade_fraction = _real(fade_fraction, "fade_fraction", lo=None, detail=" (fraction of speckles "
+                                   "replaced per frame, in [0, 1))")
+        if not 0.0 <= self.fade_fraction < 1.0:
+            raise ValueError(f"fade_fraction (fraction of speckles replaced per frame) must be in [0, 1), "
+                             f"got {fade_fraction!r}")
+        self.noise = dict(noise_sigma=noise_sigma, poisson=poisson, full_well=full_well)
+        add_noise(np.zeros((1, 1)), bits=pattern_kwargs.get("bits", 8), **self.noise)  # validates the noise settings
+        self.seed = seed
+        _seed_entropy(seed)
+        self.device = device
+        H, W = self.shape
+        self.centre = ((W - 1) / 2.0, (H - 1) / 2.0)
+        probe = make_speckle(region=(0.0, 0.0, 1.0, 1.0), **pattern_kwargs, seed=seed)
+        self._reach = 4 * probe.blur + 1.0
+        lo = np.full(2, np.inf)
+        hi = np.full(2, -np.inf)
+        for k in (0, self.n_frames - 1):  # material points shown: extreme at the first and last frames
+            b = self._bounds(k)
+            lo = np.minimum(lo, b[:2])
+            hi = np.maximum(hi, b[2:])
+        margin = 4 * probe.blur + _DEFAULT_MARGIN
+        region = (float(min(lo[0] - 1.0, -0.5 - margin)), float(min(lo[1] - 1.0, -0.5 - margin)),
+                  float(max(hi[0] + 1.0, W - 0.5 + margin)), float(max(hi[1] + 1.0, H - 0.5 + margin)))
+        base = make_speckle(region=region, **pattern_kwargs, seed=seed)
+        self._pattern_kwargs = dict(pattern_kwargs)
+        self._build_pool(base)
+
+    # -- the disks
+    def _build_pool(self, base: BooleanSpeckle) -> None:
+        n0 = base.radii.size
+        n_change = int(round(self.fade_fraction * n0))
+        total = n0 + n_change * (self.n_frames - 1)
+        centres = np.empty((total, 2))
+        radii = np.empty(total)
+        born = np.zeros(total, dtype=np.int32)
+        dies = np.full(total, self.n_frames, dtype=np.int32)
+        centres[:n0] = base.centres
+        radii[:n0] = base.radii
+        alive = np.arange(n0)
+        rng = np.random.default_rng(_seed_entropy(self.seed, 7, 7))  # the renewal stream (not the tiles' streams)
+        x0, y0, x1, y1 = base.region
+        nxt = n0
+        for k in range(1, self.n_frames):
+            if n_change == 0:
+                break
+            slots = rng.choice(n0, size=n_change, replace=False)
+            dies[alive[slots]] = k
+            new = np.arange(nxt, nxt + n_change)
+            centres[new, 0] = rng.uniform(x0, x1, n_change)
+            centres[new, 1] = rng.uniform(y0, y1, n_change)
+            radii[new] = _draw_radii(rng, n_change, base.radius, base.radius_spread)
+            born[new] = k
+            alive[slots] = new
+            nxt += n_change
+        self.pattern = BooleanSpeckle(
+            centres=centres, radii=radii, region=base.region, background=base.background, contrast=base.contrast,
+            blur=base.blur, samples=base.samples, bits=base.bits, radius=base.radius, density=base.density,
+            radius_spread=base.radius_spread, seed=base.seed)
+        self.born = born
+        self.dies = dies
+        self.n_changed_per_frame = n_change
+        self._frame_model: tuple[int, BooleanSpeckle] | None = None
+
+    def _index(self, k) -> int:
+        if isinstance(k, bool) or not isinstance(k, (numbers.Integral,)):
+            raise ValueError(f"frame index must be an integer, got {k!r}")
+        k = int(k)
+        if k < 0:
+            k += self.n_frames
+        if not 0 <= k < self.n_frames:
+            raise FrameIndexError(f"frame index {k} out of range for a sequence of {self.n_frames} frames")
+        return k
+
+    def alive(self, k) -> np.ndarray:
+        """Boolean mask over :attr:`pattern`'s disks: the speckles present in frame ``k``."""
+        k = self._index(k)
+        return (self.born <= k) & (self.dies > k)
+
+    def model(self, k) -> BooleanSpeckle:
+        """The Boolean model of frame ``k``: the disks alive then, in material (frame-0) coordinates."""
+        k = self._index(k)
+        if self._frame_model is not None and self._frame_model[0] == k:
+            return self._frame_model[1]
+        keep = self.alive(k)
+        p = self.pattern
+        m = BooleanSpeckle(centres=p.centres[keep], radii=p.radii[keep], region=p.region, background=p.background,
+                           contrast=p.contrast, blur=p.blur, samples=p.samples, bits=p.bits, radius=p.radius,
+                           density=p.density, radius_spread=p.radius_spread, seed=p.seed)
+        self._frame_model = (k, m)  # one frame's device model at a time
+        return m
+
+    # -- the motion
+    def parameters(self, k) -> tuple[float, float, float, float]:
+        """``(a_k, b_k, tx_k, ty_k)``: stretch along x and y and translation of frame ``k``."""
+        k = self._index(k)
+        t = k / (self.n_frames - 1) if self.n_frames > 1 else 0.0
+        return (self.stretch_final * t, self.transverse_final * t,
+                self.translation_final[0] * t, self.translation_final[1] * t)
+
+    def displacement(self, points, k, *, since: int = 0) -> np.ndarray:
+        """Exact displacement (N, 2) px from frame ``since`` to frame ``k`` of the material points that
+        sit at ``points`` (N, 2) ``(x, y)`` in frame ``since`` (default 0: reference coordinates).
+
+        ``displacement(points, k)`` is the Lagrangian ground truth of a DIC run with frame 0 as
+        reference; ``displacement(points_j, k, since=j)`` that of frame ``k`` tracked from frame ``j``.
+        """
+        from kernels.checks import as_points
+
+        pts = as_points(points)
+        X = self.to_reference(pts, since)
+        return self.to_frame(X, k) - pts
+
+    def to_reference(self, points, k) -> np.ndarray:
+        """Material (frame-0) coordinates (N, 2) of the points ``(x, y)`` seen in frame ``k``."""
+        a, b, tx, ty = self.parameters(k)
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        cx, cy = self.centre
+        return np.stack([cx + (pts[:, 0] - cx - tx) / (1.0 + a), cy + (pts[:, 1] - cy - ty) / (1.0 + b)], axis=1)
+
+    def to_frame(self, points, k) -> np.ndarray:
+        """Positions (N, 2) in frame ``k`` of the material points ``(X, Y)`` (frame-0 coordinates)."""
+        a, b, tx, ty = self.parameters(k)
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        cx, cy = self.centre
+        return np.stack([cx + (1.0 + a) * (pts[:, 0] - cx) + tx, cy + (1.0 + b) * (pts[:, 1] - cy) + ty], axis=1)
+
+    def field(self, k) -> Callable:
+        """``f(x, y) -> (u, v)``: the displacement of frame ``k`` on reference coordinates (for :func:`render`)."""
+        a, b, tx, ty = self.parameters(k)
+        cx, cy = self.centre
+
+        def u(x, y):
+            return a * (np.asarray(x, np.float64) - cx) + tx, b * (np.asarray(y, np.float64) - cy) + ty
+        return u
+
+    def _bounds(self, k) -> np.ndarray:
+        H, W = self.shape
+        r = self._reach
+        corners = np.array([[-r, -r], [W - 1 + r, -r], [-r, H - 1 + r], [W - 1 + r, H - 1 + r]])
+        X = self.to_reference(corners, k)
+        return np.concatenate([X.min(axis=0), X.max(axis=0)])
+
+    def _plan(self, k):
+        a, b, tx, ty = self.parameters(k)
+        if a == 0.0 and b == 0.0:
+            return None if tx == 0.0 and ty == 0.0 else ("shift", (tx, ty))
+        H, W = self.shape
+        m = int(math.ceil(4 * self.pattern.blur + 1.0)) + 3
+        gx = np.arange(-m, W + m, dtype=np.float64)
+        gy = np.arange(-m, H + m, dtype=np.float64)
+        cx, cy = self.centre
+        # the exact inverse: w(x) = x - X(x), separable (X depends on x only, Y on y only)
+        wu = np.broadcast_to((gx - (cx + (gx - cx - tx) / (1.0 + a)))[None, :], (gy.size, gx.size))
+        wv = np.broadcast_to((gy - (cy + (gy - cy - ty) / (1.0 + b)))[:, None], (gy.size, gx.size))
+        return ("field", (wu, wv, (float(-m), float(-m)), 1.0))
+
+    # -- the frames
+    def render(self, k) -> np.ndarray:
+        """Noise-free grey levels (float64, (H, W)) of frame ``k``."""
+        k = self._index(k)
+        b = self._bounds(k)
+        return _render_plan(self.model(k), self.shape, tuple(b), self._plan(k), device=self.device)
+
+    def frame(self, k) -> np.ndarray:
+        """Frame ``k`` (float32 (H, W) grey levels, with the sequence's noise and quantisation).
+
+        Frame ``k``'s noise stream is seeded by ``(seed, 1 + k)``: frame 0 is the image of
+        :func:`speckle_image` with the same pattern, noise and seed.
+        """
+        k = self._index(k)
+        return add_noise(self.render(k), bits=self.pattern.bits, seed=_seed_entropy(self.seed, 1 + k), **self.noise)
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __getitem__(self, k) -> np.ndarray:
+        return self.frame(k)
+
+    def __iter__(self):
+        for k in range(self.n_frames):
+            yield self.frame(k)
+
+    def changed_fraction(self, k) -> float:
+        """Fraction of frame ``k - 1``'s speckles that are gone in frame ``k`` (0 for frame 0)."""
+        k = self._index(k)
+        if k == 0:
+            return 0.0
+        before = self.alive(k - 1)
+        return float(np.count_nonzero(before & ~self.alive(k)) / max(1, np.count_nonzero(before)))
+
+    def __repr__(self) -> str:
+        H, W = self.shape
+        return (f"EvolvingSequence({H}x{W} px, {self.n_frames} frames, stretch {self.stretch_final:g} x / "
+                f"{self.transverse_final:g} y, translation {self.translation_final}, "
+                f"{self.fade_fraction:g} of the speckles replaced per frame, seed {self.seed!r})")
+
+
+def evolving_sequence(shape, n_frames: int, *, stretch_final: float = 0.30, transverse_final: float = 0.0,
+                      translation_final=(0.0, 0.0), fade_fraction: float = 0.002, radius: float = 2.0,
+                      density: float = 0.5, radius_spread: float = 0.2, blur: float = 0.7,
+                      background: float | None = None, contrast: float | None = None, noise_sigma: float = 0.0,
+                      poisson: bool = False, full_well: float = 20000.0, bits: int | None = 8, samples: int = 4,
+                      seed=0, device=None) -> EvolvingSequence:
+    """A long synthetic sequence with exact ground truth: a growing stretch and an evolving texture.
+
+    Frame ``k`` (``0 <= k < n_frames``) shows the speckle pattern stretched about the image centre by
+    ``stretch_final · k / (n_frames - 1)`` along x (and ``transverse_final · ...`` along y) and
+    translated by ``translation_final · k / (n_frames - 1)`` px, so the deformation grows linearly
+    to its final value at the last frame; and from one frame to the next a fraction
+    ``fade_fraction`` of the speckles disappears and as many new ones appear (the texture
+    decorrelates from the reference, as when paint cracks and the light drifts). See
+    :class:`EvolvingSequence` for the exact displacement and the disk bookkeeping.
+
+    Parameters
+    ----------
+    shape : (H, W)
+    n_frames : int >= 1
+    stretch_final, transverse_final : float > -0.5
+        Relative stretch along x and y at the last frame (0.30: 30 %).
+    translation_final : (tx, ty) px
+        Rigid translation at the last frame.
+    fade_fraction : float in [0, 1)
+        Fraction of the speckles replaced from each frame to the next (0: a fixed texture).
+    radius, density, radius_spread, blur, background, contrast, bits, samples :
+        The pattern and the imaging, see :func:`make_speckle`.
+    noise_sigma, poisson, full_well :
+        Camera noise of every frame, see :func:`add_noise`; each frame has its own noise stream.
+    seed : int
+        Seeds the disks (frame 0 has the disks of ``make_speckle(..., seed=seed)``), their renewal
+        and the noise.
+    device : Warp device for rendering.
+
+    Returns
+    -------
+    EvolvingSequence
+        A lazy sequence of float32 (H, W) frames (``len``, ``seq[k]``, iteration) with the ground
+        truth: ``seq.displacement(points, k, since=0)``, ``seq.alive(k)``, ``seq.changed_fraction(k)``.
+        With the same pattern, noise and seed, frame 0 equals :func:`speckle_image`.
+    """
+    pattern = dict(radius=radius, density=density, radius_spread=radius_spread, blur=blur, background=background,
+                   contrast=contrast, bits=bits, samples=samples)
+    return EvolvingSequence(shape, n_frames, stretch_final=stretch_final, transverse_final=transverse_final,
+                            translation_final=translation_final, fade_fraction=fade_fraction, pattern_kwargs=pattern,
+                            noise_sigma=noise_sigma, poisson=poisson, full_well=full_well, seed=seed, device=device)

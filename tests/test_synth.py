@@ -327,3 +327,127 @@ def test_specimen_on_background_rejects_bad_input():
         synth.specimen_on_background((32, 32), specimen=lambda x, y: x > 10, background_level=float("nan"))
     with pytest.raises(ValueError, match="shape"):
         synth.specimen_on_background((0, 32), specimen=lambda x, y: x > 10)
+
+
+# ---------------------------------------------------------------------------------------------
+# evolving_sequence: long sequences with a growing stretch and an evolving texture
+
+
+def _track_errors(seq, j, k, *, guess=False):
+    """Track frame j -> k with dic.track; per-POI |error| against the exact displacement, and the tracker."""
+    from dic.track import Tracker
+
+    tracker = Tracker(seq[j], step=5, subset=21)
+    truth = seq.displacement(tracker.points, k, since=j)
+    field = tracker.track(seq[k], guess=truth if guess else None)
+    err = np.hypot(field.u - truth[:, 0], field.v - truth[:, 1])
+    return err, field.valid, tracker
+
+
+@pytest.mark.parametrize("fade", [0.0, 0.05])
+def test_evolving_sequence_frame0_is_the_plain_speckle_image(fade):
+    kw = dict(radius=2.5, density=0.45, noise_sigma=1.5, seed=21)
+    seq = synth.evolving_sequence((70, 90), 6, stretch_final=0.3, translation_final=(-4.0, 3.0),
+                                  fade_fraction=fade, **kw)
+    np.testing.assert_array_equal(seq[0], synth.speckle_image((70, 90), **kw))
+    if fade == 0:  # nothing fades: every frame shows the same disks
+        assert np.all(seq.alive(5)) and seq.pattern.radii.size == np.count_nonzero(seq.alive(0))
+
+
+def test_evolving_sequence_ground_truth_by_tracking_consecutive_frames():
+    # no fading: 30 % stretch over 11 frames (3 % per frame) plus a translation; errors < 0.02 px everywhere
+    seq = synth.evolving_sequence((120, 150), 11, stretch_final=0.30, transverse_final=-0.09,
+                                  translation_final=(2.5, -1.5), fade_fraction=0.0, seed=4)
+    for j in (0, 5, 9):
+        err, valid, _ = _track_errors(seq, j, j + 1)
+        assert valid.mean() > 0.8
+        assert err[valid].max() < 0.02, (j, err[valid].max())
+    # Lagrangian truth relative to frame 0 (30 % at the last frame): the POIs that stay in view
+    err, valid, tracker = _track_errors(seq, 0, 10, guess=True)  # up to 18 px: start IC-GN at the truth
+    inside = np.all(np.abs(seq.to_frame(tracker.points, 10) - np.array(seq.centre)) < np.array([75 - 14, 60 - 14]), axis=1)
+    assert valid[inside].all() and err[inside].max() < 0.02
+
+
+def test_evolving_sequence_fading_changes_exactly_the_dead_and_born_speckles():
+    seq = synth.evolving_sequence((160, 200), 11, stretch_final=0.30, fade_fraction=0.01, seed=8)
+    # the requested fraction is replaced every frame and the count of speckles stays the same
+    n0 = np.count_nonzero(seq.alive(0))
+    assert seq.n_changed_per_frame == round(0.01 * n0)
+    for k in range(1, 11):
+        alive, before = seq.alive(k), seq.alive(k - 1)
+        assert np.count_nonzero(alive) == n0
+        assert seq.changed_fraction(k) == pytest.approx(0.01, abs=0.5 / n0)
+        assert np.count_nonzero(alive & ~before) == np.count_nonzero(before & ~alive) == seq.n_changed_per_frame
+    # the new disks cover the pattern's region uniformly
+    new = seq.born > 0
+    x0, y0, x1, y1 = seq.pattern.region
+    c = seq.pattern.centres[new]
+    assert np.all((c >= (x0, y0)) & (c <= (x1, y1)))
+    # tracking j -> j+1: subsets that hold no changed speckle still match the exact displacement
+    j = 4
+    err, valid, tracker = _track_errors(seq, j, j + 1)
+    changed = seq.alive(j) ^ seq.alive(j + 1)
+    where = seq.to_frame(seq.pattern.centres[changed], j)  # changed disks as seen in frame j
+    reach = 10 + seq.pattern.radii.max() * 1.3 + 4 * seq.pattern.blur + 1
+    d = np.abs(tracker.points[:, None, :] - where[None, :, :]).max(axis=2).min(axis=1)
+    clean = valid & (d > reach)
+    assert clean.sum() > 30
+    assert err[clean].max() < 0.02, err[clean].max()
+    # and the texture change is what the correlation sees: those near a changed speckle err more
+    touched = valid & (d < 10)
+    assert np.median(err[touched]) > 5 * np.median(err[clean])
+
+
+def test_evolving_sequence_static_images_differ_only_at_changed_speckles():
+    seq = synth.evolving_sequence((80, 80), 4, stretch_final=0.0, fade_fraction=0.05, seed=2)
+    diff = np.abs(seq.render(2) - seq.render(1))
+    changed = seq.alive(1) ^ seq.alive(2)
+    yy, xx = np.mgrid[0:80, 0:80]
+    near = np.zeros((80, 80), bool)
+    for (cx, cy), r in zip(seq.pattern.centres[changed], seq.pattern.radii[changed]):
+        near |= np.hypot(xx - cx, yy - cy) < r + 4 * seq.pattern.blur + 1
+    assert diff[~near].max() < 1e-3
+    assert diff[near].max() > 50  # whole speckles appear or vanish
+
+
+def test_evolving_sequence_is_deterministic_and_lazy():
+    a = synth.evolving_sequence((48, 64), 5, fade_fraction=0.1, noise_sigma=2.0, seed=5)
+    b = synth.evolving_sequence((48, 64), 5, fade_fraction=0.1, noise_sigma=2.0, seed=5)
+    frames = list(a)
+    assert len(frames) == len(a) == 5 and frames[0].dtype == np.float32 and frames[0].shape == (48, 64)
+    for k in (4, 1, 3):  # any order, same images
+        np.testing.assert_array_equal(b[k], frames[k])
+    np.testing.assert_array_equal(b[-1], frames[4])
+    c = synth.evolving_sequence((48, 64), 5, fade_fraction=0.1, noise_sigma=2.0, seed=6)
+    assert not np.array_equal(c[2], frames[2])
+    assert not np.array_equal(frames[1], frames[2])
+    # frames are rendered on demand: nothing but the current frame's disks is kept
+    assert a._frame_model[0] == 4
+
+
+def test_evolving_sequence_rejects_bad_input():
+    with pytest.raises(ValueError, match="n_frames"):
+        synth.evolving_sequence((32, 32), 0)
+    with pytest.raises(ValueError, match=r"fade_fraction .* must be in \[0, 1\)"):
+        synth.evolving_sequence((32, 32), 5, fade_fraction=1.0)
+    with pytest.raises(ValueError, match="fade_fraction"):
+        synth.evolving_sequence((32, 32), 5, fade_fraction=float("nan"))
+    with pytest.raises(ValueError, match="stretch_final must be > -0.5"):
+        synth.evolving_sequence((32, 32), 5, stretch_final=-0.7)
+    with pytest.raises(ValueError, match="translation_final"):
+        synth.evolving_sequence((32, 32), 5, translation_final=(1.0,))
+    with pytest.raises(ValueError, match="shape"):
+        synth.evolving_sequence((0, 32), 5)
+    with pytest.raises(ValueError, match="noise_sigma"):
+        synth.evolving_sequence((32, 32), 5, noise_sigma=-1.0)
+    with pytest.raises(ValueError, match="seed"):
+        synth.evolving_sequence((32, 32), 5, seed=-3)
+    seq = synth.evolving_sequence((32, 32), 5)
+    with pytest.raises(IndexError, match="out of range"):
+        seq[5]
+    with pytest.raises(ValueError, match="out of range"):
+        seq.alive(-6)
+    with pytest.raises(ValueError, match="frame index must be an integer"):
+        seq.frame(1.5)
+    with pytest.raises(ValueError, match="points"):
+        seq.displacement(np.zeros((3, 3)), 1)

@@ -1,0 +1,57 @@
+"""bench/sequence.py (issue 13's sequence benchmarks) in its quick mode, and its engine adapter.
+
+Full mode, by hand: ``python -m bench.sequence`` (docs in bench/README.md).
+"""
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+
+def test_quick_mode_runs_and_writes_every_figure(tmp_path):
+    out = tmp_path / "sequence.json"
+    proc = subprocess.run([sys.executable, "-W", "ignore", "-m", "bench.sequence", "--quick", "--out", str(out),
+                           "--modes", "fixed,incremental,every:3,auto"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(out.read_text())
+    assert res["quick"] and res["parameters"]["image_size"] == [128, 128]
+    t = res["throughput"]
+    assert t["frames"] == t["frames_stored"] == 6 and t["n_points"] > 100
+    assert t["sequence_pois_per_s"] > 0 and t["track_only_pois_per_s"] > 0
+    assert np.isclose(t["ratio"], t["sequence_pois_per_s"] / t["track_only_pois_per_s"])
+    assert t["valid_fraction_min"] > 0.85  # the border row of POIs leaves the image with the shift
+    m = res["memory"]
+    assert [r["frames"] for r in m["runs"]] == [6, 12]
+    assert all(r["peak_rss_mb"] > 10 for r in m["runs"])
+    assert np.isclose(m["peak_ratio"], m["runs"][1]["peak_rss_mb"] / m["runs"][0]["peak_rss_mb"])
+    ev = res["evolving"]
+    assert ev["frames"] == 8 and ev["speckles_replaced_per_frame"] >= 1
+    assert set(ev["modes"]) == {"fixed", "incremental", "every:3", "auto"}
+    fixed = ev["modes"]["fixed"]
+    assert [f["frame"] for f in fixed["per_frame"]] == list(range(1, 8))
+    # the fixed reference over 30 % stretch on a small image: everything valid, errors of a few 0.01 px
+    assert fixed["final_valid_fraction"] > 0.95 and fixed["final_rms_error_px"] < 0.2
+    for mode, r in ev["modes"].items():  # each mode ran, or says why not
+        assert "per_frame" in r or r.get("skipped") or r.get("failed"), mode
+    if res["engine"] == "fallback":
+        assert "skipped" in ev["modes"]["auto"]
+
+
+def test_engine_adapter_passes_the_reference_mode(monkeypatch):
+    import dic.sequence
+    from bench import sequence as bench_sequence
+
+    calls = []
+
+    def track_sequence(reference_image, frames, out, *, reference="fixed", mode="resume", progress=False, **opts):
+        calls.append((reference_image, list(frames), out, reference, mode, progress, opts))
+
+    monkeypatch.setattr(dic.sequence, "track_sequence", track_sequence, raising=False)
+    name, run = bench_sequence.engine()
+    assert name == "dic.sequence.track_sequence"
+    run("ref.png", ["a.png"], "out.h5", "every:5", subset=21)
+    assert calls == [("ref.png", ["a.png"], "out.h5", "every:5", "overwrite", False, {"subset": 21})]
+    assert bench_sequence.engine(force_fallback=True)[0] == "fallback"
+    assert bench_sequence.supports("fallback", "fixed") and not bench_sequence.supports("fallback", "auto")
