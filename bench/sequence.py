@@ -64,20 +64,8 @@ MODE_NAMES = ("fixed", "incremental", "auto")
 # ----------------------------------------------------------------------------------------------
 # the engine: dic.sequence.track_sequence when it exists, else today's loop (fixed reference only)
 
-
-def _guess(previous):
-    """The next frame's initial parameters from the previous frame (as ``specula track`` does)."""
-    if previous is None:
-        return None
-    params, valid = previous
-    if not np.any(valid):
-        return None
-    guess = params.copy()
-    k = params.shape[1]
-    guess[~valid] = 0.0
-    guess[~valid, 0] = params[valid, 0].mean()
-    guess[~valid, k // 2] = params[valid, k // 2].mean()
-    return guess
+# the previous frame's result as the next initial guess: the engine's rule, not a copy of it
+from dic.sequence.track2d import _guess  # noqa: E402
 
 
 def fallback_track_sequence(reference, frames, out, *, reference_mode="fixed", strain_window=5, device=None,
@@ -105,7 +93,7 @@ def fallback_track_sequence(reference, frames, out, *, reference_mode="fixed", s
             t0 = time.perf_counter()
             path = str(frame) if isinstance(frame, (str, os.PathLike)) else ""
             cur = read_image(frame) if path else np.asarray(frame, np.float32)
-            field = tracker.track(cur, guess=_guess(previous))
+            field = tracker.track(cur, guess=_guess(previous))  # the engine's own rule
             strain = compute_strain(field, window=strain_window) if strain_window else None
             writer.write_frame(k + 1, field, strain=strain, path=path, sha256=image_digest(cur),
                                attrs={"seconds": time.perf_counter() - t0, "reference_frame": 0})

@@ -76,6 +76,19 @@ def connect(client, *, timeout: float = CONNECT_TIMEOUT):
                      f"got {client!r}")
 
 
+def call_connected(function, arguments: dict):
+    """Call ``function(**arguments)`` with ``arguments["client"]``, a scheduler address, connected for the call.
+
+    ``arguments``: the caller's ``locals()`` (its keyword ``options`` spread out); the connection is
+    closed when the call returns, so a run given an address leaves nothing open.
+    """
+    given = dict(arguments)
+    given.pop("call_connected", None)  # the caller's import of this function, not an argument
+    options = given.pop("options", {})
+    with connect(given["client"]) as given["client"]:
+        return function(**given, **options)
+
+
 def local_client(n_workers: int):
     """A client of a new local cluster of ``n_workers`` worker processes (one thread each; closed with
     the client's ``_specula_cluster``)."""

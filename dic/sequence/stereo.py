@@ -109,13 +109,9 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         The states computed in this call (skipped states are not read back; use :func:`read_stereo`).
     """
     if isinstance(client, str):  # a scheduler address: connected here, closed when the run ends
-        from .distributed import connect
+        from .distributed import call_connected
 
-        given = dict(locals())
-        given.pop("connect")
-        opts = given.pop("options")
-        with connect(client) as given["client"]:
-            return stereo_sequence(**given, **opts)
+        return call_connected(stereo_sequence, locals())
     from tqdm import tqdm
 
     from kernels.checks import positive_int

@@ -280,13 +280,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         (a ValueError) when the file cannot be written.
     """
     if isinstance(client, str):  # a scheduler address: connected here, closed when the run ends
-        from .distributed import connect
+        from .distributed import call_connected
 
-        given = dict(locals())
-        given.pop("connect")
-        opts = given.pop("options")
-        with connect(client) as given["client"]:
-            return track_sequence(**given, **opts)
+        return call_connected(track_sequence, locals())
     from tqdm import tqdm
 
     from kernels.checks import non_negative_int, positive_int
