@@ -14,6 +14,47 @@ import warp as wp
 
 _POOL: ThreadPoolExecutor | None = None
 
+#: CUDA threads per block of the kernels that set it (key: the kernel's name); every other kernel
+#: runs at Warp's default of 256. Each entry is also the kernel's ``__launch_bounds__`` (its
+#: ``@wp.kernel(launch_bounds=...)``), and every kernel of one Warp module uses the module's value
+#: (``wp.set_module_options({"block_dim": ...})``) so that a module is compiled once, and the
+#: ahead-of-time cache (``bench/gpu.py --prebuild-cache``) holds exactly what is launched.
+#: Occupancy on sm_90 (65536 registers and at most 64 warps per SM; registers allocated per warp
+#: in units of 256) for the registers read from the compiled cubins (docs/dic2d.md, "GPU"):
+#:
+#: ======================  =====  ==========================================================
+#: kernel                  block  reason
+#: ======================  =====  ==========================================================
+#: _icgn_2nd               128    168 registers: 12 warps per SM in blocks of 4 warps, only
+#:                                 8 in blocks of 8 (a 2nd 256-thread block does not fit)
+#: _icgn_1st               128    80 registers: 24 warps per SM at 128 or 256; 128 keeps the
+#:                                 module at one block size
+#: _prepare_subsets_1st    128    per-reference; the module's block size
+#: _prepare_subsets_2nd    128    idem (254 registers: 8 warps at 128 or 256)
+#: _reference_gradients    128    40 registers: 48 warps at 128 or 256
+#: ======================  =====  ==========================================================
+CUDA_BLOCK_DIM = {
+    "_icgn_2nd": 128,
+    "_icgn_1st": 128,
+    "_prepare_subsets_1st": 128,
+    "_prepare_subsets_2nd": 128,
+    "_reference_gradients": 128,
+}
+
+#: Warp's default threads per block on CUDA
+DEFAULT_CUDA_BLOCK_DIM = 256
+
+
+def cuda_block_dim(name: str) -> int:
+    """CUDA threads per block of the kernel called ``name`` (:data:`CUDA_BLOCK_DIM`, else 256)."""
+    if not isinstance(name, str):
+        raise ValueError(f"name must be a kernel name (str), got {type(name).__name__}")
+    return CUDA_BLOCK_DIM.get(name, DEFAULT_CUDA_BLOCK_DIM)
+
+
+def _kernel_name(kernel) -> str:
+    return kernel.func.__name__
+
 
 def cpu_threads() -> int:
     """Number of CPU threads to split launches over (``SPECULA_THREADS`` overrides)."""
@@ -37,13 +78,17 @@ def launch_1d(kernel, n: int, inputs: list, device: str, offset_index: int, min_
     """Launch ``kernel`` over ``n`` items, chunked across CPU threads when on the CPU.
 
     ``inputs[offset_index]`` is replaced by each chunk's start index. On CUDA a single launch
-    covers all ``n`` items (offset 0).
+    covers all ``n`` items (offset 0), with the kernel's block size (:func:`cuda_block_dim`).
     """
     if n <= 0:
         return
     inputs = list(inputs)
     threads = cpu_threads()
-    if not str(device).startswith("cpu") or threads == 1 or n < 2 * min_chunk:
+    if not str(device).startswith("cpu"):
+        inputs[offset_index] = 0
+        wp.launch(kernel, dim=n, inputs=inputs, device=device, block_dim=cuda_block_dim(_kernel_name(kernel)))
+        return
+    if threads == 1 or n < 2 * min_chunk:
         inputs[offset_index] = 0
         wp.launch(kernel, dim=n, inputs=inputs, device=device)
         return

@@ -50,12 +50,13 @@ Statuses
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
 
 from ._device import resolve_device
-from ._launch import launch_1d
+from ._launch import cuda_block_dim, launch_1d
 from .checks import as_points, odd_int, positive_float, positive_int
 from .conventions import Status
 from .images import as_float32_image
@@ -69,13 +70,17 @@ from .interp import (
 )
 
 # FMA contraction across statements: ~15% faster CPU passes, and FMA only improves rounding.
-wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast"})
+# CUDA block size of every kernel here (kernels._launch.CUDA_BLOCK_DIM: one block size per module).
+wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
+                       "block_dim": cuda_block_dim("_icgn_2nd")})
 
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
 mat66 = wp.types.matrix(shape=(6, 6), dtype=wp.float32)
 vec12d = wp.types.vector(length=12, dtype=wp.float64)
 mat1212d = wp.types.matrix(shape=(12, 12), dtype=wp.float64)
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
 vec5 = wp.types.vector(length=5, dtype=wp.float32)
 mat55d = wp.types.matrix(shape=(5, 5), dtype=wp.float64)
 
@@ -106,48 +111,6 @@ def refdata_width(order: int) -> int:
 # ----------------------------------------------------------------------------------------------
 # @wp.func helpers
 # ----------------------------------------------------------------------------------------------
-
-
-@wp.func
-def cholesky_inverse(h: mat1212d, k: int):
-    """Inverse of the symmetric positive-definite top-left k x k block of h; ok = 0 if singular
-    (a pivot below PIVOT_RTOL times the largest diagonal entry)."""
-    lo = mat1212d()
-    ok = int(1)
-    hmax = wp.float64(0.0)
-    for j in range(k):
-        hmax = wp.max(hmax, h[j, j])
-    for j in range(k):
-        s = h[j, j]
-        for m in range(j):
-            s -= lo[j, m] * lo[j, m]
-        if not (s > wp.float64(PIVOT_RTOL) * hmax):
-            ok = 0
-            s = wp.float64(1.0)
-        d = wp.sqrt(s)
-        lo[j, j] = d
-        for i in range(j + 1, k):
-            t = h[i, j]
-            for m in range(j):
-                t -= lo[i, m] * lo[j, m]
-            lo[i, j] = t / d
-    inv = mat1212d()
-    for col in range(k):  # solve L L^T x = e_col
-        y = vec12d()
-        for i in range(k):
-            t = wp.float64(0.0)
-            if i == col:
-                t = wp.float64(1.0)
-            for m in range(i):
-                t -= lo[i, m] * y[m]
-            y[i] = t / lo[i, i]
-        for ii in range(k):
-            i = k - 1 - ii
-            t = y[i]
-            for m in range(i + 1, k):
-                t -= lo[m, i] * inv[m, col]
-            inv[i, col] = t / lo[i, i]
-    return inv, ok
 
 
 @wp.func
@@ -360,23 +323,31 @@ def quad_warp_matrix(p: vec12):
     return m
 
 
+#: A pivot of the pivot-free solve below this magnitude makes the composition non-finite (the
+#: kernel then reports DIVERGED). Gao's matrices are O(1) in the subset-scaled coordinates, so a
+#: pivot this small means an update that (nearly) folds the subset onto a line.
+SOLVE_PIVOT_MIN = 1e-6
+
+
 @wp.func
 def solve_transposed6(m: mat66, rhs: vec6):
-    """x with x^T m = rhs^T, i.e. m^T x = rhs (Gaussian elimination with partial pivoting)."""
+    """x with x^T m = rhs^T, i.e. m^T x = rhs, by Gaussian elimination without row swaps.
+
+    No pivoting is needed when m is strictly diagonally dominant by rows (m^T by columns): then
+    partial pivoting would swap nothing (every Schur complement stays column-dominant, Golub & Van
+    Loan, Matrix Computations, 4th ed., sec. 3.4.10), so this gives bit for bit the result of the
+    partial-pivoting elimination, and the solve is backward stable. Gao's matrix of a scaled update
+    ``dn`` (:func:`compose_2nd`) is row-dominant whenever every ``|dn_i| < 0.1338`` (the root of
+    ``11 d^2 + 6 d - 1``; rows 0-2 are the binding ones), i.e. every component of the IC-GN update
+    ``dq`` is below ``0.13 r`` px. Without row swaps nothing is indexed at run time, so the matrix
+    stays in registers (with the swap, 168 bytes of stack on sm_90). A pivot whose magnitude is not
+    above :data:`SOLVE_PIVOT_MIN` (a degenerate update) returns NaN.
+    """
     a = wp.transpose(m)
     x = rhs
     for c in range(6):
-        piv = c
-        for rr in range(c + 1, 6):
-            if wp.abs(a[rr, c]) > wp.abs(a[piv, c]):
-                piv = rr
-        if piv != c:
-            tmp = a[c]
-            a[c] = a[piv]
-            a[piv] = tmp
-            t = x[c]
-            x[c] = x[piv]
-            x[piv] = t
+        if not (wp.abs(a[c, c]) > SOLVE_PIVOT_MIN):
+            return vec6(wp.nan, wp.nan, wp.nan, wp.nan, wp.nan, wp.nan)
         for rr in range(c + 1, 6):
             f = a[rr, c] / a[c, c]
             a[rr] = a[rr] - f * a[c]
@@ -412,7 +383,7 @@ def compose_2nd(p: vec12, dp: vec12, s: float):
 # ----------------------------------------------------------------------------------------------
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=cuda_block_dim("_reference_gradients"))
 def _reference_gradients(offset: int, image: wp.array2d(dtype=float), coef: wp.array(dtype=float), pitch: int,
                          width: int, fgrad: wp.array(dtype=wp.vec3)):
     k = wp.tid() + offset
@@ -436,17 +407,6 @@ def mono_exponents(k: int):
     if k == 4:
         return 1, 1, 1.0
     return 0, 2, 0.5
-
-
-@wp.func
-def _row_to_moments(m: mat55d, row: vec5, eta: wp.float64, deg: int):
-    """m[alpha, beta] += row[alpha] * eta^beta for alpha + beta <= deg."""
-    eb = wp.float64(1.0)
-    for beta in range(deg + 1):
-        for alpha in range(deg + 1 - beta):
-            m[alpha, beta] = m[alpha, beta] + wp.float64(row[alpha]) * eb
-        eb = eb * eta
-    return m
 
 
 @wp.func
@@ -511,125 +471,201 @@ def _row_moments_deg2(fgrad: wp.array(dtype=wp.vec3), row: int, r: int, dlx: flo
     return _pad5(rxx), _pad5(rxy), _pad5(ryy), _pad5(rx), _pad5(ry), _pad5(rxf), _pad5(ryf), rss
 
 
-@wp.func
-def _subset_hessian(fgrad: wp.array(dtype=wp.vec3), width: int, cx0: int, cy0: int, r: int, dl: wp.vec2,
-                    k: int, fmean: wp.float64):
-    """Centred H = sum (J - Jm)^T (J - Jm), a = sum J^T (f - fm), c = sum J, ss = sum (f - fm)^2.
+def _row_to_moments_func(deg: int):
+    """wp.func m[alpha, beta] += row[alpha] * eta^beta for alpha + beta <= deg (deg fixed)."""
 
-    J are the steepest-descent images of the scaled parameters. The sums are assembled from
-    row-separable moments sum G xi^alpha eta^beta (G = fx^2, fx fy, fy^2, fx, fy, fx (f-fm),
-    fy (f-fm)): about 40 multiply-adds per pixel instead of K(K+1)/2 + 2K (float32 within a row,
-    float64 across rows). Centring J gives the exact Gauss-Newton Hessian of the offset-invariant
-    criterion (sum (J - Jm)^T e = sum J^T e because sum e = 0); it makes IC-GN converge in about 3
-    iterations where the uncentred Hessian of Pan et al. (2013) needs about 5 (2nd order).
+    @wp.func
+    def row_to_moments(m: mat55d, row: vec5, eta: wp.float64):
+        eb = wp.float64(1.0)
+        for beta in range(deg + 1):
+            for alpha in range(deg + 1 - beta):
+                m[alpha, beta] = m[alpha, beta] + wp.float64(row[alpha]) * eb
+            eb = eb * eta
+        return m
+
+    return row_to_moments
+
+
+def _make_prepare_subsets(order: int):
+    """The ``_prepare_subsets`` kernel of one shape-function order, with K = 6 or 12 parameters and
+    the moment degree fixed at compile time (constant loop bounds, K x K matrices of the order's
+    size), so the compiler can unroll the loops and keep constant-indexed values in registers.
+
+    The arithmetic is that of the former run-time-``k`` kernel, operation for operation, so the
+    results are bitwise identical (tests/test_kernel_variants.py compares against a copy of it).
     """
-    dj = k // 6  # highest total degree of the shape-function monomials (1 or 2)
-    inv_s = 1.0 / float(r)
-    fm = float(fmean)
-    mxx = mat55d()
-    mxy = mat55d()
-    myy = mat55d()
-    mx = mat55d()
-    my = mat55d()
-    mxf = mat55d()
-    myf = mat55d()
-    ss = wp.float64(0.0)
-    for j in range(-r, r + 1):
-        eta = wp.float64((float(j) + dl[1]) * inv_s)
-        row = (cy0 + j) * width + cx0
-        if dj == 1:
-            rxx, rxy, ryy, rx, ry, rxf, ryf, rss = _row_moments_deg2(fgrad, row, r, dl[0], inv_s, fm)
-        else:
-            rxx, rxy, ryy, rx, ry, rxf, ryf, rss = _row_moments_deg4(fgrad, row, r, dl[0], inv_s, fm)
-        ss += wp.float64(rss)
-        mxx = _row_to_moments(mxx, rxx, eta, 2 * dj)
-        mxy = _row_to_moments(mxy, rxy, eta, 2 * dj)
-        myy = _row_to_moments(myy, ryy, eta, 2 * dj)
-        mx = _row_to_moments(mx, rx, eta, dj)
-        my = _row_to_moments(my, ry, eta, dj)
-        mxf = _row_to_moments(mxf, rxf, eta, dj)
-        myf = _row_to_moments(myf, ryf, eta, dj)
-    h = mat1212d()
-    a = vec12d()
-    c = vec12d()
-    m = k // 2
-    npx = wp.float64((2 * r + 1) * (2 * r + 1))
-    for i in range(k):
-        ai, bi, wi = mono_exponents(i % m)
-        if i < m:
-            a[i] = wp.float64(wi) * mxf[ai, bi]
-            c[i] = wp.float64(wi) * mx[ai, bi]
-        else:
-            a[i] = wp.float64(wi) * myf[ai, bi]
-            c[i] = wp.float64(wi) * my[ai, bi]
-    for i in range(k):
-        ai, bi, wi = mono_exponents(i % m)
-        for jj in range(i, k):
-            aj, bj, wj = mono_exponents(jj % m)
-            g = mxy[ai + aj, bi + bj]
-            if i < m and jj < m:
-                g = mxx[ai + aj, bi + bj]
-            if i >= m and jj >= m:
-                g = myy[ai + aj, bi + bj]
-            h[i, jj] = wp.float64(wi * wj) * g - c[i] * c[jj] / npx
-            h[jj, i] = h[i, jj]
-    return h, a, c, ss
+    kk = n_params(order)  # parameters
+    dj = order  # highest total degree of the shape-function monomials (1 or 2)
+    mm = kk // 2  # monomials per displacement component
+    matk = mat66d if order == 1 else mat1212d
+    veck = vec6d if order == 1 else vec12d
+    row_moments = _row_moments_deg2 if order == 1 else _row_moments_deg4
+
+    moments_hi = _row_to_moments_func(2 * dj)  # G = fx^2, fx fy, fy^2
+    moments_lo = _row_to_moments_func(dj)  # G = fx, fy, fx (f - fm), fy (f - fm)
+
+    @wp.func
+    def cholesky_inverse(h: Any):
+        """Inverse of the symmetric positive-definite K x K matrix h; ok = 0 if singular
+        (a pivot below PIVOT_RTOL times the largest diagonal entry)."""
+        lo = matk()
+        ok = int(1)
+        hmax = wp.float64(0.0)
+        for j in range(kk):
+            hmax = wp.max(hmax, h[j, j])
+        for j in range(kk):
+            s = h[j, j]
+            for m in range(j):
+                s -= lo[j, m] * lo[j, m]
+            if not (s > wp.float64(PIVOT_RTOL) * hmax):
+                ok = 0
+                s = wp.float64(1.0)
+            d = wp.sqrt(s)
+            lo[j, j] = d
+            for i in range(j + 1, kk):
+                t = h[i, j]
+                for m in range(j):
+                    t -= lo[i, m] * lo[j, m]
+                lo[i, j] = t / d
+        inv = matk()
+        for col in range(kk):  # solve L L^T x = e_col
+            y = veck()
+            for i in range(kk):
+                t = wp.float64(0.0)
+                if i == col:
+                    t = wp.float64(1.0)
+                for m in range(i):
+                    t -= lo[i, m] * y[m]
+                y[i] = t / lo[i, i]
+            for ii in range(kk):
+                i = kk - 1 - ii
+                t = y[i]
+                for m in range(i + 1, kk):
+                    t -= lo[m, i] * inv[m, col]
+                inv[i, col] = t / lo[i, i]
+        return inv, ok
+
+    @wp.func
+    def subset_hessian(fgrad: wp.array(dtype=wp.vec3), width: int, cx0: int, cy0: int, r: int, dl: wp.vec2,
+                       fmean: wp.float64):
+        """Centred H = sum (J - Jm)^T (J - Jm), a = sum J^T (f - fm), c = sum J, ss = sum (f - fm)^2.
+
+        J are the steepest-descent images of the scaled parameters. The sums are assembled from
+        row-separable moments sum G xi^alpha eta^beta (G = fx^2, fx fy, fy^2, fx, fy, fx (f-fm),
+        fy (f-fm)): about 40 multiply-adds per pixel instead of K(K+1)/2 + 2K (float32 within a
+        row, float64 across rows). Centring J gives the exact Gauss-Newton Hessian of the
+        offset-invariant criterion (sum (J - Jm)^T e = sum J^T e because sum e = 0); it makes
+        IC-GN converge in about 3 iterations where the uncentred Hessian of Pan et al. (2013)
+        needs about 5 (2nd order).
+        """
+        inv_s = 1.0 / float(r)
+        fm = float(fmean)
+        mxx = mat55d()
+        mxy = mat55d()
+        myy = mat55d()
+        mx = mat55d()
+        my = mat55d()
+        mxf = mat55d()
+        myf = mat55d()
+        ss = wp.float64(0.0)
+        for j in range(-r, r + 1):
+            eta = wp.float64((float(j) + dl[1]) * inv_s)
+            row = (cy0 + j) * width + cx0
+            rxx, rxy, ryy, rx, ry, rxf, ryf, rss = row_moments(fgrad, row, r, dl[0], inv_s, fm)
+            ss += wp.float64(rss)
+            mxx = moments_hi(mxx, rxx, eta)
+            mxy = moments_hi(mxy, rxy, eta)
+            myy = moments_hi(myy, ryy, eta)
+            mx = moments_lo(mx, rx, eta)
+            my = moments_lo(my, ry, eta)
+            mxf = moments_lo(mxf, rxf, eta)
+            myf = moments_lo(myf, ryf, eta)
+        h = matk()
+        a = veck()
+        c = veck()
+        npx = wp.float64((2 * r + 1) * (2 * r + 1))
+        for i in range(kk):
+            ai, bi, wi = mono_exponents(i % mm)
+            if i < mm:
+                a[i] = wp.float64(wi) * mxf[ai, bi]
+                c[i] = wp.float64(wi) * mx[ai, bi]
+            else:
+                a[i] = wp.float64(wi) * myf[ai, bi]
+                c[i] = wp.float64(wi) * my[ai, bi]
+        for i in range(kk):
+            ai, bi, wi = mono_exponents(i % mm)
+            for jj in range(i, kk):
+                aj, bj, wj = mono_exponents(jj % mm)
+                g = mxy[ai + aj, bi + bj]
+                if i < mm and jj < mm:
+                    g = mxx[ai + aj, bi + bj]
+                if i >= mm and jj >= mm:
+                    g = myy[ai + aj, bi + bj]
+                h[i, jj] = wp.float64(wi * wj) * g - c[i] * c[jj] / npx
+                h[jj, i] = h[i, jj]
+        return h, a, c, ss
+
+    @wp.func
+    def store_refdata(refdata: wp.array2d(dtype=float), n: int, hinv: Any, a: Any, c: Any,
+                      fmean: wp.float64, fnorm: wp.float64):
+        """Row layout: packed upper H^-1 (row-major), H^-1 a, H^-1 c, fm, df."""
+        col = int(0)
+        for i in range(kk):
+            for j in range(i, kk):
+                refdata[n, col] = float(hinv[i, j])
+                col += 1
+        for i in range(kk):
+            ha = wp.float64(0.0)
+            hc = wp.float64(0.0)
+            for j in range(kk):
+                ha += hinv[i, j] * a[j]
+                hc += hinv[i, j] * c[j]
+            refdata[n, col + i] = float(ha)
+            refdata[n, col + kk + i] = float(hc)
+        refdata[n, col + 2 * kk] = float(fmean)
+        refdata[n, col + 2 * kk + 1] = float(fnorm)
+
+    def prepare_subsets_kernel(
+        offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, points: wp.array(dtype=wp.vec2d),
+        r: int, k: int, flat_var: float,
+        centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+        status: wp.array(dtype=wp.int32),
+    ):
+        # k (= K of this order) is fixed at compile time; the argument keeps the launch signature
+        n = wp.tid() + offset
+        pt = points[n]
+        cx0 = int(wp.round(pt[0]))
+        cy0 = int(wp.round(pt[1]))
+        dl = wp.vec2(float(wp.float64(cx0) - pt[0]), float(wp.float64(cy0) - pt[1]))
+        centres[n] = wp.vec2i(cx0, cy0)
+        deltas[n] = dl
+        if cx0 - r < 0 or cy0 - r < 0 or cx0 + r > width - 1 or cy0 + r > height - 1:
+            status[n] = ST_OUT_OF_BOUNDS
+            return
+        npx = (2 * r + 1) * (2 * r + 1)
+        fsum = wp.float64(0.0)
+        for j in range(-r, r + 1):
+            for i in range(-r, r + 1):
+                fsum += wp.float64(fgrad[(cy0 + j) * width + cx0 + i][0])
+        fmean = fsum / wp.float64(npx)
+        h, a, c, ss = subset_hessian(fgrad, width, cx0, cy0, r, dl, fmean)
+        if not (ss > wp.float64(npx) * wp.float64(flat_var)):
+            status[n] = ST_FLAT
+            return
+        hinv, ok = cholesky_inverse(h)
+        if ok == 0:
+            status[n] = ST_SINGULAR
+            return
+        store_refdata(refdata, n, hinv, a, c, fmean, wp.sqrt(ss))
+        status[n] = ST_CONVERGED  # "ready"
+
+    name = "_prepare_subsets_1st" if order == 1 else "_prepare_subsets_2nd"
+    prepare_subsets_kernel.__name__ = prepare_subsets_kernel.__qualname__ = name
+    return wp.kernel(prepare_subsets_kernel, launch_bounds=cuda_block_dim(name))
 
 
-@wp.func
-def _store_refdata(refdata: wp.array2d(dtype=float), n: int, hinv: mat1212d, a: vec12d, c: vec12d, k: int,
-                   fmean: wp.float64, fnorm: wp.float64):
-    """Row layout: packed upper H^-1 (row-major), H^-1 a, H^-1 c, fm, df."""
-    col = int(0)
-    for i in range(k):
-        for j in range(i, k):
-            refdata[n, col] = float(hinv[i, j])
-            col += 1
-    for i in range(k):
-        ha = wp.float64(0.0)
-        hc = wp.float64(0.0)
-        for j in range(k):
-            ha += hinv[i, j] * a[j]
-            hc += hinv[i, j] * c[j]
-        refdata[n, col + i] = float(ha)
-        refdata[n, col + k + i] = float(hc)
-    refdata[n, col + 2 * k] = float(fmean)
-    refdata[n, col + 2 * k + 1] = float(fnorm)
-
-
-@wp.kernel
-def _prepare_subsets(
-    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, points: wp.array(dtype=wp.vec2d),
-    r: int, k: int, flat_var: float,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    status: wp.array(dtype=wp.int32),
-):
-    n = wp.tid() + offset
-    pt = points[n]
-    cx0 = int(wp.round(pt[0]))
-    cy0 = int(wp.round(pt[1]))
-    dl = wp.vec2(float(wp.float64(cx0) - pt[0]), float(wp.float64(cy0) - pt[1]))
-    centres[n] = wp.vec2i(cx0, cy0)
-    deltas[n] = dl
-    if cx0 - r < 0 or cy0 - r < 0 or cx0 + r > width - 1 or cy0 + r > height - 1:
-        status[n] = ST_OUT_OF_BOUNDS
-        return
-    npx = (2 * r + 1) * (2 * r + 1)
-    fsum = wp.float64(0.0)
-    for j in range(-r, r + 1):
-        for i in range(-r, r + 1):
-            fsum += wp.float64(fgrad[(cy0 + j) * width + cx0 + i][0])
-    fmean = fsum / wp.float64(npx)
-    h, a, c, ss = _subset_hessian(fgrad, width, cx0, cy0, r, dl, k, fmean)
-    if not (ss > wp.float64(npx) * wp.float64(flat_var)):
-        status[n] = ST_FLAT
-        return
-    hinv, ok = cholesky_inverse(h, k)
-    if ok == 0:
-        status[n] = ST_SINGULAR
-        return
-    _store_refdata(refdata, n, hinv, a, c, k, fmean, wp.sqrt(ss))
-    status[n] = ST_CONVERGED  # "ready"
+#: the per-order kernels computing the reference side of IC-GN (order -> kernel)
+_prepare_subsets = {1: _make_prepare_subsets(1), 2: _make_prepare_subsets(2)}
 
 
 @wp.func
@@ -681,7 +717,7 @@ def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float, flat_var: float):
     return gmean, fnorm / dg, sums[2] / (fnorm * dg)
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=cuda_block_dim("_icgn_1st"))
 def _icgn_1st(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
@@ -728,7 +764,7 @@ def _icgn_1st(
     status[n] = st
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=cuda_block_dim("_icgn_2nd"))
 def _icgn_2nd(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
@@ -769,7 +805,11 @@ def _icgn_2nd(
                 break
             dp = vec12(dq[0], dq[1] / s, dq[2] / s, dq[3] / s2, dq[4] / s2, dq[5] / s2,
                        dq[6], dq[7] / s, dq[8] / s, dq[9] / s2, dq[10] / s2, dq[11] / s2)
-            p = compose_2nd(p, dp, s)
+            pn = compose_2nd(p, dp, s)
+            if not wp.isfinite(pn):  # a degenerate update (see solve_transposed6): keep the last p
+                st = ST_DIVERGED
+                break
+            p = pn
             if norm < tol:
                 st = ST_CONVERGED
                 break
@@ -992,7 +1032,7 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
     status = wp.empty(n, dtype=wp.int32, device=device)
     pts_wp = wp.array(pts, dtype=wp.vec2d, device=device)
     launch_1d(
-        _prepare_subsets, n,
+        _prepare_subsets[order], n,
         [0, reference.fgrad, w, h, pts_wp, subset // 2, k, float(flat_std) ** 2, centres, deltas, refdata, status],
         device, offset_index=0, min_chunk=64,
     )
