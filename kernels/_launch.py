@@ -14,42 +14,58 @@ import warp as wp
 
 _POOL: ThreadPoolExecutor | None = None
 
-#: CUDA threads per block of the kernels that set it (key: the kernel's name); every other kernel
-#: runs at Warp's default of 256. Each entry is also the kernel's ``__launch_bounds__`` (its
-#: ``@wp.kernel(launch_bounds=...)``), and every kernel of one Warp module uses the module's value
-#: (``wp.set_module_options({"block_dim": ...})``) so that a module is compiled once, and the
+#: CUDA launch shape of the kernels that set it (key: the kernel's name): ``(threads per block,
+#: minimum resident blocks per SM)``, the kernel's ``__launch_bounds__`` (its
+#: ``@wp.kernel(launch_bounds=...)``); a minimum of 0 leaves the register budget to the compiler,
+#: a minimum ``m`` caps it at ``65536 / (block * m)`` registers. Every other kernel runs at Warp's
+#: default of 256 threads. Every kernel of one Warp module uses the module's block size
+#: (``wp.set_module_options({"block_dim": ...})``) so that a module is compiled once and the
 #: ahead-of-time cache (``bench/gpu.py --prebuild-cache``) holds exactly what is launched.
-#: Occupancy on sm_90 (65536 registers and at most 64 warps per SM; registers allocated per warp
-#: in units of 256) for the registers read from the compiled cubins (docs/dic2d.md, "GPU"):
+#: Occupancy on sm_90 (65536 registers and at most 64 warps per SM, registers allocated per warp in
+#: units of 256), registers read from the compiled cubins (docs/dic2d.md, "GPU";
+#: tests/test_kernel_resources.py holds them):
 #:
-#: ======================  =====  ==========================================================
-#: kernel                  block  reason
-#: ======================  =====  ==========================================================
-#: _icgn_2nd               128    168 registers: 12 warps per SM in blocks of 4 warps, only
-#:                                 8 in blocks of 8 (a 2nd 256-thread block does not fit)
-#: _icgn_1st               128    80 registers: 24 warps per SM at 128 or 256; 128 keeps the
-#:                                 module at one block size
-#: _prepare_subsets_1st    128    per-reference; the module's block size
-#: _prepare_subsets_2nd    128    idem (254 registers: 8 warps at 128 or 256)
-#: _reference_gradients    128    40 registers: 48 warps at 128 or 256
-#: ======================  =====  ==========================================================
-CUDA_BLOCK_DIM = {
-    "_icgn_2nd": 128,
-    "_icgn_1st": 128,
-    "_prepare_subsets_1st": 128,
-    "_prepare_subsets_2nd": 128,
-    "_reference_gradients": 128,
+#: ======================  ======  ========================================================
+#: kernel                  bounds  reason
+#: ======================  ======  ========================================================
+#: _icgn_2nd               128     168 registers, no stack: 12 warps per SM in blocks of 4
+#:                                 warps, 8 in blocks of 8 (a 2nd 256-thread block does not
+#:                                 fit). Capping at 128 registers (128, 4) would give 16 warps
+#:                                 but spills 112 bytes per thread: not taken
+#: _icgn_1st               128, 8  capped at 64 registers (80 uncapped) with no spill: 32
+#:                                 warps per SM instead of 24
+#: _prepare_subsets_1st    128     once per reference; the module's block size
+#: _prepare_subsets_2nd    128     idem (255 registers and a 1256-byte stack: 8 warps)
+#: _reference_gradients    128     40 registers: 48 warps per SM at 128 or 256
+#: ======================  ======  ========================================================
+CUDA_LAUNCH = {
+    "_icgn_2nd": (128, 0),
+    "_icgn_1st": (128, 8),
+    "_prepare_subsets_1st": (128, 0),
+    "_prepare_subsets_2nd": (128, 0),
+    "_reference_gradients": (128, 0),
 }
 
 #: Warp's default threads per block on CUDA
 DEFAULT_CUDA_BLOCK_DIM = 256
 
 
-def cuda_block_dim(name: str) -> int:
-    """CUDA threads per block of the kernel called ``name`` (:data:`CUDA_BLOCK_DIM`, else 256)."""
+def _check_name(name) -> str:
     if not isinstance(name, str):
         raise ValueError(f"name must be a kernel name (str), got {type(name).__name__}")
-    return CUDA_BLOCK_DIM.get(name, DEFAULT_CUDA_BLOCK_DIM)
+    return name
+
+
+def cuda_block_dim(name: str) -> int:
+    """CUDA threads per block of the kernel called ``name`` (:data:`CUDA_LAUNCH`, else 256)."""
+    return CUDA_LAUNCH.get(_check_name(name), (DEFAULT_CUDA_BLOCK_DIM, 0))[0]
+
+
+def cuda_launch_bounds(name: str) -> int | tuple[int, int]:
+    """``launch_bounds`` of ``@wp.kernel`` for the kernel called ``name``: the block size, or
+    ``(block size, minimum blocks per SM)`` where :data:`CUDA_LAUNCH` sets a minimum."""
+    block, min_blocks = CUDA_LAUNCH.get(_check_name(name), (DEFAULT_CUDA_BLOCK_DIM, 0))
+    return (block, min_blocks) if min_blocks else block
 
 
 def _kernel_name(kernel) -> str:

@@ -56,7 +56,7 @@ import numpy as np
 import warp as wp
 
 from ._device import resolve_device
-from ._launch import cuda_block_dim, launch_1d
+from ._launch import cuda_block_dim, cuda_launch_bounds, launch_1d
 from .checks import as_points, odd_int, positive_float, positive_int
 from .conventions import Status
 from .images import as_float32_image
@@ -70,7 +70,7 @@ from .interp import (
 )
 
 # FMA contraction across statements: ~15% faster CPU passes, and FMA only improves rounding.
-# CUDA block size of every kernel here (kernels._launch.CUDA_BLOCK_DIM: one block size per module).
+# CUDA block size of every kernel here (kernels._launch.CUDA_LAUNCH: one block size per module).
 wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
                        "block_dim": cuda_block_dim("_icgn_2nd")})
 
@@ -383,7 +383,7 @@ def compose_2nd(p: vec12, dp: vec12, s: float):
 # ----------------------------------------------------------------------------------------------
 
 
-@wp.kernel(launch_bounds=cuda_block_dim("_reference_gradients"))
+@wp.kernel(launch_bounds=cuda_launch_bounds("_reference_gradients"))
 def _reference_gradients(offset: int, image: wp.array2d(dtype=float), coef: wp.array(dtype=float), pitch: int,
                          width: int, fgrad: wp.array(dtype=wp.vec3)):
     k = wp.tid() + offset
@@ -661,7 +661,7 @@ def _make_prepare_subsets(order: int):
 
     name = "_prepare_subsets_1st" if order == 1 else "_prepare_subsets_2nd"
     prepare_subsets_kernel.__name__ = prepare_subsets_kernel.__qualname__ = name
-    return wp.kernel(prepare_subsets_kernel, launch_bounds=cuda_block_dim(name))
+    return wp.kernel(prepare_subsets_kernel, launch_bounds=cuda_launch_bounds(name))
 
 
 #: the per-order kernels computing the reference side of IC-GN (order -> kernel)
@@ -717,7 +717,7 @@ def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float, flat_var: float):
     return gmean, fnorm / dg, sums[2] / (fnorm * dg)
 
 
-@wp.kernel(launch_bounds=cuda_block_dim("_icgn_1st"))
+@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_1st"))
 def _icgn_1st(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
@@ -764,7 +764,7 @@ def _icgn_1st(
     status[n] = st
 
 
-@wp.kernel(launch_bounds=cuda_block_dim("_icgn_2nd"))
+@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_2nd"))
 def _icgn_2nd(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),

@@ -44,6 +44,13 @@ PAD = 2
 Z1 = float(np.sqrt(3.0) - 2.0)
 #: Length of the truncated sum initialising the causal filter (|z1|**32 ~ 5e-19).
 _HORIZON = 32
+#: Samples per segment of the prefilter: each line (row, then column) is filtered in independent
+#: segments of at least this many samples, so a 2048-pixel line is 16 work items (CPU threads, GPU
+#: lanes) instead of one. Lines shorter than two segments are filtered whole.
+PREFILTER_SEGMENT = 128
+#: Terms of the truncated sums that start an interior segment (|z1|**16 = 7e-10, under float32
+#: resolution); PREFILTER_SEGMENT must be at least this (the sums stay inside the line).
+SEGMENT_HORIZON = wp.constant(16)
 
 # ----------------------------------------------------------------------------------------------
 # @wp.func helpers
@@ -242,28 +249,138 @@ def _expand_rows4(offset: int, c: wp.array(dtype=float), c4: wp.array(dtype=wp.v
         c4[k] = wp.vec4(0.0)
 
 
+@wp.func
+def segment_starts(n: int, nseg: int, seg: int):
+    """(start, end) of segment ``seg`` of ``nseg`` equal segments of a line of n samples."""
+    return (seg * n) // nseg, ((seg + 1) * n) // nseg
+
+
+@wp.func
+def segment_entry_values(c: wp.array2d(dtype=float), row: int, col: int, drow: int, dcol: int, s: int):
+    """(causal output at s - 1, anti-causal output at s) of the prefilter of the line through
+    c[row, col] (step (drow, dcol)), from the input samples around s alone.
+
+    The causal filter is ``c+[k] = sum_{l >= 0} z^l s[k - l]`` and the anti-causal one
+    ``c-[k] = -z / (1 - z^2) sum_m z^|m| s[k + m]`` (the two recursions combined; Unser 1999), both
+    truncated at :data:`SEGMENT_HORIZON` samples (|z|^16 = 7e-10 of the grey range, below float32
+    resolution). ``s`` must be at least SEGMENT_HORIZON samples from both ends of the line.
+    """
+    z = wp.float64(-0.2679491924311228)  # sqrt(3) - 2; float64 sums: the entries carry no extra rounding
+    cp = wp.float64(0.0)
+    zk = wp.float64(1.0)
+    for l in range(SEGMENT_HORIZON):
+        cp += zk * wp.float64(c[row + (s - 1 - l) * drow, col + (s - 1 - l) * dcol])
+        zk *= z
+    cm = wp.float64(c[row + s * drow, col + s * dcol])
+    zk = wp.float64(1.0)
+    for m in range(1, SEGMENT_HORIZON + 1):
+        zk *= z
+        cm += zk * (wp.float64(c[row + (s + m) * drow, col + (s + m) * dcol])
+                    + wp.float64(c[row + (s - m) * drow, col + (s - m) * dcol]))
+    return wp.vec2(float(cp), float((-z / (wp.float64(1.0) - z * z)) * cm))
+
+
+@wp.func
+def filter_segment(src: wp.array2d(dtype=float), sr: int, sc: int, dst: wp.array2d(dtype=float), dr: int, dc: int,
+                   drow: int, dcol: int, n: int, s0: int, s1: int, entry_causal: float, entry_anti: float):
+    """Cubic B-spline prefilter (gain 6) of samples [s0, s1) of a line of n samples, read from
+    ``src`` (origin (sr, sc)) and written to ``dst`` (origin (dr, dc)); may be in place.
+
+    The first segment starts the causal filter with the exact mirror initial value, the last one
+    the anti-causal filter with the exact mirror end value (as :func:`filter_line`); interior
+    segment ends start from ``entry_causal`` (causal output at s0 - 1) and ``entry_anti``
+    (anti-causal output at s1), :func:`segment_entry_values` computed before any sample is
+    overwritten. A line that is one segment is filtered exactly as by :func:`filter_line`.
+    """
+    z = float(-0.2679491924311228)  # sqrt(3) - 2
+    k0 = s0
+    prev = entry_causal
+    if s0 == 0:
+        prev = causal_init(src, sr, sc, drow, dcol, n, z)
+        dst[dr, dc] = prev
+        k0 = 1
+    for k in range(k0, s1):
+        cur = src[sr + k * drow, sc + k * dcol] + z * prev
+        dst[dr + k * drow, dc + k * dcol] = cur
+        prev = cur
+    k1 = s1
+    cm = entry_anti
+    if s1 == n:
+        last = dr + (n - 1) * drow
+        lastc = dc + (n - 1) * dcol
+        cm = (z / (z * z - 1.0)) * (dst[last, lastc] + z * dst[last - drow, lastc - dcol])
+        dst[last, lastc] = 6.0 * cm
+        k1 = n - 1
+    for kk in range(s0, k1):
+        k = k1 - 1 - (kk - s0)
+        cm = z * (cm - dst[dr + k * drow, dc + k * dcol])
+        dst[dr + k * drow, dc + k * dcol] = 6.0 * cm
+
+
 @wp.kernel
-def _prefilter_rows(offset: int, image: wp.array2d(dtype=float), coef: wp.array2d(dtype=float), width: int):
-    y = wp.tid() + offset
+def _prefilter_entries_rows(offset: int, image: wp.array2d(dtype=float), width: int, height: int, nseg: int,
+                            entries: wp.array2d(dtype=wp.vec2)):
+    t = wp.tid() + offset  # (segment boundary b = 1..nseg-1, row y), y fastest
+    y = t % height
+    b = t // height + 1
+    s, _e = segment_starts(width, nseg, b)
+    entries[y, b] = segment_entry_values(image, y, 0, 0, 1, s)
+
+
+@wp.kernel
+def _prefilter_rows(offset: int, image: wp.array2d(dtype=float), coef: wp.array2d(dtype=float), width: int,
+                    height: int, nseg: int, entries: wp.array2d(dtype=wp.vec2)):
+    t = wp.tid() + offset  # (segment, row y), y fastest
+    y = t % height
+    seg = t // height
     r = y + 2
-    for x in range(width):
-        coef[r, x + 2] = image[y, x]
-    filter_line(coef, r, 2, 0, 1, width)
+    s0, s1 = segment_starts(width, nseg, seg)
+    ec = float(0.0)
+    ea = float(0.0)
+    if seg > 0:
+        ec = entries[y, seg][0]
+    if seg < nseg - 1:
+        ea = entries[y, seg + 1][1]
+    filter_segment(image, y, 0, coef, r, 2, 0, 1, width, s0, s1, ec, ea)
     # mirrored coefficient border: c[-1] = c[1], c[-2] = c[2], c[W] = c[W-2], c[W+1] = c[W-3]
-    coef[r, 1] = coef[r, 3]
-    coef[r, 0] = coef[r, 4]
-    coef[r, width + 2] = coef[r, width]
-    coef[r, width + 3] = coef[r, width - 1]
+    if seg == 0:
+        coef[r, 1] = coef[r, 3]
+        coef[r, 0] = coef[r, 4]
+    if seg == nseg - 1:
+        coef[r, width + 2] = coef[r, width]
+        coef[r, width + 3] = coef[r, width - 1]
 
 
 @wp.kernel
-def _prefilter_cols(offset: int, coef: wp.array2d(dtype=float), height: int):
-    x = wp.tid() + offset
-    filter_line(coef, 2, x, 1, 0, height)
-    coef[1, x] = coef[3, x]
-    coef[0, x] = coef[4, x]
-    coef[height + 2, x] = coef[height, x]
-    coef[height + 3, x] = coef[height - 1, x]
+def _prefilter_entries_cols(offset: int, coef: wp.array2d(dtype=float), height: int, ncols: int, nseg: int,
+                            entries: wp.array2d(dtype=wp.vec2)):
+    t = wp.tid() + offset  # (segment boundary b, padded column x), x fastest
+    x = t % ncols
+    b = t // ncols + 1
+    s, _e = segment_starts(height, nseg, b)
+    entries[x, b] = segment_entry_values(coef, 2, x, 1, 0, s)
+
+
+@wp.kernel
+def _prefilter_cols(offset: int, coef: wp.array2d(dtype=float), height: int, ncols: int, nseg: int,
+                    entries: wp.array2d(dtype=wp.vec2)):
+    t = wp.tid() + offset  # (segment, padded column x), x fastest: neighbouring threads, neighbouring columns
+    x = t % ncols
+    seg = t // ncols
+    s0, s1 = segment_starts(height, nseg, seg)
+    ec = float(0.0)
+    ea = float(0.0)
+    if seg > 0:
+        ec = entries[x, seg][0]
+    if seg < nseg - 1:
+        ea = entries[x, seg + 1][1]
+    filter_segment(coef, 2, x, coef, 2, x, 1, 0, height, s0, s1, ec, ea)
+    if seg == 0:
+        coef[1, x] = coef[3, x]
+        coef[0, x] = coef[4, x]
+    if seg == nseg - 1:
+        coef[height + 2, x] = coef[height, x]
+        coef[height + 3, x] = coef[height - 1, x]
 
 
 @wp.func
@@ -349,6 +466,14 @@ def _check_min_size(arr: np.ndarray, name: str) -> None:
         raise ValueError(f"{name} must be at least 4x4 pixels for cubic interpolation, got shape {arr.shape}")
 
 
+def prefilter_segments(n: int) -> int:
+    """Number of segments the prefilter splits a line of ``n`` samples into (at least
+    :data:`PREFILTER_SEGMENT` samples each; 1 for a line shorter than two segments)."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n must be a positive int (samples per line), got {n!r}")
+    return max(1, int(n) // PREFILTER_SEGMENT)
+
+
 def bspline_coefficients(image, device=None, out: wp.array | None = None) -> PaddedImage:
     """Cubic B-spline coefficients of a grey image (Unser 1999, doi:10.1109/79.799930).
 
@@ -391,8 +516,21 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
             f"out must be a float32 wp.array of shape {shape_p} on {device}, "
             f"got shape {out.shape}, dtype {out.dtype}, device {out.device}"
         )
-    launch_1d(_prefilter_rows, h, [0, img_wp, out, w], device, offset_index=0, min_chunk=64)
-    launch_1d(_prefilter_cols, w + 2 * PAD, [0, out, h], device, offset_index=0, min_chunk=64)
+    # lines in segments (PREFILTER_SEGMENT): entry values first (read-only), then the segments
+    nseg_r = prefilter_segments(w)
+    nseg_c = prefilter_segments(h)
+    ncols = w + 2 * PAD
+    entries = wp.empty((max(h, ncols), max(nseg_r, nseg_c)), dtype=wp.vec2, device=device)
+    if nseg_r > 1:
+        launch_1d(_prefilter_entries_rows, h * (nseg_r - 1), [0, img_wp, w, h, nseg_r, entries], device,
+                  offset_index=0, min_chunk=256)
+    launch_1d(_prefilter_rows, h * nseg_r, [0, img_wp, out, w, h, nseg_r, entries], device, offset_index=0,
+              min_chunk=64)
+    if nseg_c > 1:
+        launch_1d(_prefilter_entries_cols, ncols * (nseg_c - 1), [0, out, h, ncols, nseg_c, entries], device,
+                  offset_index=0, min_chunk=256)
+    launch_1d(_prefilter_cols, ncols * nseg_c, [0, out, h, ncols, nseg_c, entries], device, offset_index=0,
+              min_chunk=64)
     return PaddedImage(out, "bspline", (h, w), device)
 
 

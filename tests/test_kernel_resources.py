@@ -1,0 +1,136 @@
+"""Compiled resources of the GPU kernels: registers and stack read from the sm_90 cubins.
+
+The IC-GN, reference-preparation and interpolation modules are compiled ahead of time for sm_90
+(:func:`warp.compile_aot_module` runs NVRTC from inside Warp: no GPU, no CUDA toolkit), once per
+test session, and :mod:`kernels.cubin` reads each kernel's registers and stack from the ELF. The
+bounds are the figures measured after issue 16's changes (docs/dic2d.md, "GPU"); a change that
+makes a kernel need more registers or any stack where it had none fails here. A Warp upgrade
+(another NVRTC) may move the figures by a few registers: re-measure and update the table then.
+"""
+import struct
+
+import pytest
+import warp as wp
+
+from kernels import cubin
+from kernels._launch import CUDA_LAUNCH, DEFAULT_CUDA_BLOCK_DIM, cuda_block_dim, cuda_launch_bounds
+
+#: kernel -> (max registers, max stack bytes) on sm_90; before issue 16 in the comment
+BOUNDS = {
+    "_icgn_1st": (64, 0),  # 80, 0 (capped by launch bounds (128, 8), no spill)
+    "_icgn_2nd": (168, 0),  # 166, 168 (pivot swap of the 6x6 solve)
+    "_prepare_subsets_1st": (183, 0),  # one kernel for both orders: 255, 7232
+    "_prepare_subsets_2nd": (255, 1256),  # 12x12 float64 Cholesky: does not fit 255 registers
+    "_reference_gradients": (40, 0),
+    "_expand_rows4": (30, 0),
+    "_interp_kernel": (64, 0),
+    "_prefilter_rows": (56, 0),  # whole lines: 32, 0 (segments: entry values and both line ends)
+    "_prefilter_cols": (48, 0),  # whole lines: 40, 0
+    "_prefilter_entries_rows": (32, 0),  # new: segment entry values
+    "_prefilter_entries_cols": (32, 0),
+}
+MODULES = ("kernels.icgn", "kernels.interp")
+
+
+@pytest.fixture(scope="session")
+def sm90_resources(tmp_path_factory):
+    import importlib
+
+    wp.config.quiet = True
+    wp.init()
+    found = {}
+    for name in MODULES:
+        out = tmp_path_factory.mktemp(name.replace(".", "_"))
+        wp.compile_aot_module(importlib.import_module(name), arch=90, module_dir=str(out), use_ptx=False)
+        cubins = sorted(out.rglob("*.cubin"))
+        assert cubins, f"no cubin for {name}"
+        for path in cubins:
+            for mangled, res in cubin.kernel_resources(path).items():
+                if mangled.endswith("_cuda_kernel_forward"):
+                    found[mangled.split("_cuda_kernel_forward")[0].rsplit("_", 1)[0]] = res
+    return found
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kernel", sorted(BOUNDS))
+def test_kernel_registers_and_stack_within_bounds(sm90_resources, kernel):
+    assert kernel in sm90_resources, f"{kernel} not found in the cubins: {sorted(sm90_resources)}"
+    res = sm90_resources[kernel]
+    max_regs, max_stack = BOUNDS[kernel]
+    assert 0 < res.registers <= max_regs, f"{kernel}: {res.registers} registers (bound {max_regs})"
+    assert res.stack <= max_stack, f"{kernel}: {res.stack} bytes of stack (bound {max_stack})"
+
+
+@pytest.mark.slow
+def test_every_compiled_kernel_has_a_bound(sm90_resources):
+    assert set(sm90_resources) == set(BOUNDS)
+
+
+def test_block_size_table_matches_kernels_and_modules():
+    from kernels import icgn, interp
+
+    kernels = {k.func.__name__: k for mod in (icgn, interp) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
+    kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
+    assert set(CUDA_LAUNCH) <= set(kernels)
+    for name, kernel in kernels.items():
+        bd = cuda_block_dim(name)
+        # one block size per Warp module: the module is compiled (and AOT-cached) once
+        assert kernel.module.options["block_dim"] == bd, name
+        if name in CUDA_LAUNCH:
+            assert kernel.options.get("launch_bounds") == cuda_launch_bounds(name), name
+    assert cuda_block_dim("not_a_kernel") == DEFAULT_CUDA_BLOCK_DIM
+    with pytest.raises(ValueError, match="kernel name"):
+        cuda_block_dim(3)
+
+
+def test_occupancy_from_registers():
+    # sm_90: 65536 registers per SM, warps take registers in units of 256, at most 64 warps
+    assert cubin.occupancy_warps(166, 256) == 8  # 168 x 32 = 5376 per warp: 12 fit, in blocks of 8 -> 8
+    assert cubin.occupancy_warps(166, 128) == 12
+    assert cubin.occupancy_warps(80, 256) == 24
+    assert cubin.occupancy_warps(255, 128) == 8
+    assert cubin.occupancy_warps(32, 256) == 64
+    with pytest.raises(ValueError):
+        cubin.occupancy_warps(0, 128)
+
+
+def _tiny_elf(regcount: int, frame: int) -> bytes:
+    """A minimal ELF64 built independently of the parser: one function ``k`` with .text.k and a
+    module-wide .nv.info holding EIATTR_REGCOUNT and EIATTR_FRAME_SIZE (SVAL records), plus an
+    HVAL and an NVAL record the parser must step over."""
+    shstr = b"\0.shstrtab\0.strtab\0.symtab\0.text.k\0.nv.info\0"
+    strtab = b"\0k\0"
+    sym = bytes(24) + struct.pack("<IBBHQQ", 1, 0x12, 0, 4, 0, 0)  # symbol 1: k, FUNC
+    text = b"\0" * 16
+    info = (struct.pack("<BBH", 0x03, 0x1B, 255)  # HVAL EIATTR_MAXREG_COUNT
+            + struct.pack("<BB", 0x01, 0x21)  # NVAL
+            + struct.pack("<BBHII", 0x04, 0x2F, 8, 1, regcount)
+            + struct.pack("<BBHII", 0x04, 0x11, 8, 1, frame))
+    bodies = [b"", shstr, strtab, sym, text, info]
+    names = [0, shstr.index(b".shstrtab"), shstr.index(b".strtab"), shstr.index(b".symtab"),
+             shstr.index(b".text.k"), shstr.index(b".nv.info")]
+    types = [0, 3, 3, 2, 1, 0x70000000]
+    links = [0, 0, 0, 2, 0, 3]
+    data = bytearray(64)
+    offs = []
+    for b in bodies:
+        offs.append(len(data))
+        data += b
+    shoff = len(data)
+    for i, b in enumerate(bodies):
+        data += struct.pack("<IIQQQQIIQQ", names[i], types[i], 0, 0, offs[i], len(b), links[i], 0, 1,
+                            24 if types[i] == 2 else 0)
+    hdr = b"\x7fELF" + bytes([2, 1, 1]) + bytes(9)
+    hdr += struct.pack("<HHIQQQIHHHHHH", 2, 190, 1, 0, 0, shoff, 0, 64, 0, 0, 64, len(bodies), 1)
+    data[:64] = hdr
+    return bytes(data)
+
+
+def test_cubin_parser_on_a_handmade_elf():
+    res = cubin.kernel_resources(_tiny_elf(42, 16))
+    assert set(res) == {"k"}
+    assert res["k"].registers == 42 and res["k"].frame == 16 and res["k"].stack == 16
+    with pytest.raises(ValueError, match="not an ELF"):
+        cubin.kernel_resources(b"not a cubin at all")
+    with pytest.raises(ValueError, match="bytes or a path"):
+        cubin.kernel_resources(3.0)
