@@ -37,6 +37,11 @@ _POOL: ThreadPoolExecutor | None = None
 #: _prepare_subsets_1st    128     once per reference; the module's block size
 #: _prepare_subsets_2nd    128     idem (255 registers and a 1256-byte stack: 8 warps)
 #: _reference_gradients    128     40 registers: 48 warps per SM at 128 or 256
+#: _prefilter_rows         256, 6  capped at 40 registers (56 uncapped), no spill: 48 warps
+#:                                 instead of 32 for a latency-bound recursive filter
+#:                                 (capping at 32, (256, 8), spills 32 bytes)
+#: _prefilter_cols         256, 8  capped at 32 registers (48 uncapped), no spill: 64 warps
+#: _prefilter_entries_*    256     32 registers: 64 warps
 #: ======================  ======  ========================================================
 CUDA_LAUNCH = {
     "_icgn_2nd": (128, 0),
@@ -44,6 +49,10 @@ CUDA_LAUNCH = {
     "_prepare_subsets_1st": (128, 0),
     "_prepare_subsets_2nd": (128, 0),
     "_reference_gradients": (128, 0),
+    "_prefilter_rows": (256, 6),
+    "_prefilter_cols": (256, 8),
+    "_prefilter_entries_rows": (256, 0),
+    "_prefilter_entries_cols": (256, 0),
 }
 
 #: Warp's default threads per block on CUDA

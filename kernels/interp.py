@@ -5,6 +5,10 @@ processing", IEEE Signal Processing Magazine 16(6), 1999, doi:10.1109/79.799930:
 prefiltered into B-spline coefficients ``c`` (a causal then an anti-causal first-order recursive
 filter with pole ``z1 = sqrt(3) - 2`` and gain 6, along rows then along columns) so that the
 interpolant ``f(x, y) = sum_kl c[l, k] b3(x - k) b3(y - l)`` passes through every pixel value.
+Each line is filtered in independent segments of at least :data:`PREFILTER_SEGMENT` samples (one
+work item each, so a large image fills a GPU), started from the closed forms of the two recursions
+truncated where they fall below float32 resolution; a line shorter than two segments is filtered
+whole, and longer lines differ from the whole-line recursion by a few float32 ulps.
 Keys bicubic convolution (Keys, "Cubic convolution interpolation for digital image processing",
 IEEE TASSP 29(6), 1981, doi:10.1109/TASSP.1981.1163711) uses ``a = -0.5`` on the raw image.
 
@@ -32,7 +36,7 @@ import numpy as np
 import warp as wp
 
 from ._device import resolve_device
-from ._launch import launch_1d
+from ._launch import cuda_launch_bounds, launch_1d
 from .checks import as_points
 from .images import as_float32_image
 
@@ -317,7 +321,7 @@ def filter_segment(src: wp.array2d(dtype=float), sr: int, sc: int, dst: wp.array
         dst[dr + k * drow, dc + k * dcol] = 6.0 * cm
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=cuda_launch_bounds("_prefilter_entries_rows"))
 def _prefilter_entries_rows(offset: int, image: wp.array2d(dtype=float), width: int, height: int, nseg: int,
                             entries: wp.array2d(dtype=wp.vec2)):
     t = wp.tid() + offset  # (segment boundary b = 1..nseg-1, row y), y fastest
@@ -327,7 +331,7 @@ def _prefilter_entries_rows(offset: int, image: wp.array2d(dtype=float), width: 
     entries[y, b] = segment_entry_values(image, y, 0, 0, 1, s)
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=cuda_launch_bounds("_prefilter_rows"))
 def _prefilter_rows(offset: int, image: wp.array2d(dtype=float), coef: wp.array2d(dtype=float), width: int,
                     height: int, nseg: int, entries: wp.array2d(dtype=wp.vec2)):
     t = wp.tid() + offset  # (segment, row y), y fastest
@@ -351,7 +355,7 @@ def _prefilter_rows(offset: int, image: wp.array2d(dtype=float), coef: wp.array2
         coef[r, width + 3] = coef[r, width - 1]
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=cuda_launch_bounds("_prefilter_entries_cols"))
 def _prefilter_entries_cols(offset: int, coef: wp.array2d(dtype=float), height: int, ncols: int, nseg: int,
                             entries: wp.array2d(dtype=wp.vec2)):
     t = wp.tid() + offset  # (segment boundary b, padded column x), x fastest
@@ -361,7 +365,7 @@ def _prefilter_entries_cols(offset: int, coef: wp.array2d(dtype=float), height: 
     entries[x, b] = segment_entry_values(coef, 2, x, 1, 0, s)
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=cuda_launch_bounds("_prefilter_cols"))
 def _prefilter_cols(offset: int, coef: wp.array2d(dtype=float), height: int, ncols: int, nseg: int,
                     entries: wp.array2d(dtype=wp.vec2)):
     t = wp.tid() + offset  # (segment, padded column x), x fastest: neighbouring threads, neighbouring columns

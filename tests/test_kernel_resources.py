@@ -24,8 +24,8 @@ BOUNDS = {
     "_reference_gradients": (40, 0),
     "_expand_rows4": (30, 0),
     "_interp_kernel": (64, 0),
-    "_prefilter_rows": (56, 0),  # whole lines: 32, 0 (segments: entry values and both line ends)
-    "_prefilter_cols": (48, 0),  # whole lines: 40, 0
+    "_prefilter_rows": (40, 0),  # whole lines: 32, 0; segments: 56 uncapped, 40 with bounds (256, 6)
+    "_prefilter_cols": (32, 0),  # whole lines: 40, 0; segments: 48 uncapped, 32 with bounds (256, 8)
     "_prefilter_entries_rows": (32, 0),  # new: segment entry values
     "_prefilter_entries_cols": (32, 0),
 }
@@ -134,3 +134,20 @@ def test_cubin_parser_on_a_handmade_elf():
         cubin.kernel_resources(b"not a cubin at all")
     with pytest.raises(ValueError, match="bytes or a path"):
         cubin.kernel_resources(3.0)
+
+
+def test_launch_1d_passes_the_kernel_block_size_on_cuda_only(monkeypatch):
+    """A kernel compiled with __launch_bounds__(128) fails to launch with Warp's default 256
+    threads: launch_1d must pass the table's block size on CUDA (and nothing on the CPU)."""
+    from kernels import _launch, icgn, interp
+
+    calls = []
+    monkeypatch.setattr(wp, "launch", lambda kernel, dim, inputs, device, **kw: calls.append((kernel, device, kw)))
+    for kernel in (icgn._icgn_2nd, icgn._icgn_1st, icgn._prepare_subsets[2], interp._prefilter_rows,
+                   interp._expand_rows4):
+        _launch.launch_1d(kernel, 1000, [0], "cuda:0", offset_index=0)
+    assert [kw["block_dim"] for _, _, kw in calls] == [128, 128, 128, 256, 256]
+    calls.clear()
+    monkeypatch.setenv("SPECULA_THREADS", "1")
+    _launch.launch_1d(icgn._icgn_2nd, 10, [0], "cpu", offset_index=0)
+    assert calls and "block_dim" not in calls[0][2]
