@@ -42,6 +42,8 @@ _POOL: ThreadPoolExecutor | None = None
 #:                                 (capping at 32, (256, 8), spills 32 bytes)
 #: _prefilter_cols         256, 8  capped at 32 registers (48 uncapped), no spill: 64 warps
 #: _prefilter_entries_*    256     32 registers: 64 warps
+#: _icgn_1st_tiled         32      prototype, one warp per POI (kernels/icgn_tiled.py): 64
+#:                                 registers; 32 warps per SM (at most 32 blocks per SM)
 #: ======================  ======  ========================================================
 CUDA_LAUNCH = {
     "_icgn_2nd": (128, 0),
@@ -53,6 +55,7 @@ CUDA_LAUNCH = {
     "_prefilter_cols": (256, 8),
     "_prefilter_entries_rows": (256, 0),
     "_prefilter_entries_cols": (256, 0),
+    "_icgn_1st_tiled": (32, 0),
 }
 
 #: Warp's default threads per block on CUDA

@@ -4,7 +4,8 @@ A ``.cubin`` is an ELF file. The CUDA assembler records per-kernel resource attr
 in ``.nv.info`` sections (the module-wide ``.nv.info`` and the per-kernel ``.nv.info.<kernel>``):
 a sequence of records ``format: u8, attribute: u8`` followed by a value whose layout the format
 gives (``EIFMT_NVAL`` 0x01: none; ``EIFMT_BVAL`` 0x02: one byte; ``EIFMT_HVAL`` 0x03: a u16;
-``EIFMT_SVAL`` 0x04: a u16 byte count then that many bytes). The resource attributes are SVAL
+``EIFMT_SVAL`` 0x04: a u16 byte count then that many bytes); a zero byte where a record would
+start is one byte of padding (it follows a BVAL, keeping the records 4-byte aligned). The resource attributes are SVAL
 records holding ``(symbol index of the kernel: u32, value: u32)``:
 
 ====================  ====  ============================================================
@@ -30,6 +31,7 @@ import struct
 from dataclasses import dataclass
 from pathlib import Path
 
+EIFMT_NONE = 0x00
 EIFMT_NVAL = 0x01
 EIFMT_BVAL = 0x02
 EIFMT_HVAL = 0x03
@@ -104,6 +106,9 @@ def _records(body: bytes):
     while at + 2 <= len(body):
         fmt, attr = body[at], body[at + 1]
         at += 2
+        if fmt == EIFMT_NONE:  # one padding byte (records are 4-byte aligned after a BVAL)
+            at -= 1
+            continue
         if fmt == EIFMT_NVAL:
             val = b""
         elif fmt == EIFMT_BVAL:

@@ -18,7 +18,8 @@ from kernels._launch import CUDA_LAUNCH, DEFAULT_CUDA_BLOCK_DIM, cuda_block_dim,
 #: kernel -> (max registers, max stack bytes) on sm_90; before issue 16 in the comment
 BOUNDS = {
     "_icgn_1st": (64, 0),  # 80, 0 (capped by launch bounds (128, 8), no spill)
-    "_icgn_2nd": (168, 0),  # 166, 168 (pivot swap of the 6x6 solve)
+    "_icgn_2nd": (168, 0),
+    "_icgn_1st_tiled": (64, 0),  # prototype (kernels/icgn_tiled.py)  # 166, 168 (pivot swap of the 6x6 solve)
     "_prepare_subsets_1st": (183, 0),  # one kernel for both orders: 255, 7232
     "_prepare_subsets_2nd": (255, 1256),  # 12x12 float64 Cholesky: does not fit 255 registers
     "_reference_gradients": (40, 0),
@@ -29,7 +30,7 @@ BOUNDS = {
     "_prefilter_entries_rows": (32, 0),  # new: segment entry values
     "_prefilter_entries_cols": (32, 0),
 }
-MODULES = ("kernels.icgn", "kernels.interp")
+MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled")
 
 
 @pytest.fixture(scope="session")
@@ -67,9 +68,9 @@ def test_every_compiled_kernel_has_a_bound(sm90_resources):
 
 
 def test_block_size_table_matches_kernels_and_modules():
-    from kernels import icgn, interp
+    from kernels import icgn, icgn_tiled, interp
 
-    kernels = {k.func.__name__: k for mod in (icgn, interp) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
+    kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)
     for name, kernel in kernels.items():
@@ -97,12 +98,13 @@ def test_occupancy_from_registers():
 def _tiny_elf(regcount: int, frame: int) -> bytes:
     """A minimal ELF64 built independently of the parser: one function ``k`` with .text.k and a
     module-wide .nv.info holding EIATTR_REGCOUNT and EIATTR_FRAME_SIZE (SVAL records), plus an
-    HVAL and an NVAL record the parser must step over."""
+    HVAL, a BVAL with its padding byte and an NVAL record the parser must step over."""
     shstr = b"\0.shstrtab\0.strtab\0.symtab\0.text.k\0.nv.info\0"
     strtab = b"\0k\0"
     sym = bytes(24) + struct.pack("<IBBHQQ", 1, 0x12, 0, 4, 0, 0)  # symbol 1: k, FUNC
     text = b"\0" * 16
     info = (struct.pack("<BBH", 0x03, 0x1B, 255)  # HVAL EIATTR_MAXREG_COUNT
+            + struct.pack("<BBBB", 0x02, 0x4C, 7, 0)  # BVAL and its padding byte
             + struct.pack("<BB", 0x01, 0x21)  # NVAL
             + struct.pack("<BBHII", 0x04, 0x2F, 8, 1, regcount)
             + struct.pack("<BBHII", 0x04, 0x11, 8, 1, frame))

@@ -521,3 +521,44 @@ def test_prefilter_segments_rejects_bad_lengths():
     for bad in (0, -3, 2.5, True, "8"):
         with pytest.raises(ValueError, match="positive int"):
             prefilter_segments(bad)
+
+
+# ------------------------------------------------------------------------------------------------
+# the tiled 1st-order prototype (kernels/icgn_tiled.py) against the one-thread-per-POI kernel
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cpu_blocks", [True, False])
+def test_tiled_icgn_prototype_matches_one_thread_per_poi(cpu_blocks):
+    from dic.synth import speckle_pair
+    from kernels.icgn_tiled import icgn_tiled
+
+    ref, cur = speckle_pair((112, 112), lambda x, y: (0.4 + 0.01 * (x - 56), -0.3 + 0.005 * (y - 56)), seed=3,
+                            noise_sigma=1.0)
+    yy, xx = np.mgrid[8:105:3, 8:105:3]
+    pts = np.stack([xx.ravel() + 0.3, yy.ravel()], 1).astype(float)
+    rim = K.prepare_reference(ref, device="cpu")
+    sub = K.prepare_subsets(rim, pts, subset=21, order=1)
+    ci = K.prepare_current(cur, device="cpu")
+    guess = np.zeros((len(pts), 6))
+    guess[:, 0] = np.where(np.arange(len(pts)) % 5 == 0, 30.0, 0.0)  # some POIs leave the image
+    a = K.icgn(sub, ci, guess=guess).numpy()
+    saved = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = cpu_blocks  # True: 32 lanes per POI and real tile reductions on the CPU
+    try:
+        b = icgn_tiled(sub, ci, guess=guess).numpy()
+    finally:
+        wp.config.enable_cpu_blocks = saved
+    np.testing.assert_array_equal(b["status"], a["status"])
+    np.testing.assert_array_equal(b["iterations"], a["iterations"])
+    for st in (Status.CONVERGED, Status.OUT_OF_BOUNDS):
+        assert np.any(a["status"] == int(st))
+    # only the order of the float32 sums differs (measured: 1 ulp of u, v (1.9e-6 px at u = 31.6),
+    # <= 3.6e-7 in the gradients, where converged;
+    # the end points of POIs that never converge follow their rounding more loosely)
+    conv = a["status"] == int(Status.CONVERGED)
+    print("tiled: max |d params| where converged", np.abs(b["params"] - a["params"])[conv].max(axis=0))
+    np.testing.assert_allclose(b["params"][conv], a["params"][conv], rtol=2e-7, atol=1e-6)  # ~1 ulp at u = 30
+    np.testing.assert_allclose(b["zncc"][conv], a["zncc"][conv], rtol=0, atol=5e-6)  # float32 sums of 441 terms
+    with pytest.raises(ValueError, match="1st-order only"):
+        icgn_tiled(K.prepare_subsets(rim, pts[:3], subset=21, order=2), ci)

@@ -1,0 +1,171 @@
+"""Prototype: 1st-order IC-GN with one block of lanes per POI (Warp tiles), for the GPU.
+
+:func:`kernels.icgn.icgn` runs one thread per POI: each thread walks its whole subset serially,
+which needs many POIs to fill a GPU and lets a warp wait for its slowest POI. Here a block of
+:data:`TILE_LANES` lanes (one warp) shares a POI: lane ``l`` visits the subset pixels ``l, l + L,
+l + 2L, ...`` (row-major), and the per-iteration sums (``sum J^T g``, ``sum g``, ``sum g^2``,
+``sum (f - fm) g``) are reduced across the lanes with ``wp.tile_sum``; every lane then computes the
+same Gauss-Newton update (the reference side, ``H^-1`` and friends, comes from
+:func:`kernels.icgn.prepare_subsets` unchanged). The criterion, update, statuses and convergence
+test are those of ``kernels.icgn._icgn_1st``; only the order of the float32 sums differs, so the
+results agree to float32 rounding (tests/test_kernel_variants.py).
+
+Status: a prototype, not used by the engine. It is correct on the CPU (where Warp runs the lanes
+of a block one after another when ``wp.config.enable_cpu_blocks`` is set), and its sm_90 resources
+are recorded in docs/dic2d.md ("GPU"); whether it beats one thread per POI must be measured on a
+GPU (``bench/gpu.sh``).
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ._device import resolve_device
+from ._launch import cuda_block_dim, cuda_launch_bounds
+from .checks import positive_float
+from .icgn import (
+    ST_CONVERGED,
+    ST_DIVERGED,
+    ST_MAX_ITERATIONS,
+    ST_OUT_OF_BOUNDS,
+    CurrentImage,
+    IcgnResult,
+    ReferenceSubsets,
+    check_max_iter,
+    compose_1st,
+    gn_step_scale,
+    gn_update6,
+    vec6,
+    warped_inside,
+    warped_value,
+)
+
+#: lanes per POI (one warp on CUDA); also the module's CUDA block size (kernels._launch.CUDA_LAUNCH)
+TILE_LANES = cuda_block_dim("_icgn_1st_tiled")
+
+wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
+                       "block_dim": TILE_LANES})
+
+
+@wp.func
+def subset_pass_1st_lanes(
+    fgrad: wp.array(dtype=wp.vec3), width: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    cx0: int, cy0: int, r: int, dl: wp.vec2, inv_s: float, p: vec6, fmean: float, goff: float, lane: int,
+):
+    """This lane's share of :func:`kernels.icgn.subset_pass_1st` (pixels lane, lane + L, ..., L the block size)."""
+    b = vec6()
+    sg = float(0.0)
+    sgg = float(0.0)
+    sfg = float(0.0)
+    size = 2 * r + 1
+    q = lane
+    while q < size * size:
+        jj = q // size
+        i = q - jj * size - r
+        j = jj - r
+        dx = float(i) + dl[0]
+        dy = float(j) + dl[1]
+        g = warped_value(coef, pitch, cx0 + i, cy0 + j, p[0] + p[1] * dx + p[2] * dy,
+                         p[3] + p[4] * dx + p[5] * dy) - goff
+        fg = fgrad[(cy0 + j) * width + cx0 + i]
+        sg += g
+        sgg += g * g
+        sfg += (fg[0] - fmean) * g
+        gx = fg[1] * g
+        gy = fg[2] * g
+        xi = dx * inv_s
+        eta = dy * inv_s
+        b += vec6(gx, gx * xi, gx * eta, gy, gy * xi, gy * eta)
+        q += wp.block_dim()
+    return b, wp.vec3(sg, sgg, sfg)
+
+
+@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_1st_tiled"))
+def _icgn_1st_tiled(
+    fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    flat_var: float,
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    n, lane = wp.tid()
+    p = vec6(guess[n, 0], guess[n, 1], guess[n, 2], guess[n, 3], guess[n, 4], guess[n, 5])
+    st = ref_status[n]
+    cc = float(wp.nan)
+    it = int(0)
+    if st == ST_CONVERGED:  # uniform across the block: every lane of a POI takes the same path
+        fmean = refdata[n, 33]
+        fnorm = refdata[n, 34]
+        goff = fmean
+        ctr = centres[n]
+        dl = deltas[n]
+        s = float(r)
+        st = ST_MAX_ITERATIONS
+        while it < max_iter:
+            if warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], 0.0, 0.0, 0.0,
+                             p[3], p[4], p[5], 0.0, 0.0, 0.0) == 0:
+                st = ST_OUT_OF_BOUNDS
+                break
+            bl, sl = subset_pass_1st_lanes(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean,
+                                           goff, lane)
+            bt = wp.tile_sum(wp.tile(bl, preserve_type=True))
+            stt = wp.tile_sum(wp.tile(sl, preserve_type=True))
+            b = bt[0]
+            sums = stt[0]
+            it += 1
+            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
+            goff = goff + gmean
+            dq = gn_update6(refdata, n, b, ratio, gmean)
+            norm = wp.length(dq)
+            if ratio == 0.0 or not (norm <= float(2 * r + 1)):
+                st = ST_DIVERGED
+                break
+            p = compose_1st(p, vec6(dq[0], dq[1] / s, dq[2] / s, dq[3], dq[4] / s, dq[5] / s))
+            if norm < tol:
+                st = ST_CONVERGED
+                break
+    if lane == 0:
+        for i in range(6):
+            params[n, i] = p[i]
+        zncc[n] = cc
+        iterations[n] = it
+        status[n] = st
+
+
+def icgn_tiled(subsets: ReferenceSubsets, current: CurrentImage, guess=None, max_iter: int = 30,
+               tol: float = 1e-3) -> IcgnResult:
+    """1st-order IC-GN with :data:`TILE_LANES` lanes per POI (prototype; see the module doc).
+
+    Parameters as :func:`kernels.icgn.icgn` (``current`` prepared with
+    :func:`kernels.icgn.prepare_current`); ``subsets`` must be of order 1.
+    """
+    if not isinstance(subsets, ReferenceSubsets):
+        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
+    if subsets.order != 1:
+        raise ValueError(f"icgn_tiled is 1st-order only, got subsets of order {subsets.order}")
+    if not isinstance(current, CurrentImage) or current.device != subsets.device:
+        raise ValueError("current must be a CurrentImage (prepare_current) on the subsets' device")
+    if current.shape != subsets.reference.shape:
+        raise ValueError(f"current image has shape {current.shape} but the reference has {subsets.reference.shape}")
+    max_iter = check_max_iter(max_iter)
+    tol = positive_float(tol, "tol", detail=" of pixels")
+    device = resolve_device(subsets.device)
+    n = subsets.n_points
+    g = np.zeros((n, 6), np.float32) if guess is None else np.asarray(guess, np.float32)
+    if g.shape != (n, 6) or not np.all(np.isfinite(g)):
+        raise ValueError(f"guess must be finite of shape {(n, 6)}, got {g.shape}")
+    out = IcgnResult(wp.empty((n, 6), dtype=wp.float32, device=device), wp.empty(n, dtype=wp.float32, device=device),
+                     wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device))
+    if n == 0:
+        return out
+    h, w = subsets.reference.shape
+    wp.launch_tiled(
+        _icgn_1st_tiled, dim=[n],
+        inputs=[subsets.reference.fgrad, w, h, current.rows4, current.pitch, subsets.centres, subsets.deltas,
+                subsets.refdata, subsets.status, wp.array(g, dtype=wp.float32, device=device), subsets.subset // 2,
+                int(max_iter), float(tol), float(subsets.flat_std) ** 2, out.params, out.zncc, out.iterations,
+                out.status],
+        block_dim=TILE_LANES, device=device,
+    )
+    return out
