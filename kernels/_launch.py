@@ -35,7 +35,7 @@ _POOL: ThreadPoolExecutor | None = None
 #: _icgn_1st               128, 8  capped at 64 registers (80 uncapped) with no spill: 32
 #:                                 warps per SM instead of 24
 #: _prepare_subsets_1st    128     once per reference; the module's block size
-#: _prepare_subsets_2nd    128     idem (255 registers and a 1256-byte stack: 8 warps)
+#: _prepare_subsets_2nd    128     idem (255 registers and a 3480-byte stack: 8 warps)
 #: _reference_gradients    128     40 registers: 48 warps per SM at 128 or 256
 #: _prefilter_rows         256, 6  capped at 40 registers (56 uncapped), no spill: 48 warps
 #:                                 instead of 32 for a latency-bound recursive filter

@@ -500,6 +500,9 @@ def _make_prepare_subsets(order: int):
     matk = mat66d if order == 1 else mat1212d
     veck = vec6d if order == 1 else vec12d
     row_moments = _row_moments_deg2 if order == 1 else _row_moments_deg4
+    # unrolled, the order-2 Cholesky inverse is ~18 000 lines of C++ (3x the CPU compile time of
+    # this module) and still does not fit in registers: it keeps run-time loops
+    unroll_solve = order == 1
 
     moments_hi = _row_to_moments_func(2 * dj)  # G = fx^2, fx fy, fy^2
     moments_lo = _row_to_moments_func(dj)  # G = fx, fy, fx (f - fm), fy (f - fm)
@@ -508,12 +511,15 @@ def _make_prepare_subsets(order: int):
     def cholesky_inverse(h: Any):
         """Inverse of the symmetric positive-definite K x K matrix h; ok = 0 if singular
         (a pivot below PIVOT_RTOL times the largest diagonal entry)."""
+        nk = kk
+        if wp.static(not unroll_solve):
+            nk = int(kk)  # a run-time value: the loops stay loops
         lo = matk()
         ok = int(1)
         hmax = wp.float64(0.0)
-        for j in range(kk):
+        for j in range(nk):
             hmax = wp.max(hmax, h[j, j])
-        for j in range(kk):
+        for j in range(nk):
             s = h[j, j]
             for m in range(j):
                 s -= lo[j, m] * lo[j, m]
@@ -522,25 +528,25 @@ def _make_prepare_subsets(order: int):
                 s = wp.float64(1.0)
             d = wp.sqrt(s)
             lo[j, j] = d
-            for i in range(j + 1, kk):
+            for i in range(j + 1, nk):
                 t = h[i, j]
                 for m in range(j):
                     t -= lo[i, m] * lo[j, m]
                 lo[i, j] = t / d
         inv = matk()
-        for col in range(kk):  # solve L L^T x = e_col
+        for col in range(nk):  # solve L L^T x = e_col
             y = veck()
-            for i in range(kk):
+            for i in range(nk):
                 t = wp.float64(0.0)
                 if i == col:
                     t = wp.float64(1.0)
                 for m in range(i):
                     t -= lo[i, m] * y[m]
                 y[i] = t / lo[i, i]
-            for ii in range(kk):
-                i = kk - 1 - ii
+            for ii in range(nk):
+                i = nk - 1 - ii
                 t = y[i]
-                for m in range(i + 1, kk):
+                for m in range(i + 1, nk):
                     t -= lo[m, i] * inv[m, col]
                 inv[i, col] = t / lo[i, i]
         return inv, ok

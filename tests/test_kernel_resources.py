@@ -21,7 +21,7 @@ BOUNDS = {
     "_icgn_2nd": (168, 0),
     "_icgn_1st_tiled": (64, 0),  # prototype (kernels/icgn_tiled.py)  # 166, 168 (pivot swap of the 6x6 solve)
     "_prepare_subsets_1st": (183, 0),  # one kernel for both orders: 255, 7232
-    "_prepare_subsets_2nd": (255, 1256),  # 12x12 float64 Cholesky: does not fit 255 registers
+    "_prepare_subsets_2nd": (255, 3480),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled)
     "_reference_gradients": (40, 0),
     "_expand_rows4": (30, 0),
     "_interp_kernel": (64, 0),
