@@ -44,8 +44,9 @@ Statuses
     ``CONVERGED`` (norm < tol), ``MAX_ITERATIONS``, ``OUT_OF_BOUNDS`` (the reference subset, or a
     warped subset at any iteration, leaves ``[0, W-1] x [0, H-1]``), ``FLAT_SUBSET`` (reference
     grey-level standard deviation <= ``flat_std``), ``SINGULAR_HESSIAN`` (a Cholesky pivot below
-    1e-6 of the largest diagonal entry of the scaled Hessian), ``DIVERGED`` (non-finite values, an
-    update longer than the subset size, or a warped subset whose grey-level std is <= ``flat_std``).
+    1e-6 of the largest diagonal entry of the scaled Hessian), ``DIVERGED`` (non-finite values,
+    among them a 2nd-order update too degenerate to compose (:func:`solve_transposed6`), an update
+    longer than the subset size, or a warped subset whose grey-level std is <= ``flat_std``).
 """
 from __future__ import annotations
 
@@ -335,8 +336,9 @@ def solve_transposed6(m: mat66, rhs: vec6):
 
     No pivoting is needed when m is strictly diagonally dominant by rows (m^T by columns): then
     partial pivoting would swap nothing (every Schur complement stays column-dominant, Golub & Van
-    Loan, Matrix Computations, 4th ed., sec. 3.4.10), so this gives bit for bit the result of the
-    partial-pivoting elimination, and the solve is backward stable. Gao's matrix of a scaled update
+    Loan, Matrix Computations, 4th ed., sec. 3.4.10), so this performs exactly the operations of the
+    partial-pivoting elimination (the same bits when compiled alike; inside the IC-GN kernel the
+    compiler fuses them into FMAs differently: float32 rounding), and the solve is backward stable. Gao's matrix of a scaled update
     ``dn`` (:func:`compose_2nd`) is row-dominant whenever every ``|dn_i| < 0.1338`` (the root of
     ``11 d^2 + 6 d - 1``; rows 0-2 are the binding ones), i.e. every component of the IC-GN update
     ``dq`` is below ``0.13 r`` px. Without row swaps nothing is indexed at run time, so the matrix

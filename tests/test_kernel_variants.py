@@ -562,3 +562,27 @@ def test_tiled_icgn_prototype_matches_one_thread_per_poi(cpu_blocks):
     np.testing.assert_allclose(b["zncc"][conv], a["zncc"][conv], rtol=0, atol=5e-6)  # float32 sums of 441 terms
     with pytest.raises(ValueError, match="1st-order only"):
         icgn_tiled(K.prepare_subsets(rim, pts[:3], subset=21, order=2), ci)
+
+
+@wp.kernel
+def _compose2(p: wp.array(dtype=vec12), dp: wp.array(dtype=vec12), s: float, out: wp.array(dtype=vec12),
+              finite: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    c = K.compose_2nd(p[i], dp[i], s)
+    out[i] = c
+    finite[i] = int(wp.isfinite(c))
+
+
+def test_compose_2nd_of_a_degenerate_update_is_not_finite():
+    """The kernel turns a non-finite composition into DIVERGED (``wp.isfinite`` after compose_2nd)."""
+    p = np.zeros((3, 12), np.float32)
+    p[:, 0] = 1.5
+    dp = np.zeros((3, 12), np.float32)
+    dp[0, 1] = -1.0  # ux = -1: the update maps every column of the subset onto one
+    dp[1, 8] = -1.0  # vy = -1
+    dp[2, 1] = 0.05  # an ordinary update
+    out = wp.empty(3, dtype=vec12, device="cpu")
+    fin = wp.empty(3, dtype=wp.int32, device="cpu")
+    wp.launch(_compose2, dim=3, inputs=[wp.array(p, dtype=vec12, device="cpu"), wp.array(dp, dtype=vec12, device="cpu"),
+                                         10.0, out, fin], device="cpu")
+    assert fin.numpy().tolist() == [0, 0, 1]
