@@ -164,8 +164,10 @@ def _fft(ctx: GuessContext, idx: np.ndarray):
 def _pyramid(ctx: GuessContext, idx: np.ndarray):
     """Coarse-to-fine 1st-order guesses over a Gaussian pyramid."""
     c = ctx.correlator
+    # the reference pyramid and its level correlators are built once per reference (the correlator's cache)
+    cache = getattr(c, "cache", None) if ctx.reference is getattr(c, "image", None) else None
     g1 = pyramid_guess(ctx.reference, ctx.current, ctx.points[idx], c.subset, ctx.search_radius,
-                       min(ctx.zncc_min, 0.7), c.device)
+                       min(ctx.zncc_min, 0.7), c.device, cache=cache)
     return convert_order(g1, c.order).copy(), _all_ok(idx.size)
 
 
@@ -285,7 +287,7 @@ def median_outliers(points: np.ndarray, uv: np.ndarray, ok: np.ndarray, step: fl
 
 
 def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset: int, radius: int,
-                  zncc_min: float, device: str) -> np.ndarray:
+                  zncc_min: float, device: str, cache: dict | None = None) -> np.ndarray:
     """Coarse-to-fine 1st-order guesses at ``targets`` (Gaussian pyramid, ZNCC search at the top).
 
     Levels: the coarsest level sees motions up to ``radius / 2^L <= 4`` px, limited so that the
@@ -293,8 +295,16 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
     of step ``subset // 2``; each finer level re-runs IC-GN from the nearest valid coarse result
     (outliers removed by a neighbourhood-median test), and the final level's field predicts
     ``targets``. Returns (M, 6) 1st-order parameters.
+
+    ``cache``: a dict kept with the reference (:attr:`.engine.Correlator.cache`); the reference
+    pyramid and the per-level correlators (their prepared subsets) are built on the first call and
+    reused by the next ones with the same reference, subset, levels and device (bitwise the same
+    guesses; only the current image's pyramid is built per call).
     """
     from .engine import Correlator
+
+    if cache is not None and not isinstance(cache, dict):
+        raise ValueError(f"cache must be a dict (e.g. Correlator.cache) or None, got {type(cache).__name__}")
 
     # a radius beyond twice the image finds nothing more (the ZNCC search clamps its window to the
     # image, kernels.search.useful_radius) and picks the same levels: clamp it, so that any int works
@@ -302,10 +312,18 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
     levels = max(0, math.ceil(math.log2(max(radius, 1) / 4.0)))
     while levels > 0 and min(ref.shape) / 2 ** levels < 2 * subset + 1:
         levels -= 1
-    pr = pyramid(ref, levels, device=device)
-    pc = pyramid(cur, levels, device=device)
     r = subset // 2
     step = max(2, subset // 2)
+    key = ("pyramid", ref.shape, int(subset), levels, str(device))
+    built = None if cache is None else cache.get(key)
+    if built is None:
+        pr = pyramid(ref, levels, device=device)
+        # one correlator per level (reference subsets prepared once), built on first use
+        built = (pr, {})
+        if cache is not None:
+            cache[key] = built
+    pr, level_correlators = built
+    pc = pyramid(cur, levels, device=device)
     prev = None  # (points, params, ok) at the coarser level
     for lvl in range(levels, 0, -1):
         img_r, img_c = pr[lvl], pc[lvl]
@@ -317,8 +335,11 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
             g[:, 0], g[:, 3] = uv[:, 0], uv[:, 1]
         else:
             g = nearest_fill(*prev, pts, scale=2.0)
-        level = Correlator(img_r, pts, subset=subset, order=1, max_iter=30, tol=1e-3, device=device)
-        res = level.run(img_c, np.arange(pts.shape[0]), g)
+        level = level_correlators.get(lvl)
+        if level is None:
+            level = level_correlators[lvl] = Correlator(img_r, pts, subset=subset, order=1, max_iter=30, tol=1e-3,
+                                                        device=device)
+        res = level.run_all(img_c, g)
         p = res["params"].astype(np.float64)
         ok = accepted_mask(res["status"], res["zncc"], zncc_min)
         ok = median_outliers(pts, p[:, [0, 3]], ok, step, threshold=2.0)
