@@ -100,6 +100,11 @@ def test_device_waves_are_bitwise_the_host_waves(device, pairs, field, order):
         assert np.array_equal(host[name], dev[name], equal_nan=True), name
     again = _rg(t, cur, "device")  # the device state is reset per frame
     assert all(np.array_equal(dev[n], again[n], equal_nan=True) for n in dev)
+    # the CUDA route of the per-wave counts (a 2-int copy into a host buffer), exercised on this device
+    t.correlator._rg.counts_host = wp.empty(2, dtype=wp.int32, device="cpu")
+    copied = _rg(t, cur, "device")
+    t.correlator._rg.counts_host = None if str(device).startswith("cpu") else t.correlator._rg.counts_host
+    assert all(np.array_equal(dev[n], copied[n], equal_nan=True) for n in dev)
     # the propagation reached the field (and, across the crack, stopped at it): accuracy vs the exact field
     ok = np.isin(dev["status"], (int(Status.CONVERGED), int(Status.MAX_ITERATIONS))) & (dev["zncc"] >= t.zncc_min)
     u, v = (smooth if field == "smooth" else discontinuous)(t.points[:, 0], t.points[:, 1])
