@@ -441,10 +441,7 @@ class _RgState:
     points: wp.array
     ready_status: wp.array
     full: IcgnResult  # N rows: the frame's results
-    compact: IcgnResult  # N rows: one batch's results
-    subsets: object  # subset_buffers(): one batch's gathered reference quantities
-    guess: wp.array  # (N, k): one batch's guesses
-    cand: wp.array  # (N,): one batch's POIs
+    batch: _IndexedBuffers  # the correlator's batch buffers (shared with Correlator.run): a wave's POIs
     pop: wp.array
     best: wp.array
     counts: wp.array
@@ -463,9 +460,7 @@ def _rg_state(corr: Correlator, step: float) -> _RgState:
     corr._rg = _RgState(
         step, wp.array(start, dtype=wp.int32, device=dev), wp.array(flat, dtype=wp.int32, device=dev),
         wp.array(corr.points, dtype=wp.vec2d, device=dev), wp.array(ready_status, dtype=wp.int32, device=dev),
-        _result(n, k, dev), _result(n, k, dev), subset_buffers(corr.subsets),
-        wp.empty((n, k), dtype=wp.float32, device=dev), wp.empty(n, dtype=wp.int32, device=dev),
-        wp.zeros(n, dtype=wp.int32, device=dev), wp.empty(n + 3, dtype=wp.float32, device=dev),
+        _result(n, k, dev), corr._buffers(), wp.zeros(n, dtype=wp.int32, device=dev), wp.empty(n + 3, dtype=wp.float32, device=dev),
         wp.zeros((n + 3, 2), dtype=wp.int32, device=dev),
         wp.empty(2, dtype=wp.int32, device="cpu", pinned=True) if cuda else None)
     return corr._rg
@@ -477,7 +472,7 @@ def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, s
     from kernels.propagation import init_state, rg_wave, scatter_accept
 
     st = _rg_state(corr, step)
-    full = st.full
+    full, b = st.full, st.batch
     init_state(st.ready_status, full.status, full.zncc, full.iterations, st.pop, st.best, st.counts)
     m = seeds.size
     if m:
@@ -486,18 +481,18 @@ def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, s
         g = np.asarray(seed_guess(seeds), dtype=np.float64)
         if g.shape != (m, k) or not np.all(np.isfinite(g)):
             raise ValueError(f"seed_guess must return finite parameters of shape {(m, k)}, got {g.shape}")
-        _upload(st.cand[:m], seeds.astype(np.int32))
-        _upload(st.guess[:m], g.astype(np.float32))
-        sub = gather_subsets(corr.subsets, st.cand, m, st.subsets, points=corr.points[seeds])
+        _upload(b.idx[:m], seeds.astype(np.int32))
+        _upload(b.guess[:m], g.astype(np.float32))
+        sub = gather_subsets(corr.subsets, b.idx, m, b.subsets, points=corr.points[seeds])
         counts = st.counts.numpy() if st.counts_host is None else None
         w = 0  # the seeds' batch; waves w >= 1
         while True:
-            res = icgn(sub, cur, guess=st.guess[:m], max_iter=corr.max_iter, tol=corr.tol, out=_rows(st.compact, m))
-            scatter_accept(st.cand, res, full, m, float(zncc_min), st.pop, st.best, w + 1)
+            res = icgn(sub, cur, guess=b.guess[:m], max_iter=corr.max_iter, tol=corr.tol, out=_rows(b.out, m))
+            scatter_accept(b.idx, res, full, m, float(zncc_min), st.pop, st.best, w + 1)
             w += 1
             while True:
                 rg_wave(w, RG_BAND, st.nb_start, st.nb, st.points, corr.subsets, full, st.pop, st.best, st.counts,
-                        st.cand, st.subsets, st.guess)
+                        b.idx, b.subsets, b.guess)
                 if counts is not None:  # CPU: the counts are host memory
                     m, left = int(counts[w, 0]), int(counts[w, 1])
                 else:  # CUDA: two ints back, the only copy per wave
@@ -509,7 +504,7 @@ def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, s
                 w += 1  # members but no untracked neighbour: the next wave
             if m == 0:
                 break
-            sub = subset_rows(st.subsets, m)
+            sub = subset_rows(b.subsets, m)
     status = np.array(full.status.numpy(), dtype=np.int32, copy=True)
     run = (status != int(Status.NOT_COMPUTED)) & corr.ready
     params = base.copy()
