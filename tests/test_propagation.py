@@ -156,7 +156,7 @@ def test_reliability_guided_frame_launches_copies_allocations(monkeypatch):
     prepared its subsets again and copied guesses up and results back (~2 launches, 2 copies, 10 allocations per
     wave); now a wave is 3 launches (bookkeeping, IC-GN of the gathered candidates, scatter of the results) and
     nothing else on the CPU, and a frame after the first allocates only in the image preparation and the seeds'
-    ZNCC search."""
+    ZNCC search (whose reference is uploaded once per reference)."""
     monkeypatch.setenv("SPECULA_THREADS", "1")  # one wp.launch per kernel launch, as on CUDA
     import kernels.propagation as prop
 
@@ -174,10 +174,11 @@ def test_reliability_guided_frame_launches_copies_allocations(monkeypatch):
     # launches: init + seeds (gather, IC-GN, scatter) + 3 per wave + the seeds' ZNCC search and the image's
     # B-spline preparation (4)
     assert n["launch"] <= 3 * len(waves) + 4 + 4, (dict(n), len(waves))
-    # copies: seeds' indices and guesses (2) + the image and the ZNCC search's inputs (5); none per wave
-    assert n["copy"] <= 7, dict(n)
-    # allocations: only the image preparation (2) and the seeds' ZNCC search (6); none per wave
-    assert n["alloc"] <= 8, dict(n)
+    # copies: seeds' indices and guesses (2) + the image and the ZNCC search's inputs (4: the reference is
+    # uploaded once per reference); none per wave
+    assert n["copy"] <= 6, dict(n)
+    # allocations: only the image preparation (2) and the seeds' ZNCC search (5); none per wave
+    assert n["alloc"] <= 7, dict(n)
 
 
 def test_pyramid_reference_built_once_per_reference(device, monkeypatch, pairs):
@@ -233,3 +234,28 @@ def test_bad_indexed_inputs_are_refused(device, pairs):
         neighbour_lists(c.points, 0.0)
     with pytest.raises(ValueError, match="points"):
         neighbour_lists(np.zeros((0, 2)), 1.0)
+
+
+def test_zncc_search_reference_uploaded_once(device, monkeypatch, pairs):
+    import kernels.search as search
+
+    ref, cur = pairs["smooth"]
+    pts = np.array([[50.0, 60.0], [120.5, 80.0], [150.0, 120.0]])
+    plain = search.zncc_search(ref, cur, pts, 6, subset=21, device=device)
+    up = search.search_image(ref, device)
+    assert up.shape == ref.shape
+    once = search.zncc_search(up, cur, pts, 6, subset=21, device=device)
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(plain, once))
+    with pytest.raises(ValueError, match="uploaded to"):
+        search.zncc_search(search.SearchImage(up.flat, up.shape, "cuda:9"), cur, pts, 6, device=device)
+    with pytest.raises(ValueError, match="same shape"):
+        search.zncc_search(up, cur[:-1], pts, 6, device=device)
+    # tracking with a search uploads the reference once per reference, not per frame
+    uploads = []
+    validate = search.as_float32_image
+    monkeypatch.setattr(search, "as_float32_image", lambda img, name="image": (uploads.append(name),
+                                                                              validate(img, name))[1])
+    t = Tracker(ref, step=16, search="zncc", search_radius=6, device=device)
+    t.track(cur)
+    t.track(cur)
+    assert uploads.count("reference") == 1 and uploads.count("current") == 2

@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from kernels.search import phase_correlation, pyramid, zncc_search
+from kernels.search import phase_correlation, pyramid, search_image, zncc_search
 
 from .acceptance import accepted_mask
 from .params import convert_order, embed_first_order, n_params
@@ -125,6 +125,19 @@ def _all_ok(m: int) -> np.ndarray:
     return np.ones(m, dtype=bool)
 
 
+def _search_reference(ctx: GuessContext):
+    """The reference for :func:`kernels.search.zncc_search`: uploaded once per reference (kept in the
+    correlator's cache) when it is the correlator's reference, else the array itself."""
+    c = ctx.correlator
+    cache = getattr(c, "cache", None)
+    if cache is None or ctx.reference is not getattr(c, "image", None):
+        return ctx.reference
+    key = ("search_reference", str(c.device))
+    if key not in cache:
+        cache[key] = search_image(ctx.reference, c.device, "reference")
+    return cache[key]
+
+
 # ----------------------------------------------------------------------------------------------
 # strategies
 
@@ -141,7 +154,7 @@ def _zncc(ctx: GuessContext, idx: np.ndarray):
     c = ctx.correlator
     k = n_params(c.order)
     g = ctx.prior[idx].copy()
-    uv, _ = zncc_search(ctx.reference, ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
+    uv, _ = zncc_search(_search_reference(ctx), ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
                         start=g[:, [0, k // 2]], device=c.device)
     g[:, 0], g[:, k // 2] = uv[:, 0], uv[:, 1]
     return g, _all_ok(idx.size)
@@ -153,7 +166,7 @@ def _fft(ctx: GuessContext, idx: np.ndarray):
     c = ctx.correlator
     k = n_params(c.order)
     u, v, _ = phase_correlation(ctx.reference, ctx.current)
-    uv, _ = zncc_search(ctx.reference, ctx.current, ctx.points[idx], 3, subset=c.subset,
+    uv, _ = zncc_search(_search_reference(ctx), ctx.current, ctx.points[idx], 3, subset=c.subset,
                         start=np.tile([u, v], (idx.size, 1)), device=c.device)
     g = np.zeros((idx.size, k))
     g[:, 0], g[:, k // 2] = uv[:, 0], uv[:, 1]
@@ -177,7 +190,7 @@ def _rg_seeds(ctx: GuessContext, idx: np.ndarray):
     """Seeds of the reliability-guided propagation: a ZNCC search from the prior displacement."""
     c = ctx.correlator
     k = n_params(c.order)
-    uv, _ = zncc_search(ctx.reference, ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
+    uv, _ = zncc_search(_search_reference(ctx), ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
                         start=ctx.prior[idx][:, [0, k // 2]], device=c.device)
     g = np.zeros((idx.size, k))
     g[:, 0], g[:, k // 2] = uv[:, 0], uv[:, 1]
@@ -319,10 +332,16 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
     if built is None:
         pr = pyramid(ref, levels, device=device)
         # one correlator per level (reference subsets prepared once), built on first use
-        built = (pr, {})
+        built = (pr, {}, {})
         if cache is not None:
             cache[key] = built
-    pr, level_correlators = built
+    pr, level_correlators, searched = built
+
+    def uploaded(lvl: int):  # the reference level for the ZNCC search, uploaded once
+        if lvl not in searched:
+            searched[lvl] = search_image(pr[lvl], device, "reference")
+        return searched[lvl]
+
     pc = pyramid(cur, levels, device=device)
     prev = None  # (points, params, ok) at the coarser level
     for lvl in range(levels, 0, -1):
@@ -330,7 +349,7 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
         pts = grid(img_r.shape, step, margin=r)
         if prev is None:
             top = int(math.ceil(radius / 2 ** lvl)) + 1
-            uv, _ = zncc_search(img_r, img_c, pts, top, subset=subset, device=device)
+            uv, _ = zncc_search(uploaded(lvl), img_c, pts, top, subset=subset, device=device)
             g = np.zeros((pts.shape[0], 6))
             g[:, 0], g[:, 3] = uv[:, 0], uv[:, 1]
         else:
@@ -345,7 +364,7 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
         ok = median_outliers(pts, p[:, [0, 3]], ok, step, threshold=2.0)
         prev = (pts, p, ok)
     if prev is None:  # no pyramid level: a ZNCC search at full resolution
-        uv, _ = zncc_search(ref, cur, targets, radius, subset=subset, device=device)
+        uv, _ = zncc_search(uploaded(0), cur, targets, radius, subset=subset, device=device)
         g = np.zeros((targets.shape[0], 6))
         g[:, 0], g[:, 3] = uv[:, 0], uv[:, 1]
         return g
