@@ -70,6 +70,8 @@ def test_indexed_icgn_is_bitwise_the_full_launch_and_a_fresh_preparation(device,
         assert np.array_equal(got[name], everything[name][idx], equal_nan=True), name
         assert np.array_equal(got[name], fresh[name], equal_nan=True), name
     assert np.count_nonzero(got["status"] == int(Status.CONVERGED)) > 0.9 * idx.size
+    every = c.run(pc, np.arange(c.n_points), g)  # all POIs in order: run on the prepared subsets directly
+    assert all(np.array_equal(every[n], everything[n], equal_nan=True) for n in every)
     # a second call reuses the buffers and leaves the first call's host arrays alone
     first = got["params"].copy()
     c.run(pc, idx[::-1].copy(), g[idx[::-1]] + 0.25)

@@ -169,9 +169,12 @@ class Correlator:
                     "iterations": np.zeros(0, np.int32), "status": np.zeros(0, np.int32)}
         cur = self._current(current)
         b = self._buffers()
-        _upload(b.idx[:m], idx.astype(np.int32))
         _upload(b.guess[:m], g.astype(np.float32))
-        sub = gather_subsets(self.subsets, b.idx, m, b.subsets, points=self.points[idx])
+        if m == self.n_points and np.array_equal(idx, np.arange(m)):
+            sub = self.subsets  # every POI in order: nothing to gather
+        else:
+            _upload(b.idx[:m], idx.astype(np.int32))
+            sub = gather_subsets(self.subsets, b.idx, m, b.subsets, points=self.points[idx])
         res = icgn(sub, cur, guess=b.guess[:m], max_iter=self.max_iter, tol=self.tol, out=_rows(b.out, m))
         return {name: np.array(a, copy=True) for name, a in res.numpy().items()}
 
