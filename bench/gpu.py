@@ -18,14 +18,22 @@ written again after each one, so that a run cut short keeps what it measured:
    and the largest parameter difference (float32 kernels: the GPU's fused multiply-adds and another
    summation order give differences of about 1e-6 px, not bitwise equality); and the same image
    given as a torch tensor on the device (read in place) must give bitwise the NumPy input's results.
-3. ``icgn``: single-frame IC-GN throughput (:func:`bench.icgn.bench_device`: 2048^2, step 2,
+3. ``outputs``: IC-GN outputs pre-filled with NaN / inf / -1 must all be written (every POI, also those
+   whose subsets leave the image) and two runs must agree bitwise (run-to-run determinism), both orders.
+4. ``prepare``: reference preparation (B-spline gradients; per-POI Hessians, both orders) and the
+   current image's prefilter, 2048^2, step 5 (``--quick``: 256^2).
+5. ``kernel``: kernel-only IC-GN POI/s timed with CUDA events, a fill sweep (10 k to 640 k POIs per
+   launch, an ROI of whole rows of a step-2 grid) and a step sweep (2, 5, 10), both orders, 2048^2.
+6. ``icgn``: single-frame IC-GN throughput (:func:`bench.icgn.bench_device`: 2048^2, step 2,
    1 028 196 POIs, both orders; ``--quick``: 256^2, step 4).
-4. ``sequence``: :func:`dic.sequence.track_sequence` on a synthetic 1024^2 sequence of 50 frames
+7. ``search``: the initial-guess searches (zncc, fft, pyramid, rg) on a 512^2 pair (step 5) moved by
+   (7.3, -4.6) px: seconds per frame, valid fraction, RMS error against the exact shift.
+8. ``sequence``: :func:`dic.sequence.track_sequence` on a synthetic 1024^2 sequence of 50 frames
    (a rigid motion growing by (0.1, -0.05) px per frame), step 5, fixed reference, strain and the
    result file included, frames given as torch tensors on the device and as NumPy arrays; reported as
    POI/s over the whole run against the track-only rate of one frame (``Tracker.track`` of a
    tensor) measured in the same run (``--quick``: 128^2, 4 frames, step 8).
-5. ``tests``: ``pytest -m cuda`` (tests marked ``cuda`` and every test of the ``device`` fixture on
+9. ``tests``: ``pytest -m cuda`` (tests marked ``cuda`` and every test of the ``device`` fixture on
    ``cuda:0``, marked by tests/conftest.py) in a subprocess with the time left of ``--budget``
    (skipped on the CPU and with ``--quick``).
 """
@@ -48,6 +56,8 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESULTS = os.path.join(ROOT, "bench", "results")
 REFERENCE = os.path.join(RESULTS, "gpu_reference_cpu.npz")
+#: the sections, in the order they run (the fast correctness checks first, the CUDA test suite last)
+SECTIONS = ("reference", "outputs", "prepare", "kernel", "icgn", "search", "sequence", "tests")
 REF_CASE = {"size": 256, "shift": (0.35, -0.2), "seed": 2024, "step": 8, "subset": 21}
 
 
@@ -235,6 +245,179 @@ def section_sequence(device: str, quick: bool, workdir: str) -> dict:
     return res
 
 
+# ----------------------------------------------------------------------------------------------
+# kernel-level sections (issue 16): CUDA-event timings of the kernels alone
+# ----------------------------------------------------------------------------------------------
+
+
+class _KernelTimer:
+    """Seconds of the device work of a callable: CUDA events on a GPU (the kernels alone, no host
+    time between launches counted twice), ``perf_counter`` around a synchronised call on the CPU."""
+
+    def __init__(self, device: str):
+        import warp as wp
+
+        self.device = device
+        self.cuda = device.startswith("cuda")
+        if self.cuda:
+            self.start = wp.Event(device, enable_timing=True)
+            self.end = wp.Event(device, enable_timing=True)
+
+    def __call__(self, fn, repeats: int) -> list[float]:
+        import warp as wp
+
+        out = []
+        for _ in range(repeats):
+            wp.synchronize_device(self.device)
+            if self.cuda:
+                with wp.ScopedDevice(self.device):
+                    wp.record_event(self.start)
+                    fn()
+                    wp.record_event(self.end)
+                out.append(wp.get_event_elapsed_time(self.start, self.end) / 1000.0)
+            else:
+                s = time.perf_counter()
+                fn()
+                wp.synchronize_device(self.device)
+                out.append(time.perf_counter() - s)
+        return out
+
+
+def _kernel_pair(size: int, device: str):
+    from dic.synth import speckle_pair
+
+    return speckle_pair((size, size), (0.35, -0.2), seed=2024, bits=8, device=device)
+
+
+def section_kernel(device: str, quick: bool) -> dict:
+    """Kernel-only IC-GN POI/s (CUDA events) over a fill sweep (POIs per launch) and a step sweep.
+
+    Fill sweep: the first N POIs (row-major: an ROI of whole grid rows) of a step-2 grid of a 2048^2 pair,
+    N = 10 k ... 640 k: how many POIs one launch needs to fill the GPU. Step sweep: all POIs of steps
+    2, 5 and 10 (neighbouring threads read subsets ``step`` px apart: the memory-access side).
+    Zero guess, 30 iterations at most, tol 1e-3 px, the current image prepared beforehand.
+    """
+    import warp as wp
+
+    from dic.track import grid
+    from kernels.icgn import IcgnResult, icgn, n_params, prepare_current, prepare_reference, prepare_subsets
+
+    size = 256 if quick else 2048
+    fills = (1000, 4000) if quick else (10_000, 20_000, 40_000, 80_000, 160_000, 320_000, 640_000)
+    steps = (4, 8) if quick else (2, 5, 10)
+    repeats = 2 if quick else 5
+    ref, cur = _kernel_pair(size, device)
+    refimg = prepare_reference(ref, device=device)
+    curimg = prepare_current(cur, device=device)
+    timer = _KernelTimer(device)
+    res = {"parameters": {"size": size, "subset": 21, "max_iter": 30, "tol_px": 1e-3, "guess": "zero",
+                          "shift_px": [0.35, -0.2], "repeats": repeats,
+                          "timing": "CUDA events around the IC-GN launch" if timer.cuda else "perf_counter (CPU)"},
+           "fill": {}, "step": {}}
+
+    def measure(points, order):
+        subs = prepare_subsets(refimg, points, subset=21, order=order)
+        n, k = len(points), n_params(order)
+        out = IcgnResult(wp.empty((n, k), dtype=wp.float32, device=device),
+                         wp.empty(n, dtype=wp.float32, device=device),
+                         wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device))
+        guess = wp.zeros((n, k), dtype=wp.float32, device=device)
+        icgn(subs, curimg, guess=guess, out=out)  # warm-up (module load)
+        secs = timer(lambda: icgn(subs, curimg, guess=guess, out=out), repeats)
+        iters = out.iterations.numpy()
+        return {"n_points": n, "seconds": secs, "poi_per_s": n / float(np.median(secs)),
+                "poi_per_s_best": n / min(secs), "mean_iterations": float(iters.mean())}
+
+    dense = grid(ref.shape, 2, margin=10)
+    for order in (1, 2):
+        res["fill"][str(order)] = [measure(dense[: min(n, len(dense))], order) for n in fills]
+        res["step"][str(order)] = {str(s): measure(grid(ref.shape, s, margin=10), order) for s in steps}
+    return res
+
+
+def section_prepare(device: str, quick: bool) -> dict:
+    """Reference preparation (gradients; per-POI Hessians of both orders) and current-image prefilter times."""
+    from dic.track import grid
+    from kernels.icgn import prepare_current, prepare_reference, prepare_subsets
+
+    size, step = (256, 4) if quick else (2048, 5)
+    repeats = 2 if quick else 3
+    ref, cur = _kernel_pair(size, device)
+    points = grid(ref.shape, step, margin=10)
+    timer = _KernelTimer(device)
+    refimg = prepare_reference(ref, device=device)
+    prepare_subsets(refimg, points[:16], order=1)
+    prepare_subsets(refimg, points[:16], order=2)
+    prepare_current(cur, device=device)
+    res = {"parameters": {"size": size, "step": step, "n_points": int(len(points)), "repeats": repeats,
+                          "note": "host upload of the 8-bit image included (it is part of each call)"}}
+    res["reference_image_s"] = timer(lambda: prepare_reference(ref, device=device), repeats)
+    for order in (1, 2):
+        res[f"subsets_order{order}_s"] = timer(lambda o=order: prepare_subsets(refimg, points, order=o), repeats)
+    res["current_image_s"] = timer(lambda: prepare_current(cur, device=device), repeats)
+    res["summary"] = {key: float(np.median(v)) for key, v in res.items() if key.endswith("_s")}
+    return res
+
+
+def section_search(device: str, quick: bool) -> dict:
+    """Each initial-guess search (zncc, fft, pyramid, rg) on a pair moved well beyond IC-GN's reach:
+    seconds per frame, valid fraction and the displacement error against the exact shift."""
+    from dic.synth import speckle_pair
+    from dic.track import Tracker
+
+    size, step = (256, 8) if quick else (512, 5)  # the searches run partly on the host: keep it bounded
+    shift = (7.3, -4.6)
+    ref, cur = speckle_pair((size, size), shift, seed=11, bits=8, device=device)
+    res = {"parameters": {"size": size, "step": step, "subset": 21, "shift_px": list(shift), "search_radius": 16}}
+    for method in ("zncc", "fft", "pyramid", "rg"):
+        tracker = Tracker(ref, step=step, search=method, search_radius=16, device=device)
+        tracker.track(cur)  # warm-up
+        _sync(device)
+        s = time.perf_counter()
+        f = tracker.track(cur)
+        _sync(device)
+        ok = f.valid
+        err = np.hypot(f.params[ok, 0] - shift[0], f.params[ok, f.params.shape[1] // 2] - shift[1])
+        res[method] = {"seconds": time.perf_counter() - s, "n_points": int(tracker.n_points),
+                       "valid_fraction": float(ok.mean()),
+                       "rms_error_px": float(np.sqrt(np.mean(err ** 2))) if ok.any() else None}
+    return res
+
+
+def output_checks(device: str) -> dict:
+    """Outputs pre-filled with NaN / -1 must all be written; two runs must agree bitwise (determinism)."""
+    import warp as wp
+
+    from dic.track import grid
+    from kernels.icgn import IcgnResult, icgn, n_params, prepare_current, prepare_reference, prepare_subsets
+
+    c = REF_CASE
+    ref, cur = _kernel_pair(c["size"], device)
+    points = grid(ref.shape, c["step"], margin=0)  # includes POIs whose subsets leave the image
+    out = {}
+    for order in (1, 2):
+        subs = prepare_subsets(prepare_reference(ref, device=device), points, subset=c["subset"], order=order)
+        curimg = prepare_current(cur, device=device)
+        n, k = len(points), n_params(order)
+        runs = []
+        for _ in range(2):
+            res = IcgnResult(wp.full((n, k), float("nan"), dtype=wp.float32, device=device),
+                             wp.full(n, float("inf"), dtype=wp.float32, device=device),
+                             wp.full(n, -1, dtype=wp.int32, device=device), wp.full(n, -1, dtype=wp.int32, device=device))
+            runs.append(icgn(subs, curimg, out=res).numpy())
+        a, b = runs
+        out[f"order{order}"] = {
+            "unwritten_params": int(np.isnan(a["params"]).sum()),
+            "unwritten_zncc": int(np.isinf(a["zncc"]).sum()),
+            "unwritten_iterations": int((a["iterations"] < 0).sum()),
+            "unwritten_status": int((a["status"] < 0).sum()),
+            "deterministic": bool(all(np.array_equal(a[key], b[key], equal_nan=True) for key in a)),
+        }
+    out["ok"] = all(v["deterministic"] and not any(v[key] for key in v if key.startswith("unwritten"))
+                    for v in out.values() if isinstance(v, dict))
+    return out
+
+
 def section_tests(device: str, seconds: float) -> dict:
     if not device.startswith("cuda"):
         return {"skipped": "the CUDA tests need a CUDA device"}
@@ -262,8 +445,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--quick", action="store_true", help="small sizes, no tests (the CI smoke test, < 30 s on a CPU)")
     ap.add_argument("--out", default=RESULTS, help="folder of the JSON (default bench/results)")
     ap.add_argument("--budget", type=float, default=470.0, help="seconds for the whole run; the tests get what is left")
-    ap.add_argument("--sections", default="reference,icgn,sequence,tests",
-                    help="comma-separated subset of reference,icgn,sequence,tests")
+    ap.add_argument("--sections", default=",".join(SECTIONS),
+                    help=f"comma-separated subset of {','.join(SECTIONS)}")
     ap.add_argument("--save-reference", action="store_true", help="write the CPU reference npz and stop")
     ap.add_argument("--prebuild-cache", action="store_true", help="compile the kernels for --arch into the cache and stop")
     ap.add_argument("--arch", type=int, default=90, help="CUDA architecture of --prebuild-cache (default 90)")
@@ -290,7 +473,7 @@ def main(argv=None) -> dict:
         print(f"wrote {REFERENCE}")
         return {}
     sections = [s.strip() for s in args.sections.split(",") if s.strip()]
-    unknown = set(sections) - {"reference", "icgn", "sequence", "tests"}
+    unknown = set(sections) - set(SECTIONS)
     if unknown:
         raise SystemExit(f"bench.gpu: unknown section(s) {sorted(unknown)}")
     import warp as wp
@@ -316,6 +499,14 @@ def main(argv=None) -> dict:
             try:
                 if name == "reference":
                     result[name] = section_reference(device)
+                elif name == "outputs":
+                    result[name] = output_checks(device)
+                elif name == "prepare":
+                    result[name] = section_prepare(device, args.quick)
+                elif name == "kernel":
+                    result[name] = section_kernel(device, args.quick)
+                elif name == "search":
+                    result[name] = section_search(device, args.quick)
                 elif name == "icgn":
                     result[name] = section_icgn(device, args.quick)
                 elif name == "sequence":
@@ -340,6 +531,16 @@ def _brief(name: str, r: dict) -> str:
     if name == "reference":
         return (f"ok={r['ok']} order1 max|du,dv|={r['order1']['max_abs_uv_diff_px']:.2e} px, order2 "
                 f"{r['order2']['max_abs_uv_diff_px']:.2e} px, tensor bitwise={r['tensor_input_bitwise_equal']}")
+    if name == "outputs":
+        return f"ok={r['ok']} (every output written, two runs bitwise equal)"
+    if name == "prepare":
+        return ", ".join(f"{k} {v * 1e3:.1f} ms" for k, v in r["summary"].items())
+    if name == "kernel":
+        return ", ".join(f"order {o}: fill {rows[0]['poi_per_s']:.3g}..{rows[-1]['poi_per_s']:.3g} POI/s"
+                         for o, rows in r["fill"].items())
+    if name == "search":
+        return ", ".join(f"{m} {r[m]['seconds']:.2f} s valid {r[m]['valid_fraction']:.3f}"
+                         for m in ("zncc", "fft", "pyramid", "rg"))
     if name == "icgn":
         return ", ".join(f"order {o}: {v['poi_per_s_tracking']:.3g} POI/s track, {v['poi_per_s_end_to_end']:.3g} e2e"
                          for o, v in r["orders"].items())

@@ -17,8 +17,9 @@ _POOL: ThreadPoolExecutor | None = None
 #: CUDA launch shape of the kernels that set it (key: the kernel's name): ``(threads per block,
 #: minimum resident blocks per SM)``, the kernel's ``__launch_bounds__`` (its
 #: ``@wp.kernel(launch_bounds=...)``); a minimum of 0 leaves the register budget to the compiler,
-#: a minimum ``m`` caps it at ``65536 / (block * m)`` registers. Every other kernel runs at Warp's
-#: default of 256 threads. Every kernel of one Warp module uses the module's block size
+#: a minimum ``m`` caps it at ``65536 / (block * m)`` registers. Every other kernel runs at its Warp
+#: module's block size (Warp's default: 256; :func:`kernel_block_dim`). Every kernel of one Warp
+#: module uses the module's block size
 #: (``wp.set_module_options({"block_dim": ...})``) so that a module is compiled once and the
 #: ahead-of-time cache (``bench/gpu.py --prebuild-cache``) holds exactly what is launched.
 #: Occupancy on sm_90 (65536 registers and at most 64 warps per SM, registers allocated per warp in
@@ -80,8 +81,16 @@ def cuda_launch_bounds(name: str) -> int | tuple[int, int]:
     return (block, min_blocks) if min_blocks else block
 
 
-def _kernel_name(kernel) -> str:
-    return kernel.func.__name__
+def kernel_block_dim(kernel) -> int:
+    """CUDA threads per block that ``launch_1d`` uses for ``kernel``: its :data:`CUDA_LAUNCH` entry,
+    else its Warp module's block size (so a kernel added to a module runs with the module's
+    compiled variant, and needs a table entry only to set launch bounds)."""
+    if not isinstance(kernel, wp.Kernel):
+        raise ValueError(f"kernel must be a Warp kernel, got {type(kernel).__name__}")
+    name = kernel.func.__name__
+    if name in CUDA_LAUNCH:
+        return CUDA_LAUNCH[name][0]
+    return int(kernel.module.options.get("block_dim", DEFAULT_CUDA_BLOCK_DIM))
 
 
 def cpu_threads() -> int:
@@ -106,7 +115,7 @@ def launch_1d(kernel, n: int, inputs: list, device: str, offset_index: int, min_
     """Launch ``kernel`` over ``n`` items, chunked across CPU threads when on the CPU.
 
     ``inputs[offset_index]`` is replaced by each chunk's start index. On CUDA a single launch
-    covers all ``n`` items (offset 0), with the kernel's block size (:func:`cuda_block_dim`).
+    covers all ``n`` items (offset 0), with the kernel's block size (:func:`kernel_block_dim`).
     """
     if n <= 0:
         return
@@ -114,7 +123,7 @@ def launch_1d(kernel, n: int, inputs: list, device: str, offset_index: int, min_
     threads = cpu_threads()
     if not str(device).startswith("cpu"):
         inputs[offset_index] = 0
-        wp.launch(kernel, dim=n, inputs=inputs, device=device, block_dim=cuda_block_dim(_kernel_name(kernel)))
+        wp.launch(kernel, dim=n, inputs=inputs, device=device, block_dim=kernel_block_dim(kernel))
         return
     if threads == 1 or n < 2 * min_chunk:
         inputs[offset_index] = 0

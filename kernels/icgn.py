@@ -1133,3 +1133,72 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         device, offset_index=0, min_chunk=64,
     )
     return out
+
+
+# ----------------------------------------------------------------------------------------------
+# indexed IC-GN: a subset of the prepared POIs, without preparing them again
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def _gather_subsets(
+    offset: int, idx: wp.array(dtype=wp.int32), centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2),
+    refdata: wp.array2d(dtype=float), status: wp.array(dtype=wp.int32),
+    centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2), refdata_out: wp.array2d(dtype=float),
+    status_out: wp.array(dtype=wp.int32),
+):
+    t = wp.tid() + offset
+    n = idx[t]
+    centres_out[t] = centres[n]
+    deltas_out[t] = deltas[n]
+    status_out[t] = status[n]
+    for c in range(refdata.shape[1]):
+        refdata_out[t, c] = refdata[n, c]
+
+
+def subset_buffers(subsets: ReferenceSubsets, capacity: int | None = None) -> ReferenceSubsets:
+    """Uninitialised per-POI buffers of ``capacity`` rows (default N) shaped like ``subsets``: the
+    destination of :func:`gather_subsets` (allocate once, gather into them per batch)."""
+    if not isinstance(subsets, ReferenceSubsets):
+        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
+    m = subsets.n_points if capacity is None else positive_int(capacity, "capacity")
+    dev = subsets.device
+    return ReferenceSubsets(
+        subsets.reference, np.full((m, 2), np.nan), subsets.subset, subsets.order,
+        wp.empty(m, dtype=wp.vec2i, device=dev), wp.empty(m, dtype=wp.vec2, device=dev),
+        wp.empty((m, refdata_width(subsets.order)), dtype=wp.float32, device=dev), wp.empty(m, dtype=wp.int32, device=dev),
+        subsets.flat_std,
+    )
+
+
+def subset_rows(subsets: ReferenceSubsets, count: int, points=None) -> ReferenceSubsets:
+    """The first ``count`` rows of ``subsets`` as a ReferenceSubsets of views (no device allocation);
+    ``points`` (count, 2) their POIs when known on the host, else the buffer's rows (NaN for a gather
+    made on the device)."""
+    pts = subsets.points[:count] if points is None else np.asarray(points, dtype=np.float64).reshape(count, 2)
+    return ReferenceSubsets(subsets.reference, pts, subsets.subset, subsets.order, subsets.centres[:count],
+                            subsets.deltas[:count], subsets.refdata[:count], subsets.status[:count], subsets.flat_std)
+
+
+def gather_subsets(subsets: ReferenceSubsets, idx: wp.array, count: int, out: ReferenceSubsets,
+                   points=None) -> ReferenceSubsets:
+    """The prepared POIs ``idx[:count]`` of ``subsets``, copied into the first ``count`` rows of ``out``
+    (:func:`subset_buffers`); returns those rows (:func:`subset_rows`). No subset is prepared again:
+    IC-GN of the result (:func:`icgn`) gives each POI bitwise the result it gets in ``subsets``.
+
+    ``idx``: int32 Warp array on the subsets' device, indices in ``[0, N)`` (not checked on the device:
+    check host indices before the upload, e.g. :meth:`dic.correlation.Correlator.check_indices`).
+    """
+    if not isinstance(subsets, ReferenceSubsets) or not isinstance(out, ReferenceSubsets):
+        raise ValueError("subsets and out must be ReferenceSubsets (prepare_subsets(), subset_buffers())")
+    if out.order != subsets.order or out.subset != subsets.subset or out.device != subsets.device:
+        raise ValueError("out must be subset_buffers() of the same subsets (order, subset size, device)")
+    if not isinstance(idx, wp.array) or idx.dtype != wp.int32 or idx.ndim != 1 or str(idx.device) != subsets.device:
+        raise ValueError(f"idx must be a 1-D int32 Warp array on {subsets.device}")
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 0 <= count <= min(idx.shape[0],
+                                                                                                   out.n_points):
+        raise ValueError(f"count must be an int in [0, {min(idx.shape[0], out.n_points)}], got {count!r}")
+    launch_1d(_gather_subsets, int(count),
+              [0, idx, subsets.centres, subsets.deltas, subsets.refdata, subsets.status,
+               out.centres, out.deltas, out.refdata, out.status], subsets.device, offset_index=0, min_chunk=1024)
+    return subset_rows(out, int(count), points)

@@ -15,6 +15,8 @@ move reference pixel ``(x, y)`` to ``(x + u, y + v)`` in the current image.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import warp as wp
 
@@ -196,12 +198,39 @@ def useful_radius(shape, points, subset: int, start=None) -> int:
     return need
 
 
+@dataclass(frozen=True)
+class SearchImage:
+    """A grey image uploaded once for :func:`zncc_search` (:func:`search_image`): float32, row-major,
+    flat on ``device``. Give it in place of an array to search many times in the same image (e.g. the
+    reference of a sequence) without uploading it again."""
+
+    flat: wp.array
+    shape: tuple[int, int]
+    device: str
+
+
+def search_image(image, device=None, name: str = "image") -> SearchImage:
+    """Validate ``image`` (as every search input, :func:`kernels.images.as_float32_image`) and upload it once."""
+    if isinstance(image, SearchImage):
+        return image
+    device = resolve_device(device)
+    arr = as_float32_image(image, name)
+    return SearchImage(wp.array(arr.ravel(), dtype=wp.float32, device=device), arr.shape, device)
+
+
+def _search_input(image, name: str, device: str) -> SearchImage:
+    if isinstance(image, SearchImage) and image.device != device:
+        raise ValueError(f"{name} was uploaded to {image.device} but the search runs on {device}")
+    return search_image(image, device, name)
+
+
 def zncc_search(reference, current, points, radius: int, subset: int = 21, start=None, device=None):
     """Exhaustive integer ZNCC search of each POI's subset within a window.
 
     Parameters
     ----------
-    reference, current : array-like (H, W) grey images of the same shape.
+    reference, current : array-like (H, W) grey images of the same shape, or :class:`SearchImage`
+        (:func:`search_image`: uploaded once, used in place).
     points : array-like (N, 2)
         POIs ``(x, y)``; the subset is centred on ``round(x), round(y)``.
     radius : int >= 0
@@ -223,8 +252,8 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
         subset fits in the current image.
     """
     device = resolve_device(device)
-    ref = as_float32_image(reference, "reference")
-    cur = as_float32_image(current, "current")
+    ref = _search_input(reference, "reference", device)
+    cur = _search_input(current, "current", device)
     if ref.shape != cur.shape:
         raise ValueError(f"reference {ref.shape} and current {cur.shape} images must have the same shape")
     subset = odd_int(subset, "subset")
@@ -239,8 +268,8 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
     best_cc = wp.empty(n, dtype=wp.float32, device=device)
     launch_1d(
         _zncc_search, n,
-        [0, wp.array(ref.ravel(), dtype=wp.float32, device=device), wp.array(cur.ravel(), dtype=wp.float32, device=device),
-         w, h, centres, wp.array(st, dtype=wp.vec2i, device=device), int(radius), subset // 2, best, best_cc],
+        [0, ref.flat, cur.flat, w, h, centres, wp.array(st, dtype=wp.vec2i, device=device), int(radius), subset // 2,
+         best, best_cc],
         device, offset_index=0, min_chunk=1,
     )
     return best.numpy().astype(np.int32), best_cc.numpy()

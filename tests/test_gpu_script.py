@@ -15,8 +15,20 @@ def test_quick_cpu_run_writes_every_section(tmp_path):
     pytest.importorskip("torch")
     result = gpu.main(["--device", "cpu", "--quick", "--out", str(tmp_path)])
     saved = json.loads((tmp_path / "gpu_cpu.json").read_text())
-    for name in ("environment", "reference", "icgn", "sequence", "tests"):
+    for name in ("environment", *gpu.SECTIONS):
         assert name in saved and "error" not in saved[name], (name, saved.get(name))
+    # every IC-GN output element written (pre-filled with NaN / -1), and two runs bitwise equal
+    assert saved["outputs"]["ok"]
+    for order in ("order1", "order2"):
+        assert saved["outputs"][order]["unwritten_params"] == 0 and saved["outputs"][order]["deterministic"]
+    kern = saved["kernel"]
+    assert [r["n_points"] for r in kern["fill"]["1"]] == [1000, 4000]
+    assert all(r["poi_per_s"] > 0 for o in ("1", "2") for r in kern["fill"][o])
+    assert set(kern["step"]["2"]) == {"4", "8"}
+    assert all(saved["prepare"]["summary"][k] > 0 for k in ("reference_image_s", "subsets_order1_s", "current_image_s"))
+    for method in ("zncc", "fft", "pyramid", "rg"):  # a 7.3 px move that IC-GN alone cannot reach
+        assert saved["search"][method]["valid_fraction"] > 0.85
+        assert saved["search"][method]["rms_error_px"] < 0.05
     ref = saved["reference"]
     assert ref["tensor_input_bitwise_equal"] and ref["ok"]
     for order in ("order1", "order2"):

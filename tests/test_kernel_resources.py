@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from kernels import cubin
-from kernels._launch import CUDA_LAUNCH, DEFAULT_CUDA_BLOCK_DIM, cuda_block_dim, cuda_launch_bounds
+from kernels._launch import CUDA_LAUNCH, DEFAULT_CUDA_BLOCK_DIM, cuda_block_dim, cuda_launch_bounds, kernel_block_dim
 
 #: kernel -> (max registers, max stack bytes) on sm_90; before issue 16 in the comment
 BOUNDS = {
@@ -23,6 +23,7 @@ BOUNDS = {
     "_prepare_subsets_1st": (183, 0),  # one kernel for both orders: 255, 7232
     "_prepare_subsets_2nd": (255, 3480),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled)
     "_reference_gradients": (40, 0),
+    "_gather_subsets": (32, 0),  # indexed IC-GN's gather (kernels.icgn, issue 16 search on the device)
     "_expand_rows4": (30, 0),
     "_interp_kernel": (64, 0),
     "_prefilter_rows": (40, 0),  # whole lines: 32, 0; segments: 56 uncapped, 40 with bounds (256, 6)
@@ -74,14 +75,16 @@ def test_block_size_table_matches_kernels_and_modules():
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)
     for name, kernel in kernels.items():
-        bd = cuda_block_dim(name)
         # one block size per Warp module: the module is compiled (and AOT-cached) once
-        assert kernel.module.options["block_dim"] == bd, name
+        assert kernel.module.options["block_dim"] == kernel_block_dim(kernel), name
         if name in CUDA_LAUNCH:
+            assert cuda_block_dim(name) == kernel_block_dim(kernel), name
             assert kernel.options.get("launch_bounds") == cuda_launch_bounds(name), name
     assert cuda_block_dim("not_a_kernel") == DEFAULT_CUDA_BLOCK_DIM
     with pytest.raises(ValueError, match="kernel name"):
         cuda_block_dim(3)
+    with pytest.raises(ValueError, match="Warp kernel"):
+        kernel_block_dim("_icgn_2nd")
 
 
 def test_occupancy_from_registers():
@@ -149,6 +152,9 @@ def test_launch_1d_passes_the_kernel_block_size_on_cuda_only(monkeypatch):
                    interp._expand_rows4):
         _launch.launch_1d(kernel, 1000, [0], "cuda:0", offset_index=0)
     assert [kw["block_dim"] for _, _, kw in calls] == [128, 128, 128, 256, 256]
+    calls.clear()
+    _launch.launch_1d(icgn._gather_subsets, 10, [0], "cuda:0", offset_index=0)  # no entry: the module's 128
+    assert calls[0][2]["block_dim"] == 128
     calls.clear()
     monkeypatch.setenv("SPECULA_THREADS", "1")
     _launch.launch_1d(icgn._icgn_2nd, 10, [0], "cpu", offset_index=0)

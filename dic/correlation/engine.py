@@ -23,9 +23,21 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+import warp as wp
 
 from kernels.conventions import Status
-from kernels.icgn import IcgnResult, icgn, n_params, prepare_reference, prepare_subsets
+from kernels.icgn import (
+    CurrentImage,
+    IcgnResult,
+    gather_subsets,
+    icgn,
+    n_params,
+    prepare_current,
+    prepare_reference,
+    prepare_subsets,
+    subset_buffers,
+    subset_rows,
+)
 
 from .acceptance import GOOD, accepted_mask, flag_implausible, second_opinion_candidates
 from .params import convert_order, extrapolate
@@ -61,6 +73,12 @@ class Correlator:
         self.reference_status = self.subsets.status.numpy().astype(np.int32)
         self._out = None
         self._textured = None
+        self._indexed = None  # buffers of run(): allocated once, on first use
+        self._spacing = None
+        self._rg = None  # device state of the reliability-guided waves (per neighbour radius)
+        #: per-reference work of initial-guess strategies, kept across frames (e.g. the reference
+        #: pyramid and its level correlators of the "pyramid" guess)
+        self.cache: dict = {}
 
     @property
     def n_points(self) -> int:
@@ -97,16 +115,93 @@ class Correlator:
         self._out = res
         return res
 
+    def median_spacing(self) -> float:
+        """Median distance of a POI to its nearest neighbour (px; computed once), 1 for a single POI."""
+        if self._spacing is None:
+            from scipy.spatial import cKDTree
+
+            p = self.points
+            self._spacing = float(np.median(cKDTree(p).query(p, k=2)[0][:, 1])) if p.shape[0] > 1 else 1.0
+        return self._spacing
+
+    def check_indices(self, idx) -> np.ndarray:
+        """``idx`` as a 1-D int64 array of distinct POI indices in ``[0, N)``; ValueError otherwise."""
+        a = np.asarray(idx)
+        if a.ndim != 1 or not (a.size == 0 or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"idx must be a 1-D array of integer POI indices, got shape {a.shape} dtype {a.dtype}")
+        a = a.astype(np.int64)
+        n = self.n_points
+        if a.size and (a.min() < 0 or a.max() >= n):
+            raise ValueError(f"idx must hold POI indices in [0, {n}), got values in [{a.min()}, {a.max()}]")
+        if a.size > 1 and np.unique(a).size != a.size:
+            raise ValueError("idx must hold distinct POI indices (each POI at most once per run)")
+        return a
+
+    def _buffers(self) -> _IndexedBuffers:
+        if self._indexed is None:
+            n, k, dev = self.n_points, n_params(self.order), self.device
+            self._indexed = _IndexedBuffers(wp.empty(n, dtype=wp.int32, device=dev), subset_buffers(self.subsets),
+                                            wp.empty((n, k), dtype=wp.float32, device=dev), _result(n, k, dev))
+        return self._indexed
+
+    def _current(self, current) -> CurrentImage:
+        return current if isinstance(current, CurrentImage) else prepare_current(current, device=self.device)
+
     def run(self, current, idx: np.ndarray, guess: np.ndarray) -> dict:
-        """IC-GN of the POIs ``idx`` (M,) from ``guess`` (M, k); host arrays of the M results."""
-        n = self.points.shape[0]
-        if idx.size == n and np.array_equal(idx, np.arange(n)):
-            subsets = self.subsets
+        """IC-GN of the POIs ``idx`` (M,) from ``guess`` (M, k); host arrays (copies) of the M results.
+
+        Indexed IC-GN: the POIs' reference quantities, prepared once, are gathered on the device
+        (:func:`kernels.icgn.gather_subsets`), not prepared again, and IC-GN runs over them; each POI's
+        result is bitwise what :meth:`run_all` gives it from the same guess. The device buffers are
+        allocated on the first call; per call the indices and guesses go up (two copies), two launches
+        run, and the M results come back.
+        """
+        idx = self.check_indices(idx)
+        k = n_params(self.order)
+        g = np.asarray(guess, dtype=np.float64)
+        if g.shape != (idx.size, k):
+            raise ValueError(f"guess must have shape {(idx.size, k)} (one row per index), got {g.shape}")
+        if not np.all(np.isfinite(g)):
+            raise ValueError("guess contains NaN or infinite values; give a finite guess or leave those POIs out")
+        m = idx.size
+        if m == 0:
+            return {"params": np.zeros((0, k), np.float32), "zncc": np.zeros(0, np.float32),
+                    "iterations": np.zeros(0, np.int32), "status": np.zeros(0, np.int32)}
+        cur = self._current(current)
+        b = self._buffers()
+        _upload(b.guess[:m], g.astype(np.float32))
+        if m == self.n_points and np.array_equal(idx, np.arange(m)):
+            sub = self.subsets  # every POI in order: nothing to gather
         else:
-            subsets = prepare_subsets(self.reference, self.points[idx], subset=self.subset, order=self.order,
-                                      flat_std=self.flat_std)
-        res = icgn(subsets, current, guess=np.asarray(guess, dtype=np.float64), max_iter=self.max_iter, tol=self.tol)
-        return res.numpy()
+            _upload(b.idx[:m], idx.astype(np.int32))
+            sub = gather_subsets(self.subsets, b.idx, m, b.subsets, points=self.points[idx])
+        res = icgn(sub, cur, guess=b.guess[:m], max_iter=self.max_iter, tol=self.tol, out=_rows(b.out, m))
+        return {name: np.array(a, copy=True) for name, a in res.numpy().items()}
+
+
+@dataclass
+class _IndexedBuffers:
+    """Device buffers of :meth:`Correlator.run` (N rows each, allocated once)."""
+
+    idx: wp.array
+    subsets: object  # kernels.icgn.ReferenceSubsets from subset_buffers()
+    guess: wp.array
+    out: IcgnResult
+
+
+def _result(n: int, k: int, device: str) -> IcgnResult:
+    return IcgnResult(wp.empty((n, k), dtype=wp.float32, device=device), wp.empty(n, dtype=wp.float32, device=device),
+                      wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device))
+
+
+def _rows(res: IcgnResult, m: int) -> IcgnResult:
+    """The first ``m`` rows of ``res`` (views)."""
+    return IcgnResult(res.params[:m], res.zncc[:m], res.iterations[:m], res.status[:m])
+
+
+def _upload(dst: wp.array, host: np.ndarray) -> None:
+    """Copy a host array into a device array (a view of a preallocated buffer) without allocating."""
+    wp.copy(dst, wp.array(np.ascontiguousarray(host), dtype=dst.dtype, device="cpu", copy=False))
 
 
 @dataclass
@@ -249,7 +344,7 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
 
 
 def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: Callable, *, zncc_min: float,
-                       step: float | None) -> dict:
+                       step: float | None, waves: str = "device") -> dict:
     """Reliability-guided propagation (Pan et al. 2009, doi:10.1364/AO.48.001535) over every POI.
 
     Seeds (up to 9 trackable POIs spread over the list) get their guess from ``seed_guess(idx) ->
@@ -259,20 +354,35 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
     best-ZNCC tracked neighbour; a wave only releases neighbours of POIs whose ZNCC is within 0.05 of
     the best pending one, which keeps the reliability ordering while launching many POIs at once.
 
+    ``waves``: ``"device"`` (default) runs the waves on the device (:mod:`kernels.propagation`: one
+    bookkeeping launch and one indexed IC-GN launch per wave, two counts back per wave, no
+    allocation after the first frame); ``"host"`` runs them from a heap on the host (the reference
+    implementation). Both give bitwise the same results (same waves, same sources, same guesses).
+
     ``base`` (N, k): parameters where nothing was tracked (the user's guess or zeros).
     Returns host arrays ``params``, ``zncc``, ``iterations``, ``status`` (N rows).
     """
     from scipy.spatial import cKDTree
 
+    if waves not in ("device", "host"):
+        raise ValueError(f"waves must be 'device' or 'host', got {waves!r}")
     n, k = corr.n_points, n_params(corr.order)
+    base = np.asarray(base, dtype=np.float64)
+    if base.shape != (n, k):
+        raise ValueError(f"base must have shape {(n, k)} (one row of parameters per POI), got {base.shape}")
     points = corr.points
     ready = corr.ready
+    step = step or corr.median_spacing()
+    cand = np.flatnonzero(ready)
+    n_seeds = min(cand.size, 9)
+    seeds = cand[np.unique(np.linspace(0, cand.size - 1, n_seeds).round().astype(int))] if cand.size else cand
+    if waves == "device":
+        return _rg_device(corr, current, base, seeds, seed_guess, zncc_min, float(step))
     params = base.copy()
     zncc = np.full(n, np.nan)
     iters = np.zeros(n, np.int32)
     status = np.full(n, int(Status.NOT_COMPUTED), np.int32)
     status[~ready] = corr.reference_status[~ready]
-    step = step or float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
     neigh = cKDTree(points).query_ball_point(points, r=1.5 * step)
 
     def run(idx: np.ndarray, g: np.ndarray):
@@ -283,11 +393,8 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
         status[idx] = res["status"]
 
     result = {"params": params, "zncc": zncc, "iterations": iters, "status": status}
-    cand = np.flatnonzero(ready)
     if cand.size == 0:
         return result
-    n_seeds = min(cand.size, 9)
-    seeds = cand[np.unique(np.linspace(0, cand.size - 1, n_seeds).round().astype(int))]
     run(seeds, seed_guess(seeds))
     good = lambda i: status[i] in GOOD and zncc[i] >= zncc_min  # noqa: E731
     heap = [(-zncc[i], i) for i in seeds if good(i)]
@@ -295,7 +402,7 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
     while heap:
         best = -heap[0][0]
         wave = []
-        while heap and -heap[0][0] >= best - 0.05:
+        while heap and -heap[0][0] >= best - RG_BAND:
             wave.append(heapq.heappop(heap)[1])
         todo = {}
         for i in wave:
@@ -321,3 +428,90 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
             if good(j):
                 heapq.heappush(heap, (-zncc[j], j))
     return result
+
+
+#: a reliability-guided wave expands every pending POI within this ZNCC of the best pending one
+RG_BAND = 0.05
+
+
+@dataclass
+class _RgState:
+    """Device state of the reliability-guided waves of one correlator (allocated once, reused per frame)."""
+
+    step: float
+    nb_start: wp.array
+    nb: wp.array
+    points: wp.array
+    ready_status: wp.array
+    full: IcgnResult  # N rows: the frame's results
+    batch: _IndexedBuffers  # the correlator's batch buffers (shared with Correlator.run): a wave's POIs
+    pop: wp.array
+    best: wp.array
+    counts: wp.array
+    counts_host: wp.array | None  # pinned 2-int buffer for the per-wave counts (CUDA)
+
+
+def _rg_state(corr: Correlator, step: float) -> _RgState:
+    from kernels.propagation import neighbour_lists
+
+    if corr._rg is not None and corr._rg.step == step:
+        return corr._rg
+    n, k, dev = corr.n_points, n_params(corr.order), corr.device
+    start, flat = neighbour_lists(corr.points, 1.5 * step)
+    ready_status = np.where(corr.ready, int(Status.NOT_COMPUTED), corr.reference_status).astype(np.int32)
+    cuda = not str(dev).startswith("cpu")
+    corr._rg = _RgState(
+        step, wp.array(start, dtype=wp.int32, device=dev), wp.array(flat, dtype=wp.int32, device=dev),
+        wp.array(corr.points, dtype=wp.vec2d, device=dev), wp.array(ready_status, dtype=wp.int32, device=dev),
+        _result(n, k, dev), corr._buffers(), wp.zeros(n, dtype=wp.int32, device=dev), wp.empty(n + 3, dtype=wp.float32, device=dev),
+        wp.zeros((n + 3, 2), dtype=wp.int32, device=dev),
+        wp.empty(2, dtype=wp.int32, device="cpu", pinned=True) if cuda else None)
+    return corr._rg
+
+
+def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, seed_guess: Callable,
+               zncc_min: float, step: float) -> dict:
+    """The waves of :func:`reliability_guided` on the device (:mod:`kernels.propagation`)."""
+    from kernels.propagation import init_state, rg_wave, scatter_accept
+
+    st = _rg_state(corr, step)
+    full, b = st.full, st.batch
+    init_state(st.ready_status, full.status, full.zncc, full.iterations, st.pop, st.best, st.counts)
+    m = seeds.size
+    if m:
+        cur = corr._current(current)
+        k = n_params(corr.order)
+        g = np.asarray(seed_guess(seeds), dtype=np.float64)
+        if g.shape != (m, k) or not np.all(np.isfinite(g)):
+            raise ValueError(f"seed_guess must return finite parameters of shape {(m, k)}, got {g.shape}")
+        _upload(b.idx[:m], seeds.astype(np.int32))
+        _upload(b.guess[:m], g.astype(np.float32))
+        sub = gather_subsets(corr.subsets, b.idx, m, b.subsets, points=corr.points[seeds])
+        counts = st.counts.numpy() if st.counts_host is None else None
+        w = 0  # the seeds' batch; waves w >= 1
+        while True:
+            res = icgn(sub, cur, guess=b.guess[:m], max_iter=corr.max_iter, tol=corr.tol, out=_rows(b.out, m))
+            scatter_accept(b.idx, res, full, m, float(zncc_min), st.pop, st.best, w + 1)
+            w += 1
+            while True:
+                rg_wave(w, RG_BAND, st.nb_start, st.nb, st.points, corr.subsets, full, st.pop, st.best, st.counts,
+                        b.idx, b.subsets, b.guess)
+                if counts is not None:  # CPU: the counts are host memory
+                    m, left = int(counts[w, 0]), int(counts[w, 1])
+                else:  # CUDA: two ints back, the only copy per wave
+                    wp.copy(st.counts_host, st.counts, src_offset=2 * w, count=2)
+                    wp.synchronize_device(corr.device)
+                    m, left = (int(x) for x in st.counts_host.numpy())
+                if m or not left:
+                    break
+                w += 1  # members but no untracked neighbour: the next wave
+            if m == 0:
+                break
+            sub = subset_rows(b.subsets, m)
+    status = np.array(full.status.numpy(), dtype=np.int32, copy=True)
+    run = (status != int(Status.NOT_COMPUTED)) & corr.ready
+    params = base.copy()
+    params[run] = full.params.numpy()[run]
+    zncc = full.zncc.numpy().astype(np.float64)
+    iters = np.array(full.iterations.numpy(), dtype=np.int32, copy=True)
+    return {"params": params, "zncc": zncc, "iterations": iters, "status": status}

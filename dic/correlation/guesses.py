@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from kernels.search import phase_correlation, pyramid, zncc_search
+from kernels.search import phase_correlation, pyramid, search_image, zncc_search
 
 from .acceptance import accepted_mask
 from .params import convert_order, embed_first_order, n_params
@@ -125,6 +125,19 @@ def _all_ok(m: int) -> np.ndarray:
     return np.ones(m, dtype=bool)
 
 
+def _search_reference(ctx: GuessContext):
+    """The reference for :func:`kernels.search.zncc_search`: uploaded once per reference (kept in the
+    correlator's cache) when it is the correlator's reference, else the array itself."""
+    c = ctx.correlator
+    cache = getattr(c, "cache", None)
+    if cache is None or ctx.reference is not getattr(c, "image", None):
+        return ctx.reference
+    key = ("search_reference", str(c.device))
+    if key not in cache:
+        cache[key] = search_image(ctx.reference, c.device, "reference")
+    return cache[key]
+
+
 # ----------------------------------------------------------------------------------------------
 # strategies
 
@@ -141,7 +154,7 @@ def _zncc(ctx: GuessContext, idx: np.ndarray):
     c = ctx.correlator
     k = n_params(c.order)
     g = ctx.prior[idx].copy()
-    uv, _ = zncc_search(ctx.reference, ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
+    uv, _ = zncc_search(_search_reference(ctx), ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
                         start=g[:, [0, k // 2]], device=c.device)
     g[:, 0], g[:, k // 2] = uv[:, 0], uv[:, 1]
     return g, _all_ok(idx.size)
@@ -153,7 +166,7 @@ def _fft(ctx: GuessContext, idx: np.ndarray):
     c = ctx.correlator
     k = n_params(c.order)
     u, v, _ = phase_correlation(ctx.reference, ctx.current)
-    uv, _ = zncc_search(ctx.reference, ctx.current, ctx.points[idx], 3, subset=c.subset,
+    uv, _ = zncc_search(_search_reference(ctx), ctx.current, ctx.points[idx], 3, subset=c.subset,
                         start=np.tile([u, v], (idx.size, 1)), device=c.device)
     g = np.zeros((idx.size, k))
     g[:, 0], g[:, k // 2] = uv[:, 0], uv[:, 1]
@@ -164,8 +177,10 @@ def _fft(ctx: GuessContext, idx: np.ndarray):
 def _pyramid(ctx: GuessContext, idx: np.ndarray):
     """Coarse-to-fine 1st-order guesses over a Gaussian pyramid."""
     c = ctx.correlator
+    # the reference pyramid and its level correlators are built once per reference (the correlator's cache)
+    cache = getattr(c, "cache", None) if ctx.reference is getattr(c, "image", None) else None
     g1 = pyramid_guess(ctx.reference, ctx.current, ctx.points[idx], c.subset, ctx.search_radius,
-                       min(ctx.zncc_min, 0.7), c.device)
+                       min(ctx.zncc_min, 0.7), c.device, cache=cache)
     return convert_order(g1, c.order).copy(), _all_ok(idx.size)
 
 
@@ -175,7 +190,7 @@ def _rg_seeds(ctx: GuessContext, idx: np.ndarray):
     """Seeds of the reliability-guided propagation: a ZNCC search from the prior displacement."""
     c = ctx.correlator
     k = n_params(c.order)
-    uv, _ = zncc_search(ctx.reference, ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
+    uv, _ = zncc_search(_search_reference(ctx), ctx.current, ctx.points[idx], ctx.search_radius, subset=c.subset,
                         start=ctx.prior[idx][:, [0, k // 2]], device=c.device)
     g = np.zeros((idx.size, k))
     g[:, 0], g[:, k // 2] = uv[:, 0], uv[:, 1]
@@ -285,7 +300,7 @@ def median_outliers(points: np.ndarray, uv: np.ndarray, ok: np.ndarray, step: fl
 
 
 def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset: int, radius: int,
-                  zncc_min: float, device: str) -> np.ndarray:
+                  zncc_min: float, device: str, cache: dict | None = None) -> np.ndarray:
     """Coarse-to-fine 1st-order guesses at ``targets`` (Gaussian pyramid, ZNCC search at the top).
 
     Levels: the coarsest level sees motions up to ``radius / 2^L <= 4`` px, limited so that the
@@ -293,8 +308,16 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
     of step ``subset // 2``; each finer level re-runs IC-GN from the nearest valid coarse result
     (outliers removed by a neighbourhood-median test), and the final level's field predicts
     ``targets``. Returns (M, 6) 1st-order parameters.
+
+    ``cache``: a dict kept with the reference (:attr:`.engine.Correlator.cache`); the reference
+    pyramid and the per-level correlators (their prepared subsets) are built on the first call and
+    reused by the next ones with the same reference, subset, levels and device (bitwise the same
+    guesses; only the current image's pyramid is built per call).
     """
     from .engine import Correlator
+
+    if cache is not None and not isinstance(cache, dict):
+        raise ValueError(f"cache must be a dict (e.g. Correlator.cache) or None, got {type(cache).__name__}")
 
     # a radius beyond twice the image finds nothing more (the ZNCC search clamps its window to the
     # image, kernels.search.useful_radius) and picks the same levels: clamp it, so that any int works
@@ -302,29 +325,46 @@ def pyramid_guess(ref: np.ndarray, cur: np.ndarray, targets: np.ndarray, subset:
     levels = max(0, math.ceil(math.log2(max(radius, 1) / 4.0)))
     while levels > 0 and min(ref.shape) / 2 ** levels < 2 * subset + 1:
         levels -= 1
-    pr = pyramid(ref, levels, device=device)
-    pc = pyramid(cur, levels, device=device)
     r = subset // 2
     step = max(2, subset // 2)
+    key = ("pyramid", ref.shape, int(subset), levels, str(device))
+    built = None if cache is None else cache.get(key)
+    if built is None:
+        pr = pyramid(ref, levels, device=device)
+        # one correlator per level (reference subsets prepared once), built on first use
+        built = (pr, {}, {})
+        if cache is not None:
+            cache[key] = built
+    pr, level_correlators, searched = built
+
+    def uploaded(lvl: int):  # the reference level for the ZNCC search, uploaded once
+        if lvl not in searched:
+            searched[lvl] = search_image(pr[lvl], device, "reference")
+        return searched[lvl]
+
+    pc = pyramid(cur, levels, device=device)
     prev = None  # (points, params, ok) at the coarser level
     for lvl in range(levels, 0, -1):
         img_r, img_c = pr[lvl], pc[lvl]
         pts = grid(img_r.shape, step, margin=r)
         if prev is None:
             top = int(math.ceil(radius / 2 ** lvl)) + 1
-            uv, _ = zncc_search(img_r, img_c, pts, top, subset=subset, device=device)
+            uv, _ = zncc_search(uploaded(lvl), img_c, pts, top, subset=subset, device=device)
             g = np.zeros((pts.shape[0], 6))
             g[:, 0], g[:, 3] = uv[:, 0], uv[:, 1]
         else:
             g = nearest_fill(*prev, pts, scale=2.0)
-        level = Correlator(img_r, pts, subset=subset, order=1, max_iter=30, tol=1e-3, device=device)
-        res = level.run(img_c, np.arange(pts.shape[0]), g)
+        level = level_correlators.get(lvl)
+        if level is None:
+            level = level_correlators[lvl] = Correlator(img_r, pts, subset=subset, order=1, max_iter=30, tol=1e-3,
+                                                        device=device)
+        res = level.run_all(img_c, g)
         p = res["params"].astype(np.float64)
         ok = accepted_mask(res["status"], res["zncc"], zncc_min)
         ok = median_outliers(pts, p[:, [0, 3]], ok, step, threshold=2.0)
         prev = (pts, p, ok)
     if prev is None:  # no pyramid level: a ZNCC search at full resolution
-        uv, _ = zncc_search(ref, cur, targets, radius, subset=subset, device=device)
+        uv, _ = zncc_search(uploaded(0), cur, targets, radius, subset=subset, device=device)
         g = np.zeros((targets.shape[0], 6))
         g[:, 0], g[:, 3] = uv[:, 0], uv[:, 1]
         return g
