@@ -30,6 +30,7 @@ Border handling (explicit):
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -470,6 +471,24 @@ def _check_min_size(arr: np.ndarray, name: str) -> None:
         raise ValueError(f"{name} must be at least 4x4 pixels for cubic interpolation, got shape {arr.shape}")
 
 
+_SCRATCH = threading.local()
+
+
+def _entries_buffer(device: str, rows: int, nseg: int) -> wp.array:
+    """The segment entry values' scratch (rows x nseg vec2, a few hundred KB at most), kept per
+    thread, device and CUDA stream and grown when too small, so frames allocate nothing here: one
+    thread's calls on one stream run in order, so the next call cannot overwrite values in use."""
+    cache = getattr(_SCRATCH, "entries", None)
+    if cache is None:
+        cache = _SCRATCH.entries = {}
+    key = device if device.startswith("cpu") else (device, wp.get_stream(device).cuda_stream)
+    buf = cache.get(key)
+    if buf is None or buf.shape[0] < rows or buf.shape[1] < nseg:
+        buf = wp.empty((rows, nseg), dtype=wp.vec2, device=device)
+        cache[key] = buf
+    return buf
+
+
 def prefilter_segments(n: int) -> int:
     """Number of segments the prefilter splits a line of ``n`` samples into (at least
     :data:`PREFILTER_SEGMENT` samples each; 1 for a line shorter than two segments)."""
@@ -524,7 +543,7 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
     nseg_r = prefilter_segments(w)
     nseg_c = prefilter_segments(h)
     ncols = w + 2 * PAD
-    entries = wp.empty((max(h, ncols), max(nseg_r, nseg_c)), dtype=wp.vec2, device=device)
+    entries = _entries_buffer(device, max(h, ncols), max(nseg_r, nseg_c))
     if nseg_r > 1:
         launch_1d(_prefilter_entries_rows, h * (nseg_r - 1), [0, img_wp, w, h, nseg_r, entries], device,
                   offset_index=0, min_chunk=256)

@@ -586,3 +586,20 @@ def test_compose_2nd_of_a_degenerate_update_is_not_finite():
     wp.launch(_compose2, dim=3, inputs=[wp.array(p, dtype=vec12, device="cpu"), wp.array(dp, dtype=vec12, device="cpu"),
                                          10.0, out, fin], device="cpu")
     assert fin.numpy().tolist() == [0, 0, 1]
+
+
+def test_segmented_prefilter_allocates_nothing_per_frame(monkeypatch):
+    """The segments' entry values live in a per-thread scratch: a frame with ``out`` given allocates
+    nothing (the reliability-guided and sequence paths count allocations per frame)."""
+    from kernels.interp import bspline_coefficients
+
+    img = wp.array(np.random.default_rng(0).random((300, 520)).astype(np.float32), dtype=float, device="cpu")
+    out = wp.empty((304, 524), dtype=float, device="cpu")
+    first = bspline_coefficients(img, device="cpu", out=out).data.numpy().copy()
+    made = []
+    real_empty, real_zeros = wp.empty, wp.zeros
+    monkeypatch.setattr(wp, "empty", lambda *a, **k: made.append(a) or real_empty(*a, **k))
+    monkeypatch.setattr(wp, "zeros", lambda *a, **k: made.append(a) or real_zeros(*a, **k))
+    again = bspline_coefficients(img, device="cpu", out=out).data.numpy()
+    assert made == []
+    np.testing.assert_array_equal(again, first)
