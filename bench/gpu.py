@@ -332,6 +332,22 @@ def section_kernel(device: str, quick: bool) -> dict:
     for order in (1, 2):
         res["fill"][str(order)] = [measure(dense[: min(n, len(dense))], order) for n in fills]
         res["step"][str(order)] = {str(s): measure(grid(ref.shape, s, margin=10), order) for s in steps}
+    # the tiled 1st-order prototype (kernels/icgn_tiled.py: one warp of lanes per POI), same fill sweep
+    from kernels.icgn_tiled import icgn_tiled
+
+    def measure_tiled(points):
+        subs = prepare_subsets(refimg, points, subset=21, order=1)
+        n = len(points)
+        out = IcgnResult(wp.empty((n, 6), dtype=wp.float32, device=device),
+                         wp.empty(n, dtype=wp.float32, device=device),
+                         wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device))
+        guess = wp.zeros((n, 6), dtype=wp.float32, device=device)
+        icgn_tiled(subs, curimg, guess=guess, out=out)
+        secs = timer(lambda: icgn_tiled(subs, curimg, guess=guess, out=out), repeats)
+        return {"n_points": n, "seconds": secs, "poi_per_s": n / float(np.median(secs)),
+                "poi_per_s_best": n / min(secs), "mean_iterations": float(out.iterations.numpy().mean())}
+
+    res["fill"]["1_tiled"] = [measure_tiled(dense[: min(n, len(dense))]) for n in fills]
     return res
 
 

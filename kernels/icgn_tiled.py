@@ -17,7 +17,6 @@ GPU (``bench/gpu.sh``).
 """
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 
 from ._device import resolve_device
@@ -31,6 +30,7 @@ from .icgn import (
     CurrentImage,
     IcgnResult,
     ReferenceSubsets,
+    _as_guess,
     check_max_iter,
     compose_1st,
     gn_step_scale,
@@ -134,11 +134,12 @@ def _icgn_1st_tiled(
 
 
 def icgn_tiled(subsets: ReferenceSubsets, current: CurrentImage, guess=None, max_iter: int = 30,
-               tol: float = 1e-3) -> IcgnResult:
+               tol: float = 1e-3, out: IcgnResult | None = None) -> IcgnResult:
     """1st-order IC-GN with :data:`TILE_LANES` lanes per POI (prototype; see the module doc).
 
     Parameters as :func:`kernels.icgn.icgn` (``current`` prepared with
-    :func:`kernels.icgn.prepare_current`); ``subsets`` must be of order 1.
+    :func:`kernels.icgn.prepare_current`; ``guess`` array-like or a float32 ``wp.array`` (N, 6);
+    ``out`` preallocated outputs); ``subsets`` must be of order 1.
     """
     if not isinstance(subsets, ReferenceSubsets):
         raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
@@ -152,20 +153,21 @@ def icgn_tiled(subsets: ReferenceSubsets, current: CurrentImage, guess=None, max
     tol = positive_float(tol, "tol", detail=" of pixels")
     device = resolve_device(subsets.device)
     n = subsets.n_points
-    g = np.zeros((n, 6), np.float32) if guess is None else np.asarray(guess, np.float32)
-    if g.shape != (n, 6) or not np.all(np.isfinite(g)):
-        raise ValueError(f"guess must be finite of shape {(n, 6)}, got {g.shape}")
-    out = IcgnResult(wp.empty((n, 6), dtype=wp.float32, device=device), wp.empty(n, dtype=wp.float32, device=device),
-                     wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device))
+    g = _as_guess(guess, n, 6, device)
+    if out is None:
+        out = IcgnResult(wp.empty((n, 6), dtype=wp.float32, device=device),
+                         wp.empty(n, dtype=wp.float32, device=device),
+                         wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device))
+    elif not isinstance(out, IcgnResult) or out.params.shape != (n, 6) or out.zncc.shape != (n,):
+        raise ValueError(f"out must be an IcgnResult with params of shape {(n, 6)}")
     if n == 0:
         return out
     h, w = subsets.reference.shape
     wp.launch_tiled(
         _icgn_1st_tiled, dim=[n],
         inputs=[subsets.reference.fgrad, w, h, current.rows4, current.pitch, subsets.centres, subsets.deltas,
-                subsets.refdata, subsets.status, wp.array(g, dtype=wp.float32, device=device), subsets.subset // 2,
-                int(max_iter), float(tol), float(subsets.flat_std) ** 2, out.params, out.zncc, out.iterations,
-                out.status],
+                subsets.refdata, subsets.status, g, subsets.subset // 2, int(max_iter), float(tol),
+                float(subsets.flat_std) ** 2, out.params, out.zncc, out.iterations, out.status],
         block_dim=TILE_LANES, device=device,
     )
     return out

@@ -23,7 +23,7 @@ def test_quick_cpu_run_writes_every_section(tmp_path):
         assert saved["outputs"][order]["unwritten_params"] == 0 and saved["outputs"][order]["deterministic"]
     kern = saved["kernel"]
     assert [r["n_points"] for r in kern["fill"]["1"]] == [1000, 4000]
-    assert all(r["poi_per_s"] > 0 for o in ("1", "2") for r in kern["fill"][o])
+    assert all(r["poi_per_s"] > 0 for o in ("1", "2", "1_tiled") for r in kern["fill"][o])
     assert set(kern["step"]["2"]) == {"4", "8"}
     assert all(saved["prepare"]["summary"][k] > 0 for k in ("reference_image_s", "subsets_order1_s", "current_image_s"))
     for method in ("zncc", "fft", "pyramid", "rg"):  # a 7.3 px move that IC-GN alone cannot reach
