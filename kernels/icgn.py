@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import host_copy, resolve_device
 from ._launch import launch_1d
 from .checks import as_points, odd_int, positive_float, positive_int
 from .conventions import Status
@@ -883,11 +883,12 @@ class IcgnResult:
     status: wp.array
 
     def numpy(self) -> dict[str, np.ndarray]:
+        """Owned host copies (on every device: a later call reusing these buffers leaves them unchanged)."""
         return {
-            "params": self.params.numpy(),
-            "zncc": self.zncc.numpy(),
-            "iterations": self.iterations.numpy(),
-            "status": self.status.numpy(),
+            "params": host_copy(self.params),
+            "zncc": host_copy(self.zncc),
+            "iterations": host_copy(self.iterations),
+            "status": host_copy(self.status),
         }
 
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import host_copy, resolve_device
 from ._launch import launch_1d
 from .checks import as_points
 from .images import as_float32_image
@@ -471,5 +471,5 @@ def interpolate(image_or_coeffs, points, method: str = "bspline", gradient: bool
         keys = int(method == "keys")
         wp.launch(_interp_kernel, dim=n, inputs=[prepared.flat, prepared.pitch, w, h, pts, keys, int(gradient), out],
                   device=device)
-    res = out.numpy()[:n]
+    res = host_copy(out)[:n]
     return res if gradient else res[:, 0]

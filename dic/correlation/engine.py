@@ -86,7 +86,7 @@ class Correlator:
         """
         res = icgn(self.subsets, current, guess=guess, max_iter=self.max_iter, tol=self.tol, out=self._out)
         self._out = res
-        return {k: np.array(v, copy=True) for k, v in res.numpy().items()}
+        return res.numpy()
 
     def run_device(self, current, guess) -> IcgnResult:
         """IC-GN of every POI; the results stay on the device (:class:`kernels.icgn.IcgnResult`).
