@@ -681,16 +681,17 @@ def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float, flat_var: float):
     return gmean, fnorm / dg, sums[2] / (fnorm * dg)
 
 
-@wp.kernel
-def _icgn_1st(
-    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+@wp.func
+def icgn_point_1st(
+    n: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
     ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
     flat_var: float,
     params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),
 ):
-    n = wp.tid() + offset
+    """IC-GN of POI ``n`` (1st-order shape function): the per-POI body of ``_icgn_1st`` and of the
+    frames x POIs launch of :mod:`kernels.frames` (one body, so both give the same bits)."""
     p = vec6(guess[n, 0], guess[n, 1], guess[n, 2], guess[n, 3], guess[n, 4], guess[n, 5])
     st = ref_status[n]
     cc = float(wp.nan)
@@ -729,7 +730,7 @@ def _icgn_1st(
 
 
 @wp.kernel
-def _icgn_2nd(
+def _icgn_1st(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
     ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
@@ -737,7 +738,21 @@ def _icgn_2nd(
     params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),
 ):
-    n = wp.tid() + offset
+    icgn_point_1st(wp.tid() + offset, fgrad, width, height, coef, pitch, centres, deltas, refdata,
+                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
+
+
+@wp.func
+def icgn_point_2nd(
+    n: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    flat_var: float,
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    """IC-GN of POI ``n`` (2nd-order shape function): the per-POI body of ``_icgn_2nd`` and of the
+    frames x POIs launch of :mod:`kernels.frames` (one body, so both give the same bits)."""
     p = vec12()
     for i in range(12):
         p[i] = guess[n, i]
@@ -778,6 +793,19 @@ def _icgn_2nd(
     zncc[n] = cc
     iterations[n] = it
     status[n] = st
+
+
+@wp.kernel
+def _icgn_2nd(
+    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    flat_var: float,
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    icgn_point_2nd(wp.tid() + offset, fgrad, width, height, coef, pitch, centres, deltas, refdata,
+                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
 
 
 # ----------------------------------------------------------------------------------------------
