@@ -90,17 +90,22 @@ def _icgn_frames_2nd(
 
 @wp.kernel
 def _propagate_guess(
-    offset: int, frame: int, params: wp.array3d(dtype=float), zncc: wp.array2d(dtype=float),
+    offset: int, n_frames: int, params: wp.array3d(dtype=float), zncc: wp.array2d(dtype=float),
     status: wp.array2d(dtype=wp.int32), bad: wp.array(dtype=wp.int32), zncc_min: float, guess: wp.array2d(dtype=float),
 ):
-    """The next frame's guess: POI n takes ``frame``'s parameters where they are valid (status CONVERGED or
-    MAX_ITERATIONS, ``zncc >= zncc_min``) and keeps its guess otherwise; a frame with a non-finite pixel
-    passes nothing on."""
+    """The next frame's guess: POI n takes the parameters of the last of the ``n_frames`` frames where they
+    are valid (status CONVERGED or MAX_ITERATIONS, ``zncc >= zncc_min``) and keeps its guess otherwise; a
+    launch with a non-finite pixel in any frame passes nothing on (it is refused as a whole)."""
     n = wp.tid() + offset
-    st = status[frame, n]
-    if bad[frame] == 0 and (st == ST_CONVERGED or st == ST_MAX_ITERATIONS) and zncc[frame, n] >= zncc_min:
-        for i in range(guess.shape[1]):
-            guess[n, i] = params[frame, n, i]
+    refused = int(0)
+    for f in range(n_frames):
+        refused += bad[f]
+    if refused == 0:
+        for f in range(n_frames):
+            st = status[f, n]
+            if (st == ST_CONVERGED or st == ST_MAX_ITERATIONS) and zncc[f, n] >= zncc_min:
+                for i in range(guess.shape[1]):
+                    guess[n, i] = params[f, n, i]
 
 
 @wp.kernel
@@ -386,10 +391,9 @@ class FrameTracker:
         bspline_frames(src, f, self._coef, self._rows4, self._bad)
         _launch_icgn_frames(self.subsets, self._rows4, f, self._guess, 0, self.max_iter, self.tol, self._params,
                             self._zncc, self._iterations, self._status)
-        for i in range(f):
-            launch_1d(_propagate_guess, self.n_points,
-                      [0, i, self._params, self._zncc, self._status, self._bad, self._zncc_min32, self._guess2d],
-                      self.device, offset_index=0, min_chunk=1 << 12)
+        launch_1d(_propagate_guess, self.n_points,
+                  [0, f, self._params, self._zncc, self._status, self._bad, self._zncc_min32, self._guess2d],
+                  self.device, offset_index=0, min_chunk=1 << 12)
         self.frames_tracked += f
         return f
 
@@ -401,7 +405,7 @@ class FrameTracker:
         if bad.size:
             which = "the frame" if f == 1 else "frames[" + ", ".join(str(int(i)) for i in bad) + "]"
             raise ValueError(f"{which} contain(s) NaN or infinite values; DIC needs finite grey levels "
-                             "(the guess of the next frame is left as it was)")
+                             "(the launch is refused: the guess of the next frame is left as it was)")
 
     def _host_results(self, f: int) -> list[dict]:
         k = self.n_params
@@ -436,7 +440,8 @@ class FrameTracker:
         """Track up to ``batch`` frames in one IC-GN launch over (frames x POIs); host results per frame.
 
         Every frame of the batch starts from the same guess (the propagated one, or ``guess``); afterwards
-        the guess takes each POI's last valid result among them, in order."""
+        the guess takes each POI's last valid result among them. A non-finite pixel in any frame refuses
+        the whole launch (``ValueError`` naming the frames; the guess stays as it was)."""
         if guess is not None:
             self.reset(guess)
         frames = list(frames)
