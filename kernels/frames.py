@@ -327,9 +327,8 @@ class FrameTracker:
 
     # -- frames ----------------------------------------------------------------------------------
 
-    def _check_frame(self, frame, i: int) -> wp.array | None:
+    def _check_frame(self, frame, i: int, name: str) -> wp.array | None:
         """A frame -> a (1, H, W) ``wp.array`` read in place, or None after copying it into slot ``i``."""
-        name = "frame" if i == 0 else f"frames[{i}]"
         h, w = self.frame_shape
         if is_torch_tensor(frame):
             dev = "cpu" if frame.device.type == "cpu" else f"cuda:{frame.device.index or 0}"
@@ -368,14 +367,14 @@ class FrameTracker:
         np.copyto(self._stage_np[i], frame)
         return None
 
-    def _run(self, frames: list) -> int:
+    def _run(self, frames: list, name: str = "frame") -> int:
         f = len(frames)
         if not 1 <= f <= self.batch:
             raise ValueError(f"a launch takes 1 to {self.batch} frames (batch={self.batch}), got {f}")
         self._held.clear()
         if self._cuda:  # the staging buffers may still feed the previous frame's transfers
             wp.synchronize_stream(wp.get_stream(self.device))
-        views = [self._check_frame(fr, i) for i, fr in enumerate(frames)]
+        views = [self._check_frame(fr, i, name if len(frames) == 1 else f"frames[{i}]") for i, fr in enumerate(frames)]
         h, w = self.frame_shape
         size = h * w
         if f == 1 and views[0] is not None:
@@ -397,17 +396,17 @@ class FrameTracker:
         self.frames_tracked += f
         return f
 
-    def _check_bad(self, f: int, copied: bool) -> None:
+    def _check_bad(self, f: int, copied: bool, name: str = "frame") -> None:
         if self._cuda and not copied:
             wp.copy(self._bad_host, self._bad, count=f)
             wp.synchronize_stream(wp.get_stream(self.device))
         bad = np.flatnonzero(self._bad_np[:f])
         if bad.size:
-            which = "the frame" if f == 1 else "frames[" + ", ".join(str(int(i)) for i in bad) + "]"
-            raise ValueError(f"{which} contain(s) NaN or infinite values; DIC needs finite grey levels "
+            which = name if f == 1 else "frames[" + ", ".join(str(int(i)) for i in bad) + "]"
+            raise ValueError(f"{which} contains NaN or infinite values; DIC needs finite grey levels "
                              "(the launch is refused: the guess of the next frame is left as it was)")
 
-    def _host_results(self, f: int) -> list[dict]:
+    def _host_results(self, f: int, name: str = "frame") -> list[dict]:
         k = self.n_params
         if self.packed:
             launch_1d(_pack_results, f * self.n_points,
@@ -417,24 +416,25 @@ class FrameTracker:
                 wp.copy(self._packed_host, self._packed, count=f * self.n_points * (k + 3))
                 wp.copy(self._bad_host, self._bad, count=f)
                 wp.synchronize_stream(wp.get_stream(self.device))
-            self._check_bad(f, copied=True)
+            self._check_bad(f, copied=True, name=name)
             out = []
             for i in range(f):
                 p = self._packed_np[i]
                 out.append({"params": p[:, :k].copy(), "zncc": p[:, k].copy(),
                             "iterations": p[:, k + 1].astype(np.int32), "status": p[:, k + 2].astype(np.int32)})
             return out
-        self._check_bad(f, copied=False)
+        self._check_bad(f, copied=False, name=name)
         return [self._results[i].numpy() for i in range(f)]
 
-    def track(self, frame, guess=None) -> dict[str, np.ndarray]:
+    def track(self, frame, guess=None, *, name: str = "frame") -> dict[str, np.ndarray]:
         """Track one frame; host copies (the caller's) of ``params`` (N, 6|12) float32, ``zncc`` (N,) float32,
         ``iterations`` (N,) int32 and ``status`` (N,) int32, as ``kernels.icgn.icgn(...).numpy()``.
 
-        ``guess`` (N, 6|12), optional, replaces the propagated guess for this frame (and onwards)."""
+        ``guess`` (N, 6|12), optional, replaces the propagated guess for this frame (and onwards); ``name``
+        names the frame in error messages."""
         if guess is not None:
             self.reset(guess)
-        return self._host_results(self._run([frame]))[0]
+        return self._host_results(self._run([frame], name), name)[0]
 
     def track_batch(self, frames, guess=None) -> list[dict[str, np.ndarray]]:
         """Track up to ``batch`` frames in one IC-GN launch over (frames x POIs); host results per frame.

@@ -42,12 +42,14 @@ def _tracker(ref, points, order):
 
 
 def _today(tracker, frames):
-    """Today's path: Tracker.track per frame, the guess taken from the previous frame where it is valid."""
+    """Today's path: Tracker.track per frame, the guess taken from the previous frame where it is valid. Frames
+    go as float64, which Tracker.track converts and checks on the host, then ``prepare_current`` + ``icgn``
+    (uint8/uint16/float32 arrays now take the device-resident path)."""
     n, k = tracker.n_points, 6 * tracker.order
     g = np.zeros((n, k))
     out = []
     for fr in frames:
-        f = tracker.track(fr, guess=g, search=None)
+        f = tracker.track(fr.astype(np.float64), guess=g, search=None)
         out.append(f)
         valid = np.isin(f.status, GOOD) & (f.zncc >= ZNCC_MIN)
         g = np.where(valid[:, None], f.params, g)
@@ -77,6 +79,37 @@ def test_frame_tracker_equals_todays_path(sequence, points, order, kind):
         statuses.update(np.unique(f.status).tolist())
     assert int(Status.CONVERGED) in statuses and len(statuses) > 1  # the sequence exercises the propagation rule
     assert ft.frames_tracked == N_FRAMES
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_tracker_takes_the_device_resident_path_bitwise(sequence, points, order, monkeypatch):
+    """Tracker.track of 8/16-bit and float32 arrays without a search runs through Correlator.run_frame (the
+    device-resident path) and returns the Field2D of the general path (acceptance, implausible warps, sigma)."""
+    import dic.correlation.engine as engine
+
+    bits, ref, frames = sequence
+    dtype = np.uint8 if bits == 8 else np.uint16
+    general = Tracker(ref, points=points, subset=17, order=order, zncc_min=ZNCC_MIN, device="cpu")
+    resident = Tracker(ref, points=points, subset=17, order=order, zncc_min=ZNCC_MIN, device="cpu")
+    calls = []
+    real = engine.Correlator.run_frame
+    monkeypatch.setattr(engine.Correlator, "run_frame", lambda self, *a, **kw: calls.append(1) or real(self, *a, **kw))
+    g = None
+    for fr in frames[:3]:
+        a = general.track(fr.astype(np.float64), guess=g)
+        for cur in (_as(fr, dtype), fr.astype(np.float32)):
+            b = resident.track(cur, guess=g)
+            for name in ("u", "v", "params", "zncc", "iterations", "status", "valid", "sigma_u", "sigma_v"):
+                assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+            assert a.noise_sigma == b.noise_sigma
+        g = a
+    assert len(calls) == 6
+    bad = frames[0].astype(np.float32)
+    bad[3, 3] = np.nan
+    with pytest.raises(ValueError, match="current contains NaN or infinite values"):
+        resident.track(bad)
+    with pytest.raises(ValueError, match="shape"):
+        resident.track(_as(frames[0], dtype)[1:])
 
 
 def test_frame_tracker_reads_arrays_tensors_and_strided_frames_alike(sequence, points):
