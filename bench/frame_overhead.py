@@ -5,9 +5,11 @@
 For each size (1024², step 5 and 2048², step 10; ``--quick``: 256², step 8), 8-bit frames of a synthetic
 speckle sequence (``dic.synth.speckle_pair``, small rigid shifts), subset 21, order 1, one reference:
 
-* ``tracker``: ``dic.track.Tracker.track(frame_uint8, guess=previous, search=None)`` (today's API: host
-  conversion and checks of the frame, ``prepare_current``, ``Correlator.run_all``, acceptance,
-  implausible-warp flags, uncertainty, the ``Field2D``);
+* ``tracker``: ``dic.track.Tracker.track(frame_uint8, guess=previous, search=None)`` through the general
+  path (before issue 16: host conversion and checks of the frame, ``prepare_current``,
+  ``Correlator.run_all``, acceptance, implausible-warp flags, uncertainty, the ``Field2D``);
+* ``tracker_resident``: the same call as it runs now (``Correlator.run_frame``: the device-resident path,
+  then the same acceptance, flags, uncertainty and ``Field2D``);
 * ``icgn_loop``: the bare loop of today's kernels, ``prepare_current(frame_uint8, out=buffer)`` then
   ``icgn(subsets, current, guess, out=buffers).numpy()`` with the guess propagated on the host;
 * ``frame_tracker``: ``kernels.frames.FrameTracker.track(frame_uint8)`` (the guess propagated on the device).
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -95,7 +98,15 @@ def run(device: str, sizes, n_frames: int) -> dict:
                 ok = f.valid
                 state["g"] = np.where(ok[:, None], f.params, 0.0 if state["g"] is None else state["g"])
 
-            measure("tracker", tracker_step)
+            track_module = sys.modules["dic.track"]  # (dic.track is also the function dic.track)
+            resident = track_module._device_resident
+            track_module._device_resident = lambda image: False  # today's general path
+            try:
+                measure("tracker", tracker_step)
+            finally:
+                track_module._device_resident = resident
+            state["g"] = None
+            measure("tracker_resident", tracker_step)
             buf = {"cur": None, "out": None, "g": np.zeros((n, 6))}
 
             def loop_step(fr):

@@ -341,6 +341,10 @@ class FrameTracker:
                 raise ValueError(f"{name} is on {dev} but this tracker runs on {self.device}")
             if not frame.is_contiguous():
                 raise ValueError(f"{name} must be contiguous (call .contiguous())")
+            if self._cuda:  # Warp's stream waits (on the device) for the work that produced the tensor
+                import torch
+
+                wp.get_stream(self.device).wait_stream(wp.stream_from_torch(torch.cuda.current_stream(frame.device)))
             self._held.append(frame)
             return wp.array(ptr=frame.data_ptr(), shape=(1, h, w), dtype=self._wdt, device=self.device)
         if isinstance(frame, wp.array):
@@ -461,4 +465,8 @@ class FrameTracker:
         """:meth:`track_device` with torch tensors out (``wp.to_torch``: no copy; CUDA tensors stay on the GPU):
         ``params``, ``zncc``, ``iterations``, ``status``. Overwritten by the next call: ``.clone()`` what you keep."""
         res = self.track_device(frame, guess)
+        if self._cuda:  # torch's stream waits (on the device) for the results
+            import torch
+
+            wp.stream_from_torch(torch.cuda.current_stream(self.device)).wait_stream(wp.get_stream(self.device))
         return {name: wp.to_torch(getattr(res, name)) for name in ("params", "zncc", "iterations", "status")}
