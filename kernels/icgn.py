@@ -886,11 +886,15 @@ class CurrentImage:
         (:func:`kernels.interp.expand_rows4`).
     shape : (H, W)
     device : str
+    coef : wp.array2d float32 (H + 4, W + 4) or None
+        The padded coefficients ``rows4`` was expanded from (reused, like ``rows4``, by
+        :func:`prepare_current` with ``out=``).
     """
 
     rows4: wp.array
     shape: tuple[int, int]
     device: str
+    coef: wp.array | None = None
 
     @property
     def pitch(self) -> int:
@@ -957,8 +961,12 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
         :func:`kernels.interp.bspline_coefficients`.
     device : None or str
     out : CurrentImage, optional
-        A previous result of the same shape and device whose buffer is reused.
+        A previous result of the same shape and device whose buffers (coefficients and their
+        row-expanded layout) are reused: on the CPU a NumPy image then allocates no Warp memory.
     """
+    if out is not None and not isinstance(out, CurrentImage):
+        raise ValueError("out must be a CurrentImage of the same shape and device")
+
     if isinstance(image, PaddedImage):
         if image.kind != "bspline":
             raise ValueError(f"current must hold B-spline coefficients, got a PaddedImage of kind {image.kind!r}")
@@ -969,16 +977,26 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
     elif isinstance(image, wp.array):
         # already on the device (e.g. wp.from_torch of a tensor): no host round trip
         device = resolve_device(device)
-        coef = bspline_coefficients(image, device=device)
+        coef = bspline_coefficients(image, device=device, out=_reusable(out, device, image.shape))
     else:
         device = resolve_device(device)
-        coef = bspline_coefficients(as_float32_image(image, "current"), device=device)
+        arr = as_float32_image(image, "current")
+        coef = bspline_coefficients(arr, device=device, out=_reusable(out, device, arr.shape))
     buf = None
     if out is not None:
-        if not isinstance(out, CurrentImage) or out.shape != coef.shape or out.device != device:
+        if out.shape != coef.shape or out.device != device:
             raise ValueError("out must be a CurrentImage of the same shape and device")
         buf = out.rows4
-    return CurrentImage(expand_rows4(coef, out=buf), coef.shape, device)
+    own = None if isinstance(image, PaddedImage) else coef.data  # never reuse (overwrite) the caller's coefficients
+    return CurrentImage(expand_rows4(coef, out=buf), coef.shape, device, own)
+
+
+def _reusable(out: CurrentImage | None, device: str, shape) -> wp.array | None:
+    """``out``'s coefficient buffer when it fits an image of ``shape`` on ``device`` (None: allocate one)."""
+    coef = None if out is None else out.coef
+    if coef is None or out.device != device or tuple(coef.shape) != (int(shape[0]) + 4, int(shape[1]) + 4):
+        return None
+    return coef
 
 
 def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: int = 1,

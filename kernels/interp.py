@@ -438,7 +438,8 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
         arr = as_float32_image(image, "image")
         _check_min_size(arr, "image")
         h, w = arr.shape
-        img_wp = wp.array(arr, dtype=wp.float32, device=device)
+        # on the CPU the (C-contiguous float32) array is read in place: no copy, no allocation
+        img_wp = wp.array(arr, dtype=wp.float32, device=device, copy=not device.startswith("cpu"))
     shape_p = (h + 2 * PAD, w + 2 * PAD)
     if out is None:
         out = wp.empty(shape_p, dtype=wp.float32, device=device)

@@ -259,3 +259,16 @@ def test_zncc_threshold_matches_the_host_acceptance():
         t = np.float32(zncc_threshold32(zmin))
         zs = np.array([np.nextafter(t, np.float32(-1)), t, np.nextafter(t, np.float32(2))], np.float32)
         assert np.array_equal(zs >= t, zs.astype(np.float64) >= zmin)
+
+
+def test_prepare_current_reuses_its_buffers(sequence, allocations):
+    """Today's path too: ``prepare_current(image, out=previous)`` reuses the coefficient buffer (it was allocated
+    per frame) and, on the CPU, reads the float32 image in place (it was copied into a new Warp array)."""
+    _, _, frames = sequence
+    first = prepare_current(frames[0], device="cpu")
+    fresh = prepare_current(frames[1], device="cpu")
+    allocations.clear()
+    again = prepare_current(frames[1], device="cpu", out=first)
+    assert allocations == []
+    assert again.coef.ptr == first.coef.ptr and again.rows4.ptr == first.rows4.ptr
+    assert np.array_equal(again.rows4.numpy(), fresh.rows4.numpy())
