@@ -27,11 +27,12 @@ Border handling (explicit):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import host_copy, resolve_device
 from ._launch import launch_1d
 from .checks import as_points
 from .images import as_float32_image
@@ -266,6 +267,61 @@ def _prefilter_cols(offset: int, coef: wp.array2d(dtype=float), height: int):
     coef[height + 3, x] = coef[height - 1, x]
 
 
+@wp.kernel
+def _prefilter_rows_frames(offset: int, frames: wp.array3d(dtype=Any), coef: wp.array3d(dtype=float), width: int,
+                           height: int, bad: wp.array(dtype=wp.int32)):
+    """:func:`_prefilter_rows` of row ``y`` of frame ``f`` (``tid = f * height + y``) reading the raw frame
+    (8/16-bit or float32: the conversion to float happens here) and flagging a non-finite pixel in
+    ``bad[f]`` (the frame's on-device validity check, fused into the one pass that reads it)."""
+    t = wp.tid() + offset
+    f = t // height
+    y = t - f * height
+    c = coef[f]
+    img = frames[f]
+    r = y + 2
+    for x in range(width):
+        v = float(img[y, x])
+        if not wp.isfinite(v):
+            bad[f] = 1
+        c[r, x + 2] = v
+    filter_line(c, r, 2, 0, 1, width)
+    c[r, 1] = c[r, 3]
+    c[r, 0] = c[r, 4]
+    c[r, width + 2] = c[r, width]
+    c[r, width + 3] = c[r, width - 1]
+
+
+for _dtype in (wp.uint8, wp.uint16, wp.float32):  # the frame types of the device-resident path
+    wp.overload(_prefilter_rows_frames, {"frames": wp.array3d(dtype=_dtype)})
+
+
+@wp.kernel
+def _prefilter_cols_frames(offset: int, coef: wp.array3d(dtype=float), height: int, ncols: int):
+    """:func:`_prefilter_cols` of column ``x`` of frame ``f`` (``tid = f * ncols + x``)."""
+    t = wp.tid() + offset
+    f = t // ncols
+    x = t - f * ncols
+    c = coef[f]
+    filter_line(c, 2, x, 1, 0, height)
+    c[1, x] = c[3, x]
+    c[0, x] = c[4, x]
+    c[height + 2, x] = c[height, x]
+    c[height + 3, x] = c[height - 1, x]
+
+
+@wp.kernel
+def _expand_rows4_frames(offset: int, c: wp.array2d(dtype=float), c4: wp.array2d(dtype=wp.vec4), pitch: int, n: int):
+    """:func:`_expand_rows4` of entry ``k`` of frame ``f`` (``tid = f * n + k``)."""
+    t = wp.tid() + offset
+    f = t // n
+    k = t - f * n
+    x = k % pitch
+    if x >= 1 and x + 2 < pitch:
+        c4[f, k] = wp.vec4(c[f, k - 1], c[f, k], c[f, k + 1], c[f, k + 2])
+    else:
+        c4[f, k] = wp.vec4(0.0)
+
+
 @wp.func
 def split_position(p: wp.vec2d, width: int, height: int):
     """Split a float64 (x, y) into integer floor and float32 fraction: (ix, iy, tx, ty, inside).
@@ -382,7 +438,8 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
         arr = as_float32_image(image, "image")
         _check_min_size(arr, "image")
         h, w = arr.shape
-        img_wp = wp.array(arr, dtype=wp.float32, device=device)
+        # on the CPU the (C-contiguous float32) array is read in place: no copy, no allocation
+        img_wp = wp.array(arr, dtype=wp.float32, device=device, copy=not device.startswith("cpu"))
     shape_p = (h + 2 * PAD, w + 2 * PAD)
     if out is None:
         out = wp.empty(shape_p, dtype=wp.float32, device=device)
@@ -394,6 +451,37 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
     launch_1d(_prefilter_rows, h, [0, img_wp, out, w], device, offset_index=0, min_chunk=64)
     launch_1d(_prefilter_cols, w + 2 * PAD, [0, out, h], device, offset_index=0, min_chunk=64)
     return PaddedImage(out, "bspline", (h, w), device)
+
+
+#: frame dtypes the device-resident path reads directly (converted to float in the prefilter kernel)
+FRAME_DTYPES = {np.dtype(np.uint8): wp.uint8, np.dtype(np.uint16): wp.uint16, np.dtype(np.float32): wp.float32}
+
+
+def bspline_frames(frames: wp.array, n_frames: int, coef: wp.array, rows4: wp.array, bad: wp.array) -> None:
+    """B-spline coefficients of the first ``n_frames`` frames of a stack, in IC-GN's row-expanded layout.
+
+    The buffers are the caller's, allocated once (:class:`kernels.frames.FrameTracker`); nothing is
+    allocated here. ``frames`` (F, H, W) uint8/uint16/float32 on the device (read as they are: grey
+    levels keep their scale); ``coef`` (F, H + 4, W + 4) float32; ``rows4`` (F, (H + 4) (W + 4)) vec4;
+    ``bad`` (F,) int32 zeroed by the caller, set to 1 for a frame holding a non-finite pixel. Each
+    frame's coefficients equal :func:`bspline_coefficients` and :func:`expand_rows4` of the frame as
+    float32 bit for bit (the same filter, per row and column).
+    """
+    if frames.dtype not in FRAME_DTYPES.values() or frames.ndim != 3:
+        raise ValueError(f"frames must be a 3-D uint8/uint16/float32 wp.array, got ndim={frames.ndim}, dtype={frames.dtype}")
+    f, h, w = frames.shape
+    if not 1 <= n_frames <= min(f, coef.shape[0], rows4.shape[0], bad.shape[0]):
+        raise ValueError(f"n_frames must be in [1, {min(f, coef.shape[0], rows4.shape[0], bad.shape[0])}], got {n_frames}")
+    if h < 4 or w < 4 or coef.shape[1:] != (h + 2 * PAD, w + 2 * PAD):
+        raise ValueError(f"coef must be (F, {h + 2 * PAD}, {w + 2 * PAD}) for frames of {h}x{w} (>= 4x4), got {coef.shape}")
+    device = str(frames.device)
+    pitch = w + 2 * PAD
+    n = (h + 2 * PAD) * pitch
+    launch_1d(_prefilter_rows_frames, n_frames * h, [0, frames, coef, w, h, bad], device, offset_index=0, min_chunk=64)
+    launch_1d(_prefilter_cols_frames, n_frames * pitch, [0, coef, h, pitch], device, offset_index=0, min_chunk=64)
+    flat = coef.reshape((coef.shape[0], n))
+    launch_1d(_expand_rows4_frames, n_frames * n, [0, flat, rows4, pitch, n], device, offset_index=0,
+              min_chunk=1 << 16)
 
 
 def expand_rows4(coeffs: PaddedImage, out: wp.array | None = None) -> wp.array:
@@ -471,5 +559,5 @@ def interpolate(image_or_coeffs, points, method: str = "bspline", gradient: bool
         keys = int(method == "keys")
         wp.launch(_interp_kernel, dim=n, inputs=[prepared.flat, prepared.pitch, w, h, pts, keys, int(gradient), out],
                   device=device)
-    res = out.numpy()[:n]
+    res = host_copy(out)[:n]
     return res if gradient else res[:, 0]
