@@ -29,7 +29,7 @@ import numpy as np
 
 from kernels._device import resolve_device
 from kernels.checks import positive_float, positive_int, unit_interval
-from kernels.conventions import Status
+from kernels.conventions import Status, round_half_away
 from kernels.icgn import check_subset_order, n_params
 from kernels.images import as_float32_image, read_image
 
@@ -347,7 +347,7 @@ def speckle_quality(reference, subset: int = 21, *, points=None, step=None, roi=
     pts = _points(ref.shape, subset, points, step, roi)
     h, w = ref.shape
     r = subset // 2
-    c = np.rint(pts).astype(np.int64)
+    c = round_half_away(pts).astype(np.int64)  # the kernels' subset centres
     if np.any((c[:, 0] - r < 0) | (c[:, 1] - r < 0) | (c[:, 0] + r > w - 1) | (c[:, 1] + r > h - 1)):
         raise ValueError(f"every subset of {subset} px must lie inside the {w}x{h} image; move the points "
                          "away from the border or use a smaller subset")

@@ -39,7 +39,7 @@ import numpy as np
 from calibration.formats import as_rig  # re-exported: dic.stereo.as_rig
 from kernels._device import resolve_device
 from kernels.checks import as_points, in_range, odd_int, positive_float
-from kernels.conventions import Status
+from kernels.conventions import Status, round_half_away
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image
 
@@ -756,7 +756,7 @@ class _TrackReference:
         dl, dr = _displacement(pl, sc.order), _displacement(pr, sc.order)
         moved_l = moved_points(sc.points, dl[:, 0], dl[:, 1], valid)
         moved_r = moved_points(sc.match.points_right[matched], dr[matched, 0], dr[matched, 1], valid[matched])
-        whole_l, whole_r = np.round(moved_l), np.round(moved_r)
+        whole_l, whole_r = round_half_away(moved_l), round_half_away(moved_r)
         left, right = sc._correlators_at(L, R, whole_l, whole_r)
         sig = [details.get(name) for name in ("sigma_left_px", "sigma_right_px")]
         sig = [None if s is None or np.shape(s) != (n, 2) else np.asarray(s, dtype=np.float64) for s in sig]

@@ -50,6 +50,13 @@ def _as_image(image, name: str) -> np.ndarray:
     return arr
 
 
+def _device_resident(image) -> bool:
+    """Whether ``image`` goes through the device-resident frame path: a 2-D uint8, uint16 or float32 NumPy
+    array of at least 4x4 pixels (other dtypes, masked arrays and tensors take the general path)."""
+    return (type(image) is np.ndarray and image.ndim == 2 and image.dtype in (np.uint8, np.uint16, np.float32)
+            and min(image.shape) >= 4)
+
+
 def _check_search(search):
     if search is None:
         return None
@@ -199,6 +206,17 @@ class Tracker:
             g = guess_params(guess, self.n_points, self.order)
             r = self.correlator.run_all(self._current_buf, np.zeros((self.n_points, n_params(self.order)))
                                         if g is None else g)
+            return self._finish(r, search)
+        if isinstance(current, (str, os.PathLike)):
+            current = read_image(current)
+        if search in (None, "prior") and _device_resident(current):
+            # the device-resident frame path: 8/16-bit or float32 frames converted and checked on the device,
+            # buffers allocated once, results bitwise those of the path below (tests/test_frames.py)
+            if current.shape != self.shape:
+                raise ValueError(f"current image has shape {current.shape} but the reference has shape {self.shape}; "
+                                 "DIC needs images of the same size")
+            g = guess_params(guess, self.n_points, self.order)
+            r = self.correlator.run_frame(current, np.zeros((self.n_points, n_params(self.order))) if g is None else g)
             return self._finish(r, search)
         cur = self._check_current(current)  # a tensor with a search: to the host once (the searches run there)
         self._current_buf = prepare_current(cur, device=self.device, out=self._current_buf)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kernels._device import host_copy
 from kernels.checks import as_points
 from kernels.triangulate import METHODS, TriangulationStatus
 from kernels.triangulate import triangulate_points as _triangulate_points
@@ -130,7 +131,7 @@ def undistort_points(camera, points, device=None, *, margin_px: float = 0.0, tol
     pts = _image_points(points, "points")
     out, status = _undistort_points(pts, K, dist, image_size=size, margin_px=margin_px, tol_px=tol_px,
                                     max_iter=max_iter, device=device)
-    return Undistortion(out.numpy().reshape(-1, 2), status.numpy())
+    return Undistortion(host_copy(out).reshape(-1, 2), host_copy(status))
 
 
 def triangulate(rig, points_left, points_right, *, method: str = "optimal", device=None, tol_px: float = 1e-9,
@@ -197,4 +198,4 @@ def triangulate(rig, points_left, points_right, *, method: str = "optimal", devi
         image_size_left=size_l, image_size_right=size_r, method=method, tol_px=tol_px, max_iter=max_iter,
         min_parallax=min_parallax, margin_px=margin_px, device=device,
     )
-    return Triangulation(points.numpy().reshape(-1, 3), residuals.numpy(), status.numpy(), method)
+    return Triangulation(host_copy(points).reshape(-1, 3), host_copy(residuals), host_copy(status), method)

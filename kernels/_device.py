@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 from contextlib import contextmanager
 
+import numpy as np
 import warp as wp
 
 # array validation lives with the image reader; re-exported for the launchers that import it from here
@@ -107,3 +108,17 @@ def resolve_device(device=None) -> str:
     if name != "cpu" and not name.startswith("cuda"):
         raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {name!r}")
     return name
+
+
+def host_copy(array) -> np.ndarray:
+    """An owned NumPy copy of a ``wp.array`` on any device (the one way launchers return host arrays).
+
+    ``wp.array.numpy()`` differs by device: on CUDA it copies to the host, on the CPU it returns a
+    *view* of the device buffer, which a later launch writing the same buffer (a reused ``out=``, the
+    next frame) overwrites under the caller's feet. This copies on the CPU and not twice on CUDA, so
+    results the caller keeps are the caller's on every device.
+    """
+    a = array.numpy()
+    if array.device.is_cpu:
+        return np.array(a, copy=True)
+    return a

@@ -43,6 +43,12 @@ _POOL: ThreadPoolExecutor | None = None
 #:                                 (capping at 32, (256, 8), spills 32 bytes)
 #: _prefilter_cols         256, 8  capped at 32 registers (48 uncapped), no spill: 64 warps
 #: _prefilter_entries_*    256     32 registers: 64 warps
+#: _icgn_frames_2nd        128     as _icgn_2nd (kernels/frames.py: frames x POIs, the same body)
+#: _icgn_frames_1st        128, 6  capped at 80 registers (96 uncapped), no spill: 24 warps
+#:                                 instead of 20; at 64 (128, 8) it spills 72 bytes, at 72
+#:                                 (128, 7) 8 bytes (the frame indexing costs registers)
+#: _prefilter_rows_frames  256, 5  48 registers, no spill: 40 warps ((256, 6) spills 8 bytes)
+#: _prefilter_cols_frames  256, 6  40 registers, no spill: 48 warps ((256, 8) spills 24 bytes)
 #: _icgn_1st_tiled         32      prototype, one warp per POI (kernels/icgn_tiled.py): 64
 #:                                 registers; 32 warps per SM (at most 32 blocks per SM)
 #: ======================  ======  ========================================================
@@ -56,6 +62,10 @@ CUDA_LAUNCH = {
     "_prefilter_cols": (256, 8),
     "_prefilter_entries_rows": (256, 0),
     "_prefilter_entries_cols": (256, 0),
+    "_prefilter_rows_frames": (256, 5),
+    "_prefilter_cols_frames": (256, 6),
+    "_icgn_frames_2nd": (128, 0),
+    "_icgn_frames_1st": (128, 6),
     "_icgn_1st_tiled": (32, 0),
 }
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from enum import IntEnum
 
+import numpy as np
+
 #: 1st-order shape function parameters, in storage order (u, v in px; gradients dimensionless).
 PARAMS_1ST: tuple[str, ...] = ("u", "ux", "uy", "v", "vx", "vy")
 #: 2nd-order shape function parameters, in storage order (second derivatives in 1/px).
@@ -22,6 +24,21 @@ def param_names(order: int) -> tuple[str, ...]:
     if order == 2:
         return PARAMS_2ND
     raise ValueError(f"shape-function order must be 1 or 2, got {order!r}")
+
+
+def round_half_away(x) -> np.ndarray:
+    """Round to the nearest integer, halfway cases away from zero (float64 array of whole numbers).
+
+    The one rounding rule of POI positions: the kernels centre a subset on ``wp.round(x)`` (C
+    ``round``: half away from zero), so every host-side rounding of a POI position (the integer
+    search, plausibility, quality) must use the same rule; ``np.rint``/``np.round`` round half to
+    even (10.5 -> 10, not 11) and ``np.floor(x + 0.5)`` is wrong for negative halves (-10.5 -> -10)
+    and for 0.49999999999999994 (-> 1). Exact for every float64: ``s - floor(s)`` has no rounding.
+    """
+    a = np.asarray(x, dtype=np.float64)
+    s = np.abs(a)
+    f = np.floor(s)
+    return np.copysign(f + (s - f >= 0.5), a)
 
 
 class Status(IntEnum):

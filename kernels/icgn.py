@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import host_copy, resolve_device
 from ._launch import cuda_block_dim, cuda_launch_bounds, launch_1d
 from .checks import as_points, odd_int, positive_float, positive_int
 from .conventions import Status
@@ -725,16 +725,17 @@ def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float, flat_var: float):
     return gmean, fnorm / dg, sums[2] / (fnorm * dg)
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_1st"))
-def _icgn_1st(
-    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+@wp.func
+def icgn_point_1st(
+    n: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
     ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
     flat_var: float,
     params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),
 ):
-    n = wp.tid() + offset
+    """IC-GN of POI ``n`` (1st-order shape function): the per-POI body of ``_icgn_1st`` and of the
+    frames x POIs launch of :mod:`kernels.frames` (one body, so both give the same bits)."""
     p = vec6(guess[n, 0], guess[n, 1], guess[n, 2], guess[n, 3], guess[n, 4], guess[n, 5])
     st = ref_status[n]
     cc = float(wp.nan)
@@ -772,8 +773,8 @@ def _icgn_1st(
     status[n] = st
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_2nd"))
-def _icgn_2nd(
+@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_1st"))
+def _icgn_1st(
     offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
     ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
@@ -781,7 +782,21 @@ def _icgn_2nd(
     params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),
 ):
-    n = wp.tid() + offset
+    icgn_point_1st(wp.tid() + offset, fgrad, width, height, coef, pitch, centres, deltas, refdata,
+                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
+
+
+@wp.func
+def icgn_point_2nd(
+    n: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    flat_var: float,
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    """IC-GN of POI ``n`` (2nd-order shape function): the per-POI body of ``_icgn_2nd`` and of the
+    frames x POIs launch of :mod:`kernels.frames` (one body, so both give the same bits)."""
     p = vec12()
     for i in range(12):
         p[i] = guess[n, i]
@@ -826,6 +841,19 @@ def _icgn_2nd(
     zncc[n] = cc
     iterations[n] = it
     status[n] = st
+
+
+@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_2nd"))
+def _icgn_2nd(
+    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
+    flat_var: float,
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    icgn_point_2nd(wp.tid() + offset, fgrad, width, height, coef, pitch, centres, deltas, refdata,
+                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -906,11 +934,15 @@ class CurrentImage:
         (:func:`kernels.interp.expand_rows4`).
     shape : (H, W)
     device : str
+    coef : wp.array2d float32 (H + 4, W + 4) or None
+        The padded coefficients ``rows4`` was expanded from (reused, like ``rows4``, by
+        :func:`prepare_current` with ``out=``).
     """
 
     rows4: wp.array
     shape: tuple[int, int]
     device: str
+    coef: wp.array | None = None
 
     @property
     def pitch(self) -> int:
@@ -931,11 +963,12 @@ class IcgnResult:
     status: wp.array
 
     def numpy(self) -> dict[str, np.ndarray]:
+        """Owned host copies (on every device: a later call reusing these buffers leaves them unchanged)."""
         return {
-            "params": self.params.numpy(),
-            "zncc": self.zncc.numpy(),
-            "iterations": self.iterations.numpy(),
-            "status": self.status.numpy(),
+            "params": host_copy(self.params),
+            "zncc": host_copy(self.zncc),
+            "iterations": host_copy(self.iterations),
+            "status": host_copy(self.status),
         }
 
 
@@ -976,8 +1009,12 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
         :func:`kernels.interp.bspline_coefficients`.
     device : None or str
     out : CurrentImage, optional
-        A previous result of the same shape and device whose buffer is reused.
+        A previous result of the same shape and device whose buffers (coefficients and their
+        row-expanded layout) are reused: on the CPU a NumPy image then allocates no Warp memory.
     """
+    if out is not None and not isinstance(out, CurrentImage):
+        raise ValueError("out must be a CurrentImage of the same shape and device")
+
     if isinstance(image, PaddedImage):
         if image.kind != "bspline":
             raise ValueError(f"current must hold B-spline coefficients, got a PaddedImage of kind {image.kind!r}")
@@ -988,16 +1025,26 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
     elif isinstance(image, wp.array):
         # already on the device (e.g. wp.from_torch of a tensor): no host round trip
         device = resolve_device(device)
-        coef = bspline_coefficients(image, device=device)
+        coef = bspline_coefficients(image, device=device, out=_reusable(out, device, image.shape))
     else:
         device = resolve_device(device)
-        coef = bspline_coefficients(as_float32_image(image, "current"), device=device)
+        arr = as_float32_image(image, "current")
+        coef = bspline_coefficients(arr, device=device, out=_reusable(out, device, arr.shape))
     buf = None
     if out is not None:
-        if not isinstance(out, CurrentImage) or out.shape != coef.shape or out.device != device:
+        if out.shape != coef.shape or out.device != device:
             raise ValueError("out must be a CurrentImage of the same shape and device")
         buf = out.rows4
-    return CurrentImage(expand_rows4(coef, out=buf), coef.shape, device)
+    own = None if isinstance(image, PaddedImage) else coef.data  # never reuse (overwrite) the caller's coefficients
+    return CurrentImage(expand_rows4(coef, out=buf), coef.shape, device, own)
+
+
+def _reusable(out: CurrentImage | None, device: str, shape) -> wp.array | None:
+    """``out``'s coefficient buffer when it fits an image of ``shape`` on ``device`` (None: allocate one)."""
+    coef = None if out is None else out.coef
+    if coef is None or out.device != device or tuple(coef.shape) != (int(shape[0]) + 4, int(shape[1]) + 4):
+        return None
+    return coef
 
 
 def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: int = 1,

@@ -32,11 +32,12 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import host_copy, resolve_device
 from ._launch import cuda_launch_bounds, launch_1d
 from .checks import as_points
 from .images import as_float32_image
@@ -194,13 +195,14 @@ def keys_value_grad(s: wp.array(dtype=float), pitch: int, x: float, y: float):
 
 
 @wp.func
-def causal_init(c: wp.array2d(dtype=float), row: int, col: int, drow: int, dcol: int, n: int, z: float):
-    """Initial value of the causal filter for mirror boundaries (Unser 1999, exact for n <= horizon)."""
+def causal_init(c: wp.array2d(dtype=Any), row: int, col: int, drow: int, dcol: int, n: int, z: float):
+    """Initial value of the causal filter for mirror boundaries (Unser 1999, exact for n <= horizon);
+    ``c`` of any real dtype, read as float32."""
     if n > 32:  # truncated sum, error |z|**32
         acc = float(0.0)
         zk = float(1.0)
         for k in range(32):
-            acc += zk * c[row + k * drow, col + k * dcol]
+            acc += zk * float(c[row + k * drow, col + k * dcol])
             zk *= z
         return acc
     # exact: (s0 + z^(n-1) s_{n-1} + sum_{k=1}^{n-2} (z^k + z^(2n-2-k)) s_k) / (1 - z^(2n-2))
@@ -208,11 +210,11 @@ def causal_init(c: wp.array2d(dtype=float), row: int, col: int, drow: int, dcol:
     for k in range(n - 1):
         zn *= z  # z^(n-1)
     z2n = zn * zn  # divided by z in the loop: z^(2n-2-k)
-    acc = c[row, col] + zn * c[row + (n - 1) * drow, col + (n - 1) * dcol]
+    acc = float(c[row, col]) + zn * float(c[row + (n - 1) * drow, col + (n - 1) * dcol])
     zk = z
     for k in range(1, n - 1):
         z2n /= z  # z^(2n-2-k)
-        acc += (zk + z2n) * c[row + k * drow, col + k * dcol]
+        acc += (zk + z2n) * float(c[row + k * drow, col + k * dcol])
         zk *= z
     return acc / (1.0 - zn * zn)
 
@@ -261,7 +263,7 @@ def segment_starts(n: int, nseg: int, seg: int):
 
 
 @wp.func
-def segment_entry_values(c: wp.array2d(dtype=float), row: int, col: int, drow: int, dcol: int, s: int):
+def segment_entry_values(c: wp.array2d(dtype=Any), row: int, col: int, drow: int, dcol: int, s: int):
     """(causal output at s - 1, anti-causal output at s) of the prefilter of the line through
     c[row, col] (step (drow, dcol)), from the input samples around s alone.
 
@@ -286,10 +288,11 @@ def segment_entry_values(c: wp.array2d(dtype=float), row: int, col: int, drow: i
 
 
 @wp.func
-def filter_segment(src: wp.array2d(dtype=float), sr: int, sc: int, dst: wp.array2d(dtype=float), dr: int, dc: int,
+def filter_segment(src: wp.array2d(dtype=Any), sr: int, sc: int, dst: wp.array2d(dtype=float), dr: int, dc: int,
                    drow: int, dcol: int, n: int, s0: int, s1: int, entry_causal: float, entry_anti: float):
     """Cubic B-spline prefilter (gain 6) of samples [s0, s1) of a line of n samples, read from
-    ``src`` (origin (sr, sc)) and written to ``dst`` (origin (dr, dc)); may be in place.
+    ``src`` (origin (sr, sc), any real dtype, read as float32) and written to ``dst`` (origin
+    (dr, dc)); may be in place.
 
     The first segment starts the causal filter with the exact mirror initial value, the last one
     the anti-causal filter with the exact mirror end value (as :func:`filter_line`); interior
@@ -305,7 +308,7 @@ def filter_segment(src: wp.array2d(dtype=float), sr: int, sc: int, dst: wp.array
         dst[dr, dc] = prev
         k0 = 1
     for k in range(k0, s1):
-        cur = src[sr + k * drow, sc + k * dcol] + z * prev
+        cur = float(src[sr + k * drow, sc + k * dcol]) + z * prev
         dst[dr + k * drow, dc + k * dcol] = cur
         prev = cur
     k1 = s1
@@ -386,6 +389,115 @@ def _prefilter_cols(offset: int, coef: wp.array2d(dtype=float), height: int, nco
     if seg == nseg - 1:
         coef[height + 2, x] = coef[height, x]
         coef[height + 3, x] = coef[height - 1, x]
+
+
+@wp.kernel
+def _prefilter_entries_rows_frames(offset: int, frames: wp.array3d(dtype=Any), width: int, height: int, nseg: int,
+                                   entries: wp.array3d(dtype=wp.vec2)):
+    """:func:`_prefilter_entries_rows` of frame ``f`` (``tid = (f * (nseg - 1) + b - 1) * height + y``)."""
+    t = wp.tid() + offset
+    per = height * (nseg - 1)
+    f = t // per
+    u = t - f * per
+    y = u % height
+    b = u // height + 1
+    s, _e = segment_starts(width, nseg, b)
+    entries[f, y, b] = segment_entry_values(frames[f], y, 0, 0, 1, s)
+
+
+@wp.kernel(launch_bounds=cuda_launch_bounds("_prefilter_rows_frames"))
+def _prefilter_rows_frames(offset: int, frames: wp.array3d(dtype=Any), coef: wp.array3d(dtype=float), width: int,
+                           height: int, nseg: int, entries: wp.array3d(dtype=wp.vec2), bad: wp.array(dtype=wp.int32)):
+    """:func:`_prefilter_rows` of segment ``seg`` of row ``y`` of frame ``f`` (``tid = (f * nseg + seg) *
+    height + y``) reading the raw frame (8/16-bit or float32: the conversion to float happens here) and
+    flagging a non-finite pixel in ``bad[f]`` (the frame's on-device validity check, fused into the pass
+    that reads it: every pixel is in one segment)."""
+    t = wp.tid() + offset
+    per = height * nseg
+    f = t // per
+    u = t - f * per
+    y = u % height
+    seg = u // height
+    c = coef[f]
+    img = frames[f]
+    r = y + 2
+    s0, s1 = segment_starts(width, nseg, seg)
+    for x in range(s0, s1):
+        if not wp.isfinite(float(img[y, x])):
+            bad[f] = 1
+    ec = float(0.0)
+    ea = float(0.0)
+    if seg > 0:
+        ec = entries[f, y, seg][0]
+    if seg < nseg - 1:
+        ea = entries[f, y, seg + 1][1]
+    filter_segment(img, y, 0, c, r, 2, 0, 1, width, s0, s1, ec, ea)
+    if seg == 0:
+        c[r, 1] = c[r, 3]
+        c[r, 0] = c[r, 4]
+    if seg == nseg - 1:
+        c[r, width + 2] = c[r, width]
+        c[r, width + 3] = c[r, width - 1]
+
+
+for _dtype in (wp.uint8, wp.uint16, wp.float32):  # the frame types of the device-resident path
+    wp.overload(_prefilter_entries_rows_frames, {"frames": wp.array3d(dtype=_dtype)})
+    wp.overload(_prefilter_rows_frames, {"frames": wp.array3d(dtype=_dtype)})
+
+
+@wp.kernel
+def _prefilter_entries_cols_frames(offset: int, coef: wp.array3d(dtype=float), height: int, ncols: int, nseg: int,
+                                   entries: wp.array3d(dtype=wp.vec2)):
+    """:func:`_prefilter_entries_cols` of frame ``f`` (``tid = (f * (nseg - 1) + b - 1) * ncols + x``)."""
+    t = wp.tid() + offset
+    per = ncols * (nseg - 1)
+    f = t // per
+    u = t - f * per
+    x = u % ncols
+    b = u // ncols + 1
+    s, _e = segment_starts(height, nseg, b)
+    entries[f, x, b] = segment_entry_values(coef[f], 2, x, 1, 0, s)
+
+
+@wp.kernel(launch_bounds=cuda_launch_bounds("_prefilter_cols_frames"))
+def _prefilter_cols_frames(offset: int, coef: wp.array3d(dtype=float), height: int, ncols: int, nseg: int,
+                           entries: wp.array3d(dtype=wp.vec2)):
+    """:func:`_prefilter_cols` of segment ``seg`` of column ``x`` of frame ``f``
+    (``tid = (f * nseg + seg) * ncols + x``)."""
+    t = wp.tid() + offset
+    per = ncols * nseg
+    f = t // per
+    u = t - f * per
+    x = u % ncols
+    seg = u // ncols
+    c = coef[f]
+    s0, s1 = segment_starts(height, nseg, seg)
+    ec = float(0.0)
+    ea = float(0.0)
+    if seg > 0:
+        ec = entries[f, x, seg][0]
+    if seg < nseg - 1:
+        ea = entries[f, x, seg + 1][1]
+    filter_segment(c, 2, x, c, 2, x, 1, 0, height, s0, s1, ec, ea)
+    if seg == 0:
+        c[1, x] = c[3, x]
+        c[0, x] = c[4, x]
+    if seg == nseg - 1:
+        c[height + 2, x] = c[height, x]
+        c[height + 3, x] = c[height - 1, x]
+
+
+@wp.kernel
+def _expand_rows4_frames(offset: int, c: wp.array2d(dtype=float), c4: wp.array2d(dtype=wp.vec4), pitch: int, n: int):
+    """:func:`_expand_rows4` of entry ``k`` of frame ``f`` (``tid = f * n + k``)."""
+    t = wp.tid() + offset
+    f = t // n
+    k = t - f * n
+    x = k % pitch
+    if x >= 1 and x + 2 < pitch:
+        c4[f, k] = wp.vec4(c[f, k - 1], c[f, k], c[f, k + 1], c[f, k + 2])
+    else:
+        c4[f, k] = wp.vec4(0.0)
 
 
 @wp.func
@@ -474,17 +586,19 @@ def _check_min_size(arr: np.ndarray, name: str) -> None:
 _SCRATCH = threading.local()
 
 
-def _entries_buffer(device: str, rows: int, nseg: int) -> wp.array:
-    """The segment entry values' scratch (rows x nseg vec2, a few hundred KB at most), kept per
-    thread, device and CUDA stream and grown when too small, so frames allocate nothing here: one
-    thread's calls on one stream run in order, so the next call cannot overwrite values in use."""
+def _entries_buffer(device: str, shape: tuple) -> wp.array:
+    """The segment entry values' scratch (vec2 of ``shape``: (rows, nseg) or (frames, rows, nseg), a
+    few hundred KB per frame), kept per thread, device, CUDA stream and number of dimensions and grown
+    when too small, so frames allocate nothing here: one thread's calls on one stream run in order,
+    so the next call cannot overwrite values in use."""
     cache = getattr(_SCRATCH, "entries", None)
     if cache is None:
         cache = _SCRATCH.entries = {}
-    key = device if device.startswith("cpu") else (device, wp.get_stream(device).cuda_stream)
+    key = (device if device.startswith("cpu") else (device, wp.get_stream(device).cuda_stream), len(shape))
     buf = cache.get(key)
-    if buf is None or buf.shape[0] < rows or buf.shape[1] < nseg:
-        buf = wp.empty((rows, nseg), dtype=wp.vec2, device=device)
+    if buf is None or any(have < need for have, need in zip(buf.shape, shape)):
+        grown = shape if buf is None else tuple(max(a, b) for a, b in zip(buf.shape, shape))
+        buf = wp.empty(grown, dtype=wp.vec2, device=device)
         cache[key] = buf
     return buf
 
@@ -530,7 +644,8 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
         arr = as_float32_image(image, "image")
         _check_min_size(arr, "image")
         h, w = arr.shape
-        img_wp = wp.array(arr, dtype=wp.float32, device=device)
+        # on the CPU the (C-contiguous float32) array is read in place: no copy, no allocation
+        img_wp = wp.array(arr, dtype=wp.float32, device=device, copy=not device.startswith("cpu"))
     shape_p = (h + 2 * PAD, w + 2 * PAD)
     if out is None:
         out = wp.empty(shape_p, dtype=wp.float32, device=device)
@@ -543,7 +658,7 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
     nseg_r = prefilter_segments(w)
     nseg_c = prefilter_segments(h)
     ncols = w + 2 * PAD
-    entries = _entries_buffer(device, max(h, ncols), max(nseg_r, nseg_c))
+    entries = _entries_buffer(device, (max(h, ncols), max(nseg_r, nseg_c)))
     if nseg_r > 1:
         launch_1d(_prefilter_entries_rows, h * (nseg_r - 1), [0, img_wp, w, h, nseg_r, entries], device,
                   offset_index=0, min_chunk=256)
@@ -555,6 +670,49 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
     launch_1d(_prefilter_cols, ncols * nseg_c, [0, out, h, ncols, nseg_c, entries], device, offset_index=0,
               min_chunk=64)
     return PaddedImage(out, "bspline", (h, w), device)
+
+
+#: frame dtypes the device-resident path reads directly (converted to float in the prefilter kernel)
+FRAME_DTYPES = {np.dtype(np.uint8): wp.uint8, np.dtype(np.uint16): wp.uint16, np.dtype(np.float32): wp.float32}
+
+
+def bspline_frames(frames: wp.array, n_frames: int, coef: wp.array, rows4: wp.array, bad: wp.array) -> None:
+    """B-spline coefficients of the first ``n_frames`` frames of a stack, in IC-GN's row-expanded layout.
+
+    The buffers are the caller's, allocated once (:class:`kernels.frames.FrameTracker`); nothing is
+    allocated here. ``frames`` (F, H, W) uint8/uint16/float32 on the device (read as they are: grey
+    levels keep their scale); ``coef`` (F, H + 4, W + 4) float32; ``rows4`` (F, (H + 4) (W + 4)) vec4;
+    ``bad`` (F,) int32 zeroed by the caller, set to 1 for a frame holding a non-finite pixel. Each
+    frame's coefficients equal :func:`bspline_coefficients` and :func:`expand_rows4` of the frame as
+    float32 bit for bit (the same segmented filter, built from the same wp.funcs).
+    """
+    if frames.dtype not in FRAME_DTYPES.values() or frames.ndim != 3:
+        raise ValueError(f"frames must be a 3-D uint8/uint16/float32 wp.array, got ndim={frames.ndim}, dtype={frames.dtype}")
+    f, h, w = frames.shape
+    if not 1 <= n_frames <= min(f, coef.shape[0], rows4.shape[0], bad.shape[0]):
+        raise ValueError(f"n_frames must be in [1, {min(f, coef.shape[0], rows4.shape[0], bad.shape[0])}], got {n_frames}")
+    if h < 4 or w < 4 or coef.shape[1:] != (h + 2 * PAD, w + 2 * PAD):
+        raise ValueError(f"coef must be (F, {h + 2 * PAD}, {w + 2 * PAD}) for frames of {h}x{w} (>= 4x4), got {coef.shape}")
+    device = str(frames.device)
+    pitch = w + 2 * PAD
+    n = (h + 2 * PAD) * pitch
+    # the segmented prefilter of bspline_coefficients, per frame (the same wp.funcs: the same bits)
+    nseg_r = prefilter_segments(w)
+    nseg_c = prefilter_segments(h)
+    entries = _entries_buffer(device, (n_frames, max(h, pitch), max(nseg_r, nseg_c)))
+    if nseg_r > 1:
+        launch_1d(_prefilter_entries_rows_frames, n_frames * h * (nseg_r - 1), [0, frames, w, h, nseg_r, entries],
+                  device, offset_index=0, min_chunk=256)
+    launch_1d(_prefilter_rows_frames, n_frames * h * nseg_r, [0, frames, coef, w, h, nseg_r, entries, bad], device,
+              offset_index=0, min_chunk=64)
+    if nseg_c > 1:
+        launch_1d(_prefilter_entries_cols_frames, n_frames * pitch * (nseg_c - 1), [0, coef, h, pitch, nseg_c, entries],
+                  device, offset_index=0, min_chunk=256)
+    launch_1d(_prefilter_cols_frames, n_frames * pitch * nseg_c, [0, coef, h, pitch, nseg_c, entries], device,
+              offset_index=0, min_chunk=64)
+    flat = coef.reshape((coef.shape[0], n))
+    launch_1d(_expand_rows4_frames, n_frames * n, [0, flat, rows4, pitch, n], device, offset_index=0,
+              min_chunk=1 << 16)
 
 
 def expand_rows4(coeffs: PaddedImage, out: wp.array | None = None) -> wp.array:
@@ -632,5 +790,5 @@ def interpolate(image_or_coeffs, points, method: str = "bspline", gradient: bool
         keys = int(method == "keys")
         wp.launch(_interp_kernel, dim=n, inputs=[prepared.flat, prepared.pitch, w, h, pts, keys, int(gradient), out],
                   device=device)
-    res = out.numpy()[:n]
+    res = host_copy(out)[:n]
     return res if gradient else res[:, 0]

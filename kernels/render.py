@@ -46,7 +46,7 @@ import sys
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import host_copy, resolve_device
 from ._launch import launch_1d
 from .checks import positive_int
 from .distortion import distort_normalized, distortion_coefficients, undistort_step, vec8f
@@ -784,7 +784,7 @@ def render_image(camera: LensCamera, scene: SceneGeom, sensor: SensorModel, *, s
     if win[2] > 0 and win[2] * win[3] < n:
         args[7] = 1  # then the window alone, with every sample: a launch of its own balances the CPU chunks
         launch_1d(_render_kernel, win[2] * win[3], args, device, 9, min_chunk=256)
-    return out.numpy().reshape(camera.height, camera.width)
+    return host_copy(out).reshape(camera.height, camera.width)
 
 
 def _pixel_window(window, width: int, height: int) -> tuple[int, int, int, int]:

@@ -20,9 +20,10 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._device import resolve_device
+from ._device import host_copy, resolve_device
 from ._launch import launch_1d
 from .checks import as_points, non_negative_int, odd_int
+from .conventions import round_half_away
 from .images import as_float32_image
 
 wp.set_module_options({"enable_backward": False})
@@ -169,7 +170,7 @@ def _int_pairs(a, n: int, name: str) -> np.ndarray:
         raise ValueError(f"{name} contains NaN or infinite values")
     if arr.size and np.max(np.abs(arr)) > MAX_START:
         raise ValueError(f"{name} must lie within +-{MAX_START} px, got a value of {np.max(np.abs(arr)):.6g}")
-    return np.ascontiguousarray(np.rint(arr), dtype=np.int32)
+    return np.ascontiguousarray(round_half_away(arr), dtype=np.int32)
 
 
 def useful_radius(shape, points, subset: int, start=None) -> int:
@@ -184,7 +185,7 @@ def useful_radius(shape, points, subset: int, start=None) -> int:
     """
     h, w = (int(v) for v in shape)
     r = odd_int(subset, "subset") // 2
-    c = np.rint(as_points(points, allow_empty=True)).astype(np.int64)
+    c = round_half_away(as_points(points, allow_empty=True)).astype(np.int64)
     st = np.zeros_like(c) if start is None else _int_pairs(start, c.shape[0], "start").astype(np.int64)
     inside = (c[:, 0] - r >= 0) & (c[:, 1] - r >= 0) & (c[:, 0] + r <= w - 1) & (c[:, 1] + r <= h - 1)
     if not np.any(inside) or w < 2 * r + 1 or h < 2 * r + 1:
@@ -263,7 +264,7 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
     st = np.zeros((n, 2), np.int32) if start is None else _int_pairs(start, n, "start")
     h, w = ref.shape
     radius = min(radius, useful_radius((h, w), pts, subset, st))
-    centres = wp.array(np.rint(pts).astype(np.int32), dtype=wp.vec2i, device=device)
+    centres = wp.array(round_half_away(pts).astype(np.int32), dtype=wp.vec2i, device=device)
     best = wp.empty(n, dtype=wp.vec2i, device=device)
     best_cc = wp.empty(n, dtype=wp.float32, device=device)
     launch_1d(
@@ -272,7 +273,7 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
          best, best_cc],
         device, offset_index=0, min_chunk=1,
     )
-    return best.numpy().astype(np.int32), best_cc.numpy()
+    return host_copy(best).astype(np.int32), host_copy(best_cc)
 
 
 def phase_correlation(reference, current) -> tuple[int, int, float]:
@@ -320,7 +321,7 @@ def reduce(image, device=None) -> np.ndarray:
     dst = wp.empty((h2, w2), dtype=wp.float32, device=device)
     launch_1d(_reduce_rows, h, [0, src, tmp, w], device, offset_index=0, min_chunk=64)
     launch_1d(_reduce_cols, w2, [0, tmp, dst, h], device, offset_index=0, min_chunk=64)
-    return dst.numpy()
+    return host_copy(dst)
 
 
 def pyramid(image, levels: int, device=None) -> list[np.ndarray]:

@@ -13,6 +13,11 @@ undistortion nor a micrometre-level 3-D point. One thread handles one point; the
 problems are tiny (2x2 Newton, a 4x4 SVD, a 3x3 Gauss-Newton), so float64 costs little
 (CPU throughput and the measured effect of float32 in docs/stereo.md).
 
+Results stay on the device: the launchers return ``wp.array`` outputs (written in place when
+``out=`` is given, so a reused ``out`` is overwritten by the next call). ``.numpy()`` of a CPU array
+is a view of that buffer, of a CUDA array a copy; for host results that are the caller's on every
+device use :func:`kernels._device.host_copy` (as :mod:`dic.triangulate` does).
+
 Algorithms
 ----------
 * Undistortion: Newton's method on ``distort(x) = x_d`` with the analytic 2x2 Jacobian and

@@ -19,7 +19,16 @@ from kernels._launch import CUDA_LAUNCH, DEFAULT_CUDA_BLOCK_DIM, cuda_block_dim,
 BOUNDS = {
     "_icgn_1st": (64, 0),  # 80, 0 (capped by launch bounds (128, 8), no spill)
     "_icgn_2nd": (168, 0),
-    "_icgn_1st_tiled": (64, 0),  # prototype (kernels/icgn_tiled.py)  # 166, 168 (pivot swap of the 6x6 solve)
+    "_icgn_1st_tiled": (64, 0),  # prototype (kernels/icgn_tiled.py)
+    "_icgn_frames_1st": (80, 0),  # kernels/frames.py (frames x POIs)
+    "_icgn_frames_2nd": (168, 0),
+    "_propagate_guess": (40, 0),
+    "_pack_results": (32, 0),
+    "_prefilter_rows_frames": (48, 0),  # every frame dtype (uint8, uint16, float32)
+    "_prefilter_cols_frames": (40, 0),
+    "_prefilter_entries_rows_frames": (32, 0),
+    "_prefilter_entries_cols_frames": (32, 0),
+    "_expand_rows4_frames": (28, 0),  # 166, 168 (pivot swap of the 6x6 solve)
     "_prepare_subsets_1st": (183, 0),  # one kernel for both orders: 255, 7232
     "_prepare_subsets_2nd": (255, 3480),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled)
     "_reference_gradients": (40, 0),
@@ -31,7 +40,7 @@ BOUNDS = {
     "_prefilter_entries_rows": (32, 0),  # new: segment entry values
     "_prefilter_entries_cols": (32, 0),
 }
-MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled")
+MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled", "kernels.frames")
 
 
 @pytest.fixture(scope="session")
@@ -49,8 +58,10 @@ def sm90_resources(tmp_path_factory):
         for path in cubins:
             for mangled, res in cubin.kernel_resources(path).items():
                 if mangled.endswith("_cuda_kernel_forward"):
-                    found[mangled.split("_cuda_kernel_forward")[0].rsplit("_", 1)[0]] = res
-    return found
+                    name = mangled.split("_cuda_kernel_forward")[0].rsplit("_", 1)[0]
+                    found.setdefault(name, []).append(res)  # overloads (one per dtype) share a name
+    # the most demanding overload of each kernel
+    return {k: max(v, key=lambda r: (r.registers, r.stack)) for k, v in found.items()}
 
 
 @pytest.mark.slow
@@ -69,9 +80,9 @@ def test_every_compiled_kernel_has_a_bound(sm90_resources):
 
 
 def test_block_size_table_matches_kernels_and_modules():
-    from kernels import icgn, icgn_tiled, interp
+    from kernels import frames, icgn, icgn_tiled, interp
 
-    kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
+    kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled, frames) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)
     for name, kernel in kernels.items():

@@ -26,6 +26,7 @@ import numpy as np
 import warp as wp
 
 from kernels.conventions import Status
+from kernels.frames import FrameTracker
 from kernels.icgn import (
     CurrentImage,
     IcgnResult,
@@ -72,6 +73,7 @@ class Correlator:
         self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std)
         self.reference_status = self.subsets.status.numpy().astype(np.int32)
         self._out = None
+        self._frames = {}  # device-resident frame trackers by frame dtype (run_frame)
         self._textured = None
         self._indexed = None  # buffers of run(): allocated once, on first use
         self._spacing = None
@@ -104,7 +106,23 @@ class Correlator:
         """
         res = icgn(self.subsets, current, guess=guess, max_iter=self.max_iter, tol=self.tol, out=self._out)
         self._out = res
-        return {k: np.array(v, copy=True) for k, v in res.numpy().items()}
+        return res.numpy()
+
+    def run_frame(self, frame, guess: np.ndarray, name: str = "current") -> dict:
+        """IC-GN of every POI into a raw frame through the device-resident path (:class:`kernels.frames.FrameTracker`).
+
+        ``frame``: a 2-D uint8, uint16 or float32 array of the reference's shape (NumPy, ``wp.array`` or torch
+        tensor on this device), converted and checked (NaN/inf: ``ValueError`` naming ``name``) on the device;
+        no buffer is allocated after the first frame of each dtype. Host arrays (copies) as :meth:`run_all`,
+        bit for bit those of ``run_all(prepare_current(frame), guess)``.
+        """
+        dt = np.dtype(frame.dtype) if isinstance(frame, np.ndarray) else None
+        if dt is None:
+            raise ValueError(f"{name} must be a NumPy array here, got {type(frame).__name__}")
+        tracker = self._frames.get(dt)
+        if tracker is None:
+            tracker = self._frames[dt] = FrameTracker(self.subsets, dt, max_iter=self.max_iter, tol=self.tol)
+        return tracker.track(frame, guess=guess, name=name)
 
     def run_device(self, current, guess) -> IcgnResult:
         """IC-GN of every POI; the results stay on the device (:class:`kernels.icgn.IcgnResult`).
@@ -176,7 +194,7 @@ class Correlator:
             _upload(b.idx[:m], idx.astype(np.int32))
             sub = gather_subsets(self.subsets, b.idx, m, b.subsets, points=self.points[idx])
         res = icgn(sub, cur, guess=b.guess[:m], max_iter=self.max_iter, tol=self.tol, out=_rows(b.out, m))
-        return {name: np.array(a, copy=True) for name, a in res.numpy().items()}
+        return res.numpy()  # host copies the caller owns (kernels._device.host_copy)
 
 
 @dataclass

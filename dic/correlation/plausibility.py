@@ -20,6 +20,8 @@ import numbers
 
 import numpy as np
 
+from kernels.conventions import round_half_away
+
 __all__ = ["textured_pixels", "textured_fraction", "implausible_warps"]
 
 
@@ -136,8 +138,8 @@ def textured_fraction(reference_image, points, subset: int, *, window: int = 7, 
     H, W = mask.shape
     integral = cv2.integral(mask.astype(np.uint8), sdepth=cv2.CV_64F)  # (H + 1, W + 1)
     half = subset // 2
-    col = np.rint(pts[:, 0]).astype(np.int64)
-    row = np.rint(pts[:, 1]).astype(np.int64)
+    col = round_half_away(pts[:, 0]).astype(np.int64)  # the kernels' subset centres (half away from zero)
+    row = round_half_away(pts[:, 1]).astype(np.int64)
     c0 = np.clip(col - half, 0, W)
     c1 = np.clip(col + half + 1, 0, W)
     r0 = np.clip(row - half, 0, H)

@@ -18,6 +18,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from kernels.conventions import round_half_away
+
 from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import (
@@ -432,7 +434,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 if fallback is None or fallback == r:
                     raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
                 return get_ref(fallback)
-            whole = np.round(pts)
+            whole = round_half_away(pts)
             tracker0_holder[0] = current = None  # free the previous reference's data before preparing the new one
             image = _host(images[r])  # a reference is prepared on the host (once per reference)
             current = _Ref(r, image, state, tracker_for(image, whole), pts - whole)
@@ -633,7 +635,7 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
             if state.reference_index != cur.index or r == cur.index:
                 raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
             return
-        whole = np.round(pts)
+        whole = round_half_away(pts)
         cur = _Ref(r, images[r], state, None, pts - whole)
         cur_data = scattered(r, images[r], whole, _digest(images[r]))
 
