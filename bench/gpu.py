@@ -26,14 +26,18 @@ written again after each one, so that a run cut short keeps what it measured:
    launch, an ROI of whole rows of a step-2 grid) and a step sweep (2, 5, 10), both orders, 2048^2.
 6. ``icgn``: single-frame IC-GN throughput (:func:`bench.icgn.bench_device`: 2048^2, step 2,
    1 028 196 POIs, both orders; ``--quick``: 256^2, step 4).
-7. ``search``: the initial-guess searches (zncc, fft, pyramid, rg) on a 512^2 pair (step 5) moved by
+7. ``pipeline``: the frame pipeline on a 1024^2 8-bit sequence of 20 frames, step 5: today's API
+   (``Tracker.track``) against the device-resident loop (:class:`kernels.frames.FrameTracker`, host and
+   device frames) and, on CUDA, a CUDA-graph replay of it; the device loop and the replay must equal the
+   host loop bitwise.
+8. ``search``: the initial-guess searches (zncc, fft, pyramid, rg) on a 512^2 pair (step 5) moved by
    (7.3, -4.6) px: seconds per frame, valid fraction, RMS error against the exact shift.
-8. ``sequence``: :func:`dic.sequence.track_sequence` on a synthetic 1024^2 sequence of 50 frames
+9. ``sequence``: :func:`dic.sequence.track_sequence` on a synthetic 1024^2 sequence of 50 frames
    (a rigid motion growing by (0.1, -0.05) px per frame), step 5, fixed reference, strain and the
    result file included, frames given as torch tensors on the device and as NumPy arrays; reported as
    POI/s over the whole run against the track-only rate of one frame (``Tracker.track`` of a
    tensor) measured in the same run (``--quick``: 128^2, 4 frames, step 8).
-9. ``tests``: ``pytest -m cuda`` (tests marked ``cuda`` and every test of the ``device`` fixture on
+10. ``tests``: ``pytest -m cuda`` (tests marked ``cuda`` and every test of the ``device`` fixture on
    ``cuda:0``, marked by tests/conftest.py) in a subprocess with the time left of ``--budget``
    (skipped on the CPU and with ``--quick``).
 """
@@ -57,7 +61,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESULTS = os.path.join(ROOT, "bench", "results")
 REFERENCE = os.path.join(RESULTS, "gpu_reference_cpu.npz")
 #: the sections, in the order they run (the fast correctness checks first, the CUDA test suite last)
-SECTIONS = ("reference", "outputs", "prepare", "kernel", "icgn", "search", "sequence", "tests")
+SECTIONS = ("reference", "outputs", "prepare", "kernel", "icgn", "pipeline", "search", "sequence", "tests")
 REF_CASE = {"size": 256, "shift": (0.35, -0.2), "seed": 2024, "step": 8, "subset": 21}
 
 
@@ -434,6 +438,77 @@ def output_checks(device: str) -> dict:
     return out
 
 
+def section_pipeline(device: str, quick: bool) -> dict:
+    """The frame pipeline: today's API (``Tracker.track`` of host 8-bit frames, search off), the
+    device-resident loop (:class:`kernels.frames.FrameTracker`: host frames and host results; frames
+    already on the device and results left there) and, on CUDA, a CUDA-graph replay of that loop (one
+    graph launch per frame). Same frames, same propagated guesses: the device loop and the replay must give
+    bitwise the host loop's last frame."""
+    import warp as wp
+
+    from dic.track import Tracker
+    from kernels.frames import FrameTracker
+
+    size, n, step = (128, 3, 8) if quick else (1024, 20, 5)
+    ref, frames, motion = _sequence_frames(size, n, device)
+    ref8 = np.clip(np.round(ref), 0, 255).astype(np.uint8)
+    frames8 = [np.clip(np.round(f), 0, 255).astype(np.uint8) for f in frames]
+    tracker = Tracker(ref8, step=step, search=None, device=device)
+    npoi = tracker.n_points
+    res = {"parameters": {"size": size, "frames": n, "step": step, "subset": 21, "n_points": int(npoi),
+                          "motion_per_frame_px": list(motion), "frames_dtype": "uint8"}}
+
+    def rate(seconds):
+        return {"seconds": seconds, "frames_per_s": n / seconds, "poi_per_s": n * npoi / seconds}
+
+    tracker.track(frames8[0])  # warm-up
+    _sync(device)
+    s = time.perf_counter()
+    for f in frames8:
+        tracker.track(f)
+    _sync(device)
+    res["tracker_api"] = rate(time.perf_counter() - s)
+
+    ft = FrameTracker(tracker.correlator.subsets, np.uint8, max_iter=tracker.max_iter, tol=tracker.tol,
+                      zncc_min=tracker.zncc_min)
+    ft.track(frames8[0])  # warm-up
+    ft.reset()
+    _sync(device)
+    s = time.perf_counter()
+    for f in frames8:
+        host_last = ft.track(f)
+    _sync(device)
+    res["frame_tracker_host"] = rate(time.perf_counter() - s)
+
+    on_device = [wp.array(f, dtype=wp.uint8, device=device) for f in frames8]
+    ft.reset()
+    _sync(device)
+    s = time.perf_counter()
+    for f in on_device:
+        last = ft.track_device(f)
+    _sync(device)
+    res["frame_tracker_device"] = rate(time.perf_counter() - s)
+    dev_last = last.numpy()
+    res["device_loop_bitwise_equal"] = bool(all(np.array_equal(dev_last[k], host_last[k], equal_nan=True)
+                                                for k in host_last))
+    if device.startswith("cuda"):
+        graph = ft.capture_graph()
+        ft.reset()
+        _sync(device)
+        s = time.perf_counter()
+        for f in on_device:
+            wp.copy(ft.frame_buffer, f)
+            wp.capture_launch(graph)
+        _sync(device)
+        res["graph_replay"] = rate(time.perf_counter() - s)
+        got = ft.results.numpy()
+        res["graph_replay_bitwise_equal"] = bool(all(np.array_equal(got[k], host_last[k], equal_nan=True)
+                                                     for k in host_last))
+    else:
+        res["graph_replay"] = {"skipped": "CUDA graphs need a CUDA device"}
+    return res
+
+
 def section_tests(device: str, seconds: float) -> dict:
     if not device.startswith("cuda"):
         return {"skipped": "the CUDA tests need a CUDA device"}
@@ -523,6 +598,8 @@ def main(argv=None) -> dict:
                     result[name] = section_kernel(device, args.quick)
                 elif name == "search":
                     result[name] = section_search(device, args.quick)
+                elif name == "pipeline":
+                    result[name] = section_pipeline(device, args.quick)
                 elif name == "icgn":
                     result[name] = section_icgn(device, args.quick)
                 elif name == "sequence":
@@ -554,6 +631,10 @@ def _brief(name: str, r: dict) -> str:
     if name == "kernel":
         return ", ".join(f"order {o}: fill {rows[0]['poi_per_s']:.3g}..{rows[-1]['poi_per_s']:.3g} POI/s"
                          for o, rows in r["fill"].items())
+    if name == "pipeline":
+        return (f"Tracker API {r['tracker_api']['poi_per_s']:.3g} POI/s, FrameTracker host "
+                f"{r['frame_tracker_host']['poi_per_s']:.3g}, device {r['frame_tracker_device']['poi_per_s']:.3g}, "
+                f"graph {r['graph_replay'].get('poi_per_s', float('nan')):.3g}; bitwise {r['device_loop_bitwise_equal']}")
     if name == "search":
         return ", ".join(f"{m} {r[m]['seconds']:.2f} s valid {r[m]['valid_fraction']:.3f}"
                          for m in ("zncc", "fft", "pyramid", "rg"))

@@ -463,6 +463,40 @@ class FrameTracker:
             self._check_bad(1, copied=False)
         return self._results[0]
 
+    @property
+    def frame_buffer(self) -> wp.array:
+        """The device buffer (H, W) of ``frame_dtype`` that a graph of :meth:`capture_graph` reads its frame from."""
+        return self._raw[0]
+
+    @property
+    def results(self) -> IcgnResult:
+        """The device results of the last single frame (views, overwritten by the next frame)."""
+        return self._results[0]
+
+    def capture_graph(self):
+        """Capture one frame's device work as a CUDA graph (``wp.Graph``): the prefilter of :attr:`frame_buffer`
+        with its finiteness flag, IC-GN from the propagated guess, and the guess propagation.
+
+        Replay per frame: copy the frame into :attr:`frame_buffer` on the device (``wp.copy``), then
+        ``wp.capture_launch(graph)``; the results are in :attr:`results` (on the device). One launch of the
+        whole frame instead of about ten kernel launches. Track one frame first (modules loaded, scratch
+        allocated). CUDA only: on the CPU this is a ``ValueError``.
+        """
+        if not self._cuda:
+            raise ValueError(f"CUDA graphs need a CUDA device; this tracker runs on {self.device}")
+        if self.frames_tracked == 0:
+            raise ValueError("track one frame before capturing (kernels loaded, scratch buffers allocated)")
+        wp.synchronize_device(self.device)
+        with wp.ScopedCapture(device=self.device) as capture:
+            self._bad.zero_()
+            bspline_frames(self._raw, 1, self._coef, self._rows4, self._bad)
+            _launch_icgn_frames(self.subsets, self._rows4, 1, self._guess, 0, self.max_iter, self.tol, self._params,
+                                self._zncc, self._iterations, self._status)
+            launch_1d(_propagate_guess, self.n_points,
+                      [0, 1, self._params, self._zncc, self._status, self._bad, self._zncc_min32, self._guess2d],
+                      self.device, offset_index=0, min_chunk=1 << 12)
+        return capture.graph
+
     def track_torch(self, frame, guess=None) -> dict:
         """:meth:`track_device` with torch tensors out (``wp.to_torch``: no copy; CUDA tensors stay on the GPU):
         ``params``, ``zncc``, ``iterations``, ``status``. Overwritten by the next call: ``.clone()`` what you keep."""

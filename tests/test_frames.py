@@ -272,3 +272,18 @@ def test_prepare_current_reuses_its_buffers(sequence, allocations):
     assert allocations == []
     assert again.coef.ptr == first.coef.ptr and again.rows4.ptr == first.rows4.ptr
     assert np.array_equal(again.rows4.numpy(), fresh.rows4.numpy())
+
+
+def test_graph_capture_is_cuda_only_and_results_view_the_last_frame(sequence, points):
+    """``capture_graph`` (the CUDA-graph replay that bench.gpu times) refuses the CPU with a clear message;
+    ``results`` and ``frame_buffer`` are the device views a replay reads and writes."""
+    bits, ref, frames = sequence
+    subsets = _tracker(ref, points, 1).correlator.subsets
+    dtype, wdt = (np.uint8, wp.uint8) if bits == 8 else (np.uint16, wp.uint16)
+    ft = FrameTracker(subsets, dtype)
+    with pytest.raises(ValueError, match="CUDA graphs need a CUDA device"):
+        ft.capture_graph()
+    got = ft.track(frames[0].astype(dtype))
+    assert ft.frame_buffer.shape == SHAPE and ft.frame_buffer.dtype == wdt
+    for name in got:
+        assert np.array_equal(getattr(ft.results, name).numpy(), got[name], equal_nan=True)

@@ -26,6 +26,9 @@ def test_quick_cpu_run_writes_every_section(tmp_path):
     assert all(r["poi_per_s"] > 0 for o in ("1", "2", "1_tiled") for r in kern["fill"][o])
     assert set(kern["step"]["2"]) == {"4", "8"}
     assert all(saved["prepare"]["summary"][k] > 0 for k in ("reference_image_s", "subsets_order1_s", "current_image_s"))
+    pipe = saved["pipeline"]  # the device-resident loop gives the host loop's results bitwise
+    assert pipe["device_loop_bitwise_equal"] and pipe["frame_tracker_device"]["poi_per_s"] > 0
+    assert pipe["graph_replay"]["skipped"].startswith("CUDA graphs")
     for method in ("zncc", "fft", "pyramid", "rg"):  # a 7.3 px move that IC-GN alone cannot reach
         assert saved["search"][method]["valid_fraction"] > 0.85
         assert saved["search"][method]["rms_error_px"] < 0.05
