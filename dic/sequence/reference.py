@@ -10,9 +10,10 @@ Strategies (``reference=`` of :func:`dic.sequence.track_sequence`, ``--reference
     frame ``k`` against frame ``N * floor((k - 1) / N)`` (the reference moves every N frames).
 ``"auto"``
     frame ``k`` against the previous frame's reference; when the result's valid fraction (among the
-    points valid in the reference) falls below ``auto_valid`` (default 0.95) or the median ZNCC of its
-    valid points below ``auto_zncc`` (default 0.95), the reference moves to frame ``k - 1`` and
-    frame ``k`` is tracked again against it.
+    points the reference can track: valid in it or placed by local interpolation, below) falls
+    below ``auto_valid`` (default 0.95) or the median ZNCC of its valid points below ``auto_zncc``
+    (default 0.95), the reference moves to frame ``k - 1`` (the newest frame there is) and frame
+    ``k`` is tracked again against it.
 
 Results are always Lagrangian, at the original POIs ``X0`` of the reference image: a new reference
 ``r`` tracks the points where the original POIs are in frame ``r`` (``X_r = X0 + d_r(X0)``; invalid

@@ -132,7 +132,7 @@ def _guess(previous):
 
 
 def _quality(raw, ref_valid) -> tuple[float, float]:
-    """Valid fraction (among the points valid in the reference) and median ZNCC of the valid points."""
+    """Valid fraction (among the points the reference can track: ``_Ref.ok``) and median ZNCC of the valid points."""
     valid = np.asarray(raw.valid, bool) & ref_valid
     n_ref = int(np.count_nonzero(ref_valid))
     frac = np.count_nonzero(valid) / n_ref if n_ref else 0.0
