@@ -27,8 +27,14 @@ are part of the run). Three parts (``--parts``):
   (``--noise``). POIs: the grid points whose subsets stay in the image to the last frame (a box
   ROI). For each reference mode (``--modes``: fixed, incremental, every:N, auto): per frame, the
   fraction of those POIs that is valid and the RMS error of the valid ones' (u, v) against the
-  exact Lagrangian displacement relative to frame 0. Target: the automatic mode keeps >= 95 %
-  valid to the last frame with a final RMS error <= 0.05 px.
+  exact Lagrangian displacement relative to frame 0, the invalid POIs by status (``CONVERGED``
+  there: a ZNCC below ``zncc_min``) and the valid POIs whose place in their reference was
+  interpolated (``reference_interpolated``); at frames 1, 10, 30, 100, 200 and the last, the RMS
+  error binned by the number of speckles that differ between frame 0 and that frame within reach
+  of each POI's subset (``error_by_changed_speckles``: what a changed speckle costs, whatever the
+  reference). Target: the automatic mode keeps >= 95 % valid to the last frame with a final RMS
+  error <= 0.05 px. With ``--keep DIR`` the rendered frames are reused by later calls with the same
+  parameters (modes can run in separate processes).
 
 The engine: ``dic.sequence.track_sequence(reference, frames, out, *, reference=MODE, ...)`` when the
 library has it (issue 13); otherwise (``engine: fallback`` in the results) a loop of
@@ -217,16 +223,25 @@ def rigid_frames(folder, size: int, n_distinct: int = N_DISTINCT):
 
 
 def evolving_frames(folder, size: int, n_frames: int, stretch: float, fade: float, noise: float, device):
-    """The evolving-texture sequence written as PNG files (rendered once, read by every mode)."""
+    """The evolving-texture sequence written as PNG files (rendered once, read by every mode; a ``--keep``
+    folder that holds the frames of the same parameters is reused, so modes can run in separate calls)."""
     from dic.synth import evolving_sequence
 
     seq = evolving_sequence((size, size), n_frames, stretch_final=stretch, fade_fraction=fade, noise_sigma=noise,
                             seed=SEED + 1, device=device)
-    paths = []
-    for k in range(n_frames):
-        path = os.path.join(folder, f"evolving_{k:04d}.png")
+    paths = [os.path.join(folder, f"evolving_{k:04d}.png") for k in range(n_frames)]
+    stamp = os.path.join(folder, "evolving.json")
+    key = {"size": size, "n_frames": n_frames, "stretch": stretch, "fade": fade, "noise": noise, "seed": SEED + 1}
+    try:
+        with open(stamp) as fh:
+            if json.load(fh) == key and all(os.path.exists(p) for p in paths):
+                return seq, paths
+    except (OSError, ValueError):
+        pass
+    for k, path in enumerate(paths):
         _write_png(path, seq[k])
-        paths.append(path)
+    with open(stamp, "w") as fh:
+        json.dump(key, fh)
     return seq, paths
 
 
@@ -325,6 +340,7 @@ def part_evolving(args, run, engine_name, folder):
     a_last = 1.0 + args.stretch
     hx = ((size - 1) / 2 - half) / a_last
     roi = (int(np.ceil(cx - hx)), half, int(np.floor(cx + hx)), size - 1 - half)
+    diag = _changed_speckle_counts(seq, roi, args)
     modes = {}
     for mode in args.modes:
         if not supports(engine_name, mode):
@@ -340,17 +356,26 @@ def part_evolving(args, run, engine_name, folder):
             continue
         wall = time.perf_counter() - t0
         per_frame = []
+        by_change = {}
         for k, fr in frame_results(out, len(paths) - 1):
             pts = np.asarray(fr.points, np.float64)
             valid = np.asarray(fr.valid, bool)
             truth = seq.displacement(pts, k)
-            err = np.hypot(np.asarray(fr.u)[valid] - truth[valid, 0], np.asarray(fr.v)[valid] - truth[valid, 1])
+            err_all = np.hypot(np.asarray(fr.u) - truth[:, 0], np.asarray(fr.v) - truth[:, 1])
+            err = err_all[valid]
+            if k in diag:
+                by_change[str(k)] = _error_by_changes(diag[k](pts), err_all, valid)
             ref_used = next((fr.attrs[a] for a in ("reference_frame", "reference_index", "reference")
                              if a in fr.attrs), None)
+            status = np.asarray(fr.status) if getattr(fr, "status", None) is not None else None
+            why = {} if status is None else {_status_name(c): int(n) for c, n in
+                                              zip(*np.unique(status[~valid], return_counts=True))}
             per_frame.append({"frame": int(k), "valid_fraction": float(valid.mean()),
                               "rms_error_px": float(np.sqrt(np.mean(err**2))) if err.size else None,
                               "max_error_px": float(err.max()) if err.size else None,
-                              "reference_frame": _plain(ref_used)})
+                              "reference_frame": _plain(ref_used),
+                              "invalid_by_status": why,  # CONVERGED/MAX_ITERATIONS here: ZNCC below zncc_min
+                              "reference_interpolated": _plain(fr.attrs.get("reference_interpolated"))})
         os.remove(out)
         last = per_frame[-1] if per_frame else {}
         modes[mode] = {"seconds": wall, "frames_per_s": len(per_frame) / wall if wall else None,
@@ -360,7 +385,7 @@ def part_evolving(args, run, engine_name, folder):
                        "min_valid_fraction": min(f["valid_fraction"] for f in per_frame) if per_frame else None,
                        "max_rms_error_px": max((f["rms_error_px"] for f in per_frame if f["rms_error_px"] is not None),
                                                default=None),
-                       "per_frame": per_frame}
+                       "error_by_changed_speckles": by_change, "per_frame": per_frame}
     return {"frames": args.evolving_frames, "stretch_final": args.stretch, "fade_fraction": args.fade,
             "noise_sigma": args.noise, "roi": list(roi), "speckles_alive": int(np.count_nonzero(seq.alive(0))),
             "speckles_replaced_per_frame": int(seq.n_changed_per_frame),
@@ -368,6 +393,52 @@ def part_evolving(args, run, engine_name, folder):
 
 
 # ----------------------------------------------------------------------------------------------
+
+
+CHANGE_BINS = ((0, 0), (1, 1), (2, 3), (4, 7), (8, None))
+
+
+def _changed_speckle_counts(seq, roi, args) -> dict:
+    """``{frame: counts(points)}`` at a few frames: how many speckles differ between frame 0 and that frame
+    (alive in one, not the other: the net texture change a fixed reference sees) within reach of each
+    POI's subset (their centres in the subset's square grown by the mean radius and 2 blur sigmas)."""
+    from scipy.spatial import cKDTree
+
+    last = args.evolving_frames - 1
+    frames = sorted({k for k in (1, 10, 30, 100, 200, last) if 1 <= k <= last})
+    p = seq.pattern
+    reach = args.subset // 2 + p.radius + 2 * p.blur
+    alive0 = seq.alive(0)
+    out = {}
+    for k in frames:
+        changed = alive0 != seq.alive(k)
+        if not np.any(changed):
+            out[k] = lambda pts: np.zeros(len(pts), np.int64)
+            continue
+        tree = cKDTree(p.centres[changed])
+        out[k] = lambda pts, tree=tree: np.asarray(tree.query_ball_point(pts, reach, p=np.inf, return_length=True))
+    return out
+
+
+def _error_by_changes(counts, err, valid) -> dict:
+    """RMS error of the valid POIs binned by the number of changed speckles in their subset."""
+    rows = {}
+    for lo, hi in CHANGE_BINS:
+        sel = (counts >= lo) & (True if hi is None else counts <= hi)
+        name = f"{lo}" if hi == lo else f"{lo}+" if hi is None else f"{lo}-{hi}"
+        good = sel & valid
+        rows[name] = {"n_points": int(sel.sum()), "n_valid": int(good.sum()),
+                      "rms_error_px": float(np.sqrt(np.mean(err[good] ** 2))) if good.any() else None}
+    return rows
+
+
+def _status_name(code) -> str:
+    from kernels.conventions import Status
+
+    try:
+        return Status(int(code)).name
+    except ValueError:
+        return str(int(code))
 
 
 def _plain(value):

@@ -3,6 +3,7 @@
 Full mode, by hand: ``python -m bench.sequence`` (docs in bench/README.md).
 """
 import json
+import os
 import subprocess
 import sys
 
@@ -33,6 +34,13 @@ def test_quick_mode_runs_and_writes_every_figure(tmp_path):
     assert [f["frame"] for f in fixed["per_frame"]] == list(range(1, 8))
     # the fixed reference over 30 % stretch on a small image: everything valid, errors of a few 0.01 px
     assert fixed["final_valid_fraction"] > 0.95 and fixed["final_rms_error_px"] < 0.2
+    assert all("invalid_by_status" in f and "reference_interpolated" in f for f in fixed["per_frame"])
+    # the error binned by the speckles changed in each subset since frame 0 (exact, from the disk pool)
+    by = fixed["error_by_changed_speckles"]
+    assert set(by) == {"1", "7"}
+    for k, bins in by.items():
+        assert sum(b["n_points"] for b in bins.values()) == fixed["n_points"], k
+    assert by["1"]["0"]["n_valid"] > 0 and by["1"]["0"]["rms_error_px"] < 0.02  # an unchanged subset: noise only
     for mode, r in ev["modes"].items():  # each mode ran, or says why not
         assert "per_frame" in r or r.get("skipped") or r.get("failed"), mode
     if res["engine"] == "fallback":
@@ -55,3 +63,15 @@ def test_engine_adapter_passes_the_reference_mode(monkeypatch):
     assert calls == [("ref.png", ["a.png"], "out.h5", "every:5", "overwrite", False, {"subset": 21})]
     assert bench_sequence.engine(force_fallback=True)[0] == "fallback"
     assert bench_sequence.supports("fallback", "fixed") and not bench_sequence.supports("fallback", "auto")
+
+
+def test_evolving_frames_are_reused_from_a_kept_folder(tmp_path):
+    from bench.sequence import evolving_frames
+
+    _, paths = evolving_frames(tmp_path, 48, 3, 0.3, 0.01, 1.0, "cpu")
+    stamps = [os.stat(p).st_mtime_ns for p in paths]
+    os.utime(paths[1], ns=(1, 1))  # a marker: a rendered-again frame would get a new time
+    seq, again = evolving_frames(tmp_path, 48, 3, 0.3, 0.01, 1.0, "cpu")
+    assert again == paths and os.stat(paths[1]).st_mtime_ns == 1 and len(seq) == 3
+    _, other = evolving_frames(tmp_path, 48, 3, 0.3, 0.02, 1.0, "cpu")  # another fade: rendered again
+    assert other == paths and os.stat(paths[1]).st_mtime_ns != 1 and os.stat(paths[0]).st_mtime_ns >= stamps[0]

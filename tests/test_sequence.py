@@ -293,3 +293,74 @@ def test_cli_max_memory_chunks_with_the_same_results(sequence, tmp_path, monkeyp
     for bad in ("0", "lots", "-5M"):
         r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "c.h5"), "--max-memory", bad])
         assert r.exit_code == 2 and "--max-memory" in r.output and "Traceback" not in r.output
+
+
+def test_points_lost_at_a_reference_update_come_back(sequence, tmp_path):
+    """A patch of frame 2 is blanked: its points are invalid in frame 2 and, tracked against it, in frames 3 and 4.
+    Frame 4 (every:2) becomes the reference with them placed by interpolating their neighbours; tracked against
+    frame 4's intact texture they are valid again, on the exact field (before, they stayed invalid for good).
+
+    Measured against the previous rule on this sequence (20 frames; incremental, every:2, every:5, auto): on the
+    points valid under both rules max |d params| = 0 and no status changed; 85 (incremental) and 80 (every:2)
+    point-frames more are valid, every:5 and auto unchanged (their references avoid frame 2's patch)."""
+    ref, frames = sequence
+    frames = [f.copy() for f in frames[:8]]
+    yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
+    frames[1][(xx - 50) ** 2 + (yy - 46) ** 2 < 9 ** 2] = frames[1].mean()
+    out = tmp_path / "r.h5"
+    track_sequence(ref, frames, out, reference="every:2", step=8, device="cpu")
+    res = read_results(out)
+    lost = res.frames[1].valid & ~res.frames[2].valid  # the blanked patch's points
+    assert 3 <= lost.sum() <= 10
+    for k in (3, 4):
+        assert not res.frames[k].valid[lost].any()
+    pts = res.frames[1].points
+    dist = np.min(np.hypot(*(pts[:, None, :] - pts[lost][None]).transpose(2, 0, 1)), axis=1)
+    near = (dist <= 12) & ~lost  # the neighbours their reference position is interpolated from
+    for k in (5, 6, 7, 8):
+        f = res.frames[k]
+        assert f.valid[lost].all(), k
+        tu, tv = truth(k)(pts[:, 0], pts[:, 1])
+        err = np.hypot(f.u - tu, f.v - tv)
+        # as good as their neighbours (which carry the blanked patch's bias of frame 2: up to ~0.25 px) ...
+        assert err[lost].max() <= err[near & f.valid].max(), k
+        # ... and the points away from the patch are on the exact field
+        assert np.sqrt(np.mean(err[f.valid & ~near & ~lost] ** 2)) < 0.02, k
+    # counted where the reference position was interpolated (frames 5, 6 against frame 4), not once re-measured
+    assert [res.frames[k].attrs["reference_interpolated"] for k in (5, 6, 7, 8)] == [lost.sum()] * 2 + [0, 0]
+
+
+def test_fill_reference_interpolates_locally_and_says_where():
+    from dic.correlation.lagrangian import fill_reference, moved_points
+
+    x, y = np.meshgrid(np.arange(0.0, 100.0, 5.0), np.arange(0.0, 80.0, 5.0))
+    pts = np.stack([x.ravel(), y.ravel()], 1)
+    params = np.zeros((len(pts), 6))
+    params[:, 0] = 0.02 * pts[:, 0] + 1.0  # u = 1 + 0.02 x (affine: linear interpolation exact)
+    params[:, 1] = 0.02
+    params[:, 3] = -0.01 * pts[:, 1]
+    params[:, 5] = -0.01
+    valid = np.ones(len(pts), bool)
+    small = np.hypot(pts[:, 0] - 30, pts[:, 1] - 30) < 6  # a 3x3 hole: surrounded closely
+    wide = np.hypot(pts[:, 0] - 75, pts[:, 1] - 45) < 26  # ~10 points across: wider than 4 spacings
+    edge = pts[:, 0] == 0.0  # outside the valid points' hull
+    valid[small | wide | edge] = False
+    bad = params.copy()
+    bad[~valid] = np.nan
+    filled, supported = fill_reference(pts, bad, valid)
+    assert supported[valid | small].all() and not supported[edge].any()
+    centre = np.hypot(pts[:, 0] - 75, pts[:, 1] - 45) < 11  # > 3 spacings from any valid point
+    assert centre.sum() == 13 and not supported[centre].any()
+    inside = ~valid & ~edge
+    assert np.allclose(filled[inside], params[inside], atol=1e-12)  # every parameter interpolated
+    assert np.array_equal(filled[valid], bad[valid])
+    assert np.all(np.isfinite(filled))
+    # the same positions as moved_points (bitwise): the moved reference's POIs do not change
+    assert np.array_equal(pts + filled[:, [0, 3]], moved_points(pts, bad[:, 0], bad[:, 3], valid))
+    # a radius given in px
+    assert not fill_reference(pts, bad, valid, radius=4.0)[1][small].any()
+    for kw, msg in (({"valid": valid[:-1]}, "valid must be"), ({"radius": -1.0}, "radius"),
+                    ({"params": bad[:, :5]}, "params"), ({"valid": np.zeros(len(pts), bool)}, "no valid point")):
+        args = {"points0": pts, "params": bad, "valid": valid, **kw}
+        with pytest.raises(ValueError, match=msg):
+            fill_reference(**args)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["compose_params", "relative_params", "moved_points", "shift_params"]
+__all__ = ["compose_params", "relative_params", "moved_points", "shift_params", "fill_reference"]
 
 
 def _gradients(params: np.ndarray, order: int):
@@ -92,6 +92,68 @@ def moved_points(points0: np.ndarray, u: np.ndarray, v: np.ndarray, valid: np.nd
         d = d.copy()
         d[bad] = filled
     return pts + d
+
+
+def fill_reference(points0: np.ndarray, params: np.ndarray, valid: np.ndarray, *, radius: float | None = None,
+                   radius_spacings: float = 4.0):
+    """A moved reference's parameters with its invalid points filled in, and where the fill is local.
+
+    ``params`` (N, 6|12): a frame's Lagrangian parameters at the original POIs ``points0`` (N, 2);
+    ``valid`` (N,) bool. Returns ``(filled, supported)``: ``filled`` is ``params`` with every
+    parameter of the invalid points interpolated linearly from the valid ones (the rule of
+    :func:`moved_points`, so ``points0 + filled``'s displacement is where :func:`moved_points` puts
+    them; nearest valid point outside their hull); ``supported`` (N,) bool is True at the valid
+    points and at the invalid ones whose value came from a Delaunay triangle of valid points with
+    every corner within ``radius`` px of them (default ``radius_spacings`` (4) × the POI spacing,
+    the median nearest-neighbour distance). A supported point can be tracked against the moved
+    reference like a valid one: its position there is as good as the local interpolation of a
+    smooth field. Points outside the valid points' hull or in holes wider than ``radius`` are not.
+    """
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+    from scipy.spatial import Delaunay, QhullError, cKDTree
+
+    pts = np.asarray(points0, np.float64)
+    p = np.asarray(params, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2 or p.ndim != 2 or p.shape[0] != pts.shape[0] or p.shape[1] not in (6, 12):
+        raise ValueError(f"fill_reference needs points (N, 2) and params (N, 6|12) of the same N, got "
+                         f"{pts.shape} and {p.shape}")
+    v = np.asarray(valid, bool)
+    if v.shape != (pts.shape[0],):
+        raise ValueError(f"valid must be a (N,) mask of the {pts.shape[0]} points, got shape {v.shape}")
+    if radius is not None and not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be a positive number of px, got {radius!r}")
+    if not (np.isfinite(radius_spacings) and radius_spacings > 0):
+        raise ValueError(f"radius_spacings must be a positive number, got {radius_spacings!r}")
+    good = v & np.all(np.isfinite(p), axis=1)
+    if not np.any(good):
+        raise ValueError("no valid point to move the reference with")
+    filled = p.copy()
+    supported = good.copy()
+    bad = ~good
+    if not np.any(bad):
+        return filled, supported
+    near = NearestNDInterpolator(pts[good], p[good])(pts[bad])
+    lin = None
+    if np.count_nonzero(good) >= 3:
+        try:
+            tri = Delaunay(pts[good])
+        except (QhullError, ValueError):  # collinear valid points: nearest only, nothing supported
+            tri = None
+        if tri is not None:
+            lin = LinearNDInterpolator(tri, p[good])(pts[bad])
+            if radius is None:
+                d, _ = cKDTree(pts).query(pts, k=2)
+                spacing = float(np.median(d[:, 1])) if len(pts) > 1 else 0.0
+                radius = radius_spacings * spacing if spacing > 0 else np.inf
+            simplex = tri.find_simplex(pts[bad])
+            inside = simplex >= 0
+            corners = tri.points[tri.simplices[np.where(inside, simplex, 0)]]  # (B, 3, 2)
+            far = np.linalg.norm(corners - pts[bad][:, None, :], axis=2).max(axis=1)
+            supported[np.flatnonzero(bad)] = inside & (far <= radius) & np.all(np.isfinite(lin), axis=1)
+    if lin is None:
+        lin = near
+    filled[bad] = np.where(np.isfinite(lin), lin, near)
+    return filled, supported
 
 
 def shift_params(params: np.ndarray, delta: np.ndarray, order: int) -> np.ndarray:

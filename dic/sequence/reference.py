@@ -10,24 +10,36 @@ Strategies (``reference=`` of :func:`dic.sequence.track_sequence`, ``--reference
     frame ``k`` against frame ``N * floor((k - 1) / N)`` (the reference moves every N frames).
 ``"auto"``
     frame ``k`` against the previous frame's reference; when the result's valid fraction (among the
-    points valid in the reference) falls below ``auto_valid`` (default 0.95) or the median ZNCC of its
-    valid points below ``auto_zncc`` (default 0.95), the reference moves to frame ``k - 1`` and
-    frame ``k`` is tracked again against it.
+    points the reference can track: valid in it or placed by local interpolation, below) falls
+    below ``auto_valid`` (default 0.95) or the median ZNCC of its valid points below ``auto_zncc``
+    (default 0.95), the reference moves to frame ``k - 1`` (the newest frame there is) and frame
+    ``k`` is tracked again against it.
 
 Results are always Lagrangian, at the original POIs ``X0`` of the reference image: a new reference
 ``r`` tracks the points where the original POIs are in frame ``r`` (``X_r = X0 + d_r(X0)``; invalid
 points get the displacement interpolated from their valid neighbours so that the point set stays
 the same), so a displacement ``w`` measured against ``r`` composes exactly as
 ``d_k(X0) = d_r(X0) + w(X_r)``, and the shape-function gradients by the chain rule
-(:func:`compose_params`). A point is valid when it is valid in the reference and in the frame.
+(:func:`compose_params`).
+
+Validity across an update (:func:`fill_reference`): a point is valid in frame ``k`` when it is valid
+against its reference ``r`` and its place in ``r`` is known: either it is valid in ``r``, or it was
+not but its parameters in ``r`` were interpolated (all of them, linearly) from a Delaunay triangle of
+valid points whose corners are all within 4 POI spacings of it. Such a point is tracked again against
+the new reference and comes back (its composed displacement is as good as the local interpolation of
+a smooth field); a frame's ``reference_interpolated`` attribute counts them (per point: valid in ``k``
+and not valid in frame ``reference_index``). Points outside the valid points' hull or in a wider hole
+stay invalid, with the status they had in ``r``. (Before, a point invalid at an update stayed invalid
+for good, so the valid set only shrank with every update.)
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..correlation.lagrangian import compose_params, moved_points, relative_params, shift_params
+from ..correlation.lagrangian import compose_params, fill_reference, moved_points, relative_params, shift_params
 
-__all__ = ["ReferencePolicy", "parse_reference", "compose_params", "moved_points", "relative_params", "shift_params"]
+__all__ = ["ReferencePolicy", "parse_reference", "compose_params", "fill_reference", "moved_points", "relative_params",
+           "shift_params"]
 
 AUTO_VALID = 0.95
 AUTO_ZNCC = 0.95

@@ -26,6 +26,7 @@ from .reference import (
     AUTO_VALID,
     AUTO_ZNCC,
     compose_params,
+    fill_reference,
     moved_points,
     parse_reference,
     relative_params,
@@ -78,9 +79,29 @@ class _State:
 class _Ref:
     index: int
     image: Any
-    state: _State
+    state: _State  # a moved reference: the points it could not track filled in from their neighbours
     tracker: Any
     offset: np.ndarray | None = None  # (N, 2) moved POI - tracked (whole-pixel) POI
+    usable: np.ndarray | None = None  # (N,) bool: valid in the reference or filled in locally (None: state.valid)
+    points: np.ndarray | None = None  # (N, 2) the whole-pixel POIs its tracker tracks
+
+    @property
+    def ok(self) -> np.ndarray:
+        """The points that can be tracked against this reference (valid in it, or placed by local interpolation)."""
+        return self.state.valid if self.usable is None else self.usable
+
+
+def _moved(points0, state: _State, index: int, image) -> _Ref:
+    """Frame ``index`` (its Lagrangian ``state``) as a reference, its tracker not built yet: the POIs moved
+    to where they are in it, the invalid ones placed by interpolating their valid neighbours' parameters
+    (:func:`fill_reference`); those whose neighbours surround them closely stay trackable (``usable``).
+    ValueError: no valid point."""
+    pts = moved_points(points0, state.u, state.v, state.valid)
+    filled, usable = fill_reference(points0, state.params, state.valid)
+    placed = copy.copy(state)
+    placed.params = np.where(usable[:, None], filled, state.params)
+    whole = round_half_away(pts)  # the kernels' rule (wp.round: half away from zero)
+    return _Ref(index, image, placed, None, pts - whole, usable, whole)
 
 
 def _state_of(index: int, f, reference_index: int) -> _State:
@@ -113,7 +134,7 @@ def _guess(previous):
 
 
 def _quality(raw, ref_valid) -> tuple[float, float]:
-    """Valid fraction (among the points valid in the reference) and median ZNCC of the valid points."""
+    """Valid fraction (among the points the reference can track: ``_Ref.ok``) and median ZNCC of the valid points."""
     valid = np.asarray(raw.valid, bool) & ref_valid
     n_ref = int(np.count_nonzero(ref_valid))
     frac = np.count_nonzero(valid) / n_ref if n_ref else 0.0
@@ -129,14 +150,16 @@ def _compose(ref: _Ref, raw, points0, order: int):
     if ref.offset is not None:  # tracked at whole pixels: the warp at the moved POI itself
         inc = shift_params(inc, ref.offset, order)
     params = compose_params(s.params, inc, order)
-    valid = np.asarray(raw.valid, bool) & s.valid
-    status = np.where(s.valid, np.asarray(raw.status, np.int32), s.status).astype(np.int32)
+    ok = ref.ok
+    valid = np.asarray(raw.valid, bool) & ok
+    status = np.where(ok, np.asarray(raw.status, np.int32), s.status).astype(np.int32)
     out.points = np.array(points0, dtype=np.float64)
     out.params = params
     out.u = params[:, 0].copy()
     out.v = params[:, params.shape[1] // 2].copy()
     out.valid = valid
     out.status = status
+    out.reference_interpolated = valid & ~s.valid  # valid here, placed in the reference by interpolation
     for name, prev in (("sigma_u", s.sigma_u), ("sigma_v", s.sigma_v)):
         cur = getattr(raw, name, None)
         if cur is not None and prev is not None:
@@ -429,15 +452,15 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 raise ValueError(f"cannot resume {out}: the image of frame {r}, the reference of the next frame, "
                                  "was not given again; give the same frames as the run that wrote the file")
             try:
-                pts = moved_points(points0, state.u, state.v, state.valid)
+                moved = _moved(points0, state, r, None)
             except ValueError:  # a frame with no valid point cannot serve as a reference: keep the previous one
                 if fallback is None or fallback == r:
                     raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
                 return get_ref(fallback)
-            whole = round_half_away(pts)
             tracker0_holder[0] = current = None  # free the previous reference's data before preparing the new one
-            image = _host(images[r])  # a reference is prepared on the host (once per reference)
-            current = _Ref(r, image, state, tracker_for(image, whole), pts - whole)
+            moved.image = _host(images[r])  # a reference is prepared on the host (once per reference)
+            moved.tracker = tracker_for(moved.image, moved.points)
+            current = moved
             return current
 
         def finish(k: int, lag, raw_seconds: float, ref_index: int, item: Loaded):
@@ -449,8 +472,11 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                     strain = compute_strain(lag, window=strain_window)
                 except ValueError as exc:
                     raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
-            writer.write_frame(k, lag, strain=strain, path=item.path, sha256=item.digest,
-                               attrs={"seconds": raw_seconds, "reference_index": int(ref_index)})
+            attrs = {"seconds": raw_seconds, "reference_index": int(ref_index)}
+            interpolated = getattr(lag, "reference_interpolated", None)
+            if interpolated is not None:  # the valid points whose place in the reference was interpolated
+                attrs["reference_interpolated"] = int(np.count_nonzero(interpolated))
+            writer.write_frame(k, lag, strain=strain, path=item.path, sha256=item.digest, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_vtk
 
@@ -512,7 +538,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 try:
                     raw = ref.tracker.track(item.image, guess=start)
                     if policy.kind == "auto" and ref.index != k - 1 and k > 1:
-                        frac, med = _quality(raw, ref.state.valid)
+                        frac, med = _quality(raw, ref.ok)
                         if policy.needs_update(frac, med):
                             newer = get_ref(k - 1, ref.index)
                             if newer.index != ref.index:
@@ -630,14 +656,13 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
             raise ValueError(f"cannot resume {out}: the image of frame {r}, the reference of the next frame, "
                              "was not given again; give the same frames as the run that wrote the file")
         try:
-            pts = moved_points(points0, state.u, state.v, state.valid)
+            cur_new = _moved(points0, state, r, images[r])
         except ValueError:  # no valid point: the key frame's own reference stays (as on one machine)
             if state.reference_index != cur.index or r == cur.index:
                 raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
             return
-        whole = round_half_away(pts)
-        cur = _Ref(r, images[r], state, None, pts - whole)
-        cur_data = scattered(r, images[r], whole, _digest(images[r]))
+        cur = cur_new
+        cur_data = scattered(r, images[r], cur.points, _digest(images[r]))
 
     try:
         for item in reader:
@@ -711,5 +736,5 @@ def _guess_for(ref: _Ref, prev: _State | None, k: int, order: int):
         return None
     if ref.index == 0:
         return _guess((prev.params, prev.valid))
-    valid = prev.valid & ref.state.valid
+    valid = prev.valid & ref.ok
     return _guess((relative_params(ref.state.params, prev.params, order), valid))
