@@ -19,7 +19,8 @@ Pipeline (docs/stereo.md, sections "Stereo matching" and "3-D fields"):
    parameters as initial guess, features and propagation for POIs that fail). The tracks may start
    from a later state's pair instead (:meth:`StereoCorrelation.move_reference`, the reference
    strategies of :func:`dic.sequence.stereo_sequence`); their results are composed back onto the
-   reference pair, so every state stays relative to the reference state (Lagrangian).
+   reference pair, so every state stays relative to the reference state (Lagrangian), and points
+   not valid in that later state are placed there by local interpolation and tracked again.
 3. **Triangulation and fields.** Matched positions (reference position + displacement, float64)
    are triangulated (:func:`dic.triangulate.triangulate`, optimal method); displacements are
    current minus reference positions; surface strains come from :mod:`dic.field3d`.
@@ -468,13 +469,18 @@ class StereoCorrelation:
             eligible_l, eligible_r = self.match.valid, np.ones(matched.size, dtype=bool)
             guess_l = None if prev is None else prev[0]
             guess_r = None if prev is None else prev[1][matched]
-        else:  # a later state's pair (move_reference): the points valid there, from their positions there
+        else:  # a later state's pair (move_reference): the points it can track, from their positions there
             corr_l, corr_r, ref_l, ref_r = mv.left, mv.right, mv.left_image, mv.right_image
-            eligible_l, eligible_r = self.match.valid & mv.valid, mv.valid[matched]
+            eligible_l, eligible_r = self.match.valid & mv.usable, mv.usable[matched]
             guess_l = guess_r = None
             if prev is not None:
                 guess_l = mv.relative(prev[0], "left", self.order)
                 guess_r = mv.relative(prev[1][matched], "right", self.order)
+                # a point placed by interpolation whose previous parameters are still those it failed with in
+                # that state starts from zero increment (and the global shift), not from its failed warp
+                fresh_l, fresh_r = mv.unmeasured(prev[0], "left"), mv.unmeasured(prev[1][matched], "right")
+                guess_l[fresh_l] = np.nan
+                guess_r[fresh_r] = np.nan
         self.timings = {}
         t0 = time.perf_counter()
         tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0])
@@ -489,6 +495,8 @@ class StereoCorrelation:
             tl = mv.compose(tl, "left", self.order)
             tr = None if tr is None else mv.compose(tr, "right", self.order)
         f = self._field((tl, tr), index=index)
+        if mv is not None:  # valid here, placed in the tracks' reference by interpolation (not valid there)
+            f.reference_interpolated = f.valid & ~mv.valid
         if warn and self._tracks_judged():
             _warn_if_mostly_invalid(f.status[self.in_roi], f"stereo tracking of state {index}")
         self._previous = (f.details["params_left"], f.details["params_right"])
@@ -536,8 +544,15 @@ class StereoCorrelation:
         neighbours, :func:`dic.correlation.lagrangian.moved_points`); each later state's parameters
         are composed back onto that state's, so every :meth:`measure` stays relative to the
         reference pair (Lagrangian) and records ``reference_index``. A point not valid in
-        ``state`` is not tracked again and keeps that state's status. The left -> right match of
-        the reference pair is kept. ``move_reference()`` (no state) goes back to the reference pair.
+        ``state`` but matched in the reference pair gets every left and right track parameter
+        there interpolated from its valid neighbours
+        (:func:`dic.correlation.lagrangian.fill_reference`); where both fills come from a close
+        Delaunay triangle of valid points (``supported``) it is tracked again from that place and
+        is valid once both tracks are accepted (each such valid point is marked in the measured
+        field's ``reference_interpolated`` (N,) bool attribute, set on every state measured from
+        a moved reference). The other points not valid in ``state`` are not tracked and keep that
+        state's status. The left -> right match of the reference pair is kept.
+        ``move_reference()`` (no state) goes back to the reference pair.
 
         Raises ``ValueError`` for images of another size, a state of other points or without
         parameters, or a state with no valid point.
@@ -653,8 +668,8 @@ class StereoCorrelation:
             for stage, failed in ((fl, StereoStatus.TRACK_LEFT_FAILED), (fr, StereoStatus.TRACK_RIGHT_FAILED)):
                 worse = (status == StereoStatus.OK) & (stage != StereoStatus.OK)
                 status[worse] = np.where(np.isin(stage, kept), stage, failed)[worse]
-            if self._moved is not None:  # lost before the moved reference: that state's status
-                lost = m.valid & ~self._moved.valid
+            if self._moved is not None:  # lost before the moved reference and not placed there: that state's status
+                lost = m.valid & ~self._moved.usable
                 status[lost] = self._moved.status[lost]
             both = left_ok & right_ok
             use_l = np.where(both[:, None], pl_cur, np.nan)
@@ -709,9 +724,13 @@ class StereoCorrelation:
 class _TrackReference:
     """The temporal tracks' reference when it is a later state (:meth:`StereoCorrelation.move_reference`).
 
-    ``params_*`` are that state's Lagrangian parameters (N, k); the new reference subsets sit at the
-    whole pixels nearest to the POIs' positions in that state, ``offset_*`` (moved - whole, px) the
-    rest, so the warp measured at a whole pixel is carried to the moved point exactly
+    ``params_*`` are that state's Lagrangian parameters (N, k), those of the points not valid there
+    interpolated from their valid neighbours (:func:`dic.correlation.lagrangian.fill_reference`, left
+    and right track each); ``usable`` (N,) marks the points the tracks follow from this state: valid
+    there, or matched in the reference pair and placed by a close Delaunay triangle of valid points
+    on both sides (``supported``). The new reference subsets sit at the whole pixels nearest to the
+    POIs' positions in that state, ``offset_*`` (moved - whole, px) the rest, so the warp measured at
+    a whole pixel is carried to the moved point exactly
     (:func:`dic.correlation.lagrangian.shift_params`) before it is composed.
     """
 
@@ -729,11 +748,14 @@ class _TrackReference:
     offset_right: np.ndarray
     sigma_left: np.ndarray | None = None
     sigma_right: np.ndarray | None = None
+    usable: np.ndarray | None = None
+    raw_left: np.ndarray | None = None   # that state's own parameters (before the fill)
+    raw_right: np.ndarray | None = None
     _basis: dict = field(default_factory=dict)
 
     @classmethod
     def build(cls, sc: "StereoCorrelation", L: np.ndarray, R: np.ndarray, state) -> "_TrackReference":
-        from .correlation.lagrangian import moved_points
+        from .correlation.lagrangian import fill_reference, moved_points
 
         details = getattr(state, "details", None)
         status = getattr(state, "status", None)
@@ -756,12 +778,34 @@ class _TrackReference:
         dl, dr = _displacement(pl, sc.order), _displacement(pr, sc.order)
         moved_l = moved_points(sc.points, dl[:, 0], dl[:, 1], valid)
         moved_r = moved_points(sc.match.points_right[matched], dr[matched, 0], dr[matched, 1], valid[matched])
+        # the points not valid in the state: every parameter interpolated from the valid ones (the positions are
+        # those of moved_points); tracked again where both tracks' fills are local and the reference match holds
+        fill_l, sup_l = fill_reference(sc.points, pl, valid)
+        sup_r = np.zeros(n, dtype=bool)
+        fill_r = pr.copy()
+        if matched.size:
+            fr, sr = fill_reference(sc.match.points_right[matched], pr[matched], valid[matched])
+            fill_r[matched], sup_r[matched] = fr, sr
+        usable = valid | (sc.match.valid & sup_l & sup_r)
+        params_l = np.where(usable[:, None], fill_l, pl)
+        params_r = np.where(usable[:, None], fill_r, pr)
         whole_l, whole_r = round_half_away(moved_l), round_half_away(moved_r)
         left, right = sc._correlators_at(L, R, whole_l, whole_r)
         sig = [details.get(name) for name in ("sigma_left_px", "sigma_right_px")]
-        sig = [None if s is None or np.shape(s) != (n, 2) else np.asarray(s, dtype=np.float64) for s in sig]
-        return cls(index, left, right, L, R, pl, pr, valid, status, matched, moved_l - whole_l, moved_r - whole_r,
-                   sig[0], sig[1])
+        sig = [None if s is None or np.shape(s) != (n, 2) else _fill_sigma(sc.points, np.asarray(s, dtype=np.float64),
+                                                                            valid, usable) for s in sig]
+        return cls(index, left, right, L, R, params_l, params_r, valid, status, matched, moved_l - whole_l,
+                   moved_r - whole_r, sig[0], sig[1], usable, pl, pr)
+
+    def unmeasured(self, params: np.ndarray, side: str) -> np.ndarray:
+        """The points placed by interpolation (usable, not valid in the state) whose ``params`` are still
+        the state's own: not measured since (their warp there failed), so not a guess to start from."""
+        raw = self.raw_left if side == "left" else self.raw_right[self.matched]
+        fresh = self.usable & ~self.valid
+        if side != "left":
+            fresh = fresh[self.matched]
+        same = np.all((params == raw) | (np.isnan(params) & np.isnan(raw)), axis=1)
+        return fresh & same
 
     def _side(self, side: str):
         if side == "left":
@@ -787,9 +831,9 @@ class _TrackReference:
         from .correlation.lagrangian import compose_params, shift_params
 
         ref, offset = self._side(side)
-        valid = self.valid if side == "left" else self.valid[self.matched]
+        usable = self.usable if side == "left" else self.usable[self.matched]
         params = compose_params(ref, shift_params(res.params, offset, order), order)
-        return replace(res, params=params, accepted=res.accepted & valid)
+        return replace(res, params=params, accepted=res.accepted & usable)
 
     def basis(self) -> dict:
         if not self._basis:
@@ -804,6 +848,21 @@ class _TrackReference:
         if self.sigma_right is not None:
             sig_r = np.hypot(sig_r, self.sigma_right)
         return sig_l, sig_r
+
+
+def _fill_sigma(points: np.ndarray, sigma: np.ndarray, valid: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """A moved reference's per-point track std (N, 2): at the points placed by interpolation, that of the
+    nearest valid point (the interpolation's own error is not counted)."""
+    fill = usable & ~valid
+    good = valid & np.all(np.isfinite(sigma), axis=1)
+    if not np.any(fill) or not np.any(good):
+        return sigma
+    from scipy.spatial import cKDTree
+
+    _, j = cKDTree(points[good]).query(points[fill], k=1)
+    out = sigma.copy()
+    out[fill] = sigma[good][j]
+    return out
 
 
 def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=None, step: int = 10, roi=None,

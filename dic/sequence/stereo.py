@@ -68,11 +68,16 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         Which pair the left and right temporal tracks of state ``k`` start from
         (:mod:`dic.sequence.reference`): the reference pair (fixed), pair ``k - 1`` (incremental),
         pair ``N * floor((k - 1) / N)`` (every:N), or the previous state's until its valid fraction
-        (among the points valid in that reference) falls below ``auto_valid`` or the median track
+        (among the points that reference can track) falls below ``auto_valid`` or the median track
         ZNCC (the lower of left and right) below ``auto_zncc``, then pair ``k - 1`` (auto). Results
         are always relative to the reference state at the original points (Lagrangian); each
         state's ``reference_index`` (in the file and on the :class:`Field3D`) says which pair its
-        tracks used. A point lost on the way stays invalid with the status it had then.
+        tracks used. A point not valid in the state a moved reference starts from, but whose place
+        there is interpolated from a close triangle of valid neighbours (left and right track each,
+        :func:`dic.correlation.lagrangian.fill_reference`), is tracked again from that place and
+        comes back once both tracks are accepted; each such state's ``reference_interpolated``
+        attribute counts these points. Other points lost on the way stay invalid with the status
+        they had then.
     auto_valid, auto_zncc : float in [0, 1]
         The thresholds of ``reference="auto"`` (defaults 0.95 and 0.95).
     mode : "resume" | "overwrite" | "new"
@@ -192,8 +197,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             write_pvd(vtk_dir, [(i, f"{vtk_stem}_{i:06d}.vtu") for i in sorted(vtk_written)], stem=vtk_stem)
 
         def finish(k, f, lpath, rpath, digests, seconds):
-            writer.write_frame(k, f, path=(lpath, rpath), sha256=digests,
-                               attrs={"seconds": seconds, "reference_index": int(f.reference_index)})
+            attrs = {"seconds": seconds, "reference_index": int(f.reference_index)}
+            interpolated = getattr(f, "reference_interpolated", None)
+            if interpolated is not None:  # the valid points whose place in the tracks' reference was interpolated
+                attrs["reference_interpolated"] = int(np.count_nonzero(interpolated))
+            writer.write_frame(k, f, path=(lpath, rpath), sha256=digests, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_pvd, write_vtk
 
@@ -246,8 +254,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             sc.move_reference(images[r][0], images[r][1], state)
             return r
 
-        def reference_valid() -> np.ndarray:
-            return sc.reference.valid if sc.reference_index == 0 else sc._moved.valid
+        def reference_valid() -> np.ndarray:  # the points the tracks' reference can track
+            return sc.reference.valid if sc.reference_index == 0 else sc._moved.usable
 
         last_images = None  # the pair of the last state skipped (resuming starts from it)
         computed = 0
@@ -327,8 +335,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
 
 
 def _quality(f: Field3D, reference_valid: np.ndarray) -> tuple[float, float]:
-    """Valid fraction (among the points valid in the tracks' reference) and median track ZNCC (the lower of
-    left and right) of the valid points."""
+    """Valid fraction (among the points the tracks' reference can track: valid in it, or placed there by
+    local interpolation) and median track ZNCC (the lower of left and right) of the valid points."""
     valid = np.asarray(f.valid, bool) & reference_valid
     n_ref = int(np.count_nonzero(reference_valid))
     frac = np.count_nonzero(valid) / n_ref if n_ref else 0.0
