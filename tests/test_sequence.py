@@ -293,3 +293,37 @@ def test_cli_max_memory_chunks_with_the_same_results(sequence, tmp_path, monkeyp
     for bad in ("0", "lots", "-5M"):
         r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "c.h5"), "--max-memory", bad])
         assert r.exit_code == 2 and "--max-memory" in r.output and "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("window, max_points", [(5, 50), (3, 37), (7, 200), (5, 10**6)])
+def test_strain_in_bands_is_the_strain(window, max_points, monkeypatch):
+    """Strain a band of grid rows at a time (bounded memory on huge grids) equals one call over the grid."""
+    from types import SimpleNamespace
+
+    from dic.correlation.points import grid
+    from dic.sequence.chunks import strain_in_bands
+    from dic.strain import strain
+
+    rng = np.random.default_rng(window)
+    pts = grid((200, 160), 4, margin=10)
+    keep = ((pts[:, 0] - 80) ** 2 + (pts[:, 1] - 100) ** 2 > 30**2) & (rng.random(len(pts)) > 0.02)  # a hole
+    pts = pts[keep][rng.permutation(int(keep.sum()))]  # and in no particular order
+    x, y = pts.T
+    field = SimpleNamespace(points=pts, u=1e-3 * x + 2e-5 * y**2 + rng.normal(0, 1e-3, len(x)),
+                            v=-5e-4 * y + 1e-5 * x * y, valid=rng.random(len(x)) > 0.1)
+    whole = strain(field, window=window)
+    import sys
+
+    sizes = []
+    monkeypatch.setattr(sys.modules["dic.strain"], "strain", lambda f, window: sizes.append(len(f.points)) or strain(f, window=window))
+    banded = strain_in_bands(field, window, max_points=max_points)
+    if max_points < len(x):  # in bands, none of them the whole grid
+        assert len(sizes) > 3 and max(sizes) < len(x) / 2, sizes
+    else:
+        assert sizes == [len(x)]
+    for name in whole.COMPONENTS + ("valid", "n_fit", "points", "grid_index"):
+        assert np.array_equal(getattr(banded, name), getattr(whole, name), equal_nan=True), name
+    assert banded.grid_shape == whole.grid_shape and banded.step == whole.step and banded.window == window
+    assert np.count_nonzero(whole.valid) > 0.7 * len(x)
+    with pytest.raises(ValueError, match="max_points"):
+        strain_in_bands(field, window, max_points=0)

@@ -8,17 +8,24 @@ per-POI working memory is bounded whatever the POI count, at the cost of prepari
 subsets again for every frame. IC-GN, acceptance and the implausible-warp check are per POI, and the
 uncertainty's noise estimate is taken over all POIs at the end, so the results are identical to an
 unchunked run. Reliability-guided propagation (``search="rg"``) follows neighbours across the whole
-grid and cannot run in chunks. The arrays of a frame's result (host, about 0.3 KB per POI) are not
-chunked.
+grid and cannot run in chunks. The chunks' results are copied into the frame's arrays as each
+chunk finishes (no second copy of the whole frame's results). The arrays of a frame's result (host,
+about 0.11 KB per POI) are not chunked; its strain is computed a band of grid rows at a time
+(:func:`strain_in_bands`, identical to :func:`dic.strain.strain`), so that the strain's working
+arrays (about 0.5 KB per POI at once) stay bounded too.
 """
 from __future__ import annotations
 
 import os
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 
-__all__ = ["bytes_per_poi", "default_max_memory", "ChunkedTracker"]
+__all__ = ["bytes_per_poi", "default_max_memory", "ChunkedTracker", "strain_in_bands", "STRAIN_BAND_POINTS"]
+
+#: the most POIs whose strain :func:`strain_in_bands` computes at once (about 0.5 GB of working arrays)
+STRAIN_BAND_POINTS = 1 << 20
 
 
 def bytes_per_poi(order: int) -> int:
@@ -30,9 +37,14 @@ def bytes_per_poi(order: int) -> int:
 
 
 def default_max_memory() -> int:
-    """A quarter of the machine's physical memory (bytes); 2 GiB when it cannot be read."""
+    """An eighth of the machine's physical memory (bytes); 2 GiB when it cannot be read.
+
+    The budget covers the tracker's per-POI working data only; a frame's results, its strain bands,
+    the images and the writer's frames take about as much again on a run of 16 M POIs (measured:
+    bench/scale.py), so an eighth keeps the whole run within about half of the memory.
+    """
     try:
-        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")) // 4
+        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")) // 8
     except (ValueError, OSError, AttributeError):
         return 2 << 30
 
@@ -56,28 +68,36 @@ class ChunkedTracker:
         return -(-len(self.points) // self.chunk)
 
     def track(self, current, guess=None):
+        """The frame's :class:`dic.field2d.Field2D` over every POI, tracked a chunk at a time."""
         from kernels.conventions import Status
 
         from ..correlation.acceptance import status_counts, warn_if_mostly_invalid
         from ..field2d import Field2D
         from ..quality import SigmaBasis, displacement_sigma
 
-        parts, bases, tracker = [], [], None
+        bases, first, out = [], None, {}
         n = len(self.points)
         for s in range(0, n, self.chunk):
             tracker = self.make_tracker(self.image, self.points[s:s + self.chunk])
             g = None if guess is None else np.asarray(guess)[s:s + self.chunk]
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                parts.append(tracker.track(current, guess=g))
+                part = tracker.track(current, guess=g)
             for w in caught:  # the "mostly invalid" warning is issued once, for all POIs, below
                 if "2-D tracking" not in str(w.message):
                     warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             bases.append(tracker._sigma_basis)
             del tracker  # this chunk's reference data are freed before the next chunk's are prepared
-        cat = {name: np.concatenate([getattr(p, name) for p in parts]) for name in
-               ("points", "u", "v", "params", "zncc", "iterations", "status", "valid")}
-        first = parts[0]
+            if first is None:  # what every chunk shares (not its arrays: they are freed with the chunk)
+                first = SimpleNamespace(**{k: getattr(part, k) for k in ("subset", "order", "step", "zncc_min",
+                                                                         "noise_sigma", "noise_source")})
+            for name in _FIELD_ARRAYS:  # into the frame's arrays now: no list of parts to concatenate later
+                a = np.asarray(getattr(part, name))
+                if name not in out:
+                    out[name] = np.empty((n,) + a.shape[1:], a.dtype)
+                out[name][s:s + len(a)] = a
+            del part
+        cat = out
         sigma_u = sigma_v = None
         noise, source = first.noise_sigma, first.noise_source
         if all(b is not None for b in bases):
@@ -95,3 +115,64 @@ class ChunkedTracker:
         warn_if_mostly_invalid(int(np.count_nonzero(field.valid)), n, counts, _no_valid_hint(self.search, counts),
                                what="2-D tracking")
         return field
+
+
+_FIELD_ARRAYS = ("points", "u", "v", "params", "zncc", "iterations", "status", "valid")
+
+
+def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS):
+    """:func:`dic.strain.strain` of ``field`` (``window`` grid points) computed a band of grid rows at a time.
+
+    Each band holds at most about ``max_points`` POIs plus ``window // 2`` grid rows on either
+    side, whose points enter the fits of the band's own rows and nothing else: every fit sees the
+    same points, in the same places, as in one call over the whole grid, so the result is
+    identical (tested), while the strain's working arrays are those of one band. A field of at
+    most ``max_points`` POIs is one call of :func:`dic.strain.strain`; so is a field whose bands
+    do not make grids of their own that a window fits (a region of interest only a few points
+    wide in places).
+    """
+    from kernels.checks import positive_int
+
+    from ..strain import StrainField, grid_layout, strain
+
+    max_points = positive_int(max_points, "max_points")
+    points = np.asarray(field.points, np.float64)
+    n = len(points)
+    if n <= max_points:
+        return strain(field, window=window)
+    index, shape, step = grid_layout(points)
+    h = int(window) // 2
+    rows = index[:, 1]
+    per_row = max(1, n // max(1, shape[0]))
+    band = max(2 * h + 1, max_points // per_row)
+    u, v = np.asarray(field.u, np.float64), np.asarray(field.v, np.float64)
+    valid = getattr(field, "valid", None)
+    valid = np.ones(n, bool) if valid is None else np.asarray(valid, bool)
+    order = np.argsort(rows, kind="stable")  # POIs grouped by grid row, in their own order within a row
+    starts = np.searchsorted(rows[order], np.arange(shape[0] + 1))
+    out = None
+    for r0 in range(0, shape[0], band):
+        r1 = min(shape[0], r0 + band)
+        sel = np.sort(order[starts[max(0, r0 - h)]:starts[min(shape[0], r1 + h)]])
+        part = _Field(points[sel], u[sel], v[sel], valid[sel])
+        try:
+            s = strain(part, window=window)
+        except ValueError:  # a band that is no grid a window fits on its own: the whole field at once
+            return strain(field, window=window)
+        if tuple(s.step) != tuple(step):
+            return strain(field, window=window)
+        keep = (rows[sel] >= r0) & (rows[sel] < r1)
+        if out is None:
+            out = {name: np.empty(n, getattr(s, name).dtype) for name in StrainField.COMPONENTS + ("valid", "n_fit")}
+        for name, arr in out.items():
+            arr[sel[keep]] = getattr(s, name)[keep]
+        del s, part
+    return StrainField(points=points.copy(), **out, window=int(window), step=step, grid_index=index,
+                       grid_shape=shape)
+
+
+class _Field:
+    """The points, displacements and flags of a band (what :func:`dic.strain.strain` reads)."""
+
+    def __init__(self, points, u, v, valid):
+        self.points, self.u, self.v, self.valid = points, u, v, valid

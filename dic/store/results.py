@@ -3,7 +3,8 @@
 Both kinds share one root layout (docs/results_format.md)::
 
     /                     attrs: format ("specula-dic2d" | "specula-stereo"), schema_version,
-                                 specula_version, created, updated
+                                 specula_version, created, updated, compression ("none", "lzf",
+                                 "gzip:N"; absent in files written before it: gzip level 4)
     /reference            attrs: shape (H, W) and, per reference image, its path and sha256
                           (2-D: path, sha256; stereo: left_path, left_sha256, right_path, right_sha256)
     /settings             attrs: json (the run's settings, a JSON object)
@@ -32,7 +33,19 @@ from pathlib import Path
 import numpy as np
 
 from . import dic2d, files, stereo
-from .layout import SCHEMA_VERSION, StoreKind, frame_name, now, plain, role_attr, settings_json, specula_version
+from .layout import (
+    LEGACY_COMPRESSION,
+    SCHEMA_VERSION,
+    Compression,
+    StoreKind,
+    frame_name,
+    now,
+    parse_compression,
+    plain,
+    role_attr,
+    settings_json,
+    specula_version,
+)
 
 __all__ = ["ResultWriter", "ResultReader", "KINDS", "read_results", "read_stereo", "read_field", "ResultFileInUse",
            "ResultWriteError"]
@@ -119,6 +132,18 @@ class _ResultFile:
         return json.loads(self._h5["settings"].attrs.get("json", "{}"))
 
     @property
+    def compression(self) -> Compression:
+        """The file's compression setting (root attribute ``compression``; files written before it
+        existed: gzip level 4). Readers need it for nothing: HDF5 filters are self-describing."""
+        text = self._h5.attrs.get("compression")
+        if text is None:
+            return LEGACY_COMPRESSION
+        try:
+            return parse_compression(str(plain(text)))
+        except ValueError:
+            raise ValueError(f"{self.path} has an unknown compression setting {text!r}") from None
+
+    @property
     def rig(self) -> dict | None:
         """The stored rig (the StereoRig file content) or None (2-D files)."""
         return json.loads(self._h5["rig"].attrs["json"]) if "rig" in self._h5 else None
@@ -198,6 +223,11 @@ class ResultWriter(_ResultFile):
     mode : "resume" | "overwrite" | "new"
         ``resume`` (default) opens an existing compatible file and keeps its complete frames;
         ``overwrite`` starts afresh; ``new`` refuses an existing file.
+    compression : "none" | "lzf" | "gzip" | "gzip:N", optional
+        How a new file's datasets are compressed (:func:`dic.store.layout.parse_compression`; default
+        :data:`dic.store.layout.DEFAULT_COMPRESSION`), recorded as the root attribute ``compression``.
+        A resumed file keeps its own setting (frames appended to a gzip-4 file are gzip-4), whatever
+        is given here: :attr:`compression` says which one is used.
 
     The writer holds an exclusive lock (``<file>.lock``) while it is open: a second writer on the
     same file gets :class:`dic.store.ResultFileInUse`. A new run (a new file, or ``overwrite``) is
@@ -209,10 +239,12 @@ class ResultWriter(_ResultFile):
     """
 
     def __init__(self, path, *, reference_path="", reference_shape=None, reference_sha256="",
-                 settings: dict | None = None, mode: str = "resume", kind: str = "dic2d", rig=None):
+                 settings: dict | None = None, mode: str = "resume", kind: str = "dic2d", rig=None,
+                 compression=None):
         import h5py
 
         self.kind = _kind(kind)
+        self._compression = parse_compression(compression)
         if mode not in _MODES:
             raise ValueError(f"mode must be 'resume', 'overwrite' or 'new', got {mode!r}")
         self.path = Path(os.fspath(path))
@@ -259,6 +291,7 @@ class ResultWriter(_ResultFile):
                     "delete it or write to another file") from None
             try:
                 self._check_compatible(paths, digests, shape, rig_json)
+                self._compression = self.compression  # the file's own setting, kept for the frames added
             except BaseException:
                 self._h5.close()
                 raise
@@ -281,6 +314,7 @@ class ResultWriter(_ResultFile):
             f.attrs["specula_version"] = specula_version()
             f.attrs["created"] = now()
             f.attrs["updated"] = f.attrs["created"]
+            f.attrs["compression"] = self._compression.text
             if rig_json is not None:
                 f.create_group("rig").attrs["json"] = rig_json
             ref = f.create_group("reference")
@@ -462,7 +496,7 @@ class ResultWriter(_ResultFile):
                 del frames[tmp]
             g = frames.create_group(tmp)
             try:
-                self.kind.write_payload(g, field, strain)
+                self.kind.write_payload(g, field, strain, self._compression)
             except (OSError, RuntimeError):
                 raise
             except BaseException:  # a field the payload refuses (ValueError), Ctrl-C: the writer stays usable
@@ -496,7 +530,7 @@ class ResultWriter(_ResultFile):
             self._reserve(_nbytes(match))
             g = h5["reference"].create_group("match")
             try:
-                stereo.write_match(g, match)
+                stereo.write_match(g, match, self._compression)
             except (OSError, RuntimeError):
                 raise
             except BaseException:
