@@ -93,8 +93,17 @@ def track_child(args) -> dict:
     rss_before = _rss_mb()
     thread.start()
     chunks = {}
+    from dic.sequence import chunks as chunk_module
 
-    def spy(index, field, strain):  # the chunk plan is the engine's; read it from the field count
+    real_track = chunk_module.ChunkedTracker.track
+
+    def chunked_track(self, current, guess=None):  # the engine's own chunk plan, as it runs
+        chunks.update(n_chunks=self.n_chunks, poi_per_chunk=self.chunk)
+        return real_track(self, current, guess=guess)
+
+    chunk_module.ChunkedTracker.track = chunked_track
+
+    def spy(index, field, strain):
         chunks["n_points"] = int(len(field.u))
 
     try:
@@ -107,7 +116,6 @@ def track_child(args) -> dict:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     budget = args.max_memory or default_max_memory()
     n = chunks.get("n_points", 0)
-    per_chunk = budget // bytes_per_poi(1)
     with ResultReader(out) as r:
         f = r.read_frame(1)
         compression = r.compression.text
@@ -121,8 +129,8 @@ def track_child(args) -> dict:
     rss = np.array([s[1] for s in samples]) if samples else np.array([peak])
     return {
         "n_points": n, "max_memory_bytes": int(budget), "bytes_per_poi": bytes_per_poi(1),
-        "chunked": bool(n * bytes_per_poi(1) > budget), "poi_per_chunk": int(min(n, per_chunk)),
-        "n_chunks": int(-(-n // per_chunk)) if n * bytes_per_poi(1) > budget else 1,
+        "chunked": "n_chunks" in chunks, "poi_per_chunk": int(chunks.get("poi_per_chunk", n)),
+        "n_chunks": int(chunks.get("n_chunks", 1)),
         "seconds": wall, "frame_seconds": summary.frames[0]["seconds"] if summary.frames else None,
         "peak_rss_mb": peak, "rss_before_run_mb": rss_before, "rss_samples": int(rss.size),
         "rss_timeline_mb": [[round(t, 1), round(m, 1)] for t, m in samples[:: max(1, len(samples) // 60)]],

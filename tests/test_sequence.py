@@ -286,9 +286,9 @@ def test_cli_max_memory_chunks_with_the_same_results(sequence, tmp_path, monkeyp
     paths = [str(write_image(tmp_path / f"f{k:02d}.tif", img, bits=8)) for k, img in enumerate([ref, *frames[:3]])]
     base = ["track", *paths, "--step", "8", "--device", "cpu", "-q", "--reference", "every:2"]
     assert CliRunner().invoke(main, [*base, "-o", str(tmp_path / "a.h5")]).exit_code == 0
-    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 35 POIs a chunk
+    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 24 POIs a chunk
     assert r.exit_code == 0, r.output
-    assert built == [4, 4, 4]
+    assert built == [-(-120 // (10240 // chunks.bytes_per_poi(1)))] * 3 == [5, 5, 5]  # the 120 POIs in 5 chunks
     _same_frames(tmp_path / "a.h5", tmp_path / "b.h5")
     for bad in ("0", "lots", "-5M"):
         r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "c.h5"), "--max-memory", bad])
@@ -327,3 +327,46 @@ def test_strain_in_bands_is_the_strain(window, max_points, monkeypatch):
     assert np.count_nonzero(whole.valid) > 0.7 * len(x)
     with pytest.raises(ValueError, match="max_points"):
         strain_in_bands(field, window, max_points=0)
+
+
+@pytest.mark.parametrize("depth", [0, 1, 2])
+def test_write_behind_holds_at_most_depth_plus_one_frames(depth):
+    """WriteBehind: at most ``depth`` finished frames wait beside the one being written (0: none waits)."""
+    import threading
+    import time
+
+    from dic.sequence.chunks import write_depth
+    from dic.sequence.pipeline import WriteBehind
+
+    gate = threading.Event()
+    running, most, done = [0], [0], []
+    lock = threading.Lock()
+
+    def job(k):
+        def run():
+            gate.wait()
+            done.append(k)
+            with lock:
+                running[0] -= 1
+        return run
+
+    wb = WriteBehind(depth=depth)
+    submitted = []
+
+    def producer():
+        for k in range(6):
+            with lock:
+                running[0] += 1
+                most[0] = max(most[0], running[0])
+            wb.submit(job(k))
+            submitted.append(k)
+
+    t = threading.Thread(target=producer)
+    t.start()
+    time.sleep(0.5)  # the writer is stuck on the first job: the producer blocks once depth + 1 are pending
+    assert len(submitted) == depth + 1
+    gate.set()
+    t.join()
+    wb.close()
+    assert done == list(range(6)) and most[0] <= depth + 2  # + the one the producer holds while it waits
+    assert write_depth(40401, 1, 2 << 30) == 2 and write_depth(16_703_569, 1, 2 << 30) == 0

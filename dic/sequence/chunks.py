@@ -22,26 +22,49 @@ from types import SimpleNamespace
 
 import numpy as np
 
-__all__ = ["bytes_per_poi", "default_max_memory", "ChunkedTracker", "strain_in_bands", "STRAIN_BAND_POINTS"]
+__all__ = ["bytes_per_poi", "result_bytes_per_poi", "write_depth", "default_max_memory", "ChunkedTracker", "strain_in_bands", "STRAIN_BAND_POINTS"]
 
 #: the most POIs whose strain :func:`strain_in_bands` computes at once (about 0.5 GB of working arrays)
 STRAIN_BAND_POINTS = 1 << 20
 
 
 def bytes_per_poi(order: int) -> int:
-    """Bytes of per-POI working data a tracker holds: the reference table, centres, IC-GN buffers."""
+    """Bytes of per-POI working data a tracker holds while it tracks a frame: the reference table,
+    centres, IC-GN buffers, and the host arrays of one ``track`` call (the results read back as
+    float32, their float64 copies, the chunk's Field2D: 16 B per parameter and 56 B besides).
+
+    Measured (RSS of a Tracker over 1 M POIs, 1st order, before and after one ``track``): 410 B
+    per POI; this gives 412 (1st order) and 856 (2nd order).
+    """
     from kernels.icgn import n_params, refdata_width
 
     k = n_params(order)
-    return 4 * (refdata_width(order) + 3 * k + 12) + 32
+    return 4 * (refdata_width(order) + 3 * k + 12) + 32 + 16 * k + 24
+
+
+def result_bytes_per_poi(order: int) -> int:
+    """Bytes of one frame's result per POI on the host: the Field2D's arrays (points, u, v, parameters,
+    ZNCC, iterations, status, valid, sigma_u, sigma_v) and its strain (10 components, valid, n_fit,
+    grid index)."""
+    from kernels.icgn import n_params
+
+    return 8 * n_params(order) + 77 + 105
+
+
+def write_depth(n_points: int, order: int, budget: int) -> int:
+    """How many finished frames may wait for the writer (:class:`dic.sequence.pipeline.WriteBehind`):
+    2 while three frames' results fit in a quarter of ``budget``, else 0 (one frame written while the
+    next is computed, none waiting: frames of many millions of POIs)."""
+    return 2 if 3 * int(n_points) * result_bytes_per_poi(order) <= int(budget) // 4 else 0
 
 
 def default_max_memory() -> int:
     """An eighth of the machine's physical memory (bytes); 2 GiB when it cannot be read.
 
-    The budget covers the tracker's per-POI working data only; a frame's results, its strain bands,
-    the images and the writer's frames take about as much again on a run of 16 M POIs (measured:
-    bench/scale.py), so an eighth keeps the whole run within about half of the memory.
+    The budget covers the tracker's per-POI working data (:func:`bytes_per_poi`); the frame's result
+    arrays (about 0.11 KB per POI), its strain bands, the images and the writer's frame come on top
+    (about 4.5 GB for an 8192 x 8192 pair at step 2, 16.7 M POIs: bench/scale.py), so an eighth
+    keeps such a run within about a third of a 24 GB machine.
     """
     try:
         return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")) // 8
@@ -60,7 +83,8 @@ class ChunkedTracker:
         self.make_tracker, self.image = make_tracker, image
         self.points = np.asarray(points, np.float64)
         self.order = int(order)
-        self.chunk = max(1, int(chunk))
+        n, chunk = len(self.points), max(1, int(chunk))
+        self.chunk = -(-n // -(-n // chunk)) if n else chunk  # chunks of even size, as many as ``chunk`` needs
         self.search = search
 
     @property

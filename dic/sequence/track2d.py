@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory, strain_in_bands
+from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory, strain_in_bands, write_depth
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import (
     AUTO_VALID,
@@ -244,7 +244,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     settings : dict, optional
         The settings stored in the file (and compared on resume); default: ``options`` and the strategy.
     max_memory : int, optional
-        Budget in bytes for the per-POI working data of the correlation (default: a quarter of the
+        Budget in bytes for the per-POI working data of the correlation (default: an eighth of the
         machine's memory); beyond it the POIs are prepared and tracked in chunks for every frame
         (:mod:`dic.sequence.chunks`), with results identical to an unchunked run.
     make_tracker : callable(image, points) -> tracker, optional
@@ -407,7 +407,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
     with writer:
         done = set(writer.done_frames())
-        wb = WriteBehind(depth=2)
+        wb = WriteBehind(depth=write_depth(n, order, budget))  # huge frames: none waits (memory)
 
         def stored_state(index: int) -> _State:
             with wb.lock:
