@@ -286,9 +286,9 @@ def test_cli_max_memory_chunks_with_the_same_results(sequence, tmp_path, monkeyp
     paths = [str(write_image(tmp_path / f"f{k:02d}.tif", img, bits=8)) for k, img in enumerate([ref, *frames[:3]])]
     base = ["track", *paths, "--step", "8", "--device", "cpu", "-q", "--reference", "every:2"]
     assert CliRunner().invoke(main, [*base, "-o", str(tmp_path / "a.h5")]).exit_code == 0
-    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 24 POIs a chunk
+    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 15 POIs a chunk
     assert r.exit_code == 0, r.output
-    assert built == [-(-120 // (10240 // chunks.bytes_per_poi(1)))] * 3 == [5, 5, 5]  # the 120 POIs in 5 chunks
+    assert built == [-(-120 // (10240 // chunks.bytes_per_poi(1)))] * 3 == [8, 8, 8]  # the 120 POIs in 8 chunks
     _same_frames(tmp_path / "a.h5", tmp_path / "b.h5")
     for bad in ("0", "lots", "-5M"):
         r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "c.h5"), "--max-memory", bad])

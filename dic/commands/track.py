@@ -63,7 +63,7 @@ def _fail(exc: Exception) -> click.ClickException:
                    "the median ZNCC drops below 0.95 (auto). Results are always relative to the reference image.")
 @click.option("--max-memory", default=None, metavar="SIZE",
               help="Budget for the per-point working data of the correlation: bytes, or with a unit K, M, G (binary, "
-                   "e.g. 512M; default: an eighth of the machine's memory); beyond it the points are prepared and "
+                   "e.g. 512M; default: a twelfth of the machine's memory); beyond it the points are prepared and "
                    "tracked in chunks, with the same results.")
 @dask_options("frame")
 @compression_option("array")

@@ -29,17 +29,19 @@ STRAIN_BAND_POINTS = 1 << 20
 
 
 def bytes_per_poi(order: int) -> int:
-    """Bytes of per-POI working data a tracker holds while it tracks a frame: the reference table,
-    centres, IC-GN buffers, and the host arrays of one ``track`` call (the results read back as
-    float32, their float64 copies, the chunk's Field2D: 16 B per parameter and 56 B besides).
+    """Bytes per POI that tracking a frame needs at its peak: the tracker's reference table, centres
+    and IC-GN buffers, and the host arrays at the end of one ``track`` call (the results read back as
+    float32, their float64 copies, the acceptance and implausible-warp checks, the uncertainty, the
+    chunk's Field2D).
 
-    Measured (RSS of a Tracker over 1 M POIs, 1st order, before and after one ``track``): 410 B
-    per POI; this gives 412 (1st order) and 856 (2nd order).
+    Measured (bench/scale.py, 8192 x 8192 at step 2, chunks of 5.57 M POIs, 1st order): +1.3 GB
+    while a chunk's tracker is prepared, +2.3 GB more at the end of its ``track`` call, 650 B per POI;
+    this gives 652 (1st order) and 1144 (2nd order: the per-parameter parts scaled).
     """
     from kernels.icgn import n_params, refdata_width
 
     k = n_params(order)
-    return 4 * (refdata_width(order) + 3 * k + 12) + 32 + 16 * k + 24
+    return 4 * (refdata_width(order) + 3 * k + 12) + 32 + 24 * k + 216
 
 
 def result_bytes_per_poi(order: int) -> int:
@@ -59,15 +61,15 @@ def write_depth(n_points: int, order: int, budget: int) -> int:
 
 
 def default_max_memory() -> int:
-    """An eighth of the machine's physical memory (bytes); 2 GiB when it cannot be read.
+    """A twelfth of the machine's physical memory (bytes); 2 GiB when it cannot be read.
 
-    The budget covers the tracker's per-POI working data (:func:`bytes_per_poi`); the frame's result
-    arrays (about 0.11 KB per POI), its strain bands, the images and the writer's frame come on top
-    (about 4.5 GB for an 8192 x 8192 pair at step 2, 16.7 M POIs: bench/scale.py), so an eighth
-    keeps such a run within about a third of a 24 GB machine.
+    The budget covers tracking's per-POI needs (:func:`bytes_per_poi`); the frame's result arrays
+    (about 0.11 KB per POI, :func:`result_bytes_per_poi` with the strain), the strain bands, the
+    images and the writer's frame come on top: about 5 GB for an 8192 x 8192 pair at step 2 (16.7 M
+    POIs; bench/scale.py), so that such a pair stays within 8 GB on a 24 GB machine.
     """
     try:
-        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")) // 8
+        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")) // 12
     except (ValueError, OSError, AttributeError):
         return 2 << 30
 
@@ -98,6 +100,7 @@ class ChunkedTracker:
         from ..correlation.acceptance import status_counts, warn_if_mostly_invalid
         from ..field2d import Field2D
         from ..quality import SigmaBasis, displacement_sigma
+        from .pipeline import trim_memory
 
         bases, first, out = [], None, {}
         n = len(self.points)
@@ -121,6 +124,7 @@ class ChunkedTracker:
                     out[name] = np.empty((n,) + a.shape[1:], a.dtype)
                 out[name][s:s + len(a)] = a
             del part
+            trim_memory()  # the chunk's freed buffers go back to the system before the next chunk's are made
         cat = out
         sigma_u = sigma_v = None
         noise, source = first.noise_sigma, first.noise_source

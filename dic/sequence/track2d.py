@@ -244,7 +244,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     settings : dict, optional
         The settings stored in the file (and compared on resume); default: ``options`` and the strategy.
     max_memory : int, optional
-        Budget in bytes for the per-POI working data of the correlation (default: an eighth of the
+        Budget in bytes for the per-POI working data of the correlation (default: a twelfth of the
         machine's memory); beyond it the POIs are prepared and tracked in chunks for every frame
         (:mod:`dic.sequence.chunks`), with results identical to an unchunked run.
     make_tracker : callable(image, points) -> tracker, optional
