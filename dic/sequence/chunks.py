@@ -88,6 +88,21 @@ class ChunkedTracker:
         n, chunk = len(self.points), max(1, int(chunk))
         self.chunk = -(-n // -(-n // chunk)) if n else chunk  # chunks of even size, as many as ``chunk`` needs
         self.search = search
+        self._textured = None  # textured fraction of every POI's reference subset (computed once)
+
+    def _share_textured(self, tracker, start: int) -> None:
+        """Give a chunk's correlator its slice of the reference's textured fractions (the implausible-warp
+        check), computed once for every POI: each correlator would otherwise filter the whole reference
+        image again (about 3.5 GB of image-sized arrays at 8192 x 8192) for its own POIs. The fraction
+        of a POI depends on the image and that POI only, so the values are the same."""
+        corr = getattr(tracker, "correlator", None)
+        if corr is None or not hasattr(corr, "_textured") or not getattr(tracker, "check_warps", True):
+            return
+        if self._textured is None:
+            from ..correlation.plausibility import textured_fraction
+
+            self._textured = textured_fraction(corr.image, self.points, corr.subset)
+        corr._textured = self._textured[start:start + len(corr.points)]
 
     @property
     def n_chunks(self) -> int:
@@ -106,6 +121,7 @@ class ChunkedTracker:
         n = len(self.points)
         for s in range(0, n, self.chunk):
             tracker = self.make_tracker(self.image, self.points[s:s + self.chunk])
+            self._share_textured(tracker, s)
             g = None if guess is None else np.asarray(guess)[s:s + self.chunk]
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
