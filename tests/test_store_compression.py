@@ -43,7 +43,7 @@ def test_parse_compression():
             parse_compression(bad)
 
 
-@pytest.mark.parametrize("setting, expected", [("none", None), ("lzf", "lzf"), ("gzip:1", "gzip"), (None, "lzf")])
+@pytest.mark.parametrize("setting, expected", [("none", None), ("lzf", "lzf"), ("gzip:1", "gzip"), (None, None)])
 def test_setting_is_recorded_and_applied_where_it_pays(tmp_path, setting, expected):
     out = tmp_path / "a.h5"
     f = big_field(1)

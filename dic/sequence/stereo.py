@@ -100,7 +100,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         the states are written here in order; results identical to ``guess="none"`` on one process.
         Only ``reference="fixed"`` can be distributed (every other strategy waits for earlier states).
     compression : "none" | "lzf" | "gzip" | "gzip:N", optional
-        How the file's datasets are compressed (default ``"lzf"``; docs/results_format.md). A resumed
+        How the file's datasets are compressed (default ``"none"``: the fastest; docs/results_format.md). A resumed
         file keeps the setting it was written with.
     options
         :class:`dic.stereo.StereoCorrelation` keywords (``step``, ``subset``, ``order``,

@@ -266,7 +266,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         only (every:N waits for each key frame before its block); an address is connected within 5 s.
     compression : "none" | "lzf" | "gzip" | "gzip:N", optional
         How the result file's datasets are compressed (:func:`dic.store.layout.parse_compression`;
-        default ``"lzf"``, docs/results_format.md). A resumed file keeps the setting it was written with.
+        default ``"none"``: the fastest, docs/results_format.md). A resumed file keeps the setting it was written with.
     options
         :class:`dic.track.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``noise_sigma``, ``device``, ...).

@@ -99,8 +99,9 @@ def _compresses(arr: np.ndarray, min_gain: float) -> bool:
     return len(zlib.compress(raw, 1)) <= (1.0 - min_gain) * len(raw)
 
 
-#: the compression of new result files when none is chosen (docs/results_format.md: measured choice)
-DEFAULT_COMPRESSION = Compression("lzf")
+#: the compression of new result files when none is chosen: none, the fastest to write and readable by
+#: every HDF5 tool (docs/results_format.md: measured against lzf and gzip on sequence throughput)
+DEFAULT_COMPRESSION = Compression(None)
 #: the compression of files written before the setting existed (they hold no ``compression`` attribute)
 LEGACY_COMPRESSION = Compression("gzip", 4)
 
