@@ -138,3 +138,31 @@ def test_sequence_and_cli_option(tmp_path):
     assert _filters(tmp_path / "c.h5") == ({k: None for k in _filters(tmp_path / "c.h5")[0]}, "none")
     r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "d.h5"), "--compression", "gzip:11"])
     assert r.exit_code == 2 and "--compression" in r.output and "0 to 9" in r.output
+
+
+def test_iter_frames_holds_one_frame_at_a_time(tmp_path):
+    """ResultReader.iter_frames reads each frame when it is reached: memory stays flat over the file's
+    length (read_results, by contrast, holds every frame)."""
+    import tracemalloc
+
+    out = tmp_path / "long.h5"
+    f = big_field(1, n_side=60)  # 3600 POIs
+    one = sum(np.asarray(getattr(f, k)).nbytes for k in ("points", "u", "v", "params", "zncc", "iterations", "valid"))
+    with ResultWriter(out, **KW) as w:
+        for k in range(1, 41):
+            w.write_frame(k, f)
+    with ResultReader(out) as r:
+        tracemalloc.start()
+        seen = [(i, float(fr.u[0])) for i, fr in r.iter_frames()]
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        assert [i for i, _ in seen] == list(range(1, 41)) and all(u == f.u[0] for _, u in seen)
+        assert [i for i, _ in r.iter_frames([3, 1])] == [3, 1]
+        with pytest.raises(ValueError, match="no finished frame 99"):
+            list(r.iter_frames([99]))
+    assert peak < 4 * one  # about one frame (plus the reads' buffers), not 40
+    tracemalloc.start()
+    held = read_results(out)
+    _, peak_all = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert len(held.frames) == 40 and peak_all > 30 * one  # the whole-file reader, for comparison

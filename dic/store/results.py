@@ -176,6 +176,14 @@ class _ResultFile:
         """A complete frame: :class:`dic.store.FrameResult` (2-D) or :class:`dic.field3d.Field3D` (stereo)."""
         return self.kind.read_payload(self._complete_group(index))
 
+    def iter_frames(self, indices=None):
+        """Yield ``(index, frame)`` for the complete frames (``indices``: those, in that order; default all,
+        ascending), each read from the file when it is reached: a consumer that keeps none of them holds
+        one frame at a time, whatever the file's length (a 10 000-frame file included)."""
+        wanted = self.done_frames() if indices is None else [int(i) for i in indices]
+        for index in wanted:
+            yield index, self.read_frame(index)
+
     def frame_paths(self, index: int) -> tuple[str, ...]:
         """The image path(s) recorded for a complete frame: (path,) or (left, right)."""
         g = self._complete_group(index)
@@ -602,8 +610,8 @@ def _nbytes(obj) -> int:
 class ResultReader(_ResultFile):
     """Open a result file read-only: ``kind`` "dic2d", "stereo", or None for whichever it is.
 
-    Offers :attr:`attrs`, :attr:`reference`, :attr:`settings`, :attr:`rig`, :meth:`done_frames`,
-    :meth:`read_frame`, :meth:`frame_paths`, :meth:`frame_attrs`, :meth:`frame_arrays` and :meth:`read_match`;
+    Offers :attr:`attrs`, :attr:`reference`, :attr:`settings`, :attr:`rig`, :attr:`compression`,
+    :meth:`done_frames`, :meth:`read_frame`, :meth:`iter_frames` (one frame in memory at a time), :meth:`frame_paths`, :meth:`frame_attrs`, :meth:`frame_arrays` and :meth:`read_match`;
     incomplete frames are invisible. Files of a newer schema version are refused. Use as a
     context manager.
     """
