@@ -79,13 +79,23 @@ class Compression:
         return self.filter if self.level is None else f"{self.filter}:{self.level}"
 
     def dataset_options(self, arr: np.ndarray) -> dict:
-        """The ``create_dataset`` keywords of an array: its filter and shuffle, or none at all."""
-        if self.filter is None or arr.size < self.MIN_SIZE or not _compresses(arr, self.MIN_GAIN):
+        """The ``create_dataset`` keywords of an array: its filter and shuffle, or none (chunked storage
+        all the same for arrays of ``MIN_SIZE`` values or more: files of contiguous datasets only made
+        the writing process's memory grow with the number of frames written, +20 MB over 800 frames)."""
+        if arr.size < self.MIN_SIZE:
             return {}
+        if self.filter is None or not _compresses(arr, self.MIN_GAIN):
+            return {"chunks": _chunks(arr)}
         opts = {"compression": self.filter, "shuffle": arr.dtype.itemsize > 1}
         if self.level is not None:
             opts["compression_opts"] = self.level
         return opts
+
+
+def _chunks(arr: np.ndarray, nbytes: int = 4 << 20) -> tuple:
+    """Chunks of whole rows of at most ``nbytes`` (the whole array when smaller): few chunks to index."""
+    row = max(1, arr[:1].nbytes) if arr.shape[0] else 1
+    return (max(1, min(arr.shape[0], nbytes // row)),) + arr.shape[1:]
 
 
 def _compresses(arr: np.ndarray, min_gain: float) -> bool:

@@ -57,6 +57,7 @@ KINDS: dict[str, StoreKind] = {dic2d.KIND.name: dic2d.KIND, stereo.KIND.name: st
 _BY_FORMAT = {k.format: k for k in KINDS.values()}
 _MODES = ("resume", "overwrite", "new")
 _RESERVE_MARGIN = 1 << 20  # bytes reserved beyond a frame's arrays: its metadata, the groups' growth
+_METADATA_CACHE = 4 << 20  # bytes: HDF5's metadata cache of a file being written (its default grows to 32 MiB)
 
 
 def _kind(kind) -> StoreKind:
@@ -300,6 +301,7 @@ class ResultWriter(_ResultFile):
             try:
                 self._check_compatible(paths, digests, shape, rig_json)
                 self._compression = self.compression  # the file's own setting, kept for the frames added
+                _bound_metadata_cache(self._h5)
             except BaseException:
                 self._h5.close()
                 raise
@@ -316,6 +318,7 @@ class ResultWriter(_ResultFile):
         self._tmp = tmp
         try:
             self._h5 = h5py.File(tmp, "w")
+            _bound_metadata_cache(self._h5)
             f = self._h5
             f.attrs["format"] = self.kind.format
             f.attrs["schema_version"] = SCHEMA_VERSION
@@ -580,6 +583,21 @@ class ResultWriter(_ResultFile):
                 f"{self.path} holds {self.kind.frame_noun} {index} computed from {_show(stored)}, but this run gives "
                 f"{_show(given)} for it ({how}); resume with the same images, write to another file, or start "
                 "afresh (--overwrite, mode='overwrite')")
+
+
+def _bound_metadata_cache(h5) -> None:
+    """Cap HDF5's metadata cache of a file being written at 4 MiB: the objects of the frames written so
+    far otherwise fill it up to 32 MiB over the first few hundred frames (measured with uncompressed
+    datasets: +20 MB of RSS between frames 50 and 800), a growth with the sequence's length."""
+    try:
+        config = h5.id.get_mdc_config()
+        config.set_initial_size = True
+        config.initial_size = min(int(config.initial_size), _METADATA_CACHE)
+        config.min_size = min(int(config.min_size), _METADATA_CACHE)
+        config.max_size = _METADATA_CACHE
+        h5.id.set_mdc_config(config)
+    except (AttributeError, ValueError, RuntimeError):  # a driver or build without it: the default cache
+        pass
 
 
 def _same_path(a: str, b: str) -> bool:
