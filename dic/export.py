@@ -356,35 +356,35 @@ def write_vtk_series(fields, directory, *, stem: str | None = None, kind: str = 
     position; ``deformed=True`` moves the valid ones) and the same cells; data are NaN where a
     point is invalid in that step. Each field's ``index`` (a Field2D: its place in the sequence,
     from 1) is its time step in ParaView. ``stem`` defaults to ``stereo`` (3-D) or ``frame`` (2-D).
+    A result file path is read one frame at a time, twice (the point set, then the files): memory
+    stays flat over the file's length.
     """
-    if isinstance(fields, (str, os.PathLike) + _RESULTS):
-        res = read_any(fields)
-        fields = [res.fields[i] for i in res.indices] if isinstance(res, StereoResults) else \
-            [res.frames[i] for i in res.indices]
-    fields = [_check_field(f) for f in fields]
-    if not fields:
-        raise ValueError("no field to export")
-    is3d = [isinstance(f, Field3D) for f in fields]
-    if any(is3d) and not all(is3d):
-        raise ValueError("a VTK series holds fields of one kind: all Field3D or all 2-D fields")
-    stem = ("stereo" if is3d[0] else "frame") if stem is None else str(stem)
-    if not stem or os.sep in stem or "/" in stem:
-        raise ValueError(f"stem must be a plain file name prefix, got {stem!r}")
-    first = np.asarray(fields[0].points, dtype=np.float64)
-    geos = []
-    for k, f in enumerate(fields):
+    series = _field_series(fields)
+    first = is3d = keep = positions = None
+    for k, f in enumerate(series()):  # first pass: the kind, the points and the positions (one field at a time)
+        f = _check_field(f)
+        if first is None:
+            is3d = isinstance(f, Field3D)
+            stem = ("stereo" if is3d else "frame") if stem is None else str(stem)
+            if not stem or os.sep in stem or "/" in stem:
+                raise ValueError(f"stem must be a plain file name prefix, got {stem!r}")
+            first = np.asarray(f.points, dtype=np.float64)
+            # the one point set of the series: every point with a position in some step, at its first known one
+            keep = np.zeros(first.shape[0], dtype=bool)
+            positions = np.full((first.shape[0], 3), np.nan)
+        elif isinstance(f, Field3D) != is3d:
+            raise ValueError("a VTK series holds fields of one kind: all Field3D or all 2-D fields")
         pts = np.asarray(f.points, dtype=np.float64)
         if pts.shape != first.shape or not np.array_equal(pts, first, equal_nan=True):
             raise ValueError(f"field {k} of the series has other points than the first; a VTK series needs the same "
                              "points in every step")
-        geos.append(_Geometry(f))
-    # the one point set of the series: every point with a position in some step, at its first known position
-    keep = np.zeros(first.shape[0], dtype=bool)
-    positions = np.full((first.shape[0], 3), np.nan)
-    for geo in geos:
+        geo = _Geometry(f)
         new = geo.has_position & ~keep
         positions[new] = geo.ref[new]
         keep |= geo.has_position
+        del geo
+    if first is None:
+        raise ValueError("no field to export")
     if not np.any(keep):
         raise ValueError("no point of the series has a position (every state failed); nothing to export")
     directory = Path(os.fspath(directory))
@@ -392,12 +392,32 @@ def write_vtk_series(fields, directory, *, stem: str | None = None, kind: str = 
         raise ValueError(f"the VTK output must be a folder, but {directory} is a file")
     directory.mkdir(parents=True, exist_ok=True)
     entries = []
-    for k, f in enumerate(fields):
+    for k, f in enumerate(series()):  # second pass: one file per field, as it is read
         index = int(f.index) if getattr(f, "index", None) is not None and not isinstance(f, Field2D) else k + 1
         name = f"{stem}_{index:06d}.vtu"
         _mesh(f, kind, deformed, invalid="nan", keep=keep, positions=positions).write(directory / name)
         entries.append((index, name))
     return write_pvd(directory, entries, stem=stem)
+
+
+def _field_series(fields):
+    """A function giving a fresh iterator over the fields of a series: a result file is read one frame at a
+    time (:meth:`dic.store.ResultReader.iter_frames`), so that a long file's export holds one frame at once."""
+    if isinstance(fields, (str, os.PathLike)):
+        with ResultReader(fields):  # a missing or foreign file is refused now, not on the first pass
+            pass
+
+        def frames():
+            with ResultReader(fields) as r:
+                for _, f in r.iter_frames():
+                    yield f
+        return frames
+    if isinstance(fields, _RESULTS):
+        res = fields
+        return lambda: (res.fields[i] for i in res.indices) if isinstance(res, StereoResults) else \
+            (res.frames[i] for i in res.indices)
+    fields = list(fields)
+    return lambda: iter(fields)
 
 
 def write_pvd(directory, entries, *, stem: str) -> Path:
@@ -439,6 +459,12 @@ def export_results(source, fmt: str, out, *, kind: str = "grid", deformed: bool 
         raise ValueError(f"a {fmt} export is one file ending in {' or '.join(suffixes)}, got {out.name}")
     if suffixes is None and out.exists() and not out.is_dir():
         raise ValueError(f"a {fmt} export is a folder of files, but {out} is a file")
+    if fmt == "vtk" and isinstance(source, (str, os.PathLike)):  # read one frame at a time, twice
+        with ResultReader(source) as r:
+            if not r.done_frames():
+                raise ValueError("the result file has no finished frame to export")
+        pvd = write_vtk_series(source, out, kind=kind, deformed=deformed)
+        return sorted(pvd.parent.glob(f"{pvd.stem}_*.vtu")) + [pvd]
     res = read_any(source)
     if not res.indices:
         raise ValueError("the result file has no finished frame to export")

@@ -286,9 +286,9 @@ def test_cli_max_memory_chunks_with_the_same_results(sequence, tmp_path, monkeyp
     paths = [str(write_image(tmp_path / f"f{k:02d}.tif", img, bits=8)) for k, img in enumerate([ref, *frames[:3]])]
     base = ["track", *paths, "--step", "8", "--device", "cpu", "-q", "--reference", "every:2"]
     assert CliRunner().invoke(main, [*base, "-o", str(tmp_path / "a.h5")]).exit_code == 0
-    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 35 POIs a chunk
+    r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "b.h5"), "--max-memory", "10K"])  # 15 POIs a chunk
     assert r.exit_code == 0, r.output
-    assert built == [4, 4, 4]
+    assert built == [-(-120 // (10240 // chunks.bytes_per_poi(1)))] * 3 == [8, 8, 8]  # the 120 POIs in 8 chunks
     _same_frames(tmp_path / "a.h5", tmp_path / "b.h5")
     for bad in ("0", "lots", "-5M"):
         r = CliRunner().invoke(main, [*base, "-o", str(tmp_path / "c.h5"), "--max-memory", bad])
@@ -364,3 +364,98 @@ def test_fill_reference_interpolates_locally_and_says_where():
         args = {"points0": pts, "params": bad, "valid": valid, **kw}
         with pytest.raises(ValueError, match=msg):
             fill_reference(**args)
+
+
+@pytest.mark.parametrize("window, max_points", [(5, 50), (3, 37), (7, 200), (5, 10**6)])
+def test_strain_in_bands_is_the_strain(window, max_points, monkeypatch):
+    """Strain a band of grid rows at a time (bounded memory on huge grids) equals one call over the grid."""
+    from types import SimpleNamespace
+
+    from dic.correlation.points import grid
+    from dic.sequence.chunks import strain_in_bands
+    from dic.strain import strain
+
+    rng = np.random.default_rng(window)
+    pts = grid((200, 160), 4, margin=10)
+    keep = ((pts[:, 0] - 80) ** 2 + (pts[:, 1] - 100) ** 2 > 30**2) & (rng.random(len(pts)) > 0.02)  # a hole
+    pts = pts[keep][rng.permutation(int(keep.sum()))]  # and in no particular order
+    x, y = pts.T
+    field = SimpleNamespace(points=pts, u=1e-3 * x + 2e-5 * y**2 + rng.normal(0, 1e-3, len(x)),
+                            v=-5e-4 * y + 1e-5 * x * y, valid=rng.random(len(x)) > 0.1)
+    whole = strain(field, window=window)
+    import sys
+
+    sizes = []
+    monkeypatch.setattr(sys.modules["dic.strain"], "strain", lambda f, window: sizes.append(len(f.points)) or strain(f, window=window))
+    banded = strain_in_bands(field, window, max_points=max_points)
+    if max_points < len(x):  # in bands, none of them the whole grid
+        assert len(sizes) > 3 and max(sizes) < len(x) / 2, sizes
+    else:
+        assert sizes == [len(x)]
+    for name in whole.COMPONENTS + ("valid", "n_fit", "points", "grid_index"):
+        assert np.array_equal(getattr(banded, name), getattr(whole, name), equal_nan=True), name
+    assert banded.grid_shape == whole.grid_shape and banded.step == whole.step and banded.window == window
+    assert np.count_nonzero(whole.valid) > 0.7 * len(x)
+    with pytest.raises(ValueError, match="max_points"):
+        strain_in_bands(field, window, max_points=0)
+
+
+@pytest.mark.parametrize("depth", [0, 1, 2])
+def test_write_behind_holds_at_most_depth_plus_one_frames(depth):
+    """WriteBehind: at most ``depth`` finished frames wait beside the one being written (0: none waits)."""
+    import threading
+    import time
+
+    from dic.sequence.chunks import write_depth
+    from dic.sequence.pipeline import WriteBehind
+
+    gate = threading.Event()
+    running, most, done = [0], [0], []
+    lock = threading.Lock()
+
+    def job(k):
+        def run():
+            gate.wait()
+            done.append(k)
+            with lock:
+                running[0] -= 1
+        return run
+
+    wb = WriteBehind(depth=depth)
+    submitted = []
+
+    def producer():
+        for k in range(6):
+            with lock:
+                running[0] += 1
+                most[0] = max(most[0], running[0])
+            wb.submit(job(k))
+            submitted.append(k)
+
+    t = threading.Thread(target=producer)
+    t.start()
+    time.sleep(0.5)  # the writer is stuck on the first job: the producer blocks once depth + 1 are pending
+    assert len(submitted) == depth + 1
+    gate.set()
+    t.join()
+    wb.close()
+    assert done == list(range(6)) and most[0] <= depth + 2  # + the one the producer holds while it waits
+    assert write_depth(40401, 1, 2 << 30) == 2 and write_depth(16_703_569, 1, 2 << 30) == 0
+
+
+def test_chunks_filter_the_reference_image_once(sequence, tmp_path, monkeypatch):
+    """The implausible-warp check's textured fractions are computed once per reference, not per chunk and
+    frame (each computation filters the whole reference image: 3.5 GB at 8192 x 8192); same results."""
+    from dic.correlation import plausibility
+    from dic.sequence.chunks import bytes_per_poi
+
+    calls = []
+    real = plausibility.textured_fraction
+    monkeypatch.setattr(plausibility, "textured_fraction", lambda *a, **k: calls.append(len(a[1])) or real(*a, **k))
+    ref, frames = sequence
+    track_sequence(ref, frames[:4], tmp_path / "whole.h5", step=8, device="cpu")
+    assert calls == [120]
+    calls.clear()
+    track_sequence(ref, frames[:4], tmp_path / "chunked.h5", step=8, device="cpu", max_memory=37 * bytes_per_poi(1))
+    assert calls == [120]  # all 120 POIs once, for 4 frames of 4 chunks each
+    _same_frames(tmp_path / "whole.h5", tmp_path / "chunked.h5")

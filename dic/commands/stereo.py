@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from ._compression import compression_option
 from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
 from ._region import parse_region, region_options
@@ -87,11 +88,12 @@ def _engine_pairs(pairs) -> list:
                    "the median track ZNCC drops below 0.95 (auto). The left-right match is done once; results are "
                    "always relative to the reference state.")
 @dask_options("state")
+@compression_option("array")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
            strain_window, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           overwrite, quiet):
+           compression, overwrite, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -172,7 +174,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
             stereo_sequence(rig, pairs, output, reference=reference_strategy,
                             mode="overwrite" if overwrite else "resume", progress=not quiet, callback=after,
                             vtk_dir=vtk_dir, vtk_stem=output.stem, figure_dir=streamed_figures,
-                            figure_every=figure_every, device=device, client=client, **options)
+                            figure_every=figure_every, device=device, client=client, compression=compression,
+                            **options)
     except ValueError as exc:
         raise click.ClickException(f"{exc}" + (f"; finished states are saved in {output}" if written else "")) from None
     if figure_dir is not None and figure_limits == "sequence":

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from ._compression import compression_option
 from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
 from ._region import parse_region, region_options
@@ -62,14 +63,15 @@ def _fail(exc: Exception) -> click.ClickException:
                    "the median ZNCC drops below 0.95 (auto). Results are always relative to the reference image.")
 @click.option("--max-memory", default=None, metavar="SIZE",
               help="Budget for the per-point working data of the correlation: bytes, or with a unit K, M, G (binary, "
-                   "e.g. 512M; default: a quarter of the machine's memory); beyond it the points are prepared and "
+                   "e.g. 512M; default: a twelfth of the machine's memory); beyond it the points are prepared and "
                    "tracked in chunks, with the same results.")
 @dask_options("frame")
+@compression_option("array")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
-          reference_strategy, max_memory, scheduler, workers, overwrite, quiet):
+          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -161,7 +163,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                 mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
                 vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
                 settings=settings, make_tracker=make_tracker, points=planned, order=order,
-                max_memory=budget, search=search_method if search else None, client=client)
+                max_memory=budget, search=search_method if search else None, client=client, compression=compression)
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":

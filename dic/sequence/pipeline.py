@@ -118,12 +118,17 @@ def read_ahead(items: Iterable, load: Callable[[int, Any], Loaded], *, first: in
 class WriteBehind:
     """Run jobs (writing finished frames) in order on one thread, at most ``depth`` waiting.
 
-    :meth:`submit` raises the first error a job raised (later jobs are dropped, the frames written
-    before stay in the file); :meth:`close` waits for every submitted job and raises that error too.
+    ``depth`` 0: none waits, :meth:`submit` returns once the job before has finished (one frame is
+    written while the next is computed, no more frames are held: for frames whose results take
+    gigabytes). :meth:`submit` raises the first error a job raised (later jobs are dropped, the
+    frames written before stay in the file); :meth:`close` waits for every submitted job and raises
+    that error too.
     """
 
     def __init__(self, depth: int = 2):
-        self._q: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
+        depth = max(0, int(depth))
+        self._q: queue.Queue = queue.Queue()
+        self._slots = threading.Semaphore(depth + 1)  # jobs submitted and not finished: the one running + depth
         self.error: BaseException | None = None
         self.lock = threading.RLock()  # taken by every job and by the caller's own reads of the result file
         self._thread = threading.Thread(target=self._work, name="specula-writer", daemon=True)
@@ -134,13 +139,15 @@ class WriteBehind:
             job = self._q.get()
             if job is _DONE:
                 return
-            if self.error is not None:
-                continue
             try:
-                with self.lock:
-                    job()
+                if self.error is None:
+                    with self.lock:
+                        job()
             except BaseException as exc:  # noqa: BLE001 - re-raised on the caller's thread
                 self.error = exc
+            finally:
+                del job  # the finished frame is freed before the next one is waited for
+                self._slots.release()
 
     def check(self) -> None:
         if self.error is not None:
@@ -148,12 +155,9 @@ class WriteBehind:
 
     def submit(self, job: Callable[[], None]) -> None:
         self.check()
-        while True:
-            try:
-                self._q.put(job, timeout=0.1)
-                return
-            except queue.Full:
-                self.check()
+        while not self._slots.acquire(timeout=0.1):
+            self.check()
+        self._q.put(job)
 
     def close(self, *, raise_error: bool = True) -> None:
         if self._thread.is_alive():

@@ -45,7 +45,8 @@ _TRIM_EVERY = 10  # states between two malloc_trim calls
 def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode: str = "resume",
                     progress: bool = False, callback: Callable[[Field3D], None] | None = None, vtk_dir=None,
                     vtk_stem: str = "stereo", figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
-                    auto_zncc: float = AUTO_ZNCC, guess: str | None = None, client=None, **options) -> list[Field3D]:
+                    auto_zncc: float = AUTO_ZNCC, guess: str | None = None, client=None, compression=None,
+                    **options) -> list[Field3D]:
     """Stereo DIC of an image-pair sequence, written state by state to an HDF5 file.
 
     Parameters
@@ -103,6 +104,9 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         reference match is done here once, each worker prepares the reference pair once and keeps it,
         the states are written here in order; results identical to ``guess="none"`` on one process.
         Only ``reference="fixed"`` can be distributed (every other strategy waits for earlier states).
+    compression : "none" | "lzf" | "gzip" | "gzip:N", optional
+        How the file's datasets are compressed (default ``"none"``: the fastest; docs/results_format.md). A resumed
+        file keeps the setting it was written with.
     options
         :class:`dic.stereo.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
@@ -170,7 +174,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         settings["guess"] = "none"
     ref_digests = (image_digest(left_ref), image_digest(right_ref))
     writer = ResultWriter(out, kind="stereo", reference_path=(lp, rp), reference_shape=np.shape(left_ref),
-                          reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode)
+                          reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode,
+                          compression=compression)
     for d in (vtk_dir, figure_dir):
         if d is not None:
             Path(os.fspath(d)).mkdir(parents=True, exist_ok=True)

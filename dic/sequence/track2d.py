@@ -20,7 +20,7 @@ import numpy as np
 
 from kernels.conventions import round_half_away
 
-from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory
+from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory, strain_in_bands, write_depth
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import (
     AUTO_VALID,
@@ -231,7 +231,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                    vtk_dir=None, figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
                    auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
                    make_tracker: Callable | None = None, max_memory: int | None = None, guess: str | None = None,
-                   client=None, **options) -> SequenceSummary:
+                   client=None, compression=None, **options) -> SequenceSummary:
     """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
 
     Parameters
@@ -269,7 +269,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     settings : dict, optional
         The settings stored in the file (and compared on resume); default: ``options`` and the strategy.
     max_memory : int, optional
-        Budget in bytes for the per-POI working data of the correlation (default: a quarter of the
+        Budget in bytes for the per-POI working data of the correlation (default: a twelfth of the
         machine's memory); beyond it the POIs are prepared and tracked in chunks for every frame
         (:mod:`dic.sequence.chunks`), with results identical to an unchunked run.
     make_tracker : callable(image, points) -> tracker, optional
@@ -289,6 +289,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         back to this process, which writes them in frame order (resume as without a client). Results
         are identical to a single-process run with ``guess="none"``. ``"fixed"`` and ``"every:N"``
         only (every:N waits for each key frame before its block); an address is connected within 5 s.
+    compression : "none" | "lzf" | "gzip" | "gzip:N", optional
+        How the result file's datasets are compressed (:func:`dic.store.layout.parse_compression`;
+        default ``"none"``: the fastest, docs/results_format.md). A resumed file keeps the setting it was written with.
     options
         :class:`dic.track.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``noise_sigma``, ``device``, ...).
@@ -419,7 +422,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     zero = _State(0, np.zeros((n, 6 if order == 1 else 12)), np.ones(n, bool), np.zeros(n, np.int32))
     ref_name = ref_path or "(array)"
     writer = ResultWriter(out, reference_path=ref_path, reference_shape=ref_img.shape,
-                          reference_sha256=_digest(ref_img), settings=settings, mode=mode)
+                          reference_sha256=_digest(ref_img), settings=settings, mode=mode,
+                          compression=compression)
     summary = SequenceSummary(path=out)
     total = len(frames) if hasattr(frames, "__len__") else None
     for d in (vtk_dir, figure_dir):
@@ -428,7 +432,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
     with writer:
         done = set(writer.done_frames())
-        wb = WriteBehind(depth=2)
+        wb = WriteBehind(depth=write_depth(n, order, budget))  # huge frames: none waits (memory)
 
         def stored_state(index: int) -> _State:
             with wb.lock:
@@ -466,10 +470,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         def finish(k: int, lag, raw_seconds: float, ref_index: int, item: Loaded):
             strain = None
             if strain_window:
-                from ..strain import strain as compute_strain
-
-                try:
-                    strain = compute_strain(lag, window=strain_window)
+                try:  # a band of grid rows at a time: bounded memory, the same strain (dic.sequence.chunks)
+                    strain = strain_in_bands(lag, strain_window)
                 except ValueError as exc:
                     raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
             attrs = {"seconds": raw_seconds, "reference_index": int(ref_index)}

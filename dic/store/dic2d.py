@@ -3,7 +3,8 @@
 Per frame ``/frames/<index>``::
 
     points (N, 2) f8, u (N,), v (N,), params (N, 6|12), zncc (N,), iterations (N,), status (N,) i1,
-    valid (N,) bool                  every dataset gzip level 4 + byte shuffle
+    valid (N,) bool                  compressed with the file's setting (root attr ``compression``;
+                                     dic.store.layout.Compression: where it pays, with byte shuffle)
     sigma_u, sigma_v (N,) f8         optional: predicted displacement std (px, NaN where not valid);
                                      attrs noise_sigma (grey levels), noise_source ("given" | "residual")
     strain/                          optional: dudx, dudy, dvdx, dvdy, exx, eyy, exy, Exx, Eyy, Exy (N,) f8,
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .layout import StoreKind, plain
+from .layout import DEFAULT_COMPRESSION, Compression, StoreKind, parse_compression, plain, write_dataset
 
 __all__ = ["FORMAT_NAME", "KIND", "FrameResult", "TrackResults", "write_field2d", "read_field2d"]
 
@@ -192,18 +193,15 @@ class TrackResults:
         return frame.plot(reference, limits=limits, **kwargs)
 
 
-def _compressed(group, key, data) -> None:
-    group.create_dataset(key, data=data, compression="gzip", compression_opts=4, shuffle=True)
-
-
-def write_field2d(group, field2d, strain=None) -> None:
+def write_field2d(group, field2d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:
     """Write one frame's displacement field (and optional strain) into an empty h5py ``group``.
 
     ``field2d`` has ``points`` (N, 2), ``u``, ``v`` (N,) px and optionally ``params``, ``zncc``,
     ``iterations``, ``status``, ``valid``, ``sigma_u``, ``sigma_v``, ``noise_sigma``, ``noise_source``
     (a :class:`dic.track.Field2D`); ``strain`` is a
-    :class:`dic.strain.StrainField` or None.
+    :class:`dic.strain.StrainField` or None. ``compression``: :func:`dic.store.layout.parse_compression`.
     """
+    compression = parse_compression(compression)
     n = None
     for key in FIELD_DATASETS:
         val = getattr(field2d, key, None)
@@ -219,7 +217,7 @@ def write_field2d(group, field2d, strain=None) -> None:
         n = arr.shape[0] if n is None else n
         if arr.shape[0] != n:
             raise ValueError(f"field arrays disagree in length: {key} has {arr.shape[0]}, expected {n}")
-        _compressed(group, key, arr)
+        write_dataset(group, key, arr, compression)
     for key in FIELD_ATTRS:
         val = getattr(field2d, key, None)
         if val is not None:
@@ -227,7 +225,7 @@ def write_field2d(group, field2d, strain=None) -> None:
     if strain is not None:
         sg = group.create_group("strain")
         for key in STRAIN_DATASETS:
-            _compressed(sg, key, np.asarray(getattr(strain, key)))
+            write_dataset(sg, key, np.asarray(getattr(strain, key)), compression)
         sg.attrs["window"] = int(strain.window)
         sg.attrs["step"] = np.asarray(strain.step, dtype=np.float64)
 

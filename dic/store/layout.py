@@ -14,7 +14,8 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["SCHEMA_VERSION", "StoreKind", "image_digest", "device_checksum", "DEVICE_CHECKSUM_PREFIX", "frame_name",
+__all__ = ["SCHEMA_VERSION", "StoreKind", "Compression", "DEFAULT_COMPRESSION", "LEGACY_COMPRESSION",
+           "parse_compression", "write_dataset", "image_digest", "device_checksum", "DEVICE_CHECKSUM_PREFIX", "frame_name",
            "role_attr", "settings_json"]
 
 # One schema version for the whole family: both kinds have been at version 1 since their first
@@ -33,7 +34,8 @@ class StoreKind:
         ("left", "right") for a pair (attrs ``left_path``, ``left_sha256``, ...)
     reference_noun, frame_noun : words for messages ("reference image pair", "state", ...)
     needs_rig : the file stores a ``/rig`` (stereo) checked on resume
-    write_payload : (h5py group, field, strain) -> None, writes the frame's datasets and attrs
+    write_payload : (h5py group, field, strain, compression) -> None, writes the frame's datasets and attrs
+        (``compression`` a :class:`Compression`; datasets through :func:`write_dataset`)
     read_payload : (h5py group) -> the frame's result object
     """
 
@@ -46,6 +48,102 @@ class StoreKind:
     needs_rig: bool
     write_payload: Callable
     read_payload: Callable
+
+
+@dataclass(frozen=True)
+class Compression:
+    """How a result file's datasets are compressed: an HDF5 filter, or none.
+
+    filter : None (stored as they are), "lzf" (h5py's built-in LZF: fast) or "gzip" (zlib, any HDF5 reader)
+    level : the gzip level 0-9 (None otherwise)
+
+    Compressed datasets also get HDF5's byte shuffle (measured: smaller and faster on these
+    arrays). A dataset of fewer than 64 values, or one whose bytes do not compress (a probe of up
+    to 1024 values spread over it, shuffled and deflated at level 1, shrinks by less than
+    :attr:`MIN_GAIN`: float64 strains and uncertainties are mostly noise in their low bits), is
+    stored without a filter, so the filter's CPU time is spent only where it saves space. HDF5
+    filters are self-describing: readers need nothing to read any setting.
+    """
+
+    filter: str | None = None
+    level: int | None = None
+
+    MIN_GAIN = 0.15  # a dataset is compressed when the probe shrinks by at least this fraction
+    MIN_SIZE = 64  # values; smaller datasets are stored as they are
+
+    @property
+    def text(self) -> str:
+        """The setting as written (``"none"``, ``"lzf"``, ``"gzip:4"``): the ``compression`` root attribute."""
+        if self.filter is None:
+            return "none"
+        return self.filter if self.level is None else f"{self.filter}:{self.level}"
+
+    def dataset_options(self, arr: np.ndarray) -> dict:
+        """The ``create_dataset`` keywords of an array: its filter and shuffle, or none (chunked storage
+        all the same for arrays of ``MIN_SIZE`` values or more: files of contiguous datasets only made
+        the writing process's memory grow with the number of frames written, +20 MB over 800 frames)."""
+        if arr.size < self.MIN_SIZE:
+            return {}
+        if self.filter is None or not _compresses(arr, self.MIN_GAIN):
+            return {"chunks": _chunks(arr)}
+        opts = {"compression": self.filter, "shuffle": arr.dtype.itemsize > 1}
+        if self.level is not None:
+            opts["compression_opts"] = self.level
+        return opts
+
+
+def _chunks(arr: np.ndarray, nbytes: int = 4 << 20) -> tuple:
+    """Chunks of whole rows of at most ``nbytes`` (the whole array when smaller): few chunks to index."""
+    row = max(1, arr[:1].nbytes) if arr.shape[0] else 1
+    return (max(1, min(arr.shape[0], nbytes // row)),) + arr.shape[1:]
+
+
+def _compresses(arr: np.ndarray, min_gain: float) -> bool:
+    """Whether ``arr`` (shuffled, deflated at level 1) shrinks by ``min_gain``: a probe of <= 1024 values."""
+    import zlib
+
+    flat = arr.reshape(arr.shape[0], -1) if arr.ndim > 1 else arr.reshape(-1)
+    rows = flat.shape[0]
+    sample = np.ascontiguousarray(flat[:: max(1, rows // 1024)][:1024])
+    raw = sample.view(np.uint8).reshape(-1, sample.dtype.itemsize).T.tobytes()  # byte shuffle
+    return len(zlib.compress(raw, 1)) <= (1.0 - min_gain) * len(raw)
+
+
+#: the compression of new result files when none is chosen: none, the fastest to write and readable by
+#: every HDF5 tool (docs/results_format.md: measured against lzf and gzip on sequence throughput)
+DEFAULT_COMPRESSION = Compression(None)
+#: the compression of files written before the setting existed (they hold no ``compression`` attribute)
+LEGACY_COMPRESSION = Compression("gzip", 4)
+
+
+def parse_compression(value) -> Compression:
+    """A compression setting: ``"none"``, ``"lzf"``, ``"gzip"`` (level 4) or ``"gzip:N"`` (N in 0-9),
+    a :class:`Compression`, or None (:data:`DEFAULT_COMPRESSION`)."""
+    if value is None:
+        return DEFAULT_COMPRESSION
+    if isinstance(value, Compression):
+        return value
+    if not isinstance(value, str):
+        raise ValueError(f"compression must be 'none', 'lzf', 'gzip' or 'gzip:LEVEL', got {value!r}")
+    text = value.strip().lower()
+    if text in ("none", "off", ""):
+        return Compression(None)
+    if text == "lzf":
+        return Compression("lzf")
+    if text == "gzip":
+        return Compression("gzip", 4)
+    if text.startswith("gzip:"):
+        level = text[5:]
+        if level.isdigit() and 0 <= int(level) <= 9:
+            return Compression("gzip", int(level))
+        raise ValueError(f"compression {value!r}: the gzip level must be an integer from 0 to 9")
+    raise ValueError(f"compression must be 'none', 'lzf', 'gzip' or 'gzip:LEVEL' (0-9), got {value!r}")
+
+
+def write_dataset(group, key: str, arr, compression: Compression):
+    """``group[key] = arr`` with ``compression``'s filter where it pays (:meth:`Compression.dataset_options`)."""
+    arr = np.asarray(arr)
+    return group.create_dataset(key, data=arr, **compression.dataset_options(arr))
 
 
 def now() -> str:

@@ -3,7 +3,8 @@
 Both kinds share one root layout (docs/results_format.md)::
 
     /                     attrs: format ("specula-dic2d" | "specula-stereo"), schema_version,
-                                 specula_version, created, updated
+                                 specula_version, created, updated, compression ("none", "lzf",
+                                 "gzip:N"; absent in files written before it: gzip level 4)
     /reference            attrs: shape (H, W) and, per reference image, its path and sha256
                           (2-D: path, sha256; stereo: left_path, left_sha256, right_path, right_sha256)
     /settings             attrs: json (the run's settings, a JSON object)
@@ -32,7 +33,19 @@ from pathlib import Path
 import numpy as np
 
 from . import dic2d, files, stereo
-from .layout import SCHEMA_VERSION, StoreKind, frame_name, now, plain, role_attr, settings_json, specula_version
+from .layout import (
+    LEGACY_COMPRESSION,
+    SCHEMA_VERSION,
+    Compression,
+    StoreKind,
+    frame_name,
+    now,
+    parse_compression,
+    plain,
+    role_attr,
+    settings_json,
+    specula_version,
+)
 
 __all__ = ["ResultWriter", "ResultReader", "KINDS", "read_results", "read_stereo", "read_field", "ResultFileInUse",
            "ResultWriteError"]
@@ -44,6 +57,7 @@ KINDS: dict[str, StoreKind] = {dic2d.KIND.name: dic2d.KIND, stereo.KIND.name: st
 _BY_FORMAT = {k.format: k for k in KINDS.values()}
 _MODES = ("resume", "overwrite", "new")
 _RESERVE_MARGIN = 1 << 20  # bytes reserved beyond a frame's arrays: its metadata, the groups' growth
+_METADATA_CACHE = 4 << 20  # bytes: HDF5's metadata cache of a file being written (its default grows to 32 MiB)
 
 
 def _kind(kind) -> StoreKind:
@@ -119,6 +133,18 @@ class _ResultFile:
         return json.loads(self._h5["settings"].attrs.get("json", "{}"))
 
     @property
+    def compression(self) -> Compression:
+        """The file's compression setting (root attribute ``compression``; files written before it
+        existed: gzip level 4). Readers need it for nothing: HDF5 filters are self-describing."""
+        text = self._h5.attrs.get("compression")
+        if text is None:
+            return LEGACY_COMPRESSION
+        try:
+            return parse_compression(str(plain(text)))
+        except ValueError:
+            raise ValueError(f"{self.path} has an unknown compression setting {text!r}") from None
+
+    @property
     def rig(self) -> dict | None:
         """The stored rig (the StereoRig file content) or None (2-D files)."""
         return json.loads(self._h5["rig"].attrs["json"]) if "rig" in self._h5 else None
@@ -150,6 +176,14 @@ class _ResultFile:
     def read_frame(self, index: int):
         """A complete frame: :class:`dic.store.FrameResult` (2-D) or :class:`dic.field3d.Field3D` (stereo)."""
         return self.kind.read_payload(self._complete_group(index))
+
+    def iter_frames(self, indices=None):
+        """Yield ``(index, frame)`` for the complete frames (``indices``: those, in that order; default all,
+        ascending), each read from the file when it is reached: a consumer that keeps none of them holds
+        one frame at a time, whatever the file's length (a 10 000-frame file included)."""
+        wanted = self.done_frames() if indices is None else [int(i) for i in indices]
+        for index in wanted:
+            yield index, self.read_frame(index)
 
     def frame_paths(self, index: int) -> tuple[str, ...]:
         """The image path(s) recorded for a complete frame: (path,) or (left, right)."""
@@ -198,6 +232,11 @@ class ResultWriter(_ResultFile):
     mode : "resume" | "overwrite" | "new"
         ``resume`` (default) opens an existing compatible file and keeps its complete frames;
         ``overwrite`` starts afresh; ``new`` refuses an existing file.
+    compression : "none" | "lzf" | "gzip" | "gzip:N", optional
+        How a new file's datasets are compressed (:func:`dic.store.layout.parse_compression`; default
+        :data:`dic.store.layout.DEFAULT_COMPRESSION`), recorded as the root attribute ``compression``.
+        A resumed file keeps its own setting (frames appended to a gzip-4 file are gzip-4), whatever
+        is given here: :attr:`compression` says which one is used.
 
     The writer holds an exclusive lock (``<file>.lock``) while it is open: a second writer on the
     same file gets :class:`dic.store.ResultFileInUse`. A new run (a new file, or ``overwrite``) is
@@ -209,10 +248,12 @@ class ResultWriter(_ResultFile):
     """
 
     def __init__(self, path, *, reference_path="", reference_shape=None, reference_sha256="",
-                 settings: dict | None = None, mode: str = "resume", kind: str = "dic2d", rig=None):
+                 settings: dict | None = None, mode: str = "resume", kind: str = "dic2d", rig=None,
+                 compression=None):
         import h5py
 
         self.kind = _kind(kind)
+        self._compression = parse_compression(compression)
         if mode not in _MODES:
             raise ValueError(f"mode must be 'resume', 'overwrite' or 'new', got {mode!r}")
         self.path = Path(os.fspath(path))
@@ -259,6 +300,8 @@ class ResultWriter(_ResultFile):
                     "delete it or write to another file") from None
             try:
                 self._check_compatible(paths, digests, shape, rig_json)
+                self._compression = self.compression  # the file's own setting, kept for the frames added
+                _bound_metadata_cache(self._h5)
             except BaseException:
                 self._h5.close()
                 raise
@@ -275,12 +318,14 @@ class ResultWriter(_ResultFile):
         self._tmp = tmp
         try:
             self._h5 = h5py.File(tmp, "w")
+            _bound_metadata_cache(self._h5)
             f = self._h5
             f.attrs["format"] = self.kind.format
             f.attrs["schema_version"] = SCHEMA_VERSION
             f.attrs["specula_version"] = specula_version()
             f.attrs["created"] = now()
             f.attrs["updated"] = f.attrs["created"]
+            f.attrs["compression"] = self._compression.text
             if rig_json is not None:
                 f.create_group("rig").attrs["json"] = rig_json
             ref = f.create_group("reference")
@@ -462,7 +507,7 @@ class ResultWriter(_ResultFile):
                 del frames[tmp]
             g = frames.create_group(tmp)
             try:
-                self.kind.write_payload(g, field, strain)
+                self.kind.write_payload(g, field, strain, self._compression)
             except (OSError, RuntimeError):
                 raise
             except BaseException:  # a field the payload refuses (ValueError), Ctrl-C: the writer stays usable
@@ -496,7 +541,7 @@ class ResultWriter(_ResultFile):
             self._reserve(_nbytes(match))
             g = h5["reference"].create_group("match")
             try:
-                stereo.write_match(g, match)
+                stereo.write_match(g, match, self._compression)
             except (OSError, RuntimeError):
                 raise
             except BaseException:
@@ -540,6 +585,21 @@ class ResultWriter(_ResultFile):
                 "afresh (--overwrite, mode='overwrite')")
 
 
+def _bound_metadata_cache(h5) -> None:
+    """Cap HDF5's metadata cache of a file being written at 4 MiB: the objects of the frames written so
+    far otherwise fill it up to 32 MiB over the first few hundred frames (measured with uncompressed
+    datasets: +20 MB of RSS between frames 50 and 800), a growth with the sequence's length."""
+    try:
+        config = h5.id.get_mdc_config()
+        config.set_initial_size = True
+        config.initial_size = min(int(config.initial_size), _METADATA_CACHE)
+        config.min_size = min(int(config.min_size), _METADATA_CACHE)
+        config.max_size = _METADATA_CACHE
+        h5.id.set_mdc_config(config)
+    except (AttributeError, ValueError, RuntimeError):  # a driver or build without it: the default cache
+        pass
+
+
 def _same_path(a: str, b: str) -> bool:
     if a == b:
         return True
@@ -568,8 +628,8 @@ def _nbytes(obj) -> int:
 class ResultReader(_ResultFile):
     """Open a result file read-only: ``kind`` "dic2d", "stereo", or None for whichever it is.
 
-    Offers :attr:`attrs`, :attr:`reference`, :attr:`settings`, :attr:`rig`, :meth:`done_frames`,
-    :meth:`read_frame`, :meth:`frame_paths`, :meth:`frame_attrs`, :meth:`frame_arrays` and :meth:`read_match`;
+    Offers :attr:`attrs`, :attr:`reference`, :attr:`settings`, :attr:`rig`, :attr:`compression`,
+    :meth:`done_frames`, :meth:`read_frame`, :meth:`iter_frames` (one frame in memory at a time), :meth:`frame_paths`, :meth:`frame_attrs`, :meth:`frame_arrays` and :meth:`read_match`;
     incomplete frames are invisible. Files of a newer schema version are refused. Use as a
     context manager.
     """

@@ -11,7 +11,7 @@ Beyond the common layout a stereo file has::
         datasets: every per-point array of the Field3D (points, X ... W, exx, eyy, exy, normal,
                   zncc_*, epipolar_*, reprojection_*, status, strain_valid) and its details
                   (match_status, track_left_status, ..., params_left, params_right, ...);
-                  gzip level 4 + shuffle except booleans and arrays of fewer than 64 values
+                  compressed with the file's setting (root attr ``compression``; dic.store.layout.Compression)
 
 The frame protocol (``.partial`` -> complete, flush, resume) is :class:`dic.store.ResultWriter`'s.
 """
@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .layout import StoreKind
+from .layout import DEFAULT_COMPRESSION, Compression, StoreKind, parse_compression, write_dataset
 
 __all__ = ["FORMAT_NAME", "KIND", "StereoResults", "write_field3d", "read_field3d", "write_match", "read_match"]
 
@@ -133,18 +133,21 @@ class StereoResults:
         return f.plot(quantity, image, **kwargs)
 
 
-def write_field3d(group, field3d, strain=None) -> None:
-    """Write one state's :class:`dic.field3d.Field3D` (arrays and details) into an empty h5py ``group``."""
+def write_field3d(group, field3d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:
+    """Write one state's :class:`dic.field3d.Field3D` (arrays and details) into an empty h5py ``group``.
+
+    ``compression``: :func:`dic.store.layout.parse_compression` (booleans are stored as they are)."""
+    compression = parse_compression(compression)
     if strain is not None:
         raise ValueError("a stereo frame carries its strain in the Field3D; pass strain=None")
     if not hasattr(field3d, "arrays") or not hasattr(field3d, "R_frame_left"):
         raise ValueError(f"a stereo frame must be a dic.field3d.Field3D, got {type(field3d).__name__}")
     for key, arr in field3d.arrays().items():
         arr = np.asarray(arr)
-        if arr.dtype == bool or arr.size < 64:  # compression only costs on flags and tiny arrays
+        if arr.dtype == bool:  # flags: stored as they are
             group.create_dataset(key, data=arr)
         else:
-            group.create_dataset(key, data=arr, compression="gzip", compression_opts=4, shuffle=True)
+            write_dataset(group, key, arr, compression)
     group.attrs.update({"grid_shape": list(field3d.grid_shape) if field3d.grid_shape is not None else [],
                         "frame_name": field3d.frame_name, "R_frame_left": np.asarray(field3d.R_frame_left),
                         "t_frame_left": np.asarray(field3d.t_frame_left)})
@@ -164,12 +167,15 @@ def read_field3d(group):
                    reference_index=int(group.attrs.get("reference_index", 0)))
 
 
-def write_match(group, match) -> None:
-    """Write the reference :class:`dic.stereo.StereoMatch` into an empty h5py ``group`` (``/reference/match``)."""
+def write_match(group, match, compression: Compression | str | None = None) -> None:
+    """Write the reference :class:`dic.stereo.StereoMatch` into an empty h5py ``group`` (``/reference/match``).
+
+    Stored without compression unless ``compression`` is given (written once per file)."""
     if not hasattr(match, "arrays"):
         raise ValueError(f"match must be a dic.stereo.StereoMatch, got {type(match).__name__}")
+    comp = Compression(None) if compression is None else parse_compression(compression)
     for key, arr in match.arrays().items():
-        group.create_dataset(key, data=arr)
+        write_dataset(group, key, arr, comp)
     group.attrs.update({"n_features": match.n_features, "order": match.order})
 
 
