@@ -125,3 +125,16 @@ def test_layout_defaults_and_checks(pair):
     bare = CurrentImage(None, plain.shape, "cpu")
     with pytest.raises(ValueError, match='layout="plain" needs'):
         icgn(subsets, bare)
+
+
+def test_rows4_only_readers_refuse_a_plain_current(pair):
+    from kernels.frames import icgn_batch
+    from kernels.icgn_tiled import icgn_tiled
+
+    ref, cur, pts = pair
+    subsets = prepare_subsets(prepare_reference(ref, device="cpu"), pts, subset=15, order=1)
+    plain = prepare_current(cur, device="cpu", layout="plain")
+    with pytest.raises(ValueError, match='layout="plain"'):
+        icgn_batch(subsets, [plain])
+    with pytest.raises(ValueError, match='layout="plain"'):
+        icgn_tiled(subsets, plain)
