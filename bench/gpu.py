@@ -23,7 +23,9 @@ written again after each one, so that a run cut short keeps what it measured:
 4. ``prepare``: reference preparation (B-spline gradients; per-POI Hessians, both orders) and the
    current image's prefilter, 2048^2, step 5 (``--quick``: 256^2).
 5. ``kernel``: kernel-only IC-GN POI/s timed with CUDA events, a fill sweep (10 k to 640 k POIs per
-   launch, an ROI of whole rows of a step-2 grid) and a step sweep (2, 5, 10), both orders, 2048^2.
+   launch, an ROI of whole rows of a step-2 grid) and a step sweep (2, 5, 10), both orders, 2048^2; the
+   variants on the fill sweep: the tiled 1st-order prototype (``1_tiled``) and the plain coefficient
+   layout (``1_plain``, ``2_plain``; ``layout``: plain/rows4 POI/s ratios and a bitwise check).
 6. ``icgn``: single-frame IC-GN throughput (:func:`bench.icgn.bench_device`: 2048^2, step 2,
    1 028 196 POIs, both orders; ``--quick``: 256^2, step 4).
 7. ``pipeline``: the frame pipeline on a 1024^2 8-bit sequence of 20 frames, step 5: today's API
@@ -304,7 +306,15 @@ def section_kernel(device: str, quick: bool) -> dict:
     import warp as wp
 
     from dic.track import grid
-    from kernels.icgn import IcgnResult, icgn, n_params, prepare_current, prepare_reference, prepare_subsets
+    from kernels.icgn import (
+        IcgnResult,
+        default_layout,
+        icgn,
+        n_params,
+        prepare_current,
+        prepare_reference,
+        prepare_subsets,
+    )
 
     size = 256 if quick else 2048
     fills = (1000, 4000) if quick else (10_000, 20_000, 40_000, 80_000, 160_000, 320_000, 640_000)
@@ -319,16 +329,21 @@ def section_kernel(device: str, quick: bool) -> dict:
                           "timing": "CUDA events around the IC-GN launch" if timer.cuda else "perf_counter (CPU)"},
            "fill": {}, "step": {}}
 
-    def measure(points, order):
+    # the plain layout (kernels.icgn.LAYOUTS): the same kernel reading the padded coefficients in place
+    curplain = prepare_current(cur, device=device, layout="plain")
+
+    def measure(points, order, current=curimg, keep=None):
         subs = prepare_subsets(refimg, points, subset=21, order=order)
         n, k = len(points), n_params(order)
         out = IcgnResult(wp.empty((n, k), dtype=wp.float32, device=device),
                          wp.empty(n, dtype=wp.float32, device=device),
                          wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device))
         guess = wp.zeros((n, k), dtype=wp.float32, device=device)
-        icgn(subs, curimg, guess=guess, out=out)  # warm-up (module load)
-        secs = timer(lambda: icgn(subs, curimg, guess=guess, out=out), repeats)
+        icgn(subs, current, guess=guess, out=out)  # warm-up (module load)
+        secs = timer(lambda: icgn(subs, current, guess=guess, out=out), repeats)
         iters = out.iterations.numpy()
+        if keep is not None:
+            keep.append(out.numpy())
         return {"n_points": n, "seconds": secs, "poi_per_s": n / float(np.median(secs)),
                 "poi_per_s_best": n / min(secs), "mean_iterations": float(iters.mean())}
 
@@ -352,6 +367,23 @@ def section_kernel(device: str, quick: bool) -> dict:
                 "poi_per_s_best": n / min(secs), "mean_iterations": float(out.iterations.numpy().mean())}
 
     res["fill"]["1_tiled"] = [measure_tiled(dense[: min(n, len(dense))]) for n in fills]
+    # layout variant: "plain" (padded coefficients read in place, 4 scalar loads per stencil row, 1x
+    # the memory) against the default "rows4" (expanded copy); the same fill sweep, and the outputs of
+    # the largest fill compared bitwise (the CUDA default layout is chosen from these figures)
+    res["layout"] = {"default": default_layout(device), "bitwise_equal": {}}
+    for order in (1, 2):
+        pts = dense[: min(fills[-1], len(dense))]
+        kept = []
+        res["fill"][f"{order}_plain"] = [measure(dense[: min(n, len(dense))], order, curplain) for n in fills[:-1]]
+        res["fill"][f"{order}_plain"].append(measure(pts, order, curplain, keep=kept))
+        measure(pts, order, curimg, keep=kept)
+        a, b = kept
+        res["layout"]["bitwise_equal"][str(order)] = bool(
+            all(np.array_equal(a[key].view(np.int32), b[key].view(np.int32)) for key in ("params", "zncc",
+                                                                                      "iterations", "status")))
+    res["layout"]["plain_over_rows4"] = {
+        str(o): [p["poi_per_s"] / r["poi_per_s"] for p, r in zip(res["fill"][f"{o}_plain"], res["fill"][str(o)])]
+        for o in (1, 2)}
     return res
 
 
@@ -375,6 +407,8 @@ def section_prepare(device: str, quick: bool) -> dict:
     for order in (1, 2):
         res[f"subsets_order{order}_s"] = timer(lambda o=order: prepare_subsets(refimg, points, order=o), repeats)
     res["current_image_s"] = timer(lambda: prepare_current(cur, device=device), repeats)
+    # the plain layout skips the row expansion (and its 4x buffer)
+    res["current_image_plain_s"] = timer(lambda: prepare_current(cur, device=device, layout="plain"), repeats)
     res["summary"] = {key: float(np.median(v)) for key, v in res.items() if key.endswith("_s")}
     return res
 

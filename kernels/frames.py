@@ -199,6 +199,8 @@ def icgn_batch(subsets: ReferenceSubsets, currents, guesses=None, max_iter: int 
             raise ValueError(f"currents[{i}] must be a CurrentImage from prepare_current(), got {type(c).__name__}")
         if c.device != device or c.shape != (h, w):
             raise ValueError(f"currents[{i}] is {c.shape[0]}x{c.shape[1]} on {c.device}; the subsets need {h}x{w} on {device}")
+        if c.rows4 is None:
+            raise ValueError(f'currents[{i}] was prepared with layout="plain"; the frames launch reads "rows4"')
     max_iter = check_max_iter(max_iter)
     tol = positive_float(tol, "tol", detail=" of pixels")
     f, n, k = len(currents), subsets.n_points, n_params(subsets.order)

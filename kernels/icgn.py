@@ -67,6 +67,7 @@ from .interp import (
     bspline3_weights_fast,
     bspline_coefficients,
     expand_rows4,
+    rows4_view,
     stencil_dot_rows4,
 )
 
@@ -923,30 +924,69 @@ class ReferenceSubsets:
         return int(self.points.shape[0])
 
 
+#: the coefficient layouts IC-GN reads (``prepare_current(..., layout=)``, ``icgn(..., layout=)``):
+#: ``"rows4"`` a ``wp.vec4`` per padded pixel holding 4 consecutive coefficients of its row (one
+#: vector load per stencil row, 4x the memory, an expansion pass per image); ``"plain"`` the padded
+#: coefficients read in place through :func:`kernels.interp.rows4_view` (the same kernel; on sm_90
+#: both compile to 4 scalar loads per stencil row). Both give the same bits.
+LAYOUTS = ("rows4", "plain")
+
+#: default layout per device kind: "rows4" on both (the frames x POIs launch and the tiled prototype
+#: read only it); on CUDA it is kept until ``bench/gpu.py`` (kernel section, ``layout``) has
+#: measured both on a GPU; on the CPU both run in the same time (docs/dic2d.md, "Kernels that fit
+#: the GPU": the same binary) and "plain" saves the expansion pass
+DEFAULT_LAYOUT = {"cpu": "rows4", "cuda": "rows4"}
+
+
+def default_layout(device) -> str:
+    """The coefficient layout used when none is given, for ``device`` (``DEFAULT_LAYOUT``)."""
+    device = resolve_device(device)
+    return DEFAULT_LAYOUT["cpu" if device == "cpu" else "cuda"]
+
+
+def check_layout(layout, device=None) -> str:
+    """``layout`` as one of :data:`LAYOUTS` (``None``: :func:`default_layout` of ``device``)."""
+    if layout is None:
+        return default_layout(device)
+    if not isinstance(layout, str) or layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS} (or None for the device's default), got {layout!r}")
+    return layout
+
+
 @dataclass(frozen=True)
 class CurrentImage:
     """A current (deformed) image prepared for IC-GN (:func:`prepare_current`), once per image.
 
     Attributes
     ----------
-    rows4 : wp.array of wp.vec4, shape ((H + 4) * (W + 4),)
+    rows4 : wp.array of wp.vec4, shape ((H + 4) * (W + 4),), or None
         Cubic B-spline coefficients with a 2-pixel mirrored border, row-expanded
-        (:func:`kernels.interp.expand_rows4`).
+        (:func:`kernels.interp.expand_rows4`); None when prepared with ``layout="plain"``.
     shape : (H, W)
     device : str
     coef : wp.array2d float32 (H + 4, W + 4) or None
-        The padded coefficients ``rows4`` was expanded from (reused, like ``rows4``, by
-        :func:`prepare_current` with ``out=``).
+        The padded coefficients owned by this image (reused, like ``rows4``, by
+        :func:`prepare_current` with ``out=``); None when the caller's coefficients were used.
+    plain : wp.array of wp.vec4 or None
+        The padded coefficients read in place (:func:`kernels.interp.rows4_view`: entry ``k`` is
+        ``flat[k-1 : k+3]``, a 4-byte stride, no copy): what ``layout="plain"`` reads; set by
+        :func:`prepare_current` for both layouts.
     """
 
-    rows4: wp.array
+    rows4: wp.array | None
     shape: tuple[int, int]
     device: str
     coef: wp.array | None = None
+    plain: wp.array | None = None
 
     @property
     def pitch(self) -> int:
         return self.shape[1] + 4
+
+    @property
+    def layout(self) -> str:
+        """``"rows4"`` when the row-expanded coefficients were built, else ``"plain"``."""
+        return "rows4" if self.rows4 is not None else "plain"
 
 
 @dataclass
@@ -999,7 +1039,7 @@ def prepare_reference(image, device=None) -> ReferenceImage:
     return ReferenceImage(fgrad, (h, w), float(arr.max() - arr.min()), device)
 
 
-def prepare_current(image, device=None, out: CurrentImage | None = None) -> CurrentImage:
+def prepare_current(image, device=None, out: CurrentImage | None = None, layout: str | None = None) -> CurrentImage:
     """B-spline coefficients of a current image, in the layout IC-GN reads (once per image).
 
     Parameters
@@ -1011,9 +1051,14 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
     out : CurrentImage, optional
         A previous result of the same shape and device whose buffers (coefficients and their
         row-expanded layout) are reused: on the CPU a NumPy image then allocates no Warp memory.
+    layout : None, "rows4" or "plain"
+        ``"plain"`` skips the row expansion (no 4x buffer, no expansion pass; IC-GN then needs
+        ``layout="plain"``); ``None``: :func:`default_layout` of the device.
     """
     if out is not None and not isinstance(out, CurrentImage):
         raise ValueError("out must be a CurrentImage of the same shape and device")
+    if layout is not None:
+        layout = check_layout(layout)
 
     if isinstance(image, PaddedImage):
         if image.kind != "bspline":
@@ -1030,13 +1075,15 @@ def prepare_current(image, device=None, out: CurrentImage | None = None) -> Curr
         device = resolve_device(device)
         arr = as_float32_image(image, "current")
         coef = bspline_coefficients(arr, device=device, out=_reusable(out, device, arr.shape))
+    layout = check_layout(layout, device)
     buf = None
     if out is not None:
         if out.shape != coef.shape or out.device != device:
             raise ValueError("out must be a CurrentImage of the same shape and device")
         buf = out.rows4
     own = None if isinstance(image, PaddedImage) else coef.data  # never reuse (overwrite) the caller's coefficients
-    return CurrentImage(expand_rows4(coef, out=buf), coef.shape, device, own)
+    rows4 = expand_rows4(coef, out=buf) if layout == "rows4" else None
+    return CurrentImage(rows4, coef.shape, device, own, rows4_view(coef))
 
 
 def _reusable(out: CurrentImage | None, device: str, shape) -> wp.array | None:
@@ -1122,7 +1169,7 @@ def check_max_iter(max_iter) -> int:
 
 
 def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol: float = 1e-3,
-         out: IcgnResult | None = None) -> IcgnResult:
+         out: IcgnResult | None = None, layout: str | None = None) -> IcgnResult:
     """Track every POI of ``subsets`` into a current image with IC-GN / ZNSSD.
 
     Parameters
@@ -1140,6 +1187,10 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         Convergence threshold on the scaled update norm (px, see the module doc).
     out : IcgnResult, optional
         Preallocated outputs (reused across frames).
+    layout : None, "rows4" or "plain"
+        The coefficient layout the kernel reads (:data:`LAYOUTS`; the same bits either way).
+        ``None``: ``current``'s own layout when it is a :class:`CurrentImage`, else
+        :func:`default_layout` of the device. ``"rows4"`` needs a current prepared with it.
 
     Returns
     -------
@@ -1149,12 +1200,20 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
     device = subsets.device
     h, w = subsets.reference.shape
+    if layout is not None:
+        layout = check_layout(layout)
     if isinstance(current, CurrentImage):
         if current.device != device:
             raise ValueError(f"current is on {current.device} but the subsets are on {device}")
         cur = current
+        layout = cur.layout if layout is None else layout
+        if layout == "rows4" and cur.rows4 is None:
+            raise ValueError('layout="rows4" needs a current prepared with prepare_current(..., layout="rows4")')
+        if layout == "plain" and cur.plain is None:
+            raise ValueError('layout="plain" needs a current from prepare_current() (its plain coefficients)')
     else:
-        cur = prepare_current(current, device=device)
+        layout = check_layout(layout, device)
+        cur = prepare_current(current, device=device, layout=layout)
     if cur.shape != (h, w):
         raise ValueError(f"current image has shape {cur.shape} but the reference has shape {(h, w)}")
     max_iter = check_max_iter(max_iter)
@@ -1171,10 +1230,12 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         )
     elif out.params.shape != (n, k) or out.zncc.shape != (n,):
         raise ValueError(f"out was allocated for {out.params.shape}, expected params of shape {(n, k)}")
+    # the same kernel for both layouts (hence the same bits): only the array it reads differs
     kernel = _icgn_1st if subsets.order == 1 else _icgn_2nd
+    coef = cur.plain if layout == "plain" else cur.rows4
     launch_1d(
         kernel, n,
-        [0, subsets.reference.fgrad, w, h, cur.rows4, cur.pitch, subsets.centres, subsets.deltas, subsets.refdata,
+        [0, subsets.reference.fgrad, w, h, coef, cur.pitch, subsets.centres, subsets.deltas, subsets.refdata,
          subsets.status, g, subsets.subset // 2, int(max_iter), float(tol), float(subsets.flat_std) ** 2,
          out.params, out.zncc, out.iterations, out.status],
         device, offset_index=0, min_chunk=64,

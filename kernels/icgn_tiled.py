@@ -149,6 +149,8 @@ def icgn_tiled(subsets: ReferenceSubsets, current: CurrentImage, guess=None, max
         raise ValueError("current must be a CurrentImage (prepare_current) on the subsets' device")
     if current.shape != subsets.reference.shape:
         raise ValueError(f"current image has shape {current.shape} but the reference has {subsets.reference.shape}")
+    if current.rows4 is None:
+        raise ValueError('current was prepared with layout="plain"; the tiled prototype reads "rows4"')
     max_iter = check_max_iter(max_iter)
     tol = positive_float(tol, "tol", detail=" of pixels")
     device = resolve_device(subsets.device)

@@ -733,6 +733,30 @@ def expand_rows4(coeffs: PaddedImage, out: wp.array | None = None) -> wp.array:
     return out
 
 
+def rows4_view(coeffs: PaddedImage) -> wp.array:
+    """The padded coefficients read as :func:`expand_rows4`'s layout, in place (no copy, no pass).
+
+    Returns a ``wp.vec4`` array with a 4-byte stride aliasing ``coeffs``: entry ``k`` is
+    ``flat[k-1 : k+3]``, the value :func:`expand_rows4` stores at ``k`` for every ``k`` a 4x4
+    stencil reads (:func:`stencil_dot_rows4` reads ``k >= 1``; entry 0 would start one float
+    before the buffer and is never read). A kernel taking ``wp.array(dtype=wp.vec4)`` runs
+    unchanged on it (Warp indexes arrays through their strides, and ``wp.vec4`` needs only 4-byte
+    alignment), so it computes the same bits as on the expanded copy while reading the plain
+    coefficients: 4 scalar loads per stencil row, 1x instead of 4x the memory. The view keeps
+    ``coeffs.data`` alive.
+    """
+    if not isinstance(coeffs, PaddedImage):
+        raise ValueError(f"coeffs must be a PaddedImage, got {type(coeffs).__name__}")
+    data = coeffs.data
+    if not data.is_contiguous or data.dtype != wp.float32:
+        raise ValueError("coeffs must hold contiguous float32 coefficients")
+    n = data.shape[0] * data.shape[1]
+    view = wp.array(ptr=data.ptr - 4, dtype=wp.vec4, shape=(n - 2,), strides=(4,), device=coeffs.device,
+                    copy=False)
+    view._ref = data  # keep the coefficients alive as long as the view
+    return view
+
+
 def padded_samples(image, device=None) -> PaddedImage:
     """Raw grey levels with a 2-pixel mirrored border (input of Keys bicubic interpolation)."""
     device = resolve_device(device)

@@ -23,9 +23,14 @@ def test_quick_cpu_run_writes_every_section(tmp_path):
         assert saved["outputs"][order]["unwritten_params"] == 0 and saved["outputs"][order]["deterministic"]
     kern = saved["kernel"]
     assert [r["n_points"] for r in kern["fill"]["1"]] == [1000, 4000]
-    assert all(r["poi_per_s"] > 0 for o in ("1", "2", "1_tiled") for r in kern["fill"][o])
+    assert all(r["poi_per_s"] > 0 for o in ("1", "2", "1_tiled", "1_plain", "2_plain") for r in kern["fill"][o])
+    # the plain layout variant: the same fill sweep, and the same bits as the rows4 layout
+    assert [r["n_points"] for r in kern["fill"]["2_plain"]] == [1000, 4000]
+    assert kern["layout"]["bitwise_equal"] == {"1": True, "2": True} and kern["layout"]["default"] == "rows4"
+    assert all(len(v) == 2 and all(x > 0 for x in v) for v in kern["layout"]["plain_over_rows4"].values())
     assert set(kern["step"]["2"]) == {"4", "8"}
-    assert all(saved["prepare"]["summary"][k] > 0 for k in ("reference_image_s", "subsets_order1_s", "current_image_s"))
+    assert all(saved["prepare"]["summary"][k] > 0 for k in ("reference_image_s", "subsets_order1_s", "current_image_s",
+                                                              "current_image_plain_s"))
     pipe = saved["pipeline"]  # the device-resident loop gives the host loop's results bitwise
     assert pipe["device_loop_bitwise_equal"] and pipe["frame_tracker_device"]["poi_per_s"] > 0
     assert pipe["graph_replay"]["skipped"].startswith("CUDA graphs")

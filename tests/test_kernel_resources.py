@@ -170,3 +170,23 @@ def test_launch_1d_passes_the_kernel_block_size_on_cuda_only(monkeypatch):
     monkeypatch.setenv("SPECULA_THREADS", "1")
     _launch.launch_1d(icgn._icgn_2nd, 10, [0], "cpu", offset_index=0)
     assert calls and "block_dim" not in calls[0][2]
+
+
+@pytest.mark.slow
+def test_icgn_kernels_load_coefficients_as_scalars_on_sm90(tmp_path):
+    """``layout="plain"`` hands the IC-GN kernels a vec4 view with a 4-byte stride
+    (:func:`kernels.interp.rows4_view`): valid only while a ``wp.vec4`` load needs 4-byte alignment.
+    If the compiler ever emitted 8/16-byte vector loads for them (e.g. a Warp with an aligned
+    ``vec_t``), the plain layout would fault on CUDA: the sm_90 PTX must hold scalar loads only."""
+    import importlib
+    import re
+
+    wp.config.quiet = True
+    wp.init()
+    wp.compile_aot_module(importlib.import_module("kernels.icgn"), arch=90, module_dir=str(tmp_path), use_ptx=True)
+    ptx = "".join(p.read_text() for p in tmp_path.rglob("*.ptx"))
+    for name in ("_icgn_1st", "_icgn_2nd"):
+        m = re.search(r"\.entry \S*%s_[0-9a-f]+_cuda_kernel_forward\((.*?)\n\}\n" % name, ptx, re.S)
+        assert m, f"{name} not in the PTX"
+        loads = re.findall(r"\bld\.global(?:\.nc)?(\.v[248])?\.\w+", m.group(1))
+        assert loads and not any(loads), f"{name}: vector loads {sorted(set(loads) - {''})}"
