@@ -43,12 +43,13 @@ def pairs():
     return {name: speckle_pair(SHAPE, f, seed=3) for name, f in (("smooth", smooth), ("crack", discontinuous))}
 
 
-def _rg(tracker, cur, waves):
+def _rg(tracker, cur, waves, prepared=None):
     c = tracker.correlator
     base = np.zeros((c.n_points, 6 * tracker.order))
     ctx = tracker._context(cur, base)
     strategy = get_guess("rg")
-    return reliability_guided(c, prepare_current(cur, device=c.device), base, lambda i: strategy(ctx, i)[0],
+    pc = prepare_current(cur, device=c.device) if prepared is None else prepared
+    return reliability_guided(c, pc, base, lambda i: strategy(ctx, i)[0],
                               zncc_min=tracker.zncc_min, step=tracker.step, waves=waves)
 
 
@@ -97,14 +98,16 @@ def test_device_waves_are_bitwise_the_host_waves(device, pairs, field, order):
     t = Tracker(ref, subset=21, step=7, order=order, search="rg", device=device)
     host = _rg(t, cur, "host")
     dev = _rg(t, cur, "device")
+    synced = _rg(t, cur, "device-sync")
     for name in ("params", "zncc", "iterations", "status"):
-        assert host[name].dtype == dev[name].dtype, name
+        assert host[name].dtype == dev[name].dtype == synced[name].dtype, name
         assert np.array_equal(host[name], dev[name], equal_nan=True), name
+        assert np.array_equal(host[name], synced[name], equal_nan=True), name
     again = _rg(t, cur, "device")  # the device state is reset per frame
     assert all(np.array_equal(dev[n], again[n], equal_nan=True) for n in dev)
     # the CUDA route of the per-wave counts (a 2-int copy into a host buffer), exercised on this device
     t.correlator._rg.counts_host = wp.empty(2, dtype=wp.int32, device="cpu")
-    copied = _rg(t, cur, "device")
+    copied = _rg(t, cur, "device-sync")
     t.correlator._rg.counts_host = None if str(device).startswith("cpu") else t.correlator._rg.counts_host
     assert all(np.array_equal(dev[n], copied[n], equal_nan=True) for n in dev)
     # the propagation reached the field (and, across the crack, stopped at it): accuracy vs the exact field
@@ -117,6 +120,47 @@ def test_device_waves_are_bitwise_the_host_waves(device, pairs, field, order):
     if field == "crack":  # subsets straddling the jump do not converge to a good ZNCC
         straddle = np.abs(t.points[:, 0] - 100.3) < 10
         assert np.mean(ok[straddle]) < np.mean(ok[~straddle])
+
+
+@pytest.mark.parametrize("field", ["smooth", "crack"])
+@pytest.mark.parametrize("order", [1, 2])
+def test_device_loop_graph_and_wave_bound_are_bitwise_the_synced_waves(pairs, field, order, monkeypatch):
+    """The frame's device loop (no host round trip per wave): its CUDA branch (the loop captured once as a
+    graph with a conditional while node on the pending count, then launched; Warp 1.19 captures on the CPU
+    too, one launch per kernel) and the host-driven loop of the same body give bitwise the per-wave-synced
+    waves; so does a loop stopped at a small wave bound and finished by the host loop."""
+    monkeypatch.setenv("SPECULA_THREADS", "1")  # a capture records the launches of its own thread only
+    ref, cur = pairs[field]
+    t = Tracker(ref, subset=21, step=7, order=order, search="rg", device="cpu")
+    synced = _rg(t, cur, "device-sync")
+    loop = _rg(t, cur, "device")
+    runs = {"loop": loop}
+    captures = []
+    make = wp.ScopedCapture
+    monkeypatch.setattr(engine, "_use_graph", lambda dev: True)
+    monkeypatch.setattr(wp, "ScopedCapture", lambda *a, **k: (captures.append(1), make(*a, **k))[1])
+    pc = prepare_current(cur, device="cpu")  # one current image buffer (as Tracker keeps): one capture
+    runs["graph"] = _rg(t, cur, "device", pc)
+    runs["graph again"] = _rg(t, cur, "device", pc)  # the captured graph launched again, not captured again
+    assert len(captures) == 1 and t.correlator._rg.graph is not None
+    runs["graph, another buffer"] = _rg(t, cur, "device")  # another current buffer: captured again
+    assert len(captures) == 2
+    monkeypatch.setattr(engine, "_use_graph", lambda dev: False)
+    for bound in (1, 2, 5):  # stopped after wave `bound`: the host loop finishes the frame
+        c = t.correlator
+        base = np.zeros((c.n_points, 6 * order))
+        ctx = t._context(cur, base)
+        strategy = get_guess("rg")
+        st = engine._rg_state(c, t.step)
+        runs[f"bound {bound}"] = engine._rg_device(
+            c, prepare_current(cur, device="cpu"), base, np.flatnonzero(c.ready)[
+                np.unique(np.linspace(0, np.flatnonzero(c.ready).size - 1, 9).round().astype(int))],
+            lambda i: strategy(ctx, i)[0], t.zncc_min, float(t.step), max_waves=bound)
+        assert st.ctl.numpy()[1] == 1  # the bound was reached
+    for label, r in runs.items():
+        for name in ("params", "zncc", "iterations", "status"):
+            assert np.array_equal(synced[name], r[name], equal_nan=True), (label, name)
+    assert np.mean(synced["status"] == int(Status.CONVERGED)) > 0.7
 
 
 def test_device_waves_without_seeds_or_trackable_points(device):
@@ -160,7 +204,14 @@ def test_reliability_guided_frame_launches_copies_allocations(monkeypatch):
     nothing else on the CPU, and a frame after the first allocates only in the image preparation and the seeds'
     ZNCC search (whose reference is uploaded once per reference)."""
     monkeypatch.setenv("SPECULA_THREADS", "1")  # one wp.launch per kernel launch, as on CUDA
+    import functools
+    import importlib
+
     import kernels.propagation as prop
+
+    # the waves with their counts read per wave (waves="device-sync"; the default loop: the next test)
+    monkeypatch.setattr(importlib.import_module("dic.track"), "reliability_guided",
+                        functools.partial(reliability_guided, waves="device-sync"))
 
     ref, cur = speckle_pair((256, 256), lambda x, y: (2.3 + 0.004 * x, -1.2 + 0.002 * y), seed=4)
     t = Tracker(ref, subset=21, step=8, search="rg", device="cpu")
@@ -181,6 +232,38 @@ def test_reliability_guided_frame_launches_copies_allocations(monkeypatch):
     assert n["copy"] <= 6, dict(n)
     # allocations: only the image preparation (2) and the seeds' ZNCC search (5); none per wave
     assert n["alloc"] <= 7, dict(n)
+
+
+def test_reliability_guided_device_loop_has_no_copy_per_wave(monkeypatch):
+    """The default device loop (``waves="device"``): per wave 4 launches (bookkeeping, counted IC-GN, counted
+    scatter, the one-thread step that sets the loop condition) and no copy: the only copies of a frame are the
+    seeds' and the search's inputs (as with the synced waves) and one read of the loop's 2-int control at the
+    end of the frame (the bound check); on CUDA the waves are one graph launch."""
+    monkeypatch.setenv("SPECULA_THREADS", "1")
+    import kernels.propagation as prop
+
+    ref, cur = speckle_pair((256, 256), lambda x, y: (2.3 + 0.004 * x, -1.2 + 0.002 * y), seed=4)
+    t = Tracker(ref, subset=21, step=8, search="rg", device="cpu")
+    t.track(cur)
+    waves = []
+    wave = prop.rg_wave_counted
+    monkeypatch.setattr(prop, "rg_wave_counted", lambda *a, **k: (waves.append(1), wave(*a, **k))[1])
+    synced = []
+    monkeypatch.setattr(prop, "rg_wave", lambda *a, **k: synced.append(1))  # must not run
+    copies_per_frame = []
+    for frames in (1, 2):
+        counts = _Counts(monkeypatch)
+        for _ in range(frames):
+            f = t.track(cur)
+        copies_per_frame.append(counts.n["copy"])
+        n = counts.n
+    print(f"\ndevice loop: {dict(n)} over 2 frames, {len(waves)} waves")
+    assert f.valid.mean() > 0.9 and len(waves) >= 30 and not synced
+    per_frame = len(waves) // 3
+    # launches per frame: init + seeds (gather, start) + 4 per wave + the seeds' search and image preparation (6)
+    assert n["launch"] <= 2 * (4 * per_frame + 3 + 6), (dict(n), len(waves))
+    # copies: a constant per frame, none per wave (2 frames copy twice what 1 frame copies)
+    assert copies_per_frame[1] == 2 * copies_per_frame[0] <= 2 * 6, copies_per_frame
 
 
 def test_pyramid_reference_built_once_per_reference(device, monkeypatch, pairs):
