@@ -291,9 +291,25 @@ def scatter_accept(idx: wp.array, compact, full, count: int, zncc_min: float, po
               str(full.status.device), offset_index=0, min_chunk=1024)
 
 
+def _check_loop_arrays(ctl, cond, counts) -> None:
+    for name, a, shape in (("ctl", ctl, (2,)), ("cond", cond, (1,)), ("counts", counts, None)):
+        if not isinstance(a, wp.array) or a.dtype != wp.int32:
+            raise ValueError(f"{name} must be an int32 Warp array")
+        if shape is not None and tuple(a.shape) != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+    if counts.ndim != 2 or counts.shape[1] != 2:
+        raise ValueError(f"counts must have shape (waves, 2), got {counts.shape}")
+    if not (ctl.device == cond.device == counts.device):
+        raise ValueError("ctl, cond and counts must be on one device")
+
+
 def start_loop(ctl: wp.array, cond: wp.array, counts: wp.array, m: int) -> None:
     """Start a frame's device loop: the seeds' batch (``m`` gathered POIs) is batch 0 (``ctl[0] = 0``,
-    ``counts[0, 0] = m``), ``cond[0] = m > 0``, the bound flag ``ctl[1]`` cleared. One launch."""
+    ``counts[0, 0] = m``), ``cond[0] = m > 0``, the bound flag ``ctl[1]`` cleared. One launch.
+    ``ctl`` int32 (2,), ``cond`` int32 (1,), ``counts`` int32 (W, 2) on one device."""
+    _check_loop_arrays(ctl, cond, counts)
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+        raise ValueError(f"m must be a non-negative int (the seeds' count), got {m!r}")
     wp.launch(_start_loop, dim=1, inputs=[ctl, cond, counts, int(m)], device=str(ctl.device))
 
 
@@ -323,4 +339,7 @@ def advance(ctl: wp.array, cond: wp.array, counts: wp.array, last: int) -> None:
     """After :func:`rg_wave_counted`: ``ctl[0] += 1`` (the wave just run) and ``cond[0]`` = whether the loop
     goes on (candidates, or POIs still pending); at wave ``last`` (the state arrays' last usable wave, or a
     smaller bound) the loop stops with ``ctl[1] = 1`` and the host loop finishes the frame. One thread."""
+    _check_loop_arrays(ctl, cond, counts)
+    if isinstance(last, bool) or not isinstance(last, (int, np.integer)) or not 1 <= last <= counts.shape[0] - 2:
+        raise ValueError(f"last must be a wave in [1, {counts.shape[0] - 2}] (counts' rows - 2), got {last!r}")
     wp.launch(_advance, dim=1, inputs=[ctl, cond, counts, int(last)], device=str(ctl.device))

@@ -372,14 +372,14 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
     best-ZNCC tracked neighbour; a wave only releases neighbours of POIs whose ZNCC is within 0.05 of
     the best pending one, which keeps the reliability ordering while launching many POIs at once.
 
-    ``waves``: ``"device"`` (default) runs the waves on the device with no host round trip per wave
-    (:mod:`kernels.propagation`, :mod:`kernels.rg_device`: per wave a bookkeeping launch, an IC-GN
-    launch sized at N that reads the candidate count on the device, a scatter and a one-thread
-    step; on CUDA the whole frame's loop is one CUDA graph (``wp.capture_while`` on the pending
-    count), on the CPU the loop reads the count in place); ``"device-sync"`` runs the same waves
-    with the two counts of each wave read back (one synchronisation per wave on CUDA; the route
-    before); ``"host"`` runs them from a heap on the host (the reference implementation). All three
-    give bitwise the same results (same waves, same sources, same guesses); no allocation after
+    ``waves``: ``"device"`` (default) runs the waves on the device with no host round trip per wave:
+    on CUDA the whole frame's loop is one CUDA graph (``wp.capture_while`` on the pending count;
+    :mod:`kernels.propagation`, :mod:`kernels.rg_device`: per wave a bookkeeping launch, an IC-GN
+    launch over N rows that reads the candidate count on the device, a scatter and a one-thread
+    step), on the CPU the loop reads each wave's counts in place (host memory: no copy) and sizes the
+    launches by them; ``"device-sync"`` reads each wave's two counts back on every device (one
+    synchronisation per wave on CUDA; the route before); ``"host"`` runs them from a heap on the host
+    (the reference implementation). All three give bitwise the same results (same waves, same sources, same guesses); no allocation after
     the first frame on the device routes.
 
     ``base`` (N, k): parameters where nothing was tracked (the user's guess or zeros).
@@ -522,13 +522,14 @@ def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, s
         _upload(b.idx[:m], seeds.astype(np.int32))
         _upload(b.guess[:m], g.astype(np.float32))
         gather_subsets(corr.subsets, b.idx, m, b.subsets, points=corr.points[seeds])
-        if sync:
+        kind = "sync" if sync else _loop_kind(wp.get_device(corr.device))
+        if kind == "sync":
             _rg_sync_loop(corr, st, cur, zncc_min, 0, m)
         else:
             last = st.best.shape[0] - 2  # rg_wave's last wave
             last = last if max_waves is None else max(1, min(last, int(max_waves)))
             start_loop(st.ctl, st.cond, st.counts, m)
-            _rg_device_loop(corr, st, cur, zncc_min, last)
+            _rg_device_loop(corr, st, cur, zncc_min, last, graph=kind == "graph")
             ctl = st.ctl.numpy()  # one copy per frame on CUDA (the frame's results come back anyway)
             if ctl[1]:  # the bound was reached: the host loop finishes the frame
                 w = int(ctl[0])
@@ -585,20 +586,25 @@ def _rg_loop_body(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: f
     advance(st.ctl, st.cond, st.counts, last)
 
 
-def _use_graph(device) -> bool:
-    """Whether the device loop is captured as a graph: on CUDA. (Warp 1.19 also captures on the CPU, which
-    the tests use, with one launch per kernel (``SPECULA_THREADS=1``), to run the CUDA branch here.)"""
-    return bool(device.is_cuda)
+def _loop_kind(device) -> str:
+    """How ``waves="device"`` runs a frame's waves on ``device``: ``"graph"`` on CUDA (the device loop
+    captured as a CUDA graph); ``"sync"`` on the CPU, where the counts are host memory read in place (no
+    round trip to save) and launches sized by the count are cheaper than the counted ones over N rows
+    (measured: docs/dic2d.md). ``"counted"`` (the device loop driven from the host) and ``"graph"`` on the
+    CPU (Warp 1.19 captures there too, one launch per kernel: ``SPECULA_THREADS=1``) are what the tests
+    run to exercise the CUDA branch here."""
+    return "graph" if device.is_cuda else "sync"
 
 
-def _rg_device_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: float, last: int) -> None:
-    """The frame's waves: ``wp.capture_while(cond, body)``. On CUDA the loop is captured once per current
-    image buffer (and settings) as a CUDA graph with a conditional while node and launched: no host round
-    trip per wave. On the CPU ``wp.capture_while`` runs the body while ``cond[0]`` (host memory, read in
-    place) is set."""
+def _rg_device_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: float, last: int,
+                    graph: bool) -> None:
+    """The frame's waves: ``wp.capture_while(cond, body)``. ``graph``: captured once per current image
+    buffer (and settings) as a graph with a conditional while node and launched (CUDA: no host round trip
+    per wave); else ``wp.capture_while`` runs the body from the host while ``cond[0]`` is set (read in
+    place on the CPU; on CUDA that would be a read per wave)."""
     body = lambda: _rg_loop_body(corr, st, cur, zncc_min, last)  # noqa: E731
     dev = wp.get_device(corr.device)
-    if not _use_graph(dev):
+    if not graph:
         wp.capture_while(st.cond, body)
         return
     key = (cur.rows4.ptr, cur.pitch, cur.shape, float(zncc_min), corr.max_iter, corr.tol, last)
