@@ -197,6 +197,19 @@ def test_device_loop_graph_and_wave_bound_are_bitwise_the_synced_waves(pairs, fi
     assert np.mean(synced["status"] == int(Status.CONVERGED)) > 0.7
 
 
+def test_device_loop_kind_per_device(monkeypatch):
+    """CUDA: the graph where conditional graph nodes exist (CUDA 12.4+), else the per-wave read; the CPU: the
+    counts read in place."""
+    import types
+
+    cuda, cpu = types.SimpleNamespace(is_cuda=True), types.SimpleNamespace(is_cuda=False)
+    assert engine._loop_kind(cpu) == "sync"
+    monkeypatch.setattr(wp, "is_conditional_graph_supported", lambda: True)
+    assert engine._loop_kind(cuda) == "graph"
+    monkeypatch.setattr(wp, "is_conditional_graph_supported", lambda: False)
+    assert engine._loop_kind(cuda) == "sync"
+
+
 def test_device_waves_without_seeds_or_trackable_points(device):
     flat = np.full((60, 60), 100.0, np.float32)  # every subset FLAT_SUBSET: no seed
     t = Tracker(flat, step=10, search="rg", check_warps=False, device=device)

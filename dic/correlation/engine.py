@@ -592,8 +592,11 @@ def _loop_kind(device) -> str:
     round trip to save) and launches sized by the count are cheaper than the counted ones over N rows
     (measured: docs/dic2d.md). ``"counted"`` (the device loop driven from the host) and ``"graph"`` on the
     CPU (Warp 1.19 captures there too, one launch per kernel: ``SPECULA_THREADS=1``) are what the tests
-    run to exercise the CUDA branch here."""
-    return "graph" if device.is_cuda else "sync"
+    run to exercise the CUDA branch here. A CUDA driver or toolkit older than 12.4 (no conditional graph
+    nodes) gets ``"sync"``."""
+    if not device.is_cuda:
+        return "sync"
+    return "graph" if wp.is_conditional_graph_supported() else "sync"
 
 
 def _rg_device_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: float, last: int,
