@@ -49,6 +49,9 @@ _POOL: ThreadPoolExecutor | None = None
 #:                                 (128, 7) 8 bytes (the frame indexing costs registers)
 #: _prefilter_rows_frames  256, 5  48 registers, no spill: 40 warps ((256, 6) spills 8 bytes)
 #: _prefilter_cols_frames  256, 6  40 registers, no spill: 48 warps ((256, 8) spills 24 bytes)
+#: _icgn_counted_2nd       128     as _icgn_2nd (kernels/rg_device.py: a wave's IC-GN sized by a
+#:                                 device count, the same body)
+#: _icgn_counted_1st       128, 8  as _icgn_1st
 #: _icgn_1st_tiled         32      prototype, one warp per POI (kernels/icgn_tiled.py): 64
 #:                                 registers; 32 warps per SM (at most 32 blocks per SM)
 #: ======================  ======  ========================================================
@@ -67,6 +70,8 @@ CUDA_LAUNCH = {
     "_icgn_frames_2nd": (128, 0),
     "_icgn_frames_1st": (128, 6),
     "_icgn_1st_tiled": (32, 0),
+    "_icgn_counted_2nd": (128, 0),
+    "_icgn_counted_1st": (128, 8),
 }
 
 #: Warp's default threads per block on CUDA

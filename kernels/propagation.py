@@ -42,9 +42,9 @@ _CONVERGED = wp.constant(int(Status.CONVERGED))
 _MAX_ITERATIONS = wp.constant(int(Status.MAX_ITERATIONS))
 
 
-@wp.kernel
-def _rg_wave(
-    offset: int, w: int, band: wp.float64, nb_start: wp.array(dtype=wp.int32), nb: wp.array(dtype=wp.int32),
+@wp.func
+def rg_wave_point(
+    j: int, w: int, band: wp.float64, nb_start: wp.array(dtype=wp.int32), nb: wp.array(dtype=wp.int32),
     points: wp.array(dtype=wp.vec2d),
     centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
     ref_status: wp.array(dtype=wp.int32),
@@ -53,7 +53,7 @@ def _rg_wave(
     cand: wp.array(dtype=wp.int32), centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2),
     refdata_out: wp.array2d(dtype=float), status_out: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float),
 ):
-    j = wp.tid() + offset
+    """Wave ``w``'s bookkeeping of POI ``j`` (:func:`rg_wave`)."""
     thr = wp.float64(best[w]) - band
     if pop[j] == _PENDING:  # an accepted POI: a member of this wave, or still pending after it
         if wp.float64(zncc[j]) >= thr:
@@ -110,14 +110,47 @@ def _rg_wave(
 
 
 @wp.kernel
-def _scatter_accept(
-    offset: int, idx: wp.array(dtype=wp.int32), params_in: wp.array2d(dtype=float), zncc_in: wp.array(dtype=float),
+def _rg_wave(
+    offset: int, w: int, band: wp.float64, nb_start: wp.array(dtype=wp.int32), nb: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec2d),
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32), zncc: wp.array(dtype=float), params: wp.array2d(dtype=float),
+    pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float), counts: wp.array2d(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32), centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2),
+    refdata_out: wp.array2d(dtype=float), status_out: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float),
+):
+    rg_wave_point(wp.tid() + offset, w, band, nb_start, nb, points, centres, deltas, refdata,
+                  ref_status, status, zncc, params, pop, best, counts, cand, centres_out, deltas_out,
+                  refdata_out, status_out, guess)
+
+
+@wp.kernel
+def _rg_wave_counted(
+    offset: int, ctl: wp.array(dtype=wp.int32), band: wp.float64, nb_start: wp.array(dtype=wp.int32),
+    nb: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec2d),
+    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
+    ref_status: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32), zncc: wp.array(dtype=float), params: wp.array2d(dtype=float),
+    pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float), counts: wp.array2d(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32), centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2),
+    refdata_out: wp.array2d(dtype=float), status_out: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float),
+):
+    rg_wave_point(wp.tid() + offset, ctl[0] + 1, band, nb_start, nb, points, centres, deltas, refdata,
+                  ref_status, status, zncc, params, pop, best, counts, cand, centres_out, deltas_out,
+                  refdata_out, status_out, guess)
+
+
+@wp.func
+def scatter_point(
+    t: int, idx: wp.array(dtype=wp.int32), params_in: wp.array2d(dtype=float), zncc_in: wp.array(dtype=float),
     iterations_in: wp.array(dtype=wp.int32), status_in: wp.array(dtype=wp.int32),
     params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32), zncc_min: wp.float64, pop: wp.array(dtype=wp.int32),
     best: wp.array(dtype=float), slot: int,
 ):
-    t = wp.tid() + offset
+    """Row ``t`` of the IC-GN results into row ``idx[t]`` (:func:`scatter_accept`)."""
     n = idx[t]
     for c in range(params.shape[1]):
         params[n, c] = params_in[t, c]
@@ -130,6 +163,55 @@ def _scatter_accept(
         if wp.float64(z) >= zncc_min:
             pop[n] = _PENDING
             wp.atomic_max(best, slot, z)
+
+
+@wp.kernel
+def _scatter_accept(
+    offset: int, idx: wp.array(dtype=wp.int32), params_in: wp.array2d(dtype=float), zncc_in: wp.array(dtype=float),
+    iterations_in: wp.array(dtype=wp.int32), status_in: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32), zncc_min: wp.float64, pop: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=float), slot: int,
+):
+    scatter_point(wp.tid() + offset, idx, params_in, zncc_in, iterations_in, status_in, params, zncc, iterations,
+                  status, zncc_min, pop, best, slot)
+
+
+@wp.kernel
+def _scatter_counted(
+    offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32), idx: wp.array(dtype=wp.int32),
+    params_in: wp.array2d(dtype=float), zncc_in: wp.array(dtype=float),
+    iterations_in: wp.array(dtype=wp.int32), status_in: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32), zncc_min: wp.float64, pop: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=float),
+):
+    t = wp.tid() + offset
+    w = ctl[0]
+    if t < counts[w, 0]:
+        scatter_point(t, idx, params_in, zncc_in, iterations_in, status_in, params, zncc, iterations,
+                      status, zncc_min, pop, best, w + 1)
+
+
+@wp.kernel
+def _start_loop(ctl: wp.array(dtype=wp.int32), cond: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32),
+                m: int):
+    ctl[0] = 0  # the seeds' batch is "wave" 0
+    ctl[1] = 0
+    counts[0, 0] = m
+    cond[0] = wp.where(m > 0, 1, 0)
+
+
+@wp.kernel
+def _advance(ctl: wp.array(dtype=wp.int32), cond: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32),
+             last: int):
+    w = ctl[0] + 1  # the wave _rg_wave_counted just ran
+    ctl[0] = w
+    go = counts[w, 0] > 0 or counts[w, 1] > 0  # candidates to track, or pending POIs for the next wave
+    if go and w >= last:  # the next wave would pass the state arrays' rows: the host takes over
+        ctl[1] = 1
+        go = False
+    cond[0] = wp.where(go, 1, 0)
 
 
 @wp.kernel
@@ -207,3 +289,57 @@ def scatter_accept(idx: wp.array, compact, full, count: int, zncc_min: float, po
               [0, idx, compact.params, compact.zncc, compact.iterations, compact.status, full.params, full.zncc,
                full.iterations, full.status, float(zncc_min), pop, best, int(slot)],
               str(full.status.device), offset_index=0, min_chunk=1024)
+
+
+def _check_loop_arrays(ctl, cond, counts) -> None:
+    for name, a, shape in (("ctl", ctl, (2,)), ("cond", cond, (1,)), ("counts", counts, None)):
+        if not isinstance(a, wp.array) or a.dtype != wp.int32:
+            raise ValueError(f"{name} must be an int32 Warp array")
+        if shape is not None and tuple(a.shape) != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+    if counts.ndim != 2 or counts.shape[1] != 2:
+        raise ValueError(f"counts must have shape (waves, 2), got {counts.shape}")
+    if not (ctl.device == cond.device == counts.device):
+        raise ValueError("ctl, cond and counts must be on one device")
+
+
+def start_loop(ctl: wp.array, cond: wp.array, counts: wp.array, m: int) -> None:
+    """Start a frame's device loop: the seeds' batch (``m`` gathered POIs) is batch 0 (``ctl[0] = 0``,
+    ``counts[0, 0] = m``), ``cond[0] = m > 0``, the bound flag ``ctl[1]`` cleared. One launch.
+    ``ctl`` int32 (2,), ``cond`` int32 (1,), ``counts`` int32 (W, 2) on one device."""
+    _check_loop_arrays(ctl, cond, counts)
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+        raise ValueError(f"m must be a non-negative int (the seeds' count), got {m!r}")
+    wp.launch(_start_loop, dim=1, inputs=[ctl, cond, counts, int(m)], device=str(ctl.device))
+
+
+def scatter_counted(ctl: wp.array, counts: wp.array, idx: wp.array, compact, full, zncc_min: float, pop: wp.array,
+                    best: wp.array) -> None:
+    """:func:`scatter_accept` of the ``counts[ctl[0], 0]`` rows of batch ``ctl[0]`` (slot ``ctl[0] + 1``), in
+    one launch over the N rows (threads past the count return): no host value needed."""
+    n = full.status.shape[0]
+    launch_1d(_scatter_counted, n,
+              [0, ctl, counts, idx, compact.params, compact.zncc, compact.iterations, compact.status, full.params,
+               full.zncc, full.iterations, full.status, float(zncc_min), pop, best],
+              str(full.status.device), offset_index=0, min_chunk=1 << 12)
+
+
+def rg_wave_counted(ctl: wp.array, band: float, nb_start: wp.array, nb: wp.array, points: wp.array, subsets, full,
+                    pop: wp.array, best: wp.array, counts: wp.array, cand: wp.array, gathered, guess: wp.array) -> None:
+    """:func:`rg_wave` of wave ``ctl[0] + 1``, read on the device (the same per-POI body)."""
+    n = full.status.shape[0]
+    launch_1d(_rg_wave_counted, n, [0, ctl, float(band), nb_start, nb, points, subsets.centres, subsets.deltas,
+                                    subsets.refdata, subsets.status, full.status, full.zncc, full.params, pop, best,
+                                    counts, cand, gathered.centres, gathered.deltas, gathered.refdata,
+                                    gathered.status, guess],
+              str(full.status.device), offset_index=0, min_chunk=1 << 12)
+
+
+def advance(ctl: wp.array, cond: wp.array, counts: wp.array, last: int) -> None:
+    """After :func:`rg_wave_counted`: ``ctl[0] += 1`` (the wave just run) and ``cond[0]`` = whether the loop
+    goes on (candidates, or POIs still pending); at wave ``last`` (the state arrays' last usable wave, or a
+    smaller bound) the loop stops with ``ctl[1] = 1`` and the host loop finishes the frame. One thread."""
+    _check_loop_arrays(ctl, cond, counts)
+    if isinstance(last, bool) or not isinstance(last, (int, np.integer)) or not 1 <= last <= counts.shape[0] - 2:
+        raise ValueError(f"last must be a wave in [1, {counts.shape[0] - 2}] (counts' rows - 2), got {last!r}")
+    wp.launch(_advance, dim=1, inputs=[ctl, cond, counts, int(last)], device=str(ctl.device))

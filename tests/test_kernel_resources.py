@@ -22,6 +22,8 @@ BOUNDS = {
     "_icgn_1st_tiled": (64, 0),  # prototype (kernels/icgn_tiled.py)
     "_icgn_frames_1st": (80, 0),  # kernels/frames.py (frames x POIs)
     "_icgn_frames_2nd": (168, 0),
+    "_icgn_counted_1st": (64, 0),  # kernels/rg_device.py (a wave's IC-GN sized by a device count)
+    "_icgn_counted_2nd": (168, 0),
     "_propagate_guess": (40, 0),
     "_pack_results": (32, 0),
     "_prefilter_rows_frames": (48, 0),  # every frame dtype (uint8, uint16, float32)
@@ -40,7 +42,7 @@ BOUNDS = {
     "_prefilter_entries_rows": (32, 0),  # new: segment entry values
     "_prefilter_entries_cols": (32, 0),
 }
-MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled", "kernels.frames")
+MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled", "kernels.frames", "kernels.rg_device")
 
 
 @pytest.fixture(scope="session")
@@ -80,9 +82,9 @@ def test_every_compiled_kernel_has_a_bound(sm90_resources):
 
 
 def test_block_size_table_matches_kernels_and_modules():
-    from kernels import frames, icgn, icgn_tiled, interp
+    from kernels import frames, icgn, icgn_tiled, interp, rg_device
 
-    kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled, frames) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
+    kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled, frames, rg_device) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)
     for name, kernel in kernels.items():

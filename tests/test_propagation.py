@@ -43,12 +43,13 @@ def pairs():
     return {name: speckle_pair(SHAPE, f, seed=3) for name, f in (("smooth", smooth), ("crack", discontinuous))}
 
 
-def _rg(tracker, cur, waves):
+def _rg(tracker, cur, waves, prepared=None):
     c = tracker.correlator
     base = np.zeros((c.n_points, 6 * tracker.order))
     ctx = tracker._context(cur, base)
     strategy = get_guess("rg")
-    return reliability_guided(c, prepare_current(cur, device=c.device), base, lambda i: strategy(ctx, i)[0],
+    pc = prepare_current(cur, device=c.device) if prepared is None else prepared
+    return reliability_guided(c, pc, base, lambda i: strategy(ctx, i)[0],
                               zncc_min=tracker.zncc_min, step=tracker.step, waves=waves)
 
 
@@ -78,6 +79,39 @@ def test_indexed_icgn_is_bitwise_the_full_launch_and_a_fresh_preparation(device,
     assert np.array_equal(got["params"], first)
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_counted_icgn_is_bitwise_icgn_of_the_counted_rows(device, pairs, order):
+    """kernels.rg_device.icgn_counted (launched over all N rows, the count read on the device) gives the first
+    counts[ctl[0], 0] rows bitwise what kernels.icgn.icgn gives them and leaves the rows past the count alone."""
+    from kernels.icgn import subset_rows
+    from kernels.rg_device import icgn_counted
+
+    ref, cur = pairs["crack"]
+    c = Correlator(ref, Tracker(ref, step=9, device=device).points, subset=21, order=order, max_iter=30, tol=1e-3,
+                   device=device)
+    pc = prepare_current(cur, device=device)
+    n, k = c.n_points, 6 * order
+    idx = np.random.default_rng(2).permutation(n).astype(np.int32)
+    m = n // 3
+    b = c._buffers()
+    gather_subsets(c.subsets, wp.array(idx, dtype=wp.int32, device=device), n, b.subsets)
+    g = np.zeros((n, k), np.float32)
+    g[:, 0], g[:, k // 2] = 1.5, -1.0
+    b.guess.assign(g)
+    expected = icgn(subset_rows(b.subsets, m), pc, guess=g[:m], max_iter=30, tol=1e-3).numpy()
+    for a in (b.out.params, b.out.zncc):
+        a.fill_(-7.0)
+    ctl = wp.array(np.array([3, 0], np.int32), dtype=wp.int32, device=device)  # batch 3
+    counts = np.zeros((8, 2), np.int32)
+    counts[3, 0] = m
+    icgn_counted(b.subsets, pc, b.guess, 30, 1e-3, b.out, ctl, wp.array(counts, dtype=wp.int32, device=device))
+    got = b.out.numpy()
+    for name in ("params", "zncc", "iterations", "status"):
+        assert np.array_equal(got[name][:m], expected[name], equal_nan=True), name
+    assert np.all(got["params"][m:] == -7.0) and np.all(got["zncc"][m:] == -7.0)
+    assert np.count_nonzero(np.isin(expected["status"], (int(Status.CONVERGED), int(Status.MAX_ITERATIONS)))) > m // 2
+
+
 def test_gathered_subsets_are_the_prepared_rows(device, pairs):
     ref, _ = pairs["smooth"]
     c = Correlator(ref, Tracker(ref, step=20, device=device).points, subset=21, order=2, max_iter=30, tol=1e-3,
@@ -97,14 +131,16 @@ def test_device_waves_are_bitwise_the_host_waves(device, pairs, field, order):
     t = Tracker(ref, subset=21, step=7, order=order, search="rg", device=device)
     host = _rg(t, cur, "host")
     dev = _rg(t, cur, "device")
+    synced = _rg(t, cur, "device-sync")
     for name in ("params", "zncc", "iterations", "status"):
-        assert host[name].dtype == dev[name].dtype, name
+        assert host[name].dtype == dev[name].dtype == synced[name].dtype, name
         assert np.array_equal(host[name], dev[name], equal_nan=True), name
+        assert np.array_equal(host[name], synced[name], equal_nan=True), name
     again = _rg(t, cur, "device")  # the device state is reset per frame
     assert all(np.array_equal(dev[n], again[n], equal_nan=True) for n in dev)
     # the CUDA route of the per-wave counts (a 2-int copy into a host buffer), exercised on this device
     t.correlator._rg.counts_host = wp.empty(2, dtype=wp.int32, device="cpu")
-    copied = _rg(t, cur, "device")
+    copied = _rg(t, cur, "device-sync")
     t.correlator._rg.counts_host = None if str(device).startswith("cpu") else t.correlator._rg.counts_host
     assert all(np.array_equal(dev[n], copied[n], equal_nan=True) for n in dev)
     # the propagation reached the field (and, across the crack, stopped at it): accuracy vs the exact field
@@ -117,6 +153,61 @@ def test_device_waves_are_bitwise_the_host_waves(device, pairs, field, order):
     if field == "crack":  # subsets straddling the jump do not converge to a good ZNCC
         straddle = np.abs(t.points[:, 0] - 100.3) < 10
         assert np.mean(ok[straddle]) < np.mean(ok[~straddle])
+
+
+@pytest.mark.parametrize("field", ["smooth", "crack"])
+@pytest.mark.parametrize("order", [1, 2])
+def test_device_loop_graph_and_wave_bound_are_bitwise_the_synced_waves(pairs, field, order, monkeypatch):
+    """The frame's device loop (no host round trip per wave): its CUDA branch (the loop captured once as a
+    graph with a conditional while node on the pending count, then launched; Warp 1.19 captures on the CPU
+    too, one launch per kernel) and the host-driven loop of the same body give bitwise the per-wave-synced
+    waves; so does a loop stopped at a small wave bound and finished by the host loop."""
+    monkeypatch.setenv("SPECULA_THREADS", "1")  # a capture records the launches of its own thread only
+    ref, cur = pairs[field]
+    t = Tracker(ref, subset=21, step=7, order=order, search="rg", device="cpu")
+    synced = _rg(t, cur, "device-sync")
+    runs = {"default": _rg(t, cur, "device")}  # on the CPU: the counts read in place
+    monkeypatch.setattr(engine, "_loop_kind", lambda dev: "counted")
+    runs["loop"] = _rg(t, cur, "device")  # the device loop's body, driven from the host
+    captures = []
+    make = wp.ScopedCapture
+    monkeypatch.setattr(engine, "_loop_kind", lambda dev: "graph")
+    monkeypatch.setattr(wp, "ScopedCapture", lambda *a, **k: (captures.append(1), make(*a, **k))[1])
+    pc = prepare_current(cur, device="cpu")  # one current image buffer (as Tracker keeps): one capture
+    runs["graph"] = _rg(t, cur, "device", pc)
+    runs["graph again"] = _rg(t, cur, "device", pc)  # the captured graph launched again, not captured again
+    assert len(captures) == 1 and t.correlator._rg.graph is not None
+    runs["graph, another buffer"] = _rg(t, cur, "device")  # another current buffer: captured again
+    assert len(captures) == 2
+    monkeypatch.setattr(engine, "_loop_kind", lambda dev: "counted")
+    for bound in (1, 2, 5):  # stopped after wave `bound`: the host loop finishes the frame
+        c = t.correlator
+        base = np.zeros((c.n_points, 6 * order))
+        ctx = t._context(cur, base)
+        strategy = get_guess("rg")
+        st = engine._rg_state(c, t.step)
+        runs[f"bound {bound}"] = engine._rg_device(
+            c, prepare_current(cur, device="cpu"), base, np.flatnonzero(c.ready)[
+                np.unique(np.linspace(0, np.flatnonzero(c.ready).size - 1, 9).round().astype(int))],
+            lambda i: strategy(ctx, i)[0], t.zncc_min, float(t.step), max_waves=bound)
+        assert st.ctl.numpy()[1] == 1  # the bound was reached
+    for label, r in runs.items():
+        for name in ("params", "zncc", "iterations", "status"):
+            assert np.array_equal(synced[name], r[name], equal_nan=True), (label, name)
+    assert np.mean(synced["status"] == int(Status.CONVERGED)) > 0.7
+
+
+def test_device_loop_kind_per_device(monkeypatch):
+    """CUDA: the graph where conditional graph nodes exist (CUDA 12.4+), else the per-wave read; the CPU: the
+    counts read in place."""
+    import types
+
+    cuda, cpu = types.SimpleNamespace(is_cuda=True), types.SimpleNamespace(is_cuda=False)
+    assert engine._loop_kind(cpu) == "sync"
+    monkeypatch.setattr(wp, "is_conditional_graph_supported", lambda: True)
+    assert engine._loop_kind(cuda) == "graph"
+    monkeypatch.setattr(wp, "is_conditional_graph_supported", lambda: False)
+    assert engine._loop_kind(cuda) == "sync"
 
 
 def test_device_waves_without_seeds_or_trackable_points(device):
@@ -160,7 +251,14 @@ def test_reliability_guided_frame_launches_copies_allocations(monkeypatch):
     nothing else on the CPU, and a frame after the first allocates only in the image preparation and the seeds'
     ZNCC search (whose reference is uploaded once per reference)."""
     monkeypatch.setenv("SPECULA_THREADS", "1")  # one wp.launch per kernel launch, as on CUDA
+    import functools
+    import importlib
+
     import kernels.propagation as prop
+
+    # the waves with their counts read per wave (waves="device-sync"; the default loop: the next test)
+    monkeypatch.setattr(importlib.import_module("dic.track"), "reliability_guided",
+                        functools.partial(reliability_guided, waves="device-sync"))
 
     ref, cur = speckle_pair((256, 256), lambda x, y: (2.3 + 0.004 * x, -1.2 + 0.002 * y), seed=4)
     t = Tracker(ref, subset=21, step=8, search="rg", device="cpu")
@@ -181,6 +279,47 @@ def test_reliability_guided_frame_launches_copies_allocations(monkeypatch):
     assert n["copy"] <= 6, dict(n)
     # allocations: only the image preparation (2) and the seeds' ZNCC search (5); none per wave
     assert n["alloc"] <= 7, dict(n)
+
+
+def test_reliability_guided_device_loop_has_no_copy_per_wave(monkeypatch):
+    """The device loop of ``waves="device"`` on CUDA (here driven from the host): per wave 4 launches
+    (bookkeeping, counted IC-GN, counted scatter, the one-thread step that sets the loop condition) and no
+    copy: the only copies of a frame are the seeds' and the search's inputs (as with the synced waves) and
+    one read of the loop's 2-int control at the end of the frame (the bound check; host memory here); on
+    CUDA the waves are one graph launch."""
+    monkeypatch.setenv("SPECULA_THREADS", "1")
+    import kernels.propagation as prop
+
+    monkeypatch.setattr(engine, "_loop_kind", lambda dev: "counted")  # the CUDA loop, driven from the host
+    ref, cur = speckle_pair((256, 256), lambda x, y: (2.3 + 0.004 * x, -1.2 + 0.002 * y), seed=4)
+    t = Tracker(ref, subset=21, step=8, search="rg", device="cpu")
+    t.track(cur)
+    waves = []
+    wave = prop.rg_wave_counted
+    monkeypatch.setattr(prop, "rg_wave_counted", lambda *a, **k: (waves.append(1), wave(*a, **k))[1])
+    synced, synced_wave = [], prop.rg_wave
+    monkeypatch.setattr(prop, "rg_wave", lambda *a, **k: synced.append(1))  # must not run
+    copies_per_frame = []
+    for frames in (1, 2):
+        counts = _Counts(monkeypatch)
+        for _ in range(frames):
+            f = t.track(cur)
+        copies_per_frame.append(counts.n["copy"])
+        n = counts.n
+    print(f"\ndevice loop: {dict(n)} over 2 frames, {len(waves)} waves")
+    assert f.valid.mean() > 0.9 and len(waves) >= 30 and not synced
+    per_frame = len(waves) // 3
+    # launches per frame: init + seeds (gather, start) + 4 per wave + the seeds' search and image preparation (6)
+    assert n["launch"] <= 2 * (4 * per_frame + 3 + 6), (dict(n), len(waves))
+    # copies: a constant per frame, none per wave (2 frames copy twice what 1 frame copies)
+    assert copies_per_frame[1] == 2 * copies_per_frame[0] <= 2 * 6, copies_per_frame
+    # the per-wave read of "device-sync" through its CUDA route (a 2-int copy per wave), for contrast
+    monkeypatch.setattr(engine, "_loop_kind", lambda dev: "sync")
+    monkeypatch.setattr(prop, "rg_wave", synced_wave)
+    t.correlator._rg.counts_host = wp.empty(2, dtype=wp.int32, device="cpu")
+    counts = _Counts(monkeypatch)
+    f = t.track(cur)
+    assert f.valid.mean() > 0.9 and counts.n["copy"] >= copies_per_frame[0] + per_frame, (dict(counts.n), per_frame)
 
 
 def test_pyramid_reference_built_once_per_reference(device, monkeypatch, pairs):
@@ -232,6 +371,32 @@ def test_bad_indexed_inputs_are_refused(device, pairs):
     with pytest.raises(ValueError, match="int32"):
         gather_subsets(c.subsets, wp.array(np.array([0, 1.0]), dtype=wp.float32, device=device), 1,
                        subset_buffers(c.subsets))
+    with pytest.raises(ValueError, match="waves"):
+        reliability_guided(c, cur, np.zeros((c.n_points, 6)), lambda i: np.zeros((i.size, 6)), zncc_min=0.8,
+                           step=None, waves="graph")
+    from kernels.propagation import advance, start_loop
+    from kernels.rg_device import icgn_counted
+
+    ctl, cond = wp.zeros(2, dtype=wp.int32, device=device), wp.zeros(1, dtype=wp.int32, device=device)
+    counts = wp.zeros((c.n_points + 3, 2), dtype=wp.int32, device=device)
+    with pytest.raises(ValueError, match="ctl must have shape"):
+        start_loop(wp.zeros(3, dtype=wp.int32, device=device), cond, counts, 1)
+    with pytest.raises(ValueError, match="cond must be an int32"):
+        start_loop(ctl, wp.zeros(1, dtype=wp.float32, device=device), counts, 1)
+    with pytest.raises(ValueError, match="non-negative"):
+        start_loop(ctl, cond, counts, -1)
+    with pytest.raises(ValueError, match="last must be"):
+        advance(ctl, cond, counts, c.n_points + 2)
+    b = c._buffers()
+    pc = prepare_current(cur, device=device)
+    with pytest.raises(ValueError, match="counts must have shape"):
+        icgn_counted(b.subsets, pc, b.guess, 30, 1e-3, b.out, ctl, wp.zeros(4, dtype=wp.int32, device=device))
+    with pytest.raises(ValueError, match="CurrentImage"):
+        icgn_counted(b.subsets, cur, b.guess, 30, 1e-3, b.out, ctl, counts)
+    with pytest.raises(ValueError, match="rows"):
+        icgn_counted(b.subsets, pc, b.guess[:2], 30, 1e-3, b.out, ctl, counts)
+    with pytest.raises(ValueError, match="max_iter"):
+        icgn_counted(b.subsets, pc, b.guess, 0, 1e-3, b.out, ctl, counts)
     with pytest.raises(ValueError, match="radius"):
         neighbour_lists(c.points, 0.0)
     with pytest.raises(ValueError, match="points"):

@@ -372,18 +372,23 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
     best-ZNCC tracked neighbour; a wave only releases neighbours of POIs whose ZNCC is within 0.05 of
     the best pending one, which keeps the reliability ordering while launching many POIs at once.
 
-    ``waves``: ``"device"`` (default) runs the waves on the device (:mod:`kernels.propagation`: one
-    bookkeeping launch and one indexed IC-GN launch per wave, two counts back per wave, no
-    allocation after the first frame); ``"host"`` runs them from a heap on the host (the reference
-    implementation). Both give bitwise the same results (same waves, same sources, same guesses).
+    ``waves``: ``"device"`` (default) runs the waves on the device with no host round trip per wave:
+    on CUDA the whole frame's loop is one CUDA graph (``wp.capture_while`` on the pending count;
+    :mod:`kernels.propagation`, :mod:`kernels.rg_device`: per wave a bookkeeping launch, an IC-GN
+    launch over N rows that reads the candidate count on the device, a scatter and a one-thread
+    step), on the CPU the loop reads each wave's counts in place (host memory: no copy) and sizes the
+    launches by them; ``"device-sync"`` reads each wave's two counts back on every device (one
+    synchronisation per wave on CUDA; the route before); ``"host"`` runs them from a heap on the host
+    (the reference implementation). All three give bitwise the same results (same waves, same sources, same guesses); no allocation after
+    the first frame on the device routes.
 
     ``base`` (N, k): parameters where nothing was tracked (the user's guess or zeros).
     Returns host arrays ``params``, ``zncc``, ``iterations``, ``status`` (N rows).
     """
     from scipy.spatial import cKDTree
 
-    if waves not in ("device", "host"):
-        raise ValueError(f"waves must be 'device' or 'host', got {waves!r}")
+    if waves not in WAVES:
+        raise ValueError(f"waves must be one of {WAVES}, got {waves!r}")
     n, k = corr.n_points, n_params(corr.order)
     base = np.asarray(base, dtype=np.float64)
     if base.shape != (n, k):
@@ -394,8 +399,9 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
     cand = np.flatnonzero(ready)
     n_seeds = min(cand.size, 9)
     seeds = cand[np.unique(np.linspace(0, cand.size - 1, n_seeds).round().astype(int))] if cand.size else cand
-    if waves == "device":
-        return _rg_device(corr, current, base, seeds, seed_guess, zncc_min, float(step))
+    if waves != "host":
+        return _rg_device(corr, current, base, seeds, seed_guess, zncc_min, float(step),
+                          sync=waves == "device-sync")
     params = base.copy()
     zncc = np.full(n, np.nan)
     iters = np.zeros(n, np.int32)
@@ -448,6 +454,9 @@ def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: 
     return result
 
 
+#: the ways of running the reliability-guided waves (:func:`reliability_guided`)
+WAVES = ("device", "device-sync", "host")
+
 #: a reliability-guided wave expands every pending POI within this ZNCC of the best pending one
 RG_BAND = 0.05
 
@@ -467,6 +476,9 @@ class _RgState:
     best: wp.array
     counts: wp.array
     counts_host: wp.array | None  # pinned 2-int buffer for the per-wave counts (CUDA)
+    ctl: wp.array  # int32 (2,): the batch/wave index of the device loop, the "bound reached" flag
+    cond: wp.array  # int32 (1,): the device loop's condition (wp.capture_while)
+    graph: tuple | None = None  # CUDA: (key, wp.Graph) of the frame loop captured for one current image
 
 
 def _rg_state(corr: Correlator, step: float) -> _RgState:
@@ -483,14 +495,19 @@ def _rg_state(corr: Correlator, step: float) -> _RgState:
         wp.array(corr.points, dtype=wp.vec2d, device=dev), wp.array(ready_status, dtype=wp.int32, device=dev),
         _result(n, k, dev), corr._buffers(), wp.zeros(n, dtype=wp.int32, device=dev), wp.empty(n + 3, dtype=wp.float32, device=dev),
         wp.zeros((n + 3, 2), dtype=wp.int32, device=dev),
-        wp.empty(2, dtype=wp.int32, device="cpu", pinned=True) if cuda else None)
+        wp.empty(2, dtype=wp.int32, device="cpu", pinned=True) if cuda else None,
+        wp.zeros(2, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev))
     return corr._rg
 
 
 def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, seed_guess: Callable,
-               zncc_min: float, step: float) -> dict:
-    """The waves of :func:`reliability_guided` on the device (:mod:`kernels.propagation`)."""
-    from kernels.propagation import init_state, rg_wave, scatter_accept
+               zncc_min: float, step: float, sync: bool = False, max_waves: int | None = None) -> dict:
+    """The waves of :func:`reliability_guided` on the device (:mod:`kernels.propagation`).
+
+    ``sync``: read each wave's two counts back (``waves="device-sync"``); else the device loop
+    (:func:`_rg_loop_body` under ``wp.capture_while``), stopped after wave ``max_waves`` (default: the
+    state arrays' rows, more than any frame needs) with the host loop finishing the frame."""
+    from kernels.propagation import init_state, start_loop
 
     st = _rg_state(corr, step)
     full, b = st.full, st.batch
@@ -504,28 +521,20 @@ def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, s
             raise ValueError(f"seed_guess must return finite parameters of shape {(m, k)}, got {g.shape}")
         _upload(b.idx[:m], seeds.astype(np.int32))
         _upload(b.guess[:m], g.astype(np.float32))
-        sub = gather_subsets(corr.subsets, b.idx, m, b.subsets, points=corr.points[seeds])
-        counts = st.counts.numpy() if st.counts_host is None else None
-        w = 0  # the seeds' batch; waves w >= 1
-        while True:
-            res = icgn(sub, cur, guess=b.guess[:m], max_iter=corr.max_iter, tol=corr.tol, out=_rows(b.out, m))
-            scatter_accept(b.idx, res, full, m, float(zncc_min), st.pop, st.best, w + 1)
-            w += 1
-            while True:
-                rg_wave(w, RG_BAND, st.nb_start, st.nb, st.points, corr.subsets, full, st.pop, st.best, st.counts,
-                        b.idx, b.subsets, b.guess)
-                if counts is not None:  # CPU: the counts are host memory
-                    m, left = int(counts[w, 0]), int(counts[w, 1])
-                else:  # CUDA: two ints back, the only copy per wave
-                    wp.copy(st.counts_host, st.counts, src_offset=2 * w, count=2)
-                    wp.synchronize_device(corr.device)
-                    m, left = (int(x) for x in st.counts_host.numpy())
-                if m or not left:
-                    break
-                w += 1  # members but no untracked neighbour: the next wave
-            if m == 0:
-                break
-            sub = subset_rows(b.subsets, m)
+        gather_subsets(corr.subsets, b.idx, m, b.subsets, points=corr.points[seeds])
+        kind = "sync" if sync else _loop_kind(wp.get_device(corr.device))
+        if kind == "sync":
+            _rg_sync_loop(corr, st, cur, zncc_min, 0, m)
+        else:
+            last = st.best.shape[0] - 2  # rg_wave's last wave
+            last = last if max_waves is None else max(1, min(last, int(max_waves)))
+            start_loop(st.ctl, st.cond, st.counts, m)
+            _rg_device_loop(corr, st, cur, zncc_min, last, graph=kind == "graph")
+            ctl = st.ctl.numpy()  # one copy per frame on CUDA (the frame's results come back anyway)
+            if ctl[1]:  # the bound was reached: the host loop finishes the frame
+                w = int(ctl[0])
+                counts = st.counts.numpy()
+                _rg_sync_loop(corr, st, cur, zncc_min, w, int(counts[w, 0]))
     status = np.array(full.status.numpy(), dtype=np.int32, copy=True)
     run = (status != int(Status.NOT_COMPUTED)) & corr.ready
     params = base.copy()
@@ -533,3 +542,82 @@ def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, s
     zncc = full.zncc.numpy().astype(np.float64)
     iters = np.array(full.iterations.numpy(), dtype=np.int32, copy=True)
     return {"params": params, "zncc": zncc, "iterations": iters, "status": status}
+
+
+def _rg_sync_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: float, w: int, m: int) -> None:
+    """The waves with their counts read on the host (``waves="device-sync"``), from batch ``w`` whose ``m``
+    candidates are gathered in the batch buffers (``w = 0``: the seeds) and not yet tracked (``m = 0``: none,
+    but POIs still pending)."""
+    from kernels.propagation import rg_wave, scatter_accept
+
+    full, b = st.full, st.batch
+    counts = st.counts.numpy() if st.counts_host is None else None
+    while True:
+        if m:
+            sub = subset_rows(b.subsets, m)
+            res = icgn(sub, cur, guess=b.guess[:m], max_iter=corr.max_iter, tol=corr.tol, out=_rows(b.out, m))
+            scatter_accept(b.idx, res, full, m, float(zncc_min), st.pop, st.best, w + 1)
+        w += 1
+        rg_wave(w, RG_BAND, st.nb_start, st.nb, st.points, corr.subsets, full, st.pop, st.best, st.counts,
+                b.idx, b.subsets, b.guess)
+        if counts is not None:  # CPU: the counts are host memory
+            m, left = int(counts[w, 0]), int(counts[w, 1])
+        else:  # CUDA: two ints back, the only copy per wave
+            wp.copy(st.counts_host, st.counts, src_offset=2 * w, count=2)
+            wp.synchronize_device(corr.device)
+            m, left = (int(x) for x in st.counts_host.numpy())
+        if not m and not left:
+            return
+
+
+def _rg_loop_body(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: float, last: int) -> None:
+    """One pass of the device loop, no host value read: IC-GN of batch ``ctl[0]``'s candidates (launched over
+    N rows, :func:`kernels.rg_device.icgn_counted`), their scatter, the bookkeeping of wave ``ctl[0] + 1``
+    and the step that advances ``ctl[0]`` and sets the condition. The same launches as a pass of
+    :func:`_rg_sync_loop` (a batch of 0 candidates runs no thread), hence the same bits."""
+    from kernels.propagation import advance, rg_wave_counted, scatter_counted
+    from kernels.rg_device import icgn_counted
+
+    b = st.batch
+    icgn_counted(b.subsets, cur, b.guess, corr.max_iter, corr.tol, b.out, st.ctl, st.counts)
+    scatter_counted(st.ctl, st.counts, b.idx, b.out, st.full, float(zncc_min), st.pop, st.best)
+    rg_wave_counted(st.ctl, RG_BAND, st.nb_start, st.nb, st.points, corr.subsets, st.full, st.pop, st.best,
+                    st.counts, b.idx, b.subsets, b.guess)
+    advance(st.ctl, st.cond, st.counts, last)
+
+
+def _loop_kind(device) -> str:
+    """How ``waves="device"`` runs a frame's waves on ``device``: ``"graph"`` on CUDA (the device loop
+    captured as a CUDA graph); ``"sync"`` on the CPU, where the counts are host memory read in place (no
+    round trip to save) and launches sized by the count are cheaper than the counted ones over N rows
+    (measured: docs/dic2d.md). ``"counted"`` (the device loop driven from the host) and ``"graph"`` on the
+    CPU (Warp 1.19 captures there too, one launch per kernel: ``SPECULA_THREADS=1``) are what the tests
+    run to exercise the CUDA branch here. A CUDA driver or toolkit older than 12.4 (no conditional graph
+    nodes) gets ``"sync"``."""
+    if not device.is_cuda:
+        return "sync"
+    return "graph" if wp.is_conditional_graph_supported() else "sync"
+
+
+def _rg_device_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: float, last: int,
+                    graph: bool) -> None:
+    """The frame's waves: ``wp.capture_while(cond, body)``. ``graph``: captured once per current image
+    buffer (and settings) as a graph with a conditional while node and launched (CUDA: no host round trip
+    per wave); else ``wp.capture_while`` runs the body from the host while ``cond[0]`` is set (read in
+    place on the CPU; on CUDA that would be a read per wave)."""
+    body = lambda: _rg_loop_body(corr, st, cur, zncc_min, last)  # noqa: E731
+    dev = wp.get_device(corr.device)
+    if not graph:
+        wp.capture_while(st.cond, body)
+        return
+    key = (cur.rows4.ptr, cur.pitch, cur.shape, float(zncc_min), corr.max_iter, corr.tol, last)
+    if st.graph is None or st.graph[0] != key:
+        import kernels.propagation as prop
+        import kernels.rg_device as rgd
+
+        for mod in (prop, rgd):  # compiled and loaded before the capture
+            wp.load_module(mod, device=dev)
+        with wp.ScopedCapture(device=dev) as capture:
+            wp.capture_while(st.cond, body)
+        st.graph = (key, capture.graph)
+    wp.capture_launch(st.graph[1])
