@@ -100,6 +100,11 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
+def _same_bits(a: dict, b: dict) -> bool:
+    """Two result dicts (params, zncc, iterations, status) equal bit for bit, NaNs included."""
+    return all(np.array_equal(np.asarray(a[key]).view(np.int32), np.asarray(b[key]).view(np.int32)) for key in a)
+
+
 def prebuild_cache(arch: int = 90) -> list[str]:
     """Compile every kernel module of ``kernels`` for ``sm_<arch>`` into Warp's kernel cache (no GPU needed).
 
@@ -378,9 +383,7 @@ def section_kernel(device: str, quick: bool) -> dict:
         res["fill"][f"{order}_plain"].append(measure(pts, order, curplain, keep=kept))
         measure(pts, order, curimg, keep=kept)
         a, b = kept
-        res["layout"]["bitwise_equal"][str(order)] = bool(
-            all(np.array_equal(a[key].view(np.int32), b[key].view(np.int32)) for key in ("params", "zncc",
-                                                                                      "iterations", "status")))
+        res["layout"]["bitwise_equal"][str(order)] = _same_bits(a, b)
     res["layout"]["plain_over_rows4"] = {
         str(o): [p["poi_per_s"] / r["poi_per_s"] for p, r in zip(res["fill"][f"{o}_plain"], res["fill"][str(o)])]
         for o in (1, 2)}
@@ -465,7 +468,7 @@ def output_checks(device: str) -> dict:
             "unwritten_zncc": int(np.isinf(a["zncc"]).sum()),
             "unwritten_iterations": int((a["iterations"] < 0).sum()),
             "unwritten_status": int((a["status"] < 0).sum()),
-            "deterministic": bool(all(np.array_equal(a[key], b[key], equal_nan=True) for key in a)),
+            "deterministic": _same_bits(a, b),
         }
     out["ok"] = all(v["deterministic"] and not any(v[key] for key in v if key.startswith("unwritten"))
                     for v in out.values() if isinstance(v, dict))
@@ -523,8 +526,7 @@ def section_pipeline(device: str, quick: bool) -> dict:
     _sync(device)
     res["frame_tracker_device"] = rate(time.perf_counter() - s)
     dev_last = last.numpy()
-    res["device_loop_bitwise_equal"] = bool(all(np.array_equal(dev_last[k], host_last[k], equal_nan=True)
-                                                for k in host_last))
+    res["device_loop_bitwise_equal"] = _same_bits(host_last, dev_last)
     if device.startswith("cuda"):
         graph = ft.capture_graph()
         ft.reset()
@@ -536,8 +538,7 @@ def section_pipeline(device: str, quick: bool) -> dict:
         _sync(device)
         res["graph_replay"] = rate(time.perf_counter() - s)
         got = ft.results.numpy()
-        res["graph_replay_bitwise_equal"] = bool(all(np.array_equal(got[k], host_last[k], equal_nan=True)
-                                                     for k in host_last))
+        res["graph_replay_bitwise_equal"] = _same_bits(host_last, got)
     else:
         res["graph_replay"] = {"skipped": "CUDA graphs need a CUDA device"}
     return res

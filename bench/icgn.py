@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import time
@@ -41,6 +40,7 @@ import scipy
 import warp as wp
 from scipy import ndimage
 
+from bench._host import cpu_model
 from dic.synth import speckle_pair
 from dic.track import grid
 from kernels._device import available_devices, resolve_device
@@ -161,15 +161,6 @@ def numpy_icgn(ref, cur, points, subset, order, max_iter, tol):
 # timing
 
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def _timed(fn, device):
@@ -288,7 +279,7 @@ def main(argv=None):
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "device": device,
             "device_name": wp.get_device(device).name,
-            "cpu_model": _cpu_model(),
+            "cpu_model": cpu_model(),
             "cpu_count": os.cpu_count(),
             "cpu_threads_used": cpu_threads(),
             "load_average_before": load0,

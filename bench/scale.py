@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -37,6 +36,8 @@ import time
 from datetime import datetime, timezone
 
 import numpy as np
+
+from bench._host import cpu_model, write_json
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 SEED = 8192
@@ -156,15 +157,6 @@ def _child(args, flag: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def parse_args(argv=None):
@@ -204,7 +196,7 @@ def main(argv=None):
     load_before = os.getloadavg()
     result = {
         "benchmark": "scale", "device": args.device,
-        "host": {"cpu": _cpu_model(), "cpu_count": os.cpu_count(),
+        "host": {"cpu": cpu_model(), "cpu_count": os.cpu_count(),
                  "memory_gb": os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 1e9,
                  "load_average_before": list(load_before)},
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -228,10 +220,7 @@ def main(argv=None):
           f"{r['poi_per_chunk']}: {r['seconds']:.0f} s, peak RSS {r['peak_rss_mb']:.0f} MB (target <= 8000 at 8192), "
           f"file {r['results_file_mb']:.0f} MB; valid {r['valid_fraction']:.4f}, RMS error {r['rms_error_px']:.4f} px")
     out = args.out or os.path.join(RESULTS, f"scale_{args.device.replace(':', '')}.json")
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    with open(out, "w") as fh:
-        json.dump(result, fh, indent=1)
-    print(f"wrote {out}")
+    write_json(result, out)
     return result
 
 

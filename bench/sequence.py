@@ -53,7 +53,6 @@ import argparse
 import inspect
 import json
 import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -64,6 +63,8 @@ import time
 from datetime import datetime, timezone
 
 import numpy as np
+
+from bench._host import cpu_model, write_json
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 N_DISTINCT = 10  # rendered frames the throughput/memory runs cycle over
@@ -472,15 +473,6 @@ def _plain(value):
     return str(value)
 
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def parse_args(argv=None):
@@ -546,7 +538,7 @@ def main(argv=None):
     load_before = os.getloadavg()
     result = {
         "benchmark": "sequence", "engine": engine_name, "device": args.device, "quick": bool(args.quick),
-        "host": {"cpu": _cpu_model(), "cpu_count": os.cpu_count(), "cpu_threads": cpu_threads(),
+        "host": {"cpu": cpu_model(), "cpu_count": os.cpu_count(), "cpu_threads": cpu_threads(),
                  "load_average_before": list(load_before)},
         "versions": {"python": sys.version.split()[0], "warp": wp.__version__, "numpy": np.__version__},
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -584,10 +576,7 @@ def main(argv=None):
     result["total_seconds"] = time.perf_counter() - t_all
     result["host"]["load_average_after"] = list(os.getloadavg())
     out = args.out or os.path.join(RESULTS, f"sequence_{args.device.replace(':', '')}.json")
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    with open(out, "w") as fh:
-        json.dump(result, fh, indent=1)
-    print(f"wrote {out}")
+    write_json(result, out)
     return result
 
 
