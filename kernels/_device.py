@@ -118,6 +118,8 @@ def host_copy(array) -> np.ndarray:
     next frame) overwrites under the caller's feet. This copies on the CPU and not twice on CUDA, so
     results the caller keeps are the caller's on every device.
     """
+    if not isinstance(array, wp.array):
+        raise ValueError(f"host_copy needs a wp.array, got {type(array).__name__}")
     a = array.numpy()
     if array.device.is_cpu:
         return np.array(a, copy=True)

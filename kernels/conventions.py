@@ -35,7 +35,10 @@ def round_half_away(x) -> np.ndarray:
     even (10.5 -> 10, not 11) and ``np.floor(x + 0.5)`` is wrong for negative halves (-10.5 -> -10)
     and for 0.49999999999999994 (-> 1). Exact for every float64: ``s - floor(s)`` has no rounding.
     """
-    a = np.asarray(x, dtype=np.float64)
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"round_half_away needs real numbers (a scalar or an array), got {type(x).__name__}") from None
     s = np.abs(a)
     f = np.floor(s)
     return np.copysign(f + (s - f >= 0.5), a)

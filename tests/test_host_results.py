@@ -89,3 +89,10 @@ def test_search_and_icgn_centre_a_poi_at_half_a_pixel_alike(images):
     assert np.all(np.isfinite(cc[1:]))
     # the search radius that can matter is computed from the same centres
     assert useful_radius(SHAPE, pts[:1], 11) == 0
+
+
+def test_host_helpers_refuse_what_they_cannot_read():
+    with pytest.raises(ValueError, match="needs a wp.array"):
+        host_copy(np.zeros(3))
+    with pytest.raises(ValueError, match="real numbers"):
+        round_half_away("ten and a half")

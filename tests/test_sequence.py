@@ -459,3 +459,10 @@ def test_chunks_filter_the_reference_image_once(sequence, tmp_path, monkeypatch)
     track_sequence(ref, frames[:4], tmp_path / "chunked.h5", step=8, device="cpu", max_memory=37 * bytes_per_poi(1))
     assert calls == [120]  # all 120 POIs once, for 4 frames of 4 chunks each
     _same_frames(tmp_path / "whole.h5", tmp_path / "chunked.h5")
+
+
+def test_strain_in_bands_refuses_what_is_not_a_field():
+    from dic.sequence.chunks import strain_in_bands
+
+    with pytest.raises(ValueError, match="needs a 2-D field"):
+        strain_in_bands(np.zeros((4, 2)), 5)

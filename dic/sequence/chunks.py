@@ -180,6 +180,8 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS)
     from ..strain import StrainField, grid_layout, strain
 
     max_points = positive_int(max_points, "max_points")
+    if not all(hasattr(field, name) for name in ("points", "u", "v", "valid")):
+        raise ValueError(f"strain_in_bands needs a 2-D field (points, u, v, valid), got {type(field).__name__}")
     points = np.asarray(field.points, np.float64)
     n = len(points)
     if n <= max_points:
