@@ -387,6 +387,21 @@ def section_kernel(device: str, quick: bool) -> dict:
     res["layout"]["plain_over_rows4"] = {
         str(o): [p["poi_per_s"] / r["poi_per_s"] for p, r in zip(res["fill"][f"{o}_plain"], res["fill"][str(o)])]
         for o in (1, 2)}
+    # the opt-in robust refinement (kernels/icgn_robust.py), from the converged plain solution of a step-5 grid
+    from kernels.icgn_robust import icgn_robust, robust_result
+
+    res["robust"] = {}
+    pts = grid(ref.shape, 8 if quick else 5, margin=10)
+    for order in (1, 2):
+        subs = prepare_subsets(refimg, pts, subset=21, order=order)
+        plain = icgn(subs, curimg)
+        out = robust_result(len(pts), n_params(order), device)
+        icgn_robust(subs, curimg, plain.params, out=out)  # warm-up (module load)
+        secs = timer(lambda: icgn_robust(subs, curimg, plain.params, out=out), repeats)
+        r = out.numpy()
+        res["robust"][str(order)] = {"n_points": len(pts), "seconds": secs, "poi_per_s": len(pts) / float(np.median(secs)),
+                                     "mean_iterations": float(r["iterations"].mean()),
+                                     "converged_fraction": float(np.mean(r["status"] == 0))}
     return res
 
 

@@ -70,6 +70,8 @@ RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 N_DISTINCT = 10  # rendered frames the throughput/memory runs cycle over
 SEED = 2026
 MODE_NAMES = ("fixed", "incremental", "auto")
+#: a mode name ending in this runs with robust IC-GN (Tracker(robust=True)), e.g. "auto+robust"
+ROBUST_SUFFIX = "+robust"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -351,6 +353,11 @@ def part_memory(args, folder):
     return {"runs": rows, "peak_ratio": long["peak_rss_mb"] / short["peak_rss_mb"], "target_peak_ratio": 1.1}
 
 
+def split_mode(name: str) -> tuple[str, bool]:
+    """``"auto+robust"`` -> ``("auto", True)``: a reference mode, and whether it runs robust IC-GN."""
+    return (name[: -len(ROBUST_SUFFIX)], True) if name.endswith(ROBUST_SUFFIX) else (name, False)
+
+
 def part_evolving(args, run, engine_name, folder):
     size = args.size
     seq, paths = evolving_frames(folder, size, args.evolving_frames, args.stretch, args.fade, args.noise, args.device)
@@ -362,17 +369,19 @@ def part_evolving(args, run, engine_name, folder):
     roi = (int(np.ceil(cx - hx)), half, int(np.floor(cx + hx)), size - 1 - half)
     diag = _changed_speckle_counts(seq, roi, args)
     modes = {}
-    for mode in args.modes:
-        if not supports(engine_name, mode):
-            modes[mode] = {"skipped": f"the {engine_name} engine has no {mode!r} reference mode "
+    for mode_name in args.modes:
+        mode, robust = split_mode(mode_name)
+        extra = {"robust": True} if robust else {}
+        if not supports(engine_name, mode) or (robust and engine_name != "dic.sequence.track_sequence"):
+            modes[mode_name] = {"skipped": f"the {engine_name} engine has no {mode!r} reference mode "
                                       "(dic.sequence.track_sequence is not in this checkout)"}
             continue
-        out = os.path.join(folder, f"evolving_{mode.replace(':', '_')}.h5")
+        out = os.path.join(folder, f"evolving_{mode_name.replace(':', '_').replace('+', '_')}.h5")
         t0 = time.perf_counter()
         try:
-            run(paths[0], paths[1:], out, mode, device=args.device, **_tracker_options(args, roi))
+            run(paths[0], paths[1:], out, mode, device=args.device, **_tracker_options(args, roi), **extra)
         except Exception as exc:  # a mode the engine refuses or fails in: report it, run the others
-            modes[mode] = {"failed": f"{type(exc).__name__}: {exc}"}
+            modes[mode_name] = {"failed": f"{type(exc).__name__}: {exc}"}
             continue
         wall = time.perf_counter() - t0
         per_frame = []
@@ -398,7 +407,7 @@ def part_evolving(args, run, engine_name, folder):
                               "reference_interpolated": _plain(fr.attrs.get("reference_interpolated"))})
         os.remove(out)
         last = per_frame[-1] if per_frame else {}
-        modes[mode] = {"seconds": wall, "frames_per_s": len(per_frame) / wall if wall else None,
+        modes[mode_name] = {"seconds": wall, "frames_per_s": len(per_frame) / wall if wall else None,
                        "n_points": int(np.asarray(fr.points).shape[0]) if per_frame else 0,
                        "final_valid_fraction": last.get("valid_fraction"),
                        "final_rms_error_px": last.get("rms_error_px"),
@@ -511,8 +520,10 @@ def parse_args(argv=None):
         parser.error(f"unknown part(s) {bad}; choose from throughput, memory, evolving")
     args.modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     for m in args.modes:
+        m = split_mode(m)[0]
         if m not in MODE_NAMES and not (m.startswith("every:") and m[6:].isdigit() and int(m[6:]) > 0):
-            parser.error(f"unknown reference mode {m!r}; choose from fixed, incremental, every:N, auto")
+            parser.error(f"unknown reference mode {m!r}; choose from fixed, incremental, every:N, auto "
+                         "(each optionally +robust)")
     for name in ("size", "step", "subset", "frames", "long_frames", "evolving_frames"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")

@@ -247,6 +247,10 @@ class StereoCorrelation:
     noise_sigma : float, optional: grey-level noise std of each image, for the per-point image-plane
         uncertainty in ``Field3D.details`` (``sigma_match_px``, ``sigma_left_px``, ``sigma_right_px``,
         :mod:`dic.quality`); default: estimated from each stage's correlation residuals.
+    robust : bool, refine every accepted match and track with outlier-robust (Tukey-weighted) IC-GN
+        (:mod:`kernels.icgn_robust`): pixels whose texture differs from the reference subset (a speckle
+        that changed, a glint seen by one camera only) do not bias it. Default False (docs/dic2d.md,
+        "Robust correlation").
     device : None, "cpu" or "cuda:N".
     """
 
@@ -254,8 +258,11 @@ class StereoCorrelation:
                  order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
-                 noise_sigma: float | None = None, device=None):
+                 noise_sigma: float | None = None, robust: bool = False, device=None):
         self.device = resolve_device(device)
+        if not isinstance(robust, (bool, np.bool_)):
+            raise ValueError(f"robust must be True or False, got {robust!r}")
+        self.robust = bool(robust)
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.subset, self.order = check_subset_order(subset, order)
         left_ref, right_ref = _check_pair(left_ref, right_ref, "reference")
@@ -379,7 +386,8 @@ class StereoCorrelation:
         self.timings["features_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         res = correlate(self.left, current, guess, has, SOURCE_FEATURES, eligible=eligible, zncc_min=self.zncc_min,
-                        radius=self.radius, extra=extra, fallback=fallback, check_warps=self.check_warps)
+                        radius=self.radius, extra=extra, fallback=fallback, check_warps=self.check_warps,
+                        robust=self.robust)
         self.timings["match_icgn_s"] = time.perf_counter() - t0
         status = stage_status(res, eligible & self.left.ready, StereoStatus.MATCH_FAILED,
                                StereoStatus.EPIPOLAR_VIOLATION, self.zncc_min)
@@ -445,7 +453,7 @@ class StereoCorrelation:
 
         return correlate(corr, current, guess, has, src, eligible=eligible, zncc_min=self.zncc_min,
                          radius=self.radius, fallback=fallback, max_seeds=max(64, n),
-                         min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps)
+                         min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps, robust=self.robust)
 
     def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True, warn: bool = True) -> Field3D:
         """Track a current pair from the reference pair and return its :class:`Field3D`.
@@ -878,7 +886,7 @@ def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=No
     left_cur, right_cur : (H, W) grey images of a current state, optional (both or neither).
     points, step, roi, subset, order, frame, epipolar_tol_px, zncc_min, strain_window, device :
         see :class:`StereoCorrelation`; ``options`` passes ``max_iter``, ``tol``, ``triangulation``,
-        ``max_features``.
+        ``max_features``, ``robust``.
 
     Returns
     -------

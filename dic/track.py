@@ -125,13 +125,19 @@ class Tracker:
         Grey-level noise std of each image, for the per-POI uncertainty ``Field2D.sigma_u``,
         ``sigma_v`` (:mod:`dic.quality`). Default: estimated per image from the residuals of the
         valid POIs.
+    robust : bool
+        Refine every accepted POI with outlier-robust (Tukey-weighted) IC-GN
+        (:mod:`kernels.icgn_robust`): subset pixels whose change the reference texture cannot
+        explain (speckles that flake off or appear, dust, glints) are discounted instead of biasing
+        the displacement. For textures that change during a test; costs several times the plain
+        IC-GN time (docs/dic2d.md, "Robust correlation"). Default False.
     device : None or str
     """
 
     def __init__(self, reference, *, points=None, step: int | None = None, roi=None, subset: int = 21,
                  order: int = 1, search: str | None = None, search_radius: int = 32, max_iter: int = 30,
                  tol: float = 1e-3, zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True,
-                 noise_sigma: float | None = None, device=None):
+                 noise_sigma: float | None = None, robust: bool = False, device=None):
         self.subset, self.order = check_subset_order(subset, order)
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.search = _check_search(search)
@@ -140,6 +146,9 @@ class Tracker:
         self.tol = positive_float(tol, "tol", detail=" of pixels")
         self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
         self.check_warps = bool(check_warps)
+        if not isinstance(robust, (bool, np.bool_)):
+            raise ValueError(f"robust must be True or False, got {robust!r}")
+        self.robust = bool(robust)
         self.device = resolve_device(device)
         self.reference = _as_image(reference, "reference")
         self.shape = self.reference.shape
@@ -206,7 +215,7 @@ class Tracker:
             g = guess_params(guess, self.n_points, self.order)
             r = self.correlator.run_all(self._current_buf, np.zeros((self.n_points, n_params(self.order)))
                                         if g is None else g)
-            return self._finish(r, search)
+            return self._finish(self._refined(self._current_buf, r), search)
         if isinstance(current, (str, os.PathLike)):
             current = read_image(current)
         if search in (None, "prior") and _device_resident(current):
@@ -217,6 +226,8 @@ class Tracker:
                                  "DIC needs images of the same size")
             g = guess_params(guess, self.n_points, self.order)
             r = self.correlator.run_frame(current, np.zeros((self.n_points, n_params(self.order))) if g is None else g)
+            if self.robust:
+                r = self._refined(self.correlator.frame_current(current.dtype), r)
             return self._finish(r, search)
         cur = self._check_current(current)  # a tensor with a search: to the host once (the searches run there)
         self._current_buf = prepare_current(cur, device=self.device, out=self._current_buf)
@@ -230,7 +241,11 @@ class Tracker:
         else:
             g = self.initial_guess(cur, guess, search)
             r = self.correlator.run_all(self._current_buf, g)
-        return self._finish(r, search)
+        return self._finish(self._refined(self._current_buf, r), search)
+
+    def _refined(self, current, r: dict) -> dict:
+        """``r`` refined by robust IC-GN when this tracker is ``robust`` (else ``r``)."""
+        return self.correlator.refine_robust(current, r) if self.robust else r
 
     def _device_view(self, current):
         """A torch tensor -> a Warp array viewing its float32 copy or itself on this tracker's device (checked there)."""

@@ -475,6 +475,14 @@ class FrameTracker:
         """The device results of the last single frame (views, overwritten by the next frame)."""
         return self._results[0]
 
+    def current(self, slot: int = 0) -> CurrentImage:
+        """The prepared coefficients of frame ``slot`` of the last launch, as a :class:`kernels.icgn.CurrentImage`
+        (a view of this tracker's buffers, overwritten by the next frame): for further IC-GN passes over the
+        same frame, e.g. :func:`kernels.icgn_robust.icgn_robust`."""
+        if isinstance(slot, bool) or not isinstance(slot, (int, np.integer)) or not 0 <= int(slot) < self.batch:
+            raise ValueError(f"slot must be a frame slot in [0, {self.batch}), got {slot!r}")
+        return CurrentImage(self._rows4[int(slot)], self.frame_shape, self.device)
+
     def capture_graph(self):
         """Capture one frame's device work as a CUDA graph (``wp.Graph``): the prefilter of :attr:`frame_buffer`
         with its finiteness flag, IC-GN from the propagated guess, and the guess propagation.

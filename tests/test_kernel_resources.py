@@ -41,8 +41,13 @@ BOUNDS = {
     "_prefilter_cols": (32, 0),  # whole lines: 40, 0; segments: 48 uncapped, 32 with bounds (256, 8)
     "_prefilter_entries_rows": (32, 0),  # new: segment entry values
     "_prefilter_entries_cols": (32, 0),
+    # opt-in Tukey-weighted refinement (kernels/icgn_robust.py): weights change every iteration, so the weighted
+    # Hessian is assembled from float64 moments in the kernel (no precomputed H^-1 as in _icgn_*)
+    "_icgn_robust_1st": (214, 112),  # the stack: the |residual| histogram, indexed at run time
+    "_icgn_robust_2nd": (255, 944),
 }
-MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled", "kernels.frames", "kernels.rg_device")
+MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled", "kernels.frames", "kernels.rg_device",
+           "kernels.icgn_robust")
 
 
 @pytest.fixture(scope="session")
@@ -82,10 +87,11 @@ def test_every_compiled_kernel_has_a_bound(sm90_resources):
 
 
 def test_block_size_table_matches_kernels_and_modules():
-    from kernels import frames, icgn, icgn_tiled, interp, rg_device
+    from kernels import frames, icgn, icgn_robust, icgn_tiled, interp, rg_device
 
     kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled, frames, rg_device) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
+    kernels.update({k.func.__name__: k for k in icgn_robust._icgn_robust.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)
     for name, kernel in kernels.items():
         # one block size per Warp module: the module is compiled (and AOT-cached) once

@@ -684,3 +684,67 @@ def test_cli_sequences_as_a_folder_and_a_multi_page_tiff(lab, tmp_path):
     for k in a.indices:
         for q in ("X", "Y", "Z", "U", "V", "W"):
             assert np.array_equal(getattr(a.fields[k], q), getattr(b.fields[k], q), equal_nan=True), (k, q)
+
+
+def _with_glints(image, centres, radius=3.0, level=255.0):
+    """Bright disks (specular glints, seen by one camera only) painted into an image."""
+    out = np.array(image, dtype=np.float32, copy=True)
+    yy, xx = np.mgrid[0:out.shape[0], 0:out.shape[1]]
+    for cx, cy in centres:
+        out[(xx - cx) ** 2 + (yy - cy) ** 2 <= radius**2] = level
+    return out
+
+
+def test_robust_correlation_ignores_glints_in_one_view(lab):
+    (l0, r0), (l1, r1), _ = lab["states"]
+    rng = np.random.default_rng(4)
+    glints = np.column_stack([rng.uniform(30, W_PX - 30, 40), rng.uniform(30, H_PX - 30, 40)])
+    l1_glint = _with_glints(l1, glints)
+    true = lab["R_left_world"] @ TRANSLATION_WORLD
+    errors = {}
+    for robust in (False, True):
+        sc = StereoCorrelation(lab["rig"], l0, r0, step=10, subset=21, order=2, robust=robust, device="cpu")
+        f = sc.measure(l1_glint, r1, index=1)
+        # the points whose left subset holds a glint
+        near = np.max(np.abs(f.points[:, None, :] - glints[None, :, :]), axis=2).min(axis=1) <= 10 + 3
+        ok = f.valid & near
+        assert ok.sum() > 30
+        errors[robust] = np.sqrt(np.mean(np.sum((f.uvw[ok] - true) ** 2, axis=1)))
+        if robust:
+            assert sc.robust and f.valid.mean() > 0.8
+            clean = f.valid & ~near  # no glint: the same accuracy bounds as test_rigid_translation_measured
+            assert np.all((f.uvw[clean] - true).std(axis=0) < [0.05, 0.05, 0.15])
+    # a glint drags the left track of its subsets; the robust fit discounts its pixels
+    assert errors[True] < 0.5 * errors[False], errors
+    with pytest.raises(ValueError, match="robust must be True or False"):
+        StereoCorrelation(lab["rig"], l0, r0, step=40, robust=1, device="cpu")
+
+
+def test_cli_robust_is_stored_and_used(lab, tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from dic.cli import main
+    from dic.correlation.engine import Correlator
+    from dic.io import write_image
+
+    (l0, r0), (l1, r1), _ = lab["states"]
+    paths = []
+    for k, (a, b) in enumerate(((l0, r0), (l1, r1))):
+        for side, img in (("L", a), ("R", b)):
+            write_image(tmp_path / f"{side}{k}.png", img)
+            paths.append(str(tmp_path / f"{side}{k}.png"))
+    lab["rig"].save(tmp_path / "rig.json")
+    calls = []
+    refine = Correlator.refine_robust
+
+    def spy(self, current, r):
+        calls.append(len(r["status"]))
+        return refine(self, current, r)
+
+    monkeypatch.setattr(Correlator, "refine_robust", spy)
+    out = tmp_path / "robust.h5"
+    res = CliRunner().invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "-o", str(out), "--step", "20",
+                                    "--robust", "-q", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert read_stereo_settings(out)["robust"] is True
+    assert len(calls) >= 3  # the reference match, then the left and right tracks of state 1

@@ -69,6 +69,9 @@ def _engine_pairs(pairs) -> list:
               help="Matches and tracks with a lower ZNCC are flagged.")
 @click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=3),
               help="Strain fit window in grid points (odd).")
+@click.option("--robust", is_flag=True,
+              help="Outlier-robust correlation (Tukey-weighted IC-GN) of matches and tracks: pixels whose texture "
+                   "changed or differs between the views (glints, flaking paint) do not bias them; several times slower.")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write ParaView files into this folder as each state finishes: <output>_<index>.vtu per "
@@ -92,7 +95,7 @@ def _engine_pairs(pairs) -> list:
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
-           strain_window, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
+           strain_window, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
@@ -163,6 +166,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                    zncc_min=zncc_min, strain_window=strain_window)
     if region is not None:
         options["roi"] = region
+    if robust:  # only when given: files written without it still resume
+        options["robust"] = True
     written = []
 
     def after(field):

@@ -45,6 +45,9 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image noise std in grey levels, for the per-point uncertainty sigma_u, sigma_v "
                    "(default: estimated from the correlation residuals of each frame).")
+@click.option("--robust", is_flag=True,
+              help="Outlier-robust correlation (Tukey-weighted IC-GN): subset pixels whose texture changed (speckles "
+                   "flaking off or appearing, dust, glints) do not bias the displacement; several times slower.")
 @region_options
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--figures", "--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
@@ -70,7 +73,7 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, noise_sigma, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
+          scale, noise_sigma, robust, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
@@ -134,6 +137,8 @@ def track(reference, current, output, subset, step, order, search, search_method
             raise click.BadParameter(str(exc), param_hint="--scale") from None
     if noise_sigma is not None:  # (the key is absent by default, so files of earlier runs still resume)
         settings["noise_sigma"] = noise_sigma
+    if robust:  # idem
+        settings["robust"] = True
     if region is not None:  # only when given: files written without a region resume as before
         settings["roi"] = region.settings()
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
@@ -153,7 +158,7 @@ def track(reference, current, output, subset, step, order, search, search_method
 
     def make_tracker(image, points):
         return _make_tracker(image, subset=subset, step=step, order=order, search=search, search_method=search_method,
-                             max_iter=max_iter, tol=tol, device=device, noise_sigma=noise_sigma,
+                             max_iter=max_iter, tol=tol, device=device, noise_sigma=noise_sigma, robust=robust,
                              roi=region if points is None else None, points=points)
 
     try:
@@ -225,11 +230,13 @@ def _sequence_figures(output, ref, figure_dir) -> None:
 
 
 def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, noise_sigma=None,
-                  roi=None, points=None):
+                  roi=None, points=None, robust=False):
     """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
     from dic.track import Tracker
 
     kwargs = {"step": step, "subset": subset, "order": order, "device": device, "noise_sigma": noise_sigma}
+    if robust:
+        kwargs["robust"] = True
     if roi is not None:
         kwargs["roi"] = roi
     if points is not None:  # a moved reference (dic.sequence.reference): the original POIs where they are now

@@ -78,6 +78,7 @@ class Correlator:
         self._indexed = None  # buffers of run(): allocated once, on first use
         self._spacing = None
         self._rg = None  # device state of the reliability-guided waves (per neighbour radius)
+        self._robust = None  # buffers of refine_robust(): guesses, active flags, results
         #: per-reference work of initial-guess strategies, kept across frames (e.g. the reference
         #: pyramid and its level correlators of the "pyramid" guess)
         self.cache: dict = {}
@@ -123,6 +124,49 @@ class Correlator:
         if tracker is None:
             tracker = self._frames[dt] = FrameTracker(self.subsets, dt, max_iter=self.max_iter, tol=self.tol)
         return tracker.track(frame, guess=guess, name=name)
+
+    def frame_current(self, frame_dtype) -> CurrentImage:
+        """The prepared last frame of :meth:`run_frame` for ``frame_dtype`` (a view of its tracker's buffers)."""
+        tracker = self._frames.get(np.dtype(frame_dtype))
+        if tracker is None:
+            raise ValueError(f"no frame of dtype {np.dtype(frame_dtype)} was tracked with run_frame()")
+        return tracker.current()
+
+    def refine_robust(self, current, r: dict) -> dict:
+        """Refine the accepted POIs of a result ``r`` (host arrays as :meth:`run_all`) with Tukey-weighted IC-GN.
+
+        :func:`kernels.icgn_robust.icgn_robust` starts from ``r["params"]`` at the POIs whose status is
+        CONVERGED or MAX_ITERATIONS (the others keep their result) and discounts the subset pixels whose
+        residual the reference texture cannot explain (speckles that changed). ``current``: the current image
+        (a :class:`kernels.icgn.CurrentImage` or a grey image). Returns a new dict: ``params``, ``zncc``
+        (unweighted, at the refined warp), ``iterations`` (plain + weighted), ``status`` of the refined POIs
+        replaced, ``inliers`` (N,) float32, the weighted fraction of each refined subset, and ``outliers`` (N,) float32, its
+        number of pixels given zero weight (both NaN elsewhere).
+        One upload of the guesses, one launch, one copy back; the buffers are allocated once.
+        """
+        from kernels.icgn_robust import icgn_robust, robust_result
+
+        cur = self._current(current)
+        n, k = self.n_points, n_params(self.order)
+        status = np.asarray(r["status"])
+        active = (status == int(Status.CONVERGED)) | (status == int(Status.MAX_ITERATIONS))
+        if self._robust is None:
+            self._robust = (wp.empty((n, k), dtype=wp.float32, device=self.device),
+                            wp.empty(n, dtype=wp.int32, device=self.device), robust_result(n, k, self.device))
+        guess, act, out = self._robust
+        _upload(guess, np.asarray(r["params"], dtype=np.float32))
+        _upload(act, active.astype(np.int32))
+        res = icgn_robust(self.subsets, cur, guess, act, max_iter=self.max_iter, tol=self.tol, out=out).numpy()
+        refined = dict(r)
+        for key in ("params", "zncc", "status"):
+            a = np.array(r[key], copy=True)
+            a[active] = res[key][active]
+            refined[key] = a
+        refined["iterations"] = np.where(active, np.asarray(r["iterations"]) + res["iterations"],
+                                         np.asarray(r["iterations"])).astype(np.int32)
+        refined["inliers"] = np.where(active, res["inliers"], np.float32(np.nan)).astype(np.float32)
+        refined["outliers"] = np.where(active, res["outliers"], np.float32(np.nan)).astype(np.float32)
+        return refined
 
     def run_device(self, current, guess) -> IcgnResult:
         """IC-GN of every POI; the results stay on the device (:class:`kernels.icgn.IcgnResult`).
@@ -262,7 +306,7 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
               eligible: np.ndarray, zncc_min: float, radius: float, extra: Callable | None = None,
               fallback: Callable | None = None, max_attempts: int = 3, max_seeds: int = 64,
               max_fallback_rounds: int = 8, min_fallback: int = 1, zncc_drop: float = 0.05,
-              second_opinion: bool = True, check_warps: bool = True) -> CorrelationResult:
+              second_opinion: bool = True, check_warps: bool = True, robust: bool = False) -> CorrelationResult:
     """IC-GN of every eligible POI from the given guesses, then neighbour propagation and a fallback.
 
     Parameters
@@ -280,6 +324,9 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         of its accepted neighbours from its best neighbour; the better-correlating result is kept.
     check_warps : un-accept POIs whose warp is implausible (:func:`.acceptance.flag_implausible`);
         they are marked in ``CorrelationResult.implausible``.
+    robust : refine the accepted POIs with outlier-robust IC-GN (:meth:`Correlator.refine_robust`) before
+        the warp check; a refined POI stays accepted only if it still converges with a ZNCC of at least
+        ``zncc_min`` and passes ``extra``.
     """
     from scipy.spatial import cKDTree
 
@@ -354,6 +401,22 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         if idx.size:
             g = extrapolate(params[best], corr.points[idx] - corr.points[best], corr.order)
             batch(idx, g, SOURCE_NEIGHBOUR)  # replaces a result only by an accepted one with a higher ZNCC
+    if robust and np.any(accepted):
+        idx = np.flatnonzero(accepted)
+        plain = {"params": np.nan_to_num(params).astype(np.float32), "zncc": zncc.astype(np.float32),
+                 "iterations": iters, "status": np.where(accepted, status, int(Status.NOT_COMPUTED)).astype(np.int32)}
+        r = corr.refine_robust(current, plain)
+        p = r["params"][idx].astype(np.float64)
+        z = r["zncc"][idx].astype(np.float64)
+        st = r["status"][idx].astype(np.int32)
+        good = accepted_mask(st, z, zncc_min)
+        if extra is not None and np.any(good):
+            ext = np.ones(idx.size, dtype=bool)
+            ext[good] = extra(idx[good], p[good])
+            extra_failed[idx] = good & ~ext
+            good &= ext
+        params[idx], zncc[idx], status[idx], iters[idx] = p, z, st, r["iterations"][idx]
+        accepted[idx] = good
     implausible = np.zeros(n, dtype=bool)
     if check_warps:
         implausible = flag_implausible(corr, params, accepted, corr.order)

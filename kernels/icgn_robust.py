@@ -1,0 +1,602 @@
+"""Outlier-robust IC-GN refinement: Tukey-weighted Gauss-Newton that discounts pixels the reference cannot explain.
+
+Why
+    Plain IC-GN (:mod:`kernels.icgn`) weighs every subset pixel equally. When the texture itself
+    changes between the reference and the current image (a speckle that flakes off, a new one
+    painted on, a dust grain, a specular glint), the pixels of that change pull the least-squares
+    fit: one changed 2 px speckle in a 21 px subset biases ``u, v`` by about 0.06 px, and in a long
+    sequence with reference updates each such bias is composed into the result for good
+    (bench/sequence.py, evolving texture). Their residuals are, however, far larger than the image
+    noise, so an M-estimator can recognise and ignore them.
+
+What
+    Starting from a (plain IC-GN) solution ``p``, iteratively reweighted least squares on the
+    grey-level residual of the linear intensity model
+
+        ``e_i = f_i - (alpha g_i + beta)``
+
+    (``f``: reference subset pixels, ``g``: current image at the warped pixels, ``alpha, beta``: the
+    weighted least-squares contrast and offset) with a redescending weight: ``w_i = 1`` for
+    ``|e_i| <= a s``, Tukey's biweight ``(1 - t^2)^2``, ``t = (|e_i| - a s) / ((c - a) s)``, beyond,
+    and 0 from ``|e_i| >= c s`` (``a`` = :data:`CORE_A` = 3, ``c`` = :data:`TUKEY_C` = 6). ``s`` is the
+    residual scale: the plain RMS residual at the start, then 1.4826 x the median ``|e|`` of the
+    subset (the MAD: consistent for Gaussian noise, 50 % breakdown), read from a histogram of ``|e|``
+    built in the same pass (a kernel cannot sort), floored at :data:`SCALE_FLOOR` of the subset's
+    grey-level std. Each iteration is an inverse-compositional step with the weighted, offset-centred
+    Hessian ``H_w = sum w J^T J - (sum w J)(sum w J)^T / sum w`` (recomputed per iteration because the
+    weights change; assembled from row-separable moments like :func:`kernels.icgn.prepare_subsets`) and
+    ``dq = -H_w^-1 sum w J e``; the warp update and the scaled convergence norm are those of
+    :mod:`kernels.icgn`. It stops when ``|dq| < tol`` and the scale moved by less than
+    :data:`SCALE_RTOL` over two weighted iterations, or when a weighted pass left every pixel at full
+    weight. The weights were chosen on measurements (docs/dic2d.md, "Robust correlation"): narrower
+    ones remove more of a changed texture's bias but cost precision where residuals are not noise-like
+    (ray-traced renders), wider ones leave more bias.
+
+Outputs per POI: parameters, the plain (unweighted) ZNCC at the final warp (so quality thresholds
+mean what they mean for plain IC-GN), iterations, status, the inlier fraction ``sum w / n`` and the
+number of pixels given zero weight.
+A POI whose inlier fraction falls below ``min_inliers`` is DIVERGED: most of its subset is not
+the reference texture. Only POIs flagged ``active`` are refined; the others are NOT_COMPUTED.
+
+Both shape-function orders; float32 per pixel, float64 across rows and in the solve.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from ._device import host_copy
+from ._launch import cuda_block_dim, cuda_launch_bounds, launch_1d
+from .checks import in_range, positive_float
+from .icgn import (
+    ST_CONVERGED,
+    ST_DIVERGED,
+    ST_MAX_ITERATIONS,
+    ST_NOT_COMPUTED,
+    ST_OUT_OF_BOUNDS,
+    CurrentImage,
+    ReferenceSubsets,
+    _as_guess,
+    _row_to_moments_func,
+    check_max_iter,
+    compose_1st,
+    compose_2nd,
+    mat55d,
+    mat66d,
+    mat1212d,
+    mono_exponents,
+    n_params,
+    vec5,
+    vec6,
+    vec6d,
+    vec12,
+    vec12d,
+    warped_inside,
+    warped_value,
+)
+
+wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
+                       "block_dim": cuda_block_dim("_icgn_robust_1st")})
+
+
+#: residuals beyond this many scales get zero weight
+TUKEY_C = 6.0
+#: full weight for residuals within this many scales (the core of the weight function)
+CORE_A = 3.0
+#: the residual scale is 1.4826 x the median |residual| (the MAD, consistent for Gaussian noise, 50 %
+#: breakdown), read from a histogram of |residual| with HIST_PER_OCTAVE bins per factor 2 below
+#: HIST_TOP scales (the median is interpolated within its bin: about 1 % resolution)
+MAD_TO_SIGMA = wp.constant(1.482602218505602)
+HIST_BINS = wp.constant(27)
+HIST_PER_OCTAVE = wp.constant(3.0)
+HIST_TOP = wp.constant(8.0)
+vechist = wp.types.vector(length=27, dtype=wp.float32)
+#: the residual scale never drops below this fraction of the reference subset's grey-level std
+#: (noise-free images: keeps interpolation residuals from being called outliers)
+SCALE_FLOOR = 0.01
+#: the scale has settled when it moves by less than this (relative) in one iteration
+SCALE_RTOL = 0.03
+
+
+@dataclass
+class RobustResult:
+    """Per-POI output of :func:`icgn_robust`, on the device (:meth:`numpy` for host copies).
+
+    ``params`` (N, 6|12) float32; ``zncc`` (N,) float32, unweighted, at the final warp;
+    ``iterations`` (N,) int32 (refinement iterations); ``status`` (N,) int32; ``inliers`` (N,)
+    float32, ``sum w / n`` at the last iteration, and ``outliers`` (N,) float32, the pixels given zero
+    weight there (both NaN where not refined).
+    """
+
+    params: wp.array
+    zncc: wp.array
+    iterations: wp.array
+    status: wp.array
+    inliers: wp.array
+    outliers: wp.array
+
+    def numpy(self) -> dict[str, np.ndarray]:
+        return {name: host_copy(getattr(self, name)) for name in ("params", "zncc", "iterations", "status", "inliers",
+                                                                "outliers")}
+
+
+def _make_robust_kernel(order: int):
+    kk = n_params(order)
+    mm = kk // 2
+    deg = order
+    matk = mat66d if order == 1 else mat1212d
+    veck = vec6d if order == 1 else vec12d
+    vecp = vec6 if order == 1 else vec12
+    moments_hi = _row_to_moments_func(2 * deg)
+    moments_lo = _row_to_moments_func(deg)
+    refdata_fm = 33 if order == 1 else 102  # fm, df columns of kernels.icgn.prepare_subsets' refdata
+    tukey_c = float(TUKEY_C)
+    core_a = float(CORE_A)
+    scale_floor = float(SCALE_FLOOR)
+    scale_rtol = float(SCALE_RTOL)
+
+    # per-row moment vectors: powers xi^0..xi^(2 deg) for G = fx^2, fx fy, fy^2 and xi^0..xi^deg for the rest
+    vhi = wp.vec3 if order == 1 else vec5
+    vlo = wp.vec2 if order == 1 else wp.vec3
+
+    @wp.func
+    def powers(xi: float):
+        """(xi^0..xi^(2 deg), xi^0..xi^deg)."""
+        if wp.static(order == 1):
+            return wp.vec3(1.0, xi, xi * xi), wp.vec2(1.0, xi)
+        else:
+            x2 = xi * xi
+            return vec5(1.0, xi, x2, x2 * xi, x2 * x2), wp.vec3(1.0, xi, x2)
+
+    @wp.func
+    def pad5(v: Any):
+        out = vec5()
+        for i in range(wp.static(len(v))):
+            out[i] = v[i]
+        return out
+
+    @wp.func
+    def hist_median(hist: vechist, n: float, top: float):
+        """The |e| below which half of the n pixels lie, from the histogram of :func:`weighted_pass`
+        (interpolated geometrically within its bin; ``top`` when more than half lie above it)."""
+        half = 0.5 * n
+        cum = float(0.0)
+        result = top
+        found = int(0)
+        for ii in range(HIST_BINS):
+            i = HIST_BINS - 1 - ii
+            c = hist[i]
+            if found == 0 and c > 0.0 and cum + c >= half:
+                frac = (half - cum) / c
+                result = top * wp.pow(2.0, -(float(i) + 1.0 - frac) / HIST_PER_OCTAVE)
+                found = 1
+            cum += c
+        return result
+
+    @wp.func
+    def warp_uv(p: Any, dx: float, dy: float):
+        """Displacement (U, V) of the subset offset (dx, dy) under the physical parameters p."""
+        if wp.static(order == 1):
+            return p[0] + p[1] * dx + p[2] * dy, p[3] + p[4] * dx + p[5] * dy
+        else:
+            uu = p[0] + dx * (p[1] + 0.5 * p[3] * dx + p[4] * dy) + dy * (p[2] + 0.5 * p[5] * dy)
+            vv = p[6] + dx * (p[7] + 0.5 * p[9] * dx + p[10] * dy) + dy * (p[8] + 0.5 * p[11] * dy)
+            return uu, vv
+
+    @wp.func
+    def cholesky_solve(h: Any, rhs: Any):
+        """x with h x = rhs for symmetric positive-definite h; ok = 0 when a pivot is not positive."""
+        lo = matk()
+        ok = int(1)
+        hmax = wp.float64(0.0)
+        for j in range(kk):
+            hmax = wp.max(hmax, h[j, j])
+        for j in range(kk):
+            s = h[j, j]
+            for m in range(j):
+                s -= lo[j, m] * lo[j, m]
+            if not (s > wp.float64(1e-9) * hmax):
+                ok = 0
+                s = wp.float64(1.0)
+            d = wp.sqrt(s)
+            lo[j, j] = d
+            for i in range(j + 1, kk):
+                t = h[i, j]
+                for m in range(j):
+                    t -= lo[i, m] * lo[j, m]
+                lo[i, j] = t / d
+        y = veck()
+        for i in range(kk):
+            t = rhs[i]
+            for m in range(i):
+                t -= lo[i, m] * y[m]
+            y[i] = t / lo[i, i]
+        x = veck()
+        for ii in range(kk):
+            i = kk - 1 - ii
+            t = y[i]
+            for m in range(i + 1, kk):
+                t -= lo[m, i] * x[m]
+            x[i] = t / lo[i, i]
+        return x, ok
+
+    @wp.func
+    def weighted_pass(
+        fgrad: wp.array(dtype=wp.vec3), width: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+        cx0: int, cy0: int, r: int, dl: wp.vec2, p: Any, fm: float, goff: float,
+        alpha: float, beta: float, cut: float, top: float, core: float,
+    ):
+        """One pass over the warped subset at p.
+
+        Pixel residual with the previous contrast/offset: e = f' - alpha g' - beta (f' = f - fm,
+        g' = g - goff); weight w = 1 within ``core``, Tukey's biweight from ``core`` to ``cut`` (cut <= 0:
+        w = 1). Returns the weighted moments
+        of the steepest-descent images (for H_w, sum w J, sum w J f', sum w J g') and the scalar
+        sums (sum w, sum w f', sum w g', sum w f'^2, sum w g'^2, sum w f' g'), the count of |e| >= top,
+        the unweighted sums (sum g', sum g'^2, sum f' g') for the ZNCC, the counts of pixels beyond the
+        core and at zero weight, and the histogram of |e| below ``top`` (top <= 0: none).
+        """
+        inv_s = 1.0 / float(r)
+        mxx = mat55d()
+        mxy = mat55d()
+        myy = mat55d()
+        mx = mat55d()
+        my = mat55d()
+        mxf = mat55d()
+        myf = mat55d()
+        mxg = mat55d()
+        myg = mat55d()
+        sw = wp.float64(0.0)
+        swf = wp.float64(0.0)
+        swg = wp.float64(0.0)
+        swff = wp.float64(0.0)
+        swgg = wp.float64(0.0)
+        swfg = wp.float64(0.0)
+        above = wp.float64(0.0)
+        hist = vechist()
+        sg = wp.float64(0.0)
+        sgg = wp.float64(0.0)
+        sfg = wp.float64(0.0)
+        sdown = wp.float64(0.0)
+        szero = wp.float64(0.0)
+        for j in range(-r, r + 1):
+            dy = float(j) + dl[1]
+            row = (cy0 + j) * width + cx0
+            rxx = vhi()
+            rxy = vhi()
+            ryy = vhi()
+            rx = vlo()
+            ry = vlo()
+            rxf = vlo()
+            ryf = vlo()
+            rxg = vlo()
+            ryg = vlo()
+            rw = float(0.0)
+            rwf = float(0.0)
+            rwg = float(0.0)
+            rwff = float(0.0)
+            rwgg = float(0.0)
+            rwfg = float(0.0)
+            rg = float(0.0)
+            rgg = float(0.0)
+            rfg = float(0.0)
+            rdown = int(0)
+            rzero = int(0)
+            for i in range(-r, r + 1):
+                dx = float(i) + dl[0]
+                uu, vv = warp_uv(p, dx, dy)
+                g = warped_value(coef, pitch, cx0 + i, cy0 + j, uu, vv) - goff
+                fgr = fgrad[row + i]
+                f = fgr[0] - fm
+                e = f - alpha * g - beta
+                w = float(1.0)
+                if cut > 0.0:
+                    # full weight inside the core, Tukey's biweight from the core's edge to the cut
+                    t = wp.max(wp.abs(e) - core, 0.0) / (cut - core)
+                    t2 = t * t
+                    w = float(0.0)
+                    if t2 < 1.0:
+                        w = (1.0 - t2) * (1.0 - t2)
+                    if t > 0.0:
+                        rdown += 1
+                    if t >= 1.0:
+                        rzero += 1
+                if top > 0.0:  # the histogram of |e| for the median (bins of 2^(1/3) below top)
+                    ae = wp.abs(e)
+                    if ae >= top:
+                        above += wp.float64(1.0)
+                    else:
+                        b = HIST_BINS - 1
+                        if ae > 0.0:
+                            b = wp.min(int(wp.floor(wp.log2(top / ae) * HIST_PER_OCTAVE)), HIST_BINS - 1)
+                        hist[b] = hist[b] + 1.0
+                rg += g
+                rgg += g * g
+                rfg += f * g
+                xi = dx * inv_s
+                phi, plo = powers(xi)
+                wgx = w * fgr[1]
+                wgy = w * fgr[2]
+                rxx += (wgx * fgr[1]) * phi
+                rxy += (wgx * fgr[2]) * phi
+                ryy += (wgy * fgr[2]) * phi
+                rx += wgx * plo
+                ry += wgy * plo
+                rxf += (wgx * f) * plo
+                ryf += (wgy * f) * plo
+                rxg += (wgx * g) * plo
+                ryg += (wgy * g) * plo
+                rw += w
+                rwf += w * f
+                rwg += w * g
+                rwff += w * f * f
+                rwgg += w * g * g
+                rwfg += w * f * g
+            eta = wp.float64(dy * inv_s)
+            mxx = moments_hi(mxx, pad5(rxx), eta)
+            mxy = moments_hi(mxy, pad5(rxy), eta)
+            myy = moments_hi(myy, pad5(ryy), eta)
+            mx = moments_lo(mx, pad5(rx), eta)
+            my = moments_lo(my, pad5(ry), eta)
+            mxf = moments_lo(mxf, pad5(rxf), eta)
+            myf = moments_lo(myf, pad5(ryf), eta)
+            mxg = moments_lo(mxg, pad5(rxg), eta)
+            myg = moments_lo(myg, pad5(ryg), eta)
+            sw += wp.float64(rw)
+            swf += wp.float64(rwf)
+            swg += wp.float64(rwg)
+            swff += wp.float64(rwff)
+            swgg += wp.float64(rwgg)
+            swfg += wp.float64(rwfg)
+            sg += wp.float64(rg)
+            sgg += wp.float64(rgg)
+            sfg += wp.float64(rfg)
+            sdown += wp.float64(rdown)
+            szero += wp.float64(rzero)
+        # assemble H_w (uncentred), sum w J, sum w J f', sum w J g' from the moments
+        h = matk()
+        cj = veck()
+        cf = veck()
+        cg = veck()
+        for i in range(kk):
+            ai, bi, wi = mono_exponents(i % mm)
+            wid = wp.float64(wi)
+            if i < mm:
+                cj[i] = wid * mx[ai, bi]
+                cf[i] = wid * mxf[ai, bi]
+                cg[i] = wid * mxg[ai, bi]
+            else:
+                cj[i] = wid * my[ai, bi]
+                cf[i] = wid * myf[ai, bi]
+                cg[i] = wid * myg[ai, bi]
+        for i in range(kk):
+            ai, bi, wi = mono_exponents(i % mm)
+            for jj in range(i, kk):
+                aj, bj, wj = mono_exponents(jj % mm)
+                gm = mxy[ai + aj, bi + bj]
+                if i < mm and jj < mm:
+                    gm = mxx[ai + aj, bi + bj]
+                if i >= mm and jj >= mm:
+                    gm = myy[ai + aj, bi + bj]
+                h[i, jj] = wp.float64(wi * wj) * gm
+                h[jj, i] = h[i, jj]
+        sums = vec12d(sw, swf, swg, swff, swgg, swfg, above, sg, sgg, sfg, sdown, szero)
+        return h, cj, cf, cg, sums, hist
+
+    def robust_kernel(
+        offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4),
+        pitch: int, centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2),
+        refdata: wp.array2d(dtype=float), ref_status: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32),
+        guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float, min_inliers: float,
+        params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
+        status: wp.array(dtype=wp.int32), inliers: wp.array(dtype=float), outliers: wp.array(dtype=float),
+    ):
+        n = wp.tid() + offset
+        p = vecp()
+        for i in range(kk):
+            p[i] = guess[n, i]
+        st = ST_NOT_COMPUTED
+        cc = float(wp.nan)
+        inl = float(wp.nan)
+        outl = float(wp.nan)
+        it = int(0)
+        if active[n] != 0 and ref_status[n] == ST_CONVERGED:
+            fm = refdata[n, refdata_fm]
+            npx = (2 * r + 1) * (2 * r + 1)
+            nd = wp.float64(npx)
+            fstd = refdata[n, refdata_fm + 1] / wp.sqrt(float(npx))
+            floor = scale_floor * fstd
+            ctr = centres[n]
+            dl = deltas[n]
+            s = float(r)
+            goff = fm
+            alpha = float(1.0)
+            beta = float(0.0)
+            scale = float(0.0)  # 0: not known yet (first pass unweighted, unclipped)
+            settled = int(0)
+            st = ST_MAX_ITERATIONS
+            while it < max_iter:
+                if wp.static(order == 1):
+                    inside = warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], 0.0, 0.0, 0.0,
+                                           p[3], p[4], p[5], 0.0, 0.0, 0.0)
+                else:
+                    inside = warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], p[3], p[4],
+                                           p[5], p[6], p[7], p[8], p[9], p[10], p[11])
+                if inside == 0:
+                    st = ST_OUT_OF_BOUNDS
+                    break
+                cut = tukey_c * scale
+                top = HIST_TOP * scale
+                core = core_a * scale
+                h, cj, cf, cg, sm, hist = weighted_pass(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, p, fm,
+                                                        goff, alpha, beta, cut, top, core)
+                it += 1
+                sw = sm[0]
+                # unweighted ZNCC at this warp
+                gmean = sm[7] / nd
+                dg2 = sm[8] - sm[7] * gmean
+                df2 = wp.float64(refdata[n, refdata_fm + 1]) * wp.float64(refdata[n, refdata_fm + 1])
+                if dg2 > wp.float64(0.0) and df2 > wp.float64(0.0):
+                    cc = float(sm[9] / wp.sqrt(df2 * dg2))  # sum f' = 0: sum f' (g' - gm) = sum f' g'
+                inl = float(sw / nd)
+                outl = float(sm[11])
+                if not (sw > wp.float64(min_inliers) * nd) or not (sw > wp.float64(kk + 2)):
+                    st = ST_DIVERGED
+                    break
+                # weighted contrast and offset of the model f' = alpha g' + beta
+                wfm = sm[1] / sw
+                wgm = sm[2] / sw
+                cov = sm[5] - sm[1] * wgm
+                varg = sm[4] - sm[2] * wgm
+                if not (varg > wp.float64(1e-12) * sm[4]) or not (varg > wp.float64(0.0)):
+                    st = ST_DIVERGED
+                    break
+                a64 = cov / varg
+                b64 = wfm - a64 * wgm
+                # the residual scale: plain RMS first, then the normalised median absolute residual
+                if scale == 0.0:
+                    rss = sm[3] - sm[1] * wfm - a64 * cov
+                    new_scale = float(wp.sqrt(wp.max(rss, wp.float64(0.0)) / wp.float64(npx - 2)))
+                else:
+                    new_scale = MAD_TO_SIGMA * hist_median(hist, float(nd), top)
+                new_scale = wp.max(new_scale, floor)
+                moved = float(1.0)
+                if scale > 0.0:
+                    moved = wp.abs(new_scale - scale) / scale
+                weighted = int(0)
+                if scale > 0.0:  # this pass used weights
+                    weighted = 1
+                # IC step on the weighted, offset-centred system: dq = -H_w^-1 sum w (J - Jw) e
+                hc = h - wp.outer(cj, cj) / sw
+                rhs = veck()
+                for i in range(kk):
+                    rhs[i] = -(cf[i] - a64 * cg[i] - b64 * cj[i])
+                dq64, ok = cholesky_solve(hc, rhs)
+                if ok == 0:
+                    st = ST_DIVERGED
+                    break
+                alpha = float(a64)
+                beta = float(b64)
+                scale = new_scale
+                dq = vecp()
+                for i in range(kk):
+                    dq[i] = float(dq64[i])
+                norm = wp.length(dq)
+                if not (norm <= float(2 * r + 1)):
+                    st = ST_DIVERGED
+                    break
+                if wp.static(order == 1):
+                    p = compose_1st(p, vec6(dq[0], dq[1] / s, dq[2] / s, dq[3], dq[4] / s, dq[5] / s))
+                else:
+                    s2 = s * s
+                    dp = vec12(dq[0], dq[1] / s, dq[2] / s, dq[3] / s2, dq[4] / s2, dq[5] / s2,
+                               dq[6], dq[7] / s, dq[8] / s, dq[9] / s2, dq[10] / s2, dq[11] / s2)
+                    pn = compose_2nd(p, dp, s)
+                    if not wp.isfinite(pn):
+                        st = ST_DIVERGED
+                        break
+                    p = pn
+                settled += weighted
+                # converged: the scale has settled over two weighted passes, or a weighted pass left every
+                # pixel in the core (all weights 1: the weighted problem is the plain one, already solved)
+                clean = int(0)
+                if weighted == 1 and sm[10] == wp.float64(0.0):
+                    clean = 1
+                if norm < tol and ((moved < scale_rtol and settled >= 2) or clean == 1):
+                    st = ST_CONVERGED
+                    break
+        for i in range(kk):
+            params[n, i] = p[i]
+        zncc[n] = cc
+        iterations[n] = it
+        status[n] = st
+        inliers[n] = inl
+        outliers[n] = outl
+
+    name = "_icgn_robust_1st" if order == 1 else "_icgn_robust_2nd"
+    robust_kernel.__name__ = robust_kernel.__qualname__ = name
+    return wp.kernel(robust_kernel, launch_bounds=cuda_launch_bounds(name))
+
+
+#: the robust refinement kernels by shape-function order
+_icgn_robust_1st = _make_robust_kernel(1)
+_icgn_robust_2nd = _make_robust_kernel(2)
+_icgn_robust = {1: _icgn_robust_1st, 2: _icgn_robust_2nd}
+
+
+def robust_result(n: int, k: int, device: str) -> RobustResult:
+    """Empty output buffers of :func:`icgn_robust` for ``n`` POIs with ``k`` parameters."""
+    return RobustResult(wp.empty((n, k), dtype=wp.float32, device=device), wp.empty(n, dtype=wp.float32, device=device),
+                        wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device),
+                        wp.empty(n, dtype=wp.float32, device=device), wp.empty(n, dtype=wp.float32, device=device))
+
+
+def icgn_robust(subsets: ReferenceSubsets, current: CurrentImage, guess, active=None, *, max_iter: int = 30,
+                tol: float = 1e-3, min_inliers: float = 0.5, out: RobustResult | None = None) -> RobustResult:
+    """Refine IC-GN solutions with Tukey-weighted IC-GN (see the module doc).
+
+    Parameters
+    ----------
+    subsets : ReferenceSubsets from :func:`kernels.icgn.prepare_subsets`.
+    current : CurrentImage from :func:`kernels.icgn.prepare_current` (either layout).
+    guess : (N, 6|12) array or float32 ``wp.array`` on the subsets' device
+        Starting parameters, normally a converged plain IC-GN solution.
+    active : (N,) bool/int array, optional
+        POIs to refine (default all); the others come out NOT_COMPUTED with their guess.
+    max_iter : int in [1, MAX_ITER]; tol : float > 0 (px, the scaled update norm of kernels.icgn)
+    min_inliers : float in [0, 1)
+        A POI whose inlier fraction ``sum w / n`` drops below this is DIVERGED.
+    out : RobustResult, optional (reused buffers, :func:`robust_result`)
+
+    Returns
+    -------
+    RobustResult on the device.
+    """
+    if not isinstance(subsets, ReferenceSubsets):
+        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
+    if not isinstance(current, CurrentImage):
+        raise ValueError(f"current must be a CurrentImage from prepare_current(), got {type(current).__name__}")
+    device = subsets.device
+    if current.device != device:
+        raise ValueError(f"current is on {current.device} but the subsets are on {device}")
+    h, w = subsets.reference.shape
+    if current.shape != (h, w):
+        raise ValueError(f"current image has shape {current.shape} but the reference has shape {(h, w)}")
+    max_iter = check_max_iter(max_iter)
+    tol = positive_float(tol, "tol", detail=" of pixels")
+    min_inliers = in_range(min_inliers, 0.0, 1.0, "min_inliers")
+    if min_inliers >= 1.0:
+        raise ValueError(f"min_inliers must be below 1 (a fraction of the subset's pixels), got {min_inliers!r}")
+    n = subsets.n_points
+    k = n_params(subsets.order)
+    g = _as_guess(guess, n, k, device)
+    if active is None:
+        act = wp.full(n, 1, dtype=wp.int32, device=device)
+    elif isinstance(active, wp.array):
+        if active.shape != (n,) or active.dtype != wp.int32:
+            raise ValueError(f"active must be an int32 array of shape {(n,)}, got {active.shape} {active.dtype}")
+        act = active
+    else:
+        a = np.asarray(active)
+        if a.shape != (n,) or not (a.dtype == bool or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"active must be a (N,) = ({n},) bool or integer array, got shape {a.shape} dtype {a.dtype}")
+        act = wp.array((a != 0).astype(np.int32), dtype=wp.int32, device=device)
+    if out is None:
+        out = robust_result(n, k, device)
+    elif out.params.shape != (n, k):
+        raise ValueError(f"out was allocated for {out.params.shape}, expected params of shape {(n, k)}")
+    coef = current.rows4 if current.rows4 is not None else current.plain
+    launch_1d(
+        _icgn_robust[subsets.order], n,
+        [0, subsets.reference.fgrad, w, h, coef, current.pitch, subsets.centres, subsets.deltas, subsets.refdata,
+         subsets.status, act, g, subsets.subset // 2, int(max_iter), float(tol), float(min_inliers),
+         out.params, out.zncc, out.iterations, out.status, out.inliers, out.outliers],
+        device, offset_index=0, min_chunk=64,
+    )
+    return out
+
+
+__all__ = ["TUKEY_C", "CORE_A", "SCALE_FLOOR", "RobustResult", "icgn_robust", "robust_result"]
