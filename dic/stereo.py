@@ -763,7 +763,7 @@ class _TrackReference:
 
     @classmethod
     def build(cls, sc: "StereoCorrelation", L: np.ndarray, R: np.ndarray, state) -> "_TrackReference":
-        from .correlation.lagrangian import fill_reference, moved_points
+        from .correlation.lagrangian import displacement_outliers, fill_reference, moved_points
 
         details = getattr(state, "details", None)
         status = getattr(state, "status", None)
@@ -784,6 +784,16 @@ class _TrackReference:
             raise ValueError(f"state {index} has no valid point and cannot serve as a reference")
         matched = sc._matched
         dl, dr = _displacement(pl, sc.order), _displacement(pr, sc.order)
+        # a point whose left or right track disagrees with its neighbours' (a false match) is no anchor of the
+        # moved reference (its error would be composed into every later state): placed like an invalid point
+        out_l = displacement_outliers(sc.points, dl[:, 0], dl[:, 1], valid)
+        out_r = np.zeros(n, dtype=bool)
+        if matched.size:
+            out_r[matched] = displacement_outliers(sc.match.points_right[matched], dr[matched, 0], dr[matched, 1],
+                                                   valid[matched])
+        valid = valid & ~out_l & ~out_r
+        if not np.any(valid):
+            raise ValueError(f"state {index} has no valid point and cannot serve as a reference")
         moved_l = moved_points(sc.points, dl[:, 0], dl[:, 1], valid)
         moved_r = moved_points(sc.match.points_right[matched], dr[matched, 0], dr[matched, 1], valid[matched])
         # the points not valid in the state: every parameter interpolated from the valid ones (the positions are

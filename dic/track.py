@@ -27,6 +27,7 @@ from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor,
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
 from .correlation.engine import Correlator, reliability_guided
+from .correlation.lagrangian import displacement_outliers
 from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_guesses, get_guess
 from .correlation.params import guess_params
 from .correlation.points import check_step, grid
@@ -131,13 +132,18 @@ class Tracker:
         explain (speckles that flake off or appear, dust, glints) are discounted instead of biasing
         the displacement. For textures that change during a test; costs several times the plain
         IC-GN time (docs/dic2d.md, "Robust correlation"). Default False.
+    check_outliers : bool, optional
+        Flag valid POIs whose displacement disagrees with their neighbours' (the normalised median
+        test, :func:`dic.correlation.lagrangian.displacement_outliers`: false matches, often a whole
+        pixel off) as NEIGHBOUR_OUTLIER, not valid. Default: on with ``robust``, off without.
     device : None or str
     """
 
     def __init__(self, reference, *, points=None, step: int | None = None, roi=None, subset: int = 21,
                  order: int = 1, search: str | None = None, search_radius: int = 32, max_iter: int = 30,
                  tol: float = 1e-3, zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True,
-                 noise_sigma: float | None = None, robust: bool = False, device=None):
+                 noise_sigma: float | None = None, robust: bool = False, check_outliers: bool | None = None,
+                 device=None):
         self.subset, self.order = check_subset_order(subset, order)
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.search = _check_search(search)
@@ -149,6 +155,9 @@ class Tracker:
         if not isinstance(robust, (bool, np.bool_)):
             raise ValueError(f"robust must be True or False, got {robust!r}")
         self.robust = bool(robust)
+        if check_outliers is not None and not isinstance(check_outliers, (bool, np.bool_)):
+            raise ValueError(f"check_outliers must be True, False or None (as robust), got {check_outliers!r}")
+        self.check_outliers = self.robust if check_outliers is None else bool(check_outliers)
         self.device = resolve_device(device)
         self.reference = _as_image(reference, "reference")
         self.shape = self.reference.shape
@@ -308,6 +317,10 @@ class Tracker:
             implausible = flag_implausible(self.correlator, params, valid, self.order)
             status[implausible] = int(Status.IMPLAUSIBLE_WARP)
             valid &= ~implausible
+        if self.check_outliers:
+            outliers = displacement_outliers(self.points, params[:, 0], params[:, k // 2], valid)
+            status[outliers] = int(Status.NEIGHBOUR_OUTLIER)
+            valid &= ~outliers
         if self._sigma_basis is None:
             self._sigma_basis = sigma_basis(self.correlator.subsets)
         sigma, noise, source = displacement_sigma(self._sigma_basis, zncc, valid, self.noise_sigma)

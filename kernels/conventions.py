@@ -56,6 +56,8 @@ class Status(IntEnum):
     NOT_COMPUTED = 6     #: not processed (e.g. masked out, or its guess failed)
     IMPLAUSIBLE_WARP = 7 #: converged, but to a warp its partly featureless subset cannot support
     #:                      (set by dic.correlation.acceptance, never by the kernels)
+    NEIGHBOUR_OUTLIER = 8  #: converged, but its displacement disagrees with its neighbours' (a false
+    #:                      match; the normalised median test, dic.correlation.lagrangian; 2-D robust mode)
 
 
 #: the distribution name on PyPI (``pip install specula-dic``); the command and the packages keep the

@@ -9,7 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["compose_params", "relative_params", "moved_points", "shift_params", "fill_reference"]
+__all__ = ["compose_params", "relative_params", "moved_points", "shift_params", "fill_reference", "displacement_outliers"]
+
+#: the normalised median test's defaults (Westerweel & Scarano 2005): neighbours compared, threshold on the
+#: normalised residual, and the noise level (px) added to the neighbours' median deviation
+OUTLIER_NEIGHBOURS = 8
+OUTLIER_THRESHOLD = 2.0
+OUTLIER_NOISE_PX = 0.1
 
 
 def _gradients(params: np.ndarray, order: int):
@@ -154,6 +160,47 @@ def fill_reference(points0: np.ndarray, params: np.ndarray, valid: np.ndarray, *
         lin = near
     filled[bad] = np.where(np.isfinite(lin), lin, near)
     return filled, supported
+
+
+def displacement_outliers(points: np.ndarray, u: np.ndarray, v: np.ndarray, valid: np.ndarray, *,
+                          neighbours: int = OUTLIER_NEIGHBOURS, threshold: float = OUTLIER_THRESHOLD,
+                          noise_px: float = OUTLIER_NOISE_PX) -> np.ndarray:
+    """Valid points whose displacement disagrees with their valid neighbours': the normalised median test.
+
+    Westerweel & Scarano, "Universal outlier detection for PIV data", Experiments in Fluids 39, 2005,
+    doi:10.1007/s00348-005-0016-6. For each valid point and each component (u, v) in px, with the median
+    ``m`` of its ``neighbours`` nearest valid points and the median ``s`` of their ``|d - m|``, the point is
+    an outlier when ``|d0 - m| / (s + noise_px) > threshold`` for either component. A smooth field passes
+    (a linear one exactly: the neighbours surround the point), a false match (a subset that converged to
+    the wrong speckle, often a whole pixel off) does not. Points (N, 2) px; u, v (N,) px; valid (N,) bool.
+    Returns (N,) bool, False wherever ``valid`` is (and where fewer than 3 valid neighbours exist).
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    d = np.stack([np.asarray(u, np.float64), np.asarray(v, np.float64)], axis=1)
+    ok = np.asarray(valid, bool)
+    if pts.ndim != 2 or pts.shape[1] != 2 or d.shape[0] != pts.shape[0] or ok.shape != (pts.shape[0],):
+        raise ValueError(f"displacement_outliers needs points (N, 2), u, v and valid (N,), got {pts.shape}, "
+                         f"{np.shape(u)}, {np.shape(v)}, {ok.shape}")
+    if isinstance(neighbours, bool) or not isinstance(neighbours, (int, np.integer)) or neighbours < 3:
+        raise ValueError(f"neighbours must be an integer >= 3, got {neighbours!r}")
+    for name, val in (("threshold", threshold), ("noise_px", noise_px)):
+        if not (np.isfinite(val) and val > 0):
+            raise ValueError(f"{name} must be a positive number, got {val!r}")
+    ok &= np.all(np.isfinite(d), axis=1)
+    out = np.zeros(pts.shape[0], dtype=bool)
+    idx = np.flatnonzero(ok)
+    if idx.size <= 3:
+        return out
+    k = min(int(neighbours), idx.size - 1)
+    _, j = cKDTree(pts[idx]).query(pts[idx], k=k + 1)
+    nb = d[idx][j[:, 1:]]  # (M, k, 2): the neighbours' displacements (the point itself is the nearest)
+    med = np.median(nb, axis=1)
+    spread = np.median(np.abs(nb - med[:, None, :]), axis=1)
+    r = np.abs(d[idx] - med) / (spread + noise_px)
+    out[idx] = np.any(r > threshold, axis=1)
+    return out
 
 
 def shift_params(params: np.ndarray, delta: np.ndarray, order: int) -> np.ndarray:

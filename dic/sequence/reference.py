@@ -36,9 +36,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..correlation.lagrangian import compose_params, fill_reference, moved_points, relative_params, shift_params
+from ..correlation.lagrangian import (
+    compose_params,
+    displacement_outliers,
+    fill_reference,
+    moved_points,
+    relative_params,
+    shift_params,
+)
 
-__all__ = ["ReferencePolicy", "parse_reference", "compose_params", "fill_reference", "moved_points", "relative_params",
+__all__ = ["ReferencePolicy", "parse_reference", "compose_params", "displacement_outliers", "fill_reference",
+           "moved_points", "relative_params",
            "shift_params"]
 
 AUTO_VALID = 0.95

@@ -26,6 +26,7 @@ from .reference import (
     AUTO_VALID,
     AUTO_ZNCC,
     compose_params,
+    displacement_outliers,
     fill_reference,
     moved_points,
     parse_reference,
@@ -96,9 +97,13 @@ def _moved(points0, state: _State, index: int, image) -> _Ref:
     to where they are in it, the invalid ones placed by interpolating their valid neighbours' parameters
     (:func:`fill_reference`); those whose neighbours surround them closely stay trackable (``usable``).
     ValueError: no valid point."""
-    pts = moved_points(points0, state.u, state.v, state.valid)
-    filled, usable = fill_reference(points0, state.params, state.valid)
+    # a valid point that disagrees with its neighbours (a false match) is no anchor: were it one, its error
+    # would be composed into every later frame; it is placed by interpolation like an invalid point
+    anchors = state.valid & ~displacement_outliers(points0, state.u, state.v, state.valid)
+    pts = moved_points(points0, state.u, state.v, anchors)
+    filled, usable = fill_reference(points0, state.params, anchors)
     placed = copy.copy(state)
+    placed.valid = anchors
     placed.params = np.where(usable[:, None], filled, state.params)
     whole = round_half_away(pts)  # the kernels' rule (wp.round: half away from zero)
     return _Ref(index, image, placed, None, pts - whole, usable, whole)
