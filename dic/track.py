@@ -27,8 +27,8 @@ from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor,
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
 from .correlation.engine import Correlator, reliability_guided
-from .correlation.lagrangian import displacement_outliers
 from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_guesses, get_guess
+from .correlation.lagrangian import displacement_outliers
 from .correlation.params import guess_params
 from .correlation.points import check_step, grid
 from .field2d import Field2D
