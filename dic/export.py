@@ -326,9 +326,9 @@ def write_netcdf(results, path) -> Path:
         p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
         field.to_xarray().to_netcdf(p, engine=NETCDF_ENGINE)
         return p
+    p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
     with ResultFrames(results) as frames:
         table = _FrameTable(frames)
-        p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
         try:
             rows = table.datasets()
             _, ds = next(rows)
