@@ -149,14 +149,29 @@ class _FrameTable:
             return {"left_path": [str(paths[0])], "right_path": [str(paths[1])]}
         return {"path": [str(paths[0])]}
 
-    def datasets(self):
-        """Yield ``(index, Dataset)`` per frame: that frame's row of the table (dims ``frame`` (1) x ``point``)."""
+    def rows(self):
+        """Yield ``(index, row)`` per frame: ``row`` maps ``frame``, the per-frame coordinates (image
+        paths) and every column of the table to its values in that frame, in the table's dtypes."""
+        for index, f in self.frames:
+            row = {"frame": np.int64(index)}
+            row.update({k: v[0] for k, v in self._coords(index, f).items()})
+            row.update(self.schema.align(index, _frame_columns(self.kind, f)))
+            yield index, row
+
+    def dataset(self, index: int, row: dict):
+        """One frame's row as a Dataset (dims ``frame`` (1) x ``point``), built exactly as ``to_xarray()``
+        builds the table: the names, order, dtypes, coordinates and attributes of every export."""
         from .tabular import frame_dataset
 
-        for index, f in self.frames:
-            cols = self.schema.align(index, _frame_columns(self.kind, f))
-            yield index, frame_dataset([(index, cols)], kind=self.kind, attrs=self.attrs,
-                                       frame_coords=self._coords(index, f), status_codes=self.status_codes)
+        coords = {k: [row[k]] for k in ("path", "left_path", "right_path") if k in row}
+        cols = {k: v for k, v in row.items() if k != "frame" and k not in coords}
+        return frame_dataset([(index, cols)], kind=self.kind, attrs=self.attrs, frame_coords=coords,
+                             status_codes=self.status_codes)
+
+    def datasets(self):
+        """Yield ``(index, Dataset)`` per frame: :meth:`dataset` of each row."""
+        for index, row in self.rows():
+            yield index, self.dataset(index, row)
 
     def frame_bytes(self) -> dict[str, int]:
         """Bytes of each (frame x point) column over the whole table (bool as 1 byte, as MATLAB stores it)."""
@@ -255,9 +270,10 @@ def write_mat(results, path, *, max_bytes: int = MAT_MAX_BYTES) -> Path:
             del cols
         table = _FrameTable(frames)
         _check_mat_size(table.frame_bytes(), table.n_frames, max_bytes)
-        out, units, rows = {"frame": np.asarray(frames.indices, dtype=np.float64)}, {}, {}
-        for k, (_, ds) in enumerate(table.datasets()):
-            if k == 0:  # the variables, in the order and with the units of the table
+        out, units, matrices = {"frame": np.asarray(frames.indices, dtype=np.float64)}, {}, {}
+        for k, (index, row) in enumerate(table.rows()):
+            if k == 0:  # the variables, in the order and with the units of the table (its first frame's Dataset)
+                ds = table.dataset(index, row)
                 for name in list(ds.coords) + list(ds.data_vars):
                     if name in ("frame", "point"):
                         continue
@@ -266,14 +282,14 @@ def write_mat(results, path, *, max_bytes: int = MAT_MAX_BYTES) -> Path:
                         out[name] = _mat_array(var.values)
                     else:
                         dtype = (object if var.dtype.kind in "USO" else np.uint8 if var.dtype == bool else var.dtype)
-                        out[name] = rows[name] = np.empty((table.n_frames,) + var.shape[1:], dtype=dtype)
+                        out[name] = matrices[name] = np.empty((table.n_frames,) + var.shape[1:], dtype=dtype)
                     unit = var.attrs.get("units")
                     if unit:
                         units[name] = unit
                 attrs = ds.attrs
-            for name, arr in rows.items():
-                arr[k] = _mat_array(ds[name].values)[0]
-            del ds
+                del ds
+            for name, arr in matrices.items():
+                arr[k] = _mat_array(np.asarray(row[name])[None])[0]
     grid = _grid_index(out["x"], out["y"])
     if grid is not None:
         out["grid_row"], out["grid_col"] = grid[0].astype(np.float64), grid[1].astype(np.float64)
@@ -316,10 +332,10 @@ def write_netcdf(results, path) -> Path:
 
     A result file is written one frame at a time: its first frame through xarray's ``to_netcdf``
     (which fixes every variable's encoding), with ``frame`` an unlimited dimension and each
-    (frame, point) variable chunked by frame, then every other frame appended with h5netcdf as it
-    is read, so memory does not grow with the number of frames.
+    (frame, point) variable chunked by frame, then every other frame written into the file's
+    datasets (h5py) as it is read, so memory does not grow with the number of frames.
     """
-    import h5netcdf
+    import h5py
 
     if not isinstance(results, (str, os.PathLike)) and not isinstance(results, _RESULTS):
         field = _tabular(results)  # a field (or a clear error)
@@ -330,19 +346,21 @@ def write_netcdf(results, path) -> Path:
     with ResultFrames(results) as frames:
         table = _FrameTable(frames)
         try:
-            rows = table.datasets()
-            _, ds = next(rows)
+            rows = table.rows()
+            index, row = next(rows)
+            ds = table.dataset(index, row)
             chunks = (1, max(1, min(table.n_points, NETCDF_CHUNK_POINTS)))
             encoding = {name: {"chunksizes": chunks} for name, var in ds.variables.items()
                         if var.dims == ("frame", "point")}
             ds.to_netcdf(p, engine=NETCDF_ENGINE, unlimited_dims=["frame"], encoding=encoding)
-            with h5netcdf.File(p, "a") as nc:
-                nc.resize_dimension("frame", table.n_frames)
-                for k, (_, ds) in enumerate(rows, start=1):
-                    for name, var in ds.variables.items():
-                        if var.dims[:1] == ("frame",):
-                            target = nc.variables[name]
-                            target[k, ...] = _nc_row(var.values[0], target.dtype)
+            del ds
+            with h5py.File(p, "a") as h5:  # the netCDF-4 variables are HDF5 datasets; `frame` is unlimited
+                targets = {name: h5[name] for name in row if name in h5 and h5[name].maxshape[:1] == (None,)}
+                for target in targets.values():
+                    target.resize(table.n_frames, axis=0)
+                for k, (_, row) in enumerate(rows, start=1):
+                    for name, target in targets.items():
+                        target[k] = _nc_row(row[name], target.dtype)
         except BaseException:
             p.unlink(missing_ok=True)  # no half-written file left behind
             raise
