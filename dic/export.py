@@ -34,17 +34,25 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from kernels.conventions import Status
+
 from .field2d import Field2D
 from .field3d import SCALAR_FIELDS, Field3D
-from .store import FrameResult, ResultReader, StereoResults, TrackResults, read_results, read_stereo
+from .store import FrameResult, ResultFrames, ResultReader, StereoResults, TrackResults, read_results, read_stereo
 
 __all__ = ["write_vtk", "write_vtk_series", "write_pvd", "write_csv", "write_mat", "write_netcdf", "to_xarray", "to_dataframe",
-           "read_any", "export_results", "EXPORT_FORMATS", "NETCDF_ENGINE"]
+           "read_any", "export_results", "EXPORT_FORMATS", "NETCDF_ENGINE", "MAT_MAX_BYTES"]
 
 #: formats of :func:`export_results` (``specula export --format``)
 EXPORT_FORMATS = ("csv", "mat", "netcdf", "vtk")
 #: the xarray engine of :func:`write_netcdf` (netCDF-4 on h5py, which Specula already uses)
 NETCDF_ENGINE = "h5netcdf"
+#: points per HDF5 chunk of a (frame, point) netCDF variable (one frame per chunk; 8 MiB of float64)
+NETCDF_CHUNK_POINTS = 1 << 20
+#: default ``max_bytes`` of :func:`write_mat`: the matrices a MATLAB v5 file is built from, in memory at once
+MAT_MAX_BYTES = 1 << 30
+#: the most bytes one variable of a MATLAB v5/v7 file can hold (MATLAB needs -v7.3 above 2 GiB)
+MAT_VARIABLE_LIMIT = 2**31
 
 #: per-point scalars of a Field3D exported as VTK point data (besides the vectors)
 _VTK_SCALARS = SCALAR_FIELDS
@@ -61,7 +69,9 @@ _RESULTS = (TrackResults, StereoResults)
 
 def read_any(source):
     """A result file's contents, whichever its kind: :class:`~dic.store.TrackResults` (2-D) or
-    :class:`~dic.store.StereoResults`; ``source`` is a path or already one of them."""
+    :class:`~dic.store.StereoResults`; ``source`` is a path or already one of them. Every frame is
+    read into memory: to go through a long file one frame at a time use :class:`dic.store.ResultFrames`
+    (the exports do)."""
     if isinstance(source, _RESULTS):
         return source
     if not isinstance(source, (str, os.PathLike)):
@@ -83,13 +93,16 @@ def _tabular(obj):
 
 def to_xarray(obj):
     """An :class:`xarray.Dataset` of a field (over ``point``) or of a result file (over ``frame`` x
-    ``point``); ``obj`` is a field, a results object or the path of a result file."""
+    ``point``); ``obj`` is a field, a results object or the path of a result file. The Dataset is in
+    memory (every frame of a file); a long file is better exported with :func:`write_netcdf` (written one
+    frame at a time) and opened with ``xarray.open_dataset(path, chunks={"frame": 1})``."""
     return _tabular(obj).to_xarray()
 
 
 def to_dataframe(obj):
     """A :class:`pandas.DataFrame` of a field (index ``point``) or of a result file (index
-    ``frame``, ``point``); ``obj`` as for :func:`to_xarray`."""
+    ``frame``, ``point``); ``obj`` as for :func:`to_xarray` (in memory: a long file is better written
+    with :func:`write_csv`, one file per frame)."""
     return _tabular(obj).to_dataframe()
 
 
@@ -103,15 +116,85 @@ def _out_path(path, suffixes: tuple[str, ...], what: str) -> Path:
     return p
 
 
-def _frames_dataset(results):
-    res = read_any(results)
-    if not res.indices:
-        raise ValueError("the result file has no finished frame to export")
-    return res, res.to_xarray()
+class _FrameTable:
+    """The frame x point table of a result (the Dataset of its ``to_xarray()``), one frame at a time: the one
+    reading helper of the CSV, MATLAB and netCDF exports.
+
+    A first pass over the frames gathers the columns (:class:`dic.tabular.FrameSchema`: names, dtypes,
+    the same points everywhere); :meth:`datasets` then yields each frame as a one-frame Dataset built
+    exactly as ``to_xarray()`` builds that frame's row. Each frame is read from the file when it is
+    reached (:class:`dic.store.ResultFrames`), so memory does not grow with the number of frames.
+    """
+
+    def __init__(self, frames: ResultFrames):
+        from .field3d import StereoStatus
+        from .tabular import FrameSchema
+
+        if not frames.indices:
+            raise ValueError("the result file has no finished frame to export")
+        self.frames = frames
+        self.kind = frames.kind
+        self.status_codes = StereoStatus if self.kind == "stereo" else Status
+        self.schema = FrameSchema()
+        self.attrs = None
+        for index, f in frames:  # first pass: the columns, one frame at a time
+            if self.attrs is None:
+                self.attrs = frames.table_attrs(f)
+            self.schema.add(index, _frame_columns(self.kind, f))
+        self.n_frames, self.n_points = len(frames.indices), self.schema.n_points
+
+    def _coords(self, index, f) -> dict:
+        paths = self.frames.frame_paths(index, f)
+        if self.kind == "stereo":
+            return {"left_path": [str(paths[0])], "right_path": [str(paths[1])]}
+        return {"path": [str(paths[0])]}
+
+    def rows(self):
+        """Yield ``(index, row)`` per frame: ``row`` maps ``frame``, the per-frame coordinates (image
+        paths) and every column of the table to its values in that frame, in the table's dtypes."""
+        for index, f in self.frames:
+            row = {"frame": np.int64(index)}
+            row.update({k: v[0] for k, v in self._coords(index, f).items()})
+            row.update(self.schema.align(index, _frame_columns(self.kind, f)))
+            yield index, row
+
+    def dataset(self, index: int, row: dict):
+        """One frame's row as a Dataset (dims ``frame`` (1) x ``point``), built exactly as ``to_xarray()``
+        builds the table: the names, order, dtypes, coordinates and attributes of every export."""
+        from .tabular import frame_dataset
+
+        coords = {k: [row[k]] for k in ("path", "left_path", "right_path") if k in row}
+        cols = {k: v for k, v in row.items() if k != "frame" and k not in coords}
+        return frame_dataset([(index, cols)], kind=self.kind, attrs=self.attrs, frame_coords=coords,
+                             status_codes=self.status_codes)
+
+    def datasets(self):
+        """Yield ``(index, Dataset)`` per frame: :meth:`dataset` of each row."""
+        for index, row in self.rows():
+            yield index, self.dataset(index, row)
+
+    def frame_bytes(self) -> dict[str, int]:
+        """Bytes of each (frame x point) column over the whole table (bool as 1 byte, as MATLAB stores it)."""
+        return {name: self.n_frames * self.n_points * max(self.schema.dtype(name).itemsize, 1)
+                for name in self.schema.names if name not in ("x", "y")}
 
 
-def _stem(res) -> str:
-    return "stereo" if isinstance(res, StereoResults) else "frame"
+def _frame_columns(kind: str, f) -> dict:
+    """The table columns of one frame of a result file (2-D FrameResult or stereo Field3D)."""
+    from .tabular import columns_3d
+
+    return columns_3d(f) if kind == "stereo" else f._columns()
+
+
+def _stem(kind: str) -> str:
+    return "stereo" if kind == "stereo" else "frame"
+
+
+def _check_stem(stem) -> str:
+    stem = str(stem)
+    if not stem or os.sep in stem or "/" in stem:
+        raise ValueError(f"stem must be a plain file name prefix, got {stem!r}")
+    return stem
 
 
 def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
@@ -120,25 +203,27 @@ def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
     Columns: ``point`` (the row index), ``x``, ``y`` (px) (stereo: ``X``, ``Y``, ``Z`` mm), then
     every quantity of :mod:`dic.tabular` (units in docs/exports.md); ``True``/``False`` flags,
     empty cells for NaN. ``stem`` defaults to ``frame`` (2-D) or ``stereo``. Returns the paths.
+    A result file (path) is read one frame at a time (twice: the columns, then the files) and each
+    CSV is written as its frame is read, so memory does not grow with the number of frames.
     For one field use ``field.to_dataframe().to_csv(path)``.
     """
-    res, ds = _frames_dataset(results)
+    from .tabular import dataframe
+
     directory = Path(os.fspath(directory))
     if directory.exists() and not directory.is_dir():
         raise ValueError(f"the CSV output must be a folder, but {directory} is a file")
-    directory.mkdir(parents=True, exist_ok=True)
-    stem = _stem(res) if stem is None else str(stem)
-    if not stem or os.sep in stem or "/" in stem:
-        raise ValueError(f"stem must be a plain file name prefix, got {stem!r}")
-    from .tabular import dataframe
-
-    written = []
-    per_frame = [c for c in ds.coords if ds.coords[c].dims == ("frame",)]
-    for k, index in enumerate(ds["frame"].values):
-        one = ds.isel(frame=k).drop_vars(["frame", *[c for c in per_frame if c != "frame"]])
-        path = directory / f"{stem}_{int(index):06d}.csv"
-        dataframe(one).to_csv(path)
-        written.append(path)
+    stem = None if stem is None else _check_stem(stem)
+    with ResultFrames(results) as frames:
+        table = _FrameTable(frames)
+        stem = _stem(table.kind) if stem is None else stem
+        directory.mkdir(parents=True, exist_ok=True)
+        written = []
+        for index, ds in table.datasets():
+            per_frame = [c for c in ds.coords if ds.coords[c].dims == ("frame",) and c != "frame"]
+            one = ds.isel(frame=0).drop_vars(["frame", *per_frame])
+            path = directory / f"{stem}_{int(index):06d}.csv"
+            dataframe(one).to_csv(path)
+            written.append(path)
     return written
 
 
@@ -153,7 +238,7 @@ def _grid_index(x, y):
     return index[:, 1] + 1, index[:, 0] + 1, shape
 
 
-def write_mat(results, path) -> Path:
+def write_mat(results, path, *, max_bytes: int = MAT_MAX_BYTES) -> Path:
     """A MATLAB ``.mat`` file (v5, compressed; scipy.io.savemat) of a whole result file.
 
     Variables: ``frame`` (1 x F) frame indices; ``x``, ``y`` (1 x N) px; each quantity as an
@@ -162,46 +247,134 @@ def write_mat(results, path) -> Path:
     grid (``M = nan(grid_shape); M(sub2ind(grid_shape, grid_row, grid_col)) = u(k, :)``); image
     paths per frame as cell arrays; ``units`` and ``info`` (the file's attributes: settings,
     reference, rig as text) as structs.
+
+    A v5 file is written whole, each matrix column by column (a point over every frame), so it
+    cannot be streamed frame by frame: the matrices are filled one frame at a time into arrays of
+    exactly their final size (no other copy of the file is held), and an export that needs more
+    than ``max_bytes`` (default :data:`MAT_MAX_BYTES`) of them, or a matrix over the 2 GiB a v5/v7
+    variable can hold, is refused with a ``ValueError`` before anything is written. Long files:
+    :func:`write_netcdf` (MATLAB reads it with ``ncread``), :func:`write_csv` or
+    :func:`write_vtk_series`, which are written one frame at a time.
     """
     import scipy.io
 
-    res, ds = _frames_dataset(results)
+    from kernels.checks import positive_int
+
+    max_bytes = positive_int(max_bytes, "max_bytes", detail=" (bytes)")
     p = _out_path(path, (".mat",), "the MATLAB")
-    out = {"frame": ds["frame"].values.astype(np.float64)}
-    units = {}
-    for name in list(ds.coords) + list(ds.data_vars):
-        if name in ("frame", "point"):
-            continue
-        arr = ds[name].values
-        if arr.dtype == bool:
-            arr = arr.astype(np.uint8)
-        elif arr.dtype.kind in "USO":
-            arr = np.asarray([str(v) for v in arr.ravel()], dtype=object).reshape(arr.shape)
-        out[name] = arr
-        unit = ds[name].attrs.get("units")
-        if unit:
-            units[name] = unit
-    grid = _grid_index(ds["x"].values, ds["y"].values)
+    with ResultFrames(results) as frames:
+        if frames.indices:  # refused early from the first frame's columns, before the pass over the whole file
+            cols = _frame_columns(frames.kind, frames.read(frames.indices[0]))
+            _check_mat_size({k: len(frames) * v.nbytes for k, v in cols.items() if k not in ("x", "y")},
+                            len(frames), max_bytes)
+            del cols
+        table = _FrameTable(frames)
+        _check_mat_size(table.frame_bytes(), table.n_frames, max_bytes)
+        out, units, matrices = {"frame": np.asarray(frames.indices, dtype=np.float64)}, {}, {}
+        for k, (index, row) in enumerate(table.rows()):
+            if k == 0:  # the variables, in the order and with the units of the table (its first frame's Dataset)
+                ds = table.dataset(index, row)
+                for name in list(ds.coords) + list(ds.data_vars):
+                    if name in ("frame", "point"):
+                        continue
+                    var = ds[name]
+                    if "frame" not in var.dims:
+                        out[name] = _mat_array(var.values)
+                    else:
+                        dtype = (object if var.dtype.kind in "USO" else np.uint8 if var.dtype == bool else var.dtype)
+                        out[name] = matrices[name] = np.empty((table.n_frames,) + var.shape[1:], dtype=dtype)
+                    unit = var.attrs.get("units")
+                    if unit:
+                        units[name] = unit
+                attrs = ds.attrs
+                del ds
+            for name, arr in matrices.items():
+                arr[k] = _mat_array(np.asarray(row[name])[None])[0]
+    grid = _grid_index(out["x"], out["y"])
     if grid is not None:
         out["grid_row"], out["grid_col"] = grid[0].astype(np.float64), grid[1].astype(np.float64)
         out["grid_shape"] = np.asarray(grid[2], dtype=np.float64)
     out["units"] = units
-    out["info"] = {str(k): (v if isinstance(v, str) else np.asarray(v)) for k, v in ds.attrs.items()}
+    out["info"] = {str(k): (v if isinstance(v, str) else np.asarray(v)) for k, v in attrs.items()}
     scipy.io.savemat(p, out, do_compression=True, oned_as="row")
     return p
 
 
+def _mat_array(arr):
+    """A column as MATLAB gets it: flags as uint8, text as cells (object arrays of str)."""
+    arr = np.asarray(arr)
+    if arr.dtype == bool:
+        return arr.astype(np.uint8)
+    if arr.dtype.kind in "USO":
+        return np.asarray([str(v) for v in arr.ravel()], dtype=object).reshape(arr.shape)
+    return arr
+
+
+def _check_mat_size(nbytes: dict[str, int], n_frames: int, max_bytes: int) -> None:
+    streaming = ("export as netcdf (MATLAB reads it with ncread/ncinfo), csv or vtk instead: those are written one "
+                 "frame at a time")
+    big = {k: v for k, v in nbytes.items() if v >= MAT_VARIABLE_LIMIT}
+    if big:
+        name = max(big, key=big.get)
+        raise ValueError(f"a MATLAB v5 .mat file holds at most 2 GiB per variable, and {name} over {n_frames} frames "
+                         f"needs {big[name] / 2**30:.1f} GiB; {streaming}")
+    total = sum(nbytes.values())
+    if total > max_bytes:
+        raise ValueError(f"a MATLAB v5 .mat file is written whole, and this one needs {total / 2**20:.0f} MiB of "
+                         f"matrices for {n_frames} frames, over max_bytes ({max_bytes / 2**20:.0f} MiB); {streaming}, "
+                         "or raise max_bytes")
+
+
 def write_netcdf(results, path) -> Path:
     """The xarray Dataset of a result file (:func:`to_xarray`) as netCDF-4 (``.nc``), through
-    xarray's ``to_netcdf`` with the h5netcdf engine; ``xarray.open_dataset(path)`` reads it back
-    (flags as booleans, units and attributes kept). ``results`` may also be one field."""
-    obj = _tabular(results)
-    if isinstance(obj, _RESULTS) and not obj.indices:
-        raise ValueError("the result file has no finished frame to export")
-    ds = obj.to_xarray()
+    xarray with the h5netcdf engine; ``xarray.open_dataset(path)`` reads it back (flags as booleans,
+    units and attributes kept). ``results`` may also be one field.
+
+    A result file is written one frame at a time: its first frame through xarray's ``to_netcdf``
+    (which fixes every variable's encoding), with ``frame`` an unlimited dimension and each
+    (frame, point) variable chunked by frame, then every other frame written into the file's
+    datasets (h5py) as it is read, so memory does not grow with the number of frames.
+    """
+    import h5py
+
+    if not isinstance(results, (str, os.PathLike)) and not isinstance(results, _RESULTS):
+        field = _tabular(results)  # a field (or a clear error)
+        p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
+        field.to_xarray().to_netcdf(p, engine=NETCDF_ENGINE)
+        return p
     p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
-    ds.to_netcdf(p, engine=NETCDF_ENGINE)
+    with ResultFrames(results) as frames:
+        table = _FrameTable(frames)
+        try:
+            rows = table.rows()
+            index, row = next(rows)
+            ds = table.dataset(index, row)
+            chunks = (1, max(1, min(table.n_points, NETCDF_CHUNK_POINTS)))
+            encoding = {name: {"chunksizes": chunks} for name, var in ds.variables.items()
+                        if var.dims == ("frame", "point")}
+            ds.to_netcdf(p, engine=NETCDF_ENGINE, unlimited_dims=["frame"], encoding=encoding)
+            del ds
+            # the netCDF-4 variables are HDF5 datasets and `frame` is unlimited: each frame's row of a variable is
+            # whole chunks, written straight to the file (a chunk cache held 220 MB more over 1000 frames)
+            with h5py.File(p, "a", rdcc_nbytes=0) as h5:
+                targets = {name: h5[name] for name in row if name in h5 and h5[name].maxshape[:1] == (None,)}
+                for target in targets.values():
+                    target.resize(table.n_frames, axis=0)
+                for k, (_, row) in enumerate(rows, start=1):
+                    for name, target in targets.items():
+                        target[k] = _nc_row(row[name], target.dtype)
+        except BaseException:
+            p.unlink(missing_ok=True)  # no half-written file left behind
+            raise
     return p
+
+
+def _nc_row(values, dtype):
+    """One frame's values encoded as xarray encodes them on disk (flags as int8, text as strings)."""
+    values = np.asarray(values)
+    if values.dtype.kind in "USO":
+        return np.asarray(values, dtype=object)
+    return values.astype(dtype, copy=False)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -402,20 +575,15 @@ def write_vtk_series(fields, directory, *, stem: str | None = None, kind: str = 
 
 def _field_series(fields):
     """A function giving a fresh iterator over the fields of a series: a result file is read one frame at a
-    time (:meth:`dic.store.ResultReader.iter_frames`), so that a long file's export holds one frame at once."""
-    if isinstance(fields, (str, os.PathLike)):
-        with ResultReader(fields):  # a missing or foreign file is refused now, not on the first pass
-            pass
+    time (:class:`dic.store.ResultFrames`), so that a long file's export holds one frame at once."""
+    if isinstance(fields, (str, os.PathLike)) or isinstance(fields, _RESULTS):
+        ResultFrames(fields).close()  # a missing or foreign file is refused now, not on the first pass
 
         def frames():
-            with ResultReader(fields) as r:
-                for _, f in r.iter_frames():
+            with ResultFrames(fields) as src:
+                for _, f in src:
                     yield f
         return frames
-    if isinstance(fields, _RESULTS):
-        res = fields
-        return lambda: (res.fields[i] for i in res.indices) if isinstance(res, StereoResults) else \
-            (res.frames[i] for i in res.indices)
     fields = list(fields)
     return lambda: iter(fields)
 
@@ -445,6 +613,10 @@ def write_pvd(directory, entries, *, stem: str) -> Path:
 def export_results(source, fmt: str, out, *, kind: str = "grid", deformed: bool = False) -> list[Path]:
     """Export a result file (path or results object) as ``fmt`` into ``out``; returns the written paths.
 
+    A result file is read one frame at a time for every format; csv, netcdf and vtk are written one
+    frame at a time too (memory independent of the number of frames), mat is written whole and
+    refused above :data:`MAT_MAX_BYTES` (:func:`write_mat`).
+
     ``csv``: one file per frame in the folder ``out``; ``mat``: the file ``out`` (``.mat``);
     ``netcdf``: the file ``out`` (``.nc``); ``vtk``: a series (``.vtu`` per frame + ``.pvd``) in the
     folder ``out`` (``kind``, ``deformed`` as in :func:`write_vtk_series`).
@@ -459,20 +631,14 @@ def export_results(source, fmt: str, out, *, kind: str = "grid", deformed: bool 
         raise ValueError(f"a {fmt} export is one file ending in {' or '.join(suffixes)}, got {out.name}")
     if suffixes is None and out.exists() and not out.is_dir():
         raise ValueError(f"a {fmt} export is a folder of files, but {out} is a file")
-    if fmt == "vtk" and isinstance(source, (str, os.PathLike)):  # read one frame at a time, twice
-        with ResultReader(source) as r:
-            if not r.done_frames():
-                raise ValueError("the result file has no finished frame to export")
-        pvd = write_vtk_series(source, out, kind=kind, deformed=deformed)
-        return sorted(pvd.parent.glob(f"{pvd.stem}_*.vtu")) + [pvd]
-    res = read_any(source)
-    if not res.indices:
-        raise ValueError("the result file has no finished frame to export")
     if fmt == "csv":
-        return write_csv(res, out)
+        return write_csv(source, out)
     if fmt == "mat":
-        return [write_mat(res, out)]
+        return [write_mat(source, out)]
     if fmt == "netcdf":
-        return [write_netcdf(res, out)]
-    pvd = write_vtk_series(res, out, kind=kind, deformed=deformed)
+        return [write_netcdf(source, out)]
+    with ResultFrames(source) as frames:  # read one frame at a time, twice (the point set, then the files)
+        if not frames.indices:
+            raise ValueError("the result file has no finished frame to export")
+    pvd = write_vtk_series(source, out, kind=kind, deformed=deformed)
     return sorted(pvd.parent.glob(f"{pvd.stem}_*.vtu")) + [pvd]

@@ -165,26 +165,56 @@ def load_results(results):
 
 
 class _Source:
-    """The frames of a 2-D or stereo result, with quantities, validity and positions per frame."""
+    """The frames of a 2-D or stereo result, with quantities, validity and positions per frame.
+
+    A result file is read one frame at a time (:class:`dic.store.ResultFrames`; the last frame read is
+    kept, so the quantities of one frame cost one read): a time series over a 10 000-frame file holds
+    one frame, whatever the file's length. Use as a context manager (it closes the file).
+    """
 
     def __init__(self, results, scale=None):
-        from .store import TrackResults
+        from .store import ResultFrames, StereoResults, TrackResults
 
-        self.results = load_results(results)
-        self.is_2d = isinstance(self.results, TrackResults)
-        if self.is_2d:
-            self.scale = _scale_value(scale) if scale is not None else results_scale(self.results)
-            self.frames = dict(sorted(self.results.frames.items()))
-            self.length_unit = "mm" if self.scale is not None else "px"
-        else:
-            if scale is not None:
-                raise ValueError("a scale applies to 2-D results only; stereo results are in mm already")
-            self.scale = None
-            self.frames = {i: self.results.fields[i] for i in self.results.indices}
-            self.length_unit = "mm"
-        if not self.frames:
-            raise ValueError("the results hold no finished frame")
+        if not isinstance(results, (str, os.PathLike, TrackResults, StereoResults)):
+            raise ValueError("results must be a result file (path) or what dic.store.read_results / read_stereo "
+                             f"return, got {type(results).__name__}")
+        self._frames = ResultFrames(results)
+        try:
+            self.is_2d = self._frames.kind == "dic2d"
+            if self.is_2d:
+                self.scale = _scale_value(scale) if scale is not None else results_scale(self._frames)
+                self.length_unit = "mm" if self.scale is not None else "px"
+            else:
+                if scale is not None:
+                    raise ValueError("a scale applies to 2-D results only; stereo results are in mm already")
+                self.scale = None
+                self.length_unit = "mm"
+            self.indices = list(self._frames.indices)
+            if not self.indices:
+                raise ValueError("the results hold no finished frame")
+        except BaseException:
+            self._frames.close()
+            raise
         self._interp_cache: dict = {}
+        self._last: tuple | None = None  # (index, frame): the one frame held
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        self._frames.close()
+        self._last = None
+        self._interp_cache = {}
+
+    def frame(self, index: int):
+        """Frame ``index`` (read from the file unless it is the one read last)."""
+        if self._last is None or self._last[0] != index:
+            self._last = None  # the previous frame is let go before the next is read
+            self._last = (index, self._frames.read(index))
+        return self._last[1]
 
     @property
     def kind(self) -> str:
@@ -203,7 +233,7 @@ class _Source:
         return ""
 
     def select(self, frames) -> list[int]:
-        available = list(self.frames)
+        available = list(self.indices)
         if frames is None:
             return available
         if isinstance(frames, (int, np.integer)) and not isinstance(frames, bool):
@@ -212,7 +242,8 @@ class _Source:
             wanted = [int(f) for f in frames]
         except (TypeError, ValueError):
             raise ValueError(f"frames must be frame indices, got {frames!r}") from None
-        missing = [f for f in wanted if f not in self.frames]
+        known = set(self.indices)
+        missing = [f for f in wanted if f not in known]
         if missing:
             raise ValueError(f"no finished frame {', '.join(map(str, missing))} in the results; "
                              f"available: {available}")
@@ -237,7 +268,7 @@ class _Source:
     # -- per frame
     def values(self, index: int, name: str):
         """(values (N,), valid (N,)) of a quantity in frame ``index`` (displacements scaled)."""
-        f = self.frames[index]
+        f = self.frame(index)
         if self.is_2d:
             n = f.points.shape[0]
             valid = np.ones(n, bool) if f.valid is None else np.asarray(f.valid, bool)
@@ -273,7 +304,7 @@ class _Source:
 
     def domain(self, index: int, at: str) -> np.ndarray:
         """(N, 2) positions of the points in the units of ``at`` (where queries are given)."""
-        f = self.frames[index]
+        f = self.frame(index)
         pts = np.asarray(f.points, np.float64)
         if at == "px":
             return pts
@@ -311,8 +342,7 @@ class _Source:
         """Spacing of the points (in ``at`` units): the smallest nearest-neighbour distance's median."""
         from scipy.spatial import cKDTree
 
-        index = next(iter(self.frames))
-        dom = self.domain(index, at)
+        dom = self.domain(self.indices[0], at)
         dom = dom[np.all(np.isfinite(dom), axis=1)]
         if dom.shape[0] < 2:
             return 1.0
@@ -322,7 +352,8 @@ class _Source:
 
 def quantities(results) -> tuple[str, ...]:
     """Names of the quantities :func:`point_history` and :func:`line_profile` accept for ``results``."""
-    return _Source(results).names()
+    with _Source(results) as src:
+        return src.names()
 
 
 def _xy(value, what: str) -> np.ndarray:
@@ -394,9 +425,10 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
 
     Everything but the strain is copied unchanged (points, displacements, parameters, statuses,
     frame attributes); the settings record the new ``strain_window`` (grid points). Returns the
-    path written.
+    path written. Frames are read, strained and written one at a time (memory independent of the
+    number of frames).
     """
-    from .store import ResultReader, ResultWriter, read_results
+    from .store import ResultReader, ResultWriter
     from .strain import grid_layout, strain
 
     if not isinstance(results, (str, os.PathLike)):
@@ -405,38 +437,37 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     dst = Path(os.fspath(output)) if output is not None else src
     if dst.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {dst.name}")
-    with ResultReader(src) as r:
+    tmp = None
+    with ResultReader(src) as r:  # read, strained and written one frame at a time
         if r.kind.name != "dic2d":
             raise ValueError(f"{src} is a {r.kind.label} result file; recompute_strain recomputes the strain of "
                              "2-D results (stereo surface strain is computed by the stereo run, strain_window=)")
-    res = read_results(src)
-    if not res.frames:
-        raise ValueError(f"{src} holds no finished frame")
-    first = next(iter(res.frames.values()))
-    _, _, step = grid_layout(first.points)
-    n = window_points(window, step, unit)
-    settings = dict(res.settings)
-    settings["strain_window"] = n
-    if scale is not None:
-        settings[SCALE_KEY] = _scale_value(scale)
-    strains = {i: strain(f, window=n, min_points=min_points) for i, f in res.frames.items()}
-    tmp = None
-    try:
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(suffix=".h5", prefix=f".{dst.stem}.", dir=dst.parent)
-        os.close(fd)
-        ref = res.reference
-        with ResultWriter(tmp, reference_path=ref.get("path", ""), reference_shape=ref.get("shape") or None,
-                          reference_sha256=ref.get("sha256", ""), settings=settings, mode="overwrite") as w:
-            for i, f in res.frames.items():
-                attrs = {k: v for k, v in f.attrs.items() if k not in ("complete", "written")}
-                w.write_frame(i, f, strain=strains[i], path=f.path, attrs=attrs)
-        os.replace(tmp, dst)
-    except OSError as exc:
-        raise ValueError(f"cannot write {dst}: {exc.strerror or exc}") from None
-    finally:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
+        indices = r.done_frames()
+        if not indices:
+            raise ValueError(f"{src} holds no finished frame")
+        _, _, step = grid_layout(r.read_frame(indices[0]).points)
+        n = window_points(window, step, unit)
+        settings = dict(r.settings)
+        settings["strain_window"] = n
+        if scale is not None:
+            settings[SCALE_KEY] = _scale_value(scale)
+        ref = r.reference
+        try:
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(suffix=".h5", prefix=f".{dst.stem}.", dir=dst.parent)
+            os.close(fd)
+            with ResultWriter(tmp, reference_path=ref.get("path", ""), reference_shape=ref.get("shape") or None,
+                              reference_sha256=ref.get("sha256", ""), settings=settings, mode="overwrite") as w:
+                for i, f in r.iter_frames(indices):
+                    attrs = {k: v for k, v in f.attrs.items() if k not in ("complete", "written")}
+                    w.write_frame(i, f, strain=strain(f, window=n, min_points=min_points), path=f.path, attrs=attrs)
+            r.close()  # before the new file replaces it (in place)
+            os.replace(tmp, dst)
+        except OSError as exc:
+            raise ValueError(f"cannot write {dst}: {exc.strerror or exc}") from None
+        finally:
+            if tmp is not None and os.path.exists(tmp):
+                os.unlink(tmp)
     return dst
 
 
@@ -498,40 +529,40 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
     The displacement at each end is interpolated linearly from the frame's valid points; the
     gauge length is the distance between the ends (2-D in the image plane; stereo in 3-D).
     """
-    src = _Source(results, scale)
-    at = src.check_at(at)
-    a, b = _xy(start, "start"), _xy(end, "end")
-    if np.allclose(a, b):
-        raise ValueError(f"the gauge ends coincide ({a[0]:g}, {a[1]:g}); give two distinct points")
-    idx = src.select(frames)
-    dim = 2 if src.is_2d else 3
-    F = len(idx)
-    L0, L = np.full(F, np.nan), np.full(F, np.nan)
-    dA, dB = np.full((F, dim), np.nan), np.full((F, dim), np.nan)
-    q = np.stack([a, b])
-    for k, i in enumerate(idx):
-        if src.is_2d:
-            u, valid_u = src.values(i, "u")
-            v, valid_v = src.values(i, "v")
-            s = src.scale or 1.0
-            q_px = q / s if at == "mm" else q
-            disp = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
-            ref = q_px * s
-        else:
-            f = src.frames[i]
-            valid = np.asarray(f.valid, bool) & np.all(np.isfinite(f.xyz), 1) & np.all(np.isfinite(f.uvw), 1)
-            both = src.interpolate(i, at, np.column_stack([f.xyz, f.uvw]), valid, q)
-            ref, disp = both[:, :3], both[:, 3:]
-        dA[k], dB[k] = disp[0], disp[1]
-        L0[k] = np.linalg.norm(ref[1] - ref[0])
-        L[k] = np.linalg.norm(ref[1] + disp[1] - ref[0] - disp[0])
-    ok = np.isfinite(L) & np.isfinite(L0)
-    L[~ok] = np.nan
-    elong = L - L0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        eps = elong / L0
-    return Extensometer(start=a, end=b, at=at, unit=src.length_unit, frames=np.asarray(idx, np.int64), length0=L0,
-                        length=L, elongation=elong, strain=eps, start_displacement=dA, end_displacement=dB, valid=ok)
+    with _Source(results, scale) as src:
+        at = src.check_at(at)
+        a, b = _xy(start, "start"), _xy(end, "end")
+        if np.allclose(a, b):
+            raise ValueError(f"the gauge ends coincide ({a[0]:g}, {a[1]:g}); give two distinct points")
+        idx = src.select(frames)
+        dim = 2 if src.is_2d else 3
+        F = len(idx)
+        L0, L = np.full(F, np.nan), np.full(F, np.nan)
+        dA, dB = np.full((F, dim), np.nan), np.full((F, dim), np.nan)
+        q = np.stack([a, b])
+        for k, i in enumerate(idx):
+            if src.is_2d:
+                u, valid_u = src.values(i, "u")
+                v, valid_v = src.values(i, "v")
+                s = src.scale or 1.0
+                q_px = q / s if at == "mm" else q
+                disp = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
+                ref = q_px * s
+            else:
+                f = src.frame(i)
+                valid = np.asarray(f.valid, bool) & np.all(np.isfinite(f.xyz), 1) & np.all(np.isfinite(f.uvw), 1)
+                both = src.interpolate(i, at, np.column_stack([f.xyz, f.uvw]), valid, q)
+                ref, disp = both[:, :3], both[:, 3:]
+            dA[k], dB[k] = disp[0], disp[1]
+            L0[k] = np.linalg.norm(ref[1] - ref[0])
+            L[k] = np.linalg.norm(ref[1] + disp[1] - ref[0] - disp[0])
+        ok = np.isfinite(L) & np.isfinite(L0)
+        L[~ok] = np.nan
+        elong = L - L0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            eps = elong / L0
+        return Extensometer(start=a, end=b, at=at, unit=src.length_unit, frames=np.asarray(idx, np.int64), length0=L0,
+                            length=L, elongation=elong, strain=eps, start_displacement=dA, end_displacement=dB, valid=ok)
 
 
 @dataclass
@@ -562,17 +593,17 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
     angle, max_shear, von_mises, zncc; stereo: U, V, W, magnitude, X, Y, Z, exx, eyy, exy, e1 ...).
     Values are interpolated linearly from the frame's valid points (strain: its strain-valid points).
     """
-    src = _Source(results, scale)
-    at = src.check_at(at)
-    quantity = src.check_quantity(quantity)
-    p = _xy(point, "point")
-    idx = src.select(frames)
-    out = np.full(len(idx), np.nan)
-    for k, i in enumerate(idx):
-        vals, valid = src.values(i, quantity)
-        out[k] = src.interpolate(i, at, vals, valid, p)[0, 0]
-    return History(quantity=quantity, unit=src.unit(quantity), point=p, at=at, frames=np.asarray(idx, np.int64),
-                   values=out)
+    with _Source(results, scale) as src:
+        at = src.check_at(at)
+        quantity = src.check_quantity(quantity)
+        p = _xy(point, "point")
+        idx = src.select(frames)
+        out = np.full(len(idx), np.nan)
+        for k, i in enumerate(idx):
+            vals, valid = src.values(i, quantity)
+            out[k] = src.interpolate(i, at, vals, valid, p)[0, 0]
+        return History(quantity=quantity, unit=src.unit(quantity), point=p, at=at, frames=np.asarray(idx, np.int64),
+                       values=out)
 
 
 @dataclass
@@ -611,22 +642,22 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
     """
     from kernels.checks import positive_int
 
-    src = _Source(results, scale)
-    at = src.check_at(at)
-    quantity = src.check_quantity(quantity)
-    a, b = _xy(start, "start"), _xy(end, "end")
-    length = float(np.linalg.norm(b - a))
-    if length == 0:
-        raise ValueError(f"the line's ends coincide ({a[0]:g}, {a[1]:g}); give two distinct points")
-    if samples is None:
-        samples = max(2, int(round(length / src.grid_spacing(at))) + 1)
-    samples = positive_int(samples, "samples", minimum=2)
-    t = np.linspace(0.0, 1.0, samples)
-    pos = a[None, :] + t[:, None] * (b - a)[None, :]
-    idx = src.select(frames)
-    vals = np.full((len(idx), samples), np.nan)
-    for k, i in enumerate(idx):
-        v, valid = src.values(i, quantity)
-        vals[k] = src.interpolate(i, at, v, valid, pos)[:, 0]
-    return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
-                   distance=t * length, frames=np.asarray(idx, np.int64), values=vals)
+    with _Source(results, scale) as src:
+        at = src.check_at(at)
+        quantity = src.check_quantity(quantity)
+        a, b = _xy(start, "start"), _xy(end, "end")
+        length = float(np.linalg.norm(b - a))
+        if length == 0:
+            raise ValueError(f"the line's ends coincide ({a[0]:g}, {a[1]:g}); give two distinct points")
+        if samples is None:
+            samples = max(2, int(round(length / src.grid_spacing(at))) + 1)
+        samples = positive_int(samples, "samples", minimum=2)
+        t = np.linspace(0.0, 1.0, samples)
+        pos = a[None, :] + t[:, None] * (b - a)[None, :]
+        idx = src.select(frames)
+        vals = np.full((len(idx), samples), np.nan)
+        for k, i in enumerate(idx):
+            v, valid = src.values(i, quantity)
+            vals[k] = src.interpolate(i, at, v, valid, pos)[:, 0]
+        return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
+                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals)

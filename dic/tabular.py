@@ -24,8 +24,8 @@ import numpy as np
 
 from kernels.conventions import Status, param_names
 
-__all__ = ["UNITS", "LONG_NAMES", "columns_2d", "columns_3d", "point_dataset", "frame_dataset", "dataframe",
-           "clean_attrs"]
+__all__ = ["UNITS", "LONG_NAMES", "columns_2d", "columns_3d", "point_dataset", "frame_dataset", "FrameSchema",
+           "dataframe", "clean_attrs"]
 
 #: unit of each column ("1": dimensionless; "" for codes and flags)
 UNITS = {
@@ -225,6 +225,69 @@ def frame_dataset(frames: list[tuple[int, dict[str, np.ndarray]]], *, kind: str,
     for name, values in (frame_coords or {}).items():
         coords[name] = ("frame", np.asarray(values))
     return xr.Dataset(data, coords=coords, attrs=clean_attrs(attrs or {}))
+
+
+class FrameSchema:
+    """The columns of a frame x point table gathered one frame at a time, so that a long result file is
+    tabulated (exported) frame by frame with the table :func:`frame_dataset` would build from all of
+    its frames at once: the same column names in the same order, the same dtypes, and the same fill
+    (NaN, False for flags) where a frame lacks a column (e.g. strain).
+
+    :meth:`add` every frame's columns (first pass; only names, dtypes and the points are kept), then
+    :meth:`align` each frame's columns to the table (second pass).
+    """
+
+    def __init__(self):
+        self.names: list[str] = []
+        self._like: dict[str, np.dtype] = {}
+        self._present: dict[str, int] = {}
+        self.n_frames = 0
+        self._first = None  # (index, x, y) of the first frame
+
+    def add(self, index: int, cols: dict[str, np.ndarray]) -> None:
+        """Record one frame's columns; a frame with other points than the first is refused."""
+        if self._first is None:
+            self._first = (index, np.array(cols["x"]), np.array(cols["y"]))
+        self._check_points(index, cols)
+        for name, arr in cols.items():
+            if name not in self._like:
+                self.names.append(name)
+                self._like[name] = np.asarray(arr).dtype
+            self._present[name] = self._present.get(name, 0) + 1
+        self.n_frames += 1
+
+    def _check_points(self, index, cols) -> None:
+        first_index, x, y = self._first
+        same = (len(cols["x"]) == len(x) and np.array_equal(cols["x"], x, equal_nan=True)
+                and np.array_equal(cols["y"], y, equal_nan=True))
+        if not same:
+            raise ValueError(f"frame {index} has other points than frame {first_index}; a frame x point table "
+                             "needs the same points in every frame (export the frames one by one)")
+
+    @property
+    def n_points(self) -> int:
+        return len(self._first[1]) if self._first is not None else 0
+
+    def dtype(self, name: str) -> np.dtype:
+        """The column's dtype in the table: its own, or float (NaN fill) where some frame lacks it."""
+        like = self._like[name]
+        if self._present[name] < self.n_frames and like.kind != "b":
+            return np.result_type(like, np.float64)
+        return like
+
+    def align(self, index: int, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """One frame's columns in the table's order and dtypes, with the fill where it lacks a column."""
+        if self._first is None:
+            raise ValueError("the table has no frame (add the frames first)")
+        self._check_points(index, cols)
+        out = {}
+        for name in self.names:
+            dtype = self.dtype(name)
+            if name in cols:
+                out[name] = np.asarray(cols[name]).astype(dtype, copy=False)
+            else:
+                out[name] = np.zeros(self.n_points, bool) if dtype.kind == "b" else np.full(self.n_points, np.nan, dtype)
+        return out
 
 
 def dataframe(dataset):

@@ -97,14 +97,14 @@ def _run(fn, *args, **kwargs):
 
 
 def _load(results, quantity=None):
-    """The result file read once, and the quantity (default: u for 2-D, U for stereo)."""
-    from dic.postprocess import load_results
-    from dic.store import TrackResults
+    """The result file (left on disk: the library reads it one frame at a time) and the quantity
+    (default: u for 2-D, U for stereo)."""
+    from dic.store import ResultReader
 
-    res = _run(load_results, results)
     if quantity is None:
-        quantity = "u" if isinstance(res, TrackResults) else "U"
-    return res, quantity
+        with _run(ResultReader, results) as r:
+            quantity = "u" if r.kind.name == "dic2d" else "U"
+    return results, quantity
 
 
 def _outputs(csv_path, plot_path, names, table, plot, obj, quiet) -> None:
@@ -150,7 +150,7 @@ def strain(results, window, in_px, output, min_points, scale, quiet):
     the settings as strain_window.
     """
     from dic.postprocess import recompute_strain
-    from dic.store import read_results
+    from dic.store import ResultReader
 
     if not np.isfinite(window):
         raise click.BadParameter(f"must be a finite number, got {window}", param_hint="--window")
@@ -162,13 +162,13 @@ def strain(results, window, in_px, output, min_points, scale, quiet):
     path = _run(recompute_strain, results, output, window=window, unit="px" if in_px else "grid",
                 min_points=min_points, scale=scale)
     if not quiet:
-        res = read_results(path)
-        n = res.settings.get("strain_window")
-        for i, f in res.frames.items():
-            ok = np.asarray(f.strain["valid"], bool)
-            exx = np.asarray(f.strain["exx"])[ok]
-            click.echo(f"frame {i}: strain at {int(ok.sum())}/{ok.size} points, "
-                       f"exx mean {_fmt(exx.mean()) if exx.size else 'nan'}")
+        with ResultReader(path) as r:  # one frame at a time
+            n = r.settings.get("strain_window")
+            for i, f in r.iter_frames():
+                ok = np.asarray(f.strain["valid"], bool)
+                exx = np.asarray(f.strain["exx"])[ok]
+                click.echo(f"frame {i}: strain at {int(ok.sum())}/{ok.size} points, "
+                           f"exx mean {_fmt(exx.mean()) if exx.size else 'nan'}")
         click.echo(f"strain window {n} grid points; results: {path}")
 
 

@@ -20,10 +20,10 @@ temporary file, space reservation, fsync, the in-use and write errors), :mod:`~d
 from .dic2d import FORMAT_NAME, FrameResult, TrackResults
 from .files import ResultFileInUse, ResultWriteError
 from .layout import DEVICE_CHECKSUM_PREFIX, SCHEMA_VERSION, device_checksum, image_digest
-from .results import KINDS, ResultReader, ResultWriter, read_field, read_results, read_stereo
+from .results import KINDS, ResultFrames, ResultReader, ResultWriter, read_field, read_results, read_stereo
 from .stereo import FORMAT_NAME as STEREO_FORMAT_NAME
 from .stereo import StereoResults
 
-__all__ = ["ResultWriter", "ResultReader", "read_results", "read_stereo", "read_field", "TrackResults",
+__all__ = ["ResultWriter", "ResultReader", "ResultFrames", "read_results", "read_stereo", "read_field", "TrackResults",
            "FrameResult", "StereoResults", "SCHEMA_VERSION", "FORMAT_NAME", "STEREO_FORMAT_NAME", "KINDS",
            "image_digest", "device_checksum", "DEVICE_CHECKSUM_PREFIX", "ResultFileInUse", "ResultWriteError"]

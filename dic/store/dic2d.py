@@ -21,7 +21,7 @@ import numpy as np
 
 from .layout import DEFAULT_COMPRESSION, Compression, StoreKind, parse_compression, plain, write_dataset
 
-__all__ = ["FORMAT_NAME", "KIND", "FrameResult", "TrackResults", "write_field2d", "read_field2d"]
+__all__ = ["FORMAT_NAME", "KIND", "FrameResult", "TrackResults", "table_attrs", "write_field2d", "read_field2d"]
 
 FORMAT_NAME = "specula-dic2d"
 FIELD_DATASETS = ("points", "u", "v", "params", "zncc", "iterations", "status", "valid", "sigma_u", "sigma_v")
@@ -157,11 +157,7 @@ class TrackResults:
         from ..tabular import frame_dataset
 
         idx = self.indices
-        shape = self.reference.get("shape") or ()
-        attrs = {"title": "Specula 2-D DIC results", "source": str(self.path), "source_format": FORMAT_NAME,
-                 "specula_version": self.attrs.get("specula_version"),
-                 "reference_path": self.reference.get("path", ""),
-                 "reference_shape": [int(v) for v in shape], "settings": self.settings}
+        attrs = table_attrs(self.path, self.attrs, self.reference, self.settings)
         return frame_dataset([(i, self.frames[i]._columns()) for i in idx], kind="dic2d", attrs=attrs,
                              frame_coords={"path": [str(self.frames[i].path) for i in idx]})
 
@@ -191,6 +187,14 @@ class TrackResults:
             else:
                 limits = None
         return frame.plot(reference, limits=limits, **kwargs)
+
+
+def table_attrs(path, attrs: dict, reference: dict, settings: dict) -> dict:
+    """The attributes of a 2-D result file's frame x point table (:meth:`TrackResults.to_xarray`, the exports)."""
+    shape = reference.get("shape") or ()
+    return {"title": "Specula 2-D DIC results", "source": str(path), "source_format": FORMAT_NAME,
+            "specula_version": attrs.get("specula_version"), "reference_path": reference.get("path", ""),
+            "reference_shape": [int(v) for v in shape], "settings": settings}
 
 
 def write_field2d(group, field2d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:

@@ -47,8 +47,8 @@ from .layout import (
     specula_version,
 )
 
-__all__ = ["ResultWriter", "ResultReader", "KINDS", "read_results", "read_stereo", "read_field", "ResultFileInUse",
-           "ResultWriteError"]
+__all__ = ["ResultWriter", "ResultReader", "ResultFrames", "KINDS", "read_results", "read_stereo", "read_field",
+           "ResultFileInUse", "ResultWriteError"]
 
 ResultFileInUse = files.ResultFileInUse
 ResultWriteError = files.ResultWriteError
@@ -666,11 +666,102 @@ class ResultReader(_ResultFile):
 
 
 # ------------------------------------------------------------------------------------------------
+# the frames of a result, one at a time
+
+
+class ResultFrames:
+    """The finished frames of one result, 2-D or stereo, read one at a time: the one way the exports and
+    the post-processing go through a whole result (memory independent of the number of frames).
+
+    ``source``: a result file (path; opened read-only until :meth:`close`), or a
+    :class:`~dic.store.TrackResults` / :class:`~dic.store.StereoResults` already in memory. Offers
+    :attr:`kind` (``"dic2d"`` | ``"stereo"``), :attr:`indices` (ascending), :attr:`settings`,
+    :meth:`read` (one frame: a :class:`~dic.store.FrameResult` or a :class:`~dic.field3d.Field3D`),
+    iteration over ``(index, frame)`` (each frame read when it is reached: a consumer that keeps none
+    holds one at a time), :meth:`frame_paths` and :meth:`table_attrs` (the attributes of the file's
+    table, as in ``to_xarray()``). Use as a context manager.
+    """
+
+    def __init__(self, source):
+        self._reader = None
+        if isinstance(source, dic2d.TrackResults):
+            self._results, self.kind = source, "dic2d"
+        elif isinstance(source, stereo.StereoResults):
+            self._results, self.kind = source, "stereo"
+        elif isinstance(source, (str, os.PathLike)):
+            self._results = None
+            self._reader = ResultReader(source)
+            self.kind = self._reader.kind.name
+        else:
+            raise ValueError("expected a result file (path), dic.store.TrackResults or dic.store.StereoResults, "
+                             f"got {type(source).__name__}")
+        self.indices: list[int] = self._reader.done_frames() if self._reader else list(self._results.indices)
+        self.settings: dict = self._reader.settings if self._reader else dict(self._results.settings or {})
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        """Close the file (a results object needs nothing); closing twice is harmless."""
+        if self._reader is not None:
+            self._reader.close()
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def read(self, index: int):
+        """Frame ``index`` (one of :attr:`indices`)."""
+        if self._reader is not None:
+            return self._reader.read_frame(index)
+        table = self._results.frames if self.kind == "dic2d" else self._results.fields
+        if index not in table:
+            raise ValueError(f"no finished frame {index!r}; finished: {self.indices}")
+        return table[index]
+
+    def __iter__(self):
+        for index in self.indices:
+            yield index, self.read(index)
+
+    def frame_paths(self, index: int, frame=None) -> tuple[str, ...]:
+        """The image path(s) of frame ``index``: (path,) (2-D) or (left, right) (stereo)."""
+        if self._reader is not None:
+            return self._reader.frame_paths(index)
+        if self.kind == "dic2d":
+            return (str((frame if frame is not None else self.read(index)).path),)
+        return tuple(self._results.paths.get(index, ("", "")))
+
+    def table_attrs(self, first=None) -> dict:
+        """The attributes of the file's frame x point table (``to_xarray()``); ``first``: the first frame,
+        when the caller has it (stereo tables name its frame and grid)."""
+        if self.kind == "dic2d":
+            if self._reader is not None:
+                r = self._reader
+                return dic2d.table_attrs(r.path, r.attrs, r.reference, self.settings)
+            res = self._results
+            return dic2d.table_attrs(res.path, res.attrs, res.reference, res.settings)
+        if first is None and self.indices:
+            first = self.read(self.indices[0])
+        if self._reader is not None:  # the rig as read_stereo gives it (a StereoRig's dict)
+            from calibration.stereo import StereoRig
+
+            rig = StereoRig.from_dict(self._reader.rig)
+            return stereo.table_attrs(self.settings, rig, self._reader.reference["shape"], first)
+        res = self._results
+        return stereo.table_attrs(res.settings, res.rig, res.reference_shape, first)
+
+
+# ------------------------------------------------------------------------------------------------
 # whole-file readers, one per kind
 
 
 def read_results(path) -> dic2d.TrackResults:
-    """Read a 2-D DIC result file (complete frames only) into a :class:`dic.store.TrackResults`."""
+    """Read a 2-D DIC result file (complete frames only) into a :class:`dic.store.TrackResults`.
+
+    Every frame is held in memory; to go through a long file one frame at a time use
+    :class:`ResultFrames` or :meth:`ResultReader.iter_frames` (the exports and post-processing do)."""
     with ResultReader(path, kind="dic2d") as r:
         frames = {i: r.read_frame(i) for i in r.done_frames()}
         return dic2d.TrackResults(path=r.path, attrs=r.attrs, reference=r.reference, settings=r.settings,
@@ -684,7 +775,8 @@ def read_field(path, index: int):
 
 
 def read_stereo(path) -> stereo.StereoResults:
-    """Read every finished state of a stereo result file into a :class:`dic.store.StereoResults`."""
+    """Read every finished state of a stereo result file into a :class:`dic.store.StereoResults` (all in
+    memory; :class:`ResultFrames` reads one state at a time)."""
     from calibration.stereo import StereoRig
 
     with ResultReader(path, kind="stereo") as r:

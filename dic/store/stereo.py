@@ -23,7 +23,7 @@ import numpy as np
 
 from .layout import DEFAULT_COMPRESSION, Compression, StoreKind, parse_compression, write_dataset
 
-__all__ = ["FORMAT_NAME", "KIND", "StereoResults", "write_field3d", "read_field3d", "write_match", "read_match"]
+__all__ = ["FORMAT_NAME", "KIND", "StereoResults", "table_attrs", "write_field3d", "read_field3d", "write_match", "read_match"]
 
 FORMAT_NAME = "specula-stereo"
 MATCH_DATASETS = ("points_left", "points_right", "params", "zncc", "iterations", "icgn_status", "epipolar_px",
@@ -91,12 +91,7 @@ class StereoResults:
         from ..tabular import columns_3d, frame_dataset
 
         idx = self.indices
-        f0 = self.fields[idx[0]] if idx else None
-        rig = self.rig.to_dict() if hasattr(self.rig, "to_dict") else self.rig
-        attrs = {"title": "Specula stereo-DIC results", "source_format": FORMAT_NAME, "settings": self.settings,
-                 "rig": rig, "reference_shape": [int(v) for v in self.reference_shape],
-                 "frame_name": f0.frame_name if f0 is not None else None,
-                 "grid_shape": list(f0.grid_shape) if f0 is not None and f0.grid_shape is not None else None}
+        attrs = table_attrs(self.settings, self.rig, self.reference_shape, self.fields[idx[0]] if idx else None)
         paths = [tuple(self.paths.get(i, ("", ""))) for i in idx]
         return frame_dataset([(i, columns_3d(self.fields[i])) for i in idx], kind="stereo", attrs=attrs,
                              status_codes=StereoStatus,
@@ -131,6 +126,16 @@ class StereoResults:
             except (TypeError, ValueError):
                 raise ValueError(f"limits must be 'frame', 'sequence' or (vmin, vmax), got {limits!r}") from None
         return f.plot(quantity, image, **kwargs)
+
+
+def table_attrs(settings: dict, rig, reference_shape, first) -> dict:
+    """The attributes of a stereo result file's frame x point table (:meth:`StereoResults.to_xarray`, the
+    exports): ``rig`` a StereoRig or its dict, ``first`` the first state's Field3D (or None)."""
+    rig = rig.to_dict() if hasattr(rig, "to_dict") else rig
+    return {"title": "Specula stereo-DIC results", "source_format": FORMAT_NAME, "settings": settings,
+            "rig": rig, "reference_shape": [int(v) for v in reference_shape],
+            "frame_name": first.frame_name if first is not None else None,
+            "grid_shape": list(first.grid_shape) if first is not None and first.grid_shape is not None else None}
 
 
 def write_field3d(group, field3d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:
