@@ -128,6 +128,8 @@ def read_image(path, *, as_grey: bool = False) -> np.ndarray:
 
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_FAST_MAX_PIXELS = 89_478_485  # Pillow's MAX_IMAGE_PIXELS: larger images go to Pillow, which guards them
+_PNG_MAX_RATIO = 1100  # deflate holds at most about 1032 bytes per byte it stores
 
 
 def _plain_grey_png(data: bytes) -> tuple[int, int] | None:
@@ -140,6 +142,8 @@ def _plain_grey_png(data: bytes) -> tuple[int, int] | None:
     depth, colour, compression, filtering, interlace = data[24:29]
     if width == 0 or height == 0 or depth not in (8, 16) or (colour, compression, filtering, interlace) != (0, 0, 0, 0):
         return None
+    if width * height > _PNG_FAST_MAX_PIXELS or width * height * (depth // 8) > _PNG_MAX_RATIO * len(data):
+        return None  # what Pillow's decompression-bomb check is there for, or pixels these bytes cannot hold
     pos, n, image_data = 8, len(data), False
     while pos + 12 <= n:
         length = int.from_bytes(data[pos:pos + 4], "big")

@@ -229,3 +229,28 @@ def test_grey_png_read_through_opencv_has_pillows_pixels(tmp_path, rng):
             read_image(tmp_path / "crc.png")
     else:
         assert np.array_equal(read_image(tmp_path / "crc.png"), pil)
+
+
+def test_png_headers_that_promise_more_pixels_than_the_file_holds_go_to_pillow(tmp_path):
+    """A PNG whose header claims huge dimensions is not handed to OpenCV (which would allocate them
+    first): Pillow reads it, with its decompression-bomb guard, and read_image says it cannot read it."""
+    import struct
+    import zlib
+
+    import kernels.images as images
+
+    def png(width, height, idat=b""):
+        ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+        return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", idat)
+                + _png_chunk(b"IEND", b""))
+
+    small = png(4, 3, zlib.compress(b"".join(b"\x00" + bytes([10 * r + c for c in range(4)]) for r in range(3))))
+    assert images._plain_grey_png(small) == (3, 4)
+    (tmp_path / "small.png").write_bytes(small)
+    assert np.array_equal(read_image(tmp_path / "small.png"), [[0, 1, 2, 3], [10, 11, 12, 13], [20, 21, 22, 23]])
+    for w, h in [(30000, 30000), (5000, 5000)]:  # beyond Pillow's pixel limit; more than 1100 x the file's bytes
+        data = png(w, h, zlib.compress(b"\x00" * 100))
+        assert images._plain_grey_png(data) is None
+        (tmp_path / "big.png").write_bytes(data)
+        with pytest.raises(ValueError, match="cannot read image .*big.png"):
+            read_image(tmp_path / "big.png")
