@@ -132,17 +132,27 @@ _PNG_FAST_MAX_PIXELS = 89_478_485  # Pillow's MAX_IMAGE_PIXELS: larger images go
 _PNG_MAX_RATIO = 1100  # deflate holds at most about 1032 bytes per byte it stores
 
 
+def _grey_png_header(head: bytes) -> tuple[int, int, int] | None:
+    """``(height, width, bytes per pixel)`` from a PNG file's first 29 bytes when it is 8- or 16-bit grey and
+    not interlaced; None otherwise."""
+    if len(head) < 29 or head[:8] != _PNG_SIGNATURE or head[8:16] != b"\x00\x00\x00\rIHDR":
+        return None
+    width = int.from_bytes(head[16:20], "big")
+    height = int.from_bytes(head[20:24], "big")
+    depth, colour, compression, filtering, interlace = head[24:29]
+    if width == 0 or height == 0 or depth not in (8, 16) or (colour, compression, filtering, interlace) != (0, 0, 0, 0):
+        return None
+    return height, width, depth // 8
+
+
 def _plain_grey_png(data: bytes) -> tuple[int, int] | None:
     """``(height, width)`` of a PNG file's bytes when it is 8- or 16-bit grey, not interlaced, and its
     chunks run whole from the header to the end chunk (checksums not checked here); None otherwise."""
-    if len(data) < 45 or data[:8] != _PNG_SIGNATURE or data[8:16] != b"\x00\x00\x00\rIHDR":
+    header = _grey_png_header(data[:29])
+    if header is None:
         return None
-    width = int.from_bytes(data[16:20], "big")
-    height = int.from_bytes(data[20:24], "big")
-    depth, colour, compression, filtering, interlace = data[24:29]
-    if width == 0 or height == 0 or depth not in (8, 16) or (colour, compression, filtering, interlace) != (0, 0, 0, 0):
-        return None
-    if width * height > _PNG_FAST_MAX_PIXELS or width * height * (depth // 8) > _PNG_MAX_RATIO * len(data):
+    height, width, depth = header
+    if width * height > _PNG_FAST_MAX_PIXELS or width * height * depth > _PNG_MAX_RATIO * len(data):
         return None  # what Pillow's decompression-bomb check is there for, or pixels these bytes cannot hold
     pos, n, image_data = 8, len(data), False
     while pos + 12 <= n:
@@ -162,7 +172,10 @@ def _read_plain_grey_png(p: Path) -> np.ndarray | None:
     Pillow; the same pixels, tests/test_io.py), or None (then Pillow reads it, as for every other PNG):
     another kind of PNG, a file whose chunks do not run whole to the end, anything OpenCV does not decode."""
     with open(p, "rb") as fh:
-        data = fh.read()
+        head = fh.read(29)
+        if _grey_png_header(head) is None:  # another kind of PNG: not read any further here
+            return None
+        data = head + fh.read()
     shape = _plain_grey_png(data)
     if shape is None:
         return None

@@ -209,8 +209,10 @@ def test_grey_png_read_through_opencv_has_pillows_pixels(tmp_path, rng):
     palette = buf.getvalue()
     interlaced = bytearray(raw8)
     interlaced[28] = 1
-    for data in (one_bit, palette, bytes(interlaced)):
+    for k, data in enumerate((one_bit, palette, bytes(interlaced))):
         assert images._plain_grey_png(data) is None
+        (tmp_path / f"other{k}.png").write_bytes(data)
+        assert images._read_plain_grey_png(tmp_path / f"other{k}.png") is None
     (tmp_path / "bits.png").write_bytes(one_bit)
     assert read_image(tmp_path / "bits.png").dtype == np.uint8 and np.array_equal(read_image(tmp_path / "bits.png"),
                                                                                    (a8 > 128).astype(np.uint8))
