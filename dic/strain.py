@@ -26,7 +26,7 @@ from scipy import ndimage
 
 from kernels.checks import as_points, odd_int, positive_int
 
-__all__ = ["StrainField", "strain", "grid_layout", "check_strain_window"]
+__all__ = ["StrainField", "StrainPlan", "strain", "grid_layout", "check_strain_window"]
 
 
 @dataclass
@@ -181,6 +181,141 @@ def check_strain_window(window, grid_shape, *, min_points: int | None = None) ->
     return window, mp
 
 
+def _kernels(window: int):
+    """The fit window's weights: (1, Δcol, Δrow, Δcol², Δcol Δrow, Δrow²), each (window, window)."""
+    h = window // 2
+    off = np.arange(-h, h + 1, dtype=np.float64)
+    kx = np.broadcast_to(off[None, :], (window, window))  # Δcol
+    ky = np.broadcast_to(off[:, None], (window, window))  # Δrow
+    ones = np.ones((window, window))
+    return ones, kx, ky, kx * kx, kx * ky, ky * ky
+
+
+def _correlate(a, k):
+    """Σ over the window centred on each node of ``a * k`` (zeros outside the grid)."""
+    return ndimage.correlate(a, k, mode="constant", cval=0.0)
+
+
+class StrainPlan:
+    """What :func:`strain` works out from the points alone, computed once for fields that share them.
+
+    The frames of a sequence all have the same POIs. A plan holds their grid layout
+    (:func:`grid_layout`: ``np.unique`` over the points) and the grid cell of each point, and,
+    for the last set of valid points it was given, the fits' normal matrices and which points
+    have a fit. These change only when the valid points change. ``plan.strain(field)`` is
+    bit for bit ``strain(field, window=window, min_points=min_points)``; :func:`strain` itself
+    runs through a plan made for the call.
+
+    Parameters
+    ----------
+    points : (N, 2) float
+        The POIs (px) on a regular grid or a subset of one, as for :func:`strain`.
+    window, min_points : int
+        As for :func:`strain` (checked against the grid: :func:`check_strain_window`).
+
+    Attributes
+    ----------
+    points, grid_index, grid_shape, step, window, min_points
+        The points (a read-only copy) and their grid (as in :class:`StrainField`).
+
+    Memory: about 40 bytes per point for the layout, and about 100 more for the
+    normal matrices of the last set of valid points. Calls from several threads are safe; each
+    call reads the cached entry once.
+
+    Raises
+    ------
+    ValueError
+        Points not on a regular grid, duplicates, a window no grid point can fill.
+    """
+
+    def __init__(self, points, *, window: int = 5, min_points: int | None = None):
+        pts = np.array(as_points(points), dtype=np.float64, order="C", copy=True)
+        index, shape, step = grid_layout(pts)
+        self.window, self.min_points = check_strain_window(window, shape, min_points=min_points)
+        pts.flags.writeable = False
+        index.flags.writeable = False
+        self.points = pts
+        self.grid_index = index
+        self.grid_shape = shape
+        self.step = step
+        self._flat = index[:, 1] * shape[1] + index[:, 0]  # each point's node in the flattened grid
+        self._flat.flags.writeable = False
+        self._weights = _kernels(self.window)
+        self._fits_cache = None  # (valid, flat of the valid points, ok, n_fit, flat of the ok points, normal matrices)
+
+    def __repr__(self) -> str:
+        return (f"StrainPlan({len(self.points)} points, grid {self.grid_shape[0]} x {self.grid_shape[1]}, "
+                f"window {self.window})")
+
+    def matches(self, points) -> bool:
+        """Whether ``points`` (N, 2) are this plan's points (equal values, same order)."""
+        pts = np.asarray(points)
+        return pts.shape == self.points.shape and bool(np.array_equal(pts, self.points))
+
+    def strain(self, field) -> StrainField:
+        """:func:`strain` of ``field`` (its ``points`` must be the plan's; ValueError otherwise)."""
+        points, u, v, valid = _field_arrays(field)
+        if not self.matches(points):
+            raise ValueError(f"the field's points ({points.shape[0]} points) are not those of this StrainPlan "
+                             f"({len(self.points)} points): make a plan of the field's points")
+        return self._strain(points, u, v, valid)
+
+    def _fits(self, valid: np.ndarray):
+        """The parts of the fits that depend on which points are valid (cached for the last ``valid``)."""
+        cached = self._fits_cache
+        if cached is not None and np.array_equal(cached[0], valid):
+            return cached
+        flat = self._flat
+        mask = np.zeros(self.grid_shape)
+        flat_sel = flat[valid]
+        mask.reshape(-1)[flat_sel] = 1.0
+        s0, sx, sy, sxx, sxy, syy = (_correlate(mask, k).reshape(-1)[flat] for k in self._weights)
+        n_fit = np.rint(s0).astype(np.int64)
+        # a fit needs enough points that are not all on one line: the centred second moments'
+        # determinant is 0 for collinear points (in grid units, so the threshold is scale-free)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cxx = sxx - sx ** 2 / s0
+            cyy = syy - sy ** 2 / s0
+            cxy = sxy - sx * sy / s0
+            det = cxx * cyy - cxy**2
+        ok = valid & (n_fit >= self.min_points) & (det > 1e-6 * np.maximum(s0, 1.0) ** 2)
+        at = np.flatnonzero(ok)
+        normal = np.empty((at.size, 3, 3))  # the normal matrix of each fit
+        for i, row in enumerate(((s0, sx, sy), (sx, sxx, sxy), (sy, sxy, syy))):
+            for j, m in enumerate(row):
+                normal[:, i, j] = m[at]
+        cached = (valid.copy(), flat_sel, ok, n_fit, flat[ok], normal)
+        self._fits_cache = cached
+        return cached
+
+    def _strain(self, points, u, v, valid) -> StrainField:
+        _, flat_sel, ok, n_fit, flat_ok, normal = self._fits(valid)
+        step = self.step
+        ug = np.zeros(self.grid_shape)
+        vg = np.zeros(self.grid_shape)
+        ug.reshape(-1)[flat_sel] = u[valid]
+        vg.reshape(-1)[flat_sel] = v[valid]
+        grads = np.full((points.shape[0], 4), np.nan)
+        if normal.shape[0]:
+            rhs = np.empty((normal.shape[0], 3, 2))  # Σ u, Σ u Δcol, Σ u Δrow (and v) over each window
+            for j, k in enumerate(self._weights[:3]):
+                rhs[:, j, 0] = _correlate(ug, k).reshape(-1)[flat_ok]
+                rhs[:, j, 1] = _correlate(vg, k).reshape(-1)[flat_ok]
+            sol = np.linalg.solve(normal, rhs)
+            grads[ok] = np.stack([sol[:, 1, 0] / step[0], sol[:, 2, 0] / step[1],
+                                  sol[:, 1, 1] / step[0], sol[:, 2, 1] / step[1]], -1)
+        ux, uy, vx, vy = grads.T
+        return StrainField(
+            points=points.copy(), dudx=ux, dudy=uy, dvdx=vx, dvdy=vy,
+            exx=ux.copy(), eyy=vy.copy(), exy=0.5 * (uy + vx),
+            Exx=ux + 0.5 * (ux * ux + vx * vx),
+            Eyy=vy + 0.5 * (uy * uy + vy * vy),
+            Exy=0.5 * (uy + vx + ux * uy + vx * vy),
+            valid=ok.copy(), n_fit=n_fit.copy(), window=self.window, step=step, grid_index=self.grid_index.copy(),
+            grid_shape=self.grid_shape,
+        )
+
+
 def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainField:
     """Pointwise least-squares strain (small and Green-Lagrange) of a displacement field.
 
@@ -201,55 +336,4 @@ def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainFi
     StrainField
     """
     points, u, v, valid = _field_arrays(field)
-    index, shape, step = grid_layout(points)
-    window, min_points = check_strain_window(window, shape, min_points=min_points)
-
-    mask = np.zeros(shape)
-    ug = np.zeros(shape)
-    vg = np.zeros(shape)
-    sel = valid
-    mask[index[sel, 1], index[sel, 0]] = 1.0
-    ug[index[sel, 1], index[sel, 0]] = u[sel]
-    vg[index[sel, 1], index[sel, 0]] = v[sel]
-
-    h = window // 2
-    off = np.arange(-h, h + 1, dtype=np.float64)
-    kx = np.broadcast_to(off[None, :], (window, window))  # Δcol
-    ky = np.broadcast_to(off[:, None], (window, window))  # Δrow
-    ones = np.ones((window, window))
-
-    def corr(a, k):  # Σ over the window centred on each node of a * k (zeros outside the grid)
-        return ndimage.correlate(a, k, mode="constant", cval=0.0)
-
-    s0, sx, sy = corr(mask, ones), corr(mask, kx), corr(mask, ky)
-    sxx, sxy, syy = corr(mask, kx * kx), corr(mask, kx * ky), corr(mask, ky * ky)
-    M = np.stack([np.stack([s0, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)], -2)
-    rhs_u = np.stack([corr(ug, ones), corr(ug, kx), corr(ug, ky)], -1)
-    rhs_v = np.stack([corr(vg, ones), corr(vg, kx), corr(vg, ky)], -1)
-
-    r, c = index[:, 1], index[:, 0]
-    Mp = M[r, c]
-    n_fit = np.rint(s0[r, c]).astype(np.int64)
-    # a fit needs enough points that are not all on one line: the centred second moments'
-    # determinant is 0 for collinear points (in grid units, so the threshold is scale-free)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cxx = sxx[r, c] - sx[r, c] ** 2 / s0[r, c]
-        cyy = syy[r, c] - sy[r, c] ** 2 / s0[r, c]
-        cxy = sxy[r, c] - sx[r, c] * sy[r, c] / s0[r, c]
-        det = cxx * cyy - cxy**2
-    ok = valid & (n_fit >= min_points) & (det > 1e-6 * np.maximum(s0[r, c], 1.0) ** 2)
-    grads = np.full((points.shape[0], 4), np.nan)
-    if np.any(ok):
-        rhs = np.stack([rhs_u[r[ok], c[ok]], rhs_v[r[ok], c[ok]]], -1)  # (n, 3, 2)
-        sol = np.linalg.solve(Mp[ok], rhs)
-        grads[ok] = np.stack([sol[:, 1, 0] / step[0], sol[:, 2, 0] / step[1],
-                              sol[:, 1, 1] / step[0], sol[:, 2, 1] / step[1]], -1)
-    ux, uy, vx, vy = grads.T
-    return StrainField(
-        points=points.copy(), dudx=ux, dudy=uy, dvdx=vx, dvdy=vy,
-        exx=ux.copy(), eyy=vy.copy(), exy=0.5 * (uy + vx),
-        Exx=ux + 0.5 * (ux * ux + vx * vx),
-        Eyy=vy + 0.5 * (uy * uy + vy * vy),
-        Exy=0.5 * (uy + vx + ux * uy + vx * vy),
-        valid=ok, n_fit=n_fit, window=window, step=step, grid_index=index, grid_shape=shape,
-    )
+    return StrainPlan(points, window=window, min_points=min_points)._strain(points, u, v, valid)

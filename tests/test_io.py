@@ -155,3 +155,104 @@ def test_reader_arguments_are_checked(tmp_path):
         read_image(tmp_path / "a.png", as_grey="yes")
     with pytest.raises(ValueError, match="bits must be 8 or 16"):
         write_image(tmp_path / "b.png", np.zeros((4, 4)), bits=12)
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    import struct
+    import zlib
+
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+def _pillow_pixels(path):
+    """The PNG reader before the OpenCV path (imageio/Pillow): the pixels read_image must give."""
+    import imageio.v3 as iio
+
+    return np.asarray(iio.imread(path, plugin="pillow"))
+
+
+def test_grey_png_read_through_opencv_has_pillows_pixels(tmp_path, rng):
+    """8/16-bit grey PNGs are decoded by OpenCV (less CPU); the pixels and dtype are Pillow's, with
+    ancillary chunks too (gamma, significant bits, transparency), and every other PNG is still Pillow's."""
+    import io
+
+    from PIL import Image
+
+    import kernels.images as images
+
+    a8 = rng.integers(0, 256, (37, 53), dtype=np.uint8)
+    a16 = rng.integers(0, 65536, (37, 53), dtype=np.uint16)
+    write_image(tmp_path / "g8.png", a8)
+    write_image(tmp_path / "g16.png", a16)
+    raw8 = (tmp_path / "g8.png").read_bytes()
+    raw16 = (tmp_path / "g16.png").read_bytes()
+    variants = {"gamma.png": raw8[:33] + _png_chunk(b"gAMA", (45455).to_bytes(4, "big")) + raw8[33:],
+                "sbit.png": raw8[:33] + _png_chunk(b"sBIT", bytes([5])) + raw8[33:],
+                "sbit16.png": raw16[:33] + _png_chunk(b"sBIT", bytes([12])) + raw16[33:],
+                "trns.png": raw8[:33] + _png_chunk(b"tRNS", (7).to_bytes(2, "big")) + raw8[33:],
+                "tail.png": raw8 + b"bytes after the end"}
+    for name, data in variants.items():
+        (tmp_path / name).write_bytes(data)
+    for name, want in [("g8.png", a8), ("g16.png", a16), ("gamma.png", a8), ("sbit.png", a8), ("sbit16.png", a16),
+                       ("trns.png", a8), ("tail.png", a8)]:
+        got = read_image(tmp_path / name)
+        pil = _pillow_pixels(tmp_path / name)
+        assert got.dtype == pil.dtype == want.dtype and np.array_equal(got, pil) and np.array_equal(got, want), name
+        fast = images._read_plain_grey_png(tmp_path / name)  # the OpenCV path: taken, the same pixels
+        assert fast is not None and fast.dtype == want.dtype and np.array_equal(fast, want), name
+    # other PNGs are not for OpenCV: 1-bit, palette, grey + alpha, RGB, interlaced (header flag)
+    buf = io.BytesIO()
+    Image.fromarray(a8 > 128).save(buf, format="PNG")
+    one_bit = buf.getvalue()
+    buf = io.BytesIO()
+    Image.fromarray(a8).convert("P").save(buf, format="PNG")
+    palette = buf.getvalue()
+    interlaced = bytearray(raw8)
+    interlaced[28] = 1
+    for k, data in enumerate((one_bit, palette, bytes(interlaced))):
+        assert images._plain_grey_png(data) is None
+        (tmp_path / f"other{k}.png").write_bytes(data)
+        assert images._read_plain_grey_png(tmp_path / f"other{k}.png") is None
+    (tmp_path / "bits.png").write_bytes(one_bit)
+    assert read_image(tmp_path / "bits.png").dtype == np.uint8 and np.array_equal(read_image(tmp_path / "bits.png"),
+                                                                                   (a8 > 128).astype(np.uint8))
+    # a file whose chunks stop short is left to Pillow (which says it is truncated), and so is one OpenCV
+    # refuses (a damaged checksum): what Pillow makes of it, as before
+    for cut in (len(raw8) // 2, len(raw8) - 6):
+        assert images._plain_grey_png(raw8[:cut]) is None
+    bad = bytearray(raw8)
+    bad[len(raw8) // 2] ^= 0xFF
+    (tmp_path / "crc.png").write_bytes(bytes(bad))
+    assert images._read_plain_grey_png(tmp_path / "crc.png") is None
+    try:
+        pil = _pillow_pixels(tmp_path / "crc.png")
+    except Exception:  # noqa: BLE001 - Pillow refuses it: so must read_image
+        with pytest.raises(ValueError, match="cannot read image .*crc.png"):
+            read_image(tmp_path / "crc.png")
+    else:
+        assert np.array_equal(read_image(tmp_path / "crc.png"), pil)
+
+
+def test_png_headers_that_promise_more_pixels_than_the_file_holds_go_to_pillow(tmp_path):
+    """A PNG whose header claims huge dimensions is not handed to OpenCV (which would allocate them
+    first): Pillow reads it, with its decompression-bomb guard, and read_image says it cannot read it."""
+    import struct
+    import zlib
+
+    import kernels.images as images
+
+    def png(width, height, idat=b""):
+        ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+        return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", idat)
+                + _png_chunk(b"IEND", b""))
+
+    small = png(4, 3, zlib.compress(b"".join(b"\x00" + bytes([10 * r + c for c in range(4)]) for r in range(3))))
+    assert images._plain_grey_png(small) == (3, 4)
+    (tmp_path / "small.png").write_bytes(small)
+    assert np.array_equal(read_image(tmp_path / "small.png"), [[0, 1, 2, 3], [10, 11, 12, 13], [20, 21, 22, 23]])
+    for w, h in [(30000, 30000), (5000, 5000)]:  # beyond Pillow's pixel limit; more than 1100 x the file's bytes
+        data = png(w, h, zlib.compress(b"\x00" * 100))
+        assert images._plain_grey_png(data) is None
+        (tmp_path / "big.png").write_bytes(data)
+        with pytest.raises(ValueError, match="cannot read image .*big.png"):
+            read_image(tmp_path / "big.png")

@@ -566,3 +566,34 @@ def test_tracker_check_outliers_flags_a_false_match(sequence, monkeypatch):
     assert np.array_equal(fp.valid[others], fc.valid[others])  # nothing else flagged
     with pytest.raises(ValueError, match="check_outliers"):
         Tracker(ref, step=8, check_outliers="yes")
+
+
+def test_strain_grid_worked_out_once_and_the_strain_unchanged(sequence, tmp_path, monkeypatch):
+    """The strain's grid layout is computed once per sequence (not per frame: dic.strain.StrainPlan), and
+    each frame's strain in the file is bit for bit dic.strain.strain of that frame's field, also when the
+    valid points change from frame to frame (a flat patch in some frames: its POIs are invalid there)."""
+    import sys
+
+    from dic.strain import strain
+
+    strain_module = sys.modules["dic.strain"]  # (dic.strain is also the name of the function)
+    ref, frames = sequence
+    frames = [f.copy() for f in frames[:6]]
+    frames[1][20:60, 30:70] = 128.0  # invalid POIs in frames 2, 4 and 5
+    frames[3][20:60, 30:70] = 128.0
+    frames[4][40:90, 10:50] = 128.0
+    calls = []
+    layout = strain_module.grid_layout
+    monkeypatch.setattr(strain_module, "grid_layout", lambda p, **kw: calls.append(len(p)) or layout(p, **kw))
+    out = tmp_path / "s.h5"
+    track_sequence(ref, frames, out, step=8, device="cpu")
+    assert len(calls) == 1  # once for the sequence, not once per frame as well
+    res = read_results(out)
+    masks = {k: res.frames[k].valid.tobytes() for k in res.frames}
+    assert 3 <= len(set(masks.values())) < len(masks)  # the cached fits recomputed, and reused
+    for k, f in res.frames.items():
+        s = strain(f, window=5)
+        assert f.strain["window"] == 5 and tuple(f.strain["step"]) == s.step
+        for name in [n for n in f.strain if n not in ("window", "step")]:
+            want = np.asarray(getattr(s, name))
+            assert f.strain[name].dtype == want.dtype and f.strain[name].tobytes() == want.tobytes(), (k, name)

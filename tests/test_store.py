@@ -305,3 +305,16 @@ def test_reads_and_resumes_v1_stereo_files_of_the_old_writer(tmp_path):
         assert w.done_frames() == [] and w.read_match() is not None
         w.write_frame(0, fake_field3d(0, 0), path=("l0.tif", "r0.tif"))
     assert read_stereo(out).indices == [0]
+
+
+def test_image_digest_is_the_sha256_of_the_float32_grey_levels():
+    """The digest stored for each frame (and compared on resume): SHA-256 of the shape's text and the
+    image's C-ordered float32 bytes, whatever the array's dtype and memory order."""
+    import hashlib
+
+    rng = np.random.default_rng(5)
+    u8 = rng.integers(0, 256, (31, 47), dtype=np.uint8)
+    for img in (u8, u8.astype(np.uint16) * 257, u8.T, u8[::2, 1::3], u8.astype(np.float64) / 3, u8 > 100):
+        want = hashlib.sha256(str(img.shape).encode() + np.asarray(img, np.float32).tobytes(order="C")).hexdigest()
+        assert image_digest(img) == want
+    assert image_digest(u8) != image_digest(u8.T)

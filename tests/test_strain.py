@@ -3,8 +3,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
-from dic.strain import grid_layout, strain
+from dic.strain import StrainField, StrainPlan, grid_layout, strain
 
 
 def make_field(fun, *, step=3.0, nx=20, ny=15, x0=10.0, y0=12.0, valid=None):
@@ -113,3 +114,145 @@ def test_bad_input():
         strain(h)
     line = make_field(lambda x, y: (0.01 * x, 0 * y), ny=1)
     assert not np.any(strain(line).valid)  # collinear points: no plane can be fitted
+
+
+def _reference_strain(field, window):
+    """The strain as dic.strain.strain computed it before StrainPlan (every array from scratch): the
+    reference that the plan's cached layout and fits must match bit for bit."""
+    points = np.asarray(field.points, np.float64)
+    u, v = np.asarray(field.u, np.float64), np.asarray(field.v, np.float64)
+    valid = np.asarray(field.valid, bool) & np.isfinite(u) & np.isfinite(v)
+    index, shape, step = grid_layout(points)
+    min_points = max(3, (window // 2 + 1) ** 2)
+    mask, ug, vg = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    mask[index[valid, 1], index[valid, 0]] = 1.0
+    ug[index[valid, 1], index[valid, 0]] = u[valid]
+    vg[index[valid, 1], index[valid, 0]] = v[valid]
+    h = window // 2
+    off = np.arange(-h, h + 1, dtype=np.float64)
+    kx = np.broadcast_to(off[None, :], (window, window))
+    ky = np.broadcast_to(off[:, None], (window, window))
+    ones = np.ones((window, window))
+
+    def corr(a, k):
+        return ndimage.correlate(a, k, mode="constant", cval=0.0)
+
+    s0, sx, sy = corr(mask, ones), corr(mask, kx), corr(mask, ky)
+    sxx, sxy, syy = corr(mask, kx * kx), corr(mask, kx * ky), corr(mask, ky * ky)
+    M = np.stack([np.stack([s0, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)], -2)
+    rhs_u = np.stack([corr(ug, ones), corr(ug, kx), corr(ug, ky)], -1)
+    rhs_v = np.stack([corr(vg, ones), corr(vg, kx), corr(vg, ky)], -1)
+    r, c = index[:, 1], index[:, 0]
+    n_fit = np.rint(s0[r, c]).astype(np.int64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cxx = sxx[r, c] - sx[r, c] ** 2 / s0[r, c]
+        cyy = syy[r, c] - sy[r, c] ** 2 / s0[r, c]
+        cxy = sxy[r, c] - sx[r, c] * sy[r, c] / s0[r, c]
+        det = cxx * cyy - cxy**2
+    ok = valid & (n_fit >= min_points) & (det > 1e-6 * np.maximum(s0[r, c], 1.0) ** 2)
+    grads = np.full((len(points), 4), np.nan)
+    if np.any(ok):
+        sol = np.linalg.solve(M[r, c][ok], np.stack([rhs_u[r[ok], c[ok]], rhs_v[r[ok], c[ok]]], -1))
+        grads[ok] = np.stack([sol[:, 1, 0] / step[0], sol[:, 2, 0] / step[1],
+                              sol[:, 1, 1] / step[0], sol[:, 2, 1] / step[1]], -1)
+    ux, uy, vx, vy = grads.T
+    return {"dudx": ux, "dudy": uy, "dvdx": vx, "dvdy": vy, "exx": ux, "eyy": vy, "exy": 0.5 * (uy + vx),
+            "Exx": ux + 0.5 * (ux * ux + vx * vx), "Eyy": vy + 0.5 * (uy * uy + vy * vy),
+            "Exy": 0.5 * (uy + vx + ux * uy + vx * vy), "valid": ok, "n_fit": n_fit, "grid_index": index,
+            "points": points}
+
+
+def _bits(a):
+    a = np.ascontiguousarray(a)
+    return a.dtype.str, a.shape, a.tobytes()
+
+
+def _assert_same_strain(s, ref):
+    names = StrainField.COMPONENTS + ("valid", "n_fit", "grid_index", "points")
+    if isinstance(ref, dict):
+        assert [_bits(getattr(s, k)) for k in names] == [_bits(ref[k]) for k in names]
+    else:
+        assert [_bits(getattr(s, k)) for k in names] == [_bits(getattr(ref, k)) for k in names]
+        assert (s.window, s.step, s.grid_shape) == (ref.window, ref.step, ref.grid_shape)
+
+
+@pytest.mark.parametrize("window", [3, 5, 7])
+def test_a_plan_reused_over_frames_is_strain_bit_for_bit(rng, window):
+    """One StrainPlan over frames whose valid points change (the cached fits recomputed), stay the same
+    (the cache reused) or come back: every frame bit for bit the strain computed from scratch."""
+    base = make_field(lambda x, y: (0.0 * x, 0.0 * y), step=5.0, nx=31, ny=27)
+    keep = np.ones(len(base.points), bool)
+    keep[rng.choice(len(keep), 40, replace=False)] = False  # an ROI: a subset of the grid
+    points = base.points[keep]
+    n = len(points)
+    plan = StrainPlan(points, window=window)
+    masks = [np.ones(n, bool), rng.random(n) > 0.05, None, rng.random(n) > 0.6, None, None, np.zeros(n, bool)]
+    masks[2] = masks[1].copy()  # the same valid points again: the cached fits are used
+    masks[4] = masks[5] = masks[1]  # back after other ones: recomputed, then used
+    hits = 0
+    for k, valid in enumerate(masks):
+        u = 0.01 * points[:, 0] - 0.004 * points[:, 1] + rng.normal(0, 0.05, n)
+        v = 0.002 * points[:, 0] ** 1.5 / 40 + rng.normal(0, 0.05, n)
+        if k == 3:
+            u[rng.choice(n, 7)] = np.nan  # non-finite displacements are left out, as invalid points
+        field = SimpleNamespace(points=points.copy(), u=u, v=v, valid=valid.copy())
+        before = plan._fits_cache
+        s = plan.strain(field)
+        hits += before is not None and plan._fits_cache is before
+        _assert_same_strain(s, _reference_strain(field, window))
+        _assert_same_strain(s, strain(field, window=window))
+    assert hits == 2
+    # the valid array handed to the plan is not its cache key: changing it afterwards changes the next fit
+    valid = np.ones(n, bool)
+    field = SimpleNamespace(points=points, u=u, v=v, valid=valid)
+    plan.strain(field)
+    valid[: n // 3] = False
+    _assert_same_strain(plan.strain(field), _reference_strain(field, window))
+
+
+def test_strain_is_the_reference_algorithm_bit_for_bit(rng):
+    f = make_field(lambda x, y: (0.012 * x - 0.003 * y ** 1.2, -0.007 * x + 0.002 * y), step=3.0, nx=40, ny=33,
+                   valid=rng.random(40 * 33) > 0.1)
+    for window in (3, 5, 9):
+        _assert_same_strain(strain(f, window=window), _reference_strain(f, window))
+
+
+def test_strain_plan_results_are_the_callers():
+    f = make_field(lambda x, y: (0.01 * x, -0.02 * y), nx=12, ny=10)
+    plan = StrainPlan(f.points, window=5)
+    a = plan.strain(f)
+    a.grid_index[:] = -1
+    a.valid[:] = False
+    a.n_fit[:] = 0
+    f.points[0, 0] = -99.0  # the plan keeps its own copy of the points
+    b = plan.strain(make_field(lambda x, y: (0.01 * x, -0.02 * y), nx=12, ny=10))
+    assert b.grid_index.min() == 0 and b.valid.all() and b.n_fit.min() == 9 and np.allclose(b.exx, 0.01)
+    assert not plan.points.flags.writeable and plan.grid_shape == (10, 12) and plan.step == (3.0, 3.0)
+    assert "120 points" in repr(plan)
+
+
+def test_strain_plan_refuses_bad_input():
+    f = make_field(lambda x, y: (0 * x, 0 * y), nx=8, ny=6)
+    with pytest.raises(ValueError, match="odd integer >= 3"):
+        StrainPlan(f.points, window=4)
+    with pytest.raises(ValueError, match="min_points must be in"):
+        StrainPlan(f.points, window=3, min_points=10)
+    with pytest.raises(ValueError, match="use a window of at most"):
+        StrainPlan(f.points, window=15)
+    with pytest.raises(ValueError, match="not on a regular grid"):
+        StrainPlan(f.points + np.random.default_rng(0).normal(0, 0.3, f.points.shape))
+    with pytest.raises(ValueError, match="duplicates"):
+        StrainPlan(np.vstack([f.points, f.points[:1]]))
+    with pytest.raises(ValueError, match="points"):
+        StrainPlan(np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        StrainPlan(np.full((4, 2), np.nan))
+    plan = StrainPlan(f.points, window=3)
+    other = make_field(lambda x, y: (0 * x, 0 * y), nx=8, ny=6, x0=11.0)
+    with pytest.raises(ValueError, match="not those of this StrainPlan"):
+        plan.strain(other)
+    with pytest.raises(ValueError, match="not those of this StrainPlan"):
+        plan.strain(SimpleNamespace(points=f.points[:-1], u=f.u[:-1], v=f.v[:-1]))
+    with pytest.raises(ValueError, match="points, u, v"):
+        plan.strain(object())
+    assert plan.matches(f.points) and not plan.matches(other.points) and not plan.matches(f.points[::-1])

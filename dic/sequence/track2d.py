@@ -20,7 +20,14 @@ import numpy as np
 
 from kernels.conventions import round_half_away
 
-from .chunks import ChunkedTracker, bytes_per_poi, default_max_memory, strain_in_bands, write_depth
+from .chunks import (
+    STRAIN_BAND_POINTS,
+    ChunkedTracker,
+    bytes_per_poi,
+    default_max_memory,
+    strain_in_bands,
+    write_depth,
+)
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import (
     AUTO_VALID,
@@ -417,11 +424,15 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         return tracker0_holder[0]
 
     n = len(points0)
+    strain_plan = None  # the strain's grid and fits worked out once for the POIs (every frame has the same)
     if strain_window:
-        from ..strain import check_strain_window, grid_layout
+        from ..strain import StrainPlan, check_strain_window, grid_layout
 
         try:
-            check_strain_window(strain_window, grid_layout(points0)[1])
+            if n <= STRAIN_BAND_POINTS:
+                strain_plan = StrainPlan(points0, window=strain_window)
+            else:  # huge grids: strain in bands of rows (bounded memory), the grid checked here
+                check_strain_window(strain_window, grid_layout(points0)[1])
         except ValueError as exc:
             raise ValueError(f"{exc} (strain_window=0 skips strain)") from None
     zero = _State(0, np.zeros((n, 6 if order == 1 else 12)), np.ones(n, bool), np.zeros(n, np.int32))
@@ -475,8 +486,11 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         def finish(k: int, lag, raw_seconds: float, ref_index: int, item: Loaded):
             strain = None
             if strain_window:
-                try:  # a band of grid rows at a time: bounded memory, the same strain (dic.sequence.chunks)
-                    strain = strain_in_bands(lag, strain_window)
+                try:
+                    if strain_plan is not None and strain_plan.matches(lag.points):
+                        strain = strain_plan.strain(lag)  # bit for bit dic.strain.strain
+                    else:  # a band of grid rows at a time: bounded memory, the same strain (dic.sequence.chunks)
+                        strain = strain_in_bands(lag, strain_window)
                 except ValueError as exc:
                     raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
             attrs = {"seconds": raw_seconds, "reference_index": int(ref_index)}

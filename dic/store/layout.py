@@ -175,7 +175,7 @@ def image_digest(image) -> str:
     arr = np.ascontiguousarray(arr, dtype=np.float32)
     h = hashlib.sha256()
     h.update(str(arr.shape).encode())
-    h.update(arr.tobytes())
+    h.update(arr)  # the array's own buffer (C-contiguous): no copy of its bytes
     return h.hexdigest()
 
 
