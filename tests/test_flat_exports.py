@@ -6,7 +6,7 @@ import tracemalloc
 import numpy as np
 import pytest
 from test_export_formats import field2d, results3d  # noqa: F401 (a fixture)
-from test_store_compression import KW, big_field
+from test_store_compression import KW, long_result_file
 
 from dic.export import export_results, write_csv, write_mat, write_netcdf
 from dic.postprocess import extensometer, line_profile, point_history, recompute_strain
@@ -195,19 +195,11 @@ def test_mat_refuses_a_variable_over_what_a_v5_file_holds(monkeypatch, tmp_path)
 SHORT, LONG = 12, 120  # frames
 
 
-def _long_file(path, n_frames, n_side=30):
-    with ResultWriter(path, **KW) as w:
-        for k in range(1, n_frames + 1):
-            f = big_field(k, n_side=n_side)
-            f.u = f.u + 0.01 * k
-            w.write_frame(k, f, strain=strain(f, window=3))
-    return path
-
-
 @pytest.fixture(scope="module")
 def long_files(tmp_path_factory):
     d = tmp_path_factory.mktemp("long")
-    return _long_file(d / "warm.h5", 2), _long_file(d / "short.h5", SHORT), _long_file(d / "long.h5", LONG)
+    return tuple(long_result_file(d / name, n, n_side=30) for name, n in (("warm.h5", 2), ("short.h5", SHORT),
+                                                                           ("long.h5", LONG)))
 
 
 def _peak(fn) -> int:

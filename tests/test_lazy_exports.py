@@ -2,24 +2,14 @@
 import tracemalloc
 
 import numpy as np
-from test_store_compression import KW, big_field
+from test_store_compression import long_result_file
 
 from dic.export import export_results, write_vtk_series
-from dic.store import ResultWriter, read_results
-from dic.strain import strain
-
-
-def _file(path, n_frames, n_side=40):
-    with ResultWriter(path, **KW) as w:
-        for k in range(1, n_frames + 1):
-            f = big_field(k, n_side=n_side)
-            f.u = f.u + 0.01 * k
-            w.write_frame(k, f, strain=strain(f, window=3))
-    return path
+from dic.store import read_results
 
 
 def test_vtk_series_of_a_file_is_the_same_read_lazily(tmp_path):
-    out = _file(tmp_path / "a.h5", 5)
+    out = long_result_file(tmp_path / "a.h5", 5)
     lazy = export_results(out, "vtk", tmp_path / "lazy")
     eager = write_vtk_series(read_results(out), tmp_path / "eager")
     assert sorted(p.name for p in lazy) == sorted(p.name for p in eager.parent.iterdir())
@@ -28,7 +18,7 @@ def test_vtk_series_of_a_file_is_the_same_read_lazily(tmp_path):
 
 
 def test_vtk_series_of_a_long_file_holds_one_frame_at_a_time(tmp_path):
-    out = _file(tmp_path / "long.h5", 40, n_side=60)
+    out = long_result_file(tmp_path / "long.h5", 40, n_side=60)
     one = read_results(out).frames[1]
     frame_bytes = sum(np.asarray(getattr(one, k)).nbytes for k in ("points", "u", "v", "params", "zncc", "iterations",
                                                                     "status", "valid"))

@@ -533,6 +533,11 @@ def test_normalised_median_test_flags_false_matches_not_smooth_fields_or_cracks(
     assert set(np.flatnonzero(out)) == set(bad)
     valid[bad[0]] = False  # invalid points are never flagged, and do not count as neighbours
     assert not displacement_outliers(pts, u2, v2, valid)[bad[0]]
+    from dic.correlation.lagrangian import _median_rows
+
+    for k in (3, 4, 7, 8):  # the partial-sort median is numpy's, odd and even counts, ties included
+        a = np.round(rng.normal(size=(500, k, 2)), 1)
+        assert np.array_equal(_median_rows(a), np.median(a, axis=1)), k
     with pytest.raises(ValueError, match="neighbours"):
         displacement_outliers(pts, u, v, valid, neighbours=2)
     with pytest.raises(ValueError, match="threshold"):

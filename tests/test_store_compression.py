@@ -22,6 +22,17 @@ def big_field(seed, n_side=40):
     return f
 
 
+def long_result_file(path, n_frames, n_side=40):
+    """A 2-D result file of ``n_frames`` frames of ``big_field`` points (u drifting by 0.01 px per frame, strain
+    window 3): what the lazy-reading and export-memory tests read back."""
+    with ResultWriter(path, **KW) as w:
+        for k in range(1, n_frames + 1):
+            f = big_field(k, n_side=n_side)
+            f.u = f.u + 0.01 * k
+            w.write_frame(k, f, strain=strain(f, window=3))
+    return path
+
+
 def _filters(path, index=1):
     """{dataset: its HDF5 filter (None: stored as it is)} of frame ``index``."""
     out = {}
