@@ -47,6 +47,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from kernels.checks import boolean
 from kernels.images import IMAGE_SUFFIXES, as_float32_image, grey_image, natural_key, read_image
 
 __all__ = ["Frame", "FrameError", "FrameSource", "PairSource", "VIDEO_SUFFIXES", "is_single_image", "open_frames",
@@ -112,9 +113,7 @@ class FrameSource:
     description: str = "frames"
 
     def __init__(self, *, as_grey: bool = False):
-        if not isinstance(as_grey, (bool, np.bool_)):
-            raise ValueError(f"as_grey must be True or False, got {as_grey!r}")
-        self.as_grey = bool(as_grey)
+        self.as_grey = boolean(as_grey, "as_grey")
         self._shape: tuple[int, int] | None = None
 
     # -- to implement -------------------------------------------------------------------------
@@ -666,8 +665,7 @@ def open_frames(source, *, as_grey: bool = False) -> FrameSource:
         An empty list, folder or pattern, a missing path, an unsupported file type, a video the
         decoder cannot open, a single 2-D image given as an array, an input of another type.
     """
-    if not isinstance(as_grey, (bool, np.bool_)):
-        raise ValueError(f"as_grey must be True or False, got {as_grey!r}")
+    boolean(as_grey, "as_grey")
     if isinstance(source, FrameSource):
         return source
     if isinstance(source, (str, os.PathLike)):

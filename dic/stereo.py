@@ -39,7 +39,7 @@ import numpy as np
 
 from calibration.formats import as_rig  # re-exported: dic.stereo.as_rig
 from kernels._device import resolve_device
-from kernels.checks import as_points, in_range, odd_int, positive_float
+from kernels.checks import as_points, boolean, in_range, odd_int, positive_float
 from kernels.conventions import Status, round_half_away
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image
@@ -260,9 +260,7 @@ class StereoCorrelation:
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool = False, device=None):
         self.device = resolve_device(device)
-        if not isinstance(robust, (bool, np.bool_)):
-            raise ValueError(f"robust must be True or False, got {robust!r}")
-        self.robust = bool(robust)
+        self.robust = boolean(robust, "robust")
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.subset, self.order = check_subset_order(subset, order)
         left_ref, right_ref = _check_pair(left_ref, right_ref, "reference")

@@ -20,7 +20,7 @@ import os
 import numpy as np
 
 from kernels._device import resolve_device
-from kernels.checks import as_points, in_range, non_negative_int, positive_float
+from kernels.checks import as_points, boolean, in_range, non_negative_int, positive_float
 from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor, read_image
@@ -152,12 +152,8 @@ class Tracker:
         self.tol = positive_float(tol, "tol", detail=" of pixels")
         self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
         self.check_warps = bool(check_warps)
-        if not isinstance(robust, (bool, np.bool_)):
-            raise ValueError(f"robust must be True or False, got {robust!r}")
-        self.robust = bool(robust)
-        if check_outliers is not None and not isinstance(check_outliers, (bool, np.bool_)):
-            raise ValueError(f"check_outliers must be True, False or None (as robust), got {check_outliers!r}")
-        self.check_outliers = self.robust if check_outliers is None else bool(check_outliers)
+        self.robust = boolean(robust, "robust")
+        self.check_outliers = self.robust if check_outliers is None else boolean(check_outliers, "check_outliers")
         self.device = resolve_device(device)
         self.reference = _as_image(reference, "reference")
         self.shape = self.reference.shape

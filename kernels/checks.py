@@ -18,6 +18,7 @@ import numpy as np
 
 __all__ = [
     "as_points",
+    "boolean",
     "in_range",
     "non_negative_int",
     "odd_int",
@@ -182,3 +183,11 @@ def in_range(value, lo: float, hi: float, name: str, *, detail: str = "") -> flo
 def unit_interval(value, name: str, *, detail: str = "") -> float:
     """``value`` as a ``float`` in ``[0, 1]`` (fractions, coverages, reflectances)."""
     return in_range(value, 0, 1, name, detail=detail)
+
+
+def boolean(value, name: str) -> bool:
+    """``value`` as a ``bool`` when it is one (Python or NumPy); anything else (1, "yes", None) is a
+    ``ValueError``: a switch given a truthy non-boolean is usually a misplaced argument."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)

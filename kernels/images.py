@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .checks import boolean
+
 __all__ = ["IMAGE_SUFFIXES", "as_float32_image", "as_float32_tensor", "grey_image", "is_torch_tensor", "natural_key",
            "read_image", "write_image"]
 
@@ -88,8 +90,7 @@ def read_image(path, *, as_grey: bool = False) -> np.ndarray:
     """
     if not isinstance(path, (str, os.PathLike)):
         raise ValueError(f"path must be a file name (str or Path), got {type(path).__name__}")
-    if not isinstance(as_grey, (bool, np.bool_)):
-        raise ValueError(f"as_grey must be True or False, got {as_grey!r}")
+    boolean(as_grey, "as_grey")
     p = Path(os.fspath(path))
     if not p.exists():
         raise ValueError(f"image file not found: {p}")
