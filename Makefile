@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO_STAMP := $(VENV)/.installed-demo
 
-.PHONY: demo test lint venv bench clean
+.PHONY: demo test test-fast lint venv bench dist clean
 
 # Two installs in one .venv: the demo needs only the package (no test tools, no torch);
 # the tests add the test extra and the optional torch/kornia extra (independent reference checks).
@@ -39,10 +39,16 @@ lint: $(STAMP)
 	$(BIN)/ruff check kernels calibration dic bench repro tests
 	$(BIN)/lint-imports
 
+# A wheel of the three installed packages (kernels, calibration, dic) in dist/; installs with
+# `pip install dist/specula_dic-*.whl` in any Python 3.11 environment (tests/dic/test_install.py).
+dist: $(VENV)/bin/python
+	$(BIN)/python -m pip wheel --quiet --no-deps --no-build-isolation -w dist . || $(BIN)/python -m pip wheel --quiet --no-deps -w dist .
+	@ls dist/*.whl
+
 bench: $(STAMP)
 	$(BIN)/python -m bench.icgn
 	$(BIN)/python -m bench.render
 	$(BIN)/python -m bench.triangulate
 
 clean:
-	rm -rf $(VENV) demo_output .pytest_cache
+	rm -rf $(VENV) demo_output .pytest_cache dist build
