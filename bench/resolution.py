@@ -289,6 +289,40 @@ def _product(noise, level, power):
     return None if level is None or not np.isfinite(noise) else float(noise * level ** power)
 
 
+def subset_filter_model(subset: int, order: int, sigma: float | None = None) -> dict:
+    """What a subset's least-squares shape function does to a small displacement field, as a linear filter.
+
+    Near convergence IC-GN solves a linear least-squares problem whose displacement at the subset centre is
+    a weighted sum of the displacement over the subset; for a speckle of uniform gradient energy and white
+    image noise those weights are those of the least-squares fit of the shape function's polynomial
+    (``1, x, y`` for order 1; with ``x², xy, y²`` for order 2), with pixel weights ``w(x) w(y)`` (1: the
+    square subset; ``exp(-t² / 2 sigma²)``: a Gaussian-weighted subset). Returns that filter's transfer
+    ``l10`` for ``v = cos(2 pi y / p)`` (px, periods 6-400 px by 0.1 px), its noise gain (the std of the
+    centre value for unit white noise per pixel) and ``mei`` = gain * l10 (both in the same unit: compare
+    the MEI of two settings as a ratio). A model, not a measurement: docs/dic2d.md compares it with
+    the measured figures (square subsets).
+    """
+    h = subset // 2
+    t = np.arange(-h, h + 1, dtype=np.float64)
+    w1 = np.ones_like(t) if sigma is None else np.exp(-t ** 2 / (2 * sigma ** 2))
+    X, Y = np.meshgrid(t, t)
+    x, y, w = X.ravel(), Y.ravel(), np.outer(w1, w1).ravel()
+    basis = [np.ones_like(x), x, y] + ([x * x, x * y, y * y] if order == 2 else [])
+    B = np.stack(basis, axis=1)
+    centre = np.linalg.solve(B.T @ (w[:, None] * B), (B * w[:, None]).T)[0]  # centre value = centre @ v
+    periods = np.arange(6.0, 400.0, 0.1)
+    transfer = np.cos(2 * np.pi * np.outer(1.0 / periods, y)) @ centre
+    level, _ = l10(periods, transfer)
+    gain = float(np.sqrt(np.sum(centre ** 2)))
+    level = None if level is None else round(level, 1)
+    return {"subset": subset, "order": order, "gaussian_sigma_px": sigma, "l10_px": level, "noise_gain": gain,
+            "mei": None if level is None else gain * level}
+
+
+#: Gaussian-weighted subsets for the model comparison: (subset, sigma px)
+MODEL_GAUSSIAN = ((21, 3.0), (31, 5.0), (41, 6.0), (41, 8.0), (61, 10.0))
+
+
 def _fmt(value, spec):
     return "—" if value is None or (isinstance(value, float) and not np.isfinite(value)) else format(value, spec)
 
@@ -301,7 +335,7 @@ def _l10_text(level, censored):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--subsets", type=int, nargs="+", default=[11, 15, 21, 31])
+    ap.add_argument("--subsets", type=int, nargs="+", default=[11, 15, 21, 31, 41])
     ap.add_argument("--orders", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--windows", type=int, nargs="+", default=[3, 5, 7], help="strain windows (grid points)")
     ap.add_argument("--step", type=int, default=2)
@@ -344,6 +378,13 @@ def main(argv=None) -> int:
             lv = f"{_l10_text(d['l10_px'], d['l10_censored'])} ({_l10_text(d['l10_band_px'], d['l10_band_censored'])})"
             print(f"{order:>5} {subset:>6} {lv:>15} {_fmt(d['noise_px'], '.5f'):>8} "
                   f"{_fmt(d['mei_px2'], '.4f'):>7} | " + " | ".join(cells) + f" | {r['track_seconds']:.0f}")
+    model = {"square": [subset_filter_model(s, o) for o in args.orders for s in args.subsets],
+             "gaussian": [subset_filter_model(s, o, sigma) for o in args.orders for s, sigma in MODEL_GAUSSIAN]}
+    print("model (uniform gradient energy, white noise; MEI in units of the noise gain):")
+    for m in model["square"] + model["gaussian"]:
+        what = "square" if m["gaussian_sigma_px"] is None else f"gaussian sigma {m['gaussian_sigma_px']:g} px"
+        print(f"  order {m['order']} subset {m['subset']:>2} {what:>22}: l10 {_l10_text(m['l10_px'], False):>6} "
+              f"noise gain {m['noise_gain']:.4f} MEI {_fmt(m['mei'], '.3f')}")
     result = {
         "benchmark": "resolution",
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -356,6 +397,7 @@ def main(argv=None) -> int:
                    "MEI = n l10 (displacement), n l10^2 (strain)"),
         "render_seconds": round(render_s, 1),
         "rows": rows,
+        "model": model,
         "device": args.device, "cpu": cpu_model(), "cpu_threads": cpu_threads(),
         "load_average_before": load_before, "load_average_after": os.getloadavg(),
         "versions": {"python": platform.python_version(), "numpy": np.__version__, "warp": wp.config.version},
