@@ -173,12 +173,23 @@ def l10(periods, ratio, tolerance: float = TOLERANCE):
     return float(periods[last + 1]), False
 
 
-def _curve_on_grid(periods, ratio, spacing: float = 1.0) -> dict:
-    """The curve at whole periods (px), for the JSON (the raw curve has one value per POI column)."""
-    grid = np.arange(np.ceil(periods.min()), np.floor(periods.max()) + 1e-9, spacing)
+#: spacing (px) of the period grid on which the JSON gives each transfer curve
+CURVE_SPACING = 2.0
+
+
+def curve_grid(star: Star) -> np.ndarray:
+    """The periods (px) at which the JSON gives the transfer curves: ``period_min`` to ``period_max`` by 2 px."""
+    return np.arange(star.period_min, star.period_max + 1e-9, CURVE_SPACING)
+
+
+def _curve_on_grid(periods, ratio, grid) -> dict:
+    """The curve interpolated to ``grid`` (the raw curve has one value per POI column); None outside the
+    tracked periods."""
     ok = np.isfinite(ratio)
-    vals = np.interp(grid, periods[ok], ratio[ok]) if np.count_nonzero(ok) > 1 else np.full(grid.shape, np.nan)
-    return {"period_px": [round(float(p), 2) for p in grid], "ratio": [round(float(r), 4) for r in vals]}
+    inside = (grid >= periods[ok].min()) & (grid <= periods[ok].max()) if np.count_nonzero(ok) > 1 else grid < -1
+    vals = np.interp(grid, periods[ok], ratio[ok]) if np.count_nonzero(ok) > 1 else np.zeros(grid.shape)
+    return {"period_px": [float(p) for p in grid],
+            "ratio": [round(float(r), 4) if i else None for r, i in zip(vals, inside)]}
 
 
 def _transfer(star: Star, x, measured, truth) -> dict:
@@ -243,6 +254,7 @@ def measure(star: Star, images, *, subset: int, order: int, step: int, windows=(
     noise = tracker.track(second)
     seconds = time.perf_counter() - t0
     disp = displacement_transfer(star, field)
+    grid = curve_grid(star)
     nv = noise.v[noise.valid]
     n_v = float(np.std(nv)) if nv.size > 1 else float("nan")
     n_u = float(np.std(noise.u[noise.valid])) if nv.size > 1 else float("nan")
@@ -257,8 +269,8 @@ def measure(star: Star, images, *, subset: int, order: int, step: int, windows=(
             "l10_band_px": band["l10"], "l10_band_censored": band["l10_censored"],
             "noise_px": n_v, "noise_u_px": n_u,
             "mei_px2": _product(n_v, peak["l10"], 1), "mei_band_px2": _product(n_v, band["l10"], 1),
-            "transfer": _curve_on_grid(peak["period"], peak["ratio"]),
-            "transfer_band": _curve_on_grid(band["period"], band["ratio"]),
+            "transfer": _curve_on_grid(peak["period"], peak["ratio"], grid),
+            "transfer_band": _curve_on_grid(band["period"], band["ratio"], grid),
         },
         "strain": {},
     }
@@ -275,8 +287,8 @@ def measure(star: Star, images, *, subset: int, order: int, step: int, windows=(
             "l10_px": peak["l10"], "l10_censored": peak["l10_censored"],
             "l10_band_px": band["l10"], "l10_band_censored": band["l10_censored"],
             "noise": n_e, "mei_px2": _product(n_e, peak["l10"], 2), "mei_band_px2": _product(n_e, band["l10"], 2),
-            "transfer": _curve_on_grid(peak["period"], peak["ratio"]),
-            "transfer_band": _curve_on_grid(band["period"], band["ratio"]),
+            "transfer": _curve_on_grid(peak["period"], peak["ratio"], grid),
+            "transfer_band": _curve_on_grid(band["period"], band["ratio"], grid),
         }
         curves[f"strain_{window}"] = st
     if keep_curves:
@@ -317,6 +329,30 @@ def subset_filter_model(subset: int, order: int, sigma: float | None = None) -> 
     level = None if level is None else round(level, 1)
     return {"subset": subset, "order": order, "gaussian_sigma_px": sigma, "l10_px": level, "noise_gain": gain,
             "mei": None if level is None else gain * level}
+
+
+#: DICe's own output on the challenge's star, as far as it could be read here: the gold file of DICe's
+#: regression test ``tests/regression/bitmap_star`` (github.com/dicengine/dice, commit 1474112879c2,
+#: ``gold/DICe_solution_0.txt``: subset 31, step 15, translation only (no strain terms in the shape
+#: function), Keys 4th-order interpolation; its reference image is the deformed star, so its ``v`` is the
+#: inverse motion). Amplitude ratio = least-squares amplitude of ``-v`` against ``0.5 cos(2 pi (y - 250) / p(x))``
+#: over each column's rows y = 30..465 (step 15), pooled over the columns listed; read by hand from the
+#: file (7 columns of 129), so a spot check of the transfer, not a full curve. No noise-only pair comes with
+#: it: ``fit_residual_std_px`` is the scatter about the fitted cosine (noise and pattern-induced bias
+#: together) and ``dice_sigma_px`` the range of DICe's own SIGMA column there (its predicted std).
+DICE_GOLD = {
+    "source": "github.com/dicengine/dice tests/regression/bitmap_star/gold/DICe_solution_0.txt (commit 1474112879c2)",
+    "settings": "subset 31, step 15, translation only (0th order), KEYS_FOURTH, images DIC_Challenge_Wave_*_Noisy.bmp",
+    "spot_checks": [
+        {"columns_x_px": [1290, 1305, 1320], "mean_period_px": 101.4, "amplitude_ratio": 0.865,
+         "per_column": [0.853, 0.869, 0.872]},
+        {"columns_x_px": [1635, 1650, 1665, 1680], "mean_period_px": 126.1, "amplitude_ratio": 0.919,
+         "per_column": [0.913, 0.919, 0.925, 0.918]},
+    ],
+    "l10_px_interpolated": 117.0,
+    "fit_residual_std_px": [0.0146, 0.0205],
+    "dice_sigma_px": [0.0056, 0.0078],
+}
 
 
 #: Gaussian-weighted subsets for the model comparison: (subset, sigma px)
@@ -367,6 +403,9 @@ def main(argv=None) -> int:
         for subset in args.subsets:
             r = measure(star, images, subset=subset, order=order, step=args.step, windows=args.windows,
                         device=args.device)
+            for block in [r["displacement"]] + list(r["strain"].values()):
+                for key in ("transfer", "transfer_band"):  # the periods once, at the top of the file
+                    block[key] = block[key]["ratio"]
             rows.append(r)
             d = r["displacement"]
             cells = []
@@ -391,6 +430,7 @@ def main(argv=None) -> int:
         "star": asdict(star),
         "speckle": {"radius_px": 2.0, "density": 0.5, "blur_px": 0.7, "bits": 8},
         "step_px": args.step, "tolerance": TOLERANCE,
+        "transfer_period_px": [float(p) for p in curve_grid(star)],
         "method": ("amplitude ratio = measured / exact value at the POIs of the peak rows (v: centre row; eyy: rows "
                    "nearest centre -+ p/4), averaged along the row over one local period; l10 = first period from which "
                    "|ratio - 1| < 0.1 up to the longest period; noise = std over the valid POIs of the noise-only pair; "
@@ -398,6 +438,7 @@ def main(argv=None) -> int:
         "render_seconds": round(render_s, 1),
         "rows": rows,
         "model": model,
+        "dice_gold_reference": DICE_GOLD,
         "device": args.device, "cpu": cpu_model(), "cpu_threads": cpu_threads(),
         "load_average_before": load_before, "load_average_after": os.getloadavg(),
         "versions": {"python": platform.python_version(), "numpy": np.__version__, "warp": wp.config.version},
