@@ -42,9 +42,16 @@ challenge's "10 % bias"; a ratio above 1.1 counts as a miss too). Unreached (the
 down to the shortest tracked period) is reported as that period with ``l10_censored`` True; never
 reached (the ratio off by 10 % at the longest period) as None.
 
+A second estimate fits the amplitude by least squares over every POI of the band
+(``sum(m t) / sum(t²)`` over one local period, ``t`` the exact value): ``l10_band_px``.
+
 **Noise floor** ``n``: the standard deviation of ``v`` (and of ``eyy``, full windows only) over the
 valid POIs of the noise-only pair. **MEI** = ``n_v * l10_v`` (px²) for the displacement and
 ``n_eyy * l10_eyy²`` (px²) for the strain (Reu et al. 2022; lower is better).
+
+Beside the measurements: :func:`subset_filter_model` (a subset's least-squares shape function as a
+linear filter: l10 and noise gain for square and Gaussian-weighted subsets) and :data:`DICE_GOLD`
+(a hand-read spot check of DICe's own output on the star in its regression suite).
 
 Writes bench/results/resolution.json (``--out``). See docs/dic2d.md, "Spatial resolution: the DIC
 Challenge 2.0 star", for the table and what it says.
@@ -242,12 +249,21 @@ def strain_transfer(star: Star, field, sfield, step: int) -> dict:
 
 def measure(star: Star, images, *, subset: int, order: int, step: int, windows=(5,), device=None,
             keep_curves: bool = False) -> dict:
-    """Transfer functions, l10, noise floors and MEI for one subset size and order (the figures of a row)."""
+    """Transfer functions, l10, noise floors and MEI for one subset size and order (one row of the table).
+
+    ``images``: ``render(star)``. Tracks the POIs of :func:`star_points` (step ``step`` px) into the star
+    and into the noise-only image with one :class:`dic.Tracker` (defaults: zero start, no search), takes
+    :func:`dic.strain` of both with each window of ``windows`` (grid points), and returns a dict:
+    ``displacement`` (``l10_px`` from the centre row, ``l10_band_px`` from the band fit,
+    ``l10_unaveraged_px``, ``noise_px`` (std of v on the noise pair), ``mei_px2``, the transfer curves on
+    :func:`curve_grid`), ``strain[str(w)]`` (the same for eyy; ``noise`` in strain), the POI count, valid
+    fractions and the tracking time; with ``keep_curves`` also the per-column curves.
+    """
     import dic
 
     ref, cur, second = images
-    band = (max(windows) // 2 + 1) * step
-    points = star_points(star, subset, step, band)
+    reach = (max(windows) // 2 + 1) * step  # beyond the peak rows of eyy: full strain windows there
+    points = star_points(star, subset, step, reach)
     t0 = time.perf_counter()
     tracker = dic.Tracker(ref, points=points, subset=subset, order=order, device=device)
     field = tracker.track(cur)
