@@ -203,6 +203,7 @@ def _transfer(star: Star, x, measured, truth) -> dict:
     columns, ratio = amplitude_ratio(x, measured, truth, star)
     p = star.period(columns)
     level, censored = l10(p, ratio)
+    level = None if level is None else round(level, 2)
     return {"x": columns, "period": p, "ratio": ratio, "l10": level, "l10_censored": censored}
 
 
@@ -218,7 +219,8 @@ def displacement_transfer(star: Star, field) -> dict:
     band = _transfer(star, x, v, truth)
     order = np.argsort(x[on_row])
     raw = (v[on_row] / truth[on_row])[order]
-    peak["l10_unaveraged"], _ = l10(star.period(x[on_row][order]), raw)
+    level, _ = l10(star.period(x[on_row][order]), raw)
+    peak["l10_unaveraged"] = None if level is None else round(level, 2)
     peak["valid_fraction"] = float(np.mean(np.isfinite(raw)))
     return {"peak": peak, "band": band}
 
