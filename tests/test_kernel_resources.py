@@ -2,7 +2,7 @@
 
 The IC-GN, reference-preparation and interpolation modules are compiled ahead of time for sm_90
 (:func:`warp.compile_aot_module` runs NVRTC from inside Warp: no GPU, no CUDA toolkit), once per
-test session, and :mod:`kernels.cubin` reads each kernel's registers and stack from the ELF. The
+test session, and :mod:`bench.cubin` reads each kernel's registers and stack from the ELF. The
 bounds are the figures measured after issue 16's changes (docs/dic2d.md, "GPU"); a change that
 makes a kernel need more registers or any stack where it had none fails here. A Warp upgrade
 (another NVRTC) may move the figures by a few registers: re-measure and update the table then.
@@ -12,14 +12,14 @@ import struct
 import pytest
 import warp as wp
 
-from kernels import cubin
+from bench import cubin
 from kernels._launch import CUDA_LAUNCH, DEFAULT_CUDA_BLOCK_DIM, cuda_block_dim, cuda_launch_bounds, kernel_block_dim
 
 #: kernel -> (max registers, max stack bytes) on sm_90; before issue 16 in the comment
 BOUNDS = {
     "_icgn_1st": (64, 0),  # 80, 0 (capped by launch bounds (128, 8), no spill)
     "_icgn_2nd": (168, 0),
-    "_icgn_1st_tiled": (64, 0),  # prototype (kernels/icgn_tiled.py)
+    "_icgn_1st_tiled": (64, 0),  # prototype (bench/icgn_tiled.py)
     "_icgn_frames_1st": (80, 0),  # kernels/frames.py (frames x POIs)
     "_icgn_frames_2nd": (168, 0),
     "_icgn_counted_1st": (64, 0),  # kernels/rg_device.py (a wave's IC-GN sized by a device count)
@@ -46,7 +46,7 @@ BOUNDS = {
     "_icgn_robust_1st": (214, 112),  # the stack: the |residual| histogram, indexed at run time
     "_icgn_robust_2nd": (255, 944),
 }
-MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled", "kernels.frames", "kernels.rg_device",
+MODULES = ("kernels.icgn", "kernels.interp", "bench.icgn_tiled", "kernels.frames", "kernels.rg_device",
            "kernels.icgn_robust")
 
 
@@ -87,9 +87,9 @@ def test_every_compiled_kernel_has_a_bound(sm90_resources):
 
 
 def test_block_size_table_matches_kernels_and_modules():
-    from kernels import frames, icgn, icgn_robust, icgn_tiled, interp, rg_device
+    from kernels import frames, icgn, icgn_robust, interp, rg_device
 
-    kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled, frames, rg_device) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
+    kernels = {k.func.__name__: k for mod in (icgn, interp, frames, rg_device) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
     kernels.update({k.func.__name__: k for k in icgn_robust._icgn_robust.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)
