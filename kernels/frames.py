@@ -30,8 +30,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ._device import host_copy
 from ._common import ST_CONVERGED, ST_MAX_ITERATIONS, icgn_module_options
+from ._device import host_copy
 from ._launch import cuda_launch_bounds, launch_1d
 from .checks import in_range, positive_float, positive_int
 from .icgn import (

@@ -57,7 +57,6 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ._device import host_copy, resolve_device
 from ._common import (  # noqa: F401 - the status constants are re-exported for the other kernel modules
     ST_CONVERGED,
     ST_DIVERGED,
@@ -68,6 +67,7 @@ from ._common import (  # noqa: F401 - the status constants are re-exported for 
     ST_SINGULAR,
     icgn_module_options,
 )
+from ._device import host_copy, resolve_device
 from ._launch import cuda_launch_bounds, launch_1d
 from .checks import as_points, odd_int, positive_float, positive_int
 from .images import as_float32_image

@@ -48,8 +48,15 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from ._common import (
+    ST_CONVERGED,
+    ST_DIVERGED,
+    ST_MAX_ITERATIONS,
+    ST_NOT_COMPUTED,
+    ST_OUT_OF_BOUNDS,
+    icgn_module_options,
+)
 from ._device import host_copy
-from ._common import ST_CONVERGED, ST_DIVERGED, ST_MAX_ITERATIONS, ST_NOT_COMPUTED, ST_OUT_OF_BOUNDS, icgn_module_options
 from ._launch import cuda_launch_bounds, launch_1d
 from .checks import in_range, positive_float
 from .icgn import (
@@ -63,11 +70,11 @@ from .icgn import (
     check_max_iter,
     compose_1st,
     compose_2nd,
+    icgn_outputs,
     mat55d,
     mat66d,
     mat1212d,
     mono_exponents,
-    icgn_outputs,
     n_params,
     refdata_columns,
     vec5,

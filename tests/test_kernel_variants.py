@@ -530,8 +530,8 @@ def test_prefilter_segments_rejects_bad_lengths():
 
 @pytest.mark.parametrize("cpu_blocks", [True, False])
 def test_tiled_icgn_prototype_matches_one_thread_per_poi(cpu_blocks):
-    from dic.synth import speckle_pair
     from bench.icgn_tiled import icgn_tiled
+    from dic.synth import speckle_pair
 
     ref, cur = speckle_pair((112, 112), lambda x, y: (0.4 + 0.01 * (x - 56), -0.3 + 0.005 * (y - 56)), seed=3,
                             noise_sigma=1.0)
