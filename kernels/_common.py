@@ -22,6 +22,15 @@ from .conventions import Status
 ICGN_MODULE_OPTIONS = {"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast"}
 
 
+def struct_of(struct_type, **fields):
+    """An instance of the ``wp.struct`` type ``struct_type`` with ``fields`` set (every field of a
+    kernel argument must be set: an unset array field is a null array)."""
+    s = struct_type()
+    for name, value in fields.items():
+        setattr(s, name, value)
+    return s
+
+
 def icgn_module_options(kernel_name: str) -> dict:
     """:data:`ICGN_MODULE_OPTIONS` with the CUDA block size of the kernel ``kernel_name``
     (:data:`kernels._launch.CUDA_LAUNCH`; one block size per Warp module)."""

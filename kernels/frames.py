@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ._common import ST_CONVERGED, ST_MAX_ITERATIONS, icgn_module_options
+from ._common import ST_CONVERGED, ST_MAX_ITERATIONS, icgn_module_options, struct_of
 from ._device import host_copy
 from ._launch import cuda_launch_bounds, launch_1d
 from .checks import in_range, positive_float, positive_int
@@ -68,19 +68,6 @@ class FrameArrays:
     status: wp.array2d(dtype=wp.int32)
 
 
-def frame_arrays(coef: wp.array, pitch: int, params: wp.array, zncc: wp.array, iterations: wp.array,
-                 status: wp.array) -> FrameArrays:
-    """A :class:`FrameArrays` of the given device arrays."""
-    fa = FrameArrays()
-    fa.coef = coef
-    fa.pitch = int(pitch)
-    fa.params = params
-    fa.zncc = zncc
-    fa.iterations = iterations
-    fa.status = status
-    return fa
-
-
 # ----------------------------------------------------------------------------------------------
 # kernels
 # ----------------------------------------------------------------------------------------------
@@ -106,22 +93,25 @@ def frame_outputs(frames: FrameArrays, f: int):
     return out
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_frames_1st"))
-def _icgn_frames_1st(offset: int, n_points: int, sub: SubsetTable, frames: FrameArrays, guess: wp.array3d(dtype=float),
-                     guess_stride: int, max_iter: int, tol: float):
-    t = wp.tid() + offset
-    f = t // n_points
-    icgn_point_1st(t - f * n_points, sub, frame_current(frames, f), guess[f * guess_stride], max_iter, tol,
+def _make_icgn_frames(order: int):
+    """The frames x POIs IC-GN kernel of one order: thread ``t`` tracks POI ``t % N`` of frame ``t // N``
+    with the per-POI body of :mod:`kernels.icgn`, from guess row ``f * guess_stride``."""
+    icgn_point = icgn_point_1st if order == 1 else icgn_point_2nd
+
+    def icgn_frames(offset: int, n_points: int, sub: SubsetTable, frames: FrameArrays,
+                    guess: wp.array3d(dtype=float), guess_stride: int, max_iter: int, tol: float):
+        t = wp.tid() + offset
+        f = t // n_points
+        icgn_point(t - f * n_points, sub, frame_current(frames, f), guess[f * guess_stride], max_iter, tol,
                    frame_outputs(frames, f))
 
+    name = "_icgn_frames_1st" if order == 1 else "_icgn_frames_2nd"
+    icgn_frames.__name__ = icgn_frames.__qualname__ = name
+    return wp.kernel(icgn_frames, launch_bounds=cuda_launch_bounds(name))
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_frames_2nd"))
-def _icgn_frames_2nd(offset: int, n_points: int, sub: SubsetTable, frames: FrameArrays, guess: wp.array3d(dtype=float),
-                     guess_stride: int, max_iter: int, tol: float):
-    t = wp.tid() + offset
-    f = t // n_points
-    icgn_point_2nd(t - f * n_points, sub, frame_current(frames, f), guess[f * guess_stride], max_iter, tol,
-                   frame_outputs(frames, f))
+
+_icgn_frames_1st = _make_icgn_frames(1)
+_icgn_frames_2nd = _make_icgn_frames(2)
 
 
 @wp.kernel
@@ -246,7 +236,8 @@ def icgn_batch(subsets: ReferenceSubsets, currents, guesses=None, max_iter: int 
     zncc = wp.empty((f, n), dtype=wp.float32, device=device)
     iterations = wp.empty((f, n), dtype=wp.int32, device=device)
     status = wp.empty((f, n), dtype=wp.int32, device=device)
-    frames = frame_arrays(rows4, w + 2 * PAD, params, zncc, iterations, status)
+    frames = struct_of(FrameArrays, coef=rows4, pitch=w + 2 * PAD, params=params, zncc=zncc, iterations=iterations,
+                       status=status)
     _launch_icgn_frames(subsets, frames, f, guess, int(g.shape[0] > 1), max_iter, tol)
     return [IcgnResult(params[i], zncc[i], iterations[i], status[i]) for i in range(f)]
 
@@ -318,7 +309,8 @@ class FrameTracker:
         self._status = wp.empty((b, n), dtype=wp.int32, device=dev)
         self._results = [IcgnResult(self._params[i], self._zncc[i], self._iterations[i], self._status[i])
                          for i in range(b)]
-        self._frames = frame_arrays(self._rows4, w + 2 * PAD, self._params, self._zncc, self._iterations, self._status)
+        self._frames = struct_of(FrameArrays, coef=self._rows4, pitch=w + 2 * PAD, params=self._params, zncc=self._zncc,
+                                 iterations=self._iterations, status=self._status)
         if self.packed:
             self._packed = wp.empty((b, n, k + 3), dtype=wp.float32, device=dev)
             self._packed_host = (wp.empty((b, n, k + 3), dtype=wp.float32, device="cpu", pinned=True)

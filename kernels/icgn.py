@@ -66,6 +66,7 @@ from ._common import (  # noqa: F401 - the status constants are re-exported for 
     ST_OUT_OF_BOUNDS,
     ST_SINGULAR,
     icgn_module_options,
+    struct_of,
 )
 from ._device import host_copy, resolve_device
 from ._launch import cuda_launch_bounds, launch_1d
@@ -194,38 +195,17 @@ class IcgnOutputs:
     status: wp.array(dtype=wp.int32)
 
 
-def subset_table(subsets: ReferenceSubsets, centres=None, deltas=None, refdata=None, status=None) -> SubsetTable:
-    """The :class:`SubsetTable` of ``subsets`` (its per-POI arrays replaced by those given)."""
+def subset_table(subsets: ReferenceSubsets) -> SubsetTable:
+    """The :class:`SubsetTable` of ``subsets`` (:attr:`ReferenceSubsets.table` keeps it)."""
     h, w = subsets.reference.shape
-    t = SubsetTable()
-    t.fgrad = subsets.reference.fgrad
-    t.width = w
-    t.height = h
-    t.centres = subsets.centres if centres is None else centres
-    t.deltas = subsets.deltas if deltas is None else deltas
-    t.refdata = subsets.refdata if refdata is None else refdata
-    t.status = subsets.status if status is None else status
-    t.r = subsets.subset // 2
-    t.flat_var = float(subsets.flat_std) ** 2
-    return t
-
-
-def current_coefficients(coef: wp.array, pitch: int) -> CurrentCoefficients:
-    """A :class:`CurrentCoefficients` of ``coef`` (wp.vec4 entries) with padded row length ``pitch``."""
-    c = CurrentCoefficients()
-    c.coef = coef
-    c.pitch = int(pitch)
-    return c
+    return struct_of(SubsetTable, fgrad=subsets.reference.fgrad, width=w, height=h, centres=subsets.centres,
+                     deltas=subsets.deltas, refdata=subsets.refdata, status=subsets.status, r=subsets.subset // 2,
+                     flat_var=float(subsets.flat_std) ** 2)
 
 
 def icgn_outputs(params: wp.array, zncc: wp.array, iterations: wp.array, status: wp.array) -> IcgnOutputs:
     """An :class:`IcgnOutputs` of the four result arrays."""
-    o = IcgnOutputs()
-    o.params = params
-    o.zncc = zncc
-    o.iterations = iterations
-    o.status = status
-    return o
+    return struct_of(IcgnOutputs, params=params, zncc=zncc, iterations=iterations, status=status)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1087,7 +1067,7 @@ class CurrentImage:
             coef = self.plain if layout == "plain" else self.rows4
             if coef is None:
                 raise ValueError(f'this CurrentImage holds no "{layout}" coefficients')
-            cache[layout] = current_coefficients(coef, self.pitch)
+            cache[layout] = struct_of(CurrentCoefficients, coef=coef, pitch=self.pitch)
         return cache[layout]
 
 

@@ -34,24 +34,25 @@ from .icgn import (
 wp.set_module_options(icgn_module_options("_icgn_2nd"))
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_counted_1st"))
-def _icgn_counted_1st(offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32), sub: SubsetTable,
-                      cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int, tol: float,
-                      out: IcgnOutputs):
-    t = wp.tid() + offset
-    if t >= counts[ctl[0], 0]:
-        return
-    icgn_point_1st(t, sub, cur, guess, max_iter, tol, out)
+def _make_icgn_counted(order: int):
+    """The counted IC-GN kernel of one order: rows ``0 .. counts[ctl[0], 0] - 1`` with the per-POI body."""
+    icgn_point = icgn_point_1st if order == 1 else icgn_point_2nd
+
+    def icgn_counted_kernel(offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32),
+                            sub: SubsetTable, cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int,
+                            tol: float, out: IcgnOutputs):
+        t = wp.tid() + offset
+        if t >= counts[ctl[0], 0]:
+            return
+        icgn_point(t, sub, cur, guess, max_iter, tol, out)
+
+    name = "_icgn_counted_1st" if order == 1 else "_icgn_counted_2nd"
+    icgn_counted_kernel.__name__ = icgn_counted_kernel.__qualname__ = name
+    return wp.kernel(icgn_counted_kernel, launch_bounds=cuda_launch_bounds(name))
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_counted_2nd"))
-def _icgn_counted_2nd(offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32), sub: SubsetTable,
-                      cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int, tol: float,
-                      out: IcgnOutputs):
-    t = wp.tid() + offset
-    if t >= counts[ctl[0], 0]:
-        return
-    icgn_point_2nd(t, sub, cur, guess, max_iter, tol, out)
+_icgn_counted_1st = _make_icgn_counted(1)
+_icgn_counted_2nd = _make_icgn_counted(2)
 
 
 def icgn_counted(gathered: ReferenceSubsets, current: CurrentImage, guess: wp.array, max_iter: int, tol: float,
