@@ -24,15 +24,15 @@ BOUNDS = {
     "_icgn_frames_2nd": (168, 0),
     "_icgn_counted_1st": (64, 0),  # kernels/rg_device.py (a wave's IC-GN sized by a device count)
     "_icgn_counted_2nd": (168, 0),
-    "_propagate_guess": (40, 0),
+    "_propagate_guess": (32, 0),  # 40 before issue 23 (the frames' arrays as one struct)
     "_pack_results": (32, 0),
     "_prefilter_rows_frames": (48, 0),  # every frame dtype (uint8, uint16, float32)
     "_prefilter_cols_frames": (40, 0),
     "_prefilter_entries_rows_frames": (32, 0),
     "_prefilter_entries_cols_frames": (32, 0),
     "_expand_rows4_frames": (28, 0),  # 166, 168 (pivot swap of the 6x6 solve)
-    "_prepare_subsets_1st": (183, 0),  # one kernel for both orders: 255, 7232
-    "_prepare_subsets_2nd": (255, 3480),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled)
+    "_prepare_subsets_1st": (177, 0),  # one kernel for both orders: 255, 7232; 183 before issue 23 (named columns)
+    "_prepare_subsets_2nd": (255, 3472),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled); 3480 B before issue 23
     "_reference_gradients": (40, 0),
     "_gather_subsets": (32, 0),  # indexed IC-GN's gather (kernels.icgn, issue 16 search on the device)
     "_expand_rows4": (30, 0),
@@ -43,7 +43,7 @@ BOUNDS = {
     "_prefilter_entries_cols": (32, 0),
     # opt-in Tukey-weighted refinement (kernels/icgn_robust.py): weights change every iteration, so the weighted
     # Hessian is assembled from float64 moments in the kernel (no precomputed H^-1 as in _icgn_*)
-    "_icgn_robust_1st": (214, 112),  # the stack: the |residual| histogram, indexed at run time
+    "_icgn_robust_1st": (210, 112),  # the stack: the |residual| histogram, indexed at run time; 214 before issue 23
     "_icgn_robust_2nd": (255, 944),
 }
 MODULES = ("kernels.icgn", "kernels.interp", "bench.icgn_tiled", "kernels.frames", "kernels.rg_device",
