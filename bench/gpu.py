@@ -106,7 +106,8 @@ def _same_bits(a: dict, b: dict) -> bool:
 
 
 def prebuild_cache(arch: int = 90) -> list[str]:
-    """Compile every kernel module of ``kernels`` for ``sm_<arch>`` into Warp's kernel cache (no GPU needed).
+    """Compile every kernel module of ``kernels`` and the prototype ``bench.icgn_tiled`` for ``sm_<arch>`` into
+    Warp's kernel cache (no GPU needed).
 
     The cache is ``WARP_CACHE_PATH`` (or Warp's default); Warp then loads these binaries on a GPU of that
     architecture instead of compiling the kernels there. Returns the modules compiled.
@@ -118,15 +119,15 @@ def prebuild_cache(arch: int = 90) -> list[str]:
 
     _ensure_init()
     done = []
-    for _, name, _ in pkgutil.iter_modules(kernels.__path__):
-        if name.startswith("_") or name == "conventions":
-            continue
-        module = importlib.import_module(f"kernels.{name}")
+    names = [f"kernels.{name}" for _, name, _ in pkgutil.iter_modules(kernels.__path__)
+             if not name.startswith("_") and name != "conventions"]
+    for name in names + ["bench.icgn_tiled"]:
+        module = importlib.import_module(name)
         if any(isinstance(getattr(module, a), wp.Kernel) for a in dir(module)):
             # both forms Warp may look for on that GPU: CUBIN (a driver older than Warp's CUDA) and PTX
             wp.compile_aot_module(module, arch=int(arch), use_ptx=False)
             wp.compile_aot_module(module, arch=int(arch), use_ptx=True)
-            done.append(name)
+            done.append(name.split(".", 1)[1])
     return done
 
 
@@ -356,8 +357,8 @@ def section_kernel(device: str, quick: bool) -> dict:
     for order in (1, 2):
         res["fill"][str(order)] = [measure(dense[: min(n, len(dense))], order) for n in fills]
         res["step"][str(order)] = {str(s): measure(grid(ref.shape, s, margin=10), order) for s in steps}
-    # the tiled 1st-order prototype (kernels/icgn_tiled.py: one warp of lanes per POI), same fill sweep
-    from kernels.icgn_tiled import icgn_tiled
+    # the tiled 1st-order prototype (bench/icgn_tiled.py: one warp of lanes per POI), same fill sweep
+    from bench.icgn_tiled import icgn_tiled
 
     def measure_tiled(points):
         subs = prepare_subsets(refimg, points, subset=21, order=1)

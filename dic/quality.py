@@ -116,7 +116,7 @@ def hessian_inverse_uv(subsets) -> np.ndarray:
     read from its packed ``H^-1`` table. NaN where the subset is not ready (out of bounds, flat,
     singular).
     """
-    from kernels.icgn import ReferenceSubsets
+    from kernels.icgn import ReferenceSubsets, refdata_columns
 
     if not isinstance(subsets, ReferenceSubsets):
         raise ValueError(f"subsets must be a kernels.icgn.ReferenceSubsets, got {type(subsets).__name__}")
@@ -125,7 +125,8 @@ def hessian_inverse_uv(subsets) -> np.ndarray:
     ready = subsets.status.numpy() == int(Status.CONVERGED)
     out = np.full((table.shape[0], 2), np.nan)
     for j, i in enumerate((0, k // 2)):  # u, v: unscaled parameters
-        col = i * k - i * (i - 1) // 2  # diagonal entry i of the packed upper triangle (row-major)
+        # diagonal entry i of the packed upper triangle (row-major)
+        col = refdata_columns(subsets.order).hinv + i * k - i * (i - 1) // 2
         out[ready, j] = table[ready, col]
     return out
 
@@ -133,8 +134,8 @@ def hessian_inverse_uv(subsets) -> np.ndarray:
 def residual_variance(zncc, fnorm, subset: int, order: int) -> np.ndarray:
     """(N,) residual variance per subset pixel (grey levels^2) from ZNCC: ``2 df^2 (1 - ZNCC) / (S^2 - k - 2)``.
 
-    ``fnorm`` is the reference subset's ``df = sqrt(sum (f - fm)^2)`` (the last column of the
-    prepared subsets' table).
+    ``fnorm`` is the reference subset's ``df = sqrt(sum (f - fm)^2)`` (the column
+    ``kernels.icgn.RefdataColumns.fnorm`` of the prepared subsets' table).
     """
     subset, order = check_subset_order(subset, order)
     z = np.asarray(zncc, dtype=np.float64)
@@ -161,8 +162,11 @@ class SigmaBasis:
 
 def sigma_basis(subsets) -> SigmaBasis:
     """Read ``diag H^-1`` of u, v and ``df`` from a :class:`kernels.icgn.ReferenceSubsets` once (one host copy)."""
+    from kernels.icgn import refdata_columns
+
     hinv = hessian_inverse_uv(subsets)
-    return SigmaBasis(hinv, subsets.refdata.numpy()[:, -1].astype(np.float64), subsets.subset, subsets.order)
+    fnorm = subsets.refdata.numpy()[:, refdata_columns(subsets.order).fnorm].astype(np.float64)
+    return SigmaBasis(hinv, fnorm, subsets.subset, subsets.order)
 
 
 def displacement_sigma(subsets, zncc=None, valid=None, noise_sigma=None) -> tuple[np.ndarray, float, str]:

@@ -32,14 +32,12 @@ folder, a pattern matching nothing, a video the decoder cannot open) raise ``Val
 
 :func:`open_pairs` makes a stereo source of two sources of equal length (or of a sequence of
 ``(left, right)`` pairs); :func:`open_inputs` joins several inputs (command-line arguments) into
-one source; :func:`prefetch` reads ahead in a thread through a bounded queue.
+one source.
 """
 from __future__ import annotations
 
 import glob
 import os
-import queue
-import threading
 import warnings
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -51,7 +49,7 @@ from kernels.checks import boolean
 from kernels.images import IMAGE_SUFFIXES, as_float32_image, grey_image, natural_key, read_image
 
 __all__ = ["Frame", "FrameError", "FrameSource", "PairSource", "VIDEO_SUFFIXES", "is_single_image", "open_frames",
-           "open_inputs", "open_pairs", "prefetch"]
+           "open_inputs", "open_pairs"]
 
 #: file name suffixes read as video (imageio's ffmpeg plugin; case-insensitive)
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".mj2")
@@ -907,86 +905,3 @@ def _side(source, label: str, as_grey: bool) -> FrameSource:
     if isinstance(src, (_StackFrames, _ListFrames, _IterFrames)) and src.label in ("array", "item"):
         src.label = label
     return src
-
-
-# ------------------------------------------------------------------------------------------------
-# reading ahead
-# ------------------------------------------------------------------------------------------------
-_END = object()
-
-
-class prefetch:  # noqa: N801 - used like a function: for frame in prefetch(source): ...
-    """Iterate ``source`` with a thread reading up to ``depth`` items ahead (a bounded queue).
-
-    ``source``: a :class:`FrameSource`, a :class:`PairSource` or any iterable. Items come in
-    order; an error raised while reading an item is raised here at its position (the items before
-    it have been given). Leaving the loop early (``break``, an exception, :meth:`close`, the end
-    of a ``with`` block) stops the thread. ``len()`` is the source's.
-    """
-
-    def __init__(self, source, depth: int = 2):
-        from kernels.checks import positive_int
-
-        self.depth = positive_int(depth, "depth")
-        if not isinstance(source, Iterable):
-            raise ValueError(f"prefetch needs an iterable source, got {type(source).__name__}")
-        self.source = source
-        self._queue: queue.Queue = queue.Queue(maxsize=self.depth)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def __len__(self) -> int:
-        return len(self.source)
-
-    def _put(self, item) -> bool:
-        while not self._stop.is_set():
-            try:
-                self._queue.put(item, timeout=0.05)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def _work(self) -> None:
-        try:
-            for item in self.source:
-                if not self._put((True, item)):
-                    return
-        except BaseException as exc:  # handed to the consumer at this position
-            self._put((False, exc))
-            return
-        self._put((True, _END))
-
-    def __iter__(self):
-        if self._thread is not None:
-            raise ValueError("a prefetch iterator is read once; make a new one")
-        self._thread = threading.Thread(target=self._work, name="specula-prefetch", daemon=True)
-        self._thread.start()
-        try:
-            while True:
-                ok, item = self._queue.get()
-                if not ok:
-                    raise item
-                if item is _END:
-                    return
-                yield item
-        finally:
-            self.close()
-
-    def close(self) -> None:
-        """Stop the reading thread (the items it read ahead are dropped)."""
-        self._stop.set()
-        while True:
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:
-                break
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False

@@ -52,8 +52,6 @@ _POOL: ThreadPoolExecutor | None = None
 #: _icgn_counted_2nd       128     as _icgn_2nd (kernels/rg_device.py: a wave's IC-GN sized by a
 #:                                 device count, the same body)
 #: _icgn_counted_1st       128, 8  as _icgn_1st
-#: _icgn_1st_tiled         32      prototype, one warp per POI (kernels/icgn_tiled.py): 64
-#:                                 registers; 32 warps per SM (at most 32 blocks per SM)
 #: _icgn_robust_1st/_2nd   128     opt-in Tukey-weighted refinement (kernels/icgn_robust.py):
 #:                                 the module's block size, registers left to the compiler
 #:                                 (214 and 255, stack 112 and 944 bytes: 8 warps per SM)
@@ -72,7 +70,6 @@ CUDA_LAUNCH = {
     "_prefilter_cols_frames": (256, 6),
     "_icgn_frames_2nd": (128, 0),
     "_icgn_frames_1st": (128, 6),
-    "_icgn_1st_tiled": (32, 0),
     "_icgn_counted_2nd": (128, 0),
     "_icgn_counted_1st": (128, 8),
     "_icgn_robust_1st": (128, 0),

@@ -30,14 +30,17 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ._common import ST_CONVERGED, ST_MAX_ITERATIONS, icgn_module_options, struct_of
 from ._device import host_copy
-from ._launch import cuda_block_dim, cuda_launch_bounds, launch_1d
+from ._launch import cuda_launch_bounds, launch_1d
 from .checks import in_range, positive_float, positive_int
-from .conventions import Status
 from .icgn import (
+    CurrentCoefficients,
     CurrentImage,
+    IcgnOutputs,
     IcgnResult,
     ReferenceSubsets,
+    SubsetTable,
     check_max_iter,
     icgn_point_1st,
     icgn_point_2nd,
@@ -46,13 +49,23 @@ from .icgn import (
 from .images import is_torch_tensor
 from .interp import FRAME_DTYPES, PAD, bspline_frames
 
-# the IC-GN module's options: the per-POI bodies compile here too and must give the same bits; and its
-# CUDA block size (kernels._launch.CUDA_LAUNCH)
-wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
-                       "block_dim": cuda_block_dim("_icgn_frames_2nd")})
+# the IC-GN modules' options: the per-POI bodies compile here too and must give the same bits
+wp.set_module_options(icgn_module_options("_icgn_frames_2nd"))
 
-ST_CONVERGED = wp.constant(int(Status.CONVERGED))
-ST_MAX_ITERATIONS = wp.constant(int(Status.MAX_ITERATIONS))
+
+@wp.struct
+class FrameArrays:
+    """The per-frame arrays of a frames x POIs launch (F frames of N POIs, K parameters)."""
+
+    #: (F, (H + 4) * (W + 4)) the frames' row-expanded B-spline coefficients
+    coef: wp.array2d(dtype=wp.vec4)
+    #: W + 4, the padded row length
+    pitch: int
+    #: (F, N, K), (F, N), (F, N), (F, N): the IC-GN results per frame
+    params: wp.array3d(dtype=float)
+    zncc: wp.array2d(dtype=float)
+    iterations: wp.array2d(dtype=wp.int32)
+    status: wp.array2d(dtype=wp.int32)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -60,41 +73,50 @@ ST_MAX_ITERATIONS = wp.constant(int(Status.MAX_ITERATIONS))
 # ----------------------------------------------------------------------------------------------
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_frames_1st"))
-def _icgn_frames_1st(
-    offset: int, n_points: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int,
-    coef: wp.array2d(dtype=wp.vec4), pitch: int, centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2),
-    refdata: wp.array2d(dtype=float), ref_status: wp.array(dtype=wp.int32), guess: wp.array3d(dtype=float),
-    guess_stride: int, r: int, max_iter: int, tol: float, flat_var: float,
-    params: wp.array3d(dtype=float), zncc: wp.array2d(dtype=float), iterations: wp.array2d(dtype=wp.int32),
-    status: wp.array2d(dtype=wp.int32),
-):
-    t = wp.tid() + offset
-    f = t // n_points
-    icgn_point_1st(t - f * n_points, fgrad, width, height, coef[f], pitch, centres, deltas, refdata, ref_status,
-                   guess[f * guess_stride], r, max_iter, tol, flat_var, params[f], zncc[f], iterations[f], status[f])
+@wp.func
+def frame_current(frames: FrameArrays, f: int):
+    """Frame ``f``'s coefficients as the :class:`kernels.icgn.CurrentCoefficients` of the per-POI bodies."""
+    cur = CurrentCoefficients()
+    cur.coef = frames.coef[f]
+    cur.pitch = frames.pitch
+    return cur
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_frames_2nd"))
-def _icgn_frames_2nd(
-    offset: int, n_points: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int,
-    coef: wp.array2d(dtype=wp.vec4), pitch: int, centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2),
-    refdata: wp.array2d(dtype=float), ref_status: wp.array(dtype=wp.int32), guess: wp.array3d(dtype=float),
-    guess_stride: int, r: int, max_iter: int, tol: float, flat_var: float,
-    params: wp.array3d(dtype=float), zncc: wp.array2d(dtype=float), iterations: wp.array2d(dtype=wp.int32),
-    status: wp.array2d(dtype=wp.int32),
-):
-    t = wp.tid() + offset
-    f = t // n_points
-    icgn_point_2nd(t - f * n_points, fgrad, width, height, coef[f], pitch, centres, deltas, refdata, ref_status,
-                   guess[f * guess_stride], r, max_iter, tol, flat_var, params[f], zncc[f], iterations[f], status[f])
+@wp.func
+def frame_outputs(frames: FrameArrays, f: int):
+    """Frame ``f``'s result rows as the :class:`kernels.icgn.IcgnOutputs` of the per-POI bodies."""
+    out = IcgnOutputs()
+    out.params = frames.params[f]
+    out.zncc = frames.zncc[f]
+    out.iterations = frames.iterations[f]
+    out.status = frames.status[f]
+    return out
+
+
+def _make_icgn_frames(order: int):
+    """The frames x POIs IC-GN kernel of one order: thread ``t`` tracks POI ``t % N`` of frame ``t // N``
+    with the per-POI body of :mod:`kernels.icgn`, from guess row ``f * guess_stride``."""
+    icgn_point = icgn_point_1st if order == 1 else icgn_point_2nd
+
+    def icgn_frames(offset: int, n_points: int, sub: SubsetTable, frames: FrameArrays,
+                    guess: wp.array3d(dtype=float), guess_stride: int, max_iter: int, tol: float):
+        t = wp.tid() + offset
+        f = t // n_points
+        icgn_point(t - f * n_points, sub, frame_current(frames, f), guess[f * guess_stride], max_iter, tol,
+                   frame_outputs(frames, f))
+
+    name = "_icgn_frames_1st" if order == 1 else "_icgn_frames_2nd"
+    icgn_frames.__name__ = icgn_frames.__qualname__ = name
+    return wp.kernel(icgn_frames, launch_bounds=cuda_launch_bounds(name))
+
+
+_icgn_frames_1st = _make_icgn_frames(1)
+_icgn_frames_2nd = _make_icgn_frames(2)
 
 
 @wp.kernel
-def _propagate_guess(
-    offset: int, n_frames: int, params: wp.array3d(dtype=float), zncc: wp.array2d(dtype=float),
-    status: wp.array2d(dtype=wp.int32), bad: wp.array(dtype=wp.int32), zncc_min: float, guess: wp.array2d(dtype=float),
-):
+def _propagate_guess(offset: int, n_frames: int, frames: FrameArrays, bad: wp.array(dtype=wp.int32), zncc_min: float,
+                     guess: wp.array2d(dtype=float)):
     """The next frame's guess: POI n takes the parameters of the last of the ``n_frames`` frames where they
     are valid (status CONVERGED or MAX_ITERATIONS, ``zncc >= zncc_min``) and keeps its guess otherwise; a
     launch with a non-finite pixel in any frame passes nothing on (it is refused as a whole)."""
@@ -104,27 +126,24 @@ def _propagate_guess(
         refused += bad[f]
     if refused == 0:
         for f in range(n_frames):
-            st = status[f, n]
-            if (st == ST_CONVERGED or st == ST_MAX_ITERATIONS) and zncc[f, n] >= zncc_min:
+            st = frames.status[f, n]
+            if (st == ST_CONVERGED or st == ST_MAX_ITERATIONS) and frames.zncc[f, n] >= zncc_min:
                 for i in range(guess.shape[1]):
-                    guess[n, i] = params[f, n, i]
+                    guess[n, i] = frames.params[f, n, i]
 
 
 @wp.kernel
-def _pack_results(
-    offset: int, n_points: int, params: wp.array3d(dtype=float), zncc: wp.array2d(dtype=float),
-    iterations: wp.array2d(dtype=wp.int32), status: wp.array2d(dtype=wp.int32), packed: wp.array3d(dtype=float),
-):
+def _pack_results(offset: int, n_points: int, frames: FrameArrays, packed: wp.array3d(dtype=float)):
     """One float32 row per POI: ``params, zncc, iterations, status`` (integers below 2**24: exact)."""
     t = wp.tid() + offset
     f = t // n_points
     n = t - f * n_points
-    k = params.shape[2]
+    k = frames.params.shape[2]
     for i in range(k):
-        packed[f, n, i] = params[f, n, i]
-    packed[f, n, k] = zncc[f, n]
-    packed[f, n, k + 1] = float(iterations[f, n])
-    packed[f, n, k + 2] = float(status[f, n])
+        packed[f, n, i] = frames.params[f, n, i]
+    packed[f, n, k] = frames.zncc[f, n]
+    packed[f, n, k + 1] = float(frames.iterations[f, n])
+    packed[f, n, k + 2] = float(frames.status[f, n])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -132,18 +151,12 @@ def _pack_results(
 # ----------------------------------------------------------------------------------------------
 
 
-def _launch_icgn_frames(subsets: ReferenceSubsets, rows4: wp.array, n_frames: int, guess: wp.array, guess_stride: int,
-                        max_iter: int, tol: float, params, zncc, iterations, status) -> None:
-    h, w = subsets.reference.shape
+def _launch_icgn_frames(subsets: ReferenceSubsets, frames: FrameArrays, n_frames: int, guess: wp.array,
+                        guess_stride: int, max_iter: int, tol: float) -> None:
     n = subsets.n_points
     kernel = _icgn_frames_1st if subsets.order == 1 else _icgn_frames_2nd
-    launch_1d(
-        kernel, n_frames * n,
-        [0, n, subsets.reference.fgrad, w, h, rows4, w + 2 * PAD, subsets.centres, subsets.deltas, subsets.refdata,
-         subsets.status, guess, guess_stride, subsets.subset // 2, int(max_iter), float(tol),
-         float(subsets.flat_std) ** 2, params, zncc, iterations, status],
-        subsets.device, offset_index=0, min_chunk=64,
-    )
+    launch_1d(kernel, n_frames * n, [0, n, subsets.table, frames, guess, guess_stride, int(max_iter), float(tol)],
+              subsets.device, offset_index=0, min_chunk=64)
 
 
 def zncc_threshold32(zncc_min: float) -> float:
@@ -223,7 +236,9 @@ def icgn_batch(subsets: ReferenceSubsets, currents, guesses=None, max_iter: int 
     zncc = wp.empty((f, n), dtype=wp.float32, device=device)
     iterations = wp.empty((f, n), dtype=wp.int32, device=device)
     status = wp.empty((f, n), dtype=wp.int32, device=device)
-    _launch_icgn_frames(subsets, rows4, f, guess, int(g.shape[0] > 1), max_iter, tol, params, zncc, iterations, status)
+    frames = struct_of(FrameArrays, coef=rows4, pitch=w + 2 * PAD, params=params, zncc=zncc, iterations=iterations,
+                       status=status)
+    _launch_icgn_frames(subsets, frames, f, guess, int(g.shape[0] > 1), max_iter, tol)
     return [IcgnResult(params[i], zncc[i], iterations[i], status[i]) for i in range(f)]
 
 
@@ -294,6 +309,8 @@ class FrameTracker:
         self._status = wp.empty((b, n), dtype=wp.int32, device=dev)
         self._results = [IcgnResult(self._params[i], self._zncc[i], self._iterations[i], self._status[i])
                          for i in range(b)]
+        self._frames = struct_of(FrameArrays, coef=self._rows4, pitch=w + 2 * PAD, params=self._params, zncc=self._zncc,
+                                 iterations=self._iterations, status=self._status)
         if self.packed:
             self._packed = wp.empty((b, n, k + 3), dtype=wp.float32, device=dev)
             self._packed_host = (wp.empty((b, n, k + 3), dtype=wp.float32, device="cpu", pinned=True)
@@ -396,13 +413,15 @@ class FrameTracker:
             src = self._raw
         self._bad.zero_()
         bspline_frames(src, f, self._coef, self._rows4, self._bad)
-        _launch_icgn_frames(self.subsets, self._rows4, f, self._guess, 0, self.max_iter, self.tol, self._params,
-                            self._zncc, self._iterations, self._status)
-        launch_1d(_propagate_guess, self.n_points,
-                  [0, f, self._params, self._zncc, self._status, self._bad, self._zncc_min32, self._guess2d],
-                  self.device, offset_index=0, min_chunk=1 << 12)
+        self._launch_frame(f)
         self.frames_tracked += f
         return f
+
+    def _launch_frame(self, f: int) -> None:
+        """IC-GN of the ``f`` prepared frames from the propagated guess, then the guess propagation."""
+        _launch_icgn_frames(self.subsets, self._frames, f, self._guess, 0, self.max_iter, self.tol)
+        launch_1d(_propagate_guess, self.n_points, [0, f, self._frames, self._bad, self._zncc_min32, self._guess2d],
+                  self.device, offset_index=0, min_chunk=1 << 12)
 
     def _check_bad(self, f: int, copied: bool, name: str = "frame") -> None:
         if self._cuda and not copied:
@@ -417,8 +436,7 @@ class FrameTracker:
     def _host_results(self, f: int, name: str = "frame") -> list[dict]:
         k = self.n_params
         if self.packed:
-            launch_1d(_pack_results, f * self.n_points,
-                      [0, self.n_points, self._params, self._zncc, self._iterations, self._status, self._packed],
+            launch_1d(_pack_results, f * self.n_points, [0, self.n_points, self._frames, self._packed],
                       self.device, offset_index=0, min_chunk=1 << 12)
             if self._cuda:
                 wp.copy(self._packed_host, self._packed, count=f * self.n_points * (k + 3))
@@ -500,11 +518,7 @@ class FrameTracker:
         with wp.ScopedCapture(device=self.device) as capture:
             self._bad.zero_()
             bspline_frames(self._raw, 1, self._coef, self._rows4, self._bad)
-            _launch_icgn_frames(self.subsets, self._rows4, 1, self._guess, 0, self.max_iter, self.tol, self._params,
-                                self._zncc, self._iterations, self._status)
-            launch_1d(_propagate_guess, self.n_points,
-                      [0, 1, self._params, self._zncc, self._status, self._bad, self._zncc_min32, self._guess2d],
-                      self.device, offset_index=0, min_chunk=1 << 12)
+            self._launch_frame(1)
         return capture.graph
 
     def track_torch(self, frame, guess=None) -> dict:

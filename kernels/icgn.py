@@ -51,15 +51,26 @@ Statuses
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 import warp as wp
 
+from ._common import (  # noqa: F401 - the status constants are re-exported for the other kernel modules
+    ST_CONVERGED,
+    ST_DIVERGED,
+    ST_FLAT,
+    ST_MAX_ITERATIONS,
+    ST_NOT_COMPUTED,
+    ST_OUT_OF_BOUNDS,
+    ST_SINGULAR,
+    icgn_module_options,
+    struct_of,
+)
 from ._device import host_copy, resolve_device
-from ._launch import cuda_block_dim, cuda_launch_bounds, launch_1d
+from ._launch import cuda_launch_bounds, launch_1d
 from .checks import as_points, odd_int, positive_float, positive_int
-from .conventions import Status
 from .images import as_float32_image
 from .interp import (
     PaddedImage,
@@ -71,10 +82,7 @@ from .interp import (
     stencil_dot_rows4,
 )
 
-# FMA contraction across statements: ~15% faster CPU passes, and FMA only improves rounding.
-# CUDA block size of every kernel here (kernels._launch.CUDA_LAUNCH: one block size per module).
-wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
-                       "block_dim": cuda_block_dim("_icgn_2nd")})
+wp.set_module_options(icgn_module_options("_icgn_2nd"))
 
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
@@ -86,14 +94,6 @@ mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
 vec5 = wp.types.vector(length=5, dtype=wp.float32)
 mat55d = wp.types.matrix(shape=(5, 5), dtype=wp.float64)
 
-ST_CONVERGED = wp.constant(int(Status.CONVERGED))
-ST_MAX_ITERATIONS = wp.constant(int(Status.MAX_ITERATIONS))
-ST_OUT_OF_BOUNDS = wp.constant(int(Status.OUT_OF_BOUNDS))
-ST_FLAT = wp.constant(int(Status.FLAT_SUBSET))
-ST_SINGULAR = wp.constant(int(Status.SINGULAR_HESSIAN))
-ST_DIVERGED = wp.constant(int(Status.DIVERGED))
-ST_NOT_COMPUTED = wp.constant(int(Status.NOT_COMPUTED))
-
 #: A Cholesky pivot below this fraction of the largest diagonal entry of the (scaled) Hessian makes
 #: it SINGULAR_HESSIAN: beyond a condition number ~1e6 float32 solves lose the weak direction.
 PIVOT_RTOL = 1e-6
@@ -104,10 +104,108 @@ def n_params(order: int) -> int:
     return 6 if order == 1 else 12
 
 
+@dataclass(frozen=True)
+class RefdataColumns:
+    """The columns of one row of ``refdata``, the per-POI reference table of :func:`prepare_subsets`
+    (float32, one row per POI, ``K`` = :func:`n_params` of the order)."""
+
+    #: the first of K(K+1)/2 columns: the upper triangle of H^-1 (row-major, diagonal included)
+    hinv: int
+    #: the first of K columns: H^-1 sum J^T (f - fm)
+    hinv_a: int
+    #: the first of K columns: H^-1 sum J
+    hinv_c: int
+    #: fm, the mean grey level of the reference subset
+    fmean: int
+    #: df = sqrt(sum (f - fm)^2)
+    fnorm: int
+    #: floats per row
+    width: int
+
+
+def refdata_columns(order: int) -> RefdataColumns:
+    """The ``refdata`` columns of shape-function ``order`` 1 or 2 (:data:`REFDATA_1ST`, :data:`REFDATA_2ND`)."""
+    k = n_params(order)
+    packed = k * (k + 1) // 2
+    return RefdataColumns(hinv=0, hinv_a=packed, hinv_c=packed + k, fmean=packed + 2 * k, fnorm=packed + 2 * k + 1,
+                          width=packed + 2 * k + 2)
+
+
+#: ``refdata`` columns of the 1st order (hinv 0, hinv_a 21, hinv_c 27, fmean 33, fnorm 34; 35 floats)
+REFDATA_1ST = refdata_columns(1)
+#: ``refdata`` columns of the 2nd order (hinv 0, hinv_a 78, hinv_c 90, fmean 102, fnorm 103; 104 floats)
+REFDATA_2ND = refdata_columns(2)
+
+
 def refdata_width(order: int) -> int:
     """Floats stored per POI: packed H^-1, H^-1 sum J(f - fm), H^-1 sum J, fm, df."""
-    k = n_params(order)
-    return k * (k + 1) // 2 + 2 * k + 2
+    return refdata_columns(order).width
+
+
+# ----------------------------------------------------------------------------------------------
+# the device tables: what an IC-GN kernel reads and writes, by name
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.struct
+class SubsetTable:
+    """The reference side of IC-GN on the device: the reference image's values and gradients and the
+    per-POI tables of :func:`prepare_subsets` (:meth:`ReferenceSubsets.table`)."""
+
+    #: (H*W,) ``(f, df/dx, df/dy)`` of the reference at every pixel, row-major
+    fgrad: wp.array(dtype=wp.vec3)
+    #: W, H of the reference (px)
+    width: int
+    height: int
+    #: (N,) integer subset centres ``(round(x), round(y))``
+    centres: wp.array(dtype=wp.vec2i)
+    #: (N,) ``centre - point`` (px)
+    deltas: wp.array(dtype=wp.vec2)
+    #: (N, :func:`refdata_width`) packed H^-1 and friends (:class:`RefdataColumns`)
+    refdata: wp.array2d(dtype=float)
+    #: (N,) CONVERGED (= ready) or why the POI cannot be tracked
+    status: wp.array(dtype=wp.int32)
+    #: subset half-width (px): the subset is (2r + 1)^2 pixels
+    r: int
+    #: squared grey-level std of a flat subset
+    flat_var: float
+
+
+@wp.struct
+class CurrentCoefficients:
+    """A current image's B-spline coefficients as IC-GN reads them (:meth:`CurrentImage.coefficients`)."""
+
+    #: ((H + 4) * (W + 4),) four consecutive coefficients of a padded row per entry (either layout)
+    coef: wp.array(dtype=wp.vec4)
+    #: W + 4, the padded row length
+    pitch: int
+
+
+@wp.struct
+class IcgnOutputs:
+    """The per-POI results an IC-GN kernel writes (:meth:`IcgnResult.outputs`)."""
+
+    #: (N, K) parameters, PARAMS_1ST/PARAMS_2ND order
+    params: wp.array2d(dtype=float)
+    #: (N,) ZNCC at the final warp (NaN where not computed)
+    zncc: wp.array(dtype=float)
+    #: (N,) IC-GN iterations
+    iterations: wp.array(dtype=wp.int32)
+    #: (N,) :class:`kernels.conventions.Status`
+    status: wp.array(dtype=wp.int32)
+
+
+def subset_table(subsets: ReferenceSubsets) -> SubsetTable:
+    """The :class:`SubsetTable` of ``subsets`` (:attr:`ReferenceSubsets.table` keeps it)."""
+    h, w = subsets.reference.shape
+    return struct_of(SubsetTable, fgrad=subsets.reference.fgrad, width=w, height=h, centres=subsets.centres,
+                     deltas=subsets.deltas, refdata=subsets.refdata, status=subsets.status, r=subsets.subset // 2,
+                     flat_var=float(subsets.flat_std) ** 2)
+
+
+def icgn_outputs(params: wp.array, zncc: wp.array, iterations: wp.array, status: wp.array) -> IcgnOutputs:
+    """An :class:`IcgnOutputs` of the four result arrays."""
+    return struct_of(IcgnOutputs, params=params, zncc=zncc, iterations=iterations, status=status)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -503,6 +601,12 @@ def _make_prepare_subsets(order: int):
     matk = mat66d if order == 1 else mat1212d
     veck = vec6d if order == 1 else vec12d
     row_moments = _row_moments_deg2 if order == 1 else _row_moments_deg4
+    cols = refdata_columns(order)
+    col_h = cols.hinv
+    col_a = cols.hinv_a
+    col_c = cols.hinv_c
+    col_fmean = cols.fmean
+    col_fnorm = cols.fnorm
     # unrolled, the order-2 Cholesky inverse is ~18 000 lines of C++ (3x the CPU compile time of
     # this module) and still does not fit in registers: it keeps run-time loops
     unroll_solve = order == 1
@@ -617,8 +721,8 @@ def _make_prepare_subsets(order: int):
     @wp.func
     def store_refdata(refdata: wp.array2d(dtype=float), n: int, hinv: Any, a: Any, c: Any,
                       fmean: wp.float64, fnorm: wp.float64):
-        """Row layout: packed upper H^-1 (row-major), H^-1 a, H^-1 c, fm, df."""
-        col = int(0)
+        """Row ``n`` of ``refdata`` (:class:`RefdataColumns`): packed upper H^-1 (row-major), H^-1 a, H^-1 c, fm, df."""
+        col = int(col_h)
         for i in range(kk):
             for j in range(i, kk):
                 refdata[n, col] = float(hinv[i, j])
@@ -629,44 +733,41 @@ def _make_prepare_subsets(order: int):
             for j in range(kk):
                 ha += hinv[i, j] * a[j]
                 hc += hinv[i, j] * c[j]
-            refdata[n, col + i] = float(ha)
-            refdata[n, col + kk + i] = float(hc)
-        refdata[n, col + 2 * kk] = float(fmean)
-        refdata[n, col + 2 * kk + 1] = float(fnorm)
+            refdata[n, col_a + i] = float(ha)
+            refdata[n, col_c + i] = float(hc)
+        refdata[n, col_fmean] = float(fmean)
+        refdata[n, col_fnorm] = float(fnorm)
 
-    def prepare_subsets_kernel(
-        offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, points: wp.array(dtype=wp.vec2d),
-        r: int, k: int, flat_var: float,
-        centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-        status: wp.array(dtype=wp.int32),
-    ):
-        # k (= K of this order) is fixed at compile time; the argument keeps the launch signature
+    def prepare_subsets_kernel(offset: int, points: wp.array(dtype=wp.vec2d), sub: SubsetTable):
+        # fills sub.centres, sub.deltas, sub.refdata and sub.status of POI n from sub.fgrad
         n = wp.tid() + offset
+        r = sub.r
+        width = sub.width
         pt = points[n]
         cx0 = int(wp.round(pt[0]))
         cy0 = int(wp.round(pt[1]))
         dl = wp.vec2(float(wp.float64(cx0) - pt[0]), float(wp.float64(cy0) - pt[1]))
-        centres[n] = wp.vec2i(cx0, cy0)
-        deltas[n] = dl
-        if cx0 - r < 0 or cy0 - r < 0 or cx0 + r > width - 1 or cy0 + r > height - 1:
-            status[n] = ST_OUT_OF_BOUNDS
+        sub.centres[n] = wp.vec2i(cx0, cy0)
+        sub.deltas[n] = dl
+        if cx0 - r < 0 or cy0 - r < 0 or cx0 + r > width - 1 or cy0 + r > sub.height - 1:
+            sub.status[n] = ST_OUT_OF_BOUNDS
             return
         npx = (2 * r + 1) * (2 * r + 1)
         fsum = wp.float64(0.0)
         for j in range(-r, r + 1):
             for i in range(-r, r + 1):
-                fsum += wp.float64(fgrad[(cy0 + j) * width + cx0 + i][0])
+                fsum += wp.float64(sub.fgrad[(cy0 + j) * width + cx0 + i][0])
         fmean = fsum / wp.float64(npx)
-        h, a, c, ss = subset_hessian(fgrad, width, cx0, cy0, r, dl, fmean)
-        if not (ss > wp.float64(npx) * wp.float64(flat_var)):
-            status[n] = ST_FLAT
+        h, a, c, ss = subset_hessian(sub.fgrad, width, cx0, cy0, r, dl, fmean)
+        if not (ss > wp.float64(npx) * wp.float64(sub.flat_var)):
+            sub.status[n] = ST_FLAT
             return
         hinv, ok = cholesky_inverse(h)
         if ok == 0:
-            status[n] = ST_SINGULAR
+            sub.status[n] = ST_SINGULAR
             return
-        store_refdata(refdata, n, hinv, a, c, fmean, wp.sqrt(ss))
-        status[n] = ST_CONVERGED  # "ready"
+        store_refdata(sub.refdata, n, hinv, a, c, fmean, wp.sqrt(ss))
+        sub.status[n] = ST_CONVERGED  # "ready"
 
     name = "_prepare_subsets_1st" if order == 1 else "_prepare_subsets_2nd"
     prepare_subsets_kernel.__name__ = prepare_subsets_kernel.__qualname__ = name
@@ -677,38 +778,36 @@ def _make_prepare_subsets(order: int):
 _prepare_subsets = {1: _make_prepare_subsets(1), 2: _make_prepare_subsets(2)}
 
 
-@wp.func
-def gn_update6(refdata: wp.array2d(dtype=float), n: int, b: vec6, ratio: float, gmean: float):
-    """dq = ratio (H^-1 b - gm H^-1 c) - H^-1 a, reading the packed H^-1 from refdata (not registers)."""
-    dq = vec6()
-    col = int(0)
-    for i in range(6):
-        for j in range(i, 6):
-            h = refdata[n, col]
-            dq[i] += h * b[j]
-            if j != i:
-                dq[j] += h * b[i]
-            col += 1
-    for i in range(6):
-        dq[i] = ratio * (dq[i] - gmean * refdata[n, 27 + i]) - refdata[n, 21 + i]
-    return dq
+def _make_gn_update(order: int):
+    """The Gauss-Newton step of one order, ``dq = ratio (H^-1 b - gm H^-1 c) - H^-1 a``, reading the packed
+    H^-1 from ``refdata`` (not registers); K and the columns (:class:`RefdataColumns`) fixed at compile time."""
+    kk = n_params(order)
+    vecp = vec6 if order == 1 else vec12
+    cols = refdata_columns(order)
+    col_a = cols.hinv_a
+    col_c = cols.hinv_c
+
+    def gn_update(refdata: wp.array2d(dtype=float), n: int, b: Any, ratio: float, gmean: float):
+        dq = vecp()
+        col = int(0)
+        for i in range(kk):
+            for j in range(i, kk):
+                h = refdata[n, col]
+                dq[i] += h * b[j]
+                if j != i:
+                    dq[j] += h * b[i]
+                col += 1
+        for i in range(kk):
+            dq[i] = ratio * (dq[i] - gmean * refdata[n, col_c + i]) - refdata[n, col_a + i]
+        return dq
+
+    gn_update.__name__ = gn_update.__qualname__ = f"gn_update{kk}"
+    return wp.func(gn_update)
 
 
-@wp.func
-def gn_update12(refdata: wp.array2d(dtype=float), n: int, b: vec12, ratio: float, gmean: float):
-    """12-parameter version of :func:`gn_update6`."""
-    dq = vec12()
-    col = int(0)
-    for i in range(12):
-        for j in range(i, 12):
-            h = refdata[n, col]
-            dq[i] += h * b[j]
-            if j != i:
-                dq[j] += h * b[i]
-            col += 1
-    for i in range(12):
-        dq[i] = ratio * (dq[i] - gmean * refdata[n, 90 + i]) - refdata[n, 78 + i]
-    return dq
+#: the Gauss-Newton step of the 1st / 2nd order (b: vec6 / vec12)
+gn_update6 = _make_gn_update(1)
+gn_update12 = _make_gn_update(2)
 
 
 @wp.func
@@ -726,135 +825,101 @@ def gn_step_scale(sums: wp.vec3, npx: int, fnorm: float, flat_var: float):
     return gmean, fnorm / dg, sums[2] / (fnorm * dg)
 
 
-@wp.func
-def icgn_point_1st(
-    n: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
-    flat_var: float,
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32),
-):
-    """IC-GN of POI ``n`` (1st-order shape function): the per-POI body of ``_icgn_1st`` and of the
-    frames x POIs launch of :mod:`kernels.frames` (one body, so both give the same bits)."""
-    p = vec6(guess[n, 0], guess[n, 1], guess[n, 2], guess[n, 3], guess[n, 4], guess[n, 5])
-    st = ref_status[n]
-    cc = float(wp.nan)
-    it = int(0)
-    if st == ST_CONVERGED:
-        fmean = refdata[n, 33]
-        fnorm = refdata[n, 34]
-        goff = fmean
-        ctr = centres[n]
-        dl = deltas[n]
-        s = float(r)
-        st = ST_MAX_ITERATIONS
-        while it < max_iter:
-            if warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], 0.0, 0.0, 0.0,
-                             p[3], p[4], p[5], 0.0, 0.0, 0.0) == 0:
-                st = ST_OUT_OF_BOUNDS
-                break
-            b, sums = subset_pass_1st(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean, goff)
-            it += 1
-            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
-            goff = goff + gmean
-            dq = gn_update6(refdata, n, b, ratio, gmean)
-            norm = wp.length(dq)
-            if ratio == 0.0 or not (norm <= float(2 * r + 1)):
-                st = ST_DIVERGED
-                break
-            p = compose_1st(p, vec6(dq[0], dq[1] / s, dq[2] / s, dq[3], dq[4] / s, dq[5] / s))
-            if norm < tol:
-                st = ST_CONVERGED
-                break
-    for i in range(6):
-        params[n, i] = p[i]
-    zncc[n] = cc
-    iterations[n] = it
-    status[n] = st
+def _make_icgn_point(order: int):
+    """The per-POI IC-GN body of one shape-function order: ``icgn_point(n, sub, cur, guess, max_iter, tol, out)``
+    tracks POI ``n`` of ``sub`` into ``cur`` from ``guess[n]`` and writes row ``n`` of ``out``. The body of
+    ``_icgn_1st``/``_icgn_2nd``, of the frames x POIs launch of :mod:`kernels.frames` and of the counted
+    launch of :mod:`kernels.rg_device` (one body, so all give the same bits). The order's parts (the
+    subset pass, the composition, K, the :class:`RefdataColumns`) are chosen at compile time."""
+    kk = n_params(order)
+    cols = refdata_columns(order)
+    col_fmean = cols.fmean
+    col_fnorm = cols.fnorm
+    gn_update = gn_update6 if order == 1 else gn_update12
+
+    def icgn_point(n: int, sub: SubsetTable, cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int,
+                   tol: float, out: IcgnOutputs):
+        if wp.static(order == 1):
+            p = vec6(guess[n, 0], guess[n, 1], guess[n, 2], guess[n, 3], guess[n, 4], guess[n, 5])
+        else:
+            p = vec12()
+            for i in range(12):
+                p[i] = guess[n, i]
+        r = sub.r
+        st = sub.status[n]
+        cc = float(wp.nan)
+        it = int(0)
+        if st == ST_CONVERGED:
+            fmean = sub.refdata[n, col_fmean]
+            fnorm = sub.refdata[n, col_fnorm]
+            goff = fmean
+            ctr = sub.centres[n]
+            dl = sub.deltas[n]
+            s = float(r)
+            s2 = s * s
+            st = ST_MAX_ITERATIONS
+            while it < max_iter:
+                if wp.static(order == 1):
+                    inside = warped_inside(ctr[0], ctr[1], r, dl, sub.width, sub.height, p[0], p[1], p[2], 0.0, 0.0,
+                                           0.0, p[3], p[4], p[5], 0.0, 0.0, 0.0)
+                else:
+                    inside = warped_inside(ctr[0], ctr[1], r, dl, sub.width, sub.height, p[0], p[1], p[2], p[3], p[4],
+                                           p[5], p[6], p[7], p[8], p[9], p[10], p[11])
+                if inside == 0:
+                    st = ST_OUT_OF_BOUNDS
+                    break
+                if wp.static(order == 1):
+                    b, sums = subset_pass_1st(sub.fgrad, sub.width, cur.coef, cur.pitch, ctr[0], ctr[1], r, dl, 1.0 / s,
+                                              p, fmean, goff)
+                else:
+                    b, sums = subset_pass_2nd(sub.fgrad, sub.width, cur.coef, cur.pitch, ctr[0], ctr[1], r, dl, 1.0 / s,
+                                              p, fmean, goff)
+                it += 1
+                gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, sub.flat_var)
+                goff = goff + gmean
+                dq = gn_update(sub.refdata, n, b, ratio, gmean)
+                norm = wp.length(dq)
+                if ratio == 0.0 or not (norm <= float(2 * r + 1)):
+                    st = ST_DIVERGED
+                    break
+                if wp.static(order == 1):
+                    p = compose_1st(p, vec6(dq[0], dq[1] / s, dq[2] / s, dq[3], dq[4] / s, dq[5] / s))
+                else:
+                    dp = vec12(dq[0], dq[1] / s, dq[2] / s, dq[3] / s2, dq[4] / s2, dq[5] / s2,
+                               dq[6], dq[7] / s, dq[8] / s, dq[9] / s2, dq[10] / s2, dq[11] / s2)
+                    pn = compose_2nd(p, dp, s)
+                    if not wp.isfinite(pn):  # a degenerate update (see solve_transposed6): keep the last p
+                        st = ST_DIVERGED
+                        break
+                    p = pn
+                if norm < tol:
+                    st = ST_CONVERGED
+                    break
+        for i in range(kk):
+            out.params[n, i] = p[i]
+        out.zncc[n] = cc
+        out.iterations[n] = it
+        out.status[n] = st
+
+    icgn_point.__name__ = icgn_point.__qualname__ = f"icgn_point_{'1st' if order == 1 else '2nd'}"
+    return wp.func(icgn_point)
+
+
+#: the per-POI IC-GN bodies of the 1st and 2nd order (:func:`_make_icgn_point`)
+icgn_point_1st = _make_icgn_point(1)
+icgn_point_2nd = _make_icgn_point(2)
 
 
 @wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_1st"))
-def _icgn_1st(
-    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
-    flat_var: float,
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32),
-):
-    icgn_point_1st(wp.tid() + offset, fgrad, width, height, coef, pitch, centres, deltas, refdata,
-                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
-
-
-@wp.func
-def icgn_point_2nd(
-    n: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
-    flat_var: float,
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32),
-):
-    """IC-GN of POI ``n`` (2nd-order shape function): the per-POI body of ``_icgn_2nd`` and of the
-    frames x POIs launch of :mod:`kernels.frames` (one body, so both give the same bits)."""
-    p = vec12()
-    for i in range(12):
-        p[i] = guess[n, i]
-    st = ref_status[n]
-    cc = float(wp.nan)
-    it = int(0)
-    if st == ST_CONVERGED:
-        fmean = refdata[n, 102]
-        fnorm = refdata[n, 103]
-        goff = fmean
-        ctr = centres[n]
-        dl = deltas[n]
-        s = float(r)
-        s2 = s * s
-        st = ST_MAX_ITERATIONS
-        while it < max_iter:
-            if warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], p[3], p[4], p[5],
-                             p[6], p[7], p[8], p[9], p[10], p[11]) == 0:
-                st = ST_OUT_OF_BOUNDS
-                break
-            b, sums = subset_pass_2nd(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean, goff)
-            it += 1
-            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
-            goff = goff + gmean
-            dq = gn_update12(refdata, n, b, ratio, gmean)
-            norm = wp.length(dq)
-            if ratio == 0.0 or not (norm <= float(2 * r + 1)):
-                st = ST_DIVERGED
-                break
-            dp = vec12(dq[0], dq[1] / s, dq[2] / s, dq[3] / s2, dq[4] / s2, dq[5] / s2,
-                       dq[6], dq[7] / s, dq[8] / s, dq[9] / s2, dq[10] / s2, dq[11] / s2)
-            pn = compose_2nd(p, dp, s)
-            if not wp.isfinite(pn):  # a degenerate update (see solve_transposed6): keep the last p
-                st = ST_DIVERGED
-                break
-            p = pn
-            if norm < tol:
-                st = ST_CONVERGED
-                break
-    for i in range(12):
-        params[n, i] = p[i]
-    zncc[n] = cc
-    iterations[n] = it
-    status[n] = st
+def _icgn_1st(offset: int, sub: SubsetTable, cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int,
+              tol: float, out: IcgnOutputs):
+    icgn_point_1st(wp.tid() + offset, sub, cur, guess, max_iter, tol, out)
 
 
 @wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_2nd"))
-def _icgn_2nd(
-    offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
-    flat_var: float,
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32),
-):
-    icgn_point_2nd(wp.tid() + offset, fgrad, width, height, coef, pitch, centres, deltas, refdata,
-                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
+def _icgn_2nd(offset: int, sub: SubsetTable, cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int,
+              tol: float, out: IcgnOutputs):
+    icgn_point_2nd(wp.tid() + offset, sub, cur, guess, max_iter, tol, out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -923,6 +988,11 @@ class ReferenceSubsets:
     def n_points(self) -> int:
         return int(self.points.shape[0])
 
+    @cached_property
+    def table(self) -> SubsetTable:
+        """These subsets as the :class:`SubsetTable` the kernels read (built once per object)."""
+        return subset_table(self)
+
 
 #: the coefficient layouts IC-GN reads (``prepare_current(..., layout=)``, ``icgn(..., layout=)``):
 #: ``"rows4"`` a ``wp.vec4`` per padded pixel holding 4 consecutive coefficients of its row (one
@@ -988,6 +1058,18 @@ class CurrentImage:
         """``"rows4"`` when the row-expanded coefficients were built, else ``"plain"``."""
         return "rows4" if self.rows4 is not None else "plain"
 
+    def coefficients(self, layout: str | None = None) -> CurrentCoefficients:
+        """The coefficients of ``layout`` (default :attr:`layout`) as the :class:`CurrentCoefficients` the
+        kernels read (built once per object and layout)."""
+        layout = self.layout if layout is None else layout
+        cache = self.__dict__.setdefault("_coefficients", {})
+        if layout not in cache:
+            coef = self.plain if layout == "plain" else self.rows4
+            if coef is None:
+                raise ValueError(f'this CurrentImage holds no "{layout}" coefficients')
+            cache[layout] = struct_of(CurrentCoefficients, coef=coef, pitch=self.pitch)
+        return cache[layout]
+
 
 @dataclass
 class IcgnResult:
@@ -1001,6 +1083,16 @@ class IcgnResult:
     zncc: wp.array
     iterations: wp.array
     status: wp.array
+
+    @property
+    def outputs(self) -> IcgnOutputs:
+        """These arrays as the :class:`IcgnOutputs` the kernels write (built when the arrays change)."""
+        arrays = (self.params, self.zncc, self.iterations, self.status)
+        cached = self.__dict__.get("_outputs")
+        if cached is None or any(a is not b for a, b in zip(cached[0], arrays)):
+            cached = (arrays, icgn_outputs(*arrays))
+            self.__dict__["_outputs"] = cached
+        return cached[1]
 
     def numpy(self) -> dict[str, np.ndarray]:
         """Owned host copies (on every device: a later call reusing these buffers leaves them unchanged)."""
@@ -1126,19 +1218,14 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
         raise ValueError(f"flat_std must be a finite non-negative grey level, got {flat_std!r}")
     device = reference.device
     n = pts.shape[0]
-    h, w = reference.shape
-    k = n_params(order)
     centres = wp.empty(n, dtype=wp.vec2i, device=device)
     deltas = wp.empty(n, dtype=wp.vec2, device=device)
     refdata = wp.zeros((n, refdata_width(order)), dtype=wp.float32, device=device)
     status = wp.empty(n, dtype=wp.int32, device=device)
     pts_wp = wp.array(pts, dtype=wp.vec2d, device=device)
-    launch_1d(
-        _prepare_subsets[order], n,
-        [0, reference.fgrad, w, h, pts_wp, subset // 2, k, float(flat_std) ** 2, centres, deltas, refdata, status],
-        device, offset_index=0, min_chunk=64,
-    )
-    return ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status, float(flat_std))
+    subsets = ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status, float(flat_std))
+    launch_1d(_prepare_subsets[order], n, [0, pts_wp, subsets.table], device, offset_index=0, min_chunk=64)
+    return subsets
 
 
 def _as_guess(guess, n: int, k: int, device: str) -> wp.array:
@@ -1232,14 +1319,8 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         raise ValueError(f"out was allocated for {out.params.shape}, expected params of shape {(n, k)}")
     # the same kernel for both layouts (hence the same bits): only the array it reads differs
     kernel = _icgn_1st if subsets.order == 1 else _icgn_2nd
-    coef = cur.plain if layout == "plain" else cur.rows4
-    launch_1d(
-        kernel, n,
-        [0, subsets.reference.fgrad, w, h, coef, cur.pitch, subsets.centres, subsets.deltas, subsets.refdata,
-         subsets.status, g, subsets.subset // 2, int(max_iter), float(tol), float(subsets.flat_std) ** 2,
-         out.params, out.zncc, out.iterations, out.status],
-        device, offset_index=0, min_chunk=64,
-    )
+    launch_1d(kernel, n, [0, subsets.table, cur.coefficients(layout), g, int(max_iter), float(tol), out.outputs],
+              device, offset_index=0, min_chunk=64)
     return out
 
 
@@ -1248,20 +1329,20 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
 # ----------------------------------------------------------------------------------------------
 
 
+@wp.func
+def copy_subset_row(src: SubsetTable, n: int, dst: SubsetTable, t: int):
+    """Row ``t`` of ``dst``'s per-POI tables := row ``n`` of ``src``'s (centre, delta, refdata, status)."""
+    dst.centres[t] = src.centres[n]
+    dst.deltas[t] = src.deltas[n]
+    dst.status[t] = src.status[n]
+    for c in range(src.refdata.shape[1]):
+        dst.refdata[t, c] = src.refdata[n, c]
+
+
 @wp.kernel
-def _gather_subsets(
-    offset: int, idx: wp.array(dtype=wp.int32), centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2),
-    refdata: wp.array2d(dtype=float), status: wp.array(dtype=wp.int32),
-    centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2), refdata_out: wp.array2d(dtype=float),
-    status_out: wp.array(dtype=wp.int32),
-):
+def _gather_subsets(offset: int, idx: wp.array(dtype=wp.int32), src: SubsetTable, dst: SubsetTable):
     t = wp.tid() + offset
-    n = idx[t]
-    centres_out[t] = centres[n]
-    deltas_out[t] = deltas[n]
-    status_out[t] = status[n]
-    for c in range(refdata.shape[1]):
-        refdata_out[t, c] = refdata[n, c]
+    copy_subset_row(src, idx[t], dst, t)
 
 
 def subset_buffers(subsets: ReferenceSubsets, capacity: int | None = None) -> ReferenceSubsets:
@@ -1306,7 +1387,6 @@ def gather_subsets(subsets: ReferenceSubsets, idx: wp.array, count: int, out: Re
     if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 0 <= count <= min(idx.shape[0],
                                                                                                    out.n_points):
         raise ValueError(f"count must be an int in [0, {min(idx.shape[0], out.n_points)}], got {count!r}")
-    launch_1d(_gather_subsets, int(count),
-              [0, idx, subsets.centres, subsets.deltas, subsets.refdata, subsets.status,
-               out.centres, out.deltas, out.refdata, out.status], subsets.device, offset_index=0, min_chunk=1024)
+    launch_1d(_gather_subsets, int(count), [0, idx, subsets.table, out.table], subsets.device, offset_index=0,
+              min_chunk=1024)
     return subset_rows(out, int(count), points)

@@ -48,27 +48,35 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ._device import host_copy
-from ._launch import cuda_block_dim, cuda_launch_bounds, launch_1d
-from .checks import in_range, positive_float
-from .icgn import (
+from ._common import (
     ST_CONVERGED,
     ST_DIVERGED,
     ST_MAX_ITERATIONS,
     ST_NOT_COMPUTED,
     ST_OUT_OF_BOUNDS,
+    icgn_module_options,
+)
+from ._device import host_copy
+from ._launch import cuda_launch_bounds, launch_1d
+from .checks import in_range, positive_float
+from .icgn import (
+    CurrentCoefficients,
     CurrentImage,
+    IcgnOutputs,
     ReferenceSubsets,
+    SubsetTable,
     _as_guess,
     _row_to_moments_func,
     check_max_iter,
     compose_1st,
     compose_2nd,
+    icgn_outputs,
     mat55d,
     mat66d,
     mat1212d,
     mono_exponents,
     n_params,
+    refdata_columns,
     vec5,
     vec6,
     vec6d,
@@ -78,8 +86,7 @@ from .icgn import (
     warped_value,
 )
 
-wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
-                       "block_dim": cuda_block_dim("_icgn_robust_1st")})
+wp.set_module_options(icgn_module_options("_icgn_robust_1st"))
 
 
 #: residuals beyond this many scales get zero weight
@@ -132,7 +139,9 @@ def _make_robust_kernel(order: int):
     vecp = vec6 if order == 1 else vec12
     moments_hi = _row_to_moments_func(2 * deg)
     moments_lo = _row_to_moments_func(deg)
-    refdata_fm = 33 if order == 1 else 102  # fm, df columns of kernels.icgn.prepare_subsets' refdata
+    cols = refdata_columns(order)  # kernels.icgn.prepare_subsets' refdata
+    col_fmean = cols.fmean
+    col_fnorm = cols.fnorm
     tukey_c = float(TUKEY_C)
     core_a = float(CORE_A)
     scale_floor = float(SCALE_FLOOR)
@@ -387,14 +396,15 @@ def _make_robust_kernel(order: int):
         return h, cj, cf, cg, sums, hist
 
     def robust_kernel(
-        offset: int, fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4),
-        pitch: int, centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2),
-        refdata: wp.array2d(dtype=float), ref_status: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32),
-        guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float, min_inliers: float,
-        params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-        status: wp.array(dtype=wp.int32), inliers: wp.array(dtype=float), outliers: wp.array(dtype=float),
+        offset: int, sub: SubsetTable, cur: CurrentCoefficients, active: wp.array(dtype=wp.int32),
+        guess: wp.array2d(dtype=float), max_iter: int, tol: float, min_inliers: float, out: IcgnOutputs,
+        inliers: wp.array(dtype=float), outliers: wp.array(dtype=float),
     ):
         n = wp.tid() + offset
+        r = sub.r
+        width = sub.width
+        height = sub.height
+        refdata = sub.refdata
         p = vecp()
         for i in range(kk):
             p[i] = guess[n, i]
@@ -403,14 +413,14 @@ def _make_robust_kernel(order: int):
         inl = float(wp.nan)
         outl = float(wp.nan)
         it = int(0)
-        if active[n] != 0 and ref_status[n] == ST_CONVERGED:
-            fm = refdata[n, refdata_fm]
+        if active[n] != 0 and sub.status[n] == ST_CONVERGED:
+            fm = refdata[n, col_fmean]
             npx = (2 * r + 1) * (2 * r + 1)
             nd = wp.float64(npx)
-            fstd = refdata[n, refdata_fm + 1] / wp.sqrt(float(npx))
+            fstd = refdata[n, col_fnorm] / wp.sqrt(float(npx))
             floor = scale_floor * fstd
-            ctr = centres[n]
-            dl = deltas[n]
+            ctr = sub.centres[n]
+            dl = sub.deltas[n]
             s = float(r)
             goff = fm
             alpha = float(1.0)
@@ -431,14 +441,14 @@ def _make_robust_kernel(order: int):
                 cut = tukey_c * scale
                 top = HIST_TOP * scale
                 core = core_a * scale
-                h, cj, cf, cg, sm, hist = weighted_pass(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, p, fm,
-                                                        goff, alpha, beta, cut, top, core)
+                h, cj, cf, cg, sm, hist = weighted_pass(sub.fgrad, width, cur.coef, cur.pitch, ctr[0], ctr[1], r, dl, p,
+                                                        fm, goff, alpha, beta, cut, top, core)
                 it += 1
                 sw = sm[0]
                 # unweighted ZNCC at this warp
                 gmean = sm[7] / nd
                 dg2 = sm[8] - sm[7] * gmean
-                df2 = wp.float64(refdata[n, refdata_fm + 1]) * wp.float64(refdata[n, refdata_fm + 1])
+                df2 = wp.float64(refdata[n, col_fnorm]) * wp.float64(refdata[n, col_fnorm])
                 if dg2 > wp.float64(0.0) and df2 > wp.float64(0.0):
                     cc = float(sm[9] / wp.sqrt(df2 * dg2))  # sum f' = 0: sum f' (g' - gm) = sum f' g'
                 inl = float(sw / nd)
@@ -509,10 +519,10 @@ def _make_robust_kernel(order: int):
                     st = ST_CONVERGED
                     break
         for i in range(kk):
-            params[n, i] = p[i]
-        zncc[n] = cc
-        iterations[n] = it
-        status[n] = st
+            out.params[n, i] = p[i]
+        out.zncc[n] = cc
+        out.iterations[n] = it
+        out.status[n] = st
         inliers[n] = inl
         outliers[n] = outl
 
@@ -588,12 +598,10 @@ def icgn_robust(subsets: ReferenceSubsets, current: CurrentImage, guess, active=
         out = robust_result(n, k, device)
     elif out.params.shape != (n, k):
         raise ValueError(f"out was allocated for {out.params.shape}, expected params of shape {(n, k)}")
-    coef = current.rows4 if current.rows4 is not None else current.plain
     launch_1d(
         _icgn_robust[subsets.order], n,
-        [0, subsets.reference.fgrad, w, h, coef, current.pitch, subsets.centres, subsets.deltas, subsets.refdata,
-         subsets.status, act, g, subsets.subset // 2, int(max_iter), float(tol), float(min_inliers),
-         out.params, out.zncc, out.iterations, out.status, out.inliers, out.outliers],
+        [0, subsets.table, current.coefficients(), act, g, int(max_iter), float(tol), float(min_inliers),
+         icgn_outputs(out.params, out.zncc, out.iterations, out.status), out.inliers, out.outliers],
         device, offset_index=0, min_chunk=64,
     )
     return out

@@ -46,10 +46,6 @@ wp.set_module_options({"enable_backward": False})
 
 #: Width of the mirrored border stored around coefficient / sample arrays (pixels).
 PAD = 2
-#: Pole of the cubic B-spline prefilter (Unser 1999, eq. 10).
-Z1 = float(np.sqrt(3.0) - 2.0)
-#: Length of the truncated sum initialising the causal filter (|z1|**32 ~ 5e-19).
-_HORIZON = 32
 #: Samples per segment of the prefilter: each line (row, then column) is filtered in independent
 #: segments of at least this many samples, so a 2048-pixel line is 16 work items (CPU threads, GPU
 #: lanes) instead of one. Lines shorter than two segments are filtered whole.
@@ -151,14 +147,6 @@ def stencil_dot_rows4(c4: wp.array(dtype=wp.vec4), pitch: int, ix: int, iy: int,
 
 
 @wp.func
-def bspline3_value(c: wp.array(dtype=float), pitch: int, x: float, y: float):
-    """Cubic B-spline interpolant at (x, y) from padded flat coefficients (no bounds check)."""
-    fx = wp.floor(x)
-    fy = wp.floor(y)
-    return stencil_dot(c, pitch, int(fx), int(fy), bspline3_weights(x - fx), bspline3_weights(y - fy))
-
-
-@wp.func
 def bspline3_value_grad(c: wp.array(dtype=float), pitch: int, x: float, y: float):
     """(value, d/dx, d/dy) of the cubic B-spline interpolant at (x, y) (no bounds check)."""
     fx = wp.floor(x)
@@ -173,24 +161,6 @@ def bspline3_value_grad(c: wp.array(dtype=float), pitch: int, x: float, y: float
         stencil_dot(c, pitch, ix, iy, wx, wy),
         stencil_dot(c, pitch, ix, iy, dwx, wy),
         stencil_dot(c, pitch, ix, iy, wx, dwy),
-    )
-
-
-@wp.func
-def keys_value_grad(s: wp.array(dtype=float), pitch: int, x: float, y: float):
-    """(value, d/dx, d/dy) of Keys bicubic convolution (a = -0.5) on padded flat samples."""
-    fx = wp.floor(x)
-    fy = wp.floor(y)
-    ix = int(fx)
-    iy = int(fy)
-    wx = keys_weights(x - fx)
-    wy = keys_weights(y - fy)
-    dwx = keys_dweights(x - fx)
-    dwy = keys_dweights(y - fy)
-    return wp.vec3(
-        stencil_dot(s, pitch, ix, iy, wx, wy),
-        stencil_dot(s, pitch, ix, iy, dwx, wy),
-        stencil_dot(s, pitch, ix, iy, wx, dwy),
     )
 
 

@@ -29,32 +29,28 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ._common import ST_CONVERGED, ST_MAX_ITERATIONS, ST_NOT_COMPUTED
 from ._launch import launch_1d
-from .conventions import Status
+from .icgn import IcgnOutputs, SubsetTable, copy_subset_row
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 #: ``pop`` value of an accepted POI that has not been expanded yet
 PENDING = 1 << 30
 _PENDING = wp.constant(PENDING)
-_NOT_COMPUTED = wp.constant(int(Status.NOT_COMPUTED))
-_CONVERGED = wp.constant(int(Status.CONVERGED))
-_MAX_ITERATIONS = wp.constant(int(Status.MAX_ITERATIONS))
 
 
 @wp.func
 def rg_wave_point(
     j: int, w: int, band: wp.float64, nb_start: wp.array(dtype=wp.int32), nb: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec2d),
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32), zncc: wp.array(dtype=float), params: wp.array2d(dtype=float),
-    pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float), counts: wp.array2d(dtype=wp.int32),
-    cand: wp.array(dtype=wp.int32), centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2),
-    refdata_out: wp.array2d(dtype=float), status_out: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float),
+    points: wp.array(dtype=wp.vec2d), src: SubsetTable, full: IcgnOutputs, pop: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=float), counts: wp.array2d(dtype=wp.int32), cand: wp.array(dtype=wp.int32),
+    gathered: SubsetTable, guess: wp.array2d(dtype=float),
 ):
     """Wave ``w``'s bookkeeping of POI ``j`` (:func:`rg_wave`)."""
     thr = wp.float64(best[w]) - band
+    zncc = full.zncc
+    params = full.params
     if pop[j] == _PENDING:  # an accepted POI: a member of this wave, or still pending after it
         if wp.float64(zncc[j]) >= thr:
             pop[j] = w
@@ -62,135 +58,103 @@ def rg_wave_point(
             wp.atomic_add(counts, w, 1, 1)
             wp.atomic_max(best, w + 1, zncc[j])
         return
-    if status[j] != _NOT_COMPUTED:
+    if full.status[j] != ST_NOT_COMPUTED:
         return
-    src = int(-1)
+    src_poi = int(-1)
     zs = float(0.0)
     for e in range(nb_start[j], nb_start[j + 1]):
         i = nb[e]
         if pop[i] >= w:  # pending before this wave (PENDING or w)
             zi = zncc[i]
             if wp.float64(zi) >= thr:
-                if src < 0 or zi > zs or (zi == zs and i < src):
-                    src = i
+                if src_poi < 0 or zi > zs or (zi == zs and i < src_poi):
+                    src_poi = i
                     zs = zi
-    if src < 0:
+    if src_poi < 0:
         return
     t = wp.atomic_add(counts, w, 0, 1)
     cand[t] = j
     # the candidate's prepared reference quantities, gathered for IC-GN (kernels.icgn.gather_subsets)
-    centres_out[t] = centres[j]
-    deltas_out[t] = deltas[j]
-    status_out[t] = ref_status[j]
-    for c in range(refdata.shape[1]):
-        refdata_out[t, c] = refdata[j, c]
+    copy_subset_row(src, j, gathered, t)
     # its guess: the affine prediction of the source (float64, the host code's operation order)
     pj = points[j]
-    pi = points[src]
+    pi = points[src_poi]
     d0 = pj[0] - pi[0]
     d1 = pj[1] - pi[1]
     k = params.shape[1]
     h = k // 2  # column of v
-    u = wp.float64(params[src, 0])
-    ux = wp.float64(params[src, 1])
-    uy = wp.float64(params[src, 2])
-    v = wp.float64(params[src, h])
-    vx = wp.float64(params[src, h + 1])
-    vy = wp.float64(params[src, h + 2])
+    u = wp.float64(params[src_poi, 0])
+    ux = wp.float64(params[src_poi, 1])
+    uy = wp.float64(params[src_poi, 2])
+    v = wp.float64(params[src_poi, h])
+    vx = wp.float64(params[src_poi, h + 1])
+    vy = wp.float64(params[src_poi, h + 2])
     guess[t, 0] = wp.float32(u + ux * d0 + uy * d1)
-    guess[t, 1] = params[src, 1]
-    guess[t, 2] = params[src, 2]
+    guess[t, 1] = params[src_poi, 1]
+    guess[t, 2] = params[src_poi, 2]
     guess[t, h] = wp.float32(v + vx * d0 + vy * d1)
-    guess[t, h + 1] = params[src, h + 1]
-    guess[t, h + 2] = params[src, h + 2]
+    guess[t, h + 1] = params[src_poi, h + 1]
+    guess[t, h + 2] = params[src_poi, h + 2]
     if k == 12:  # 2nd derivatives carried over from the source
         for c in range(3, 6):
-            guess[t, c] = params[src, c]
-            guess[t, 6 + c] = params[src, 6 + c]
+            guess[t, c] = params[src_poi, c]
+            guess[t, 6 + c] = params[src_poi, 6 + c]
 
 
 @wp.kernel
 def _rg_wave(
     offset: int, w: int, band: wp.float64, nb_start: wp.array(dtype=wp.int32), nb: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec2d),
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32), zncc: wp.array(dtype=float), params: wp.array2d(dtype=float),
-    pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float), counts: wp.array2d(dtype=wp.int32),
-    cand: wp.array(dtype=wp.int32), centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2),
-    refdata_out: wp.array2d(dtype=float), status_out: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float),
+    points: wp.array(dtype=wp.vec2d), src: SubsetTable, full: IcgnOutputs, pop: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=float), counts: wp.array2d(dtype=wp.int32), cand: wp.array(dtype=wp.int32),
+    gathered: SubsetTable, guess: wp.array2d(dtype=float),
 ):
-    rg_wave_point(wp.tid() + offset, w, band, nb_start, nb, points, centres, deltas, refdata,
-                  ref_status, status, zncc, params, pop, best, counts, cand, centres_out, deltas_out,
-                  refdata_out, status_out, guess)
+    rg_wave_point(wp.tid() + offset, w, band, nb_start, nb, points, src, full, pop, best, counts, cand, gathered,
+                  guess)
 
 
 @wp.kernel
 def _rg_wave_counted(
     offset: int, ctl: wp.array(dtype=wp.int32), band: wp.float64, nb_start: wp.array(dtype=wp.int32),
-    nb: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec2d),
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32), zncc: wp.array(dtype=float), params: wp.array2d(dtype=float),
+    nb: wp.array(dtype=wp.int32), points: wp.array(dtype=wp.vec2d), src: SubsetTable, full: IcgnOutputs,
     pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float), counts: wp.array2d(dtype=wp.int32),
-    cand: wp.array(dtype=wp.int32), centres_out: wp.array(dtype=wp.vec2i), deltas_out: wp.array(dtype=wp.vec2),
-    refdata_out: wp.array2d(dtype=float), status_out: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float),
+    cand: wp.array(dtype=wp.int32), gathered: SubsetTable, guess: wp.array2d(dtype=float),
 ):
-    rg_wave_point(wp.tid() + offset, ctl[0] + 1, band, nb_start, nb, points, centres, deltas, refdata,
-                  ref_status, status, zncc, params, pop, best, counts, cand, centres_out, deltas_out,
-                  refdata_out, status_out, guess)
+    rg_wave_point(wp.tid() + offset, ctl[0] + 1, band, nb_start, nb, points, src, full, pop, best, counts, cand,
+                  gathered, guess)
 
 
 @wp.func
-def scatter_point(
-    t: int, idx: wp.array(dtype=wp.int32), params_in: wp.array2d(dtype=float), zncc_in: wp.array(dtype=float),
-    iterations_in: wp.array(dtype=wp.int32), status_in: wp.array(dtype=wp.int32),
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32), zncc_min: wp.float64, pop: wp.array(dtype=wp.int32),
-    best: wp.array(dtype=float), slot: int,
-):
+def scatter_point(t: int, idx: wp.array(dtype=wp.int32), compact: IcgnOutputs, full: IcgnOutputs, zncc_min: wp.float64,
+                  pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float), slot: int):
     """Row ``t`` of the IC-GN results into row ``idx[t]`` (:func:`scatter_accept`)."""
     n = idx[t]
-    for c in range(params.shape[1]):
-        params[n, c] = params_in[t, c]
-    z = zncc_in[t]
-    st = status_in[t]
-    zncc[n] = z
-    iterations[n] = iterations_in[t]
-    status[n] = st
-    if st == _CONVERGED or st == _MAX_ITERATIONS:  # accepted (dic.correlation.acceptance.accepted_mask)
+    for c in range(full.params.shape[1]):
+        full.params[n, c] = compact.params[t, c]
+    z = compact.zncc[t]
+    st = compact.status[t]
+    full.zncc[n] = z
+    full.iterations[n] = compact.iterations[t]
+    full.status[n] = st
+    if st == ST_CONVERGED or st == ST_MAX_ITERATIONS:  # accepted (dic.correlation.acceptance.accepted_mask)
         if wp.float64(z) >= zncc_min:
             pop[n] = _PENDING
             wp.atomic_max(best, slot, z)
 
 
 @wp.kernel
-def _scatter_accept(
-    offset: int, idx: wp.array(dtype=wp.int32), params_in: wp.array2d(dtype=float), zncc_in: wp.array(dtype=float),
-    iterations_in: wp.array(dtype=wp.int32), status_in: wp.array(dtype=wp.int32),
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32), zncc_min: wp.float64, pop: wp.array(dtype=wp.int32),
-    best: wp.array(dtype=float), slot: int,
-):
-    scatter_point(wp.tid() + offset, idx, params_in, zncc_in, iterations_in, status_in, params, zncc, iterations,
-                  status, zncc_min, pop, best, slot)
+def _scatter_accept(offset: int, idx: wp.array(dtype=wp.int32), compact: IcgnOutputs, full: IcgnOutputs,
+                    zncc_min: wp.float64, pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float), slot: int):
+    scatter_point(wp.tid() + offset, idx, compact, full, zncc_min, pop, best, slot)
 
 
 @wp.kernel
-def _scatter_counted(
-    offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32), idx: wp.array(dtype=wp.int32),
-    params_in: wp.array2d(dtype=float), zncc_in: wp.array(dtype=float),
-    iterations_in: wp.array(dtype=wp.int32), status_in: wp.array(dtype=wp.int32),
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32), zncc_min: wp.float64, pop: wp.array(dtype=wp.int32),
-    best: wp.array(dtype=float),
-):
+def _scatter_counted(offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32),
+                     idx: wp.array(dtype=wp.int32), compact: IcgnOutputs, full: IcgnOutputs, zncc_min: wp.float64,
+                     pop: wp.array(dtype=wp.int32), best: wp.array(dtype=float)):
     t = wp.tid() + offset
     w = ctl[0]
     if t < counts[w, 0]:
-        scatter_point(t, idx, params_in, zncc_in, iterations_in, status_in, params, zncc, iterations,
-                      status, zncc_min, pop, best, w + 1)
+        scatter_point(t, idx, compact, full, zncc_min, pop, best, w + 1)
 
 
 @wp.kernel
@@ -274,9 +238,8 @@ def rg_wave(w: int, band: float, nb_start: wp.array, nb: wp.array, points: wp.ar
     n = full.status.shape[0]
     if not 1 <= w < best.shape[0] - 1:
         raise ValueError(f"wave {w} is outside the state arrays ({best.shape[0]} rows)")
-    launch_1d(_rg_wave, n, [0, int(w), float(band), nb_start, nb, points, subsets.centres, subsets.deltas,
-                            subsets.refdata, subsets.status, full.status, full.zncc, full.params, pop, best, counts,
-                            cand, gathered.centres, gathered.deltas, gathered.refdata, gathered.status, guess],
+    launch_1d(_rg_wave, n, [0, int(w), float(band), nb_start, nb, points, subsets.table, full.outputs, pop, best,
+                            counts, cand, gathered.table, guess],
               str(full.status.device), offset_index=0, min_chunk=1 << 12)
 
 
@@ -285,9 +248,7 @@ def scatter_accept(idx: wp.array, compact, full, count: int, zncc_min: float, po
     """Rows ``0..count-1`` of the IC-GN results ``compact`` into the rows ``idx[:count]`` of ``full``;
     an accepted POI (CONVERGED or MAX_ITERATIONS, ZNCC >= ``zncc_min`` in float64 as on the host)
     becomes pending (``pop = PENDING``) and raises ``best[slot]`` to its ZNCC."""
-    launch_1d(_scatter_accept, int(count),
-              [0, idx, compact.params, compact.zncc, compact.iterations, compact.status, full.params, full.zncc,
-               full.iterations, full.status, float(zncc_min), pop, best, int(slot)],
+    launch_1d(_scatter_accept, int(count), [0, idx, compact.outputs, full.outputs, float(zncc_min), pop, best, int(slot)],
               str(full.status.device), offset_index=0, min_chunk=1024)
 
 
@@ -318,9 +279,7 @@ def scatter_counted(ctl: wp.array, counts: wp.array, idx: wp.array, compact, ful
     """:func:`scatter_accept` of the ``counts[ctl[0], 0]`` rows of batch ``ctl[0]`` (slot ``ctl[0] + 1``), in
     one launch over the N rows (threads past the count return): no host value needed."""
     n = full.status.shape[0]
-    launch_1d(_scatter_counted, n,
-              [0, ctl, counts, idx, compact.params, compact.zncc, compact.iterations, compact.status, full.params,
-               full.zncc, full.iterations, full.status, float(zncc_min), pop, best],
+    launch_1d(_scatter_counted, n, [0, ctl, counts, idx, compact.outputs, full.outputs, float(zncc_min), pop, best],
               str(full.status.device), offset_index=0, min_chunk=1 << 12)
 
 
@@ -328,10 +287,8 @@ def rg_wave_counted(ctl: wp.array, band: float, nb_start: wp.array, nb: wp.array
                     pop: wp.array, best: wp.array, counts: wp.array, cand: wp.array, gathered, guess: wp.array) -> None:
     """:func:`rg_wave` of wave ``ctl[0] + 1``, read on the device (the same per-POI body)."""
     n = full.status.shape[0]
-    launch_1d(_rg_wave_counted, n, [0, ctl, float(band), nb_start, nb, points, subsets.centres, subsets.deltas,
-                                    subsets.refdata, subsets.status, full.status, full.zncc, full.params, pop, best,
-                                    counts, cand, gathered.centres, gathered.deltas, gathered.refdata,
-                                    gathered.status, guess],
+    launch_1d(_rg_wave_counted, n, [0, ctl, float(band), nb_start, nb, points, subsets.table, full.outputs, pop, best,
+                                    counts, cand, gathered.table, guess],
               str(full.status.device), offset_index=0, min_chunk=1 << 12)
 
 

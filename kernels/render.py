@@ -50,6 +50,7 @@ from ._device import host_copy, resolve_device
 from ._launch import launch_1d
 from .checks import positive_int
 from .distortion import distort_normalized, distortion_coefficients, undistort_step, vec8f
+from .interp import keys_dweights, keys_weights
 from .speckle import SpeckleModel, build_speckle_model, speckle_coverage_smooth
 
 wp.set_module_options({"enable_backward": False})
@@ -289,19 +290,6 @@ def screen_radiance(scene: SceneGeom, s: ScreenGeom, p: wp.vec3, d: wp.vec3, wid
     ry = (row - hh) / wp.max(hh, 0.5)
     falloff = 1.0 - s.nonuniformity * 0.5 * (rx * rx + ry * ry)
     return (s.black_level + (s.brightness - s.black_level) * value) * falloff
-
-
-@wp.func
-def keys_weights(t: float) -> wp.vec4:
-    """Keys (a = -1/2, Catmull-Rom) weights of the taps at offsets -1, 0, 1, 2 for fraction t in [0, 1)."""
-    t2 = t * t
-    return wp.vec4(((-0.5 * t + 1.0) * t - 0.5) * t, (1.5 * t - 2.5) * t2 + 1.0, ((-1.5 * t + 2.0) * t + 0.5) * t, (0.5 * t - 0.5) * t2)
-
-
-@wp.func
-def keys_dweights(t: float) -> wp.vec4:
-    """Derivatives of :func:`keys_weights` with respect to t."""
-    return wp.vec4((-1.5 * t + 2.0) * t - 0.5, (4.5 * t - 5.0) * t, (-4.5 * t + 4.0) * t + 0.5, (1.5 * t - 1.0) * t)
 
 
 @wp.func

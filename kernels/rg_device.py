@@ -15,47 +15,44 @@ from __future__ import annotations
 
 import warp as wp
 
-from ._launch import cuda_block_dim, cuda_launch_bounds, launch_1d
+from ._common import icgn_module_options
+from ._launch import cuda_launch_bounds, launch_1d
 from .checks import positive_float
-from .icgn import CurrentImage, IcgnResult, ReferenceSubsets, check_max_iter, icgn_point_1st, icgn_point_2nd
+from .icgn import (
+    CurrentCoefficients,
+    CurrentImage,
+    IcgnOutputs,
+    IcgnResult,
+    ReferenceSubsets,
+    SubsetTable,
+    check_max_iter,
+    icgn_point_1st,
+    icgn_point_2nd,
+)
 
 # the same options as kernels.icgn: the same code for the same body (bitwise), one block size per module
-wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
-                       "block_dim": cuda_block_dim("_icgn_2nd")})
+wp.set_module_options(icgn_module_options("_icgn_2nd"))
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_counted_1st"))
-def _icgn_counted_1st(
-    offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32),
-    fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
-    flat_var: float,
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32),
-):
-    t = wp.tid() + offset
-    if t >= counts[ctl[0], 0]:
-        return
-    icgn_point_1st(t, fgrad, width, height, coef, pitch, centres, deltas, refdata,
-                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
+def _make_icgn_counted(order: int):
+    """The counted IC-GN kernel of one order: rows ``0 .. counts[ctl[0], 0] - 1`` with the per-POI body."""
+    icgn_point = icgn_point_1st if order == 1 else icgn_point_2nd
+
+    def icgn_counted_kernel(offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32),
+                            sub: SubsetTable, cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int,
+                            tol: float, out: IcgnOutputs):
+        t = wp.tid() + offset
+        if t >= counts[ctl[0], 0]:
+            return
+        icgn_point(t, sub, cur, guess, max_iter, tol, out)
+
+    name = "_icgn_counted_1st" if order == 1 else "_icgn_counted_2nd"
+    icgn_counted_kernel.__name__ = icgn_counted_kernel.__qualname__ = name
+    return wp.kernel(icgn_counted_kernel, launch_bounds=cuda_launch_bounds(name))
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_counted_2nd"))
-def _icgn_counted_2nd(
-    offset: int, ctl: wp.array(dtype=wp.int32), counts: wp.array2d(dtype=wp.int32),
-    fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
-    flat_var: float,
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32),
-):
-    t = wp.tid() + offset
-    if t >= counts[ctl[0], 0]:
-        return
-    icgn_point_2nd(t, fgrad, width, height, coef, pitch, centres, deltas, refdata,
-                   ref_status, guess, r, max_iter, tol, flat_var, params, zncc, iterations, status)
+_icgn_counted_1st = _make_icgn_counted(1)
+_icgn_counted_2nd = _make_icgn_counted(2)
 
 
 def icgn_counted(gathered: ReferenceSubsets, current: CurrentImage, guess: wp.array, max_iter: int, tol: float,
@@ -82,12 +79,6 @@ def icgn_counted(gathered: ReferenceSubsets, current: CurrentImage, guess: wp.ar
         raise ValueError(f"counts must have shape (waves, 2), got {counts.shape}")
     max_iter = check_max_iter(max_iter)
     tol = positive_float(tol, "tol", detail=" of pixels")
-    h, w = gathered.reference.shape
     kernel = _icgn_counted_1st if gathered.order == 1 else _icgn_counted_2nd
-    launch_1d(
-        kernel, n,
-        [0, ctl, counts, gathered.reference.fgrad, w, h, current.rows4, current.pitch, gathered.centres,
-         gathered.deltas, gathered.refdata, gathered.status, guess, gathered.subset // 2, int(max_iter), float(tol),
-         float(gathered.flat_std) ** 2, out.params, out.zncc, out.iterations, out.status],
-        dev, offset_index=0, min_chunk=64,
-    )
+    launch_1d(kernel, n, [0, ctl, counts, gathered.table, current.coefficients("rows4"), guess, int(max_iter),
+                          float(tol), out.outputs], dev, offset_index=0, min_chunk=64)

@@ -18,6 +18,8 @@ from kernels.icgn import (
     prepare_current,
     prepare_reference,
     prepare_subsets,
+    refdata_columns,
+    refdata_width,
     vec6,
     vec12,
 )
@@ -89,6 +91,25 @@ def fd_terms(img, point, subset, order, h=1e-3):
         e[c] = h
         jac[:, c] = (sample(e) - sample(-e)) / (2 * h)
     return jac, sample(np.zeros(k)), (cx0, cy0, i, j)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_refdata_columns_name_the_packed_layout(order):
+    # the named columns the kernels read (kernels.icgn.RefdataColumns) against the layout unpacked here
+    # independently (unpack_refdata: the upper triangle, then H^-1 a, H^-1 c, fm, df)
+    k = n_params(order)
+    npk = len(np.triu_indices(k)[0])
+    cols = refdata_columns(order)
+    assert (cols.hinv, cols.hinv_a, cols.hinv_c, cols.fmean, cols.fnorm) == (0, npk, npk + k, npk + 2 * k,
+                                                                             npk + 2 * k + 1)
+    assert cols.width == refdata_width(order) == npk + 2 * k + 2
+    # fm and df of an integer POI's subset, read through the names, against NumPy on the image itself
+    img = Texture(1).image((60, 60))
+    subs = prepare_subsets(prepare_reference(img, device="cpu"), np.array([[30.0, 29.0]]), subset=11, order=order)
+    patch = img[29 - 5:29 + 6, 30 - 5:30 + 6].astype(np.float64)
+    row = subs.refdata.numpy()[0]
+    assert abs(row[cols.fmean] - patch.mean()) < 1e-4 * patch.mean()
+    assert abs(row[cols.fnorm] - np.linalg.norm(patch - patch.mean())) < 1e-4 * row[cols.fnorm]
 
 
 @pytest.mark.parametrize("order", [1, 2])

@@ -128,8 +128,8 @@ def test_layout_defaults_and_checks(pair):
 
 
 def test_rows4_only_readers_refuse_a_plain_current(pair):
+    from bench.icgn_tiled import icgn_tiled
     from kernels.frames import icgn_batch
-    from kernels.icgn_tiled import icgn_tiled
 
     ref, cur, pts = pair
     subsets = prepare_subsets(prepare_reference(ref, device="cpu"), pts, subset=15, order=1)

@@ -2,7 +2,7 @@
 
 The IC-GN, reference-preparation and interpolation modules are compiled ahead of time for sm_90
 (:func:`warp.compile_aot_module` runs NVRTC from inside Warp: no GPU, no CUDA toolkit), once per
-test session, and :mod:`kernels.cubin` reads each kernel's registers and stack from the ELF. The
+test session, and :mod:`bench.cubin` reads each kernel's registers and stack from the ELF. The
 bounds are the figures measured after issue 16's changes (docs/dic2d.md, "GPU"); a change that
 makes a kernel need more registers or any stack where it had none fails here. A Warp upgrade
 (another NVRTC) may move the figures by a few registers: re-measure and update the table then.
@@ -12,27 +12,27 @@ import struct
 import pytest
 import warp as wp
 
-from kernels import cubin
+from bench import cubin
 from kernels._launch import CUDA_LAUNCH, DEFAULT_CUDA_BLOCK_DIM, cuda_block_dim, cuda_launch_bounds, kernel_block_dim
 
 #: kernel -> (max registers, max stack bytes) on sm_90; before issue 16 in the comment
 BOUNDS = {
     "_icgn_1st": (64, 0),  # 80, 0 (capped by launch bounds (128, 8), no spill)
     "_icgn_2nd": (168, 0),
-    "_icgn_1st_tiled": (64, 0),  # prototype (kernels/icgn_tiled.py)
+    "_icgn_1st_tiled": (64, 0),  # prototype (bench/icgn_tiled.py)
     "_icgn_frames_1st": (80, 0),  # kernels/frames.py (frames x POIs)
     "_icgn_frames_2nd": (168, 0),
     "_icgn_counted_1st": (64, 0),  # kernels/rg_device.py (a wave's IC-GN sized by a device count)
     "_icgn_counted_2nd": (168, 0),
-    "_propagate_guess": (40, 0),
+    "_propagate_guess": (32, 0),  # 40 before issue 23 (the frames' arrays as one struct)
     "_pack_results": (32, 0),
     "_prefilter_rows_frames": (48, 0),  # every frame dtype (uint8, uint16, float32)
     "_prefilter_cols_frames": (40, 0),
     "_prefilter_entries_rows_frames": (32, 0),
     "_prefilter_entries_cols_frames": (32, 0),
     "_expand_rows4_frames": (28, 0),  # 166, 168 (pivot swap of the 6x6 solve)
-    "_prepare_subsets_1st": (183, 0),  # one kernel for both orders: 255, 7232
-    "_prepare_subsets_2nd": (255, 3480),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled)
+    "_prepare_subsets_1st": (177, 0),  # one kernel for both orders: 255, 7232; 183 before issue 23 (named columns)
+    "_prepare_subsets_2nd": (255, 3472),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled); 3480 B before issue 23
     "_reference_gradients": (40, 0),
     "_gather_subsets": (32, 0),  # indexed IC-GN's gather (kernels.icgn, issue 16 search on the device)
     "_expand_rows4": (30, 0),
@@ -43,10 +43,10 @@ BOUNDS = {
     "_prefilter_entries_cols": (32, 0),
     # opt-in Tukey-weighted refinement (kernels/icgn_robust.py): weights change every iteration, so the weighted
     # Hessian is assembled from float64 moments in the kernel (no precomputed H^-1 as in _icgn_*)
-    "_icgn_robust_1st": (214, 112),  # the stack: the |residual| histogram, indexed at run time
+    "_icgn_robust_1st": (210, 112),  # the stack: the |residual| histogram, indexed at run time; 214 before issue 23
     "_icgn_robust_2nd": (255, 944),
 }
-MODULES = ("kernels.icgn", "kernels.interp", "kernels.icgn_tiled", "kernels.frames", "kernels.rg_device",
+MODULES = ("kernels.icgn", "kernels.interp", "bench.icgn_tiled", "kernels.frames", "kernels.rg_device",
            "kernels.icgn_robust")
 
 
@@ -87,9 +87,9 @@ def test_every_compiled_kernel_has_a_bound(sm90_resources):
 
 
 def test_block_size_table_matches_kernels_and_modules():
-    from kernels import frames, icgn, icgn_robust, icgn_tiled, interp, rg_device
+    from kernels import frames, icgn, icgn_robust, interp, rg_device
 
-    kernels = {k.func.__name__: k for mod in (icgn, interp, icgn_tiled, frames, rg_device) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
+    kernels = {k.func.__name__: k for mod in (icgn, interp, frames, rg_device) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
     kernels.update({k.func.__name__: k for k in icgn_robust._icgn_robust.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)

@@ -524,14 +524,14 @@ def test_prefilter_segments_rejects_bad_lengths():
 
 
 # ------------------------------------------------------------------------------------------------
-# the tiled 1st-order prototype (kernels/icgn_tiled.py) against the one-thread-per-POI kernel
+# the tiled 1st-order prototype (bench/icgn_tiled.py) against the one-thread-per-POI kernel
 # ------------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("cpu_blocks", [True, False])
 def test_tiled_icgn_prototype_matches_one_thread_per_poi(cpu_blocks):
+    from bench.icgn_tiled import icgn_tiled
     from dic.synth import speckle_pair
-    from kernels.icgn_tiled import icgn_tiled
 
     ref, cur = speckle_pair((112, 112), lambda x, y: (0.4 + 0.01 * (x - 56), -0.3 + 0.005 * (y - 56)), seed=3,
                             noise_sigma=1.0)

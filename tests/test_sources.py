@@ -1,6 +1,4 @@
 """Frame sources (dic/sources.py): every kind, laziness, the faults, natural order, the CLI inputs."""
-import threading
-import time
 import warnings
 
 import numpy as np
@@ -11,7 +9,7 @@ from click.testing import CliRunner
 import dic.sources as sources
 from dic.cli import main
 from dic.io import write_image
-from dic.sources import Frame, FrameError, open_frames, open_inputs, open_pairs, prefetch
+from dic.sources import Frame, FrameError, open_frames, open_inputs, open_pairs
 from kernels.images import natural_key
 
 H, W = 24, 32
@@ -273,7 +271,7 @@ def test_bad_sources(tmp_path):
         list(open_frames([(np.zeros((4, 4)), np.zeros((4, 4)))]))
 
 
-# -- stereo, joined inputs, prefetch -------------------------------------------------------------
+# -- stereo, joined inputs -------------------------------------------------------------
 def test_open_pairs(folder, tmp_path):
     d, ims = folder
     stack = tmp_path / "right.tif"
@@ -322,39 +320,6 @@ def test_open_inputs_joins_and_renumbers(folder, tmp_path):
     write_image(d / "img_10.png", ims[0][:20])
     with pytest.raises(FrameError, match=r"frame 5 \(.*img_10.png\) is 32x20 px but frame 0 \(.*ref.png\)"):
         list(open_inputs([first, stack, str(d / "img_1*.png")]))
-
-
-def test_prefetch_reads_ahead_within_its_bound_and_stops():
-    ims = _frames(20)
-    made = []
-
-    def gen():
-        for k, im in enumerate(ims):
-            made.append(k)
-            yield im
-
-    it = iter(prefetch(open_frames(gen()), depth=2))
-    assert next(it).index == 0
-    time.sleep(0.3)
-    assert len(made) <= 1 + 2 + 1  # the frame given, the queue, one in the reader's hand
-    assert [f.index for f in it] == list(range(1, 20))
-    # an error at its position; the frames before it come first
-    bad = list(ims[:3]) + [np.full((H, W), np.nan)]
-    got = []
-    with pytest.raises(FrameError, match=r"frame 3: array\[3\] contains NaN"):
-        for f in prefetch(open_frames(bad)):
-            got.append(f.index)
-    assert got == [0, 1, 2]
-    # leaving early stops the thread
-    before = threading.active_count()
-    with prefetch(open_frames(ims), depth=1) as pf:
-        for f in pf:
-            break
-    time.sleep(0.2)
-    assert threading.active_count() <= before
-    assert len(prefetch(open_frames(ims))) == 20
-    with pytest.raises(ValueError, match="depth"):
-        prefetch(open_frames(ims), depth=0)
 
 
 # -- the command line ----------------------------------------------------------------------------

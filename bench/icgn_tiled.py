@@ -10,7 +10,8 @@ same Gauss-Newton update (the reference side, ``H^-1`` and friends, comes from
 test are those of ``kernels.icgn._icgn_1st``; only the order of the float32 sums differs, so the
 results agree to float32 rounding (tests/test_kernel_variants.py).
 
-Status: a prototype, not used by the engine. It is correct on the CPU (where Warp runs the lanes
+Status: a prototype, not used by the engine, so it lives in ``bench/`` (not installed); ``bench.gpu``
+times it and ``tests/test_kernel_variants.py`` checks it. It is correct on the CPU (where Warp runs the lanes
 of a block one after another when ``wp.config.enable_cpu_blocks`` is set), and its sm_90 resources
 are recorded in docs/dic2d.md ("GPU"); whether it beats one thread per POI must be measured on a
 GPU (``bench/gpu.sh``).
@@ -19,17 +20,23 @@ from __future__ import annotations
 
 import warp as wp
 
-from ._device import resolve_device
-from ._launch import cuda_block_dim, cuda_launch_bounds
-from .checks import positive_float
-from .icgn import (
+from kernels._common import (
+    ICGN_MODULE_OPTIONS,
     ST_CONVERGED,
     ST_DIVERGED,
     ST_MAX_ITERATIONS,
     ST_OUT_OF_BOUNDS,
+)
+from kernels._device import resolve_device
+from kernels.checks import positive_float
+from kernels.icgn import (
+    REFDATA_1ST,
+    CurrentCoefficients,
     CurrentImage,
+    IcgnOutputs,
     IcgnResult,
     ReferenceSubsets,
+    SubsetTable,
     _as_guess,
     check_max_iter,
     compose_1st,
@@ -40,11 +47,13 @@ from .icgn import (
     warped_value,
 )
 
-#: lanes per POI (one warp on CUDA); also the module's CUDA block size (kernels._launch.CUDA_LAUNCH)
-TILE_LANES = cuda_block_dim("_icgn_1st_tiled")
+#: lanes per POI (one warp on CUDA); also the module's CUDA block size and the kernel's launch bounds
+TILE_LANES = 32
 
-wp.set_module_options({"enable_backward": False, "cpu_compiler_flags": "-march=native -ffp-contract=fast",
-                       "block_dim": TILE_LANES})
+wp.set_module_options({**ICGN_MODULE_OPTIONS, "block_dim": TILE_LANES})
+
+COL_FMEAN = wp.constant(REFDATA_1ST.fmean)
+COL_FNORM = wp.constant(REFDATA_1ST.fnorm)
 
 
 @wp.func
@@ -80,43 +89,39 @@ def subset_pass_1st_lanes(
     return b, wp.vec3(sg, sgg, sfg)
 
 
-@wp.kernel(launch_bounds=cuda_launch_bounds("_icgn_1st_tiled"))
-def _icgn_1st_tiled(
-    fgrad: wp.array(dtype=wp.vec3), width: int, height: int, coef: wp.array(dtype=wp.vec4), pitch: int,
-    centres: wp.array(dtype=wp.vec2i), deltas: wp.array(dtype=wp.vec2), refdata: wp.array2d(dtype=float),
-    ref_status: wp.array(dtype=wp.int32), guess: wp.array2d(dtype=float), r: int, max_iter: int, tol: float,
-    flat_var: float,
-    params: wp.array2d(dtype=float), zncc: wp.array(dtype=float), iterations: wp.array(dtype=wp.int32),
-    status: wp.array(dtype=wp.int32),
-):
+@wp.kernel(launch_bounds=TILE_LANES)
+def _icgn_1st_tiled(sub: SubsetTable, cur: CurrentCoefficients, guess: wp.array2d(dtype=float), max_iter: int,
+                    tol: float, out: IcgnOutputs):
     n, lane = wp.tid()
     p = vec6(guess[n, 0], guess[n, 1], guess[n, 2], guess[n, 3], guess[n, 4], guess[n, 5])
-    st = ref_status[n]
+    st = sub.status[n]
     cc = float(wp.nan)
     it = int(0)
+    r = sub.r
+    width = sub.width
     if st == ST_CONVERGED:  # uniform across the block: every lane of a POI takes the same path
-        fmean = refdata[n, 33]
-        fnorm = refdata[n, 34]
+        fmean = sub.refdata[n, COL_FMEAN]
+        fnorm = sub.refdata[n, COL_FNORM]
         goff = fmean
-        ctr = centres[n]
-        dl = deltas[n]
+        ctr = sub.centres[n]
+        dl = sub.deltas[n]
         s = float(r)
         st = ST_MAX_ITERATIONS
         while it < max_iter:
-            if warped_inside(ctr[0], ctr[1], r, dl, width, height, p[0], p[1], p[2], 0.0, 0.0, 0.0,
+            if warped_inside(ctr[0], ctr[1], r, dl, width, sub.height, p[0], p[1], p[2], 0.0, 0.0, 0.0,
                              p[3], p[4], p[5], 0.0, 0.0, 0.0) == 0:
                 st = ST_OUT_OF_BOUNDS
                 break
-            bl, sl = subset_pass_1st_lanes(fgrad, width, coef, pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean,
+            bl, sl = subset_pass_1st_lanes(sub.fgrad, width, cur.coef, cur.pitch, ctr[0], ctr[1], r, dl, 1.0 / s, p, fmean,
                                            goff, lane)
             bt = wp.tile_sum(wp.tile(bl, preserve_type=True))
             stt = wp.tile_sum(wp.tile(sl, preserve_type=True))
             b = bt[0]
             sums = stt[0]
             it += 1
-            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, flat_var)
+            gmean, ratio, cc = gn_step_scale(sums, (2 * r + 1) * (2 * r + 1), fnorm, sub.flat_var)
             goff = goff + gmean
-            dq = gn_update6(refdata, n, b, ratio, gmean)
+            dq = gn_update6(sub.refdata, n, b, ratio, gmean)
             norm = wp.length(dq)
             if ratio == 0.0 or not (norm <= float(2 * r + 1)):
                 st = ST_DIVERGED
@@ -127,10 +132,10 @@ def _icgn_1st_tiled(
                 break
     if lane == 0:
         for i in range(6):
-            params[n, i] = p[i]
-        zncc[n] = cc
-        iterations[n] = it
-        status[n] = st
+            out.params[n, i] = p[i]
+        out.zncc[n] = cc
+        out.iterations[n] = it
+        out.status[n] = st
 
 
 def icgn_tiled(subsets: ReferenceSubsets, current: CurrentImage, guess=None, max_iter: int = 30,
@@ -164,12 +169,7 @@ def icgn_tiled(subsets: ReferenceSubsets, current: CurrentImage, guess=None, max
         raise ValueError(f"out must be an IcgnResult with params of shape {(n, 6)}")
     if n == 0:
         return out
-    h, w = subsets.reference.shape
-    wp.launch_tiled(
-        _icgn_1st_tiled, dim=[n],
-        inputs=[subsets.reference.fgrad, w, h, current.rows4, current.pitch, subsets.centres, subsets.deltas,
-                subsets.refdata, subsets.status, g, subsets.subset // 2, int(max_iter), float(tol),
-                float(subsets.flat_std) ** 2, out.params, out.zncc, out.iterations, out.status],
-        block_dim=TILE_LANES, device=device,
-    )
+    wp.launch_tiled(_icgn_1st_tiled, dim=[n],
+                    inputs=[subsets.table, current.coefficients("rows4"), g, int(max_iter), float(tol), out.outputs],
+                    block_dim=TILE_LANES, device=device)
     return out
