@@ -27,6 +27,7 @@ from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor,
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
 from .correlation.engine import Correlator, reliability_guided
+from .correlation.params import check_tol
 from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_guesses, get_guess
 from .correlation.lagrangian import displacement_outliers
 from .correlation.params import guess_params
@@ -149,7 +150,7 @@ class Tracker:
         self.search = _check_search(search)
         self.search_radius = non_negative_int(search_radius, "search_radius", detail=" (px)")
         self.max_iter = check_max_iter(max_iter)
-        self.tol = positive_float(tol, "tol", detail=" of pixels")
+        self.tol = check_tol(tol)
         self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
         self.check_warps = bool(check_warps)
         self.robust = boolean(robust, "robust")
