@@ -61,11 +61,20 @@ def _fraction(value, name: str) -> float:
     return v
 
 
+#: the largest image noise accepted, grey levels (far beyond a 16-bit camera's range of 65535; the
+#: uncertainty squares it)
+MAX_NOISE_SIGMA = 1e6
+
+
 def check_noise_sigma(noise_sigma) -> float | None:
-    """None, or a finite grey-level standard deviation > 0 (ValueError otherwise)."""
+    """None, or a finite grey-level standard deviation > 0 and at most :data:`MAX_NOISE_SIGMA` (ValueError
+    otherwise)."""
     if noise_sigma is None:
         return None
-    return positive_float(noise_sigma, "noise_sigma", detail=" (grey levels)")
+    value = positive_float(noise_sigma, "noise_sigma", detail=" (grey levels)")
+    if value > MAX_NOISE_SIGMA:
+        raise ValueError(f"noise_sigma must be at most {MAX_NOISE_SIGMA:g} grey levels, got {noise_sigma!r}")
+    return value
 
 
 #: a ``second`` image whose motion would raise the noise measured from the difference by more than this factor
@@ -105,8 +114,8 @@ def estimate_noise(image, second=None, *, flat_fraction: float = 0.1, check_moti
         texture cancels and the estimate is unbiased (8-bit rounding included). This is the recommended way to measure a camera's noise.
         With ``check_motion`` (default) a ``second`` image moved relative to ``image`` is refused
         (``ValueError`` with the shift): when removing one global shift would lower the measured noise
-        by more than 5 % (:data:`MOTION_NOISE_FACTOR`; a 0.05 px shift of 8-bit speckle with a noise
-        of 2 grey levels already raises it by about 18 %), or the images are half a pixel or more apart.
+        by more than 5 % (:data:`MOTION_NOISE_FACTOR`; on a 256 x 256 synthetic 8-bit pair with a noise of
+        2 grey levels: 2.02 unmoved, 2.36 for a 0.05 px shift), or the images are half a pixel or more apart.
     flat_fraction : float in (0, 1]
         Without ``second``: Immerkaer's estimator (the 3x3 Laplacian-difference mask,
         doi:10.1006/cviu.1996.0060) averaged over the ``flat_fraction`` of pixels with the lowest

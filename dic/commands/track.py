@@ -44,8 +44,8 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image scale in mm per px, stored with the results (post-processing then gives positions "
                    "and displacements in mm).")
-@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True),
-              help="Image noise std in grey levels, for the per-point uncertainty sigma_u, sigma_v "
+@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True, max=1e6),
+              help="Image noise std in grey levels (at most 1e6), for the per-point uncertainty sigma_u, sigma_v "
                    "(default: estimated from the correlation residuals of each frame).")
 @click.option("--robust", is_flag=True,
               help="Outlier-robust correlation (Tukey-weighted IC-GN): subset pixels whose texture changed (speckles "
