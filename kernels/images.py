@@ -301,6 +301,8 @@ def read_image(path, *, as_grey: bool = False) -> np.ndarray:
                 if Image.MAX_IMAGE_PIXELS is not None and max_image_pixels() > Image.MAX_IMAGE_PIXELS:
                     Image.MAX_IMAGE_PIXELS = max_image_pixels()  # a raised limit holds for Pillow's own check too
                 arr = np.asarray(iio.imread(p, plugin="pillow"))
+                if suffix == ".png":
+                    _check_png_data_complete(p)
     except ValueError as exc:
         if str(p) in str(exc):
             raise
@@ -327,6 +329,60 @@ def _grey_png_header(head: bytes) -> tuple[int, int, int] | None:
     if width == 0 or height == 0 or depth not in (8, 16) or (colour, compression, filtering, interlace) != (0, 0, 0, 0):
         return None
     return height, width, depth // 8
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # by colour type
+
+
+def _png_raw_bytes(width: int, height: int, depth: int, colour: int, interlace: int) -> int:
+    """Bytes of a PNG's filtered image data (a filter byte per row), per its header; Adam7 passes when
+    interlaced."""
+    bits = _PNG_CHANNELS[colour] * depth
+    if not interlace:
+        return height * (1 + (width * bits + 7) // 8)
+    total = 0
+    for x0, y0, dx, dy in ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2),
+                           (0, 1, 1, 2)):
+        w, h = (width - x0 + dx - 1) // dx, (height - y0 + dy - 1) // dy
+        if w and h:
+            total += h * (1 + (w * bits + 7) // 8)
+    return total
+
+
+def _check_png_data_complete(p: Path) -> None:
+    """Refuse (``ValueError``) a PNG whose compressed data holds fewer pixel rows than its header declares:
+    Pillow decodes such a file without a word, the missing rows zero (a header edited or damaged, or a
+    file cut short before its data was written: OpenCV's libpng says "Not enough image data"). The
+    data is inflated once more, without keeping it."""
+    import zlib
+
+    with open(p, "rb") as fh:
+        data = fh.read()
+    if data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR" or len(data) < 33:
+        return
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    depth, colour, interlace = data[24], data[25], data[28]
+    if colour not in _PNG_CHANNELS:
+        return
+    expected = _png_raw_bytes(width, height, depth, colour, interlace)
+    inflate, got, pos = zlib.decompressobj(), 0, 8
+    try:
+        while pos + 12 <= len(data) and got < expected:
+            length = int.from_bytes(data[pos:pos + 4], "big")
+            kind = data[pos + 4:pos + 8]
+            if kind == b"IDAT":
+                chunk = data[pos + 8:pos + 8 + length]
+                while chunk and got < expected:
+                    got += len(inflate.decompress(chunk, 1 << 22))
+                    chunk = inflate.unconsumed_tail
+            elif kind == b"IEND":
+                break
+            pos += 12 + length
+    except zlib.error:
+        return  # Pillow decoded it: its own reading stands
+    if got < expected:
+        raise ValueError(f"{p} holds image data for fewer pixels than its header declares ({width} x {height} px: "
+                         f"{got:,} of {expected:,} bytes); the file is damaged or cut short")
 
 
 def _plain_grey_png(data: bytes) -> tuple[int, int] | None:

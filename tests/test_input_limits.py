@@ -576,3 +576,21 @@ def test_stereo_exits_non_zero_when_no_state_has_a_valid_point(tmp_path, monkeyp
     assert CliRunner().invoke(main, [*base, "--allow-empty"]).exit_code == 0
     valid_counts[1] = 3  # one state with valid points: no error
     assert CliRunner().invoke(main, base).exit_code == 0
+
+
+def test_a_png_with_fewer_rows_than_its_header_declares_is_refused(tmp_path):
+    """Found by the CLI fuzz pass: a PNG header edited to 65536 rows over 48 rows of data was read by Pillow with
+    the missing rows zero (OpenCV's libpng refuses it: "Not enough image data")."""
+    from dic.io import write_image
+
+    image = np.clip(np.rint(_speckle((48, 64))), 0, 255).astype(np.uint8)
+    write_image(tmp_path / "ok.png", image, bits=8)
+    data = bytearray((tmp_path / "ok.png").read_bytes())
+    for rows in (49, 65536):
+        data[20:24] = struct.pack(">I", rows)
+        data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])))
+        (tmp_path / "tall.png").write_bytes(bytes(data))
+        with pytest.raises(ValueError, match=rf"tall.png holds image data for fewer pixels than its header declares "
+                                             rf"\(64 x {rows} px"):
+            read_image(tmp_path / "tall.png")
+    assert np.array_equal(read_image(tmp_path / "ok.png"), image)
