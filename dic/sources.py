@@ -48,8 +48,16 @@ from typing import NamedTuple
 import numpy as np
 
 from kernels.checks import boolean
-from kernels.images import (IMAGE_SUFFIXES, as_float32_image, check_image_size, describe_not_a_file, grey_image,
-                            natural_key, read_image, read_tiff_page)
+from kernels.images import (
+    IMAGE_SUFFIXES,
+    as_float32_image,
+    check_image_size,
+    describe_not_a_file,
+    grey_image,
+    natural_key,
+    read_image,
+    read_tiff_page,
+)
 
 __all__ = ["Frame", "FrameError", "FrameSource", "PairSource", "VIDEO_SUFFIXES", "is_single_image", "open_frames",
            "open_inputs", "open_pairs", "prefetch"]

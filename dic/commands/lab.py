@@ -36,7 +36,6 @@ def render_cmd(scene, out_dir, cameras, samples, seed, no_noise, as_float, devic
     import tifffile
 
     from dic.lab import load_scene, render
-
     from dic.lab.io import file_names
 
     try:
