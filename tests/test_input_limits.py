@@ -485,6 +485,9 @@ def test_a_scheduler_without_workers_is_reported_and_waited_for_with_a_timeout(m
             with pytest.raises(ValueError, match=r"no Dask worker joined the scheduler at .* within 2 s"):
                 connect(cluster.scheduler_address)
         assert time.perf_counter() - t0 < 15.0
+        with distributed.Client(cluster, set_as_default=False) as client:  # a client given: reported, not waited for
+            with pytest.warns(UserWarning, match="cluster has no workers yet"):
+                assert connect(client) is client
     finally:
         cluster.close()
     monkeypatch.setenv("SPECULA_DASK_WORKER_TIMEOUT", "soon")

@@ -58,9 +58,19 @@ def LOST() -> tuple:
 
 def connect(client, *, timeout: float = CONNECT_TIMEOUT):
     """A :class:`distributed.Client` from ``client``: a Client as it is, or a scheduler address
-    (``"tcp://host:8786"``) connected within ``timeout`` seconds (ValueError when it cannot be reached)."""
+    (``"tcp://host:8786"``) connected within ``timeout`` seconds (ValueError when it cannot be reached).
+
+    A scheduler without workers is reported at once (a ``UserWarning``) and waited for up to
+    :func:`worker_timeout` seconds (``SPECULA_DASK_WORKER_TIMEOUT``, default 60), then refused with
+    ``ValueError``; a ``Client`` given as it is gets the warning only (an adaptive cluster starts its
+    workers when work arrives)."""
     distributed = _distributed()
     if isinstance(client, distributed.Client):
+        if not client.nthreads():  # reported at once; not waited for (an adaptive cluster starts workers on demand)
+            import warnings
+
+            warnings.warn("the Dask client's cluster has no workers yet: the frames wait until one joins",
+                          UserWarning, stacklevel=3)
         return client
     if isinstance(client, str) and client.strip():
         address = client.strip()
