@@ -11,7 +11,7 @@ JSON) and a camera (YAML), DICe camera systems (world extrinsics with a rotation
 camera extrinsics with Euler angles), VIC-3D calibrations (the project layout with its
 ``<polygonmask>`` size and the bare ``<calibration>`` layout with the size given), Specula camera
 and rig JSON (with covariances), Specula target JSON (phase, checkerboard, circle grid), and images
-(PNG 8/16 bit, TIFF 8/16 bit and float32, BMP 8 bit): 19 seed files.
+(PNG 8/16 bit, TIFF 8/16 bit, float32 and LZW-compressed 16 bit, BMP 8 bit): 20 seed files.
 
 Each mutant applies 1-3 random edits to one seed: for text files byte flips, truncation, deleted /
 duplicated / swapped lines, a number replaced by an "interesting" token (0, -1, nan, inf, 1e308,
@@ -23,7 +23,7 @@ valid CRC, TIFF tags, BMP header fields).
 Every load must either return a valid object or raise ``ValueError``:
 
 * cameras: finite ``K`` with ``fx, fy > 0``, last row ``[0, 0, 1]``, 0/4/5/8 finite distortion
-  terms, a positive image size (Specula's camera JSON may also say ``(0, 0)``: unknown) and, for the
+  terms, a positive image size (a file with ``(0, 0)``, size unknown, is refused) and, for the
   foreign formats, the principal point inside the image;
 * rigs: two valid cameras, ``R_right_left`` a proper rotation (``|R Rᵀ − I| < 1e-9``, det +1), a
   finite non-zero ``t_right_left``, a finite 6x6 covariance if any;
@@ -152,6 +152,7 @@ def make_seeds(folder) -> list[dict]:
     tifffile.imwrite(add("image8.tif", "image", read_image, check_image), img8)
     tifffile.imwrite(add("image16.tif", "image", read_image, check_image), img16)
     tifffile.imwrite(add("imagef.tiff", "image", read_image, check_image), img16.astype(np.float32) / 65535)
+    cv2.imwrite(add("image16_lzw.tif", "image", read_image, check_image), img16)  # OpenCV's TIFFs are LZW
     for s in seeds:  # every seed must load as it is
         s["check"](s["loader"](s["path"]))
     return seeds
@@ -167,8 +168,7 @@ def check_camera(cam, foreign=True):
     assert cam.dist.size in (0, 4, 5, 8) and np.all(np.isfinite(cam.dist)), f"distortion {cam.dist}"
     w, h = cam.size
     assert isinstance(w, int) and isinstance(h, int), f"size {cam.size}"
-    if foreign or (w, h) != (0, 0):
-        assert w > 0 and h > 0, f"size {cam.size}"
+    assert w > 0 and h > 0, f"size {cam.size}"  # a file must give the size (Specula's JSON too, issue 24)
     if foreign:
         assert -0.5 <= K[0, 2] <= w - 0.5 and -0.5 <= K[1, 2] <= h - 0.5, f"principal point {K[:2, 2]} outside"
     if cam.covariance is not None:

@@ -500,7 +500,9 @@ class Camera:
                    covariance_names=() if cov is None else tuple(cov["names"]))
 
     def save(self, path, metadata: dict | None = None) -> None:
-        """Write the camera as JSON (see module docstring); ``metadata`` is stored as given."""
+        """Write the camera as JSON (see module docstring); ``metadata`` is stored as given. A camera whose image
+        size is unknown (``(0, 0)``) is refused: a camera file must say the size it was calibrated for."""
+        require_image_size(self, "cannot save the camera")
         _write_json(path, self.to_dict(metadata))
 
     @classmethod
@@ -509,9 +511,23 @@ class Camera:
         naming the file and the field."""
         data = _read_json(path, "camera")
         try:
-            return cls.from_dict(data)
+            return require_image_size(cls.from_dict(data), "")
         except ValueError as exc:
             raise ValueError(f"camera file {os.fspath(path)!r}: {exc}") from None
+
+
+def require_image_size(camera: "Camera", context: str) -> "Camera":
+    """``camera`` when its image size is known; ``ValueError`` (starting with ``context``) when it is ``(0, 0)``.
+
+    In memory a size of ``(0, 0)`` means "unknown"; a camera or rig *file* must give the size the
+    camera was calibrated for (the principal point and the distortion only mean something for that
+    size), so files with ``[0, 0]`` are refused when written and when read.
+    """
+    if tuple(camera.size) == (0, 0):
+        name = f" {camera.name!r}" if camera.name else ""
+        raise ValueError(f"{context + ': ' if context else ''}the image size of camera{name} is unknown (size [0, 0]); "
+                         "a camera file must give the (width, height) in px it was calibrated for")
+    return camera
 
 
 def _check_schema(data: dict, schema: str, version: int, what: str) -> None:

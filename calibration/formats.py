@@ -30,7 +30,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from .camera import Camera, nearest_rotation
+from .camera import Camera, nearest_rotation, require_image_size
 from .stereo import StereoRig
 
 
@@ -399,6 +399,17 @@ def load_dice_xml(path) -> StereoRig:
     return _guarded("DICe camera system", path, _load_dice_xml)
 
 
+def _is_identity(rot_list, params, where: str) -> bool:
+    """Whether a DICe ``rotation_3x3_matrix`` sublist holds the identity (rows ``ROW 0..2``; 1e-12 tolerance)."""
+    rp = params(rot_list, f"{where}: rotation_3x3_matrix")
+    rows = []
+    for r in range(3):
+        if f"ROW {r}" not in rp:
+            raise ValueError(f"{where}: rotation_3x3_matrix: ROW {r} is missing")
+        rows.append(_brace_numbers(rp[f"ROW {r}"][1], 3, f"{where}: rotation_3x3_matrix: ROW {r}"))
+    return bool(np.allclose(np.asarray(rows, np.float64), np.eye(3), rtol=0.0, atol=1e-12))
+
+
 def _load_dice_xml(path) -> StereoRig:
     root = _parse_xml(path)
     if root.tag != "ParameterList":
@@ -474,7 +485,8 @@ def _load_dice_xml(path) -> StereoRig:
             raise ValueError(f"{where}: both rotation_3x3_matrix and {' '.join(eulers)} are given (DICe allows one)")
         if relative and i == 0:  # the reference camera: its pose is the identity, if given at all
             given = [value(k) for k in ("TX", "TY", "TZ") if k in p]
-            if any(given) or any(value(k) for k in eulers) or rots:
+            # DICe's own writer always gives camera 0 a rotation_3x3_matrix: the identity is no pose
+            if any(given) or any(value(k) for k in eulers) or (rots and not _is_identity(rots[0], params, where)):
                 raise ValueError(f"{where}: with extrinsics_relative_camera_to_camera = true, camera 0 is the "
                                  "reference; its extrinsics must be absent or zero")
             poses.append((np.eye(3), np.zeros(3)))
@@ -751,9 +763,12 @@ def _load_any(path, image_size):
     image_size = _check_image_size(image_size)
     fmt, data = _detect(path)
     if fmt == "specula-camera":
-        return Camera.from_dict(data), fmt
+        return require_image_size(Camera.from_dict(data), ""), fmt
     if fmt == "specula-rig":
-        return StereoRig.from_dict(data), fmt
+        rig = StereoRig.from_dict(data)
+        for side, cam in (("left", rig.left), ("right", rig.right)):
+            require_image_size(cam, f"{side} camera")
+        return rig, fmt
     if fmt == "opencv":
         obj = _opencv_sized(path, image_size)
     elif fmt == "dice":

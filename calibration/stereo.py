@@ -28,6 +28,7 @@ from .camera import (
     _read_json,
     _write_json,
     nearest_rotation,
+    require_image_size,
     rigid_fit,
     rotation_angle_deg,
     rotation_from_vector,
@@ -208,7 +209,10 @@ class StereoRig:
                    metadata=metadata)
 
     def save(self, path) -> None:
-        """Write the rig as JSON (schema ``specula.stereo_rig`` version 1)."""
+        """Write the rig as JSON (schema ``specula.stereo_rig`` version 1); both cameras must have a known
+        image size (:func:`calibration.camera.require_image_size`)."""
+        for side, cam in (("left", self.left), ("right", self.right)):
+            require_image_size(cam, f"cannot save the rig: {side} camera")
         _write_json(path, self.to_dict())
 
     @classmethod
@@ -217,7 +221,10 @@ class StereoRig:
         naming the file and the field."""
         data = _read_json(path, "stereo rig")
         try:
-            return cls.from_dict(data)
+            rig = cls.from_dict(data)
+            for side, cam in (("left", rig.left), ("right", rig.right)):
+                require_image_size(cam, f"{side} camera")
+            return rig
         except ValueError as exc:
             raise ValueError(f"stereo rig file {os.fspath(path)!r}: {exc}") from None
 

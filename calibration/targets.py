@@ -75,7 +75,14 @@ TARGET_FRAME = (
 # ------------------------------------------------------------------------------------------------
 # validation helpers
 # ------------------------------------------------------------------------------------------------
-def _pair(value, name: str, *, integer: bool, minimum: float) -> tuple:
+#: the largest screen side accepted, px (twice an 8K monitor's 7680 px): a target image holds screen-sized arrays
+MAX_SCREEN_SIDE = 16384
+#: the most phase shifts of a fringe target (each one is a screen image to show and capture)
+MAX_PHASE_STEPS = 64
+
+
+def _pair(value, name: str, *, integer: bool, minimum: float, maximum: float | None = None,
+          why: str = "") -> tuple:
     if isinstance(value, str):
         parts = value.lower().replace(",", "x").split("x")
         try:
@@ -94,8 +101,16 @@ def _pair(value, name: str, *, integer: bool, minimum: float) -> tuple:
             raise ValueError(f"{name} must hold two integers, got {value!r}")
         if v < minimum:
             raise ValueError(f"{name} values must be >= {minimum}, got {value!r}")
+        if maximum is not None and v > maximum:
+            raise ValueError(f"{name} values must be at most {maximum}{why}, got {value!r}")
         out.append(int(v) if integer else float(v))
     return tuple(out)
+
+
+def _screen(value) -> tuple[int, int]:
+    """``(width, height)`` of a screen in px, each 1 .. MAX_SCREEN_SIDE."""
+    return _pair(value, "screen", integer=True, minimum=1, maximum=MAX_SCREEN_SIDE,
+                 why=" px per side (twice an 8K monitor)")
 
 
 def _grey(value, name: str) -> float:
@@ -360,11 +375,14 @@ class PhaseTarget(_ScreenTarget):
         dense_fine_period: float = 40.0,
         dense_max_ratio: float = 5.0,
     ):
-        self.screen = _pair(screen, "screen", integer=True, minimum=1)
+        self.screen = _screen(screen)
         self.pixel_pitch = positive_float(pixel_pitch, "pixel_pitch")
         self.grid = _pair(grid, "grid", integer=True, minimum=2)
         self.pitch = positive_float(pitch, "pitch")
         self.steps = positive_int(steps, "steps (number of phase shifts)", minimum=3)
+        if self.steps > MAX_PHASE_STEPS:
+            raise ValueError(f"steps (number of phase shifts) must be at most {MAX_PHASE_STEPS} (each is an image to show "
+                             f"and capture), got {steps!r}")
         self.period = self.pitch if period is None else positive_float(period, "period")
         w, h = self.screen
         self.centre = ((w - 1) / 2.0, (h - 1) / 2.0) if centre is None else _pair(centre, "centre", integer=False, minimum=-np.inf)
@@ -697,7 +715,7 @@ class CheckerboardTarget(_ScreenTarget):
         nsq = np.array(self.corners) + 1
         if screen is None:
             screen = tuple(int(math.ceil(v)) for v in (nsq + 2) * self.square)
-        self.screen = _pair(screen, "screen", integer=True, minimum=1)
+        self.screen = _screen(screen)
         w, h = self.screen
         self.centre = ((w - 1) / 2.0, (h - 1) / 2.0) if centre is None else _pair(centre, "centre", integer=False, minimum=-np.inf)
         self.dark, self.light = _grey(dark, "dark"), _grey(light, "light")
@@ -768,7 +786,7 @@ class CircleGridTarget(_ScreenTarget):
         self.pixel_pitch = positive_float(pixel_pitch, "pixel_pitch")
         if screen is None:
             screen = tuple(int(math.ceil(v)) for v in (np.array(self.grid) + 1) * self.pitch)
-        self.screen = _pair(screen, "screen", integer=True, minimum=1)
+        self.screen = _screen(screen)
         w, h = self.screen
         self.centre = ((w - 1) / 2.0, (h - 1) / 2.0) if centre is None else _pair(centre, "centre", integer=False, minimum=-np.inf)
         self.dark, self.light = _grey(dark, "dark"), _grey(light, "light")

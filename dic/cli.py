@@ -43,6 +43,57 @@ def user_message(exc: BaseException) -> str:
     return text or type(exc).__name__
 
 
+class _NonEmpty(click.ParamType):
+    """A parameter type that refuses an empty (or blank) string, then converts with the type it wraps.
+
+    Wrapped around every option and argument that takes a path or free text (a shape, a point, a frame
+    list, a device, ...): ``--roi-polygon ""`` would otherwise be ignored and ``--vtk ""`` write into the
+    current folder. Nothing in Specula takes an empty string on purpose.
+    """
+
+    def __init__(self, inner: click.ParamType):
+        self.inner = inner
+        self.name = inner.name
+        self.envvar_list_splitter = inner.envvar_list_splitter
+        self.is_composite = inner.is_composite
+        self.arity = inner.arity
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            hint = ", or leave the option out" if isinstance(param, click.Option) and not param.required else ""
+            self.fail(f"must not be empty: give a value{hint}", param, ctx)
+        return self.inner.convert(value, param, ctx)
+
+    def get_metavar(self, *args, **kwargs):
+        return self.inner.get_metavar(*args, **kwargs)
+
+    def get_missing_message(self, *args, **kwargs):
+        return self.inner.get_missing_message(*args, **kwargs)
+
+    def to_info_dict(self):
+        return self.inner.to_info_dict()
+
+    def shell_complete(self, ctx, param, incomplete):
+        return self.inner.shell_complete(ctx, param, incomplete)
+
+    def __repr__(self) -> str:
+        return repr(self.inner)
+
+
+def refuse_empty_strings(command: click.Command) -> click.Command:
+    """Make every path or text parameter of ``command`` (and of its subcommands) refuse ``""`` (see
+    :class:`_NonEmpty`); choices and numbers refuse it already. Returns the command."""
+    if getattr(command, "_specula_nonempty", False):
+        return command
+    for param in command.params:
+        if isinstance(param.type, (click.Path, click.types.StringParamType)) and not isinstance(param.type, _NonEmpty):
+            param.type = _NonEmpty(param.type)
+    for sub in getattr(command, "commands", {}).values():
+        refuse_empty_strings(sub)
+    command._specula_nonempty = True
+    return command
+
+
 class LazyGroup(click.Group):
     """A click group whose subcommands are imported on first use."""
 
@@ -65,7 +116,7 @@ class LazyGroup(click.Group):
                 raise click.ClickException(f"'specula {name}' is not available in this version")
 
             return unavailable
-        return getattr(module, attr)
+        return refuse_empty_strings(getattr(module, attr))
 
     def invoke(self, ctx):
         """Run the subcommand; an error the user can cause becomes one clear message (exit status 1)."""

@@ -338,6 +338,25 @@ class _Source:
             return out
         return LinearNDInterpolator(tri, values[ok])(query)
 
+    def check_inside(self, query, at: str, what: str, every: bool = True) -> None:
+        """Refuse (``ValueError`` with the extent) query positions (M, 2) outside the measured points of the
+        first frame (their bounding box, widened by one grid spacing): every one of them (``every``), or all of
+        them. Values there would be NaN in every frame."""
+        dom = self.domain(self.indices[0], at)
+        dom = dom[np.all(np.isfinite(dom), axis=1)]
+        if dom.shape[0] == 0:
+            return
+        pad = self.grid_spacing(at)
+        lo, hi = dom.min(axis=0) - pad, dom.max(axis=0) + pad
+        q = np.asarray(query, np.float64).reshape(-1, 2)
+        inside = np.all((q >= lo) & (q <= hi), axis=1)
+        if (not inside.all()) if every else (not inside.any()):
+            where = f"({q[0, 0]:g}, {q[0, 1]:g})" if q.shape[0] == 1 else \
+                f"from ({q[0, 0]:g}, {q[0, 1]:g}) to ({q[-1, 0]:g}, {q[-1, 1]:g})"
+            raise ValueError(f"{what} {where} {at} lies outside the measured points (x {lo[0] + pad:g} to "
+                             f"{hi[0] - pad:g}, y {lo[1] + pad:g} to {hi[1] - pad:g} {at}); its values would be "
+                             "NaN in every frame")
+
     def grid_spacing(self, at: str) -> float:
         """Spacing of the points (in ``at`` units): the smallest nearest-neighbour distance's median."""
         from scipy.spatial import cKDTree
@@ -348,6 +367,10 @@ class _Source:
             return 1.0
         d, _ = cKDTree(dom).query(dom, k=2)
         return float(np.median(d[:, 1])) or 1.0
+
+
+#: the most samples of a line profile (a line across a 16384-px image at several samples per px)
+MAX_PROFILE_SAMPLES = 100_000
 
 
 def quantities(results) -> tuple[str, ...]:
@@ -597,6 +620,7 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
         at = src.check_at(at)
         quantity = src.check_quantity(quantity)
         p = _xy(point, "point")
+        src.check_inside(p[None, :], at, "the point")
         idx = src.select(frames)
         out = np.full(len(idx), np.nan)
         for k, i in enumerate(idx):
@@ -646,14 +670,23 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
         at = src.check_at(at)
         quantity = src.check_quantity(quantity)
         a, b = _xy(start, "start"), _xy(end, "end")
-        length = float(np.linalg.norm(b - a))
+        length = float(np.hypot(*(b - a)))
         if length == 0:
             raise ValueError(f"the line's ends coincide ({a[0]:g}, {a[1]:g}); give two distinct points")
         if samples is None:
-            samples = max(2, int(round(length / src.grid_spacing(at))) + 1)
+            needed = length / src.grid_spacing(at) + 1
+            if not needed <= MAX_PROFILE_SAMPLES:
+                raise ValueError(f"the line from ({a[0]:g}, {a[1]:g}) to ({b[0]:g}, {b[1]:g}) {at} would need {needed:.3g} "
+                                 f"samples at one per grid step, more than {MAX_PROFILE_SAMPLES:,}; give a shorter line "
+                                 "(inside the measured points) or fewer samples")
+            samples = max(2, int(round(needed)))
         samples = positive_int(samples, "samples", minimum=2)
+        if samples > MAX_PROFILE_SAMPLES:
+            raise ValueError(f"samples must be at most {MAX_PROFILE_SAMPLES:,} (a line across the largest image at "
+                             f"several samples per px), got {samples:,}")
         t = np.linspace(0.0, 1.0, samples)
         pos = a[None, :] + t[:, None] * (b - a)[None, :]
+        src.check_inside(pos, at, "the line", every=False)
         idx = src.select(frames)
         vals = np.full((len(idx), samples), np.nan)
         for k, i in enumerate(idx):

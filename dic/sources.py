@@ -46,7 +46,16 @@ from typing import NamedTuple
 import numpy as np
 
 from kernels.checks import boolean
-from kernels.images import IMAGE_SUFFIXES, as_float32_image, grey_image, natural_key, read_image
+from kernels.images import (
+    IMAGE_SUFFIXES,
+    as_float32_image,
+    check_image_size,
+    describe_not_a_file,
+    grey_image,
+    natural_key,
+    read_image,
+    read_tiff_page,
+)
 
 __all__ = ["Frame", "FrameError", "FrameSource", "PairSource", "VIDEO_SUFFIXES", "is_single_image", "open_frames",
            "open_inputs", "open_pairs"]
@@ -347,7 +356,7 @@ class _TiffPages(FrameSource):
             import tifffile
 
             with tifffile.TiffFile(self.path) as tif:
-                return tif.pages[k].asarray()
+                return read_tiff_page(tif, k, self._name(k))
         return self._name(k), load
 
     def _raw(self):
@@ -359,7 +368,7 @@ class _TiffPages(FrameSource):
             raise _frame_error(0, self._name(0), f"cannot open {self.path}: {exc}") from None
         with tif:
             for k in range(self.n_pages):
-                yield k, self._name(k), (lambda k=k: tif.pages[k].asarray())
+                yield k, self._name(k), (lambda k=k: read_tiff_page(tif, k, self._name(k)))
 
     def _probe_shape(self):
         import tifffile
@@ -405,6 +414,7 @@ class _VideoFrames(FrameSource):
         size = meta.get("size")
         if size:
             self._shape = (int(size[1]), int(size[0]))
+            check_image_size(self._shape[0], self._shape[1], f"video {path}")
 
     @property
     def length(self) -> int:
@@ -413,9 +423,11 @@ class _VideoFrames(FrameSource):
             import imageio_ffmpeg
 
             try:
-                self._length = int(imageio_ffmpeg.count_frames_and_secs(self.path)[0])
+                counted = int(imageio_ffmpeg.count_frames_and_secs(self.path)[0])
             except Exception as exc:
                 raise ValueError(f"cannot count the frames of video {self.path}: {_first_line(exc)}") from None
+            _check_avi_complete(self.path, counted)
+            self._length = counted
         return self._length
 
     def _name(self, k: int) -> str:
@@ -445,6 +457,32 @@ class _VideoFrames(FrameSource):
             raise
         except Exception as exc:
             raise _frame_error(k, self._name(k), f"cannot decode it: {_first_line(exc)}") from None
+
+
+def _check_avi_complete(path: str, counted: int) -> None:
+    """Refuse an AVI file cut short (``ValueError``): its RIFF header declares more bytes than the file holds,
+    or its main header (``avih``) more frames than ffmpeg counted. ffmpeg itself reads such a file as a
+    shorter video without a word. Other containers are not checked here."""
+    import struct
+
+    if Path(path).suffix.lower() != ".avi":
+        return
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(65536)
+        actual = os.path.getsize(path)
+    except OSError:
+        return
+    if len(head) < 12 or head[:4] != b"RIFF" or head[8:12] != b"AVI ":
+        return
+    declared_bytes = struct.unpack("<I", head[4:8])[0] + 8
+    at = head.find(b"avih")
+    declared_frames = struct.unpack("<I", head[at + 24:at + 28])[0] if 0 <= at and at + 28 <= len(head) else 0
+    if declared_bytes > actual or counted < declared_frames:
+        raise ValueError(
+            f"video {path} is cut short: its header declares {declared_frames} frames in {declared_bytes:,} bytes, "
+            f"but the file holds {actual:,} bytes and {counted} readable frames (an interrupted copy or "
+            "recording?); copy or export it again")
 
 
 def _first_line(exc: BaseException) -> str:
@@ -627,6 +665,9 @@ def _open_path(path: str, as_grey: bool) -> FrameSource:
             raise ValueError(f"the pattern {path!r} matches {len(files)} file(s) but no image file "
                              f"({', '.join(IMAGE_SUFFIXES)})")
         return _ListFrames(images, description=f"pattern {path!r} ({len(images)} images)", as_grey=as_grey)
+    special = describe_not_a_file(path)  # a symlink loop, a FIFO, a socket: not "not found"
+    if special is not None:
+        raise ValueError(special)
     suffix = Path(path).suffix.lower()
     what = "image file" if suffix in IMAGE_SUFFIXES else "video file" if suffix in VIDEO_SUFFIXES else "input"
     raise ValueError(f"{what} not found: {path} (a sequence is image files, a folder, a glob pattern (quote it), "

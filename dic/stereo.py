@@ -48,6 +48,7 @@ from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, statu
 from .correlation.engine import SOURCE_FEATURES, SOURCE_GLOBAL, SOURCE_NONE, SOURCE_PREVIOUS, Correlator, correlate
 from .correlation.features import affine_guess, feature_matches
 from .correlation.guesses import GuessContext, get_guess
+from .correlation.params import check_tol
 from .correlation.params import displacement as _displacement
 from .correlation.points import grid_points, typical_spacing
 from .epipolar import epipolar_distance, epipolar_residuals, fundamental_matrix
@@ -272,7 +273,7 @@ class StereoCorrelation:
         self.epipolar_tol_px = positive_float(epipolar_tol_px, "epipolar_tol_px")
         self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
         self.max_iter = check_max_iter(max_iter)
-        self.tol = positive_float(tol, "tol", detail=" of pixels")
+        self.tol = check_tol(tol)
         strain_window = odd_int(strain_window, "strain window", detail=" (grid points)", integral_float=True)
         if triangulation not in ("optimal", "linear"):
             raise ValueError(f"triangulation must be 'optimal' or 'linear', got {triangulation!r}")

@@ -20,7 +20,7 @@ import os
 import numpy as np
 
 from kernels._device import resolve_device
-from kernels.checks import as_points, boolean, in_range, non_negative_int, positive_float
+from kernels.checks import as_points, boolean, in_range, non_negative_int
 from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor, read_image
@@ -29,7 +29,7 @@ from .correlation.acceptance import accepted_mask, flag_implausible, status_coun
 from .correlation.engine import Correlator, reliability_guided
 from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_guesses, get_guess
 from .correlation.lagrangian import displacement_outliers
-from .correlation.params import guess_params
+from .correlation.params import check_tol, guess_params
 from .correlation.points import check_step, grid
 from .field2d import Field2D
 from .quality import check_noise_sigma, displacement_sigma, sigma_basis
@@ -149,7 +149,7 @@ class Tracker:
         self.search = _check_search(search)
         self.search_radius = non_negative_int(search_radius, "search_radius", detail=" (px)")
         self.max_iter = check_max_iter(max_iter)
-        self.tol = positive_float(tol, "tol", detail=" of pixels")
+        self.tol = check_tol(tol)
         self.zncc_min = in_range(zncc_min, -1.0, 1.0, "zncc_min")
         self.check_warps = bool(check_warps)
         self.robust = boolean(robust, "robust")

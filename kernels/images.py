@@ -8,7 +8,15 @@ images through :func:`read_image`, so the same rules hold in DIC, calibration an
 - grey stored as RGB(A) with three identical colour channels is grey (alpha ignored);
 - a true colour image needs ``as_grey=True`` (BT.601 luma), else ``ValueError`` naming the file;
 - missing, empty, unsupported, truncated/corrupt and multi-page files raise ``ValueError``
-  naming the file.
+  naming the file; a symbolic link that leads nowhere (a loop) or a FIFO is named as such;
+- the image size a file declares in its header is checked against :func:`max_image_pixels`
+  (default :data:`DEFAULT_MAX_IMAGE_PIXELS`, 2**28 = 268 435 456 px, e.g. 16384 x 16384; raise it
+  with the environment variable ``SPECULA_MAX_IMAGE_PIXELS`` or :func:`set_max_image_pixels`)
+  *before* anything is decoded, so a small file declaring a huge image (a decompression bomb) is
+  refused at once instead of filling the memory;
+- compressed TIFFs (LZW, Deflate, PackBits, JPEG, ...) are decoded by tifffile with the
+  ``imagecodecs`` package (a dependency), or else by Pillow; when neither can decode the
+  compression, the ``ValueError`` names the missing package (never "corrupt").
 
 Images are 2-D arrays indexed ``[row, col] = [y, x]`` (docs/conventions.md). The module itself
 needs only NumPy (tifffile, imageio and OpenCV are imported on first use) and runs no kernel.
@@ -24,11 +32,19 @@ import numpy as np
 
 from .checks import boolean
 
-__all__ = ["IMAGE_SUFFIXES", "as_float32_image", "as_float32_tensor", "grey_image", "is_torch_tensor", "natural_key",
-           "read_image", "write_image"]
+__all__ = ["DEFAULT_MAX_IMAGE_PIXELS", "IMAGE_SUFFIXES", "MAX_IMAGE_PIXELS_ENV", "as_float32_image", "as_float32_tensor",
+           "check_image_size", "declared_image_shape", "describe_not_a_file", "grey_image", "is_torch_tensor",
+           "max_image_pixels", "natural_key", "read_image", "read_tiff_page", "set_max_image_pixels", "write_image"]
 
 #: file name suffixes read_image and write_image accept (case-insensitive)
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp")
+
+#: default limit on the pixels (height x width) an image file may declare: 2**28 (16384 x 16384 px, 256 MiB as
+#: 8-bit, 1 GiB as float32); the largest scientific cameras today have about 150 Mpx
+DEFAULT_MAX_IMAGE_PIXELS = 1 << 28
+#: environment variable that sets the limit (a positive integer, in pixels) for a whole run
+MAX_IMAGE_PIXELS_ENV = "SPECULA_MAX_IMAGE_PIXELS"
+_max_pixels_set: int | None = None  # set_max_image_pixels() (wins over the environment)
 
 # ITU-R BT.601 luma weights, used only when a colour image is converted on request
 _LUMA = np.array([0.299, 0.587, 0.114])
@@ -43,6 +59,159 @@ def natural_key(path) -> tuple:
     text = os.fspath(path)
     parts = re.split(r"(\d+)", os.path.basename(text))
     return [int(p) if p.isdigit() else p.lower() for p in parts], text
+
+
+def max_image_pixels() -> int:
+    """The largest image (height x width, in px) a file may declare before it is decoded.
+
+    :func:`set_max_image_pixels` if it was called, else the environment variable
+    ``SPECULA_MAX_IMAGE_PIXELS`` (a positive integer; a malformed value raises ``ValueError``), else
+    :data:`DEFAULT_MAX_IMAGE_PIXELS`.
+    """
+    if _max_pixels_set is not None:
+        return _max_pixels_set
+    text = os.environ.get(MAX_IMAGE_PIXELS_ENV, "").strip()
+    if not text:
+        return DEFAULT_MAX_IMAGE_PIXELS
+    try:
+        value = int(float(text)) if re.fullmatch(r"[0-9]+(\.0*)?([eE]\+?[0-9]+)?", text) else -1
+    except (ValueError, OverflowError):
+        value = -1
+    if value < 1:
+        raise ValueError(f"{MAX_IMAGE_PIXELS_ENV} must be a positive whole number of pixels (e.g. 1000000000), "
+                         f"got {text!r}")
+    return value
+
+
+def set_max_image_pixels(pixels: int | None) -> None:
+    """Set the limit of :func:`max_image_pixels` for this process (``None``: back to the environment / default).
+
+    ``pixels``: a positive int (height x width). Raise it to read images larger than the default.
+    """
+    global _max_pixels_set
+    if pixels is not None:
+        if isinstance(pixels, bool) or not isinstance(pixels, (int, np.integer)) or pixels < 1:
+            raise ValueError(f"the image-size limit must be a positive whole number of pixels, got {pixels!r}")
+        pixels = int(pixels)
+    _max_pixels_set = pixels
+
+
+def check_image_size(height: int, width: int, name) -> None:
+    """Refuse (``ValueError`` naming ``name`` and the bound) an image whose declared ``height x width`` px
+    exceeds :func:`max_image_pixels`; called before any decoding."""
+    limit = max_image_pixels()
+    if int(height) * int(width) > limit:
+        raise ValueError(
+            f"{name} declares an image of {int(width)} x {int(height)} px = {int(height) * int(width):,} pixels, "
+            f"more than the limit of {limit:,} pixels (a damaged header or a decompression bomb?); if the image is "
+            f"real, raise the limit with the environment variable {MAX_IMAGE_PIXELS_ENV} (or "
+            "kernels.images.set_max_image_pixels)")
+
+
+def describe_not_a_file(path) -> str | None:
+    """What ``path`` is when it is not a regular file that can be opened, in words, or None when it is one
+    (or does not exist at all): a symbolic link that leads nowhere (a loop or a missing target), a FIFO
+    (named pipe), a socket, a device, a folder."""
+    import stat
+
+    text = os.fspath(path)
+    try:
+        lst = os.lstat(text)
+    except OSError:
+        return None  # not there at all
+    if stat.S_ISLNK(lst.st_mode):
+        try:
+            os.stat(text)
+        except OSError as exc:
+            import errno
+
+            if exc.errno == errno.ELOOP:
+                return f"{text} is a symbolic link in a loop (it leads back to itself), not an image file"
+            return f"{text} is a symbolic link whose target does not exist ({os.readlink(text)})"
+        lst = os.stat(text)
+    if stat.S_ISREG(lst.st_mode):
+        return None
+    kind = ("a folder" if stat.S_ISDIR(lst.st_mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(lst.st_mode)
+            else "a socket" if stat.S_ISSOCK(lst.st_mode) else "a device" if stat.S_ISCHR(lst.st_mode)
+            or stat.S_ISBLK(lst.st_mode) else "a special file")
+    return f"{text} is {kind}, not an image file"
+
+
+def declared_image_shape(path) -> tuple[int, int] | None:
+    """``(height, width)`` an image file declares in its header (TIFF: the first page; PNG: IHDR; BMP and
+    others: Pillow's header parser), read without decoding pixels; None when the header does not tell
+    (the decoder then says what is wrong)."""
+    p = Path(os.fspath(path))
+    suffix = p.suffix.lower()
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            with tifffile.TiffFile(p) as tif:
+                page = tif.pages.first
+                return int(page.imagelength), int(page.imagewidth)
+        if suffix == ".png":
+            with open(p, "rb") as fh:
+                head = fh.read(24)
+            if head[:8] == _PNG_SIGNATURE and head[12:16] == b"IHDR":
+                return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
+            return None
+        from PIL import Image
+
+        with Image.open(p) as im:
+            return int(im.size[1]), int(im.size[0])
+    except Exception:
+        return None
+
+
+def _missing_codec(exc: BaseException) -> str | None:
+    """The package tifffile asked for when it lacks a decoder (its message "... requires the 'imagecodecs'
+    package"), else None."""
+    m = re.search(r"requires the '([A-Za-z0-9_.-]+)' package", str(exc))
+    return m.group(1) if m else None
+
+
+def _tiff_compression(page) -> str:
+    try:
+        return page.compression.name
+    except AttributeError:
+        return str(getattr(page, "compression", "unknown"))
+
+
+def _pillow_tiff(p: Path, k: int) -> np.ndarray:
+    """Page ``k`` of a TIFF decoded by Pillow (the fallback when tifffile lacks the codec)."""
+    from PIL import Image
+
+    with Image.open(p) as im:
+        im.seek(k)
+        return np.asarray(im)
+
+
+def read_tiff_page(tif, k: int, name) -> np.ndarray:
+    """Page ``k`` of an open ``tifffile.TiffFile`` as an array, with the size check of :func:`check_image_size`
+    before decoding and the Pillow fallback for a compression tifffile cannot decode (``imagecodecs``
+    missing). ``ValueError`` naming ``name`` (and the missing package) when neither decodes it."""
+    page = tif.pages[k]
+    check_image_size(page.imagelength, page.imagewidth, name)
+    return _decode_tiff(page.asarray, tif, k, name)
+
+
+def _decode_tiff(decode, tif, k: int, name) -> np.ndarray:
+    """``decode()``, or page ``k`` decoded by Pillow when tifffile lacks the codec (see :func:`read_tiff_page`)."""
+    page = tif.pages[k]
+    try:
+        return decode()
+    except Exception as exc:
+        package = _missing_codec(exc)
+        if package is None:
+            raise
+        try:
+            return _pillow_tiff(Path(tif.filehandle.path), k)
+        except Exception as pil_exc:
+            raise ValueError(
+                f"cannot decode {name}: its {_tiff_compression(page)} compression needs the '{package}' package "
+                f"(pip install {package}), and Pillow could not decode it either ({type(pil_exc).__name__}: "
+                f"{pil_exc}); the file itself was not found damaged") from None
 
 
 def _unsupported_suffix(p: Path) -> str:
@@ -92,6 +261,9 @@ def read_image(path, *, as_grey: bool = False) -> np.ndarray:
         raise ValueError(f"path must be a file name (str or Path), got {type(path).__name__}")
     boolean(as_grey, "as_grey")
     p = Path(os.fspath(path))
+    special = describe_not_a_file(p)
+    if special is not None:
+        raise ValueError(special)
     if not p.exists():
         raise ValueError(f"image file not found: {p}")
     if not p.is_file():
@@ -111,13 +283,26 @@ def read_image(path, *, as_grey: bool = False) -> np.ndarray:
                     raise ValueError(
                         f"{p} holds a multi-page or multi-image TIFF (series shapes "
                         f"{[s.shape for s in tif.series]}); give one image per file")
-                arr = tif.asarray()
+                shape = tif.series[0].shape
+                if len(shape) == 2 or shape[-1] in (1, 3, 4):
+                    check_image_size(shape[0], shape[1], p)
+                else:  # pages of one series: all of them count
+                    check_image_size(shape[0] * shape[1], shape[2], p)
+                arr = _decode_tiff(tif.asarray, tif, 0, p)
         else:
+            shape = declared_image_shape(p)
+            if shape is not None:
+                check_image_size(*shape, p)
             arr = _read_plain_grey_png(p) if suffix == ".png" else None
             if arr is None:
                 import imageio.v3 as iio
+                from PIL import Image
 
+                if Image.MAX_IMAGE_PIXELS is not None and max_image_pixels() > Image.MAX_IMAGE_PIXELS:
+                    Image.MAX_IMAGE_PIXELS = max_image_pixels()  # a raised limit holds for Pillow's own check too
                 arr = np.asarray(iio.imread(p, plugin="pillow"))
+                if suffix == ".png":
+                    _check_png_data_complete(p)
     except ValueError as exc:
         if str(p) in str(exc):
             raise
@@ -144,6 +329,60 @@ def _grey_png_header(head: bytes) -> tuple[int, int, int] | None:
     if width == 0 or height == 0 or depth not in (8, 16) or (colour, compression, filtering, interlace) != (0, 0, 0, 0):
         return None
     return height, width, depth // 8
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # by colour type
+
+
+def _png_raw_bytes(width: int, height: int, depth: int, colour: int, interlace: int) -> int:
+    """Bytes of a PNG's filtered image data (a filter byte per row), per its header; Adam7 passes when
+    interlaced."""
+    bits = _PNG_CHANNELS[colour] * depth
+    if not interlace:
+        return height * (1 + (width * bits + 7) // 8)
+    total = 0
+    for x0, y0, dx, dy in ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2),
+                           (0, 1, 1, 2)):
+        w, h = (width - x0 + dx - 1) // dx, (height - y0 + dy - 1) // dy
+        if w and h:
+            total += h * (1 + (w * bits + 7) // 8)
+    return total
+
+
+def _check_png_data_complete(p: Path) -> None:
+    """Refuse (``ValueError``) a PNG whose compressed data holds fewer pixel rows than its header declares:
+    Pillow decodes such a file without a word, the missing rows zero (a header edited or damaged, or a
+    file cut short before its data was written: OpenCV's libpng says "Not enough image data"). The
+    data is inflated once more, without keeping it."""
+    import zlib
+
+    with open(p, "rb") as fh:
+        data = fh.read()
+    if data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR" or len(data) < 33:
+        return
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    depth, colour, interlace = data[24], data[25], data[28]
+    if colour not in _PNG_CHANNELS:
+        return
+    expected = _png_raw_bytes(width, height, depth, colour, interlace)
+    inflate, got, pos = zlib.decompressobj(), 0, 8
+    try:
+        while pos + 12 <= len(data) and got < expected:
+            length = int.from_bytes(data[pos:pos + 4], "big")
+            kind = data[pos + 4:pos + 8]
+            if kind == b"IDAT":
+                chunk = data[pos + 8:pos + 8 + length]
+                while chunk and got < expected:
+                    got += len(inflate.decompress(chunk, 1 << 22))
+                    chunk = inflate.unconsumed_tail
+            elif kind == b"IEND":
+                break
+            pos += 12 + length
+    except zlib.error:
+        return  # Pillow decoded it: its own reading stands
+    if got < expected:
+        raise ValueError(f"{p} holds image data for fewer pixels than its header declares ({width} x {height} px: "
+                         f"{got:,} of {expected:,} bytes); the file is damaged or cut short")
 
 
 def _plain_grey_png(data: bytes) -> tuple[int, int] | None:

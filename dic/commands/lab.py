@@ -36,10 +36,16 @@ def render_cmd(scene, out_dir, cameras, samples, seed, no_noise, as_float, devic
     import tifffile
 
     from dic.lab import load_scene, render
+    from dic.lab.io import file_names
 
     try:
         sc = load_scene(scene)
         chosen = [sc.camera(int(c) if c.lstrip("-").isdigit() else c) for c in cameras] if cameras else sc.cameras
+        # every camera of the scene, not only the chosen ones: a later run must not overwrite this one's images
+        stems = dict(zip((id(c) for c in sc.cameras),
+                         file_names([c.name or f"camera{k}" for k, c in enumerate(sc.cameras)], "camera", _safe)))
+        if len({id(c) for c in chosen}) != len(chosen):
+            raise ValueError("a camera is chosen twice with --camera")
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -49,7 +55,7 @@ def render_cmd(scene, out_dir, cameras, samples, seed, no_noise, as_float, devic
             img = render(sc, cam, samples=samples, seed=seed, noise=not no_noise, quantize=not as_float, device=device)
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
-        path = out_dir / f"{_safe(cam.name or f'camera{sc.cameras.index(cam)}')}.tif"
+        path = out_dir / f"{stems[id(cam)]}.tif"
         tifffile.imwrite(path, img)
         written.append(path)
         click.echo(f"{path}  {img.shape[1]}x{img.shape[0]} {img.dtype}  mean {float(img.mean()):.2f}")

@@ -49,8 +49,12 @@ _PLOT = click.option("--plot", "plot_path", default=None, type=click.Path(dir_ok
                      help="Write a figure (PNG, PDF, SVG: from the suffix).")
 
 
+#: the most frame indices ``--frames`` may name (ranges included): far more than any result file holds
+MAX_FRAME_SELECTION = 1_000_000
+
+
 def _frames(text):
-    """``"1,2,5"`` / ``"2-6"`` / ``"1,3-4"`` -> [indices], or None."""
+    """``"1,2,5"`` / ``"2-6"`` / ``"1,3-4"`` -> [indices], or None; at most MAX_FRAME_SELECTION indices."""
     if text is None:
         return None
     out = []
@@ -60,6 +64,9 @@ def _frames(text):
                 lo, hi = (int(v) for v in part.split("-"))
                 if hi < lo:
                     raise ValueError
+                if hi - lo + 1 + len(out) > MAX_FRAME_SELECTION:
+                    raise click.BadParameter(f"{text!r} names more than {MAX_FRAME_SELECTION:,} frames; give the "
+                                             "frames of the result file", param_hint="--frames")
                 out.extend(range(lo, hi + 1))
             else:
                 out.append(int(part))
@@ -227,8 +234,8 @@ def history(results, point, quantity, at, scale, frames, csv_path, plot_path, qu
 @click.option("--from", "start", required=True, type=POINT, help="Start of the line x,y (reference position).")
 @click.option("--to", "end", required=True, type=POINT, help="End of the line x,y (reference position).")
 @click.option("--quantity", default=None, help="As for specula history. Default: u (stereo: U).")
-@click.option("--samples", default=None, type=click.IntRange(min=2),
-              help="Points along the line (default: about one per grid step).")
+@click.option("--samples", default=None, type=click.IntRange(min=2, max=100_000),
+              help="Points along the line, 2 to 100000 (default: about one per grid step).")
 @_AT
 @_SCALE
 @_FRAMES

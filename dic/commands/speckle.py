@@ -17,8 +17,8 @@ import click
               help="Shape function of the suggestion: 1 (affine) or 2 (quadratic, ~1.9x the std).")
 @click.option("--coverage", default=0.95, show_default=True, type=click.FloatRange(min=0, max=1, min_open=True),
               help="Share of the points that must meet the target.")
-@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True),
-              help="Image noise std in grey levels (default: from --second, else estimated from REFERENCE).")
+@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True, max=1e6),
+              help="Image noise std in grey levels, at most 1e6 (default: from --second, else estimated from REFERENCE).")
 @click.option("--second", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="A second image of the unmoved specimen: the noise is measured from the difference.")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")

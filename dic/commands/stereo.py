@@ -93,10 +93,13 @@ def _engine_pairs(pairs) -> list:
 @dask_options("state")
 @compression_option("array")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
+@click.option("--allow-empty", is_flag=True,
+              help="Exit with status 0 even when no state of the run has a valid point (by default that is an error: "
+                   "a swapped or foreign rig, or images that do not match).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
            strain_window, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           compression, overwrite, quiet):
+           compression, overwrite, allow_empty, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -205,3 +208,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")
         click.echo(f"results: {output}")
+    if written and not allow_empty and all(n_valid == 0 for _, n_valid, _, _ in written):
+        raise click.ClickException(
+            f"no state of this run has a valid point ({len(written)} state(s) written to {output}): are the left and "
+            f"right images swapped, or is {rig_path} the rig of another setup? (--allow-empty accepts such a run)")

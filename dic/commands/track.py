@@ -36,14 +36,16 @@ def _fail(exc: Exception) -> click.ClickException:
                    "per point), fft (one global shift), rg (reliability-guided propagation).")
 @click.option("--max-iter", default=None, type=click.IntRange(min=1, max=10000),
               help="IC-GN iteration limit per point (at most 10000).")
-@click.option("--tol", default=None, type=click.FloatRange(min=0, min_open=True), help="Convergence threshold on the parameter update norm.")
+@click.option("--tol", default=None, type=click.FloatRange(min=0, min_open=True, max=0.1),
+              help="Convergence threshold on the parameter update norm, px (default 0.001; at most 0.1: a larger one "
+                   "stops the iterations before they converge).")
 @click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=0),
               help="Strain fit window in grid points (odd, >= 3); 0 skips strain.")
 @click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Image scale in mm per px, stored with the results (post-processing then gives positions "
                    "and displacements in mm).")
-@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True),
-              help="Image noise std in grey levels, for the per-point uncertainty sigma_u, sigma_v "
+@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True, max=1e6),
+              help="Image noise std in grey levels (at most 1e6), for the per-point uncertainty sigma_u, sigma_v "
                    "(default: estimated from the correlation residuals of each frame).")
 @click.option("--robust", is_flag=True,
               help="Outlier-robust correlation (Tukey-weighted IC-GN): subset pixels whose texture changed (speckles "
@@ -147,6 +149,8 @@ def track(reference, current, output, subset, step, order, search, search_method
         planned = grid(ref.shape, step, margin=subset // 2, roi=region)
     except ValueError as exc:
         raise _fail(exc) from None
+    if budget is not None:
+        _check_budget(budget, max_memory, len(planned), order, ref.shape)
     if strain_window:
         from dic.strain import check_strain_window, grid_layout
 
@@ -211,6 +215,39 @@ def _size(text: str) -> int:
         raise click.BadParameter(f"must be a size in bytes (e.g. 2000000, 512K, 512M, 2G), got {text!r}",
                                  param_hint="--max-memory")
     return int(value * scale)
+
+
+#: the fewest points per chunk a --max-memory budget must allow (unless the run has fewer)
+MIN_CHUNK_POINTS = 1024
+
+
+def _check_budget(budget: int, text: str, n_points: int, order: int, shape) -> None:
+    """``--max-memory`` against the run's working set: refused below one point's data (:func:`bytes_per_poi`);
+    a warning that says the bound below the working set: all the points' data when that is less, else the
+    larger of the reference image as float32 (4 x H x W bytes) and MIN_CHUNK_POINTS points. Below it the points
+    are tracked in small chunks, each preparing the whole image again (same results, but a 2-frame run of 2 s
+    took over a minute with 1K)."""
+    from dic.sequence.chunks import bytes_per_poi
+
+    per_point = bytes_per_poi(order)
+    if budget < per_point:
+        raise click.BadParameter(f"{text} ({budget:,} bytes) cannot hold the data of one point ({per_point} bytes at "
+                                 f"order {order}); give at least {per_point} bytes", param_hint="--max-memory")
+    floor = min(n_points * per_point, max(4 * int(shape[0]) * int(shape[1]), MIN_CHUNK_POINTS * per_point))
+    if budget < floor:
+        click.echo(
+            f"Warning: --max-memory {text} ({budget:,} bytes) is below the working set of this run, {floor:,} bytes "
+            f"({_human(floor)}: the reference image as float32, {shape[1]} x {shape[0]} px x 4 bytes, or "
+            f"{MIN_CHUNK_POINTS} points x {per_point} bytes, whichever is larger, or all {n_points:,} points if "
+            f"that is less); the {n_points:,} points are tracked in chunks of {budget // per_point:,}, each "
+            "preparing the whole image again: the same results, much more slowly", err=True)
+
+
+def _human(n: int) -> str:
+    for unit, size in (("G", 2**30), ("M", 2**20), ("K", 2**10)):
+        if n >= size:
+            return f"{n / size:.1f}{unit}"
+    return f"{n} bytes"
 
 
 def _sequence_figures(output, ref, figure_dir) -> None:

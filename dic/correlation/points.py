@@ -132,10 +132,38 @@ def _polygon(vertices, roi) -> np.ndarray:
         raise ValueError(f"roi polygon needs at least 3 vertices (x, y), got {v.shape[0]}")
     if not np.all(np.isfinite(v)):
         raise ValueError("roi polygon vertices must be finite numbers (px)")
+    centred = v - v.mean(axis=0)
+    spread = np.linalg.svd(centred, compute_uv=False)
+    if spread[1] <= 1e-12 * max(1.0, spread[0]):
+        raise ValueError(f"roi polygon {str(v.tolist()):.200} has zero area (its vertices lie on one line)")
     x, y = v[:, 0], v[:, 1]
-    if abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) < 1e-12:
-        raise ValueError(f"roi polygon {v.tolist()} has zero area (its vertices lie on one line)")
+    if abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) < 1e-12 and not _edges_cross(v):
+        # a signed area of 0 is also that of a bow-tie (two equal loops of opposite turn): kept, inside by the
+        # even-odd rule; edges that only run back over each other enclose nothing
+        raise ValueError(f"roi polygon {str(v.tolist()):.200} encloses no area (its edges run back over each other)")
     return v
+
+
+def _edges_cross(v: np.ndarray) -> bool:
+    """Whether two non-adjacent edges of the closed polygon ``v`` (N, 2) cross properly (a self-intersecting
+    polygon such as a bow-tie)."""
+    a, b = v, np.roll(v, -1, axis=0)
+    n = len(v)
+
+    def side(p, q, r):  # sign of the turn p -> q -> r, broadcast over edges
+        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+
+    for i in range(n):
+        j = np.arange(i + 2, n)
+        if i == 0:
+            j = j[j != n - 1]  # the last edge is adjacent to the first
+        if j.size == 0:
+            continue
+        d1, d2 = side(a[i], b[i], a[j]), side(a[i], b[i], b[j])
+        d3, d4 = side(a[j], b[j], a[i][None]), side(a[j], b[j], b[i][None])
+        if np.any((d1 * d2 < 0) & (d3 * d4 < 0)):
+            return True
+    return False
 
 
 def region(roi, shape) -> Region | None:

@@ -240,8 +240,10 @@ class LabCamera:
         """
         scale = float(scale)
         W, H = self.camera.size
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"scale must be a positive finite number, got {scale}")
         Ws, Hs = W * scale, H * scale
-        if not scale > 0 or abs(Ws - round(Ws)) > 1e-9 or abs(Hs - round(Hs)) > 1e-9 or round(Ws) < 1 or round(Hs) < 1:
+        if abs(Ws - round(Ws)) > 1e-9 or abs(Hs - round(Hs)) > 1e-9 or round(Ws) < 1 or round(Hs) < 1:
             raise ValueError(f"scale {scale} must give an integer image size; {W}x{H} -> {Ws}x{Hs}")
         K = self.camera.K.copy()
         K[0, 0] *= scale

@@ -346,6 +346,22 @@ def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "obj"
 
 
+def file_names(names, what: str, safe=_safe) -> list[str]:
+    """The file-name forms (``safe(name)``) of object names, refused (``ValueError`` naming both) when two names
+    give the same file name, letter case ignored (``cam/1`` and ``cam_1``; ``Cam`` and ``cam`` on a
+    case-insensitive file system): one object's file would overwrite the other's."""
+    out, seen = [], {}
+    for name in names:
+        tag = safe(name)
+        other = seen.get(tag.casefold())
+        if other is not None:
+            raise ValueError(f"the {what} names {other!r} and {name!r} give the same file name {tag!r}; one file would "
+                             f"overwrite the other: rename one of them")
+        seen[tag.casefold()] = name
+        out.append(tag)
+    return out
+
+
 def save_scene(scene: Scene, path) -> list[Path]:
     """Write ``scene`` as TOML at ``path``; screen images (.npy), speckle disks and displacement
     fields (.npz) go beside it as ``<stem>_<object>.*``. Returns the paths written.
@@ -380,8 +396,12 @@ def save_scene(scene: Scene, path) -> list[Path]:
     for m in scene.mirrors:
         table("mirror", {"name": m.name, "center": m.center, "normal": m.normal, "size": list(m.size), "up": m.up,
                          "reflectance": m.reflectance})
+    screen_tags = file_names([s.name or f"screen{k}" for k, s in enumerate(scene.screens)], "screen")
+    surfaces = [(kind, k, s) for kind, objs in (("plane", scene.planes), ("cylinder", scene.cylinders))
+                for k, s in enumerate(objs)]
+    file_names([s.name or f"{kind}{k}" for kind, k, s in surfaces], "surface")
     for k, s in enumerate(scene.screens):
-        img_path = path.parent / f"{stem}_{_safe(s.name or f'screen{k}')}.npy"
+        img_path = path.parent / f"{stem}_{screen_tags[k]}.npy"
         np.save(img_path, s.image.astype(np.float32))
         written.append(img_path)
         table("screen", {"name": s.name, "resolution": list(s.resolution), "pixel_pitch_mm": list(s.pixel_pitch_mm),

@@ -19,9 +19,11 @@ import threading
 import time
 from collections import OrderedDict
 
-__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "forget", "release", "ReferenceBuilder", "CONNECT_TIMEOUT"]
+__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "forget", "release", "ReferenceBuilder", "CONNECT_TIMEOUT",
+           "WORKER_TIMEOUT", "worker_timeout"]
 
 CONNECT_TIMEOUT = 5.0  # seconds to reach a scheduler
+WORKER_TIMEOUT = 60.0  # seconds to wait for a first worker of a scheduler that has none (SPECULA_DASK_WORKER_TIMEOUT)
 _CACHE_SIZE = 2  # references kept per worker process (the current block's and the one before)
 _CACHE: OrderedDict = OrderedDict()
 _LOCK = threading.Lock()
@@ -56,15 +58,25 @@ def LOST() -> tuple:
 
 def connect(client, *, timeout: float = CONNECT_TIMEOUT):
     """A :class:`distributed.Client` from ``client``: a Client as it is, or a scheduler address
-    (``"tcp://host:8786"``) connected within ``timeout`` seconds (ValueError when it cannot be reached)."""
+    (``"tcp://host:8786"``) connected within ``timeout`` seconds (ValueError when it cannot be reached).
+
+    A scheduler without workers is reported at once (a ``UserWarning``) and waited for up to
+    :func:`worker_timeout` seconds (``SPECULA_DASK_WORKER_TIMEOUT``, default 60), then refused with
+    ``ValueError``; a ``Client`` given as it is gets the warning only (an adaptive cluster starts its
+    workers when work arrives)."""
     distributed = _distributed()
     if isinstance(client, distributed.Client):
+        if not client.nthreads():  # reported at once; not waited for (an adaptive cluster starts workers on demand)
+            import warnings
+
+            warnings.warn("the Dask client's cluster has no workers yet: the frames wait until one joins",
+                          UserWarning, stacklevel=3)
         return client
     if isinstance(client, str) and client.strip():
         address = client.strip()
         try:  # a handshake first: a Client that fails half-way leaves a client object that complains when collected
             _probe(address, timeout)
-            return distributed.Client(address, timeout=timeout, set_as_default=False)
+            connected = distributed.Client(address, timeout=timeout, set_as_default=False)
         except Exception as exc:  # refused, timed out, not a Dask scheduler (any reply it cannot read), a bad address
             reason = f"{type(exc).__name__}: {exc}"
             if not isinstance(exc, (OSError, TimeoutError, ValueError)):  # something answered, not in Dask's protocol
@@ -72,8 +84,47 @@ def connect(client, *, timeout: float = CONNECT_TIMEOUT):
             if len(reason) > 200:
                 reason = reason[:200] + "..."
             raise ValueError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s ({reason})") from None
+        _wait_for_a_worker(connected, address, worker_timeout())
+        return connected
     raise ValueError(f"client must be a distributed.Client or a scheduler address such as 'tcp://host:8786', "
                      f"got {client!r}")
+
+
+def worker_timeout() -> float:
+    """Seconds to wait for a first worker of a scheduler that has none: the environment variable
+    ``SPECULA_DASK_WORKER_TIMEOUT`` (a positive number), else :data:`WORKER_TIMEOUT`."""
+    import math
+    import os
+
+    text = os.environ.get("SPECULA_DASK_WORKER_TIMEOUT", "").strip()
+    if not text:
+        return WORKER_TIMEOUT
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"SPECULA_DASK_WORKER_TIMEOUT must be a positive number of seconds, got {text!r}")
+    return value
+
+
+def _wait_for_a_worker(client, address: str, timeout: float) -> None:
+    """Return once the scheduler of ``client`` has a worker. When it has none: a warning at once, then up to
+    ``timeout`` s of waiting; ``ValueError`` (the client closed) when none joins: work sent to a scheduler
+    without workers would wait forever at 0 %."""
+    import warnings
+
+    if client.nthreads():
+        return
+    warnings.warn(f"the Dask scheduler at {address} has no workers; waiting up to {timeout:g} s for one (start them "
+                  f"with 'dask worker {address}')", UserWarning, stacklevel=3)
+    try:
+        client.wait_for_workers(1, timeout=timeout)
+    except Exception as exc:  # TimeoutError (distributed's own type in some versions), a scheduler gone
+        client.close()
+        raise ValueError(f"no Dask worker joined the scheduler at {address} within {timeout:g} s "
+                         f"({type(exc).__name__}); start workers with 'dask worker {address}', or wait longer with "
+                         "the environment variable SPECULA_DASK_WORKER_TIMEOUT (seconds)") from None
 
 
 def call_connected(function, arguments: dict):
