@@ -229,9 +229,10 @@ def write_step(state: DemoState) -> None:
         "",
         "- `displacement_strain.png`: the measured u and v (px) and the small strains εxx, εyy, εxy. Expected: u "
         f"rising by {cfg.stretch * cfg.size:.1f} px from left to right plus a {cfg.amplitude_u} px sine along y about "
-        f"{cfg.offset[0]} px; v a {cfg.amplitude_v} px sine along x about {cfg.offset[1]} px; εxx = {cfg.stretch} and "
-        f"εyy = {-0.4 * cfg.stretch:g} uniform (one shade each, their colour range is the noise), εxy a checkerboard "
-        "of the two sines.",
+        f"{cfg.offset[0]} px; v a {cfg.amplitude_v} px sine along x about {cfg.offset[1]} px, falling by "
+        f"{0.4 * cfg.stretch * cfg.size:.1f} px from top to bottom; εxx = {cfg.stretch} and εyy = {-0.4 * cfg.stretch:g} "
+        "uniform, so their maps show only the noise about these values (read the colourbars: a narrow one-signed "
+        "range, on the sequential map); εxy a checkerboard of the two sines (±0.02-0.04, diverging map).",
         "- `displacement_error.png`: measured minus true u and v (px), the error maps of the table above: noise "
         "without structure when the tracking is right (a pattern that follows the sine would be the subsets' "
         "smoothing of its curvature).",
