@@ -106,7 +106,9 @@ def freeze_ticks(fig) -> None:
             lo, hi = sorted(axis.get_view_interval())
             tol = 1e-9 * max(abs(hi - lo), 1e-300)
             locs = [float(v) for v in axis.get_majorticklocs() if lo - tol <= v <= hi + tol]
-            labels = axis.get_major_formatter().format_ticks(locs) if locs else []
+            formatter = axis.get_major_formatter()
+            labels = formatter.format_ticks(locs) if locs else []
+            size = fontsize
             axis.set_ticks([])
             sign = -1.0 if side in ("bottom", "left") else 1.0
             edge = 0.0 if sign < 0 else 1.0
@@ -120,18 +122,18 @@ def freeze_ticks(fig) -> None:
                     color="k", transform=base, clip_on=False)
             for v, lab in zip(locs, labels):
                 if name == "x":
-                    ax.text(v, edge, lab, transform=text_t, fontsize=fontsize, ha="center",
+                    ax.text(v, edge, lab, transform=text_t, fontsize=size, ha="center",
                             va="top" if sign < 0 else "bottom", clip_on=False)
                 else:
-                    ax.text(edge, v, lab, transform=text_t, fontsize=fontsize, va="center_baseline",
+                    ax.text(edge, v, lab, transform=text_t, fontsize=size, va="center_baseline",
                             ha="right" if sign < 0 else "left", clip_on=False)
             # the axis label beyond the tick labels (their size estimated from the font size)
             if name == "x":
-                off_in = (length + pad + 1.2 * fontsize + 3.0) / 72.0
+                off_in = (length + pad + 1.2 * size + 3.0) / 72.0
                 axis.set_label_coords(0.5, edge + sign * off_in / h_in)
             else:
                 widest = max((len(t) for t in labels), default=0)
-                off_in = (length + pad + 0.6 * fontsize * widest + 4.0) / 72.0
+                off_in = (length + pad + 0.6 * size * widest + 4.0) / 72.0
                 axis.set_label_coords(edge + sign * off_in / w_in, 0.5)
 
 
@@ -202,14 +204,16 @@ def backdrop(image, panel_px: float) -> tuple[np.ndarray, tuple[float, float, fl
 MARGINS_IN = {"left": 0.75, "bottom": 0.55, "top": 0.38, "gap": 0.08, "bar": 0.16, "right": 1.2}
 
 
-def map_panels(n: int, *, ncols: int, panel_w: float, aspect: float, suptitle: bool, dpi: float):
+def map_panels(n: int, *, ncols: int, panel_w: float, aspect: float, suptitle: bool, dpi: float,
+               right: float | None = None):
     """A figure of ``n`` map panels in rows of ``ncols``, each ``panel_w`` inches wide and ``panel_w *
     aspect`` high, with a colourbar axes beside each one exactly as tall as the panel.
 
     Returns ``(fig, [(ax, cax), ...])``. The figure's size is the panels plus :data:`MARGINS_IN`,
-    so there is no empty band above or below the maps.
+    so there is no empty band above or below the maps; ``right`` replaces the room right of each
+    colourbar (inches), e.g. for long tick names.
     """
-    m = MARGINS_IN
+    m = MARGINS_IN if right is None else {**MARGINS_IN, "right": float(right)}
     nrows = -(-n // ncols)
     panel_h = panel_w * aspect
     cell_w = m["left"] + panel_w + m["gap"] + m["bar"] + m["right"]

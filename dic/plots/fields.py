@@ -406,7 +406,8 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     x0, x1, y0, y1 = _view_box(img, pts if data is None else pts[np.isfinite(vals)] if np.isfinite(vals).any() else pts,
                                extent)
     aspect = (y1 - y0) / max(x1 - x0, 1e-9)
-    fig, [(ax, cax)] = map_panels(1, ncols=1, panel_w=panel_size, aspect=aspect, suptitle=False, dpi=dpi)
+    right = 0.3 + 0.6 * 10 * max(len(nm) for nm in names) / 72.0 if quantity == "status" else None  # names at 10 pt
+    fig, [(ax, cax)] = map_panels(1, ncols=1, panel_w=panel_size, aspect=aspect, suptitle=False, dpi=dpi, right=right)
     if img is not None:
         _draw_backdrop(ax, backdrop(img, panel_size * dpi))
     if data is not None:
@@ -419,7 +420,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     cb = fig.colorbar(im, cax=cax)
     if quantity == "status":
         cb.set_ticks(np.arange(len(names)))
-        cb.set_ticklabels(names, fontsize=7)
+        cb.set_ticklabels(names)
     else:
         cb.formatter.set_useOffset(False)
         cb.update_ticks()
