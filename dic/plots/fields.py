@@ -199,6 +199,12 @@ def _view_box(ref, pts, extent):
     return fin[:, 0].min() - pad, fin[:, 0].max() + pad, fin[:, 1].min() - pad, fin[:, 1].max() + pad
 
 
+def _max_n_locator(nbins):
+    from matplotlib.ticker import MaxNLocator
+
+    return MaxNLocator(nbins=nbins)
+
+
 def field_figure(reference, field, strain=None, *, components=None, title: str | None = None,
                  cmap: str | None = None, alpha: float = 0.75, panel_size: float = 3.0, vmin: float | None = None,
                  vmax: float | None = None, limits: dict | None = None, dpi: float = 100):
@@ -289,6 +295,7 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         ax.set_ylabel("y (px)")
         cb = fig.colorbar(im, cax=cax)
         cb.formatter.set_useOffset(False)
+        cb.locator = _max_n_locator(5)  # few labels: each costs a text draw
         cb.set_label(_UNITS[name])
         cb.update_ticks()
     if title:
@@ -423,6 +430,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
         cb.set_ticklabels(names)
     else:
         cb.formatter.set_useOffset(False)
+        cb.locator = _max_n_locator(5)
         cb.update_ticks()
         cb.set_label(f"{label} ({unit})" if unit else label)
     frame = {"left": "left camera frame", "plane": "best-fit plane frame"}.get(f.frame_name, f"{f.frame_name} frame")
