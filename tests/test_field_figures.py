@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from dic.field3d import Field3D, StereoStatus
-from dic.plots.fields import DIVERGING_CMAP, SEQUENTIAL_CMAP, field3d_figure, field_figure, write_field_figure, write_figures
+from dic.plots.fields import (
+    DIVERGING_CMAP,
+    SEQUENTIAL_CMAP,
+    field3d_figure,
+    field_figure,
+    write_field_figure,
+    write_figures,
+)
 from dic.strain import strain
 
 
