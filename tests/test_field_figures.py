@@ -145,3 +145,33 @@ def test_a_1_mp_frame_figure_is_under_500_kb(tmp_path):
     assert p.stat().st_size <= 500_000
     paths = write_figures(_field3d((1024, 1024), step=5), ref, tmp_path / "stereo", quantities=["W", "exx", "status"])
     assert max(q.stat().st_size for q in paths) <= 500_000
+
+
+def test_frozen_ticks_are_matplotlibs_own():
+    """A saved map's ticks are drawn as plain marks and texts (freeze_ticks): the same positions and labels
+    as Matplotlib's live ticks, and the axis labels stay beyond them."""
+    from dic.plots._common import freeze_ticks
+
+    ref = np.random.default_rng(0).uniform(0, 255, (90, 140))
+    f = _grid_field((90, 140), 6, lambda x, y: 0.01 * x, lambda x, y: -2 - 0.02 * y)
+    fig = field_figure(ref, f, components=["u", "v"])
+    fig.canvas.draw()
+    live = []  # the labels Matplotlib draws: those of the ticks inside the view
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            lo, hi = sorted(axis.get_view_interval())
+            live += [t.get_text() for v, t in zip(axis.get_majorticklocs(), axis.get_majorticklabels())
+                     if lo - 1e-9 * (hi - lo) <= v <= hi + 1e-9 * (hi - lo) and t.get_text()]
+    freeze_ticks(fig)
+    fig.canvas.draw()
+    frozen = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert len(live) > 10 and sorted(frozen) == sorted(live)
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        assert not ax.xaxis.get_majorticklocs().size and not ax.yaxis.get_majorticklocs().size
+        label = ax.yaxis.label if ax.yaxis.label.get_text() else None
+        if label is None or not ax.texts:
+            continue
+        tick_boxes = [t.get_window_extent(renderer) for t in ax.texts]
+        lab_box = label.get_window_extent(renderer)
+        assert not any(lab_box.overlaps(b) for b in tick_boxes)  # the axis label clears the tick labels

@@ -107,34 +107,33 @@ def freeze_ticks(fig) -> None:
             lo, hi = sorted(axis.get_view_interval())
             tol = 1e-9 * max(abs(hi - lo), 1e-300)
             locs = [float(v) for v in axis.get_majorticklocs() if lo - tol <= v <= hi + tol]
-            formatter = axis.get_major_formatter()
-            labels = formatter.format_ticks(locs) if locs else []
-            size = fontsize
+            labels = axis.get_major_formatter().format_ticks(locs) if locs else []
             axis.set_ticks([])
             sign = -1.0 if side in ("bottom", "left") else 1.0
             edge = 0.0 if sign < 0 else 1.0
             base = ax.get_xaxis_transform() if name == "x" else ax.get_yaxis_transform()
             d = sign * (length + pad) / 72.0
-            text_t = base + ScaledTranslation(0.0 if name == "y" else 0.0, d, fig.dpi_scale_trans) if name == "x" \
-                else base + ScaledTranslation(d, 0.0, fig.dpi_scale_trans)
-            along, across = (locs, [edge] * len(locs))
-            xy = (along, across) if name == "x" else (across, along)
+            # tick labels: `length + pad` points out of the axes edge
+            shift = ScaledTranslation(0.0, d, fig.dpi_scale_trans) if name == "x" else \
+                ScaledTranslation(d, 0.0, fig.dpi_scale_trans)
+            text_t = base + shift
+            xy = (locs, [edge] * len(locs)) if name == "x" else ([edge] * len(locs), locs)
             ax.plot(*xy, linestyle="none", marker=markers[side], markersize=length, markeredgewidth=width,
-                    color="k", transform=base, clip_on=False)
+                    color="k", transform=base, clip_on=False, scalex=False, scaley=False)
             for v, lab in zip(locs, labels):
                 if name == "x":
-                    ax.text(v, edge, lab, transform=text_t, fontsize=size, ha="center",
+                    ax.text(v, edge, lab, transform=text_t, fontsize=fontsize, ha="center",
                             va="top" if sign < 0 else "bottom", clip_on=False)
                 else:
-                    ax.text(edge, v, lab, transform=text_t, fontsize=size, va="center_baseline",
+                    ax.text(edge, v, lab, transform=text_t, fontsize=fontsize, va="center_baseline",
                             ha="right" if sign < 0 else "left", clip_on=False)
             # the axis label beyond the tick labels (their size estimated from the font size)
             if name == "x":
-                off_in = (length + pad + 1.2 * size + 3.0) / 72.0
+                off_in = (length + pad + 1.2 * fontsize + 3.0) / 72.0
                 axis.set_label_coords(0.5, edge + sign * off_in / h_in)
             else:
                 widest = max((len(t) for t in labels), default=0)
-                off_in = (length + pad + 0.6 * size * widest + 4.0) / 72.0
+                off_in = (length + pad + 0.6 * fontsize * widest + 4.0) / 72.0
                 axis.set_label_coords(edge + sign * off_in / w_in, 0.5)
 
 
