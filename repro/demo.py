@@ -342,13 +342,15 @@ def stereo_report_step(state: DemoState) -> None:
     dots = dot_test(cal.rig, *state.dots, exp.dot_target)
     m = de.pop("_map")
     fig, axs = plt.subplots(1, 3, figsize=(14, 4.0))
-    for ax, key, title in ((axs[0], "u_px", "measured u (monitor px)"), (axs[2], "residual_px", "u residual: measured - imposed (monitor px)")):
+    for ax, key, title, bar in ((axs[0], "u_px", "measured u (monitor px)", "u (monitor px)"),
+                                (axs[2], "residual_px", "u residual: measured - imposed (monitor px)",
+                                 "u residual (monitor px)")):
         cmap, lo, hi = colour_scale(m[key], signed=True)  # diverging centred on 0 when the range spans zero
         s = ax.scatter(m["x_px"], m["y_px"], c=m[key], s=4, cmap=cmap, vmin=lo, vmax=hi)
         ax.invert_yaxis(); ax.set_aspect("equal", adjustable="box"); ax.set_title(title, fontsize=10)
         ax.set_xlabel("monitor x (px)"); ax.set_ylabel("monitor y (px)")
         cax = make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08)  # as tall as the panel
-        fig.colorbar(s, cax=cax, label=title.split(": ")[0].replace("measured ", "") + " (monitor px)")
+        fig.colorbar(s, cax=cax, label=bar)
     y = np.linspace(m["y_px"].min(), m["y_px"].max(), 300)
     axs[1].plot(de["profile_y_px"], de["profile_u_px"], "o", ms=3, label="measured (row bins)")
     axs[1].plot(y, de["imposed_amplitude_px"] * np.sin(2 * np.pi * exp.cfg.deform_frequency * y), label="imposed")
