@@ -56,17 +56,21 @@ def _images(fig):
     return [im for ax in fig.axes for im in ax.images if im.get_array().ndim == 2 and im.get_cmap().name != "gray"]
 
 
-def test_signed_components_on_a_diverging_map_centred_on_zero():
-    """2-D figures used a sequential map (viridis) with limits that were not centred on zero."""
-    f = field2d(2)
+def test_signed_components_spanning_zero_on_a_diverging_map_centred_on_zero():
+    """2-D figures used a sequential map (viridis) with limits that were not centred on zero; then every
+    signed map was centred on zero, flattening offset fields (issue 25): now only a range that spans zero is."""
+    f = field2d(2)  # u > 0, v < 0 everywhere, exx = 0.002 uniform; exy = 0 (spans zero once padded)
     s = strain(f, window=3)
+    f.u = f.u - np.median(f.u[f.valid])  # u now spans zero
     fig = field_figure(None, f, s, components=["u", "v", "exx", "exy", "magnitude"])
     ims = _images(fig)
     assert len(ims) == 5
-    for im in ims[:4]:
+    for im in (ims[0], ims[3]):
         lo, hi = im.get_clim()
         assert im.get_cmap().name == DIVERGING_CMAP and lo == -hi and hi > 0
-    assert ims[4].get_cmap().name == SEQUENTIAL_CMAP
+    for im in (ims[1], ims[2], ims[4]):  # one-signed: sequential over its own range, not centred on zero
+        lo, hi = im.get_clim()
+        assert im.get_cmap().name == SEQUENTIAL_CMAP and (hi < 0 or lo > 0)
     # a user's map applies to all
     assert {im.get_cmap().name for im in _images(field_figure(None, f, cmap="magma"))} == {"magma"}
 
@@ -80,7 +84,8 @@ def test_fixed_colour_range_over_a_sequence(results2d):  # noqa: F811
     frames = [res.frames[k] for k in res.indices]
     lim = sequence_limits(frames, ["u", "exx"])
     all_u = np.concatenate([fr.u[fr.valid] for fr in frames])
-    assert lim["u"][1] == -lim["u"][0] and lim["u"][1] >= np.percentile(np.abs(all_u), 98)
+    # u > 0 in every frame: one sequential range over every frame's values (1st-99th percentiles)
+    assert lim["u"] == pytest.approx(tuple(np.percentile(all_u, (1, 99))))
     assert clims[0][0] == pytest.approx(lim["u"])
     # per frame (the default) the ranges differ, since u grows from frame to frame
     per_frame = [_images(res.plot(k))[0].get_clim() for k in res.indices]

@@ -92,7 +92,7 @@ def test_field_figure(tmp_path, grid):
     ref = np.random.default_rng(1).uniform(0, 255, (64, 72))
     fig = field_figure(ref, _field2d(grid), components=["u", "v", "magnitude"], title="t")
     titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
-    assert titles == ["u (px)", "v (px)", "|d| (px)"]
+    assert titles == ["displacement u (px)", "displacement v (px)", "displacement magnitude |d| (px)"]
     p = write_field_figure(tmp_path / "f.png", ref, _field2d(grid), dpi=40)
     assert p.stat().st_size > 1000
     with pytest.raises(ValueError, match="unknown component"):

@@ -11,10 +11,13 @@
 * :func:`sequence_limits` — colour limits over a whole sequence, for maps that keep one colour scale
   from frame to frame (``limits=`` of :func:`field_figure`, ``vmin=``/``vmax=`` of :func:`field3d_figure`).
 
-Signed quantities (displacements u, v, U, V, W and strains) are drawn on a diverging colour map
-(:data:`DIVERGING_CMAP`) centred on zero (symmetric limits); the others (|d|, depth, ZNCC) on a
-sequential one. Colour limits are the 1st-99th percentiles of the drawn values
-(:mod:`dic.plots._common`) unless fixed by the caller.
+Colour maps (:func:`dic.plots._common.colour_scale`): a signed quantity (displacements u, v, U, V, W
+and strains) whose range spans zero is drawn on a diverging map (:data:`DIVERGING_CMAP`) centred on zero
+(symmetric limits); a one-signed range (an offset field such as v from -12 to -5 px) and the unsigned
+quantities (|d|, depth, ZNCC) on a sequential one over their own range. Colour limits are the 1st-99th
+percentiles of the drawn values (:mod:`dic.plots._common`) unless fixed by the caller. Every panel has
+its axes labelled in image px, a title with the quantity and its unit, and a colourbar as tall as the
+panel; the grey reference image is drawn beneath the map (which has opacity ``alpha``) when it is given.
 
 The ``.plot()`` methods of :class:`~dic.field2d.Field2D`, :class:`~dic.field3d.Field3D` and of
 the result files (:mod:`dic.store`) call these functions and return the Figure.
@@ -26,34 +29,44 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import colormap, new_figure, padded_limits, percentile_limits, save_figure
+from ._common import (
+    DIVERGING_CMAP,
+    SEQUENTIAL_CMAP,
+    backdrop,
+    colormap,
+    colour_scale,
+    map_panels,
+    save_map_png,
+)
 
 __all__ = ["field_figure", "write_field_figure", "field3d_figure", "write_figures", "sequence_limits",
            "FIGURE_QUANTITIES", "SIGNED", "DIVERGING_CMAP", "SEQUENTIAL_CMAP"]
 
-#: colour map of signed quantities (centred on zero) and of the others
-DIVERGING_CMAP = "RdBu_r"
-SEQUENTIAL_CMAP = "viridis"
-
-#: signed quantities: drawn on :data:`DIVERGING_CMAP` with limits symmetric about zero
+#: signed quantities: drawn on :data:`DIVERGING_CMAP` with limits symmetric about zero when their range
+#: spans zero, else on :data:`SEQUENTIAL_CMAP` over their own range
 SIGNED = frozenset({"u", "v", "exx", "eyy", "exy", "Exx", "Eyy", "Exy", "U", "V", "W"})
 
-#: component of a 2-D field -> panel title of :func:`field_figure`
+#: component of a 2-D field -> panel title of :func:`field_figure` (quantity and unit)
 _LABELS = {
-    "u": "u (px)", "v": "v (px)", "magnitude": "|d| (px)",
-    "exx": "εxx", "eyy": "εyy", "exy": "εxy", "Exx": "Exx", "Eyy": "Eyy", "Exy": "Exy",
+    "u": "displacement u (px)", "v": "displacement v (px)", "magnitude": "displacement magnitude |d| (px)",
+    "exx": "small strain εxx (1)", "eyy": "small strain εyy (1)", "exy": "small strain εxy (1)",
+    "Exx": "Green-Lagrange strain Exx (1)", "Eyy": "Green-Lagrange strain Eyy (1)", "Exy": "Green-Lagrange strain Exy (1)",
 }
+#: component of a 2-D field -> colourbar label
+_UNITS = {"u": "u (px)", "v": "v (px)", "magnitude": "|d| (px)", "exx": "εxx", "eyy": "εyy", "exy": "εxy",
+          "Exx": "Exx", "Eyy": "Eyy", "Exy": "Exy"}
 
-#: quantity -> (label, unit, colour map) of :func:`write_figures`
+#: quantity -> (label, unit, colour map) of :func:`write_figures`; the signed quantities' map is
+#: :data:`DIVERGING_CMAP` when their range spans zero, else :data:`SEQUENTIAL_CMAP`
 FIGURE_QUANTITIES = {
     "Z": ("depth Z", "mm", "viridis"),
     "U": ("displacement U", "mm", "RdBu_r"),
     "V": ("displacement V", "mm", "RdBu_r"),
     "W": ("displacement W", "mm", "RdBu_r"),
-    "exx": ("Green-Lagrange strain exx", "", "RdBu_r"),
-    "eyy": ("Green-Lagrange strain eyy", "", "RdBu_r"),
-    "exy": ("Green-Lagrange strain exy", "", "RdBu_r"),
-    "zncc_stereo": ("ZNCC of the stereo match", "", "magma"),
+    "exx": ("Green-Lagrange strain exx", "1", "RdBu_r"),
+    "eyy": ("Green-Lagrange strain eyy", "1", "RdBu_r"),
+    "exy": ("Green-Lagrange strain exy", "1", "RdBu_r"),
+    "zncc_stereo": ("ZNCC of the stereo match", "1", "magma"),
     "status": ("status", "", None),
 }
 
@@ -69,23 +82,17 @@ def _check_limits(pair, what: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _auto_limits(values, signed: bool) -> tuple[float, float]:
-    """Limits of one map: symmetric about zero for signed quantities, padded percentiles otherwise."""
-    if signed:
-        lim = percentile_limits(values, symmetric=True)
-        return lim if lim is not None else (-1.0, 1.0)
-    return padded_limits(values)
-
-
-def _resolve_limits(name, values, *, vmin, vmax, limits) -> tuple[float, float]:
-    """The (vmin, vmax) of component ``name``: ``limits[name]``, else the data's (signed: centred
-    on 0), with ``vmin`` / ``vmax`` replacing either end when given."""
+def _resolve_scale(name, values, *, vmin, vmax, limits, cmap=None) -> tuple[float, float, str]:
+    """(vmin, vmax, colour map) of component ``name``: ``limits[name]``, else the data's range
+    (:func:`dic.plots._common.colour_scale`: centred on 0 when a signed range spans zero), with
+    ``vmin`` / ``vmax`` replacing either end when given; ``cmap`` replaces the map."""
+    fixed = None
     if limits is not None and name in limits:
-        return _check_limits(limits[name], f"limits[{name!r}]")
-    lo, hi = _auto_limits(values, name in SIGNED)
-    lo = lo if vmin is None else float(vmin)
-    hi = hi if vmax is None else float(vmax)
-    return _check_limits((lo, hi), f"the colour range of {name!r} (vmin, vmax)")
+        fixed = _check_limits(limits[name], f"limits[{name!r}]")
+        vmin = vmax = None
+    use, lo, hi = colour_scale(values, signed=name in SIGNED, fixed=fixed, vmin=vmin, vmax=vmax)
+    lo, hi = _check_limits((lo, hi), f"the colour range of {name!r} (vmin, vmax)")
+    return lo, hi, cmap or use
 
 
 def _strain_view(strain):
@@ -138,13 +145,8 @@ def sequence_limits(fields, components, *, strains=None) -> dict[str, tuple[floa
                 if name not in ("u", "v", "magnitude") and strain is None:
                     raise ValueError(f"component {name!r} needs strain for every field (frame {k} has none)")
                 chunks.append(_component_values(f, _strain_view(strain), name))
-        values = np.concatenate(chunks)
-        if _is_field3d(fields[0]):
-            cmap = FIGURE_QUANTITIES[name][2]
-            lim = percentile_limits(values, symmetric=cmap == DIVERGING_CMAP)
-            out[name] = lim if lim is not None else (-1.0, 1.0)
-        else:
-            out[name] = _auto_limits(values, name in SIGNED)
+        _, lo, hi = colour_scale(np.concatenate(chunks), signed=name in SIGNED)
+        out[name] = (lo, hi)
     return out
 
 
@@ -197,15 +199,22 @@ def _view_box(ref, pts, extent):
     return fin[:, 0].min() - pad, fin[:, 0].max() + pad, fin[:, 1].min() - pad, fin[:, 1].max() + pad
 
 
+def _max_n_locator(nbins):
+    from matplotlib.ticker import MaxNLocator
+
+    return MaxNLocator(nbins=nbins)
+
+
 def field_figure(reference, field, strain=None, *, components=None, title: str | None = None,
-                 cmap: str | None = None, alpha: float = 0.75, panel_size: float = 4.0, vmin: float | None = None,
-                 vmax: float | None = None, limits: dict | None = None):
+                 cmap: str | None = None, alpha: float = 0.75, panel_size: float = 3.0, vmin: float | None = None,
+                 vmax: float | None = None, limits: dict | None = None, dpi: float = 100):
     """A Matplotlib Figure with one panel per component over the reference image.
 
     Parameters
     ----------
     reference : (H, W) array or None
-        The reference image (grey levels), drawn in grey beneath the maps; None draws the maps alone.
+        The reference image (grey levels), drawn in grey beneath the maps (as block means at about
+        the panel's resolution, :func:`dic.plots._common.backdrop`); None draws the maps alone.
     field : Field2D-like
         ``points`` (N, 2) px, ``u``, ``v`` (N,) px, optional ``valid`` (N,) bool.
     strain : StrainField or dict, optional
@@ -217,20 +226,24 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
     title : str, optional
         Figure title.
     cmap : str, optional
-        One colour map for every panel. Default: signed components (u, v, strains; :data:`SIGNED`)
-        on :data:`DIVERGING_CMAP` with limits symmetric about zero, ``magnitude`` on
-        :data:`SEQUENTIAL_CMAP`.
-    alpha : opacity of the maps.
+        One colour map for every panel. Default (:func:`dic.plots._common.colour_scale`): a signed
+        component (u, v, strains; :data:`SIGNED`) whose range spans zero on :data:`DIVERGING_CMAP`
+        with limits symmetric about zero; a one-signed range (e.g. v from -12 to -5 px) and
+        ``magnitude`` on :data:`SEQUENTIAL_CMAP` over their own range.
+    alpha : opacity of the maps over the grey reference.
     panel_size : float
-        Width of one panel's image in inches.
+        Width of one panel in inches (its height follows the image's aspect ratio).
     vmin, vmax : float, optional
         Fixed colour limits for every panel (either may be given alone).
     limits : dict, optional
         ``{component: (vmin, vmax)}``, fixed limits per component, e.g. from :func:`sequence_limits`
         so that every frame of a sequence has the same colour scale; takes precedence over ``vmin``/``vmax``.
+    dpi : float
+        Resolution the figure is drawn at (:func:`write_field_figure` saves at its own dpi).
 
     Without fixed limits each panel spans the 1st-99th percentiles of its own values. POIs on a
-    regular grid are drawn as cells, scattered POIs as dots.
+    regular grid are drawn as cells, scattered POIs as dots. Every panel has x and y axes in image
+    px, a title naming the quantity and its unit, and a colourbar exactly as tall as the panel.
     """
     ref = None
     if reference is not None:
@@ -243,6 +256,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         raise ValueError(f"alpha must be in [0, 1], got {alpha!r}")
     if not panel_size > 0:
         raise ValueError(f"panel_size must be positive (inches), got {panel_size!r}")
+    if not (isinstance(dpi, (int, float)) and np.isfinite(dpi) and dpi > 0):
+        raise ValueError(f"dpi must be a positive number, got {dpi!r}")
     if limits is not None and not isinstance(limits, dict):
         raise ValueError(f"limits must be a dict {{component: (vmin, vmax)}}, got {type(limits).__name__}")
     strain = _strain_view(strain)
@@ -260,47 +275,56 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
     pts = np.asarray(field.points, dtype=np.float64)
     x0, x1, y0, y1 = _view_box(ref, pts, extent)
     n = len(components)
-    ncols = min(n, 3)
-    nrows = -(-n // ncols)
     aspect = (y1 - y0) / max(x1 - x0, 1e-9)
-    fig = new_figure((panel_size * ncols * 1.25, (panel_size * aspect + 0.7) * nrows + 0.5))
-    fig.subplots_adjust(left=0.06, right=0.97, bottom=0.08, top=0.9, wspace=0.35, hspace=0.35)
-    for k, name in enumerate(components):
-        ax = fig.add_subplot(nrows, ncols, k + 1)
-        if ref is not None:
-            H, W = ref.shape
-            ax.imshow(ref, cmap="gray", extent=(-0.5, W - 0.5, H - 0.5, -0.5), interpolation="nearest")
-        map_cmap = cmap or (DIVERGING_CMAP if name in SIGNED else SEQUENTIAL_CMAP)
+    fig, panels = map_panels(n, ncols=min(n, 3), panel_w=panel_size, aspect=aspect, suptitle=bool(title), dpi=dpi)
+    back = None if ref is None else backdrop(ref, panel_size * dpi)  # once for every panel
+    for (ax, cax), name in zip(panels, components):
+        if back is not None:
+            _draw_backdrop(ax, back)
+        values = maps[name] if maps is not None else _scatter_values(field, strain, name)
+        lo, hi, map_cmap = _resolve_scale(name, values, vmin=vmin, vmax=vmax, limits=limits, cmap=cmap)
         if maps is not None:
-            lo, hi = _resolve_limits(name, maps[name], vmin=vmin, vmax=vmax, limits=limits)
             im = ax.imshow(maps[name], extent=extent, cmap=map_cmap, vmin=lo, vmax=hi, alpha=alpha,
-                           interpolation="nearest")
+                           interpolation="nearest", aspect="auto")
         else:  # scattered points: colour the points themselves (invalid ones included, as drawn before)
-            if name in ("u", "v"):
-                vals = np.asarray(getattr(field, name), float)
-            elif name == "magnitude":
-                vals = np.hypot(np.asarray(field.u, float), np.asarray(field.v, float))
-            else:
-                vals = np.asarray(getattr(strain, name), float)
-            lo, hi = _resolve_limits(name, vals, vmin=vmin, vmax=vmax, limits=limits)
-            im = ax.scatter(pts[:, 0], pts[:, 1], c=vals, s=4, cmap=map_cmap, vmin=lo, vmax=hi)
+            im = ax.scatter(pts[:, 0], pts[:, 1], c=values, s=4, cmap=map_cmap, vmin=lo, vmax=hi)
         ax.set_xlim(x0, x1)
         ax.set_ylim(y1, y0)
-        ax.set_title(_LABELS[name])
+        ax.set_title(_LABELS[name], fontsize=10)
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
-        cb = fig.colorbar(im, ax=ax, shrink=0.85)
+        cb = fig.colorbar(im, cax=cax)
         cb.formatter.set_useOffset(False)
+        cb.locator = _max_n_locator(5)  # few labels: each costs a text draw
+        cb.set_label(_UNITS[name])
         cb.update_ticks()
     if title:
-        fig.suptitle(title)
+        fig.suptitle(title, y=1.0 - 0.12 / fig.get_figheight(), va="top")
     return fig
 
 
-def write_field_figure(path, reference, field, strain=None, *, dpi: int = 110, **kwargs) -> Path:
-    """Draw :func:`field_figure` and save it (format from the suffix, e.g. ``.png``, ``.pdf``); returns the path."""
-    fig = field_figure(reference, field, strain, **kwargs)
-    return save_figure(fig, path, dpi=dpi)
+def _draw_backdrop(ax, back):
+    """The grey reference image beneath a map panel; ``back`` is :func:`dic.plots._common.backdrop`'s ``(grey, extent)``."""
+    grey, extent = back
+    ax.imshow(grey, cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest", aspect="auto", extent=extent)
+
+
+def _scatter_values(field, strain, name) -> np.ndarray:
+    if name in ("u", "v"):
+        return np.asarray(getattr(field, name), float)
+    if name == "magnitude":
+        return np.hypot(np.asarray(field.u, float), np.asarray(field.v, float))
+    return np.asarray(getattr(strain, name), float)
+
+
+def write_field_figure(path, reference, field, strain=None, *, dpi: int = 100, **kwargs) -> Path:
+    """Draw :func:`field_figure` and save it (format from the suffix, e.g. ``.png``, ``.pdf``); returns the path.
+
+    PNGs are stored as 8-bit RGB (:func:`dic.plots._common.save_map_png`): the 5-panel figure of a
+    1 MP frame is 1.3 MP and about 360 KB (bench/figures.py).
+    """
+    fig = field_figure(reference, field, strain, dpi=dpi, **kwargs)
+    return save_map_png(fig, path, dpi=dpi)
 
 
 # -- 3-D (stereo) fields ---------------------------------------------------------------------------------
@@ -332,7 +356,7 @@ def _status_colours(n: int):
 
 
 def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None = None, vmax: float | None = None,
-                   cmap: str | None = None, alpha: float = 0.75):
+                   cmap: str | None = None, alpha: float = 0.75, panel_size: float = 5.0, dpi: float = 110):
     """One quantity of a Field3D as a Matplotlib Figure, over the left reference image when given.
 
     Parameters
@@ -343,11 +367,16 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     image : (H, W) the left reference image (grey levels) drawn underneath, or None
     vmin, vmax : fixed colour limits (e.g. from :func:`sequence_limits` for one scale over a
         sequence); by default the 1st-99th percentiles of the valid points, symmetric about zero
-        for displacements and strains
+        for displacements and strains whose range spans zero (then on :data:`DIVERGING_CMAP`; a
+        one-signed range, e.g. W from 0.011 to 0.022 mm, is on :data:`SEQUENTIAL_CMAP`)
     cmap : colour map instead of the quantity's own (:data:`FIGURE_QUANTITIES`)
     alpha : opacity of the map
+    panel_size : width of the map in inches (its height follows the image's aspect ratio)
+    dpi : resolution the figure is drawn at
 
-    Only points with status OK are coloured (the status map shows every point).
+    Only points with status OK are coloured (the status map shows every point). The map is drawn
+    where the points are in the left reference image: axes x, y in left-image px; the colourbar,
+    as tall as the map, carries the quantity and its unit (mm for Z, U, V, W).
     """
     f = _check_field3d(field)
     img = None
@@ -359,55 +388,60 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
         raise ValueError(f"unknown figure quantity {quantity!r}; choose from {list(FIGURE_QUANTITIES)}")
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {alpha!r}")
+    if not panel_size > 0:
+        raise ValueError(f"panel_size must be positive (inches), got {panel_size!r}")
     label, unit, q_cmap = FIGURE_QUANTITIES[quantity]
     names = [s.name for s in f.status_codes]
     pts = np.asarray(f.points, dtype=np.float64)
-    if img is not None:
-        aspect = img.shape[0] / img.shape[1]
-    else:
-        fin = pts[np.all(np.isfinite(pts), axis=1)]
-        aspect = (np.ptp(fin[:, 1]) + 1) / (np.ptp(fin[:, 0]) + 1) if fin.size else 1.0
-    fig = new_figure((7.5, 7.5 * aspect + 0.6))
-    ax = fig.subplots()
-    if img is not None:
-        ax.imshow(img, cmap="gray", interpolation="nearest")
     if quantity == "status":
         vals = f.status.astype(np.float64)
         cm, norm = _status_colours(len(names))
         kw = {"cmap": cm, "norm": norm}
     else:
         vals = np.where(f.valid, np.asarray(getattr(f, quantity), dtype=np.float64), np.nan)
-        use = cmap or q_cmap
-        kw = {"cmap": use}
-        limits = percentile_limits(vals, symmetric=q_cmap == DIVERGING_CMAP)
         if vmin is not None or vmax is not None:
-            lo, hi = limits if limits is not None else (-1.0, 1.0)
-            limits = _check_limits((lo if vmin is None else vmin, hi if vmax is None else vmax),
-                                   f"the colour range of {quantity!r} (vmin, vmax)")
-        if limits is not None:
-            kw.update(vmin=limits[0], vmax=limits[1])
+            lo, hi = colour_scale(vals, signed=quantity in SIGNED)[1:]
+            _check_limits((lo if vmin is None else vmin, hi if vmax is None else vmax),
+                          f"the colour range of {quantity!r} (vmin, vmax)")
+        use, lo, hi = colour_scale(vals, signed=quantity in SIGNED, vmin=vmin, vmax=vmax)
+        if quantity not in SIGNED:
+            use = q_cmap
+        kw = {"cmap": cmap or use, "vmin": lo, "vmax": hi}
+    data = extent = None
     if f.grid_shape is not None:
         data, extent = _map(f, vals)
-        im = ax.imshow(data, extent=extent, alpha=alpha, interpolation="nearest", **kw)
+    x0, x1, y0, y1 = _view_box(img, pts if data is None else pts[np.isfinite(vals)] if np.isfinite(vals).any() else pts,
+                               extent)
+    aspect = (y1 - y0) / max(x1 - x0, 1e-9)
+    right = 0.3 + 0.6 * 10 * max(len(nm) for nm in names) / 72.0 if quantity == "status" else None  # names at 10 pt
+    fig, [(ax, cax)] = map_panels(1, ncols=1, panel_w=panel_size, aspect=aspect, suptitle=False, dpi=dpi, right=right)
+    if img is not None:
+        _draw_backdrop(ax, backdrop(img, panel_size * dpi))
+    if data is not None:
+        im = ax.imshow(data, extent=extent, alpha=alpha, interpolation="nearest", aspect="auto", **kw)
     else:
         fin = np.isfinite(vals)
         im = ax.scatter(f.points[fin, 0], f.points[fin, 1], c=vals[fin], s=6, alpha=alpha, **kw)
-        if img is None:
-            ax.invert_yaxis()
-    cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y1, y0)
+    cb = fig.colorbar(im, cax=cax)
     if quantity == "status":
         cb.set_ticks(np.arange(len(names)))
-        cb.set_ticklabels(names, fontsize=7)
-    cb.set_label(f"{label} ({unit})" if unit else label)
+        cb.set_ticklabels(names)
+    else:
+        cb.formatter.set_useOffset(False)
+        cb.locator = _max_n_locator(5)
+        cb.update_ticks()
+        cb.set_label(f"{label} ({unit})" if unit else label)
     frame = {"left": "left camera frame", "plane": "best-fit plane frame"}.get(f.frame_name, f"{f.frame_name} frame")
-    ax.set_title(f"state {f.index}: {label}" + (f" ({frame})" if quantity in ("Z", "U", "V", "W") else ""))
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
-    fig.tight_layout()
+    title = f"state {f.index}: {label}" + (f" ({unit})" if unit else "")
+    ax.set_title(title + (f", {frame}" if quantity in ("Z", "U", "V", "W") else ""), fontsize=10)
+    ax.set_xlabel("x, left image (px)")
+    ax.set_ylabel("y, left image (px)")
     return fig
 
 
-def write_figures(field, image, directory, *, quantities=None, prefix: str = "", dpi: int = 110,
+def write_figures(field, image, directory, *, quantities=None, prefix: str = "", dpi: int = 100,
                   alpha: float = 0.75, limits: dict | None = None) -> list[Path]:
     """PNG maps of a Field3D over the left reference image; returns the written paths.
 
@@ -423,8 +457,9 @@ def write_figures(field, image, directory, *, quantities=None, prefix: str = "",
     limits : ``{quantity: (vmin, vmax)}``, fixed colour limits (e.g. :func:`sequence_limits` over
         every state of a sequence); the others are per figure.
 
-    Each PNG is :func:`field3d_figure`: only points with status OK are coloured; colour limits
-    are the 1st-99th percentiles (symmetric about 0 for displacements and strains).
+    Each PNG is :func:`field3d_figure` stored as 8-bit RGB (:func:`dic.plots._common.save_map_png`):
+    only points with status OK are coloured; colour limits are the 1st-99th percentiles (symmetric
+    about 0 for displacements and strains whose range spans zero, else a sequential map).
     """
     f = _check_field3d(field)
     img = np.asarray(image, dtype=np.float64)
@@ -444,6 +479,6 @@ def write_figures(field, image, directory, *, quantities=None, prefix: str = "",
     written = []
     for q in quantities:
         lo, hi = (limits or {}).get(q, (None, None))
-        fig = field3d_figure(f, q, img, vmin=lo, vmax=hi, alpha=alpha)
-        written.append(save_figure(fig, directory / f"{prefix}{q}.png", dpi=dpi))
+        fig = field3d_figure(f, q, img, vmin=lo, vmax=hi, alpha=alpha, dpi=dpi)
+        written.append(save_map_png(fig, directory / f"{prefix}{q}.png", dpi=dpi))
     return written
