@@ -449,3 +449,27 @@ def test_dense_mode_commands(tmp_path):
     assert rotation_angle_deg(np.array(d["R_cam_target"]), R_ct) < 0.2
     assert np.linalg.norm(np.array(d["t_cam_target"]) - t_ct) < 10.0
     assert d["mode"] == "dense"
+
+
+def test_intrinsics_command_rejects_a_corrupted_view_and_re_solves(data, cameras):
+    """A direct view recorded through another lens distortion (k1 +0.2 instead of -0.12: e.g. the focus
+    ring moved) gives detections no model of this camera explains: it is dropped, reported with its RMS
+    before, and the re-solve is the calibration of the 7 good views (the `cameras` fixture) bit for bit."""
+    root, views, _ = data
+    tgt = _target()
+    odd = Camera(K=LEFT.K, dist=[0.2, 0.08, 2e-4, -1e-4, 0.0], size=SIZE, name="left")
+    R, t = _pose_facing(tgt, (20, 10, 1100), _rot(-15, 20))
+    bad = _write(root / "left" / "corrupted", render_view(tgt, odd, R, t, blur_sigma=0.8, seed=77, supersample=2,
+                                                          noise_sigma=1.0, bits=8))
+    path = root / "camera_left_rejected.json"
+    res = _run("intrinsics", "--target", root / "target.json", *views["left"]["direct"], bad, *views["left"]["mirror"],
+               "-o", path, "--name", "left", "--reject", "0", "--reject-mad", "5", "-q")
+    assert res.exit_code == 0, res.output
+    meta = json.loads(path.read_text())["metadata"]
+    [drop] = meta["dropped_views"]
+    assert drop["view"].endswith("corrupted") and "MAD" in drop["reason"]
+    assert drop["rms_all_views_px"] > 5 * meta["rms_px"]
+    assert meta["rms_all_views_px"] > 2 * meta["rms_px"]
+    assert "view rejection: 1 of 8 views dropped" in res.output and "with all views" in res.output
+    clean = Camera.load(cameras["left"][0])
+    np.testing.assert_allclose(Camera.load(path).K, clean.K, rtol=1e-12)

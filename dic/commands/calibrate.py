@@ -86,6 +86,8 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Drop views whose RMS exceeds this multiple of the median view RMS (0: keep all).")
 @click.option("--max-view-rms", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Also drop views whose RMS exceeds this many px.")
+@click.option("--reject-mad", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Also drop views whose RMS exceeds median + K x 1.4826 x MAD of the view RMS (robust z-score K, e.g. 5).")
 @click.option("--max-misfit", default=1.5, show_default=True, type=click.FloatRange(min=0),
               help="Remove dots whose phase-fit residual x modulation exceeds this multiple of the view's median (0: keep all).")
 @click.option("--reject-points", default=4.0, show_default=True, type=click.FloatRange(min=0),
@@ -101,7 +103,8 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
                    "into this folder.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation: cpu, cuda, cuda:N.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-view progress lines.")
-def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, max_misfit,
+def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, reject_mad,
+                   max_misfit,
                    reject_points, correct_blur,
                    min_modulation, weighting, figure_dir, device, quiet):
     """Intrinsics of one camera from VIEWS of the phase target (direct and mirrored views together).
@@ -119,7 +122,7 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
             click.echo(f"{len(views)} views of {target!r}", err=True)
         ic = calibrate_intrinsics_from_images(
             list(views), target, mode="dense" if dense else "dots", model=model, reject=reject or None,
-            max_view_rms=max_view_rms, reject_points=reject_points or None, max_misfit=max_misfit or None,
+            max_view_rms=max_view_rms, reject_mad=reject_mad, reject_points=reject_points or None, max_misfit=max_misfit or None,
             dense_spacing=dense_spacing,
             correct_blur=correct_blur, min_modulation=min_modulation, weighting=weighting,
             name=name if name is not None else output.stem, progress=_progress(quiet), device=device)
