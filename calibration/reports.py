@@ -85,13 +85,8 @@ def mirror_report(calibration) -> str:
              "  view                                   RMS (px)  mirror normal (camera frame)       d (mm)"]
     for nm, m, rms in zip(calibration.names, r.mirrors, r.per_mirror_rms):
         lines.append(f"  {_short(nm, 38):38s} {rms:8.4f}  [{m.normal[0]: .5f} {m.normal[1]: .5f} {m.normal[2]: .5f}]  {m.d:8.2f}")
-    for v in calibration.views:
-        if not v.ok:
-            lines.append(f"  dropped {v.name}: {v.error}")
-    for d in res.dropped:  # views rejected by their RMS, then the bundle re-solved without them
-        lines.append(f"  dropped {calibration.views[calibration.used[d.index]].name}: RMS {d.rms_all_views:.4f} px "
-                     f"with all views; {d.reason}")
-    lines.append("  " + res.rejection_summary())
+    for nm, why in calibration.dropped:
+        lines.append(f"  dropped {nm}: {why}")
     lines.extend(_removed_lines(calibration.views))
     lines.extend(_dropped_points_lines(calibration.dropped_points))
     return "\n".join(lines)
