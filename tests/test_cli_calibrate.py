@@ -473,3 +473,59 @@ def test_intrinsics_command_rejects_a_corrupted_view_and_re_solves(data, cameras
     assert "view rejection: 1 of 8 views dropped" in res.output and "with all views" in res.output
     clean = Camera.load(cameras["left"][0])
     np.testing.assert_allclose(Camera.load(path).K, clean.K, rtol=1e-12)
+
+
+# error model of the known-distance check on the check view (Z ~ 1.3 m, f = 700 px, baseline 300 mm, dot
+# centres to ~0.015 px): lateral error Z σ / f ~ 0.03 mm per point, depth error Z² √2 σ / (f B) ~ 0.13 mm per
+# point, of which the 417 mm line across the tilted target takes a fraction: ~0.01-0.03 % of the length.
+# Bound 0.05 %; measured -0.006 % (far view) and +0.006 % (check view) with the true rig.
+VERIFY_BOUND_PERCENT = 0.05
+
+
+def test_verify_command_scale_error_of_the_true_and_a_scaled_rig(data, tmp_path):
+    root, views, _ = data
+    true_rig = StereoRig(LEFT, RIGHT, R_RL, T_RL)
+    true_rig.save(tmp_path / "true.json")
+    # a rig whose baseline is 1 % too long measures every length 1 % too long (exactly, for exact points)
+    StereoRig(LEFT, RIGHT, R_RL, 1.01 * T_RL).save(tmp_path / "long.json")
+    out = {}
+    for name in ("true", "long"):
+        res = _run("verify", "--rig", tmp_path / f"{name}.json", "--target", root / "target.json", *views["check"],
+                   "--json", tmp_path / f"{name}_verify.json")
+        assert res.exit_code == 0, res.output
+        assert "scale error" in res.output and "known" in res.output and "measured" in res.output
+        out[name] = json.loads((tmp_path / f"{name}_verify.json").read_text())
+    t, lg = out["true"], out["long"]
+    # default pair: the two common dots farthest apart (ids 0 and 6 are out of the right view here)
+    assert t["points"] == [1, 17] and t["known_mm"] == pytest.approx(np.hypot(4 * 93.3, 2 * 93.3), rel=1e-9)
+    assert abs(t["scale_error_percent"]) < VERIFY_BOUND_PERCENT
+    assert abs(lg["scale_error_percent"] - 1.0) < VERIFY_BOUND_PERCENT
+    assert max(t["reprojection_rms_px"]) < 0.05
+    # two chosen ids and a given distance; --max-error turns the check into an exit status
+    res = _run("verify", "--rig", tmp_path / "long.json", "--target", root / "target.json", *views["check"],
+               "--ids", "2,3", "--max-error", "0.5")
+    assert res.exit_code == 1 and "exceeds --max-error 0.5 %" in res.output and "points 2 and 3" in res.output
+    res = _run("verify", "--rig", tmp_path / "true.json", "--target", root / "target.json", *views["check"],
+               "--ids", "2,99")
+    assert res.exit_code == 1 and "99 not seen by both cameras" in res.output
+
+
+def test_verify_command_with_given_points(tmp_path):
+    """Image points given on the command line: exact projections of two points 500 mm apart."""
+    rig = StereoRig(LEFT, RIGHT, R_RL, T_RL)
+    rig.save(tmp_path / "rig.json")
+    P = np.array([[-260.0, -40.0, 1400.0], [220.0, 60.0, 1500.0]])
+    known = float(np.linalg.norm(P[1] - P[0]))
+    ql, qr = rig.project(P)
+    args = [v for k in range(2) for v in ("--point", *(repr(float(c)) for c in (*ql[k], *qr[k])))]
+    res = _run("verify", "--rig", tmp_path / "rig.json", *args, "--distance", repr(known), "--json", tmp_path / "v.json")
+    assert res.exit_code == 0, res.output
+    v = json.loads((tmp_path / "v.json").read_text())
+    assert abs(v["scale_error_percent"]) < 1e-6
+    np.testing.assert_allclose(v["points_left_frame_mm"], P, atol=1e-5)
+    res = _run("verify", "--rig", tmp_path / "rig.json", *args, "--distance", repr(1.02 * known))
+    assert res.exit_code == 0 and "scale error -1.96" in res.output  # 1 / 1.02 - 1 = -1.961 %
+    bad = _run("verify", "--rig", tmp_path / "rig.json", *args[:5])
+    assert bad.exit_code == 2 and "twice" in bad.output
+    bad = _run("verify", "--rig", tmp_path / "rig.json", *args)
+    assert bad.exit_code == 2 and "--distance" in bad.output

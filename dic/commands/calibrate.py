@@ -7,6 +7,7 @@ view, parameters ± σ, dropped views and why) and writes its file:
 * ``specula calibrate mirror --camera camera.json --target target.json VIEW VIEW VIEW... -o pose.json``
 * ``specula calibrate stereo --left pose_left.json --right pose_right.json [--far L R] [--check L R] -o rig.json``
 * ``specula calibrate stereo --checkerboard --target board.json --left 'L/*.png' --right 'R/*.png' -o rig.json``
+* ``specula calibrate verify --rig rig.json --target target.json LEFT_VIEW RIGHT_VIEW [--ids A,B] [--distance MM]``
 
 A VIEW is one pose of the monitor: a folder holding the N phase-shifted images it recorded (in
 display order, natural sort of the file names), or a quoted glob pattern (``'view03/*.tif'``).
@@ -324,6 +325,83 @@ def _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, cor
                                     joint=not no_joint, sigma_px=sigma_px, intrinsic_uncertainty=intrinsic_uncertainty)
     report = "\n".join([ml.report(), mr.report(), rc.report()])
     return rc.rig, report, rc
+
+
+# -- verify ----------------------------------------------------------------------------------------------
+@calibrate.command(name="verify")
+@click.argument("views", nargs=-1)
+@click.option("--rig", "rig_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Rig file (from 'calibrate stereo', or OpenCV/VIC-3D/DICe; the format is read from the content).")
+@click.option("--target", "target_path", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Target file of the views (target.json); needed with LEFT_VIEW RIGHT_VIEW.")
+@click.option("--ids", default=None, metavar="A,B",
+              help="The two target point ids to measure (default: the two common points farthest apart).")
+@click.option("--distance", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Known distance between the two points, mm (default with views: from the target file).")
+@click.option("--point", "points", nargs=4, type=float, multiple=True, metavar="XL YL XR YR",
+              help="Instead of views: one point in the left and the right image, px (give it twice; needs --distance).")
+@click.option("--max-error", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Exit with status 1 when the scale error exceeds this many percent (for scripted checks).")
+@click.option("--json", "json_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the result as JSON.")
+@click.option("--blur-correction/--no-blur-correction", "correct_blur", default=None,
+              help="Run (or skip) the dot detector's defocus-bias correction.")
+@click.option("--device", default=None, help="Warp device for the phase demodulation.")
+def verify_cmd(views, rig_path, target_path, ids, distance, points, max_error, json_path, correct_blur, device):
+    """Check a rig's scale with a known distance between two target points seen by both cameras.
+
+    LEFT_VIEW RIGHT_VIEW: the target (phase target, e.g. the monitor) where both cameras see it, away
+    from the calibration views; the two points are triangulated with the rig and their distance compared
+    with the known one (the target's own pitch, or --distance). Or give the two points' image
+    coordinates with --point XL YL XR YR (twice) and --distance. Prints measured, known and the scale
+    error in %.
+    """
+    import json
+
+    from calibration.formats import load_rig
+    from calibration.verify import verify_distance, verify_view_distance
+
+    pair = None
+    if ids is not None:
+        parts = ids.replace(" ", "").split(",")
+        try:
+            pair = tuple(int(p) for p in parts)
+        except ValueError:
+            pair = ()
+        if len(pair) != 2:
+            raise click.BadParameter(f"must be two point ids 'A,B', got {ids!r}", param_hint="'--ids'")
+    if points:
+        if views:
+            raise click.UsageError("give either LEFT_VIEW RIGHT_VIEW or --point (twice), not both")
+        if len(points) != 2:
+            raise click.UsageError(f"--point must be given twice (the two points), got {len(points)}")
+        if distance is None:
+            raise click.UsageError("--point needs --distance (the known distance between the two points, mm)")
+        if pair is not None:
+            raise click.UsageError("--ids goes with views; --point gives the points themselves")
+    elif len(views) != 2:
+        raise click.UsageError(f"give LEFT_VIEW RIGHT_VIEW (2 views, got {len(views)}) or --point XL YL XR YR twice")
+    try:
+        rig = load_rig(rig_path)
+        if points:
+            res = verify_distance(rig, [p[:2] for p in points], [p[2:] for p in points], distance)
+        else:
+            if target_path is None:
+                raise ValueError("LEFT_VIEW RIGHT_VIEW need the target: pass --target target.json")
+            from calibration.pipeline import detect_stereo_view
+
+            target = _load_phase_target(target_path)
+            sv = detect_stereo_view(views[0], views[1], target, name=f"{views[0]} + {views[1]}",
+                                    correct_blur=correct_blur, device=device, min_points=2)
+            res = verify_view_distance(rig, sv, ids=pair, known_distance=distance)
+    except ValueError as exc:
+        _fail(exc)
+    click.echo(res.report())
+    if json_path is not None:
+        json_path.write_text(json.dumps(res.to_dict(), indent=1))
+        click.echo(f"wrote {json_path}")
+    if max_error is not None and abs(res.scale_error_percent) > max_error:
+        raise click.ClickException(f"the scale error {res.scale_error_percent:+.4f} % exceeds --max-error {max_error:g} %")
 
 
 def _expand(source):
