@@ -190,6 +190,10 @@ class IntrinsicsResult:
         equal to ``rms`` when no view was dropped.
     per_view_rms_all_views : (V_in,) float64
         RMS (px) of every input view in that first solve, indexed like the input lists.
+    view_rms_limit : (V,) float64
+        The RMS (px) above which each kept view would have been dropped in the final solve (the lowest
+        of the active rules: ``reject × median``, ``max_view_rms``, the ``reject_mad`` limit); NaN
+        without a rule. The figures draw it.
     """
 
     camera: Camera
@@ -208,6 +212,7 @@ class IntrinsicsResult:
     view_sigma: np.ndarray | None = None
     rms_all_views: float = float("nan")
     per_view_rms_all_views: np.ndarray | None = None
+    view_rms_limit: np.ndarray | None = None
 
     def rejection_summary(self) -> str:
         """One line on view rejection: the RMS with every view and after the re-solve, or that none was dropped."""
@@ -410,6 +415,14 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
                 reason = (f"RMS {per_view[worst]:.4f} px > {of} + {reject_mad:g} × 1.4826 × MAD "
                           f"({limit[worst]:.4f} px)")
         if reason is None:
+            view_limit = np.full(per_view.shape, np.inf)
+            if max_view_rms is not None:
+                view_limit = np.minimum(view_limit, max_view_rms)
+            if reject is not None:
+                view_limit = np.minimum(view_limit, reject * med_of_group)
+            if reject_mad is not None:
+                view_limit = np.minimum(view_limit, limit)
+            view_limit[~np.isfinite(view_limit)] = np.nan
             break
         if len(keep) - 1 < min_views:
             raise ValueError(
@@ -456,6 +469,7 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
         flags=flags,
         weighting=weighting,
         view_sigma=view_sigma,
+        view_rms_limit=view_limit,
         rms_all_views=float(first["rms"]) if dropped else float(sol["rms"]),
         per_view_rms_all_views=np.asarray(first["per_view_rms"], dtype=np.float64).copy(),
     )

@@ -451,7 +451,7 @@ def test_dense_mode_commands(tmp_path):
     assert d["mode"] == "dense"
 
 
-def test_intrinsics_command_rejects_a_corrupted_view_and_re_solves(data, cameras):
+def test_intrinsics_command_rejects_a_corrupted_view_and_re_solves(data, cameras, monkeypatch):
     """A direct view recorded through another lens distortion (k1 +0.2 instead of -0.12: e.g. the focus
     ring moved) gives detections no model of this camera explains: it is dropped, reported with its RMS
     before, and the re-solve is the calibration of the 7 good views (the `cameras` fixture) bit for bit."""
@@ -462,8 +462,18 @@ def test_intrinsics_command_rejects_a_corrupted_view_and_re_solves(data, cameras
     bad = _write(root / "left" / "corrupted", render_view(tgt, odd, R, t, blur_sigma=0.8, seed=77, supersample=2,
                                                           noise_sigma=1.0, bits=8))
     path = root / "camera_left_rejected.json"
+    import dic.plots.calibration as cal
+
+    figures = []
+
+    def keep(fig, p, *, dpi):
+        figures.append(fig)
+        return _save(fig, p, dpi=dpi)
+
+    _save = cal.save_figure
+    monkeypatch.setattr(cal, "save_figure", keep)
     res = _run("intrinsics", "--target", root / "target.json", *views["left"]["direct"], bad, *views["left"]["mirror"],
-               "-o", path, "--name", "left", "--reject", "0", "--reject-mad", "5", "-q")
+               "-o", path, "--name", "left", "--reject", "0", "--reject-mad", "5", "-q", "--figures", root / "fig_rej")
     assert res.exit_code == 0, res.output
     meta = json.loads(path.read_text())["metadata"]
     [drop] = meta["dropped_views"]
@@ -473,6 +483,21 @@ def test_intrinsics_command_rejects_a_corrupted_view_and_re_solves(data, cameras
     assert "view rejection: 1 of 8 views dropped" in res.output and "with all views" in res.output
     clean = Camera.load(cameras["left"][0])
     np.testing.assert_allclose(Camera.load(path).K, clean.K, rtol=1e-12)
+    # the RMS bars of intrinsics_residuals.png: one per view (the dropped one grey, at its RMS when dropped),
+    # and the rejection limit in red, median + 5 x 1.4826 x MAD of the kept views' RMS (worked out here)
+    [fig] = [f for f in figures if len(f.axes) == 3]
+    bars = fig.axes[2]
+    kept = meta["view_rms_px"]
+    heights = {t.get_text(): p.get_height() for t, p in zip(bars.get_xticklabels(), bars.patches)}
+    assert len(heights) == 8 and heights["corrupted"] == pytest.approx(drop["rms_px"])
+    for name, rms in kept.items():
+        assert heights[Path(name).name] == pytest.approx(rms)
+    v = np.array(list(kept.values()))
+    med = np.median(v)
+    limit = med + 5 * max(1.4826 * np.median(np.abs(v - med)), 0.05 * med)
+    [red] = [ln for ln in bars.get_lines() if "rejection limit" in ln.get_label()]
+    assert red.get_ydata()[0] == pytest.approx(limit, rel=1e-9)
+    assert max(kept.values()) < limit < drop["rms_px"]
 
 
 # error model of the known-distance check on the check view (Z ~ 1.3 m, f = 700 px, baseline 300 mm, dot
