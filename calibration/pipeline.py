@@ -502,5 +502,6 @@ def stereo_from_checkerboards(left_images, right_images, target: CheckerboardTar
         ri = calibrate_intrinsics(objs, qr, sizes["right"], model=model, reject=None, name="right")
         right_camera = ri.camera
     res = stereo_calibrate(left_camera, right_camera, objs, ql, qr, uncertainty=uncertainty)
-    return CheckerboardStereo(result=res, names=kept, dropped=dropped, left_intrinsics=li, right_intrinsics=ri)
+    return CheckerboardStereo(result=res, names=kept, dropped=dropped, left_intrinsics=li, right_intrinsics=ri,
+                              object_points=objs, left_points=ql, right_points=qr)
 

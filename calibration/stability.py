@@ -36,7 +36,8 @@ class StabilityResult:
     ``names``/``units`` (P,) the parameters; ``reference`` (P,) their values with every view;
     ``samples`` (S, P) their values in each re-solve; ``left_out`` the S subsets of view indices left
     out; ``exhaustive`` whether every subset of ``p`` views was tried; ``failed`` ``(subset, reason)``
-    for re-solves that raised ``ValueError`` (e.g. the views left could not determine the intrinsics).
+    for re-solves that raised ``ValueError`` (e.g. the views left could not determine the intrinsics);
+    ``view_names`` (optional) names the views in the report.
     """
 
     names: tuple
@@ -50,6 +51,7 @@ class StabilityResult:
     seed: int | None = None
     failed: list = field(default_factory=list)
     kind: str = ""
+    view_names: list | None = None
 
     @property
     def std(self) -> np.ndarray:
@@ -70,9 +72,15 @@ class StabilityResult:
         k = self.names.index(name)
         return self.left_out[int(np.argmax(np.abs(self.samples[:, k] - self.reference[k])))]
 
+    def _subset_text(self, subset) -> str:
+        if self.view_names is None:
+            return ",".join(map(str, subset))
+        return ", ".join(str(self.view_names[i]) for i in subset)
+
     def to_dict(self) -> dict:
         return {"kind": self.kind, "p": self.p, "n_views": self.n_views, "subsets": len(self.left_out),
                 "exhaustive": self.exhaustive, "seed": self.seed,
+                "view_names": None if self.view_names is None else [str(v) for v in self.view_names],
                 "parameters": {nm: {"unit": u, "value": float(v), "std": float(s), "max_deviation": float(d),
                                     "worst_left_out": list(self.worst_subset(nm)) if len(self.samples) else []}
                                for nm, u, v, s, d in zip(self.names, self.units, self.reference, self.std,
@@ -86,10 +94,10 @@ class StabilityResult:
                  "  parameter          value          std   max deviation  (views left out)"]
         dev = self.max_deviation
         for k, (nm, u, v, s) in enumerate(zip(self.names, self.units, self.reference, self.std)):
-            worst = ",".join(map(str, self.worst_subset(nm))) if len(self.samples) else "-"
+            worst = self._subset_text(self.worst_subset(nm)) if len(self.samples) else "-"
             lines.append(f"  {nm:>9} = {v: 14.8g} {s:12.4g} {dev[k]:12.4g} {u:3s} ({worst})")
         for s, r in self.failed:
-            lines.append(f"  left out {','.join(map(str, s))}: failed: {r}")
+            lines.append(f"  left out {self._subset_text(s)}: failed: {r}")
         return "\n".join(lines)
 
 
@@ -117,10 +125,13 @@ def leave_p_out_subsets(n_views: int, p: int, *, max_subsets: int = MAX_SUBSETS,
 
 
 def leave_p_out(n_views: int, solve, *, p: int = 1, max_subsets: int = MAX_SUBSETS, seed: int = 0,
-                kind: str = "") -> StabilityResult:
+                kind: str = "", view_names=None) -> StabilityResult:
     """Generic leave-p-out test. ``solve(keep)`` takes the sorted list of view indices to use and returns
     ``(names, units, values)`` (values (P,)); it is called once with every view (the reference), then
-    once per subset left out. A re-solve that raises ``ValueError`` is recorded in ``failed``."""
+    once per subset left out. A re-solve that raises ``ValueError`` is recorded in ``failed``.
+    ``view_names`` (n_views,) names the views in the report."""
+    if view_names is not None and len(view_names) != n_views:
+        raise ValueError(f"view_names must name the {n_views} views, got {len(view_names)}")
     subsets, exhaustive = leave_p_out_subsets(n_views, p, max_subsets=max_subsets, seed=seed)
     names, units, ref = solve(list(range(n_views)))
     samples, left_out, failed = [], [], []
@@ -136,7 +147,8 @@ def leave_p_out(n_views: int, solve, *, p: int = 1, max_subsets: int = MAX_SUBSE
     return StabilityResult(names=tuple(names), units=tuple(units), reference=np.asarray(ref, dtype=np.float64),
                            samples=np.asarray(samples, dtype=np.float64).reshape(len(samples), len(names)),
                            left_out=left_out, p=int(p), n_views=int(n_views), exhaustive=exhaustive,
-                           seed=None if exhaustive else int(seed), failed=failed, kind=kind)
+                           seed=None if exhaustive else int(seed), failed=failed, kind=kind,
+                           view_names=None if view_names is None else list(view_names))
 
 
 def intrinsic_parameters(camera: Camera, estimated) -> tuple[list, list, np.ndarray]:
@@ -152,7 +164,7 @@ def intrinsic_parameters(camera: Camera, estimated) -> tuple[list, list, np.ndar
 
 def intrinsics_stability(object_points, image_points, image_size, *, p: int = 1, mirrored=None,
                          model: str = "opencv5", weighting: str = "equal", max_subsets: int = MAX_SUBSETS,
-                         seed: int = 0) -> StabilityResult:
+                         seed: int = 0, view_names=None) -> StabilityResult:
     """Leave-p-out stability of :func:`calibration.intrinsics.calibrate_intrinsics` (same view lists).
 
     Every solve runs without view rejection (``reject=None``): give the views the calibration kept.
@@ -172,7 +184,8 @@ def intrinsics_stability(object_points, image_points, image_size, *, p: int = 1,
             estimated.update(res.std)
         return intrinsic_parameters(res.camera, estimated)
 
-    return leave_p_out(len(object_points), solve, p=p, max_subsets=max_subsets, seed=seed, kind="intrinsics")
+    return leave_p_out(len(object_points), solve, p=p, max_subsets=max_subsets, seed=seed, kind="intrinsics",
+                       view_names=view_names)
 
 
 def rig_parameters(R_right_left, t_right_left) -> tuple[list, list, np.ndarray]:
@@ -186,7 +199,7 @@ def rig_parameters(R_right_left, t_right_left) -> tuple[list, list, np.ndarray]:
 
 
 def rig_stability(left: Camera, right: Camera, object_points, left_points, right_points, *, p: int = 1,
-                  max_subsets: int = MAX_SUBSETS, seed: int = 0) -> StabilityResult:
+                  max_subsets: int = MAX_SUBSETS, seed: int = 0, view_names=None) -> StabilityResult:
     """Leave-p-out stability of :func:`calibration.stereo.stereo_calibrate` (intrinsics fixed) over its
     views (lists of (N_v, 3), (N_v, 2), (N_v, 2)): rig rotation angles (deg), translation and baseline (mm).
     For other rig solvers (the mirror calibration) call :func:`leave_p_out` with a ``solve`` that returns
@@ -198,4 +211,5 @@ def rig_stability(left: Camera, right: Camera, object_points, left_points, right
                                [right_points[i] for i in keep], uncertainty="none")
         return rig_parameters(res.rig.R_right_left, res.rig.t_right_left)
 
-    return leave_p_out(len(object_points), solve, p=p, max_subsets=max_subsets, seed=seed, kind="stereo rig")
+    return leave_p_out(len(object_points), solve, p=p, max_subsets=max_subsets, seed=seed, kind="stereo rig",
+                       view_names=view_names)

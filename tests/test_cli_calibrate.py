@@ -112,7 +112,7 @@ def cameras(data):
     root, views, _ = data
     path = root / "camera_left.json"
     res = _run("intrinsics", "--target", root / "target.json", *views["left"]["direct"], *views["left"]["mirror"],
-               "-o", path, "--name", "left", "--figures", root / "fig_left", "-q")
+               "-o", path, "--name", "left", "--figures", root / "fig_left", "-q", "--leave-out", "1")
     assert res.exit_code == 0, res.output
     RIGHT.save(root / "camera_right.json")
     return {"left": (path, res.output), "right": (root / "camera_right.json", "")}
@@ -145,6 +145,13 @@ def test_intrinsics_command(cameras, data):
     assert output.count("mirrored") >= 3
     meta = json.loads(path.read_text())["metadata"]
     assert meta["rms_px"] < 0.1 and len(meta["mirrored_views"]) == 3 and "fx" in meta["std"]
+    # --leave-out 1: the 7 views each left out once, the spread of each parameter within its σ-scale bounds
+    st = meta["stability"]
+    assert st["exhaustive"] and st["subsets"] == 7 and not st["failed"]
+    assert "leave-1-out stability of the intrinsics: 7 views, every subset" in output
+    for name in ("fx", "fy", "cx", "cy"):
+        par = st["parameters"][name]
+        assert 0 < par["std"] and par["max_deviation"] < 3 * meta["std"][name], (name, par, meta["std"][name])
     figs = data[0] / "fig_left"
     assert (figs / "intrinsics_views.png").stat().st_size > 1000 and (figs / "intrinsics_residuals.png").exists()
     assert (figs / "intrinsics_detail.png").stat().st_size > 1000
@@ -554,3 +561,29 @@ def test_verify_command_with_given_points(tmp_path):
     assert bad.exit_code == 2 and "twice" in bad.output
     bad = _run("verify", "--rig", tmp_path / "rig.json", *args)
     assert bad.exit_code == 2 and "--distance" in bad.output
+
+
+def test_stereo_checkerboard_leave_one_out_stability(tmp_path):
+    """--leave-out 1 on the 5 rendered board pairs: every subset of 4 pairs re-solved, the spread printed and
+    stored in the rig file; each re-solved rig within the same bounds of the truth as the full one
+    (test_stereo_checkerboard: 0.05 deg / 0.2 % of the 300 mm baseline = 0.6 mm)."""
+    _board_pairs(tmp_path)
+    LEFT.save(tmp_path / "cl.json")
+    RIGHT.save(tmp_path / "cr.json")
+    res = _run("stereo", "--checkerboard", "--target", tmp_path / "board.json", "--left", tmp_path / "L",
+               "--right", tmp_path / "R", "--left-camera", tmp_path / "cl.json", "--right-camera", tmp_path / "cr.json",
+               "-o", tmp_path / "rig.json", "--leave-out", "1")
+    assert res.exit_code == 0, res.output
+    assert "leave-1-out stability of the stereo rig: 5 views, every subset" in res.output
+    st = json.loads((tmp_path / "rig.json").read_text())["metadata"]["stability"]
+    assert st["subsets"] == 5 and st["exhaustive"] and not st["failed"]
+    par = st["parameters"]
+    for name in ("rot_x", "rot_y", "rot_z"):
+        assert 0 < par[name]["std"] and par[name]["max_deviation"] < 0.05
+    for name in ("t_x", "t_y", "t_z", "baseline"):
+        assert 0 < par[name]["std"] and par[name]["max_deviation"] < 0.6
+    assert par["baseline"]["value"] == pytest.approx(300.0, abs=0.6)
+    bad = _run("stereo", "--checkerboard", "--target", tmp_path / "board.json", "--left", tmp_path / "L",
+               "--right", tmp_path / "R", "--left-camera", tmp_path / "cl.json", "--right-camera", tmp_path / "cr.json",
+               "-o", tmp_path / "rig2.json", "--leave-out", "5")
+    assert bad.exit_code == 1 and "p must be between 1" in bad.output

@@ -99,6 +99,12 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Ignore pixels whose fringe modulation is below this (grey levels).")
 @click.option("--weighting", default="equal", show_default=True, type=click.Choice(["equal", "per_view"]),
               help="per_view: weight each view by its estimated point noise (views blurred to different degrees).")
+@click.option("--leave-out", "leave_out", default=None, type=click.IntRange(min=1),
+              help="Leave-p-out stability test: re-solve with P views left out (every subset, or random ones) and "
+                   "report the spread (std, max deviation) of each parameter.")
+@click.option("--leave-out-subsets", default=50, show_default=True, type=click.IntRange(min=2),
+              help="With --leave-out: at most this many subsets; above, random subsets drawn with --seed.")
+@click.option("--seed", default=0, show_default=True, type=int, help="With --leave-out: seed of the random subsets.")
 @click.option("--figures", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Write PNG figures (detected centres per view, a close-up with dot ids, residuals, RMS per view) "
                    "into this folder.")
@@ -107,7 +113,7 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
 def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, reject_mad,
                    max_misfit,
                    reject_points, correct_blur,
-                   min_modulation, weighting, figure_dir, device, quiet):
+                   min_modulation, weighting, leave_out, leave_out_subsets, seed, figure_dir, device, quiet):
     """Intrinsics of one camera from VIEWS of the phase target (direct and mirrored views together).
 
     Show the target's images on the monitor at many poses through the camera's depth of field (near
@@ -127,10 +133,23 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
             dense_spacing=dense_spacing,
             correct_blur=correct_blur, min_modulation=min_modulation, weighting=weighting,
             name=name if name is not None else output.stem, progress=_progress(quiet), device=device)
+        stability = None
+        if leave_out is not None:
+            from calibration.stability import intrinsics_stability
+
+            res = ic.result
+            stability = intrinsics_stability([ic.object_points[u] for u in res.view_indices],
+                                             [ic.image_points[u] for u in res.view_indices], ic.camera.size,
+                                             mirrored=list(res.mirrored), p=leave_out, model=model,
+                                             weighting=weighting, max_subsets=leave_out_subsets, seed=seed,
+                                             view_names=[ic.views[ic.used[u]].name for u in res.view_indices])
     except ValueError as exc:
         _fail(exc)
     click.echo(ic.report())
     meta = ic.metadata()
+    if stability is not None:
+        click.echo(stability.report())
+        meta["stability"] = stability.to_dict()
     meta["target"] = os.fspath(target_path)
     ic.camera.save(output, metadata=meta)
     click.echo(f"wrote {output}")
@@ -242,9 +261,16 @@ def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, si
                    "dot-distance errors and reprojection residuals) into this folder.")
 @click.option("--blur-correction/--no-blur-correction", "correct_blur", default=None,
               help="Run (or skip) the dot detector's defocus-bias correction on --far/--check views.")
+@click.option("--leave-out", "leave_out", default=None, type=click.IntRange(min=1),
+              help="With --checkerboard: leave-p-out stability test of the rig (intrinsics held): re-solve with P "
+                   "pairs left out and report the spread of the rotation angles, translation and baseline.")
+@click.option("--leave-out-subsets", default=50, show_default=True, type=click.IntRange(min=2),
+              help="With --leave-out: at most this many subsets; above, random subsets drawn with --seed.")
+@click.option("--seed", default=0, show_default=True, type=int, help="With --leave-out: seed of the random subsets.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation.")
 def stereo_cmd(left, right, output, far, check, target_path, no_joint, checkerboard, left_camera, right_camera, sigma_px,
-               intrinsic_uncertainty, export_opencv, export_dice, export_vic3d, allow_lossy, figure_dir, correct_blur, device):
+               intrinsic_uncertainty, export_opencv, export_dice, export_vic3d, allow_lossy, figure_dir, correct_blur, device,
+               leave_out, leave_out_subsets, seed):
     """The stereo rig, from the two cameras' mirror calibrations (pose files) or from checkerboard pairs.
 
     Mirror mode: the rig is R_right_left = R_right_target R_left_target^T (paper Section 2); with
@@ -257,8 +283,12 @@ def stereo_cmd(left, right, output, far, check, target_path, no_joint, checkerbo
         if checkerboard:
             if far or check:
                 raise click.UsageError("--far/--check are for the mirror mode; with --checkerboard every pair is used")
-            rig, report, rc = _stereo_checkerboard(left, right, target_path, left_camera, right_camera)
+            rig, report, rc = _stereo_checkerboard(left, right, target_path, left_camera, right_camera,
+                                                   leave_out, leave_out_subsets, seed)
         else:
+            if leave_out is not None:
+                raise click.UsageError("--leave-out goes with --checkerboard (the pairs it leaves out); for the "
+                                       "intrinsics use 'calibrate intrinsics --leave-out'")
             if left_camera or right_camera:
                 raise click.UsageError("--left-camera/--right-camera go with --checkerboard; pose files carry their camera")
             rig, report, rc = _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, correct_blur, device,
@@ -410,7 +440,8 @@ def _expand(source):
     return list_view_files(source)
 
 
-def _stereo_checkerboard(left, right, target_path, left_camera, right_camera):
+def _stereo_checkerboard(left, right, target_path, left_camera, right_camera, leave_out=None, leave_out_subsets=50,
+                         seed=0):
     from calibration.formats import load_camera
     from calibration.pipeline import stereo_from_checkerboards
     from calibration.targets import CheckerboardTarget, load_target
@@ -427,4 +458,12 @@ def _stereo_checkerboard(left, right, target_path, left_camera, right_camera):
     cl = load_camera(left_camera, which="left") if left_camera else None
     cr = load_camera(right_camera, which="right") if right_camera else None
     cs = stereo_from_checkerboards(lf, rf, board, left_camera=cl, right_camera=cr)
-    return cs.rig, cs.report(), None
+    report = cs.report()
+    if leave_out is not None:
+        from calibration.stability import rig_stability
+
+        st = rig_stability(cs.rig.left, cs.rig.right, cs.object_points, cs.left_points, cs.right_points, p=leave_out,
+                           max_subsets=leave_out_subsets, seed=seed, view_names=cs.names)
+        report += "\n" + st.report()
+        cs.rig.metadata["stability"] = st.to_dict()
+    return cs.rig, report, None
