@@ -313,10 +313,9 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
         ``reject`` = 3 × median, which keeps every view of clean sets (the per-view RMS of the lab's
         sessions spread over 0.009-0.015 px, at most 1.3 × their median) and drops a view with
         corrupted detections; ``reject_mad`` suits sets whose views scatter little, where 3 × median
-        is too lenient (e.g. ``reject_mad=5``).
-
-    Every view drop re-solves the bundle without that view; the result keeps the first solve's RMS
-    (``rms_all_views``, ``per_view_rms_all_views``) so that reports give the RMS before and after.
+        is too lenient (e.g. ``reject_mad=5``). Every view dropped by a rule re-solves the bundle
+        without it; the result keeps the first solve's RMS (``rms_all_views``,
+        ``per_view_rms_all_views``) so that reports give the RMS before and after.
     extra_flags : int
         More OpenCV ``CALIB_*`` flags (e.g. ``cv2.CALIB_FIX_ASPECT_RATIO``).
     min_views : int
@@ -370,7 +369,8 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
             )
     if reject is not None and not reject > 1.0:
         raise ValueError(f"reject must be > 1 (a multiple of the median per-view RMS) or None, got {reject!r}")
-    if reject_mad is not None and not (np.isfinite(reject_mad) and reject_mad > 0):
+    if reject_mad is not None and not (isinstance(reject_mad, (int, float, np.number)) and not isinstance(reject_mad, bool)
+                                       and np.isfinite(reject_mad) and reject_mad > 0):
         raise ValueError(f"reject_mad must be a positive number of robust standard deviations (MAD × 1.4826) or "
                          f"None, got {reject_mad!r}")
     if weighting not in ("equal", "per_view"):

@@ -340,7 +340,7 @@ def test_mad_rule_floor_keeps_identical_views():
     assert not res.dropped
 
 
-@pytest.mark.parametrize("value", [0.0, -1.0, float("nan")])
+@pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), "5", True])
 def test_reject_mad_must_be_positive(rng, value):
     objs, imgs, mirrored = _views(_poses(), rng)
     with pytest.raises(ValueError, match="reject_mad must be a positive"):
