@@ -127,13 +127,24 @@ def _check_determined(poses, K, std: dict, size) -> None:
                 f"deviation {rel:.1%} > {MAX_RELATIVE_FOCAL_STD:.0%}); {_VIEWS_TO_ADD}")
 
 
+#: Scale of the median absolute deviation to the standard deviation of a normal distribution
+#: (``1 / Φ⁻¹(3/4)``), used by the ``reject_mad`` rule.
+MAD_TO_SIGMA = 1.4826
+#: Floor of the robust spread of the ``reject_mad`` rule, as a fraction of the median per-view RMS: views of
+#: equal quality (noise-free or nearly identical) have a MAD near 0, and without a floor any view a little
+#: above the median would be dropped.
+MAD_FLOOR = 0.05
+
+
 @dataclass
 class DroppedView:
-    """A view removed by outlier rejection: its index in the input, its RMS (px) and why."""
+    """A view removed by outlier rejection: its index in the input, its RMS (px) in the solve that
+    dropped it, why, and its RMS (px) in the first solve with every view (``rms_all_views``)."""
 
     index: int
     rms: float
     reason: str
+    rms_all_views: float = float("nan")
 
 
 @dataclass
@@ -174,6 +185,15 @@ class IntrinsicsResult:
     view_sigma : (V,) float64 or None
         With ``weighting="per_view"``: the image noise (px per coordinate) estimated for each kept
         view, whose inverse square weights its points.
+    rms_all_views : float
+        Reprojection RMS (px) of the first solve, with every input view (before view rejection);
+        equal to ``rms`` when no view was dropped.
+    per_view_rms_all_views : (V_in,) float64
+        RMS (px) of every input view in that first solve, indexed like the input lists.
+    view_rms_limit : (V,) float64
+        The RMS (px) above which each kept view would have been dropped in the final solve (the lowest
+        of the active rules: ``reject × median``, ``max_view_rms``, the ``reject_mad`` limit); NaN
+        without a rule. The figures draw it.
     """
 
     camera: Camera
@@ -190,6 +210,17 @@ class IntrinsicsResult:
     flip: np.ndarray = field(default_factory=lambda: MIRROR_FLIP.copy())
     weighting: str = "equal"
     view_sigma: np.ndarray | None = None
+    rms_all_views: float = float("nan")
+    per_view_rms_all_views: np.ndarray | None = None
+    view_rms_limit: np.ndarray | None = None
+
+    def rejection_summary(self) -> str:
+        """One line on view rejection: the RMS with every view and after the re-solve, or that none was dropped."""
+        n_in = len(self.view_indices) + len(self.dropped)
+        if not self.dropped:
+            return f"view rejection: none of {n_in} views dropped"
+        return (f"view rejection: {len(self.dropped)} of {n_in} views dropped; RMS {self.rms_all_views:.4f} px with "
+                f"all {n_in} views, {self.rms:.4f} px after the re-solve with {len(self.view_indices)}")
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -213,7 +244,9 @@ class IntrinsicsResult:
             lines.append(f"  view {idx:3d}{' (mirrored)' if m else ''}: RMS {rms:.4f} px"
                          + (f", noise σ {sv:.4f} px" if sv is not None else ""))
         for d in self.dropped:
-            lines.append(f"  dropped view {d.index}: RMS {d.rms:.4f} px — {d.reason}")
+            lines.append(f"  dropped view {d.index}: RMS {d.rms:.4f} px ({d.rms_all_views:.4f} px with all views) "
+                         f"— {d.reason}")
+        lines.append("  " + self.rejection_summary())
         return "\n".join(lines)
 
 
@@ -248,7 +281,7 @@ def _validate_views(object_points, image_points, mirrored):
 
 def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=None, model: str = "opencv5",
                          reject: float | None = 3.0, max_view_rms: float | None = None,
-                         extra_flags: int = 0, min_views: int = 3, weighting: str = "equal",
+                         reject_mad: float | None = None, extra_flags: int = 0, min_views: int = 3, weighting: str = "equal",
                          name: str = "") -> IntrinsicsResult:
     """Zhang calibration (``cv2.calibrateCameraExtended``) of one camera, direct and mirrored views in one bundle.
 
@@ -272,6 +305,17 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
         None disables it.
     max_view_rms : float or None
         Also drop views whose RMS exceeds this absolute value (px).
+    reject_mad : float or None
+        Also drop views whose RMS exceeds ``median + reject_mad × 1.4826 × MAD`` of the per-view RMS
+        (a robust z-score above ``reject_mad``; with ``weighting="per_view"`` over the views of the
+        same target), the worst one at a time; the robust spread is at least :data:`MAD_FLOOR` × the
+        median, so that equal views are never dropped. None (default) disables it. The default rule is
+        ``reject`` = 3 × median, which keeps every view of clean sets (the per-view RMS of the lab's
+        sessions spread over 0.009-0.015 px, at most 1.3 × their median) and drops a view with
+        corrupted detections; ``reject_mad`` suits sets whose views scatter little, where 3 × median
+        is too lenient (e.g. ``reject_mad=5``). Every view dropped by a rule re-solves the bundle
+        without it; the result keeps the first solve's RMS (``rms_all_views``,
+        ``per_view_rms_all_views``) so that reports give the RMS before and after.
     extra_flags : int
         More OpenCV ``CALIB_*`` flags (e.g. ``cv2.CALIB_FIX_ASPECT_RATIO``).
     min_views : int
@@ -325,6 +369,10 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
             )
     if reject is not None and not reject > 1.0:
         raise ValueError(f"reject must be > 1 (a multiple of the median per-view RMS) or None, got {reject!r}")
+    if reject_mad is not None and not (isinstance(reject_mad, (int, float, np.number)) and not isinstance(reject_mad, bool)
+                                       and np.isfinite(reject_mad) and reject_mad > 0):
+        raise ValueError(f"reject_mad must be a positive number of robust standard deviations (MAD × 1.4826) or "
+                         f"None, got {reject_mad!r}")
     if weighting not in ("equal", "per_view"):
         raise ValueError(f"weighting must be 'equal' or 'per_view', got {weighting!r}")
     if weighting == "per_view" and extra_flags:
@@ -337,28 +385,52 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
 
     keep = list(range(len(objs)))
     dropped: list[DroppedView] = []
+    first = None
     while True:
         sol = _calibrate(cv2, [used_objs[i] for i in keep], [imgs[i] for i in keep], (w, h), flags)
         per_view = sol["per_view_rms"]
+        if first is None:
+            first = sol
         g = group[keep]
         med_of_group = np.array([np.median(per_view[g == gi]) for gi in g])
         worst = int(np.argmax(per_view / med_of_group))
         med = float(med_of_group[worst])
+        of = "median per-view RMS" if weighting == "equal" else "median per-view RMS of the views of this target"
         reason = None
         if max_view_rms is not None and np.max(per_view) > max_view_rms:
             worst = int(np.argmax(per_view))
             reason = f"RMS {per_view[worst]:.4f} px > max_view_rms {max_view_rms:.4f} px"
         elif reject is not None and per_view[worst] > reject * med:
-            of = "median per-view RMS" if weighting == "equal" else "median per-view RMS of the views of this target"
             reason = f"RMS {per_view[worst]:.4f} px > {reject:g} × {of} ({med:.4f} px)"
+        elif reject_mad is not None:
+            limit = np.empty_like(per_view)
+            for gi in np.unique(g):
+                rv = per_view[g == gi]
+                med_g = np.median(rv)
+                spread = max(MAD_TO_SIGMA * np.median(np.abs(rv - med_g)), MAD_FLOOR * med_g)
+                limit[g == gi] = med_g + reject_mad * spread
+            over = per_view - limit
+            if np.max(over) > 0:
+                worst = int(np.argmax(per_view / limit))
+                reason = (f"RMS {per_view[worst]:.4f} px > {of} + {reject_mad:g} × 1.4826 × MAD "
+                          f"({limit[worst]:.4f} px)")
         if reason is None:
+            view_limit = np.full(per_view.shape, np.inf)
+            if max_view_rms is not None:
+                view_limit = np.minimum(view_limit, max_view_rms)
+            if reject is not None:
+                view_limit = np.minimum(view_limit, reject * med_of_group)
+            if reject_mad is not None:
+                view_limit = np.minimum(view_limit, limit)
+            view_limit[~np.isfinite(view_limit)] = np.nan
             break
         if len(keep) - 1 < min_views:
             raise ValueError(
                 f"outlier rejection would leave fewer than {min_views} views (view {keep[worst]}: {reason}); "
                 "check the detections or relax reject/max_view_rms"
             )
-        dropped.append(DroppedView(index=keep[worst], rms=float(per_view[worst]), reason=reason))
+        dropped.append(DroppedView(index=keep[worst], rms=float(per_view[worst]), reason=reason,
+                                   rms_all_views=float(first["per_view_rms"][keep[worst]])))
         del keep[worst]
 
     estimated = _estimated_parameters(flags, ndist)
@@ -397,6 +469,9 @@ def calibrate_intrinsics(object_points, image_points, image_size, *, mirrored=No
         flags=flags,
         weighting=weighting,
         view_sigma=view_sigma,
+        view_rms_limit=view_limit,
+        rms_all_views=float(first["rms"]) if dropped else float(sol["rms"]),
+        per_view_rms_all_views=np.asarray(first["per_view_rms"], dtype=np.float64).copy(),
     )
 
 

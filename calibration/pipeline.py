@@ -295,8 +295,8 @@ def detect_views(sources, target: PhaseTarget, *, names=None, progress=None, **k
 # ------------------------------------------------------------------------------------------------
 def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, mode: str = "dots",
                                      model: str = "opencv5", reject: float | None = 3.0,
-                                     max_view_rms: float | None = None, min_points: int = 6,
-                                     reject_points: float | None = 4.0, dense_spacing: float | None = None,
+                                     max_view_rms: float | None = None, reject_mad: float | None = None,
+                                     min_points: int = 6, reject_points: float | None = 4.0, dense_spacing: float | None = None,
                                      correct_blur: bool | None = None, max_misfit: float | None = 1.5,
                                      min_modulation: float = 3.0, weighting: str = "equal", name: str = "",
                                      progress=None, device=None) -> IntrinsicsCalibration:
@@ -311,9 +311,9 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
     mode : ``"dots"`` (dot centres) or ``"dense"`` (per-pixel screen coordinates, located on a grid
         of screen points every ``dense_spacing`` screen px, default ``target.pitch / 4``;
         :func:`dense_view_points`).
-    model, reject, max_view_rms, weighting :
+    model, reject, max_view_rms, reject_mad, weighting :
         As :func:`calibration.intrinsics.calibrate_intrinsics` (distortion model, outlier-view
-        rejection, ``"equal"`` or ``"per_view"`` weighting of the views by their noise).
+        rejection with a re-solve, ``"equal"`` or ``"per_view"`` weighting of the views by their noise).
     reject_points : float or None
         Outlier points: after each calibration, points whose residual exceeds ``reject_points`` times
         the robust RMS of all residuals (with ``weighting="per_view"``: of the residuals divided by
@@ -342,7 +342,7 @@ def calibrate_intrinsics_from_images(views, target: PhaseTarget, *, names=None, 
     results = detect_views(views, target, names=names, mode=mode, correct_blur=correct_blur, min_points=min_points,
                            min_modulation=min_modulation, max_misfit=max_misfit, device=device, progress=progress)
     return calibrate_intrinsics_from_detections(results, model=model, reject=reject, max_view_rms=max_view_rms,
-                                                reject_points=reject_points, min_points=min_points,
+                                                reject_mad=reject_mad, reject_points=reject_points, min_points=min_points,
                                                 dense_spacing=target.pitch / 4 if dense_spacing is None else dense_spacing,
                                                 weighting=weighting, name=name)
 
@@ -502,5 +502,6 @@ def stereo_from_checkerboards(left_images, right_images, target: CheckerboardTar
         ri = calibrate_intrinsics(objs, qr, sizes["right"], model=model, reject=None, name="right")
         right_camera = ri.camera
     res = stereo_calibrate(left_camera, right_camera, objs, ql, qr, uncertainty=uncertainty)
-    return CheckerboardStereo(result=res, names=kept, dropped=dropped, left_intrinsics=li, right_intrinsics=ri)
+    return CheckerboardStereo(result=res, names=kept, dropped=dropped, left_intrinsics=li, right_intrinsics=ri,
+                              object_points=objs, left_points=ql, right_points=qr)
 

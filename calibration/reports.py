@@ -56,8 +56,13 @@ def intrinsics_report(calibration) -> str:
         lines.append(f"  {_short(v.name, 38):38s} {len(calibration.image_points[u]):6d}  {kind:8s}  "
                      + (f"{r:.4f}" if r is not None else "dropped")
                      + (f"    {sigma_of[u]:.4f}" if u in sigma_of else ""))
-    for nm, why in calibration.dropped:
-        lines.append(f"  dropped {nm}: {why}")
+    for v in calibration.views:
+        if not v.ok:
+            lines.append(f"  dropped {v.name}: {v.error}")
+    for d in res.dropped:  # views rejected by their RMS, then the bundle re-solved without them
+        lines.append(f"  dropped {calibration.views[calibration.used[d.index]].name}: RMS {d.rms_all_views:.4f} px "
+                     f"with all views; {d.reason}")
+    lines.append("  " + res.rejection_summary())
     lines.extend(_removed_lines(calibration.views))
     lines.extend(_dropped_points_lines(calibration.dropped_points))
     return "\n".join(lines)

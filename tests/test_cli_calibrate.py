@@ -112,7 +112,7 @@ def cameras(data):
     root, views, _ = data
     path = root / "camera_left.json"
     res = _run("intrinsics", "--target", root / "target.json", *views["left"]["direct"], *views["left"]["mirror"],
-               "-o", path, "--name", "left", "--figures", root / "fig_left", "-q")
+               "-o", path, "--name", "left", "--figures", root / "fig_left", "-q", "--leave-out", "1")
     assert res.exit_code == 0, res.output
     RIGHT.save(root / "camera_right.json")
     return {"left": (path, res.output), "right": (root / "camera_right.json", "")}
@@ -145,6 +145,13 @@ def test_intrinsics_command(cameras, data):
     assert output.count("mirrored") >= 3
     meta = json.loads(path.read_text())["metadata"]
     assert meta["rms_px"] < 0.1 and len(meta["mirrored_views"]) == 3 and "fx" in meta["std"]
+    # --leave-out 1: the 7 views each left out once, the spread of each parameter within its σ-scale bounds
+    st = meta["stability"]
+    assert st["exhaustive"] and st["subsets"] == 7 and not st["failed"]
+    assert "leave-1-out stability of the intrinsics: 7 views, every subset" in output
+    for name in ("fx", "fy", "cx", "cy"):
+        par = st["parameters"][name]
+        assert 0 < par["std"] and par["max_deviation"] < 3 * meta["std"][name], (name, par, meta["std"][name])
     figs = data[0] / "fig_left"
     assert (figs / "intrinsics_views.png").stat().st_size > 1000 and (figs / "intrinsics_residuals.png").exists()
     assert (figs / "intrinsics_detail.png").stat().st_size > 1000
@@ -449,3 +456,134 @@ def test_dense_mode_commands(tmp_path):
     assert rotation_angle_deg(np.array(d["R_cam_target"]), R_ct) < 0.2
     assert np.linalg.norm(np.array(d["t_cam_target"]) - t_ct) < 10.0
     assert d["mode"] == "dense"
+
+
+def test_intrinsics_command_rejects_a_corrupted_view_and_re_solves(data, cameras, monkeypatch):
+    """A direct view recorded through another lens distortion (k1 +0.2 instead of -0.12: e.g. the focus
+    ring moved) gives detections no model of this camera explains: it is dropped, reported with its RMS
+    before, and the re-solve is the calibration of the 7 good views (the `cameras` fixture) bit for bit."""
+    root, views, _ = data
+    tgt = _target()
+    odd = Camera(K=LEFT.K, dist=[0.2, 0.08, 2e-4, -1e-4, 0.0], size=SIZE, name="left")
+    R, t = _pose_facing(tgt, (20, 10, 1100), _rot(-15, 20))
+    bad = _write(root / "left" / "corrupted", render_view(tgt, odd, R, t, blur_sigma=0.8, seed=77, supersample=2,
+                                                          noise_sigma=1.0, bits=8))
+    path = root / "camera_left_rejected.json"
+    import dic.plots.calibration as cal
+
+    figures = []
+
+    def keep(fig, p, *, dpi):
+        figures.append(fig)
+        return _save(fig, p, dpi=dpi)
+
+    _save = cal.save_figure
+    monkeypatch.setattr(cal, "save_figure", keep)
+    res = _run("intrinsics", "--target", root / "target.json", *views["left"]["direct"], bad, *views["left"]["mirror"],
+               "-o", path, "--name", "left", "--reject", "0", "--reject-mad", "5", "-q", "--figures", root / "fig_rej")
+    assert res.exit_code == 0, res.output
+    meta = json.loads(path.read_text())["metadata"]
+    [drop] = meta["dropped_views"]
+    assert drop["view"].endswith("corrupted") and "MAD" in drop["reason"]
+    assert drop["rms_all_views_px"] > 5 * meta["rms_px"]
+    assert meta["rms_all_views_px"] > 2 * meta["rms_px"]
+    assert "view rejection: 1 of 8 views dropped" in res.output and "with all views" in res.output
+    clean = Camera.load(cameras["left"][0])
+    np.testing.assert_allclose(Camera.load(path).K, clean.K, rtol=1e-12)
+    # the RMS bars of intrinsics_residuals.png: one per view (the dropped one grey, at its RMS when dropped),
+    # and the rejection limit in red, median + 5 x 1.4826 x MAD of the kept views' RMS (worked out here)
+    [fig] = [f for f in figures if len(f.axes) == 3]
+    bars = fig.axes[2]
+    kept = meta["view_rms_px"]
+    heights = {t.get_text(): p.get_height() for t, p in zip(bars.get_xticklabels(), bars.patches)}
+    assert len(heights) == 8 and heights["corrupted"] == pytest.approx(drop["rms_px"])
+    for name, rms in kept.items():
+        assert heights[Path(name).name] == pytest.approx(rms)
+    v = np.array(list(kept.values()))
+    med = np.median(v)
+    limit = med + 5 * max(1.4826 * np.median(np.abs(v - med)), 0.05 * med)
+    [red] = [ln for ln in bars.get_lines() if "rejection limit" in ln.get_label()]
+    assert red.get_ydata()[0] == pytest.approx(limit, rel=1e-9)
+    assert max(kept.values()) < limit < drop["rms_px"]
+
+
+# error model of the known-distance check on the check view (Z ~ 1.3 m, f = 700 px, baseline 300 mm, dot
+# centres to ~0.015 px): lateral error Z σ / f ~ 0.03 mm per point, depth error Z² √2 σ / (f B) ~ 0.13 mm per
+# point, of which the 417 mm line across the tilted target takes a fraction: ~0.01-0.03 % of the length.
+# Bound 0.05 %; measured -0.006 % (far view) and +0.006 % (check view) with the true rig.
+VERIFY_BOUND_PERCENT = 0.05
+
+
+def test_verify_command_scale_error_of_the_true_and_a_scaled_rig(data, tmp_path):
+    root, views, _ = data
+    true_rig = StereoRig(LEFT, RIGHT, R_RL, T_RL)
+    true_rig.save(tmp_path / "true.json")
+    # a rig whose baseline is 1 % too long measures every length 1 % too long (exactly, for exact points)
+    StereoRig(LEFT, RIGHT, R_RL, 1.01 * T_RL).save(tmp_path / "long.json")
+    out = {}
+    for name in ("true", "long"):
+        res = _run("verify", "--rig", tmp_path / f"{name}.json", "--target", root / "target.json", *views["check"],
+                   "--json", tmp_path / f"{name}_verify.json")
+        assert res.exit_code == 0, res.output
+        assert "scale error" in res.output and "known" in res.output and "measured" in res.output
+        out[name] = json.loads((tmp_path / f"{name}_verify.json").read_text())
+    t, lg = out["true"], out["long"]
+    # default pair: the two common dots farthest apart (ids 0 and 6 are out of the right view here)
+    assert t["points"] == [1, 17] and t["known_mm"] == pytest.approx(np.hypot(4 * 93.3, 2 * 93.3), rel=1e-9)
+    assert abs(t["scale_error_percent"]) < VERIFY_BOUND_PERCENT
+    assert abs(lg["scale_error_percent"] - 1.0) < VERIFY_BOUND_PERCENT
+    assert max(t["reprojection_rms_px"]) < 0.05
+    # two chosen ids and a given distance; --max-error turns the check into an exit status
+    res = _run("verify", "--rig", tmp_path / "long.json", "--target", root / "target.json", *views["check"],
+               "--ids", "2,3", "--max-error", "0.5")
+    assert res.exit_code == 1 and "exceeds --max-error 0.5 %" in res.output and "points 2 and 3" in res.output
+    res = _run("verify", "--rig", tmp_path / "true.json", "--target", root / "target.json", *views["check"],
+               "--ids", "2,99")
+    assert res.exit_code == 1 and "99 not seen by both cameras" in res.output
+
+
+def test_verify_command_with_given_points(tmp_path):
+    """Image points given on the command line: exact projections of two points 500 mm apart."""
+    rig = StereoRig(LEFT, RIGHT, R_RL, T_RL)
+    rig.save(tmp_path / "rig.json")
+    P = np.array([[-260.0, -40.0, 1400.0], [220.0, 60.0, 1500.0]])
+    known = float(np.linalg.norm(P[1] - P[0]))
+    ql, qr = rig.project(P)
+    args = [v for k in range(2) for v in ("--point", *(repr(float(c)) for c in (*ql[k], *qr[k])))]
+    res = _run("verify", "--rig", tmp_path / "rig.json", *args, "--distance", repr(known), "--json", tmp_path / "v.json")
+    assert res.exit_code == 0, res.output
+    v = json.loads((tmp_path / "v.json").read_text())
+    assert abs(v["scale_error_percent"]) < 1e-6
+    np.testing.assert_allclose(v["points_left_frame_mm"], P, atol=1e-5)
+    res = _run("verify", "--rig", tmp_path / "rig.json", *args, "--distance", repr(1.02 * known))
+    assert res.exit_code == 0 and "scale error -1.96" in res.output  # 1 / 1.02 - 1 = -1.961 %
+    bad = _run("verify", "--rig", tmp_path / "rig.json", *args[:5])
+    assert bad.exit_code == 2 and "twice" in bad.output
+    bad = _run("verify", "--rig", tmp_path / "rig.json", *args)
+    assert bad.exit_code == 2 and "--distance" in bad.output
+
+
+def test_stereo_checkerboard_leave_one_out_stability(tmp_path):
+    """--leave-out 1 on the 5 rendered board pairs: every subset of 4 pairs re-solved, the spread printed and
+    stored in the rig file; each re-solved rig within the same bounds of the truth as the full one
+    (test_stereo_checkerboard: 0.05 deg / 0.2 % of the 300 mm baseline = 0.6 mm)."""
+    _board_pairs(tmp_path)
+    LEFT.save(tmp_path / "cl.json")
+    RIGHT.save(tmp_path / "cr.json")
+    res = _run("stereo", "--checkerboard", "--target", tmp_path / "board.json", "--left", tmp_path / "L",
+               "--right", tmp_path / "R", "--left-camera", tmp_path / "cl.json", "--right-camera", tmp_path / "cr.json",
+               "-o", tmp_path / "rig.json", "--leave-out", "1")
+    assert res.exit_code == 0, res.output
+    assert "leave-1-out stability of the stereo rig: 5 views, every subset" in res.output
+    st = json.loads((tmp_path / "rig.json").read_text())["metadata"]["stability"]
+    assert st["subsets"] == 5 and st["exhaustive"] and not st["failed"]
+    par = st["parameters"]
+    for name in ("rot_x", "rot_y", "rot_z"):
+        assert 0 < par[name]["std"] and par[name]["max_deviation"] < 0.05
+    for name in ("t_x", "t_y", "t_z", "baseline"):
+        assert 0 < par[name]["std"] and par[name]["max_deviation"] < 0.6
+    assert par["baseline"]["value"] == pytest.approx(300.0, abs=0.6)
+    bad = _run("stereo", "--checkerboard", "--target", tmp_path / "board.json", "--left", tmp_path / "L",
+               "--right", tmp_path / "R", "--left-camera", tmp_path / "cl.json", "--right-camera", tmp_path / "cr.json",
+               "-o", tmp_path / "rig2.json", "--leave-out", "5")
+    assert bad.exit_code == 1 and "p must be between 1" in bad.output

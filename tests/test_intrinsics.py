@@ -287,3 +287,61 @@ def test_camera_file_keeps_the_covariance(rng, tmp_path):
         Camera(K=cam.K, dist=cam.dist, covariance=[[1.0, 2.0], [0.0, 1.0]], covariance_names=("fx", "fy"))
     with pytest.raises(ValueError, match="unknown parameter"):
         cam.with_parameters(s1=1.0)
+
+
+def _corrupted_views(seed=3, shift_px=3.0):
+    """The 15 views of :func:`_poses` (0.03 px noise) with view 5's first row of 6 dots detected ``shift_px``
+    off in x (a corrupted detection: no pose or intrinsics explains it)."""
+    rng = np.random.default_rng(seed)
+    objs, imgs, mirrored = _views(_poses(), rng)
+    imgs[5] = imgs[5].copy()
+    imgs[5][:6, 0] += shift_px
+    return objs, imgs, mirrored
+
+
+def _intrinsic_error(cam):
+    est, true = _values(cam), _values(TRUE)
+    return float(np.sqrt(sum((est[k] - true[k]) ** 2 for k in ("fx", "fy", "cx", "cy"))))
+
+
+@pytest.mark.parametrize("rule", [dict(reject=3.0), dict(reject=None, reject_mad=5.0)])
+def test_corrupted_view_is_rejected_and_the_re_solve_is_closer_to_the_truth(rule):
+    objs, imgs, mirrored = _corrupted_views()
+    kept = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None)
+    res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, **rule)
+    assert [d.index for d in res.dropped] == [5]
+    # its error before: the view's RMS in the solve with every view (0.70 px; the others 0.031-0.049 px)
+    assert res.dropped[0].rms_all_views == pytest.approx(kept.per_view_rms[5], rel=1e-9)
+    assert res.per_view_rms_all_views[5] == pytest.approx(kept.per_view_rms[5], rel=1e-9)
+    # RMS before / after the re-solve
+    assert res.rms_all_views == pytest.approx(kept.rms, rel=1e-9)
+    assert res.rms < 0.5 * res.rms_all_views
+    # the re-solve is the calibration without view 5, and it is closer to the lab's truth
+    without = calibrate_intrinsics([o for i, o in enumerate(objs) if i != 5], [q for i, q in enumerate(imgs) if i != 5],
+                                   TRUE.size, mirrored=[m for i, m in enumerate(mirrored) if i != 5], reject=None)
+    np.testing.assert_allclose(res.camera.K, without.camera.K, rtol=1e-12)
+    assert _intrinsic_error(res.camera) < 0.7 * _intrinsic_error(kept.camera)
+    assert "view rejection: 1 of 15 views dropped" in res.report()
+    assert f"RMS {res.rms_all_views:.4f} px with all 15 views" in res.rejection_summary()
+
+
+def test_view_rejection_keeps_every_view_of_a_clean_set(rng):
+    objs, imgs, mirrored = _views(_poses(), rng)
+    for rule in (dict(reject=3.0), dict(reject=None, reject_mad=5.0)):
+        res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, **rule)
+        assert not res.dropped and res.rms_all_views == res.rms
+        assert "none of 15 views dropped" in res.rejection_summary()
+
+
+def test_mad_rule_floor_keeps_identical_views():
+    """Noise-free views: the per-view RMS are all ~1e-5 px and their MAD ~0; the floor keeps them."""
+    objs, imgs, mirrored = _views(_poses(), np.random.default_rng(0), noise=0.0)
+    res = calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject=None, reject_mad=3.0)
+    assert not res.dropped
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, float("nan"), "5", True])
+def test_reject_mad_must_be_positive(rng, value):
+    objs, imgs, mirrored = _views(_poses(), rng)
+    with pytest.raises(ValueError, match="reject_mad must be a positive"):
+        calibrate_intrinsics(objs, imgs, TRUE.size, mirrored=mirrored, reject_mad=value)

@@ -160,3 +160,39 @@ def test_rig_residual_figure_left_out_with_a_warning(tmp_path, monkeypatch):
     with pytest.warns(cal.FigureSkipped, match="no stereo_residuals.png"):
         assert cal.write_rig_figures(rc, tmp_path) == []
     assert not (tmp_path / "stereo_residuals.png").exists()
+
+
+def _capture_figures(monkeypatch):
+    """Keep every figure dic.plots.calibration saves (it is still written), to read its artists back."""
+    import dic.plots.calibration as cal
+
+    figures = []
+
+    def keep(fig, path, *, dpi):
+        figures.append(fig)
+        return save_figure(fig, path, dpi=dpi)
+
+    monkeypatch.setattr(cal, "save_figure", keep)
+    return figures
+
+
+def test_view_rms_bars_per_camera_with_the_limit(tmp_path, monkeypatch):
+    from dic.plots.calibration import view_rms_bars
+
+    figures = _capture_figures(monkeypatch)
+    per_camera = {"left": [("tilt1", 0.012), ("tilt2", 0.015), ("far", 0.020)],
+                  "right": [("tilt1", 0.011), ("tilt2", 0.013)]}
+    path = view_rms_bars(per_camera, tmp_path / "bars.png", limits={"left": 0.045, "right": None})
+    assert path.stat().st_size > 1000
+    [fig] = figures
+    left, right = fig.axes[:2]
+    assert [round(p.get_height(), 9) for p in left.patches] == [0.012, 0.015, 0.020]
+    assert [t.get_text() for t in left.get_xticklabels()] == ["tilt1", "tilt2", "far"]
+    red = [ln for ln in left.get_lines() if "rejection limit" in ln.get_label()]
+    assert len(red) == 1 and red[0].get_ydata()[0] == pytest.approx(0.045)
+    median = [ln for ln in left.get_lines() if ln.get_label().startswith("median")]
+    assert median[0].get_ydata()[0] == pytest.approx(0.015)
+    assert not [ln for ln in right.get_lines() if "rejection limit" in ln.get_label()]  # no limit given
+    assert len(right.patches) == 2
+    with pytest.raises(ValueError, match="non-empty dict"):
+        view_rms_bars({}, tmp_path / "x.png")

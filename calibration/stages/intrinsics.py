@@ -73,9 +73,11 @@ class IntrinsicsCalibration:
             extra["view_noise_px"] = {self.views[self.used[int(i)]].name: float(sv)
                                       for i, sv in zip(res.view_indices, res.view_sigma)}
         return {"method": method, "weighting": res.weighting, **extra,
-                "model": res.model, "rms_px": res.rms, "std": res.std, "view_rms_px": self.view_rms(),
+                "model": res.model, "rms_px": res.rms, "rms_all_views_px": res.rms_all_views, "std": res.std, "view_rms_px": self.view_rms(),
                 "mirrored_views": [self.views[self.used[i]].name for i, m in zip(res.view_indices, res.mirrored) if m],
                 "dropped": [{"view": n, "reason": r} for n, r in self.dropped],
+                "dropped_views": [{"view": self.views[self.used[d.index]].name, "rms_px": d.rms,
+                                   "rms_all_views_px": d.rms_all_views, "reason": d.reason} for d in res.dropped],
                 "dropped_points": [{"view": n, "id": i, "residual_px": r, "threshold_px": t}
                                    for n, i, r, t in self.dropped_points],
                 "removed_dots": {v.name: [{"id": i, "misfit": m} for i, m in v.removed] for v in self.views if v.removed},
@@ -84,7 +86,8 @@ class IntrinsicsCalibration:
 
 
 def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", reject: float | None = 3.0,
-                                         max_view_rms: float | None = None, reject_points: float | None = 4.0,
+                                         max_view_rms: float | None = None, reject_mad: float | None = None,
+                                         reject_points: float | None = 4.0,
                                          min_points: int = 6, dense_spacing: float = 75.0,
                                          weighting: str = "equal", name: str = "") -> IntrinsicsCalibration:
     """The bundle of :func:`calibration.pipeline.calibrate_intrinsics_from_images` on views already
@@ -124,7 +127,7 @@ def calibrate_intrinsics_from_detections(results, *, model: str = "opencv5", rej
     dropped_points = []
     for _ in range(6):
         res = calibrate_intrinsics(objs, imgs, size, mirrored=flags, model=model, reject=reject,
-                                   max_view_rms=max_view_rms, weighting=weighting, name=name)
+                                   max_view_rms=max_view_rms, reject_mad=reject_mad, weighting=weighting, name=name)
         if reject_points is None:
             break
         norms = [np.linalg.norm(r_, axis=1) for r_ in res.residuals]

@@ -174,6 +174,10 @@ class CheckerboardStereo:
     dropped: list
     left_intrinsics: IntrinsicsResult | None = None
     right_intrinsics: IntrinsicsResult | None = None
+    #: the board points of each kept pair: (N, 3) mm, and their (N, 2) px in the left and right images
+    object_points: list | None = None
+    left_points: list | None = None
+    right_points: list | None = None
 
     @property
     def rig(self) -> StereoRig:

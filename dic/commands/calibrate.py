@@ -7,6 +7,7 @@ view, parameters ± σ, dropped views and why) and writes its file:
 * ``specula calibrate mirror --camera camera.json --target target.json VIEW VIEW VIEW... -o pose.json``
 * ``specula calibrate stereo --left pose_left.json --right pose_right.json [--far L R] [--check L R] -o rig.json``
 * ``specula calibrate stereo --checkerboard --target board.json --left 'L/*.png' --right 'R/*.png' -o rig.json``
+* ``specula calibrate verify --rig rig.json --target target.json LEFT_VIEW RIGHT_VIEW [--ids A,B] [--distance MM]``
 
 A VIEW is one pose of the monitor: a folder holding the N phase-shifted images it recorded (in
 display order, natural sort of the file names), or a quoted glob pattern (``'view03/*.tif'``).
@@ -86,6 +87,8 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Drop views whose RMS exceeds this multiple of the median view RMS (0: keep all).")
 @click.option("--max-view-rms", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Also drop views whose RMS exceeds this many px.")
+@click.option("--reject-mad", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Also drop views whose RMS exceeds median + K x 1.4826 x MAD of the view RMS (robust z-score K, e.g. 5).")
 @click.option("--max-misfit", default=1.5, show_default=True, type=click.FloatRange(min=0),
               help="Remove dots whose phase-fit residual x modulation exceeds this multiple of the view's median (0: keep all).")
 @click.option("--reject-points", default=4.0, show_default=True, type=click.FloatRange(min=0),
@@ -96,14 +99,21 @@ _view_help = "VIEW: a folder of the N phase-shifted images of one pose, or a quo
               help="Ignore pixels whose fringe modulation is below this (grey levels).")
 @click.option("--weighting", default="equal", show_default=True, type=click.Choice(["equal", "per_view"]),
               help="per_view: weight each view by its estimated point noise (views blurred to different degrees).")
+@click.option("--leave-out", "leave_out", default=None, type=click.IntRange(min=1),
+              help="Leave-p-out stability test: re-solve with P views left out (every subset, or random ones) and "
+                   "report the spread (std, max deviation) of each parameter.")
+@click.option("--leave-out-subsets", default=50, show_default=True, type=click.IntRange(min=2),
+              help="With --leave-out: at most this many subsets; above, random subsets drawn with --seed.")
+@click.option("--seed", default=0, show_default=True, type=int, help="With --leave-out: seed of the random subsets.")
 @click.option("--figures", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Write PNG figures (detected centres per view, a close-up with dot ids, residuals, RMS per view) "
                    "into this folder.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation: cpu, cuda, cuda:N.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-view progress lines.")
-def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, max_misfit,
+def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing, reject, max_view_rms, reject_mad,
+                   max_misfit,
                    reject_points, correct_blur,
-                   min_modulation, weighting, figure_dir, device, quiet):
+                   min_modulation, weighting, leave_out, leave_out_subsets, seed, figure_dir, device, quiet):
     """Intrinsics of one camera from VIEWS of the phase target (direct and mirrored views together).
 
     Show the target's images on the monitor at many poses through the camera's depth of field (near
@@ -119,14 +129,27 @@ def intrinsics_cmd(views, target_path, output, name, model, dense, dense_spacing
             click.echo(f"{len(views)} views of {target!r}", err=True)
         ic = calibrate_intrinsics_from_images(
             list(views), target, mode="dense" if dense else "dots", model=model, reject=reject or None,
-            max_view_rms=max_view_rms, reject_points=reject_points or None, max_misfit=max_misfit or None,
+            max_view_rms=max_view_rms, reject_mad=reject_mad, reject_points=reject_points or None, max_misfit=max_misfit or None,
             dense_spacing=dense_spacing,
             correct_blur=correct_blur, min_modulation=min_modulation, weighting=weighting,
             name=name if name is not None else output.stem, progress=_progress(quiet), device=device)
+        stability = None
+        if leave_out is not None:
+            from calibration.stability import intrinsics_stability
+
+            res = ic.result
+            stability = intrinsics_stability([ic.object_points[u] for u in res.view_indices],
+                                             [ic.image_points[u] for u in res.view_indices], ic.camera.size,
+                                             mirrored=list(res.mirrored), p=leave_out, model=model,
+                                             weighting=weighting, max_subsets=leave_out_subsets, seed=seed,
+                                             view_names=[ic.views[ic.used[u]].name for u in res.view_indices])
     except ValueError as exc:
         _fail(exc)
     click.echo(ic.report())
     meta = ic.metadata()
+    if stability is not None:
+        click.echo(stability.report())
+        meta["stability"] = stability.to_dict()
     meta["target"] = os.fspath(target_path)
     ic.camera.save(output, metadata=meta)
     click.echo(f"wrote {output}")
@@ -238,9 +261,16 @@ def mirror_cmd(views, camera_path, target_path, output, dense, dense_spacing, si
                    "dot-distance errors and reprojection residuals) into this folder.")
 @click.option("--blur-correction/--no-blur-correction", "correct_blur", default=None,
               help="Run (or skip) the dot detector's defocus-bias correction on --far/--check views.")
+@click.option("--leave-out", "leave_out", default=None, type=click.IntRange(min=1),
+              help="With --checkerboard: leave-p-out stability test of the rig (intrinsics held): re-solve with P "
+                   "pairs left out and report the spread of the rotation angles, translation and baseline.")
+@click.option("--leave-out-subsets", default=50, show_default=True, type=click.IntRange(min=2),
+              help="With --leave-out: at most this many subsets; above, random subsets drawn with --seed.")
+@click.option("--seed", default=0, show_default=True, type=int, help="With --leave-out: seed of the random subsets.")
 @click.option("--device", default=None, help="Warp device for the phase demodulation.")
 def stereo_cmd(left, right, output, far, check, target_path, no_joint, checkerboard, left_camera, right_camera, sigma_px,
-               intrinsic_uncertainty, export_opencv, export_dice, export_vic3d, allow_lossy, figure_dir, correct_blur, device):
+               intrinsic_uncertainty, export_opencv, export_dice, export_vic3d, allow_lossy, figure_dir, correct_blur, device,
+               leave_out, leave_out_subsets, seed):
     """The stereo rig, from the two cameras' mirror calibrations (pose files) or from checkerboard pairs.
 
     Mirror mode: the rig is R_right_left = R_right_target R_left_target^T (paper Section 2); with
@@ -253,8 +283,12 @@ def stereo_cmd(left, right, output, far, check, target_path, no_joint, checkerbo
         if checkerboard:
             if far or check:
                 raise click.UsageError("--far/--check are for the mirror mode; with --checkerboard every pair is used")
-            rig, report, rc = _stereo_checkerboard(left, right, target_path, left_camera, right_camera)
+            rig, report, rc = _stereo_checkerboard(left, right, target_path, left_camera, right_camera,
+                                                   leave_out, leave_out_subsets, seed)
         else:
+            if leave_out is not None:
+                raise click.UsageError("--leave-out goes with --checkerboard (the pairs it leaves out); for the "
+                                       "intrinsics use 'calibrate intrinsics --leave-out'")
             if left_camera or right_camera:
                 raise click.UsageError("--left-camera/--right-camera go with --checkerboard; pose files carry their camera")
             rig, report, rc = _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, correct_blur, device,
@@ -323,13 +357,91 @@ def _stereo_mirror(left, right, far, check, target_path, no_joint, sigma_px, cor
     return rc.rig, report, rc
 
 
+# -- verify ----------------------------------------------------------------------------------------------
+@calibrate.command(name="verify")
+@click.argument("views", nargs=-1)
+@click.option("--rig", "rig_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Rig file (from 'calibrate stereo', or OpenCV/VIC-3D/DICe; the format is read from the content).")
+@click.option("--target", "target_path", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Target file of the views (target.json); needed with LEFT_VIEW RIGHT_VIEW.")
+@click.option("--ids", default=None, metavar="A,B",
+              help="The two target point ids to measure (default: the two common points farthest apart).")
+@click.option("--distance", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Known distance between the two points, mm (default with views: from the target file).")
+@click.option("--point", "points", nargs=4, type=float, multiple=True, metavar="XL YL XR YR",
+              help="Instead of views: one point in the left and the right image, px (give it twice; needs --distance).")
+@click.option("--max-error", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Exit with status 1 when the scale error exceeds this many percent (for scripted checks).")
+@click.option("--json", "json_path", default=None, type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the result as JSON.")
+@click.option("--blur-correction/--no-blur-correction", "correct_blur", default=None,
+              help="Run (or skip) the dot detector's defocus-bias correction.")
+@click.option("--device", default=None, help="Warp device for the phase demodulation.")
+def verify_cmd(views, rig_path, target_path, ids, distance, points, max_error, json_path, correct_blur, device):
+    """Check a rig's scale with a known distance between two target points seen by both cameras.
+
+    LEFT_VIEW RIGHT_VIEW: the target (phase target, e.g. the monitor) where both cameras see it, away
+    from the calibration views; the two points are triangulated with the rig and their distance compared
+    with the known one (the target's own pitch, or --distance). Or give the two points' image
+    coordinates with --point XL YL XR YR (twice) and --distance. Prints measured, known and the scale
+    error in %.
+    """
+    import json
+
+    from calibration.formats import load_rig
+    from calibration.verify import verify_distance, verify_view_distance
+
+    pair = None
+    if ids is not None:
+        parts = ids.replace(" ", "").split(",")
+        try:
+            pair = tuple(int(p) for p in parts)
+        except ValueError:
+            pair = ()
+        if len(pair) != 2:
+            raise click.BadParameter(f"must be two point ids 'A,B', got {ids!r}", param_hint="'--ids'")
+    if points:
+        if views:
+            raise click.UsageError("give either LEFT_VIEW RIGHT_VIEW or --point (twice), not both")
+        if len(points) != 2:
+            raise click.UsageError(f"--point must be given twice (the two points), got {len(points)}")
+        if distance is None:
+            raise click.UsageError("--point needs --distance (the known distance between the two points, mm)")
+        if pair is not None:
+            raise click.UsageError("--ids goes with views; --point gives the points themselves")
+    elif len(views) != 2:
+        raise click.UsageError(f"give LEFT_VIEW RIGHT_VIEW (2 views, got {len(views)}) or --point XL YL XR YR twice")
+    try:
+        rig = load_rig(rig_path)
+        if points:
+            res = verify_distance(rig, [p[:2] for p in points], [p[2:] for p in points], distance)
+        else:
+            if target_path is None:
+                raise ValueError("LEFT_VIEW RIGHT_VIEW need the target: pass --target target.json")
+            from calibration.pipeline import detect_stereo_view
+
+            target = _load_phase_target(target_path)
+            sv = detect_stereo_view(views[0], views[1], target, name=f"{views[0]} + {views[1]}",
+                                    correct_blur=correct_blur, device=device, min_points=2)
+            res = verify_view_distance(rig, sv, ids=pair, known_distance=distance)
+    except ValueError as exc:
+        _fail(exc)
+    click.echo(res.report())
+    if json_path is not None:
+        json_path.write_text(json.dumps(res.to_dict(), indent=1))
+        click.echo(f"wrote {json_path}")
+    if max_error is not None and abs(res.scale_error_percent) > max_error:
+        raise click.ClickException(f"the scale error {res.scale_error_percent:+.4f} % exceeds --max-error {max_error:g} %")
+
+
 def _expand(source):
     from calibration.pipeline import list_view_files
 
     return list_view_files(source)
 
 
-def _stereo_checkerboard(left, right, target_path, left_camera, right_camera):
+def _stereo_checkerboard(left, right, target_path, left_camera, right_camera, leave_out=None, leave_out_subsets=50,
+                         seed=0):
     from calibration.formats import load_camera
     from calibration.pipeline import stereo_from_checkerboards
     from calibration.targets import CheckerboardTarget, load_target
@@ -346,4 +458,12 @@ def _stereo_checkerboard(left, right, target_path, left_camera, right_camera):
     cl = load_camera(left_camera, which="left") if left_camera else None
     cr = load_camera(right_camera, which="right") if right_camera else None
     cs = stereo_from_checkerboards(lf, rf, board, left_camera=cl, right_camera=cr)
-    return cs.rig, cs.report(), None
+    report = cs.report()
+    if leave_out is not None:
+        from calibration.stability import rig_stability
+
+        st = rig_stability(cs.rig.left, cs.rig.right, cs.object_points, cs.left_points, cs.right_points, p=leave_out,
+                           max_subsets=leave_out_subsets, seed=seed, view_names=cs.names)
+        report += "\n" + st.report()
+        cs.rig.metadata["stability"] = st.to_dict()
+    return cs.rig, report, None

@@ -7,6 +7,10 @@ Examples::
     specula target fringes --grid 4x2 --pitch 450 --period 300 --dense -o section3/
     specula target checkerboard --corners 9x6 --square 120 -o board/
     specula target circles --grid 6x3 --pitch 300 --diameter 150 -o circles/
+    specula target checkerboard --screen fit --pixel-pitch 1 --corners 9x6 --square 25 --printable -o print/
+
+``--printable`` also writes ``{name}.svg`` and ``{name}.pdf``, vector files whose page is the target's
+physical size (``screen × pixel_pitch`` mm; :mod:`calibration.printable`): print them at 100 %.
 
 See docs/targets.md for the designs and the target frame (origin at the centre of screen pixel
 (0, 0), x right, y down, z into the screen, mm).
@@ -31,6 +35,20 @@ def _pair(text: str, name: str, integer: bool):
     return tuple(vals)
 
 
+def _screen(text: str):
+    """``--screen``: 'WxH' px, or 'fit' (the board plus a margin of one square / one circle pitch)."""
+    return None if str(text).strip().lower() == "fit" else _pair(text, "--screen", True)
+
+
+def _write_printable(target, out: str, prefix: str) -> None:
+    from calibration.printable import page_size_mm, write_pdf, write_svg
+
+    paths = [write_svg(target, os.path.join(out, f"{prefix}.svg")), write_pdf(target, os.path.join(out, f"{prefix}.pdf"))]
+    w, h = page_size_mm(target)
+    click.echo(f"wrote {paths[0]} and {paths[1]}: {w:g} x {h:g} mm; print at 100 % (actual size, no fit to page) "
+               "and measure a square or the pitch before use")
+
+
 def _write(target, out: str, prefix: str, dense: bool = False) -> None:
     try:
         os.makedirs(out, exist_ok=True)
@@ -52,7 +70,8 @@ def _write(target, out: str, prefix: str, dense: bool = False) -> None:
 
 
 def _common(f):
-    f = click.option("--screen", default="1920x1080", show_default=True, help="Monitor resolution WxH (px).")(f)
+    f = click.option("--screen", default="1920x1080", show_default=True, help="Monitor resolution WxH (px); checkerboard and circles also take 'fit' "
+                                                            "(the pattern plus one square / pitch of margin).")(f)
     f = click.option("--pixel-pitch", type=float, default=MONITOR_PIXEL_PITCH_MM, show_default=True,
                      help="Monitor pixel pitch (mm).")(f)
     f = click.option("-o", "--out", required=True, type=click.Path(file_okay=False), help="Output folder.")(f)
@@ -93,15 +112,21 @@ def fringes(screen, pixel_pitch, out, grid, pitch, steps, period, guard, no_code
 @_common
 @click.option("--corners", default="9x6", show_default=True, help="Inner corners along x and y.")
 @click.option("--square", type=float, default=100, show_default=True, help="Square size (screen px).")
-def checkerboard(screen, pixel_pitch, out, corners, square):
-    """A checkerboard (for OpenCV's detectors and for comparison)."""
+@click.option("--printable", is_flag=True,
+              help="Also write checkerboard.svg and checkerboard.pdf at the physical size (screen x pixel pitch mm).")
+def checkerboard(screen, pixel_pitch, out, corners, square, printable):
+    """A checkerboard (for OpenCV's detectors and for comparison).
+
+    To print one: --screen fit --pixel-pitch 1 --square SQUARE_MM --printable."""
     from calibration.targets import CheckerboardTarget
 
     try:
-        tg = CheckerboardTarget(_pair(screen, "--screen", True), pixel_pitch, _pair(corners, "--corners", True), square)
+        tg = CheckerboardTarget(_screen(screen), pixel_pitch, _pair(corners, "--corners", True), square)
     except ValueError as exc:
         raise click.ClickException(str(exc)) from exc
     _write(tg, out, "checkerboard")
+    if printable:
+        _write_printable(tg, out, "checkerboard")
 
 
 @target.command()
@@ -109,12 +134,18 @@ def checkerboard(screen, pixel_pitch, out, corners, square):
 @click.option("--grid", default="6x3", show_default=True, help="Circles along x and y.")
 @click.option("--pitch", type=float, default=300, show_default=True, help="Circle spacing (screen px).")
 @click.option("--diameter", type=float, default=None, help="Circle diameter (screen px); default pitch / 2.")
-def circles(screen, pixel_pitch, out, grid, pitch, diameter):
-    """A symmetric grid of dark circles (OpenCV's findCirclesGrid target)."""
+@click.option("--printable", is_flag=True,
+              help="Also write circles.svg and circles.pdf at the physical size (screen x pixel pitch mm).")
+def circles(screen, pixel_pitch, out, grid, pitch, diameter, printable):
+    """A symmetric grid of dark circles (OpenCV's findCirclesGrid target).
+
+    To print one: --screen fit --pixel-pitch 1 --pitch PITCH_MM --printable."""
     from calibration.targets import CircleGridTarget
 
     try:
-        tg = CircleGridTarget(_pair(screen, "--screen", True), pixel_pitch, _pair(grid, "--grid", True), pitch, diameter)
+        tg = CircleGridTarget(_screen(screen), pixel_pitch, _pair(grid, "--grid", True), pitch, diameter)
     except ValueError as exc:
         raise click.ClickException(str(exc)) from exc
     _write(tg, out, "circles")
+    if printable:
+        _write_printable(tg, out, "circles")

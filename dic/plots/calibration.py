@@ -6,9 +6,11 @@ residual vectors are drawn magnified, with a key arrow of a round length in px.
 
 * :func:`write_intrinsics_figures` — ``intrinsics_views.png`` (wrapped phase and detected centres per
   view), ``intrinsics_detail.png`` (close-up with dot ids), ``intrinsics_residuals.png`` (residual
-  vectors, their distribution, RMS per view with dropped views in grey).
+  vectors, their distribution, RMS per view with dropped views in grey, the median and the rejection
+  limit in red).
 * :func:`write_mirror_figures` — ``mirror_views.png`` and ``mirror_residuals.png`` (per mirror tilt).
-* :func:`write_rig_figures` — ``stereo_residuals.png`` (joint adjustment, both cameras) and
+* :func:`write_rig_figures` — ``stereo_residuals.png`` (joint adjustment, both cameras),
+  ``stereo_view_rms.png`` (:func:`view_rms_bars`: RMS per view and camera, the limit drawn) and
   ``stereo_check.png`` (:func:`write_check_figures`: dot-distance errors and reprojection residuals
   of the check views).
 * :func:`view_mosaic`, :func:`view_detail` — the view panels, for any list of
@@ -28,10 +30,13 @@ from calibration.pipeline import IntrinsicsCalibration, MirrorCalibration, RigCa
 from ._common import new_figure, save_figure
 
 __all__ = ["write_intrinsics_figures", "write_mirror_figures", "write_rig_figures", "write_check_figures",
-           "view_mosaic", "view_detail", "FigureSkipped"]
+           "view_mosaic", "view_detail", "view_rms_bars", "FigureSkipped"]
 
 #: resolution of every calibration figure (dots per inch)
 DPI = 110
+#: the limit drawn in ``stereo_view_rms.png``: this multiple of a camera's median view RMS, the default
+#: view-rejection rule of the intrinsics (``calibrate_intrinsics(reject=3)``); the rig stage drops no view
+STEREO_VIEW_LIMIT = 3.0
 
 
 class FigureSkipped(UserWarning):
@@ -218,6 +223,59 @@ def view_detail(views, path, title: str = "") -> Path | None:
 
 
 # -- intrinsics ------------------------------------------------------------------------------------------
+def _rms_bars(ax, names, values, colors, hatches, limits, median) -> None:
+    """Bars of per-view RMS (px) with the median (dashed) and each view's rejection limit (red ticks;
+    one red line when all are equal), labelled for the legend."""
+    bars = ax.bar(range(len(names)), values, color=colors)
+    for b, hh in zip(bars, hatches):
+        b.set_hatch(hh)
+    ax.axhline(median, color="k", ls="--", lw=0.7, label=f"median {median:.4f} px")
+    lim = np.asarray(limits, dtype=np.float64)
+    finite = np.isfinite(lim)
+    if finite.any():
+        if np.allclose(lim[finite], lim[finite][0], rtol=1e-9):
+            ax.axhline(lim[finite][0], color="tab:red", lw=1.0, label=f"rejection limit {lim[finite][0]:.4f} px")
+        else:
+            xs = np.flatnonzero(finite)
+            ax.hlines(lim[finite], xs - 0.4, xs + 0.4, color="tab:red", lw=1.2, label="rejection limit per view")
+    ax.set_xticks(range(len(names)))
+    ax.set_xticklabels(names, rotation=90, fontsize=6)
+    ax.tick_params(axis="y", labelsize=7)
+    ax.set_ylabel("RMS reprojection error (px)", fontsize=7)
+    ax.set_ylim(0, 1.15 * max([*values, *lim[finite], median, 1e-12]))
+    ax.legend(fontsize=6, loc="upper left")
+
+
+def view_rms_bars(per_camera, path, limits=None, title: str = "") -> Path:
+    """Bars of the RMS reprojection error per view, one panel per camera, with each camera's median
+    and rejection limit drawn; returns the path written.
+
+    ``per_camera``: ``{camera name: [(view label, RMS px), ...]}``; ``limits``: ``{camera name: px}``
+    (a horizontal line; missing or None: none drawn)."""
+    if not isinstance(per_camera, dict) or not per_camera:
+        raise ValueError("per_camera must be a non-empty dict {camera name: [(view label, RMS px), ...]}")
+    limits = {} if limits is None else dict(limits)
+    n = len(per_camera)
+    width = max(4.0, 0.35 * max(len(v) for v in per_camera.values()) + 1.5)
+    fig = new_figure((width * n, 3.6))
+    axes = np.atleast_1d(fig.subplots(1, n, squeeze=False)[0])
+    for ax, (cam, items) in zip(axes, per_camera.items()):
+        items = list(items)
+        if not items:
+            raise ValueError(f"camera {cam!r} has no views")
+        names = [str(nm) for nm, _ in items]
+        vals = [float(v) for _, v in items]
+        lim = limits.get(cam)
+        _rms_bars(ax, names, vals, [f"C{k % 10}" for k in range(len(vals))], [""] * len(vals),
+                  [np.nan if lim is None else float(lim)] * len(vals), float(np.median(vals)))
+        ax.set_title(f"{cam} camera: RMS per view (all {np.sqrt(np.mean(np.square(vals))):.4f} px)", fontsize=8,
+                     loc="left")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return save_figure(fig, path, dpi=DPI)
+
+
 def write_intrinsics_figures(calibration: IntrinsicsCalibration, folder) -> list[Path]:
     """Figures of an intrinsic calibration into ``folder`` (created); returns the paths written.
 
@@ -273,19 +331,16 @@ def write_intrinsics_figures(calibration: IntrinsicsCalibration, folder) -> list
             vals.append(drop_of[u].rms if u in drop_of else 0.0)
             cols.append("0.75")
             hatches.append("//")
-    bars = bx.bar(range(len(names)), vals, color=cols)
-    for b, hh in zip(bars, hatches):
-        b.set_hatch(hh)
-    med = float(np.median(res.per_view_rms))
-    bx.axhline(med, color="k", ls="--", lw=0.7)
-    bx.text(len(names) - 0.5, med, f" median {med:.4f}", fontsize=6, va="bottom", ha="right")
-    bx.set_xticks(range(len(names)))
-    bx.set_xticklabels(names, rotation=90, fontsize=6)
-    bx.tick_params(axis="y", labelsize=7)
-    bx.set_ylabel("RMS (px)", fontsize=7)
+    limit_of = {}
+    if res.view_rms_limit is not None:
+        limit_of = {int(u): float(v) for u, v in zip(res.view_indices, res.view_rms_limit) if np.isfinite(v)}
+    limits = [limit_of.get(u, np.nan) for u in range(len(ic.used))]
+    _rms_bars(bx, names, vals, cols, hatches, limits, float(np.median(res.per_view_rms)))
     nd = len(drop_of)
-    bx.set_title(f"RMS per view (all {res.rms:.4f} px" + (f"; {nd} dropped, grey)" if nd else ")"), fontsize=8,
-                 loc="left")
+    title = f"RMS per view (all {res.rms:.4f} px"
+    if nd:
+        title += f"; {nd} dropped, grey; {res.rms_all_views:.4f} px with them"
+    bx.set_title(title + ")", fontsize=8, loc="left")
     fig.tight_layout()
     return out + [save_figure(fig, folder / "intrinsics_residuals.png", dpi=DPI)]
 
@@ -375,6 +430,12 @@ def write_rig_figures(calibration: RigCalibration, folder) -> list[Path]:
             ax.legend(fontsize=6.5, loc="lower right", markerscale=3)
         fig.tight_layout()
         out.append(save_figure(fig, folder / "stereo_residuals.png", dpi=DPI))
+        per_camera = {side: [(nm, float(np.sqrt(np.nanmean(np.sum(r ** 2, axis=1))))) for nm, _, r in groups[side]]
+                      for side in ("left", "right")}
+        limits = {side: STEREO_VIEW_LIMIT * float(np.median([v for _, v in items])) for side, items in per_camera.items()}
+        out.append(view_rms_bars(per_camera, folder / "stereo_view_rms.png", limits=limits,
+                                 title=f"joint adjustment: RMS per view and camera; red: {STEREO_VIEW_LIMIT:g} × the "
+                                       "camera's median (the intrinsics' default rejection rule)"))
     if rc.checks:
         out.extend(write_check_figures(list(zip(rc.check_views, rc.checks)), folder, rig=rc.rig))
     return out
