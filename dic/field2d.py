@@ -59,6 +59,10 @@ class Field2D:
     reference_interpolated : (N,) bool or None
         Correlated against a moved reference: the valid points whose place in it was interpolated from
         their neighbours (:mod:`dic.sequence.reference`); None otherwise.
+    strain : StrainField, dict or None
+        The frame's strain when a sequence computed it (a :class:`dic.strain.StrainField`; a result
+        file's frame: the stored strain as a dict), used by :meth:`to_xarray` and :meth:`plot` when
+        they are given none.
     """
 
     points: np.ndarray
@@ -81,6 +85,7 @@ class Field2D:
     index: int | None = None
     reference_index: int = 0
     reference_interpolated: np.ndarray | None = None
+    strain: Any = None
 
     @property
     def n_points(self) -> int:
@@ -103,6 +108,7 @@ class Field2D:
     def _columns(self, strain=None) -> dict:
         from .tabular import columns_2d
 
+        strain = self.strain if strain is None else strain
         return columns_2d(self.points, self.u, self.v, params=self.params, order=self.order, zncc=self.zncc,
                           iterations=self.iterations, status=self.status, valid=self.valid, strain=strain)
 
@@ -129,7 +135,7 @@ class Field2D:
         Keywords go to ``field_figure`` (``components``, ``vmin``, ``vmax``, ``limits``, ``cmap``, ...)."""
         from .plots.fields import field_figure
 
-        return field_figure(reference, self, strain, **kwargs)
+        return field_figure(reference, self, self.strain if strain is None else strain, **kwargs)
 
     @property
     def param_names(self) -> tuple[str, ...]:

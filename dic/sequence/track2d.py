@@ -35,53 +35,33 @@ from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 __all__ = ["track_sequence", "SequenceSummary"]
 
 @dataclass
-class _State:
-    """A frame's Lagrangian result at the original POIs (what later frames compose with)."""
-
-    index: int
-    params: np.ndarray
-    valid: np.ndarray
-    status: np.ndarray
-    sigma_u: np.ndarray | None = None
-    sigma_v: np.ndarray | None = None
-    reference_index: int = 0
-
-    @property
-    def u(self):
-        return self.params[:, 0]
-
-    @property
-    def v(self):
-        return self.params[:, self.params.shape[1] // 2]
-
-
-@dataclass
 class _Ref:
     """The reference a frame is tracked against: the reference image (``moved`` None) or frame ``index``."""
 
     index: int
     image: Any
-    state: _State  # the frame's Lagrangian state (the reference image's: zero)
     tracker: Any
+    ok: np.ndarray  # (N,) bool: the points that can be tracked against it (valid in it, or placed by local interpolation)
+    state: Field2D | None = None  # frame ``index``'s field (None: the reference image)
     moved: MovedReference | None = None  # frame ``index`` as a reference (dic.correlation.lagrangian)
 
-    @property
-    def ok(self) -> np.ndarray:
-        """The points that can be tracked against this reference (valid in it, or placed by local interpolation)."""
-        return self.state.valid if self.moved is None else self.moved.usable
+
+def _moved(points0, state: Field2D, index: int, image, order: int) -> _Ref:
+    """Frame ``index`` (its Lagrangian field ``state``, computed or read back) as a reference, its tracker not
+    built yet (:class:`dic.correlation.lagrangian.MovedReference`). ValueError: no valid point."""
+    params = _params(state)
+    anchors = reference_anchors(points0, params, state.valid)
+    moved = MovedReference(index, points0, params, anchors, order)
+    return _Ref(index, image, None, moved.usable, state, moved)
 
 
-def _moved(points0, state: _State, index: int, image, order: int) -> _Ref:
-    """Frame ``index`` (its Lagrangian ``state``) as a reference, its tracker not built yet
-    (:class:`dic.correlation.lagrangian.MovedReference`). ValueError: no valid point."""
-    anchors = reference_anchors(points0, state.params, state.valid)
-    return _Ref(index, image, state, None, MovedReference(index, points0, state.params, anchors, order))
-
-
-def _state_of(index: int, f, reference_index: int) -> _State:
-    """The state of frame ``index`` (a :class:`Field2D`, computed or read back from the file)."""
-    return _State(index, np.asarray(f.params, np.float64), np.asarray(f.valid, bool), np.asarray(f.status, np.int32),
-                  f.sigma_u, f.sigma_v, int(reference_index))
+def _params(f: Field2D) -> np.ndarray:
+    """(N, 6|12) float64 parameters of a frame (one of another writer's files may have none: translation only)."""
+    if f.params is not None:
+        return np.asarray(f.params, np.float64)
+    params = np.zeros((len(f.u), 6))
+    params[:, 0], params[:, 3] = f.u, f.v
+    return params
 
 
 def _guess(previous):
@@ -121,7 +101,7 @@ def _lagrangian(ref: _Ref, raw, points0, index: int) -> Field2D:
 def _compose(ref: _Ref, raw: Field2D, points0, index: int) -> Field2D:
     """Frame ``index``'s result against a moved reference, in the original configuration (Lagrangian)."""
     out = copy.copy(raw)
-    s, moved = ref.state, ref.moved
+    s, moved = ref.state, ref.moved  # s: the field of the frame the reference moved to
     params = moved.compose(raw.params)  # tracked at whole pixels: carried to the moved POI, then composed
     ok = moved.usable
     valid = np.asarray(raw.valid, bool) & ok
@@ -398,7 +378,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 check_strain_window(strain_window, grid_layout(points0)[1])
         except ValueError as exc:
             raise ValueError(f"{exc} (strain_window=0 skips strain)") from None
-    zero = _State(0, np.zeros((n, 6 if order == 1 else 12)), np.ones(n, bool), np.zeros(n, np.int32))
+    everywhere = np.ones(n, bool)  # the reference image: every point can be tracked
     ref_name = ref_path or "(array)"
     writer = ResultWriter(out, reference_path=ref_path, reference_shape=ref_img.shape,
                           reference_sha256=_digest(ref_img), settings=settings, mode=mode,
@@ -439,10 +419,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             if callback is not None:
                 callback(k, lag, strain)
 
-        def stored_state(index: int) -> _State:
+        def stored_state(index: int) -> Field2D:
             with wb.lock:
-                f = writer.read_frame(index)
-            return _state_of(index, f, int(f.attrs.get("reference_index", 0)))
+                return writer.read_frame(index)
 
         bar = tqdm(total=total, unit="frame", desc="track", disable=not progress)
         reader = read_ahead(frames, _frame_loader(ref_img.shape, ref_name))
@@ -451,7 +430,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             try:
                 _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state,
                              builder=_builder(make_tracker, budget, order, search_name), ref_img=ref_img,
-                             zero=zero, points0=points0, order=order, settings=settings, out=out)
+                             everywhere=everywhere, points0=points0, order=order, settings=settings, out=out)
             finally:
                 reader.close()
                 wb.close(raise_error=False)
@@ -459,7 +438,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             trim_memory()
             summary.seconds = time.perf_counter() - t_start
             return summary
-        kind = _Track2D(ref_img=ref_img, zero=zero, points0=points0, order=order, guess=guess,
+        kind = _Track2D(ref_img=ref_img, everywhere=everywhere, points0=points0, order=order, guess=guess,
                         reference_tracker=reference_tracker, tracker_for=tracker_for,
                         release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
                         stored_state=stored_state, finish=finish, out=out)
@@ -481,13 +460,13 @@ class _Track2D:
 
     noun, images_noun, inputs_noun = "frame", "the image", "frames"
 
-    def __init__(self, *, ref_img, zero, points0, order, guess, reference_tracker, tracker_for, release_reference,
+    def __init__(self, *, ref_img, everywhere, points0, order, guess, reference_tracker, tracker_for, release_reference,
                  writer, stored_state, finish, out):
-        self.ref_img, self.zero, self.points0, self.order, self.guess = ref_img, zero, points0, order, guess
+        self.ref_img, self.everywhere, self.points0, self.order, self.guess = ref_img, everywhere, points0, order, guess
         self._reference_tracker, self._tracker_for, self._release = reference_tracker, tracker_for, release_reference
         self.writer, self.stored_state, self._finish, self.out = writer, stored_state, finish, out
-        self.current = _Ref(0, ref_img, zero, reference_tracker())
-        self.prev: _State | None = None  # the last frame's state (computed or read back)
+        self.current = _Ref(0, ref_img, reference_tracker(), everywhere)
+        self.prev: Field2D | None = None  # the last frame's field (computed or read back)
 
     @property
     def reference_index(self) -> int:
@@ -495,7 +474,7 @@ class _Track2D:
 
     def move_reference(self, r: int, image, state) -> None:
         if r == 0:
-            self.current = _Ref(0, self.ref_img, self.zero, self._reference_tracker())
+            self.current = _Ref(0, self.ref_img, self._reference_tracker(), self.everywhere)
             return
         moved = _moved(self.points0, state, r, None, self.order)  # ValueError: no valid point
         self._release()  # free the previous reference's data before preparing the new one
@@ -515,9 +494,9 @@ class _Track2D:
     def quality(self, result) -> tuple[float, float]:
         return _quality(result, self.current.ok)
 
-    def accept(self, k: int, result, image) -> _State:
-        self.prev = _state_of(k, result, self.current.index)
-        return self.prev
+    def accept(self, k: int, result: Field2D, image) -> Field2D:
+        self.prev = result
+        return result
 
     def check_done(self, k: int, item: Loaded) -> int:
         attrs = self.writer.frame_attrs(k)
@@ -547,7 +526,7 @@ def _builder(make_tracker, budget, order, search):
     return ReferenceBuilder(make_tracker, budget, order, search)
 
 
-def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state, *, builder, ref_img, zero,
+def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state, *, builder, ref_img, everywhere,
                  points0, order, settings, out):
     """The frames of :func:`track_sequence` correlated on a Dask cluster, written here in frame order.
 
@@ -577,7 +556,7 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
                          "it must be picklable by cloudpickle (create what it holds inside it)") from None
     build = client.submit(held, builder, key=f"specula-{token}-builder", pure=False)
     pending: OrderedDict = OrderedDict()  # frame -> (future, Loaded, _Ref)
-    key_states: dict[int, _State] = {}  # every:N: the key frames computed in this call
+    key_states: dict[int, Field2D] = {}  # every:N: the key frames computed in this call
     images: dict[int, Any] = {}  # images of key frames (the next block's reference): bounded
     done = set(writer.done_frames())
 
@@ -588,7 +567,7 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
                                                                    pure=False)}
 
     over = builder.over_budget(len(points0))
-    cur = _Ref(0, ref_img, zero, None)
+    cur = _Ref(0, ref_img, None, everywhere)
     skipped_for = None  # every:N: a key frame that could not serve as a reference (no valid point)
     cur_data = scattered(0, ref_img, points0 if over else None, "")
 
@@ -609,7 +588,7 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
         lag = _lagrangian(ref, raw, points0, k)
         wb.submit(lambda k=k, lag=lag, s=seconds, r=ref.index, it=item: finish(k, lag, s, r, it))
         if policy.kind == "every" and k % policy.every == 0:
-            key_states[k] = _state_of(k, lag, ref.index)
+            key_states[k] = lag
         valid = np.asarray(lag.valid, bool)
         summary.add(k, int(valid.sum()), int(valid.size), seconds, int(ref.index))
         if len(summary) % TRIM_EVERY == 0:
@@ -702,11 +681,11 @@ def _planned_points(shape, options: dict):
         return None
 
 
-def _guess_for(ref: _Ref, prev: _State | None, k: int, order: int):
+def _guess_for(ref: _Ref, prev: Field2D | None, k: int, order: int):
     """The initial guess of frame k against ``ref``, from the previous frame's (Lagrangian) result."""
     if prev is None or prev.index != k - 1 or prev.index == ref.index:
         return None
     if ref.index == 0:
-        return _guess((prev.params, prev.valid))
-    valid = prev.valid & ref.ok
-    return _guess((ref.moved.relative(prev.params), valid))
+        return _guess((_params(prev), np.asarray(prev.valid, bool)))
+    valid = np.asarray(prev.valid, bool) & ref.ok
+    return _guess((ref.moved.relative(_params(prev)), valid))
