@@ -19,7 +19,7 @@ serve as a reference leaves the previous reference in place), the images that ma
 reference (at most three frames held), the reader thread ahead and the writer thread behind
 (:mod:`dic.sequence.pipeline`), memory trimming, the progress bar and the :class:`SequenceSummary`.
 Results are never held after they are written: the summary keeps a few numbers per frame.
-The Dask window of either kind is :func:`dask_window`.
+The Dask window of either kind is :func:`run_on_dask`.
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ import numpy as np
 from .pipeline import Loaded, WriteBehind, trim_memory
 from .reference import ReferencePolicy
 
-__all__ = ["SequenceSummary", "FrameMeasure", "run_sequence", "dask_window", "TRIM_EVERY"]
+__all__ = ["SequenceSummary", "FrameMeasure", "run_sequence", "run_on_dask", "dask_window", "TRIM_EVERY"]
 
 TRIM_EVERY = 10  # frames between two malloc_trim calls
 
@@ -263,3 +263,79 @@ def dask_window(client) -> int:
     from .distributed import n_workers
 
     return 2 * n_workers(client) + 1
+
+
+def run_on_dask(client, reader, *, done: set, wb: WriteBehind, summary: SequenceSummary, bar, token: str,
+                submit: Callable, collect: Callable, check_done: Callable, failed: Callable,
+                before: Callable | None = None) -> None:
+    """The frames of ``reader`` computed on a Dask cluster and collected here in frame order: the one Dask
+    window of 2-D and stereo sequences (:func:`dask_window` frames in flight; the oldest is collected first).
+
+    ``submit(k, item) -> (future, context)`` sends frame k out (the future gives ``(result, seconds)``);
+    ``collect(k, item, context, result, seconds) -> (n_valid, n_points, reference_index)`` hands the
+    result to the writer thread; ``check_done(k, item)``: the resume check of a finished frame (under
+    ``wb.lock``); ``failed(item, exc)``: the error naming the frame; ``before(k, item, wait)``, optional:
+    called first for every frame (2-D every:N: a new reference, whose key frame it waits for with
+    ``wait(r)``, which collects the frames up to r). Cancels what is in flight on the way out and
+    releases the data held under ``token`` on the workers.
+    """
+    from collections import OrderedDict
+
+    from .distributed import LOST, release
+
+    lost = LOST()
+    window = dask_window(client)
+    pending: OrderedDict = OrderedDict()  # frame -> (future, Loaded, context)
+
+    def collect_one():
+        k, (fut, item, context) = pending.popitem(last=False)
+        try:
+            result, seconds = fut.result()
+        except ValueError as exc:
+            wb.close(raise_error=True)  # the frames before it are written first
+            raise failed(item, exc) from None
+        except lost as exc:  # workers that kept dying on this frame, a scheduler gone, a cancelled run
+            wb.close(raise_error=True)
+            raise failed(item, ValueError(f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")) \
+                from None
+        n_valid, n_points, reference_index = collect(k, item, context, result, seconds)
+        del result
+        summary.add(k, n_valid, n_points, seconds, reference_index)
+        if len(summary) % TRIM_EVERY == 0:
+            trim_memory()
+        bar.update(1)
+
+    def wait(r: int) -> None:
+        while r in pending:
+            collect_one()
+
+    try:
+        for item in reader:
+            k = item.index
+            if item.error is not None:
+                while pending:
+                    collect_one()
+                wb.close(raise_error=True)
+                err = failed(item, item.error)
+                if err is item.error:
+                    raise err
+                raise err from None
+            if before is not None:
+                before(k, item, wait)
+            if k in done:  # resuming: the finished frame must come from the image given for it now
+                with wb.lock:
+                    check_done(k, item)
+                summary.skipped += 1
+                bar.update(1)
+                continue
+            while len(pending) >= window:
+                collect_one()
+            fut, context = submit(k, item)
+            pending[k] = (fut, item, context)
+        while pending:
+            collect_one()
+        wb.close(raise_error=True)
+    finally:
+        if pending:
+            client.cancel([f for f, _, _ in pending.values()])
+        release(client, token + ":")

@@ -32,7 +32,7 @@ from ..field3d import Field3D
 from ..stereo import StereoCorrelation, as_rig
 from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
-from .engine import TRIM_EVERY, SequenceSummary, dask_window, run_sequence
+from .engine import SequenceSummary, run_on_dask, run_sequence
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
@@ -357,68 +357,38 @@ class _StereoMeasure:
 
 
 def _stereo_on_dask(client, reader, writer, wb, done, summary, bar, finish, builder):
-    """The later states of :func:`stereo_sequence` measured on a Dask cluster, written here in order."""
+    """The later states of :func:`stereo_sequence` measured on a Dask cluster, written here in order
+    (:func:`dic.sequence.engine.run_on_dask`)."""
     import uuid
-    from collections import OrderedDict
 
     import cloudpickle
 
-    from .distributed import LOST, held, release, track_on_worker
+    from .distributed import held, track_on_worker
 
-    lost = LOST()
     token = uuid.uuid4().hex[:16]
     try:
         cloudpickle.dumps(builder)
     except Exception as exc:
         raise ValueError(f"the stereo settings cannot be sent to the Dask workers ({type(exc).__name__}: {exc})") from None
     build = client.submit(held, builder, key=f"specula-{token}-stereo-builder", pure=False)
-    window = dask_window(client)
-    pending: OrderedDict = OrderedDict()  # state -> (future, Loaded)
 
-    def fail(k, item, exc):
-        (lpath, rpath) = item.path if item.path else (None, None)
-        raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
+    def failed(item, exc):
+        if exc is item.error:  # a pair that could not be read: its message names it
+            return exc
+        lpath, rpath = item.path if item.path else (None, None)
+        return ValueError(f"pair {item.index} ({lpath or 'array'}, {rpath or 'array'}): {exc}")
 
-    def drain_one():
-        k, (fut, item) = pending.popitem(last=False)
-        try:
-            f, seconds = fut.result()
-        except ValueError as exc:
-            wb.close()
-            fail(k, item, exc)
-        except lost as exc:
-            wb.close()
-            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
+    def collect(k, item, _context, f, seconds):
         wb.submit(lambda k=k, f=f, p=item.path, d=item.digest, s=float(seconds): finish(k, f, p, d, s))
-        done.add(k)
-        summary.add(k, int(np.count_nonzero(f.valid)), int(np.size(f.valid)), float(seconds), 0)
-        del f
-        if len(summary) % TRIM_EVERY == 0:
-            trim_memory()
-        bar.update(1)
+        return int(np.count_nonzero(f.valid)), int(np.size(f.valid)), 0
 
-    try:
-        for item in reader:
-            k = item.index
-            if item.error is not None:
-                while pending:
-                    drain_one()
-                wb.close()
-                raise item.error
-            if k in done:  # resuming: the finished state must come from the pair given for it now
-                with wb.lock:
-                    writer.check_frame(k, item.path, item.digest)
-                bar.update(1)
-                continue
-            while len(pending) >= window:
-                drain_one()
-            L, R = item.image
-            pending[k] = (client.submit(track_on_worker, f"{token}:stereo", build, None, None, (k, L, R),
-                                        key=f"specula-{token}-pair-{k}", pure=False), item)
-        while pending:
-            drain_one()
-        wb.close()
-    finally:
-        if pending:
-            client.cancel([f for f, _ in pending.values()])
-        release(client, token + ":")
+    def check_done(k, item):
+        writer.check_frame(k, item.path, item.digest)
+
+    def submit(k, item):
+        L, R = item.image
+        return client.submit(track_on_worker, f"{token}:stereo", build, None, None, (k, L, R),
+                             key=f"specula-{token}-pair-{k}", pure=False), None
+
+    run_on_dask(client, reader, done=done, wb=wb, summary=summary, bar=bar, token=token, submit=submit,
+                collect=collect, check_done=check_done, failed=failed)

@@ -28,7 +28,7 @@ from .chunks import (
     strain_in_bands,
     write_depth,
 )
-from .engine import TRIM_EVERY, SequenceSummary, run_sequence
+from .engine import SequenceSummary, run_sequence
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
@@ -403,6 +403,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                         strain = strain_in_bands(lag, strain_window)
                 except ValueError as exc:
                     raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
+            lag.strain = strain  # the frame's field carries its strain (callback, later use)
             attrs = {"seconds": raw_seconds, "reference_index": int(lag.reference_index)}
             if lag.reference_interpolated is not None:  # the valid points whose place in the reference was interpolated
                 attrs["reference_interpolated"] = int(np.count_nonzero(lag.reference_interpolated))
@@ -535,16 +536,12 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     """
     import json
     import uuid
-    from collections import OrderedDict
 
-    from .distributed import LOST, held, release, track_on_worker
-    from .engine import dask_window
-
-    lost = LOST()
+    from .distributed import held, track_on_worker
+    from .engine import run_on_dask
 
     token = _sha256_text(json.dumps(settings, sort_keys=True, default=str) + _digest(ref_img))[:16] + "-" + \
         uuid.uuid4().hex[:8]
-    window = dask_window(client)
     # the reference data go to the cluster as the results of tasks that hold them (not scattered): if
     # every worker holding them dies, the scheduler computes them again instead of cancelling the frames
     import cloudpickle
@@ -555,7 +552,6 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
         raise ValueError(f"make_tracker cannot be sent to the Dask workers ({type(exc).__name__}: {exc}); with client= "
                          "it must be picklable by cloudpickle (create what it holds inside it)") from None
     build = client.submit(held, builder, key=f"specula-{token}-builder", pure=False)
-    pending: OrderedDict = OrderedDict()  # frame -> (future, Loaded, _Ref)
     key_states: dict[int, Field2D] = {}  # every:N: the key frames computed in this call
     images: dict[int, Any] = {}  # images of key frames (the next block's reference): bounded
     done = set(writer.done_frames())
@@ -571,35 +567,25 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     skipped_for = None  # every:N: a key frame that could not serve as a reference (no valid point)
     cur_data = scattered(0, ref_img, points0 if over else None, "")
 
-    def fail(k: int, item, exc):
-        saved = f"; frames before it are saved in {out}" if k > 1 else ""
-        raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}{saved}") from None
+    def failed(item, exc):
+        if not isinstance(exc, (ValueError, OSError)):
+            return exc
+        saved = f"; frames before it are saved in {out}" if item.index > 1 else ""
+        return ValueError(f"frame {item.index} ({item.path or 'array'}): {exc}{saved}")
 
-    def drain_one():
-        k, (fut, item, ref) = pending.popitem(last=False)
-        try:
-            raw, seconds = fut.result()
-        except ValueError as exc:
-            wb.close(raise_error=True)  # the frames before it are written first
-            fail(k, item, exc)
-        except lost as exc:  # workers that kept dying on this frame, a scheduler gone, a cancelled run
-            wb.close(raise_error=True)
-            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
+    def collect(k, item, ref, raw, seconds):
         lag = _lagrangian(ref, raw, points0, k)
-        wb.submit(lambda k=k, lag=lag, s=seconds, r=ref.index, it=item: finish(k, lag, s, r, it))
+        wb.submit(lambda k=k, lag=lag, s=seconds, it=item: finish(k, lag, s, it))
         if policy.kind == "every" and k % policy.every == 0:
             key_states[k] = lag
         valid = np.asarray(lag.valid, bool)
-        summary.add(k, int(valid.sum()), int(valid.size), seconds, int(ref.index))
-        if len(summary) % TRIM_EVERY == 0:
-            trim_memory()
-        bar.update(1)
+        return int(valid.sum()), int(valid.size), int(ref.index)
 
-    def reference(r: int):
+    def reference(r: int, wait):
         """The reference frame r of the next block (its key frame's result known: waited for)."""
         nonlocal cur, cur_data
-        while r not in key_states and r in pending:
-            drain_one()
+        if r not in key_states:
+            wait(r)
         state = key_states.get(r) or stored_state(r)
         if r not in images:
             raise ValueError(f"cannot resume {out}: the image of frame {r}, the reference of the next frame, "
@@ -615,45 +601,30 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
         for i in [i for i in key_states if i < r]:  # key frames before the reference: not needed again
             del key_states[i]
 
-    try:
-        for item in reader:
-            k = item.index
-            if item.error is not None:
-                while pending:
-                    drain_one()
-                wb.close(raise_error=True)
-                if isinstance(item.error, (ValueError, OSError)):
-                    fail(k, item, item.error)
-                raise item.error
-            if policy.kind == "every":
-                r = policy.start(k, 0)
-                if r != cur.index and r != skipped_for:
-                    before = cur.index
-                    reference(r)
-                    if cur.index == before:  # the key frame could not serve: remember not to try again
-                        skipped_for = r
-                if k % policy.every == 0:
-                    images[k] = item.image
-                for i in [i for i in images if i not in (k, cur.index)]:
-                    del images[i]
-            if k in done:  # resuming: the finished frame must come from the image given for it now
-                with wb.lock:
-                    writer.check_frame(k, item.path, item.digest)
-                summary.skipped += 1
-                bar.update(1)
-                continue
-            while len(pending) >= window:
-                drain_one()
-            fut = client.submit(track_on_worker, cur_data["key"], build, cur_data["image"], cur_data["points"],
-                                item.image, key=f"specula-{token}-frame-{k}", pure=False)
-            pending[k] = (fut, item, cur)
-        while pending:
-            drain_one()
-        wb.close(raise_error=True)
-    finally:
-        if pending:
-            client.cancel([f for f, _, _ in pending.values()])
-        release(client, token + ":")
+    def before(k, item, wait):
+        nonlocal skipped_for
+        if policy.kind != "every":
+            return
+        r = policy.start(k, 0)
+        if r != cur.index and r != skipped_for:
+            was = cur.index
+            reference(r, wait)
+            if cur.index == was:  # the key frame could not serve: remember not to try again
+                skipped_for = r
+        if k % policy.every == 0:
+            images[k] = item.image
+        for i in [i for i in images if i not in (k, cur.index)]:
+            del images[i]
+
+    def check_done(k, item):
+        writer.check_frame(k, item.path, item.digest)
+
+    def submit(k, item):
+        return client.submit(track_on_worker, cur_data["key"], build, cur_data["image"], cur_data["points"],
+                             item.image, key=f"specula-{token}-frame-{k}", pure=False), cur
+
+    run_on_dask(client, reader, done=done, wb=wb, summary=summary, bar=bar, token=token, submit=submit,
+                collect=collect, check_done=check_done, failed=failed, before=before)
 
 
 def _sha256_text(text: str) -> str:
