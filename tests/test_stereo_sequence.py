@@ -422,7 +422,9 @@ def test_no_state_is_held_once_written(lab, tmp_path, reference):
 
     def measure(k, field, strain):
         gc.collect()
-        alive[k] = [i for i, r in refs.items() if 0 < i < k - 3 and r() is not None]
+        # every:4: the reference of state k's block and of the next may still be needed
+        key = {4 * ((k - 1) // 4), 4 * (k // 4)} if reference == "every:4" else set()
+        alive[k] = [i for i, r in refs.items() if 0 < i < k - 3 and i not in key and r() is not None]
         refs[k] = weakref.ref(field)
 
     s = stereo_sequence(lab["rig"], pairs, tmp_path / "run.h5", step=2 * STEP, reference=reference, callback=measure)

@@ -6,7 +6,7 @@ after OpenCorr's ``DIC`` interface: the reference is prepared once, then each fr
 - ``measure(k, image)``: frame ``k`` against the current reference, from the kind's own initial
   guess (the previous frame's result, or none);
 - ``move_reference(r, image, state)``: track the next frames from frame ``r`` (``r = 0``: the
-  reference image or pair), ValueError when frame ``r`` has no valid point;
+  reference image or pair), :class:`CannotServe` when frame ``r`` has no valid point;
 - ``quality(result)``: valid fraction among the points the reference can track, median ZNCC;
 - ``accept(k, result, image)``, ``stored_state(r)``: the next frame's guess starts from a result; what
   a moved reference is built from (a frame computed in this call, or one read back from the file);
@@ -34,9 +34,15 @@ import numpy as np
 from .pipeline import Loaded, WriteBehind, trim_memory
 from .reference import ReferencePolicy
 
-__all__ = ["SequenceSummary", "FrameMeasure", "run_sequence", "run_on_dask", "dask_window", "TRIM_EVERY"]
+__all__ = ["SequenceSummary", "FrameMeasure", "CannotServe", "run_sequence", "run_on_dask", "dask_window",
+           "TRIM_EVERY"]
 
 TRIM_EVERY = 10  # frames between two malloc_trim calls
+
+
+class CannotServe(ValueError):
+    """Raised by a kind's ``move_reference``: the frame cannot serve as a reference (no valid point, or none
+    that is no false match); the engine keeps the previous reference."""
 
 
 @dataclass
@@ -143,7 +149,9 @@ class FrameMeasure(Protocol):
 
     def stored_state(self, r: int) -> Any: ...
 
-    def move_reference(self, r: int, image, state) -> None: ...
+    def move_reference(self, r: int, image, state) -> None:
+        """Track the next frames from frame r (``image``, ``state``); r = 0: back to the reference.
+        :class:`CannotServe` when frame r has no valid point."""
 
     def check_done(self, k: int, item: Loaded) -> int:
         """Check a finished frame against the image given for it now; its reference index."""
@@ -191,7 +199,7 @@ def run_sequence(kind: FrameMeasure, reader, policy: ReferencePolicy, *, done: s
                 state = kind.stored_state(r)
         try:
             kind.move_reference(r, images[r], state)
-        except ValueError:  # no valid point (or none that is no false match): the previous reference stays
+        except CannotServe:  # no valid point (or none that is no false match): the previous reference stays
             if fallback is None or fallback == r:
                 raise ValueError(f"{kind.noun} {r} has no valid point and cannot serve as a reference") from None
             return use_reference(fallback, fallback)

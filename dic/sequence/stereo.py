@@ -32,7 +32,7 @@ from ..field3d import Field3D
 from ..stereo import StereoCorrelation, as_rig
 from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
-from .engine import SequenceSummary, run_on_dask, run_sequence
+from .engine import CannotServe, SequenceSummary, run_on_dask, run_sequence
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
@@ -276,6 +276,8 @@ class _Stereo:
     def move_reference(self, r: int, image, state) -> None:
         if r == 0:
             self.sc.move_reference()
+        elif not np.any(state.valid):
+            raise CannotServe(f"state {r} has no valid point")
         else:
             self.sc.move_reference(image[0], image[1], state)
 

@@ -28,7 +28,7 @@ from .chunks import (
     strain_in_bands,
     write_depth,
 )
-from .engine import SequenceSummary, run_sequence
+from .engine import CannotServe, SequenceSummary, run_sequence
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
@@ -477,7 +477,10 @@ class _Track2D:
         if r == 0:
             self.current = _Ref(0, self.ref_img, self._reference_tracker(), self.everywhere)
             return
-        moved = _moved(self.points0, state, r, None, self.order)  # ValueError: no valid point
+        try:
+            moved = _moved(self.points0, state, r, None, self.order)
+        except ValueError as exc:  # no valid point
+            raise CannotServe(str(exc)) from None
         self._release()  # free the previous reference's data before preparing the new one
         self.current = None
         moved.image = _host(image)  # a reference is prepared on the host (once per reference)
