@@ -427,14 +427,14 @@ class _Geometry:
             except ValueError:
                 pass
             data = {"u": u, "v": v, "displacement": np.column_stack([u, v, np.zeros(n)])}
-            if getattr(f, "zncc", None) is not None:
+            if f.zncc is not None:  # a Field2D (a result file's frame included; arrays a file lacks are None)
                 data["zncc"] = np.asarray(f.zncc, dtype=np.float64)
-            if getattr(f, "iterations", None) is not None:
+            if f.iterations is not None:
                 data["iterations"] = np.asarray(f.iterations).astype(np.int32)
-            if getattr(f, "status", None) is not None:
+            if f.status is not None:
                 data["status"] = np.asarray(f.status).astype(np.int32)
             data["valid"] = valid.astype(np.uint8)
-            strain = getattr(f, "strain", None) if strain is None else strain
+            strain = f.strain if strain is None else strain
             if strain is not None:
                 get = strain.get if isinstance(strain, dict) else lambda k: getattr(strain, k)
                 for name in _STRAIN_2D:
@@ -566,7 +566,7 @@ def write_vtk_series(fields, directory, *, stem: str | None = None, kind: str = 
     directory.mkdir(parents=True, exist_ok=True)
     entries = []
     for k, f in enumerate(series()):  # second pass: one file per field, as it is read
-        index = int(f.index) if getattr(f, "index", None) is not None and not isinstance(f, Field2D) else k + 1
+        index = int(f.index) if f.index is not None else k + 1  # a lone Field2D has no index
         name = f"{stem}_{index:06d}.vtu"
         _mesh(f, kind, deformed, invalid="nan", keep=keep, positions=positions).write(directory / name)
         entries.append((index, name))

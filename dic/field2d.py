@@ -13,7 +13,7 @@ import numpy as np
 
 from kernels.conventions import param_names
 
-__all__ = ["Field2D"]
+__all__ = ["Field2D", "as_field2d"]
 
 
 @dataclass
@@ -51,6 +51,18 @@ class Field2D:
     noise_source : str or None
         ``"given"`` (the user's ``noise_sigma``) or ``"residual"`` (estimated from the valid
         subsets' ZNSSD residuals).
+    index : int or None
+        The frame of a sequence this field is (:func:`dic.sequence.track_sequence`; None for a lone pair).
+    reference_index : int
+        The frame it was correlated against (0: the reference image); the field itself is always
+        relative to the reference image at its POIs (Lagrangian).
+    reference_interpolated : (N,) bool or None
+        Correlated against a moved reference: the valid points whose place in it was interpolated from
+        their neighbours (:mod:`dic.sequence.reference`); None otherwise.
+    strain : StrainField, dict or None
+        The frame's strain when a sequence computed it (a :class:`dic.strain.StrainField`; a result
+        file's frame: the stored strain as a dict), used by :meth:`to_xarray` and :meth:`plot` when
+        they are given none.
     """
 
     points: np.ndarray
@@ -70,6 +82,10 @@ class Field2D:
     sigma_v: np.ndarray | None = None
     noise_sigma: float | None = None
     noise_source: str | None = None
+    index: int | None = None
+    reference_index: int = 0
+    reference_interpolated: np.ndarray | None = None
+    strain: Any = None
 
     @property
     def n_points(self) -> int:
@@ -92,6 +108,7 @@ class Field2D:
     def _columns(self, strain=None) -> dict:
         from .tabular import columns_2d
 
+        strain = self.strain if strain is None else strain
         return columns_2d(self.points, self.u, self.v, params=self.params, order=self.order, zncc=self.zncc,
                           iterations=self.iterations, status=self.status, valid=self.valid, strain=strain)
 
@@ -118,7 +135,7 @@ class Field2D:
         Keywords go to ``field_figure`` (``components``, ``vmin``, ``vmax``, ``limits``, ``cmap``, ...)."""
         from .plots.fields import field_figure
 
-        return field_figure(reference, self, strain, **kwargs)
+        return field_figure(reference, self, self.strain if strain is None else strain, **kwargs)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -186,3 +203,32 @@ class Field2D:
         out = np.full((ny, nx) + arr.shape[1:], fill, dtype=dtype)
         out[ky, kx] = arr
         return out
+
+
+def as_field2d(result) -> Field2D:
+    """A tracker's result as a :class:`Field2D` (the one 2-D result type of a sequence).
+
+    A :class:`Field2D` is returned as it is. Anything else is the result of a custom tracker
+    (``make_tracker`` of :func:`dic.sequence.track_sequence`): an object with ``points`` (N, 2),
+    ``u``, ``v`` (N,) px and, optionally, ``params`` (N, 6|12; default: the translation ``u``, ``v``),
+    ``zncc``, ``iterations``, ``status``, ``valid`` (default: every point), ``sigma_u``, ``sigma_v``,
+    ``subset``; the arrays are taken as they are (those it lacks stay None and are not written).
+    """
+    if isinstance(result, Field2D):
+        return result
+    missing = [name for name in ("points", "u", "v") if getattr(result, name, None) is None]
+    if missing:
+        raise ValueError(f"a tracker's result must have points, u and v; {type(result).__name__} has no "
+                         f"{', '.join(missing)}")
+    u, v = result.u, result.v
+    n = len(u)
+    params = getattr(result, "params", None)
+    if params is None:  # translation only
+        params = np.zeros((n, 6))
+        params[:, 0], params[:, 3] = u, v
+    valid = getattr(result, "valid", None)
+    return Field2D(points=result.points, u=u, v=v, params=params, zncc=getattr(result, "zncc", None),
+                   iterations=getattr(result, "iterations", None), status=getattr(result, "status", None),
+                   valid=np.ones(n, bool) if valid is None else valid, subset=int(getattr(result, "subset", 0) or 0),
+                   order=1 if np.shape(params)[1] == 6 else 2, sigma_u=getattr(result, "sigma_u", None),
+                   sigma_v=getattr(result, "sigma_v", None))

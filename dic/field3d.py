@@ -424,6 +424,11 @@ class Field3D:
         a later state with ``reference="incremental"``, ``"every:N"`` or ``"auto"`` of
         :func:`dic.sequence.stereo_sequence`). Whatever it is, every quantity is relative to the
         reference state (Lagrangian).
+    reference_interpolated : (N,) bool or None
+        Measured from a moved reference: the valid points whose place in that state was interpolated
+        from their neighbours (not valid there; :meth:`dic.stereo.StereoCorrelation.move_reference`).
+        None otherwise (and for states read back from a file, which store only their count, the
+        ``reference_interpolated`` attribute).
     details : dict
         Stage-by-stage codes: ``match_status``, ``track_left_status``, ``track_right_status``
         (:class:`kernels.conventions.Status`), ``triangulation_ref_status``,
@@ -459,6 +464,7 @@ class Field3D:
     index: int = 0
     details: dict = field(default_factory=dict)
     reference_index: int = 0
+    reference_interpolated: np.ndarray | None = None
 
     #: the codes of ``status``
     status_codes: ClassVar[type] = StereoStatus
@@ -580,9 +586,10 @@ class Field3D:
         return (self.xyz - self.t_frame_left) @ self.R_frame_left
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """Every per-point array by name (for stores and exports)."""
+        """Every per-point array by name (for stores and exports; ``reference_interpolated`` is stored as its count)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)
-               if isinstance(getattr(self, f.name), np.ndarray) and f.name not in ("R_frame_left", "t_frame_left")}
+               if isinstance(getattr(self, f.name), np.ndarray)
+               and f.name not in ("R_frame_left", "t_frame_left", "reference_interpolated")}
         for k, v in self.details.items():
             if isinstance(v, np.ndarray):
                 out[k] = v

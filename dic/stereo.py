@@ -33,14 +33,14 @@ centre of the top-left pixel; 3-D in mm in the left camera frame (or a chosen ob
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from calibration.formats import as_rig  # re-exported: dic.stereo.as_rig
 from kernels._device import resolve_device
 from kernels.checks import as_points, boolean, in_range, odd_int, positive_float
-from kernels.conventions import Status, round_half_away
+from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image
 
@@ -537,6 +537,26 @@ class StereoCorrelation:
         self._previous_images = (None, None) if images is None else _check_pair(images[0], images[1], "previous")
 
     @property
+    def has_previous(self) -> bool:
+        """Whether the next :meth:`measure` can start from a previous state (one measured, or :meth:`set_previous`)."""
+        return self._previous is not None
+
+    def saved_previous(self):
+        """The previous state the next :meth:`measure` starts from, as an opaque value for :meth:`restore_previous`
+        (a sequence that measures a state twice, from two references, starts both from the same one)."""
+        return self._previous, self._previous_images
+
+    def restore_previous(self, saved) -> None:
+        """Start the next :meth:`measure` from a previous state kept by :meth:`saved_previous`."""
+        self._previous, self._previous_images = saved
+
+    @property
+    def trackable(self) -> np.ndarray:
+        """(N,) bool: the points the temporal tracks' reference can track: valid in the reference pair, or, after
+        :meth:`move_reference`, valid in that state or placed there by local interpolation."""
+        return self.reference.valid if self._moved is None else self._moved.usable
+
+    @property
     def reference_index(self) -> int:
         """The state whose images the temporal tracks use as their reference (0: the reference pair)."""
         return 0 if self._moved is None else self._moved.index
@@ -564,10 +584,10 @@ class StereoCorrelation:
         Raises ``ValueError`` for images of another size, a state of other points or without
         parameters, or a state with no valid point.
         """
-        self._moved = None  # the previous moved reference's data are freed before the new ones are prepared
         if state is None:
             if left_image is not None or right_image is not None:
                 raise ValueError("move_reference: give the state measured on these images (a Field3D) with them")
+            self._moved = None
             return
         if left_image is None or right_image is None:
             raise ValueError("move_reference: give the state's left and right images")
@@ -575,7 +595,9 @@ class StereoCorrelation:
         if L.shape != self.shape:
             raise ValueError(f"the new reference images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
                              f"{self.shape[1]}x{self.shape[0]} px")
-        self._moved = _TrackReference.build(self, L, R, state)
+        planned = _TrackReference.plan(self, state)  # a state that cannot serve is refused with the tracks unchanged
+        self._moved = None  # the previous moved reference's data are freed before the new ones are prepared
+        self._moved = planned.prepare(self, L, R)
 
     def _correlators_at(self, left_image, right_image, points_left, points_right):
         return (self._correlator(left_image, points_left),
@@ -727,130 +749,94 @@ class StereoCorrelation:
         )
 
 
-@dataclass
 class _TrackReference:
     """The temporal tracks' reference when it is a later state (:meth:`StereoCorrelation.move_reference`).
 
-    ``params_*`` are that state's Lagrangian parameters (N, k), those of the points not valid there
-    interpolated from their valid neighbours (:func:`dic.correlation.lagrangian.fill_reference`, left
-    and right track each); ``usable`` (N,) marks the points the tracks follow from this state: valid
-    there, or matched in the reference pair and placed by a close Delaunay triangle of valid points
-    on both sides (``supported``). The new reference subsets sit at the whole pixels nearest to the
-    POIs' positions in that state, ``offset_*`` (moved - whole, px) the rest, so the warp measured at
-    a whole pixel is carried to the moved point exactly
-    (:func:`dic.correlation.lagrangian.shift_params`) before it is composed.
+    One :class:`dic.correlation.lagrangian.MovedReference` per camera (``moved_left`` at every POI,
+    ``moved_right`` at the matched ones: the right track's points): that state's Lagrangian parameters,
+    those of the points not valid there interpolated from their valid neighbours (left and right track
+    each); ``usable`` (N,) marks the points the tracks follow from this state: valid there, or matched in
+    the reference pair and placed by a close Delaunay triangle of valid points on both sides. The new
+    reference subsets sit at the whole pixels nearest to the POIs' positions in that state, and the
+    warp measured there is carried to the moved point exactly before it is composed.
     """
 
-    index: int
-    left: Correlator
-    right: Correlator | None
-    left_image: np.ndarray
-    right_image: np.ndarray
-    params_left: np.ndarray
-    params_right: np.ndarray
-    valid: np.ndarray
-    status: np.ndarray
-    matched: np.ndarray
-    offset_left: np.ndarray
-    offset_right: np.ndarray
-    sigma_left: np.ndarray | None = None
-    sigma_right: np.ndarray | None = None
-    usable: np.ndarray | None = None
-    raw_left: np.ndarray | None = None   # that state's own parameters (before the fill)
-    raw_right: np.ndarray | None = None
-    _basis: dict = field(default_factory=dict)
+    def __init__(self, index: int, moved_left, moved_right, valid, status, matched, sigma_left, sigma_right):
+        self.index = index
+        self.moved_left, self.moved_right = moved_left, moved_right
+        self.valid, self.status, self.matched = valid, status, matched
+        self.sigma_left, self.sigma_right = sigma_left, sigma_right
+        self.usable = moved_left.usable
+        self.left = self.right = self.left_image = self.right_image = None
+        self._basis: dict = {}
 
     @classmethod
-    def build(cls, sc: "StereoCorrelation", L: np.ndarray, R: np.ndarray, state) -> "_TrackReference":
-        from .correlation.lagrangian import displacement_outliers, fill_reference, moved_points
+    def plan(cls, sc: "StereoCorrelation", state) -> "_TrackReference":
+        """The moved reference of ``state`` without its correlators (:meth:`prepare`): ValueError when the
+        state cannot serve (not a state of these points, no valid point), before anything is freed."""
+        from .correlation.lagrangian import MovedReference, reference_anchors
 
-        details = getattr(state, "details", None)
-        status = getattr(state, "status", None)
-        if not isinstance(details, dict) or status is None:
+        if not isinstance(state, Field3D):
             raise ValueError(f"move_reference: state must be a Field3D, got {type(state).__name__}")
+        details = state.details
         n, k = sc.points.shape[0], n_params(sc.order)
         pl, pr = details.get("params_left"), details.get("params_right")
         if pl is None or pr is None:
             raise ValueError("move_reference: the state has no track parameters (params_left, params_right in its details)")
         pl, pr = np.asarray(pl, dtype=np.float64), np.asarray(pr, dtype=np.float64)
-        status = np.asarray(status, dtype=np.int8)
+        status = np.asarray(state.status, dtype=np.int8)
         if pl.shape != (n, k) or pr.shape != (n, k) or status.shape != (n,):
             raise ValueError(f"move_reference: the state has {status.shape[0]} points and parameters of shape "
                              f"{pl.shape}; this correlation has {n} points and {k} parameters per point")
-        index = int(getattr(state, "index", -1))
+        index = int(state.index)
         valid = status == StereoStatus.OK
         if not np.any(valid):
             raise ValueError(f"state {index} has no valid point and cannot serve as a reference")
         matched = sc._matched
-        dl, dr = _displacement(pl, sc.order), _displacement(pr, sc.order)
         # a point whose left or right track disagrees with its neighbours' (a false match) is no anchor of the
         # moved reference (its error would be composed into every later state): placed like an invalid point
-        out_l = displacement_outliers(sc.points, dl[:, 0], dl[:, 1], valid)
-        out_r = np.zeros(n, dtype=bool)
+        anchors = reference_anchors(sc.points, pl, valid)
         if matched.size:
-            out_r[matched] = displacement_outliers(sc.match.points_right[matched], dr[matched, 0], dr[matched, 1],
-                                                   valid[matched])
-        valid = valid & ~out_l & ~out_r
-        if not np.any(valid):
+            anchors[matched] &= reference_anchors(sc.match.points_right[matched], pr[matched], valid[matched])
+        if not np.any(anchors):
             raise ValueError(f"state {index} has no valid point and cannot serve as a reference")
-        moved_l = moved_points(sc.points, dl[:, 0], dl[:, 1], valid)
-        moved_r = moved_points(sc.match.points_right[matched], dr[matched, 0], dr[matched, 1], valid[matched])
-        # the points not valid in the state: every parameter interpolated from the valid ones (the positions are
-        # those of moved_points); tracked again where both tracks' fills are local and the reference match holds
-        fill_l, sup_l = fill_reference(sc.points, pl, valid)
+        # the points not valid in the state: every parameter interpolated from the valid ones; tracked again
+        # where both tracks' fills are local and the reference match holds
+        left = MovedReference(index, sc.points, pl, anchors, sc.order)
+        right = MovedReference(index, sc.match.points_right[matched], pr[matched], anchors[matched], sc.order)
         sup_r = np.zeros(n, dtype=bool)
-        fill_r = pr.copy()
-        if matched.size:
-            fr, sr = fill_reference(sc.match.points_right[matched], pr[matched], valid[matched])
-            fill_r[matched], sup_r[matched] = fr, sr
-        usable = valid | (sc.match.valid & sup_l & sup_r)
-        params_l = np.where(usable[:, None], fill_l, pl)
-        params_r = np.where(usable[:, None], fill_r, pr)
-        whole_l, whole_r = round_half_away(moved_l), round_half_away(moved_r)
-        left, right = sc._correlators_at(L, R, whole_l, whole_r)
+        sup_r[matched] = right.supported
+        usable = anchors | (sc.match.valid & left.supported & sup_r)
+        left.narrow(usable)
+        right.narrow(usable[matched])
         sig = [details.get(name) for name in ("sigma_left_px", "sigma_right_px")]
         sig = [None if s is None or np.shape(s) != (n, 2) else _fill_sigma(sc.points, np.asarray(s, dtype=np.float64),
-                                                                            valid, usable) for s in sig]
-        return cls(index, left, right, L, R, params_l, params_r, valid, status, matched, moved_l - whole_l,
-                   moved_r - whole_r, sig[0], sig[1], usable, pl, pr)
+                                                                            anchors, usable) for s in sig]
+        return cls(index, left, right, anchors, status, matched, sig[0], sig[1])
+
+    def prepare(self, sc: "StereoCorrelation", L: np.ndarray, R: np.ndarray) -> "_TrackReference":
+        """The reference subsets of both cameras in the state's images ``L``, ``R`` (at the moved points)."""
+        self.left_image, self.right_image = L, R
+        self.left, self.right = sc._correlators_at(L, R, self.moved_left.points, self.moved_right.points)
+        return self
+
+    def _moved(self, side: str):
+        return self.moved_left if side == "left" else self.moved_right
 
     def unmeasured(self, params: np.ndarray, side: str) -> np.ndarray:
         """The points placed by interpolation (usable, not valid in the state) whose ``params`` are still
         the state's own: not measured since (their warp there failed), so not a guess to start from."""
-        raw = self.raw_left if side == "left" else self.raw_right[self.matched]
-        fresh = self.usable & ~self.valid
-        if side != "left":
-            fresh = fresh[self.matched]
-        same = np.all((params == raw) | (np.isnan(params) & np.isnan(raw)), axis=1)
-        return fresh & same
-
-    def _side(self, side: str):
-        if side == "left":
-            return self.params_left, self.offset_left
-        return self.params_right[self.matched], self.offset_right
+        return self._moved(side).unmeasured(params)
 
     def relative(self, params: np.ndarray, side: str, order: int) -> np.ndarray:
         """A later state's Lagrangian parameters as seen from this reference's (whole-pixel) points:
         the initial guess of the next state. NaN where either is unknown."""
-        from .correlation.lagrangian import relative_params, shift_params
-
-        ref, offset = self._side(side)
-        params = np.asarray(params, dtype=np.float64)
-        out = np.full(params.shape, np.nan)
-        ok = np.all(np.isfinite(ref), axis=1) & np.all(np.isfinite(params), axis=1)
-        if np.any(ok):
-            rel = relative_params(ref[ok], params[ok], order)
-            out[ok] = shift_params(rel, -offset[ok], order)
-        return out
+        return self._moved(side).relative_at_points(params)
 
     def compose(self, res, side: str, order: int):
         """A track result against this reference, back on the reference pair (Lagrangian)."""
-        from .correlation.lagrangian import compose_params, shift_params
-
-        ref, offset = self._side(side)
-        usable = self.usable if side == "left" else self.usable[self.matched]
-        params = compose_params(ref, shift_params(res.params, offset, order), order)
-        return replace(res, params=params, accepted=res.accepted & usable)
+        moved = self._moved(side)
+        return replace(res, params=moved.compose(res.params), accepted=res.accepted & moved.usable)
 
     def basis(self) -> dict:
         if not self._basis:

@@ -104,6 +104,38 @@ def test_unreadable_frame_in_the_middle_keeps_the_frames_before(sequence, tmp_pa
     assert s.skipped == 4 and len(s.frames) == 2  # a (T, H, W) array is a sequence of frames too
 
 
+def test_every_n_key_frame_without_a_valid_point_keeps_the_previous_reference(sequence, tmp_path):
+    """Issue 24, defect 3: frame 2 (a flash: one flat grey level) has no valid point. With every:2 it is the key
+    frame of frames 3 and 4; it cannot serve as their reference, so they stay on the reference of frame 2 (the
+    reference image, as incremental and auto fall back), frame 5 moves to frame 4. Before, frame 4 failed with a
+    false "cannot resume ...: the image of frame 2 was not given again", and so did every rerun."""
+    ref, frames = sequence
+    frames = list(frames[:5])
+    frames[1] = np.full_like(frames[1], float(np.mean(frames[1])))
+    out = tmp_path / "r.h5"
+    with pytest.warns(RuntimeWarning, match="only 0 of"):
+        s = track_sequence(ref, frames, out, reference="every:2", step=8, device="cpu")
+    assert list(s.indices) == [1, 2, 3, 4, 5] and s.skipped == 0
+    assert list(s.reference_indices) == [0, 0, 0, 0, 4]
+    assert s.n_valid[1] == 0
+    res = read_results(out)
+    for k in (1, 3, 4, 5):  # the frames around the flash follow the exact field as usual
+        f = res.frames[k]
+        assert f.valid.mean() > 0.6 and _rms_error(f, k) < 0.02, (k, f.valid.mean(), _rms_error(f, k))
+    # a run cut after frame 3 resumes to the same file
+    cut = tmp_path / "cut.h5"
+
+    def stop(k, field, strain):
+        if k == 3:
+            raise RuntimeError("killed")
+
+    with pytest.raises(RuntimeError, match="killed"), pytest.warns(RuntimeWarning):
+        track_sequence(ref, frames, cut, reference="every:2", step=8, device="cpu", callback=stop)
+    resumed = track_sequence(ref, frames, cut, reference="every:2", step=8, device="cpu")
+    assert resumed.skipped == 3 and list(resumed.indices) == [4, 5]
+    _same_frames(out, cut)
+
+
 def test_streaming_vtk_and_figures(sequence, tmp_path):
     import meshio
 

@@ -406,9 +406,11 @@ def test_cli_stereo_two_sequences(tmp_path, monkeypatch):
     seen = []
 
     def fake_sequence(rig, pairs, out, **kw):
+        from dic.sequence import SequenceSummary
+
         seen.append([(np.asarray(a) if not isinstance(a, str) else a, np.asarray(b) if not isinstance(b, str) else b)
                      for a, b in pairs])
-        return []
+        return SequenceSummary(path=out)
 
     import dic.sequence
 

@@ -54,6 +54,14 @@ def lab():
     return {"rig": rig, "states": states, "plane": plane, "left": left, "t_local": t_local}
 
 
+def _states(path):
+    """Every state of a stereo result file, in order (stereo_sequence keeps none in memory)."""
+    from dic.store import read_stereo
+
+    back = read_stereo(path)
+    return [back.fields[k] for k in back.indices]
+
+
 def _exact_uvw(lab, f):
     """The exact displacement (left camera frame, mm) of the material point each POI sees in the reference."""
     plane, left = lab["plane"], lab["left"]
@@ -86,8 +94,8 @@ def runs(lab, tmp_path_factory):
     out = {}
     for name, kw in (("fixed", {}), ("incremental", {}), ("every:2", {}), ("auto", {"auto_zncc": 0.99999})):
         path = tmp / f"{name.replace(':', '_')}.h5"
-        fields = stereo_sequence(lab["rig"], pairs, path, reference=name, step=STEP, **kw)
-        out[name] = (path, fields)
+        stereo_sequence(lab["rig"], pairs, path, reference=name, step=STEP, **kw)
+        out[name] = (path, _states(path))
     return out
 
 
@@ -171,14 +179,14 @@ def test_resume_after_an_interruption_is_identical(lab, tmp_path, reference, cut
     pairs = list(lab["states"])
     full, part = tmp_path / "full.h5", tmp_path / "cut.h5"
 
-    def snapshot(field):
-        if field.index == cut:
+    def snapshot(index, field, strain):
+        if index == cut:
             shutil.copyfile(full, part)
 
     stereo_sequence(lab["rig"], pairs, full, reference=reference, step=STEP, callback=snapshot, **kw)
     assert read_stereo(part).indices == list(range(cut + 1))
     resumed = stereo_sequence(lab["rig"], pairs, part, reference=reference, step=STEP, **kw)
-    assert [f.index for f in resumed] == list(range(cut + 1, N_STATES))
+    assert list(resumed.indices) == list(range(cut + 1, N_STATES))
     a, b = read_stereo(full), read_stereo(part)
     assert a.indices == b.indices == list(range(N_STATES))
     for k in a.indices:
@@ -198,22 +206,40 @@ def test_exception_at_a_state_keeps_the_finished_ones_and_resumes(lab, tmp_path)
     pairs = list(lab["states"])
     out = tmp_path / "run.h5"
 
-    def stop(field):
-        if field.index == 2:
+    def stop(index, field, strain):
+        if index == 2:
             raise RuntimeError("killed at state 2")
 
     with pytest.raises(RuntimeError, match="killed at state 2"):
         stereo_sequence(lab["rig"], pairs, out, reference="incremental", step=STEP, callback=stop)
     assert read_stereo(out).indices == [0, 1, 2]
     resumed = stereo_sequence(lab["rig"], pairs, out, reference="incremental", step=STEP)
-    assert [(f.index, f.reference_index) for f in resumed] == [(3, 2)]
-    full = stereo_sequence(lab["rig"], pairs, tmp_path / "full.h5", reference="incremental", step=STEP)
-    a, b = full[3], read_stereo(out).fields[3]
+    assert list(zip(resumed.indices, resumed.reference_indices)) == [(3, 2)]
+    stereo_sequence(lab["rig"], pairs, tmp_path / "full.h5", reference="incremental", step=STEP)
+    a, b = read_stereo(tmp_path / "full.h5").fields[3], read_stereo(out).fields[3]
     assert np.array_equal(a.status, b.status)
     assert np.allclose(a.uvw, b.uvw, equal_nan=True, atol=1e-6)
     # another strategy on the same file: refused (it is part of the settings)
     with pytest.raises(ValueError, match="different settings"):
         stereo_sequence(lab["rig"], pairs, out, reference="every:2", step=STEP)
+
+
+def test_every_n_key_state_without_a_valid_point_keeps_the_previous_reference(lab, tmp_path):
+    """Issue 24, defect 3, on stereo: state 2 (both images one flat grey level: a flash) has no valid point. With
+    every:2 it is the key state of state 3, which cannot start from it and stays on state 2's own reference
+    (the reference pair), as the 2-D sequences do (tests/test_sequence.py); state 3 is measured as usual."""
+    from dic.sequence import stereo_sequence
+
+    pairs = [tuple(p) for p in lab["states"]]
+    pairs[2] = tuple(np.full_like(a, float(np.mean(a))) for a in pairs[2])
+    out = tmp_path / "run.h5"
+    with pytest.warns(RuntimeWarning):
+        s = stereo_sequence(lab["rig"], pairs, out, reference="every:2", step=STEP)
+    assert list(s.indices) == [0, 1, 2, 3] and list(s.reference_indices) == [0, 0, 0, 0]
+    assert s.n_valid[2] == 0 and s.n_valid[3] > 0.8 * s.n_points[3]
+    frac, mean, std = _errors(lab, _states(out))[3]
+    assert frac > 0.8 and np.all(np.abs(mean) < [0.01, 0.01, 0.04]) and np.all(std < [0.05, 0.05, 0.15])
+    assert "SequenceSummary: 4 computed (0..3), 0 skipped" in repr(s) and str(out) in repr(s)
 
 
 def test_vtk_and_figures_exist_when_each_state_is_handed_over(lab, tmp_path):
@@ -224,8 +250,8 @@ def test_vtk_and_figures_exist_when_each_state_is_handed_over(lab, tmp_path):
     vtk, fig = tmp_path / "vtk", tmp_path / "fig"
     seen = []
 
-    def check(field):
-        k = field.index
+    def check(k, field, strain):
+        assert field.index == k and strain is None
         assert (vtk / f"run_{k:06d}.vtu").exists()
         pvd = (vtk / "run.pvd").read_text()
         assert all(f'file="run_{i:06d}.vtu"' in pvd for i in range(k + 1))
@@ -306,11 +332,15 @@ def test_points_lost_before_a_moved_reference_come_back(lab, tmp_path, monkeypat
     yy, xx = np.mgrid[:H_PX, :W_PX]
     left1[(xx - 170) ** 2 + (yy - 120) ** 2 < 26 ** 2] = left1.mean()
     pairs[1] = (left1, pairs[1][1])
-    new = stereo_sequence(lab["rig"], pairs, tmp_path / "new.h5", reference="incremental", step=STEP)
+    interpolated = {}  # per state, the field handed to the callback: which points were placed by interpolation
+    stereo_sequence(lab["rig"], pairs, tmp_path / "new.h5", reference="incremental", step=STEP,
+                    callback=lambda k, f, strain: interpolated.update({k: f.reference_interpolated}))
+    new = _states(tmp_path / "new.h5")
     real = lagrangian.fill_reference
     monkeypatch.setattr(lagrangian, "fill_reference",
                         lambda points, params, valid, **kw: (real(points, params, valid, **kw)[0], np.asarray(valid)))
-    old = stereo_sequence(lab["rig"], pairs, tmp_path / "old.h5", reference="incremental", step=STEP)
+    stereo_sequence(lab["rig"], pairs, tmp_path / "old.h5", reference="incremental", step=STEP)
+    old = _states(tmp_path / "old.h5")
     monkeypatch.undo()
     disk = np.hypot(new[0].points[:, 0] - 170, new[0].points[:, 1] - 120) < 26 + 2 * STEP
     assert 4 <= np.count_nonzero(new[0].valid & ~new[1].valid & disk) <= 12
@@ -371,4 +401,35 @@ def test_points_lost_before_a_moved_reference_come_back(lab, tmp_path, monkeypat
     with ResultReader(tmp_path / "new.h5") as r:
         counts = [r.frame_attrs(k).get("reference_interpolated") for k in (1, 2, 3)]
     assert counts == [None, 0, back.sum()]
-    assert np.array_equal(new[3].reference_interpolated, back)
+    assert interpolated[0] is None and np.array_equal(interpolated[3], back)
+
+
+@pytest.mark.parametrize("reference", ["fixed", "every:4"])
+def test_no_state_is_held_once_written(lab, tmp_path, reference):
+    """stereo_sequence keeps no state once it is written (issue 23: it returned the list of every Field3D, so memory
+    grew by a state's results at every state; measured with the code before on 31 states: every state older than
+    k - 3 was still alive at each callback). At each state's callback, of the fields handed over before, only those that may still serve as a
+    reference are alive (every:4: the next block's key state; never more than the last 3 states) besides state 0
+    (the reference pair's field, kept by StereoCorrelation). The whole process's peak RSS over 100 and 1000 states:
+    bench/stereo_memory.py."""
+    import gc
+    import weakref
+
+    from dic.sequence import stereo_sequence
+
+    pairs = [lab["states"][0]] + [lab["states"][1]] * 12
+    refs, alive = {}, {}
+
+    def measure(k, field, strain):
+        gc.collect()
+        # every:4: the reference of state k's block and of the next may still be needed
+        key = {4 * ((k - 1) // 4), 4 * (k // 4)} if reference == "every:4" else set()
+        alive[k] = [i for i, r in refs.items() if 0 < i < k - 3 and i not in key and r() is not None]
+        refs[k] = weakref.ref(field)
+
+    s = stereo_sequence(lab["rig"], pairs, tmp_path / "run.h5", step=2 * STEP, reference=reference, callback=measure)
+    assert list(s.indices) == list(range(13)) and sorted(alive) == list(range(13))
+    assert all(not held for held in alive.values()), alive
+    del s
+    gc.collect()
+    assert all(r() is None for r in refs.values())  # once the call returns, none (the summary holds numbers only)

@@ -111,7 +111,6 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     (--roi, --roi-polygon or --mask) is given in the left reference image: the grid points outside
     it are kept in the file and flagged NOT_COMPUTED.
     """
-    import numpy as np
 
     check_dask(scheduler, workers)
     from dic.sequence import parse_reference, read_stereo, stereo_sequence
@@ -171,19 +170,19 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         options["roi"] = region
     if robust:  # only when given: files written without it still resume
         options["robust"] = True
-    written = []
+    written = []  # a state finished (the callback): finished states are in the file
 
-    def after(field):
-        written.append((field.index, int(np.count_nonzero(field.valid)), len(field), int(field.reference_index)))
+    def after(index, field, strain):
+        written[:] = [index]
 
     streamed_figures = figure_dir if figure_limits == "frame" else None  # "sequence": drawn at the end
     try:
         with dask_client(scheduler, workers) as client:
-            stereo_sequence(rig, pairs, output, reference=reference_strategy,
-                            mode="overwrite" if overwrite else "resume", progress=not quiet, callback=after,
-                            vtk_dir=vtk_dir, vtk_stem=output.stem, figure_dir=streamed_figures,
-                            figure_every=figure_every, device=device, client=client, compression=compression,
-                            **options)
+            summary = stereo_sequence(rig, pairs, output, reference=reference_strategy,
+                                      mode="overwrite" if overwrite else "resume", progress=not quiet,
+                                      callback=after, vtk_dir=vtk_dir, vtk_stem=output.stem,
+                                      figure_dir=streamed_figures, figure_every=figure_every, device=device,
+                                      client=client, compression=compression, **options)
     except ValueError as exc:
         raise click.ClickException(f"{exc}" + (f"; finished states are saved in {output}" if written else "")) from None
     if figure_dir is not None and figure_limits == "sequence":
@@ -201,10 +200,11 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
             click.echo(f"ParaView: {vtk_dir / f'{output.stem}.pvd'}")
         if figure_dir is not None:
             click.echo(f"figures: {figure_dir}")
-        for index, n_valid, n, ref_index in written:
+        for index, n_valid, n, ref_index in zip(summary.indices, summary.n_valid, summary.n_points,
+                                                summary.reference_indices):
             ref_note = f" (reference: state {ref_index})" if ref_index else ""
             click.echo(f"state {index}: {n_valid}/{n} valid points{ref_note}")
-        skipped = len(pairs) - len(written)
+        skipped = len(pairs) - len(summary)
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")
         click.echo(f"results: {output}")

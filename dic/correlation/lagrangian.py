@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["compose_params", "relative_params", "moved_points", "shift_params", "fill_reference", "displacement_outliers"]
+__all__ = ["compose_params", "relative_params", "moved_points", "shift_params", "fill_reference", "displacement_outliers",
+           "reference_anchors", "MovedReference"]
 
 #: the normalised median test's defaults (Westerweel & Scarano 2005): neighbours compared, threshold on the
 #: normalised residual, and the noise level (px) added to the neighbours' median deviation
@@ -225,3 +226,95 @@ def shift_params(params: np.ndarray, delta: np.ndarray, order: int) -> np.ndarra
         d2 = d2 + 0.5 * np.einsum("niab,na,nb->ni", H, delta, delta)
         G2 = G + np.einsum("niab,nb->nia", H, delta)
     return _pack(d2, G2, H, order)
+
+
+def reference_anchors(points0: np.ndarray, params: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The points a moved reference is built on: ``valid`` (N,) without the false matches, the valid
+    points whose displacement disagrees with their neighbours' (:func:`displacement_outliers`): were one
+    an anchor, its error would be composed into every later frame; it is placed by interpolation like an
+    invalid point. ``params`` (N, 6|12) at ``points0`` (N, 2) px."""
+    p = np.asarray(params, np.float64)
+    h = p.shape[1] // 2
+    valid = np.asarray(valid, bool)
+    return valid & ~displacement_outliers(points0, p[:, 0], p[:, h], valid)
+
+
+class MovedReference:
+    """A reference moved to a later frame ``index``: the one implementation of 2-D and stereo tracks.
+
+    ``points0`` (N, 2) px: the original POIs (2-D: in the reference image; stereo: one camera's
+    points in the reference pair); ``params`` (N, 6|12): that frame's Lagrangian parameters at them;
+    ``anchors`` (N,) bool: the points it is built on (valid there, no false match:
+    :func:`reference_anchors`). The POIs are moved to where they are in that frame
+    (:func:`moved_points`), the non-anchors placed by interpolating their anchors' parameters
+    (:func:`fill_reference`); the tracked subsets sit at the whole pixels nearest to the moved points
+    (``points``, the kernels' rounding), ``offset`` (N, 2) px the rest, so a warp measured at a whole
+    pixel is carried to the moved point exactly (:func:`shift_params`) before it is composed
+    (:meth:`compose`). ``usable`` (N,) bool: the points that can be tracked against it (anchors and
+    the points a close triangle of anchors placed, ``supported`` of :func:`fill_reference`, unless the
+    caller narrows it: stereo needs both cameras supported). ``params`` holds the filled values where
+    usable, the frame's own (``raw``) elsewhere.
+
+    ValueError: no anchor (a frame with no valid point cannot serve as a reference).
+    """
+
+    def __init__(self, index: int, points0: np.ndarray, params: np.ndarray, anchors: np.ndarray, order: int):
+        pts0 = np.asarray(points0, np.float64)
+        raw = np.asarray(params, np.float64)
+        anchors = np.asarray(anchors, bool)
+        h = raw.shape[1] // 2
+        self.index = int(index)
+        self.order = int(order)
+        self.raw = raw
+        self.anchors = anchors
+        moved = moved_points(pts0, raw[:, 0], raw[:, h], anchors)
+        self.filled, self.supported = fill_reference(pts0, raw, anchors)
+        from kernels.conventions import round_half_away
+
+        self.points = round_half_away(moved)  # the kernels' rule (wp.round: half away from zero)
+        self.offset = moved - self.points
+        self.usable = self.supported
+        self.params = np.where(self.usable[:, None], self.filled, raw)
+
+    def narrow(self, usable: np.ndarray) -> "MovedReference":
+        """Track only ``usable`` (N,) bool (a subset of :attr:`supported`); the others keep the frame's own parameters."""
+        self.usable = np.asarray(usable, bool)
+        self.params = np.where(self.usable[:, None], self.filled, self.raw)
+        return self
+
+    def compose(self, params: np.ndarray) -> np.ndarray:
+        """Parameters (N, 6|12) measured at :attr:`points` against this reference, back in the original
+        configuration (Lagrangian): shifted to the moved points, then composed (chain rule)."""
+        return compose_params(self.params, shift_params(np.asarray(params, np.float64), self.offset, self.order),
+                              self.order)
+
+    def relative(self, params: np.ndarray) -> np.ndarray:
+        """A later frame's Lagrangian ``params`` (N, 6|12) as a warp from this reference at the moved points
+        (:func:`relative_params`): the initial guess of the next frame, as 2-D sequences use it."""
+        return relative_params(self.params, params, self.order)
+
+    def relative_at_points(self, params: np.ndarray) -> np.ndarray:
+        """:meth:`relative` carried to the whole-pixel :attr:`points` the subsets sit at; NaN rows where either
+        is unknown (stereo tracks' initial guess)."""
+        params = np.asarray(params, dtype=np.float64)
+        out = np.full(params.shape, np.nan)
+        ok = np.all(np.isfinite(self.params), axis=1) & np.all(np.isfinite(params), axis=1)
+        if np.any(ok):
+            rel = relative_params(self.params[ok], params[ok], self.order)
+            out[ok] = shift_params(rel, -self.offset[ok], self.order)
+        return out
+
+    def unmeasured(self, params: np.ndarray) -> np.ndarray:
+        """The points placed by interpolation (usable, no anchor) whose ``params`` are still the frame's own:
+        not measured since (their warp there failed), so not a guess to start from."""
+        fresh = self.usable & ~self.anchors
+        same = np.all((params == self.raw) | (np.isnan(params) & np.isnan(self.raw)), axis=1)
+        return fresh & same
+
+    def subset(self, rows: np.ndarray) -> "MovedReference":
+        """The same reference at ``rows`` of its points only (a view for a camera that tracks a subset)."""
+        out = object.__new__(MovedReference)
+        out.index, out.order = self.index, self.order
+        for name in ("raw", "anchors", "filled", "supported", "points", "offset", "usable", "params"):
+            setattr(out, name, getattr(self, name)[rows])
+        return out

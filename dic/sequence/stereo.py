@@ -32,6 +32,7 @@ from ..field3d import Field3D
 from ..stereo import StereoCorrelation, as_rig
 from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
+from .engine import CannotServe, SequenceSummary, run_on_dask, run_sequence
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
@@ -39,14 +40,13 @@ __all__ = ["stereo_sequence", "read_stereo", "read_field", "StereoResults", "FOR
 
 
 _load = load_image
-_TRIM_EVERY = 10  # states between two malloc_trim calls
 
 
 def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode: str = "resume",
-                    progress: bool = False, callback: Callable[[Field3D], None] | None = None, vtk_dir=None,
+                    progress: bool = False, callback: Callable[[int, Field3D, None], None] | None = None, vtk_dir=None,
                     vtk_stem: str = "stereo", figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
                     auto_zncc: float = AUTO_ZNCC, guess: str | None = None, client=None, compression=None,
-                    **options) -> list[Field3D]:
+                    **options) -> SequenceSummary:
     """Stereo DIC of an image-pair sequence, written state by state to an HDF5 file.
 
     Parameters
@@ -84,9 +84,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     mode : "resume" | "overwrite" | "new"
     progress : bool
         Show a tqdm progress bar.
-    callback : callable(Field3D), optional
-        Called with each state's result once it is in the file and its VTK and figure files are
-        written (not for skipped states; later states are called on the writer thread, in order).
+    callback : callable(index, field, strain), optional
+        The callback of :func:`dic.sequence.track_sequence`: called with each state's index and
+        :class:`Field3D` (``strain`` is None: a state's surface strain is in its ``Field3D``) once
+        it is in the file and its VTK and figure files are written (not for skipped states; later
+        states are called on the writer thread, in order).
     vtk_dir : folder, optional
         Write ``<vtk_stem>_<index>.vtu`` per state as it finishes (every point with a position, NaN
         where invalid: the same point set at every state) and keep ``<vtk_stem>.pvd`` (the ParaView
@@ -114,8 +116,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
 
     Returns
     -------
-    list of Field3D
-        The states computed in this call (skipped states are not read back; use :func:`read_stereo`).
+    SequenceSummary
+        The same summary as :func:`dic.sequence.track_sequence`'s: per state computed in this call
+        (the reference state 0 included when it was written now) its index, valid and total point
+        counts, seconds and reference index; the finished states skipped; the file. No state is
+        held in memory once written: read them back with :func:`read_stereo` / :func:`read_field`.
     """
     if isinstance(client, str):  # a scheduler address: connected here, closed when the run ends
         from .distributed import call_connected
@@ -125,6 +130,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
 
     from kernels.checks import positive_int
 
+    t_start = time.perf_counter()
     policy = parse_reference(reference, auto_valid=auto_valid, auto_zncc=auto_zncc)
     figure_every = positive_int(figure_every, "figure_every")
     if callback is not None and not callable(callback):
@@ -179,7 +185,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     for d in (vtk_dir, figure_dir):
         if d is not None:
             Path(os.fspath(d)).mkdir(parents=True, exist_ok=True)
-    results = []
+    summary = SequenceSummary(path=out)
     with writer:
         done = set(writer.done_frames())
         # resuming: every finished state must have been computed from the pair given for it now (the later
@@ -201,12 +207,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
                 vtk_written.add(k)
             write_pvd(vtk_dir, [(i, f"{vtk_stem}_{i:06d}.vtu") for i in sorted(vtk_written)], stem=vtk_stem)
 
-        def finish(k, f, lpath, rpath, digests, seconds):
+        def finish(k, f, paths, digests, seconds):
             attrs = {"seconds": seconds, "reference_index": int(f.reference_index)}
-            interpolated = getattr(f, "reference_interpolated", None)
-            if interpolated is not None:  # the valid points whose place in the tracks' reference was interpolated
-                attrs["reference_interpolated"] = int(np.count_nonzero(interpolated))
-            writer.write_frame(k, f, path=(lpath, rpath), sha256=digests, attrs=attrs)
+            if f.reference_interpolated is not None:  # the valid points whose place in the tracks' reference was interpolated
+                attrs["reference_interpolated"] = int(np.count_nonzero(f.reference_interpolated))
+            writer.write_frame(k, f, path=paths, sha256=digests, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_pvd, write_vtk
 
@@ -219,11 +224,15 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
 
                 plots.write_figures(f, left_ref, figure_dir, prefix=f"state_{k:06d}_")
             if callback:
-                callback(f)
+                callback(k, f, None)
 
         if 0 not in done:
-            finish(0, sc.reference, lp, rp, ref_digests, float(time.perf_counter() - t0))
-            results.append(sc.reference)
+            seconds = float(time.perf_counter() - t0)
+            finish(0, sc.reference, (lp, rp), ref_digests, seconds)
+            n_ok = int(np.count_nonzero(sc.reference.valid))
+            summary.add(0, n_ok, int(sc.reference.valid.size), seconds, 0)
+        else:
+            summary.skipped += 1
         # the later states: the next pairs are read on a thread ahead, the finished ones written on one behind
         wb = WriteBehind(depth=2)
 
@@ -231,112 +240,91 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             (L, lpath), (R, rpath) = _load(pair[0], f"left image of pair {k}"), _load(pair[1], f"right image of pair {k}")
             return Loaded(k, (L, R), (lpath, rpath), (image_digest(L), image_digest(R)))
 
-        images: dict[int, tuple] = {}  # pairs that may serve as a reference: bounded (<= 3)
-        last: Field3D | None = None    # the last state computed in this call
-        prev_ref = 0                    # the reference index of the state before the next one
-
-        def stored_state(r: int) -> Field3D:
-            if last is not None and last.index == r:
-                return last
-            with wb.lock:
-                return writer.read_frame(r)
-
-        def use_reference(r: int, fallback: int) -> int:
-            """Move the tracks to pair r (a state with no valid point cannot: ``fallback`` then); its index."""
-            if r == sc.reference_index:
-                return r
-            if r == 0:
-                sc.move_reference()
-                return 0
-            if r not in images:
-                raise ValueError(f"cannot resume {out}: the images of state {r}, the reference of the next state, "
-                                 "were not given again; give the same pairs as the run that wrote the file")
-            state = stored_state(r)
-            if not np.any(state.valid):
-                if fallback == r:
-                    raise ValueError(f"state {r} has no valid point and cannot serve as a reference")
-                return use_reference(fallback, fallback)
-            sc.move_reference(images[r][0], images[r][1], state)
-            return r
-
-        def reference_valid() -> np.ndarray:  # the points the tracks' reference can track
-            return sc.reference.valid if sc.reference_index == 0 else sc._moved.usable
-
-        last_images = None  # the pair of the last state skipped (resuming starts from it)
-        computed = 0
         reader = read_ahead(pairs[1:], load, first=1)
-        if client is not None:
-            with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
-                      disable=not progress) as bar:
-                try:
-                    _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out,
-                                    _StereoBuilder(rig, left_ref, right_ref, sc.match, device, options))
-                finally:
-                    reader.close()
-                    wb.close(raise_error=False)
-            trim_memory()
-            return results
-        with tqdm(total=len(pairs), initial=1 if 0 in done or results else 0, unit="pair", desc="stereo",
-                  disable=not progress) as bar:
+        with tqdm(total=len(pairs), initial=1, unit="pair", desc="stereo", disable=not progress) as bar:
             try:
-                for item in reader:
-                    k = item.index
-                    if item.error is not None:
-                        wb.close()
-                        raise item.error
-                    (L, R), (lpath, rpath) = item.image, item.path
-                    if k in done:  # resuming: the finished state must come from the pair given for it now
-                        with wb.lock:
-                            writer.check_frame(k, (lpath, rpath), item.digest)
-                            prev_ref = int(writer.frame_attrs(k).get("reference_index", 0))
-                        last_images = (L, R)
-                        images[k] = (L, R)
-                        keep = {policy.start(k + 1, prev_ref), k, sc.reference_index}
-                        for i in [i for i in images if i not in keep]:
-                            del images[i]
-                        bar.update(1)
-                        continue
-                    prev = max((d for d in done if d < k and d > 0), default=None)
-                    if sc._previous is None and prev is not None:  # resuming: start from the last stored state
-                        with wb.lock:
-                            params_left, params_right = writer.frame_arrays(prev, ("params_left", "params_right"))
-                        sc.set_previous(params_left, params_right, images=last_images if prev == k - 1 else None)
-                    t1 = time.perf_counter()
-                    try:
-                        r = use_reference(policy.start(k, prev_ref), prev_ref)
-                        if policy.kind == "auto" and r != k - 1 and k > 1:
-                            saved = (sc._previous, sc._previous_images)
-                            f = sc.measure(L, R, index=k, warn=False, use_previous=guess == "previous")
-                            if policy.needs_update(*_quality(f, reference_valid())) and \
-                                    use_reference(k - 1, r) != r:
-                                sc._previous, sc._previous_images = saved
-                                f = sc.measure(L, R, index=k, use_previous=guess == "previous")
-                            else:  # kept
-                                sc.warn_if_mostly_invalid(f)
-                        else:
-                            f = sc.measure(L, R, index=k, use_previous=guess == "previous")
-                    except ValueError as exc:
-                        wb.close()
-                        raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
-                    wb.submit(lambda k=k, f=f, lp=lpath, rp=rpath, d=item.digest, s=float(time.perf_counter() - t1):
-                              finish(k, f, lp, rp, d, s))
-                    done.add(k)
-                    results.append(f)
-                    last, prev_ref = f, f.reference_index
-                    images[k] = (L, R)
-                    keep = {policy.start(k + 1, prev_ref), k, sc.reference_index}
-                    for i in [i for i in images if i not in keep]:
-                        del images[i]
-                    computed += 1
-                    if computed % _TRIM_EVERY == 0:
-                        trim_memory()
-                    bar.update(1)
-                wb.close()
+                if client is not None:
+                    _stereo_on_dask(client, reader, writer, wb, done, summary, bar, finish,
+                                    _StereoBuilder(rig, left_ref, right_ref, sc.match, device, options))
+                else:
+                    kind = _Stereo(sc, writer, finish, use_previous=guess == "previous")
+                    run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out,
+                                 lock=wb.lock)
             finally:
                 reader.close()
                 wb.close(raise_error=False)
         trim_memory()
-    return results
+    summary.seconds = time.perf_counter() - t_start
+    return summary
+
+
+class _Stereo:
+    """The stereo kind of :func:`dic.sequence.engine.run_sequence`: a :class:`dic.stereo.StereoCorrelation`
+    whose temporal tracks follow the reference pair or a later state's (its public sequence protocol:
+    ``measure``, ``move_reference``, ``trackable``, ``set_previous``, ``saved_previous``)."""
+
+    noun, images_noun, inputs_noun = "state", "the images", "pairs"
+
+    def __init__(self, sc: StereoCorrelation, writer, finish, *, use_previous: bool):
+        self.sc, self.writer, self._finish, self.use_previous = sc, writer, finish, use_previous
+        self._saved = None  # the previous state a state measured twice (auto) starts from both times
+
+    @property
+    def reference_index(self) -> int:
+        return self.sc.reference_index
+
+    def move_reference(self, r: int, image, state) -> None:
+        if r == 0:
+            self.sc.move_reference()
+        elif not np.any(state.valid):
+            raise CannotServe(f"state {r} has no valid point")
+        else:
+            self.sc.move_reference(image[0], image[1], state)
+
+    def measure(self, k: int, image, *, final: bool = True) -> Field3D:
+        if self._saved is not None:  # measured once already, from another reference: from the same previous state
+            self.sc.restore_previous(self._saved)
+            self._saved = None
+        if not final:
+            self._saved = self.sc.saved_previous()
+        L, R = image
+        return self.sc.measure(L, R, index=k, warn=final, use_previous=self.use_previous)
+
+    def kept(self, result: Field3D) -> None:
+        self._saved = None
+        self.sc.warn_if_mostly_invalid(result)
+
+    def quality(self, result: Field3D) -> tuple[float, float]:
+        return _quality(result, self.sc.trackable)
+
+    def accept(self, k: int, result: Field3D, image) -> Field3D:
+        self._saved = None
+        return result
+
+    def stored_state(self, r: int) -> Field3D:
+        return self.writer.read_frame(r)
+
+    def check_done(self, k: int, item: Loaded) -> int:
+        self.writer.check_frame(k, item.path, item.digest)
+        return int(self.writer.frame_attrs(k).get("reference_index", 0))
+
+    def resume(self, k: int, image, *, next_done: bool) -> None:
+        if not next_done:  # the next state starts from this one's parameters (and its images' global shift)
+            params_left, params_right = self.writer.frame_arrays(k, ("params_left", "params_right"))
+            self.sc.set_previous(params_left, params_right, images=image)
+
+    def counts(self, result: Field3D) -> tuple[int, int]:
+        valid = np.asarray(result.valid, bool)
+        return int(valid.sum()), int(valid.size)
+
+    def write(self, k: int, result: Field3D, item: Loaded, seconds: float) -> None:
+        self._finish(k, result, item.path, item.digest, float(seconds))
+
+    def failed(self, item: Loaded, exc: BaseException) -> BaseException:
+        if exc is item.error:  # a pair that could not be read: its message names it
+            return exc
+        lpath, rpath = item.path
+        return ValueError(f"pair {item.index} ({lpath or 'array'}, {rpath or 'array'}): {exc}")
 
 
 def _quality(f: Field3D, reference_valid: np.ndarray) -> tuple[float, float]:
@@ -370,69 +358,39 @@ class _StereoMeasure:
         return self.sc.measure(L, R, index=k, use_previous=False)
 
 
-def _stereo_on_dask(client, reader, writer, wb, done, results, bar, finish, out, builder):
-    """The later states of :func:`stereo_sequence` measured on a Dask cluster, written here in order."""
+def _stereo_on_dask(client, reader, writer, wb, done, summary, bar, finish, builder):
+    """The later states of :func:`stereo_sequence` measured on a Dask cluster, written here in order
+    (:func:`dic.sequence.engine.run_on_dask`)."""
     import uuid
-    from collections import OrderedDict
 
     import cloudpickle
 
-    from .distributed import LOST, held, n_workers, release, track_on_worker
+    from .distributed import held, track_on_worker
 
-    lost = LOST()
     token = uuid.uuid4().hex[:16]
     try:
         cloudpickle.dumps(builder)
     except Exception as exc:
         raise ValueError(f"the stereo settings cannot be sent to the Dask workers ({type(exc).__name__}: {exc})") from None
     build = client.submit(held, builder, key=f"specula-{token}-stereo-builder", pure=False)
-    window = 2 * n_workers(client) + 1
-    pending: OrderedDict = OrderedDict()  # state -> (future, Loaded)
 
-    def fail(k, item, exc):
-        (lpath, rpath) = item.path if item.path else (None, None)
-        raise ValueError(f"pair {k} ({lpath or 'array'}, {rpath or 'array'}): {exc}") from None
+    def failed(item, exc):
+        if exc is item.error:  # a pair that could not be read: its message names it
+            return exc
+        lpath, rpath = item.path if item.path else (None, None)
+        return ValueError(f"pair {item.index} ({lpath or 'array'}, {rpath or 'array'}): {exc}")
 
-    def drain_one():
-        k, (fut, item) = pending.popitem(last=False)
-        try:
-            f, seconds = fut.result()
-        except ValueError as exc:
-            wb.close()
-            fail(k, item, exc)
-        except lost as exc:
-            wb.close()
-            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
-        lpath, rpath = item.path
-        wb.submit(lambda k=k, f=f, lp=lpath, rp=rpath, d=item.digest, s=float(seconds): finish(k, f, lp, rp, d, s))
-        done.add(k)
-        results.append(f)
-        if len(results) % _TRIM_EVERY == 0:
-            trim_memory()
-        bar.update(1)
+    def collect(k, item, _context, f, seconds):
+        wb.submit(lambda k=k, f=f, p=item.path, d=item.digest, s=float(seconds): finish(k, f, p, d, s))
+        return int(np.count_nonzero(f.valid)), int(np.size(f.valid)), 0
 
-    try:
-        for item in reader:
-            k = item.index
-            if item.error is not None:
-                while pending:
-                    drain_one()
-                wb.close()
-                raise item.error
-            if k in done:  # resuming: the finished state must come from the pair given for it now
-                with wb.lock:
-                    writer.check_frame(k, item.path, item.digest)
-                bar.update(1)
-                continue
-            while len(pending) >= window:
-                drain_one()
-            L, R = item.image
-            pending[k] = (client.submit(track_on_worker, f"{token}:stereo", build, None, None, (k, L, R),
-                                        key=f"specula-{token}-pair-{k}", pure=False), item)
-        while pending:
-            drain_one()
-        wb.close()
-    finally:
-        if pending:
-            client.cancel([f for f, _ in pending.values()])
-        release(client, token + ":")
+    def check_done(k, item):
+        writer.check_frame(k, item.path, item.digest)
+
+    def submit(k, item):
+        L, R = item.image
+        return client.submit(track_on_worker, f"{token}:stereo", build, None, None, (k, L, R),
+                             key=f"specula-{token}-pair-{k}", pure=False), None
+
+    run_on_dask(client, reader, done=done, wb=wb, summary=summary, bar=bar, token=token, submit=submit,
+                collect=collect, check_done=check_done, failed=failed)

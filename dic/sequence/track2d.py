@@ -12,14 +12,14 @@ from __future__ import annotations
 import copy
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from kernels.conventions import round_half_away
-
+from ..correlation.lagrangian import MovedReference, reference_anchors
+from ..field2d import Field2D, as_field2d
 from .chunks import (
     STRAIN_BAND_POINTS,
     ChunkedTracker,
@@ -28,105 +28,40 @@ from .chunks import (
     strain_in_bands,
     write_depth,
 )
+from .engine import CannotServe, SequenceSummary, run_sequence
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
-from .reference import (
-    AUTO_VALID,
-    AUTO_ZNCC,
-    compose_params,
-    displacement_outliers,
-    fill_reference,
-    moved_points,
-    parse_reference,
-    relative_params,
-    shift_params,
-)
+from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
 __all__ = ["track_sequence", "SequenceSummary"]
 
-_TRIM_EVERY = 10  # frames between two malloc_trim calls
-
-
-@dataclass
-class SequenceSummary:
-    """What :func:`track_sequence` did: ``frames`` (one dict per frame computed in this call: ``index``,
-    ``n_valid``, ``n_points``, ``seconds``, ``reference_index``), ``skipped`` (finished frames already in
-    the file), ``path`` (the result file), ``seconds`` (the whole call) and ``frames_per_second``."""
-
-    path: Path
-    frames: list[dict] = field(default_factory=list)
-    skipped: int = 0
-    seconds: float = 0.0
-
-    @property
-    def frames_per_second(self) -> float:
-        return len(self.frames) / self.seconds if self.seconds > 0 else float("nan")
-
-
-@dataclass
-class _State:
-    """A frame's Lagrangian result at the original POIs (what later frames compose with)."""
-
-    index: int
-    params: np.ndarray
-    valid: np.ndarray
-    status: np.ndarray
-    sigma_u: np.ndarray | None = None
-    sigma_v: np.ndarray | None = None
-    reference_index: int = 0
-
-    @property
-    def u(self):
-        return self.params[:, 0]
-
-    @property
-    def v(self):
-        return self.params[:, self.params.shape[1] // 2]
-
-
 @dataclass
 class _Ref:
+    """The reference a frame is tracked against: the reference image (``moved`` None) or frame ``index``."""
+
     index: int
     image: Any
-    state: _State  # a moved reference: the points it could not track filled in from their neighbours
     tracker: Any
-    offset: np.ndarray | None = None  # (N, 2) moved POI - tracked (whole-pixel) POI
-    usable: np.ndarray | None = None  # (N,) bool: valid in the reference or filled in locally (None: state.valid)
-    points: np.ndarray | None = None  # (N, 2) the whole-pixel POIs its tracker tracks
-
-    @property
-    def ok(self) -> np.ndarray:
-        """The points that can be tracked against this reference (valid in it, or placed by local interpolation)."""
-        return self.state.valid if self.usable is None else self.usable
+    ok: np.ndarray  # (N,) bool: the points that can be tracked against it (valid in it, or placed by local interpolation)
+    state: Field2D | None = None  # frame ``index``'s field (None: the reference image)
+    moved: MovedReference | None = None  # frame ``index`` as a reference (dic.correlation.lagrangian)
 
 
-def _moved(points0, state: _State, index: int, image) -> _Ref:
-    """Frame ``index`` (its Lagrangian ``state``) as a reference, its tracker not built yet: the POIs moved
-    to where they are in it, the invalid ones placed by interpolating their valid neighbours' parameters
-    (:func:`fill_reference`); those whose neighbours surround them closely stay trackable (``usable``).
-    ValueError: no valid point."""
-    # a valid point that disagrees with its neighbours (a false match) is no anchor: were it one, its error
-    # would be composed into every later frame; it is placed by interpolation like an invalid point
-    anchors = state.valid & ~displacement_outliers(points0, state.u, state.v, state.valid)
-    pts = moved_points(points0, state.u, state.v, anchors)
-    filled, usable = fill_reference(points0, state.params, anchors)
-    placed = copy.copy(state)
-    placed.valid = anchors
-    placed.params = np.where(usable[:, None], filled, state.params)
-    whole = round_half_away(pts)  # the kernels' rule (wp.round: half away from zero)
-    return _Ref(index, image, placed, None, pts - whole, usable, whole)
+def _moved(points0, state: Field2D, index: int, image, order: int) -> _Ref:
+    """Frame ``index`` (its Lagrangian field ``state``, computed or read back) as a reference, its tracker not
+    built yet (:class:`dic.correlation.lagrangian.MovedReference`). ValueError: no valid point."""
+    params = _params(state)
+    anchors = reference_anchors(points0, params, state.valid)
+    moved = MovedReference(index, points0, params, anchors, order)
+    return _Ref(index, image, None, moved.usable, state, moved)
 
 
-def _state_of(index: int, f, reference_index: int) -> _State:
-    n = len(f.u)
-    params = getattr(f, "params", None)
-    if params is None:  # a frame without parameters (files of other writers): translation only
-        params = np.zeros((n, 6))
-        params[:, 0], params[:, 3] = f.u, f.v
-    valid = getattr(f, "valid", None)
-    status = getattr(f, "status", None)
-    return _State(index, np.asarray(params, np.float64), np.ones(n, bool) if valid is None else np.asarray(valid, bool),
-                  np.zeros(n, np.int32) if status is None else np.asarray(status, np.int32),
-                  getattr(f, "sigma_u", None), getattr(f, "sigma_v", None), int(reference_index))
+def _params(f: Field2D) -> np.ndarray:
+    """(N, 6|12) float64 parameters of a frame (one of another writer's files may have none: translation only)."""
+    if f.params is not None:
+        return np.asarray(f.params, np.float64)
+    params = np.zeros((len(f.u), 6))
+    params[:, 0], params[:, 3] = f.u, f.v
+    return params
 
 
 def _guess(previous):
@@ -154,15 +89,21 @@ def _quality(raw, ref_valid) -> tuple[float, float]:
     return float(frac), float(np.median(z)) if z.size else 0.0
 
 
-def _compose(ref: _Ref, raw, points0, order: int):
-    """The frame's result against a moved reference, in the original configuration (Lagrangian)."""
+def _lagrangian(ref: _Ref, raw, points0, index: int) -> Field2D:
+    """A tracker's result of frame ``index`` against ``ref`` as the frame's :class:`Field2D` against the reference image."""
+    raw = as_field2d(raw)
+    if ref.index != 0:
+        return _compose(ref, raw, points0, index)
+    raw.index = int(index)
+    return raw
+
+
+def _compose(ref: _Ref, raw: Field2D, points0, index: int) -> Field2D:
+    """Frame ``index``'s result against a moved reference, in the original configuration (Lagrangian)."""
     out = copy.copy(raw)
-    s = ref.state
-    inc = np.asarray(raw.params, np.float64)
-    if ref.offset is not None:  # tracked at whole pixels: the warp at the moved POI itself
-        inc = shift_params(inc, ref.offset, order)
-    params = compose_params(s.params, inc, order)
-    ok = ref.ok
+    s, moved = ref.state, ref.moved  # s: the field of the frame the reference moved to
+    params = moved.compose(raw.params)  # tracked at whole pixels: carried to the moved POI, then composed
+    ok = moved.usable
     valid = np.asarray(raw.valid, bool) & ok
     status = np.where(ok, np.asarray(raw.status, np.int32), s.status).astype(np.int32)
     out.points = np.array(points0, dtype=np.float64)
@@ -171,11 +112,13 @@ def _compose(ref: _Ref, raw, points0, order: int):
     out.v = params[:, params.shape[1] // 2].copy()
     out.valid = valid
     out.status = status
-    out.reference_interpolated = valid & ~s.valid  # valid here, placed in the reference by interpolation
-    for name, prev in (("sigma_u", s.sigma_u), ("sigma_v", s.sigma_v)):
-        cur = getattr(raw, name, None)
-        if cur is not None and prev is not None:
-            setattr(out, name, np.hypot(np.asarray(cur, np.float64), np.asarray(prev, np.float64)))
+    out.index = int(index)
+    out.reference_index = int(ref.index)
+    out.reference_interpolated = valid & ~moved.anchors  # valid here, placed in the reference by interpolation
+    if raw.sigma_u is not None and s.sigma_u is not None:
+        out.sigma_u = np.hypot(np.asarray(raw.sigma_u, np.float64), np.asarray(s.sigma_u, np.float64))
+    if raw.sigma_v is not None and s.sigma_v is not None:
+        out.sigma_v = np.hypot(np.asarray(raw.sigma_v, np.float64), np.asarray(s.sigma_v, np.float64))
     return out
 
 
@@ -435,7 +378,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 check_strain_window(strain_window, grid_layout(points0)[1])
         except ValueError as exc:
             raise ValueError(f"{exc} (strain_window=0 skips strain)") from None
-    zero = _State(0, np.zeros((n, 6 if order == 1 else 12)), np.ones(n, bool), np.zeros(n, np.int32))
+    everywhere = np.ones(n, bool)  # the reference image: every point can be tracked
     ref_name = ref_path or "(array)"
     writer = ResultWriter(out, reference_path=ref_path, reference_shape=ref_img.shape,
                           reference_sha256=_digest(ref_img), settings=settings, mode=mode,
@@ -450,40 +393,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         done = set(writer.done_frames())
         wb = WriteBehind(depth=write_depth(n, order, budget))  # huge frames: none waits (memory)
 
-        def stored_state(index: int) -> _State:
-            with wb.lock:
-                f = writer.read_frame(index)
-            return _state_of(index, f, int(f.attrs.get("reference_index", 0)))
-
-        current = _Ref(0, ref_img, zero, reference_tracker())
-        prev: _State | None = None  # the last frame's state (computed or read back)
-        images: dict[int, Any] = {}  # images of frames that may serve as a reference: bounded (<= 2)
-
-        def get_ref(r: int, fallback: int | None = None) -> _Ref:
-            """The reference frame r (built when it changes); ``fallback`` when frame r has no valid point."""
-            nonlocal current
-            if r == current.index:
-                return current
-            if r == 0:
-                current = _Ref(0, ref_img, zero, reference_tracker())
-                return current
-            state = prev if prev is not None and prev.index == r and prev.params is not zero.params else stored_state(r)
-            if r not in images:
-                raise ValueError(f"cannot resume {out}: the image of frame {r}, the reference of the next frame, "
-                                 "was not given again; give the same frames as the run that wrote the file")
-            try:
-                moved = _moved(points0, state, r, None)
-            except ValueError:  # a frame with no valid point cannot serve as a reference: keep the previous one
-                if fallback is None or fallback == r:
-                    raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
-                return get_ref(fallback)
-            tracker0_holder[0] = current = None  # free the previous reference's data before preparing the new one
-            moved.image = _host(images[r])  # a reference is prepared on the host (once per reference)
-            moved.tracker = tracker_for(moved.image, moved.points)
-            current = moved
-            return current
-
-        def finish(k: int, lag, raw_seconds: float, ref_index: int, item: Loaded):
+        def finish(k: int, lag, raw_seconds: float, item: Loaded):
             strain = None
             if strain_window:
                 try:
@@ -493,10 +403,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                         strain = strain_in_bands(lag, strain_window)
                 except ValueError as exc:
                     raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
-            attrs = {"seconds": raw_seconds, "reference_index": int(ref_index)}
-            interpolated = getattr(lag, "reference_interpolated", None)
-            if interpolated is not None:  # the valid points whose place in the reference was interpolated
-                attrs["reference_interpolated"] = int(np.count_nonzero(interpolated))
+            lag.strain = strain  # the frame's field carries its strain (callback, later use)
+            attrs = {"seconds": raw_seconds, "reference_index": int(lag.reference_index)}
+            if lag.reference_interpolated is not None:  # the valid points whose place in the reference was interpolated
+                attrs["reference_interpolated"] = int(np.count_nonzero(lag.reference_interpolated))
             writer.write_frame(k, lag, strain=strain, path=item.path, sha256=item.digest, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_vtk
@@ -510,15 +420,18 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             if callback is not None:
                 callback(k, lag, strain)
 
+        def stored_state(index: int) -> Field2D:
+            with wb.lock:
+                return writer.read_frame(index)
+
         bar = tqdm(total=total, unit="frame", desc="track", disable=not progress)
-        computed = 0
         reader = read_ahead(frames, _frame_loader(ref_img.shape, ref_name))
         if client is not None:
-            tracker0_holder[0] = current = None  # the workers prepare the reference
+            tracker0_holder[0] = None  # the workers prepare the reference
             try:
                 _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state,
                              builder=_builder(make_tracker, budget, order, search_name), ref_img=ref_img,
-                             zero=zero, points0=points0, order=order, settings=settings, out=out)
+                             everywhere=everywhere, points0=points0, order=order, settings=settings, out=out)
             finally:
                 reader.close()
                 wb.close(raise_error=False)
@@ -526,71 +439,89 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             trim_memory()
             summary.seconds = time.perf_counter() - t_start
             return summary
+        kind = _Track2D(ref_img=ref_img, everywhere=everywhere, points0=points0, order=order, guess=guess,
+                        reference_tracker=reference_tracker, tracker_for=tracker_for,
+                        release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
+                        stored_state=stored_state, finish=finish, out=out)
         try:
-            for item in reader:
-                k = item.index
-                if item.error is not None:
-                    wb.close(raise_error=True)  # the frames before it are written first
-                    exc = item.error
-                    saved = f"; frames before it are saved in {out}" if k > 1 else ""
-                    if isinstance(exc, (ValueError, OSError)):
-                        raise ValueError(f"frame {k} ({os.fspath(item.path) or 'array'}): {exc}{saved}") from None
-                    raise exc
-                if k in done:  # resuming: the finished frame must come from the image given for it now
-                    with wb.lock:
-                        attrs = writer.frame_attrs(k)
-                        writer.check_frame(k, item.path, _digest_like(str(attrs.get("sha256", "")), item.image,
-                                                                      item.digest))
-                    r_k = int(attrs.get("reference_index", 0))
-                    prev = None if k + 1 in done else stored_state(k)
-                    keep = {policy.start(k + 1, r_k), k, current.index}
-                    images[k] = item.image
-                    for i in [i for i in images if i not in keep]:
-                        del images[i]
-                    if prev is None:  # the next frame is done too: a placeholder with its reference index
-                        prev = _State(k, zero.params, zero.valid, zero.status, reference_index=r_k)
-                    summary.skipped += 1
-                    bar.update(1)
-                    continue
-                t0 = time.perf_counter()
-                prev_ref = prev.reference_index if prev is not None else 0
-                ref = get_ref(policy.start(k, prev_ref), prev_ref)
-                start = _guess_for(ref, prev, k, order) if guess == "previous" else None
-                try:
-                    raw = ref.tracker.track(item.image, guess=start)
-                    if policy.kind == "auto" and ref.index != k - 1 and k > 1:
-                        frac, med = _quality(raw, ref.ok)
-                        if policy.needs_update(frac, med):
-                            newer = get_ref(k - 1, ref.index)
-                            if newer.index != ref.index:
-                                ref = newer
-                                raw = ref.tracker.track(item.image, guess=None)
-                except ValueError as exc:
-                    wb.close(raise_error=True)
-                    saved = f"; frames before it are saved in {out}" if k > 1 else ""
-                    raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}{saved}") from None
-                lag = raw if ref.index == 0 else _compose(ref, raw, points0, order)
-                seconds = time.perf_counter() - t0
-                wb.submit(lambda k=k, lag=lag, s=seconds, r=ref.index, it=item: finish(k, lag, s, r, it))
-                prev = _state_of(k, lag, ref.index)
-                images[k] = item.image
-                for i in [i for i in images if i not in (k, ref.index)]:
-                    del images[i]
-                valid = np.asarray(lag.valid, bool)
-                summary.frames.append({"index": k, "n_valid": int(valid.sum()), "n_points": int(valid.size),
-                                       "seconds": seconds, "reference_index": int(ref.index)})
-                computed += 1
-                if computed % _TRIM_EVERY == 0:
-                    trim_memory()
-                bar.update(1)
-            wb.close(raise_error=True)
+            run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out, lock=wb.lock)
         finally:
             reader.close()
             wb.close(raise_error=False)
             bar.close()
+            del kind
     trim_memory()
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+class _Track2D:
+    """The 2-D kind of :func:`dic.sequence.engine.run_sequence`: a :class:`dic.track.Tracker` per reference
+    (the reference image's, or a moved one's), results composed back to the reference image (Lagrangian)."""
+
+    noun, images_noun, inputs_noun = "frame", "the image", "frames"
+
+    def __init__(self, *, ref_img, everywhere, points0, order, guess, reference_tracker, tracker_for, release_reference,
+                 writer, stored_state, finish, out):
+        self.ref_img, self.everywhere, self.points0, self.order, self.guess = ref_img, everywhere, points0, order, guess
+        self._reference_tracker, self._tracker_for, self._release = reference_tracker, tracker_for, release_reference
+        self.writer, self.stored_state, self._finish, self.out = writer, stored_state, finish, out
+        self.current = _Ref(0, ref_img, reference_tracker(), everywhere)
+        self.prev: Field2D | None = None  # the last frame's field (computed or read back)
+
+    @property
+    def reference_index(self) -> int:
+        return self.current.index
+
+    def move_reference(self, r: int, image, state) -> None:
+        if r == 0:
+            self.current = _Ref(0, self.ref_img, self._reference_tracker(), self.everywhere)
+            return
+        try:
+            moved = _moved(self.points0, state, r, None, self.order)
+        except ValueError as exc:  # no valid point
+            raise CannotServe(str(exc)) from None
+        self._release()  # free the previous reference's data before preparing the new one
+        self.current = None
+        moved.image = _host(image)  # a reference is prepared on the host (once per reference)
+        moved.tracker = self._tracker_for(moved.image, moved.moved.points)
+        self.current = moved
+
+    def measure(self, k: int, image, *, final: bool = True):
+        ref = self.current
+        start = _guess_for(ref, self.prev, k, self.order) if self.guess == "previous" else None
+        return _lagrangian(ref, ref.tracker.track(image, guess=start), self.points0, k)
+
+    def kept(self, result) -> None:
+        pass
+
+    def quality(self, result) -> tuple[float, float]:
+        return _quality(result, self.current.ok)
+
+    def accept(self, k: int, result: Field2D, image) -> Field2D:
+        self.prev = result
+        return result
+
+    def check_done(self, k: int, item: Loaded) -> int:
+        attrs = self.writer.frame_attrs(k)
+        self.writer.check_frame(k, item.path, _digest_like(str(attrs.get("sha256", "")), item.image, item.digest))
+        return int(attrs.get("reference_index", 0))
+
+    def resume(self, k: int, image, *, next_done: bool) -> None:
+        self.prev = None if next_done else self.stored_state(k)
+
+    def counts(self, result) -> tuple[int, int]:
+        valid = np.asarray(result.valid, bool)
+        return int(valid.sum()), int(valid.size)
+
+    def write(self, k: int, result, item: Loaded, seconds: float) -> None:
+        self._finish(k, result, seconds, item)
+
+    def failed(self, item: Loaded, exc: BaseException) -> BaseException:
+        if not isinstance(exc, (ValueError, OSError)):
+            return exc
+        saved = f"; frames before it are saved in {self.out}" if item.index > 1 else ""
+        return ValueError(f"frame {item.index} ({os.fspath(item.path) or 'array'}): {exc}{saved}")
 
 
 def _builder(make_tracker, budget, order, search):
@@ -599,7 +530,7 @@ def _builder(make_tracker, budget, order, search):
     return ReferenceBuilder(make_tracker, budget, order, search)
 
 
-def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state, *, builder, ref_img, zero,
+def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state, *, builder, ref_img, everywhere,
                  points0, order, settings, out):
     """The frames of :func:`track_sequence` correlated on a Dask cluster, written here in frame order.
 
@@ -608,15 +539,12 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     """
     import json
     import uuid
-    from collections import OrderedDict
 
-    from .distributed import LOST, held, n_workers, release, track_on_worker
-
-    lost = LOST()
+    from .distributed import held, track_on_worker
+    from .engine import run_on_dask
 
     token = _sha256_text(json.dumps(settings, sort_keys=True, default=str) + _digest(ref_img))[:16] + "-" + \
         uuid.uuid4().hex[:8]
-    window = 2 * n_workers(client) + 1
     # the reference data go to the cluster as the results of tasks that hold them (not scattered): if
     # every worker holding them dies, the scheduler computes them again instead of cancelling the frames
     import cloudpickle
@@ -627,8 +555,7 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
         raise ValueError(f"make_tracker cannot be sent to the Dask workers ({type(exc).__name__}: {exc}); with client= "
                          "it must be picklable by cloudpickle (create what it holds inside it)") from None
     build = client.submit(held, builder, key=f"specula-{token}-builder", pure=False)
-    pending: OrderedDict = OrderedDict()  # frame -> (future, Loaded, _Ref)
-    key_states: dict[int, _State] = {}  # every:N: the key frames computed in this call
+    key_states: dict[int, Field2D] = {}  # every:N: the key frames computed in this call
     images: dict[int, Any] = {}  # images of key frames (the next block's reference): bounded
     done = set(writer.done_frames())
 
@@ -639,91 +566,68 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
                                                                    pure=False)}
 
     over = builder.over_budget(len(points0))
-    cur = _Ref(0, ref_img, zero, None)
+    cur = _Ref(0, ref_img, None, everywhere)
+    skipped_for = None  # every:N: a key frame that could not serve as a reference (no valid point)
     cur_data = scattered(0, ref_img, points0 if over else None, "")
 
-    def fail(k: int, item, exc):
-        saved = f"; frames before it are saved in {out}" if k > 1 else ""
-        raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}{saved}") from None
+    def failed(item, exc):
+        if not isinstance(exc, (ValueError, OSError)):
+            return exc
+        saved = f"; frames before it are saved in {out}" if item.index > 1 else ""
+        return ValueError(f"frame {item.index} ({item.path or 'array'}): {exc}{saved}")
 
-    def drain_one():
-        k, (fut, item, ref) = pending.popitem(last=False)
-        try:
-            raw, seconds = fut.result()
-        except ValueError as exc:
-            wb.close(raise_error=True)  # the frames before it are written first
-            fail(k, item, exc)
-        except lost as exc:  # workers that kept dying on this frame, a scheduler gone, a cancelled run
-            wb.close(raise_error=True)
-            fail(k, item, f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")
-        lag = raw if ref.index == 0 else _compose(ref, raw, points0, order)
-        wb.submit(lambda k=k, lag=lag, s=seconds, r=ref.index, it=item: finish(k, lag, s, r, it))
+    def collect(k, item, ref, raw, seconds):
+        lag = _lagrangian(ref, raw, points0, k)
+        wb.submit(lambda k=k, lag=lag, s=seconds, it=item: finish(k, lag, s, it))
         if policy.kind == "every" and k % policy.every == 0:
-            key_states[k] = _state_of(k, lag, ref.index)
+            key_states[k] = lag
         valid = np.asarray(lag.valid, bool)
-        summary.frames.append({"index": k, "n_valid": int(valid.sum()), "n_points": int(valid.size),
-                               "seconds": seconds, "reference_index": int(ref.index)})
-        if len(summary.frames) % _TRIM_EVERY == 0:
-            trim_memory()
-        bar.update(1)
+        return int(valid.sum()), int(valid.size), int(ref.index)
 
-    def reference(r: int):
+    def reference(r: int, wait):
         """The reference frame r of the next block (its key frame's result known: waited for)."""
         nonlocal cur, cur_data
-        while r not in key_states and r in pending:
-            drain_one()
+        if r not in key_states:
+            wait(r)
         state = key_states.get(r) or stored_state(r)
         if r not in images:
             raise ValueError(f"cannot resume {out}: the image of frame {r}, the reference of the next frame, "
                              "was not given again; give the same frames as the run that wrote the file")
         try:
-            cur_new = _moved(points0, state, r, images[r])
+            cur_new = _moved(points0, state, r, images[r], order)
         except ValueError:  # no valid point: the key frame's own reference stays (as on one machine)
             if state.reference_index != cur.index or r == cur.index:
                 raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
             return
         cur = cur_new
-        cur_data = scattered(r, images[r], cur.points, _digest(images[r]))
+        cur_data = scattered(r, images[r], cur.moved.points, _digest(images[r]))
+        for i in [i for i in key_states if i < r]:  # key frames before the reference: not needed again
+            del key_states[i]
 
-    try:
-        for item in reader:
-            k = item.index
-            if item.error is not None:
-                while pending:
-                    drain_one()
-                wb.close(raise_error=True)
-                if isinstance(item.error, (ValueError, OSError)):
-                    fail(k, item, item.error)
-                raise item.error
-            if policy.kind == "every":
-                r = policy.start(k, 0)
-                if r != cur.index and r != getattr(cur, "skipped_for", None):
-                    before = cur.index
-                    reference(r)
-                    if cur.index == before:  # the key frame could not serve: remember not to try again
-                        cur.skipped_for = r
-                if k % policy.every == 0:
-                    images[k] = item.image
-                for i in [i for i in images if i not in (k, cur.index)]:
-                    del images[i]
-            if k in done:  # resuming: the finished frame must come from the image given for it now
-                with wb.lock:
-                    writer.check_frame(k, item.path, item.digest)
-                summary.skipped += 1
-                bar.update(1)
-                continue
-            while len(pending) >= window:
-                drain_one()
-            fut = client.submit(track_on_worker, cur_data["key"], build, cur_data["image"], cur_data["points"],
-                                item.image, key=f"specula-{token}-frame-{k}", pure=False)
-            pending[k] = (fut, item, cur)
-        while pending:
-            drain_one()
-        wb.close(raise_error=True)
-    finally:
-        if pending:
-            client.cancel([f for f, _, _ in pending.values()])
-        release(client, token + ":")
+    def before(k, item, wait):
+        nonlocal skipped_for
+        if policy.kind != "every":
+            return
+        r = policy.start(k, 0)
+        if r != cur.index and r != skipped_for:
+            was = cur.index
+            reference(r, wait)
+            if cur.index == was:  # the key frame could not serve: remember not to try again
+                skipped_for = r
+        if k % policy.every == 0:
+            images[k] = item.image
+        for i in [i for i in images if i not in (k, cur.index)]:
+            del images[i]
+
+    def check_done(k, item):
+        writer.check_frame(k, item.path, item.digest)
+
+    def submit(k, item):
+        return client.submit(track_on_worker, cur_data["key"], build, cur_data["image"], cur_data["points"],
+                             item.image, key=f"specula-{token}-frame-{k}", pure=False), cur
+
+    run_on_dask(client, reader, done=done, wb=wb, summary=summary, bar=bar, token=token, submit=submit,
+                collect=collect, check_done=check_done, failed=failed, before=before)
 
 
 def _sha256_text(text: str) -> str:
@@ -751,11 +655,11 @@ def _planned_points(shape, options: dict):
         return None
 
 
-def _guess_for(ref: _Ref, prev: _State | None, k: int, order: int):
+def _guess_for(ref: _Ref, prev: Field2D | None, k: int, order: int):
     """The initial guess of frame k against ``ref``, from the previous frame's (Lagrangian) result."""
     if prev is None or prev.index != k - 1 or prev.index == ref.index:
         return None
     if ref.index == 0:
-        return _guess((prev.params, prev.valid))
-    valid = prev.valid & ref.ok
-    return _guess((relative_params(ref.state.params, prev.params, order), valid))
+        return _guess((_params(prev), np.asarray(prev.valid, bool)))
+    valid = np.asarray(prev.valid, bool) & ref.ok
+    return _guess((ref.moved.relative(_params(prev)), valid))

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..field2d import Field2D
 from .layout import DEFAULT_COMPRESSION, Compression, StoreKind, parse_compression, plain, write_dataset
 
 __all__ = ["FORMAT_NAME", "KIND", "FrameResult", "TrackResults", "table_attrs", "write_field2d", "read_field2d"]
@@ -30,24 +31,23 @@ FIELD_ATTRS = ("noise_sigma", "noise_source")
 STRAIN_DATASETS = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy", "valid")
 
 
-@dataclass
-class FrameResult:
-    """One frame of a 2-D result file (arrays aligned with ``points``, (N, 2) px)."""
+@dataclass(repr=False)
+class FrameResult(Field2D):
+    """One frame of a 2-D result file: a :class:`dic.field2d.Field2D` read back (arrays aligned with
+    ``points``, (N, 2) px), the one 2-D result type.
 
-    index: int
-    path: str
-    points: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
-    params: np.ndarray | None = None
-    zncc: np.ndarray | None = None
-    iterations: np.ndarray | None = None
-    status: np.ndarray | None = None
-    valid: np.ndarray | None = None
-    strain: dict | None = None
+    What the file holds per frame fills the :class:`Field2D` fields: the arrays, ``index``,
+    ``reference_index``, ``sigma_u``, ``sigma_v``, ``noise_sigma``, ``noise_source`` and ``strain``
+    (the stored strain as a dict of (N,) arrays with ``window`` and ``step``, or None); ``order``
+    follows from ``params``. A file holds no per-frame ``subset`` (``subset`` is 0: see the file's
+    settings) and no mask of the points placed by interpolation at a moved reference
+    (``reference_interpolated`` is None; their count is ``attrs["reference_interpolated"]``). Arrays a
+    file of another writer lacks are None. Added: ``path`` (the frame's image, '' for an array) and
+    ``attrs`` (the frame's stored attributes: ``seconds``, ``sha256``, ``reference_index``, ...).
+    """
+
+    path: str = ""
     attrs: dict = field(default_factory=dict)
-    sigma_u: np.ndarray | None = None
-    sigma_v: np.ndarray | None = None
 
     def __repr__(self) -> str:
         n = int(np.asarray(self.points).shape[0])
@@ -243,8 +243,14 @@ def read_field2d(group) -> FrameResult:
         strain["window"] = int(group["strain"].attrs["window"])
         strain["step"] = tuple(group["strain"].attrs["step"])
     extra = {k: plain(v) for k, v in group.attrs.items() if k not in ("index", "path")}
-    return FrameResult(index=int(group.attrs["index"]), path=str(group.attrs.get("path", "")), strain=strain,
-                       attrs=extra, **data)
+    params = data.get("params")
+    return FrameResult(points=data["points"], u=data["u"], v=data["v"], params=params, zncc=data.get("zncc"),
+                       iterations=data.get("iterations"), status=data.get("status"), valid=data.get("valid"),
+                       subset=0, order=2 if params is not None and params.shape[1] == 12 else 1,
+                       sigma_u=data.get("sigma_u"), sigma_v=data.get("sigma_v"), noise_sigma=extra.get("noise_sigma"),
+                       noise_source=extra.get("noise_source"), index=int(group.attrs["index"]),
+                       reference_index=int(extra.get("reference_index", 0)), strain=strain,
+                       path=str(group.attrs.get("path", "")), attrs=extra)
 
 
 KIND = StoreKind(name="dic2d", format=FORMAT_NAME, label="2-D DIC", image_roles=("",),
