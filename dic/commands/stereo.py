@@ -208,7 +208,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")
         click.echo(f"results: {output}")
-    if written and not allow_empty and all(n_valid == 0 for _, n_valid, _, _ in written):
+    if len(summary) and not allow_empty and not any(summary.n_valid):
         raise click.ClickException(
-            f"no state of this run has a valid point ({len(written)} state(s) written to {output}): are the left and "
+            f"no state of this run has a valid point ({len(summary)} state(s) written to {output}): are the left and "
             f"right images swapped, or is {rig_path} the rig of another setup? (--allow-empty accepts such a run)")
