@@ -136,6 +136,24 @@ def test_settings_of_8d9f975_are_read_as_records():
     assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental")
 
 
+def test_schema1_details_and_unknown_schemas():
+    # 8d9f975 wrote auto_valid/auto_zncc of a 2-D run only with guess="none": when absent they are not compared
+    old = {"reference": "auto", "strain_window": 5, "step": 8}
+    assert TrackOptions(step=8, reference="auto", auto_valid=0.9).resume_check(old) is None
+    assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto").resume_check(old)
+    # old stereo files hold the POIs themselves; the record holds their digest
+    pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
+    assert StereoOptions(points=pts).resume_check({"points": pts.tolist()}) is None
+    assert "points" in StereoOptions(points=pts + 1).resume_check({"points": pts.tolist()})
+    # a mask is the same region wherever it was read from
+    mask = {"mask": "/a/m.png", "sha256": "ab" * 32, "shape": [80, 100]}
+    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}).resume_check({"roi": mask, "strain_window": 5}) is None
+    for stored, fragment in (({"options_schema": 3}, "schema 3"), ({"subset": 21, "colour": "red"}, "colour"),
+                             ({**TrackOptions().to_settings(), "colour": 1}, "colour")):
+        refusal = TrackOptions().resume_check(stored)
+        assert fragment in refusal and "--overwrite" in refusal
+
+
 # -- resuming across writers -------------------------------------------------------------------
 def test_2d_library_file_resumes_with_the_cli_and_back(tmp_path):
     out = tmp_path / "lib.h5"
