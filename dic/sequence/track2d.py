@@ -266,7 +266,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         What the file records of the run and a resume compares. Default: the run record
         (:class:`dic.sequence.options.TrackOptions`) of ``options`` and the sequence keywords, stored
         with every default written out and compared option by option (a file written by ``specula
-        track`` resumes here and the other way round; docs/results_format.md, "Settings"). A
+        track`` resumes here and the other way round; docs/results_format.md, "The run record"). A
         ``TrackOptions`` (the command line's): its tracker options, with this call's ``strain_window``,
         ``reference``, ``auto_valid``, ``auto_zncc`` and ``guess``. A dict (with a custom
         ``make_tracker``): stored as given and compared as it is.
@@ -369,7 +369,6 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         if make_tracker is None:
             options = {**record.tracker_kwargs(), "device": options.get("device")}
     if make_tracker is None:
-
         def make_tracker(image, points, _opts=dict(options)):
             from ..track import Tracker
 
