@@ -7,12 +7,16 @@
   the same reference strategies for its temporal tracks (the left -> right match done once; results
   Lagrangian, ``reference_index`` per state), streaming VTK files and figures, resume.
 - :mod:`dic.sequence.pipeline`: the reader thread ahead, the writer thread behind, ``malloc_trim``.
+- :mod:`dic.sequence.options`: the run record (:class:`TrackOptions`, :class:`StereoOptions`), every
+  option that affects the results, stored in the file with its defaults and compared on resume.
 """
 from __future__ import annotations
 
+from .options import OptionError, StereoOptions, TrackOptions
 from .reference import ReferencePolicy, parse_reference
 from .stereo import FORMAT_NAME, SCHEMA_VERSION, StereoResults, read_field, read_stereo, stereo_sequence
 from .track2d import SequenceSummary, track_sequence
 
 __all__ = ["track_sequence", "SequenceSummary", "stereo_sequence", "read_stereo", "read_field", "StereoResults",
-           "FORMAT_NAME", "SCHEMA_VERSION", "ReferencePolicy", "parse_reference"]
+           "FORMAT_NAME", "SCHEMA_VERSION", "ReferencePolicy", "parse_reference", "TrackOptions", "StereoOptions",
+           "OptionError"]
