@@ -68,6 +68,9 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
                         "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": False,
                         "check_outliers": False, "strain_window": 5, "reference": "fixed", "auto_valid": None,
                         "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None}
+    from dic.postprocess import SCALE_KEY
+
+    assert SCALE_KEY in settings  # where post-processing reads the scale
     explicit = TrackOptions(subset=21, step=10, max_iter=30, tol=0.001, check_outliers=False, robust=False)
     assert explicit == rec and not rec.differences(explicit)
     assert TrackOptions.from_settings(settings) == rec

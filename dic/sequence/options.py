@@ -41,8 +41,8 @@ OPTIONS_SCHEMA = 2
 _SCHEMA_KEY = "options_schema"
 #: IC-GN iterations per point at most (kernels.icgn.MAX_ITER, not imported here: that module loads Warp)
 _MAX_ITER = 10000
-#: settings keys of a 2-D file that are not options of the run (written by ``specula restrain``: strain_window is one)
-_SCALE_KEY = "scale_mm_per_px"  # dic.postprocess.SCALE_KEY
+#: the 2-D settings key of the image scale: dic.postprocess.SCALE_KEY (tests/test_run_options.py keeps them equal)
+_SCALE_KEY = "scale_mm_per_px"
 
 
 class OptionError(ValueError):
