@@ -260,3 +260,26 @@ def test_stereo_library_file_resumes_with_the_cli_and_a_difference_is_refused(tm
     text = " ".join(r.output.split())
     assert r.exit_code == 1 and "--epipolar-tol (epipolar_tol_px): 1.0 in the file, 2.0 now" in text
     assert "--frame (frame): 'plane' in the file, 'left' now" in text  # every difference, not just the first
+
+
+def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
+    from dic.store import ResultWriter
+
+    out = tmp_path / "w.h5"
+    kw = dict(reference_path="r.tif", reference_shape=(10, 10), reference_sha256="abc")
+    old = {"search": 4, "search_method": "zncc", "max_iter": None, "tol": None, "subset": 21, "step": 8, "order": 1,
+           "strain_window": 5}  # the 8d9f975 command line's form
+    with ResultWriter(out, settings=old, **kw):
+        pass
+    now = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=30)
+    # equal records: resumed, and the file keeps the settings it holds
+    with ResultWriter(out, settings=now.to_settings(), settings_check=now.resume_check, **kw):
+        pass
+    assert read_results(out).settings == old
+    # without the check the JSON texts are compared, as for settings given as a dict
+    with pytest.raises(ValueError, match=r"different settings \(.*differ"):
+        ResultWriter(out, settings=now.to_settings(), **kw)
+    other = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=31)
+    with pytest.raises(ValueError, match=r"w\.h5 was written with different settings: --max-iter \(max_iter\): 30 in "
+                                         r"the file, 31 now\. Resume with the file's settings, or start afresh"):
+        ResultWriter(out, settings=other.to_settings(), settings_check=other.resume_check, **kw)
