@@ -169,13 +169,16 @@ def write_step(state: DemoState) -> None:
     """Step 4: images, HDF5 results, figure and summary."""
     from dic.io import write_image
     from dic.plots.fields import write_field_figure
+    from dic.sequence.options import TrackOptions
     from dic.store import ResultWriter, image_digest
 
     cfg, out = state.config, state.out
     out.mkdir(parents=True, exist_ok=True)
     write_image(out / "reference.tif", state.reference, bits=8)
     write_image(out / "current.tif", state.current, bits=8)
-    settings = {"subset": cfg.subset, "step": cfg.step, "order": cfg.order, "strain_window": cfg.strain_window}
+    # the run record of the options track_step used (docs/results_format.md, "The run record")
+    settings = TrackOptions(subset=cfg.subset, step=cfg.step, order=cfg.order, search=cfg.search,
+                            search_radius=cfg.search_radius, strain_window=cfg.strain_window).to_settings()
     with ResultWriter(out / "results.h5", reference_path="reference.tif", reference_shape=state.reference.shape,
                       reference_sha256=image_digest(state.reference), settings=settings, mode="overwrite") as w:
         w.write_frame(1, state.field, strain=state.strain, path="current.tif")

@@ -183,7 +183,8 @@ def test_search_option_finds_a_large_shift(tmp_path):
     r = run([*paths, "-o", str(out), "--step", "10", "--search", "12", "--device", "cpu", "-q"])
     assert r.exit_code == 0, r.output
     f = read_results(out).frames[1]
-    assert res_settings(out)["search_method"] == "pyramid"
+    # the run record (dic.sequence.options): the method and the radius under the library's names
+    assert res_settings(out)["search"] == "pyramid" and res_settings(out)["search_radius"] == 12
     assert f.valid.sum() >= 10
     # same bound as above: noise-free 8-bit speckle, IC-GN errors ~0.01 px
     assert np.max(np.abs(f.u[f.valid] - 7.6)) < 0.03 and np.max(np.abs(f.v[f.valid] + 5.2)) < 0.03
@@ -312,9 +313,9 @@ def test_regions_of_interest(images, tmp_path):
         if stored is not None:
             assert res.settings["roi"] == stored
     assert read_results(tmp_path / "r4.h5").settings["roi"]["mask"] == str(tmp_path / "mask.png")
-    # without a region the settings have no "roi" (files written before resume as they were)
+    # without a region the run record says so (every default is written out: docs/results_format.md)
     r = run([images[0], images[1], "-o", str(tmp_path / "all.h5"), "--step", "5", "--device", "cpu", "-q"])
-    assert r.exit_code == 0 and "roi" not in read_results(tmp_path / "all.h5").settings
+    assert r.exit_code == 0 and read_results(tmp_path / "all.h5").settings["roi"] is None
     # clear errors, no traceback
     write_image(tmp_path / "small.png", mask[:50], bits=8)
     for opts, code, msg in [(["--roi", "1", "2", "3", "4", "--mask", str(tmp_path / "mask.png")], 2,

@@ -152,6 +152,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         sources.right[0]  # a missing or unreadable right reference image: one clear error now
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
+    from dic.correlation.points import region as check_region
     from dic.stereo import as_rig, check_rig_images
 
     try:  # any calibration format; the images' size stands in where the file records none
@@ -164,12 +165,19 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     except ValueError as exc:
         raise click.ClickException(f"{rig_path} does not fit {first_left.name}: {exc}") from None
     pairs = _engine_pairs(sources)
-    options = dict(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
-                   zncc_min=zncc_min, strain_window=strain_window)
-    if region is not None:
-        options["roi"] = region
-    if robust:  # only when given: files written without it still resume
-        options["robust"] = True
+    # the run record (dic.sequence.options): the same as stereo_sequence builds from the same keywords
+    from dic.sequence.options import OptionError, StereoOptions
+
+    try:
+        region = None if region is None else check_region(region, size)
+        record = StereoOptions(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
+                               zncc_min=zncc_min, strain_window=strain_window, roi=region, robust=robust,
+                               reference=reference_strategy)
+    except OptionError as exc:
+        raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
+    except ValueError as exc:  # the region does not fit the images
+        raise click.ClickException(str(exc)) from None
+    options = record.correlation_kwargs()
     written = []  # a state finished (the callback): finished states are in the file
 
     def after(index, field, strain):

@@ -126,23 +126,11 @@ def track(reference, current, output, subset, step, order, search, search_method
             region = check_region(region, ref.shape)
     except ValueError as exc:
         raise _fail(exc) from None
-    settings = {"subset": subset, "step": step, "order": order, "search": search,
-                "search_method": search_method if search else None, "max_iter": max_iter, "tol": tol,
-                "strain_window": strain_window}
-    if scale is not None:  # only when given, so files written without it still resume
-        from dic.postprocess import SCALE_KEY
-        from kernels.checks import positive_float
-
-        try:
-            settings[SCALE_KEY] = positive_float(scale, "the scale", detail=" (mm per px)")
-        except ValueError as exc:
-            raise click.BadParameter(str(exc), param_hint="--scale") from None
-    if noise_sigma is not None:  # (the key is absent by default, so files of earlier runs still resume)
-        settings["noise_sigma"] = noise_sigma
-    if robust:  # idem
-        settings["robust"] = True
-    if region is not None:  # only when given: files written without a region resume as before
-        settings["roi"] = region.settings()
+    # the run record: the options the library's track_sequence takes (an option left out is the library's default)
+    given = {"max_iter": max_iter, "tol": tol, "search_radius": search}
+    record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
+                     noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
+                     scale_mm_per_px=scale, **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
 
@@ -161,9 +149,11 @@ def track(reference, current, output, subset, step, order, search, search_method
     from dic.sequence import track_sequence
 
     def make_tracker(image, points):
-        return _make_tracker(image, subset=subset, step=step, order=order, search=search, search_method=search_method,
-                             max_iter=max_iter, tol=tol, device=device, noise_sigma=noise_sigma, robust=robust,
-                             roi=region if points is None else None, points=points)
+        kwargs = record.tracker_kwargs()
+        if points is not None:  # a moved reference or a chunk (dic.sequence): these POIs, not the region's grid
+            kwargs.pop("roi", None)
+            kwargs["points"] = points
+        return _make_tracker(image, device=device, **kwargs)
 
     try:
         with dask_client(scheduler, workers) as client:
@@ -171,7 +161,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                 ref_frame, _Frames(source), output, reference=reference_strategy,
                 mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
                 vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
-                settings=settings, make_tracker=make_tracker, points=planned, order=order,
+                settings=record, make_tracker=make_tracker, points=planned, order=order,
                 max_memory=budget, search=search_method if search else None, client=client, compression=compression)
     except ValueError as exc:
         raise _fail(exc) from None
@@ -266,24 +256,20 @@ def _sequence_figures(output, ref, figure_dir) -> None:
                            limits=limits, title=f"frame {f.index}: {Path(f.path).name}")
 
 
-def _make_tracker(reference, *, subset, step, order, search, search_method, max_iter, tol, device, noise_sigma=None,
-                  roi=None, points=None, robust=False):
-    """A :class:`dic.track.Tracker` (the reference-side work is done once for all frames)."""
+def _make_tracker(reference, *, device, **options):
+    """A :class:`dic.track.Tracker` of the run record's tracker ``options`` (the reference-side work is done once
+    for all frames)."""
     from dic.track import Tracker
 
-    kwargs = {"step": step, "subset": subset, "order": order, "device": device, "noise_sigma": noise_sigma}
-    if robust:
-        kwargs["robust"] = True
-    if roi is not None:
-        kwargs["roi"] = roi
-    if points is not None:  # a moved reference (dic.sequence.reference): the original POIs where they are now
-        kwargs["points"] = points
-    if search is not None:
-        kwargs["search"] = search_method
-        kwargs["search_radius"] = int(search)
-    if max_iter is not None:
-        kwargs["max_iter"] = max_iter
-    if tol is not None:
-        kwargs["tol"] = tol
-    return Tracker(reference, **kwargs)
+    return Tracker(reference, device=device, **options)
 
+
+def _record(**options):
+    """The run record (:class:`dic.sequence.options.TrackOptions`) of the command's options, the same as
+    :func:`dic.sequence.track_sequence` builds from the same keywords; a bad value names its option."""
+    from dic.sequence.options import OptionError, TrackOptions
+
+    try:
+        return TrackOptions(**options)
+    except OptionError as exc:
+        raise click.BadParameter(str(exc), param_hint=TrackOptions.CLI_NAMES.get(exc.option, exc.option)) from None

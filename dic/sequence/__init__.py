@@ -9,13 +9,17 @@
 - :mod:`dic.sequence.engine`: the one sequence loop both run on (resume checks, reference policy, the
   ``auto`` retry, the Dask window), :class:`SequenceSummary` (what either returns).
 - :mod:`dic.sequence.pipeline`: the reader thread ahead, the writer thread behind, ``malloc_trim``.
+- :mod:`dic.sequence.options`: the run record (:class:`TrackOptions`, :class:`StereoOptions`), every
+  option that affects the results, stored in the file with its defaults and compared on resume.
 """
 from __future__ import annotations
 
 from .engine import SequenceSummary
+from .options import OptionError, StereoOptions, TrackOptions
 from .reference import ReferencePolicy, parse_reference
 from .stereo import FORMAT_NAME, SCHEMA_VERSION, StereoResults, read_field, read_stereo, stereo_sequence
 from .track2d import track_sequence
 
 __all__ = ["track_sequence", "SequenceSummary", "stereo_sequence", "read_stereo", "read_field", "StereoResults",
-           "FORMAT_NAME", "SCHEMA_VERSION", "ReferencePolicy", "parse_reference"]
+           "FORMAT_NAME", "SCHEMA_VERSION", "ReferencePolicy", "parse_reference", "TrackOptions", "StereoOptions",
+           "OptionError"]

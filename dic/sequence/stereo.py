@@ -27,12 +27,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..correlation.points import Region, region
 from ..field3d import Field3D
 from ..stereo import StereoCorrelation, as_rig
 from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
 from .engine import CannotServe, SequenceSummary, run_on_dask, run_sequence
+from .options import StereoOptions
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
@@ -152,14 +152,6 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     right_ref, rp = _load(pairs[0][1], "reference right image")
     device = options.pop("device", None)
     rig = as_rig(rig, image_size=(np.shape(left_ref)[1], np.shape(left_ref)[0]))
-    if options.get("roi") is not None:  # checked once (a mask file is read once); stored in its JSON form
-        options["roi"] = region(options["roi"], np.shape(left_ref))
-    settings = {k: (v.settings() if isinstance(v, Region) else np.asarray(v).tolist() if isinstance(v, np.ndarray)
-                    else v) for k, v in sorted(options.items())}
-    if policy.kind != "fixed":  # only when not fixed: files of earlier runs resume as before
-        settings["reference"] = policy.text
-        if policy.kind == "auto":
-            settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {out.name}")
     if guess is None:
@@ -176,12 +168,15 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         from .distributed import connect
 
         client = connect(client)
-    if guess == "none":  # only when not chained: files of earlier runs resume as before
-        settings["guess"] = "none"
+    # the run record (dic.sequence.options): every option that affects the results, validated once (a mask file is
+    # read once), stored with its defaults and compared on resume whichever writer (library or CLI) made the file
+    record = StereoOptions.from_keywords({**options, "reference": policy.text, "auto_valid": policy.auto_valid,
+                                          "auto_zncc": policy.auto_zncc, "guess": guess}, shape=np.shape(left_ref))
+    settings, options = record.to_settings(), record.correlation_kwargs()
     ref_digests = (image_digest(left_ref), image_digest(right_ref))
     writer = ResultWriter(out, kind="stereo", reference_path=(lp, rp), reference_shape=np.shape(left_ref),
                           reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode,
-                          compression=compression)
+                          compression=compression, settings_check=record.resume_check)
     for d in (vtk_dir, figure_dir):
         if d is not None:
             Path(os.fspath(d)).mkdir(parents=True, exist_ok=True)

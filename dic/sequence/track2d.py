@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -29,6 +29,7 @@ from .chunks import (
     write_depth,
 )
 from .engine import CannotServe, SequenceSummary, run_sequence
+from .options import TrackOptions
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
@@ -164,23 +165,6 @@ def _frame_loader(shape, reference_name: str):
     return load
 
 
-def _settings_from(options: dict, policy) -> dict:
-    from ..correlation.points import Region
-
-    out = {}
-    for k, v in sorted(options.items()):
-        if k == "device":
-            continue
-        if k == "points" and v is not None:  # a digest, not the coordinates (millions of POIs would bloat the header)
-            import hashlib
-
-            pts = np.ascontiguousarray(np.asarray(v, dtype=np.float64))
-            out[k] = {"shape": list(pts.shape), "sha256": hashlib.sha256(pts.tobytes()).hexdigest()}
-            continue
-        out[k] = v.settings() if isinstance(v, Region) else np.asarray(v).tolist() if isinstance(v, np.ndarray) else v
-    return out
-
-
 def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mode: str = "resume",
                    progress: bool = False, callback: Callable | None = None, strain_window: int = 5,
                    vtk_dir=None, figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
@@ -221,8 +205,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         where invalid: the same point set at every step).
     figure_dir : folder, optional
         Write ``frame_<index>.png`` (u, v and strain maps) every ``figure_every`` frames as they finish.
-    settings : dict, optional
-        The settings stored in the file (and compared on resume); default: ``options`` and the strategy.
+    settings : TrackOptions or dict, optional
+        What the file records of the run and a resume compares. Default: the run record
+        (:class:`dic.sequence.options.TrackOptions`) of ``options`` and the sequence keywords, stored
+        with every default written out and compared option by option (a file written by ``specula
+        track`` resumes here and the other way round; docs/results_format.md, "The run record"). A
+        ``TrackOptions`` (the command line's): its tracker options, with this call's ``strain_window``,
+        ``reference``, ``auto_valid``, ``auto_zncc`` and ``guess``. A dict (with a custom
+        ``make_tracker``): stored as given and compared as it is.
     max_memory : int, optional
         Budget in bytes for the per-POI working data of the correlation (default: a twelfth of the
         machine's memory); beyond it the POIs are prepared and tracked in chunks for every frame
@@ -249,7 +239,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         default ``"none"``: the fastest, docs/results_format.md). A resumed file keeps the setting it was written with.
     options
         :class:`dic.track.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
-        ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``noise_sigma``, ``device``, ...).
+        ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``flat_std``, ``check_warps``,
+        ``noise_sigma``, ``robust``, ``check_outliers``, ``device``), and ``scale_mm_per_px`` (recorded in
+        the file for post-processing). Validated once (:class:`dic.sequence.options.OptionError`, a
+        ValueError naming the option).
 
     Returns
     -------
@@ -308,12 +301,17 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     if ref_img.ndim != 2:
         raise ValueError(f"the reference image must be a grey (H, W) image, got shape {ref_img.shape}")
     custom_tracker = make_tracker
+    # the run record (dic.sequence.options): every option that affects the results, validated once, stored
+    # with its defaults and compared on resume whichever writer (library or command line) made the file
+    record = settings if isinstance(settings, TrackOptions) else \
+        TrackOptions.from_keywords(options, shape=ref_img.shape) if settings is None else None
+    if record is not None:
+        record = replace(record, strain_window=strain_window, reference=policy.text, auto_valid=policy.auto_valid,
+                         auto_zncc=policy.auto_zncc, guess=guess)
+        settings = record.to_settings()
+        if make_tracker is None:
+            options = {**record.tracker_kwargs(), "device": options.get("device")}
     if make_tracker is None:
-        if options.get("roi") is not None:
-            from ..correlation.points import region
-
-            options["roi"] = region(options["roi"], ref_img.shape)
-
         def make_tracker(image, points, _opts=dict(options)):
             from ..track import Tracker
 
@@ -322,16 +320,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 kw.pop("roi", None)
                 kw["points"] = points
             return Tracker(image, **kw)
-    if settings is None:
-        settings = _settings_from(options, policy)
-        settings["strain_window"] = strain_window
-    settings = dict(settings)
-    if policy.kind != "fixed":  # only when not fixed: files of earlier runs resume as before
-        settings["reference"] = policy.text
-    if guess == "none":  # only when not chained: files of earlier runs resume as before
-        settings["guess"] = "none"
-        if policy.kind == "auto":
-            settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
+    if record is None:  # settings given as a dict (a custom tracker's): stored as given, compared as they are
+        settings = dict(settings)
+        if policy.kind != "fixed":
+            settings["reference"] = policy.text
+        if guess == "none":
+            settings["guess"] = "none"
+            if policy.kind == "auto":
+                settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
 
     budget = default_max_memory() if max_memory is None else positive_int(max_memory, "max_memory", detail=" (bytes)")
     # the POIs, known without preparing them (a custom tracker's only when options give points and order)
@@ -382,7 +378,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     ref_name = ref_path or "(array)"
     writer = ResultWriter(out, reference_path=ref_path, reference_shape=ref_img.shape,
                           reference_sha256=_digest(ref_img), settings=settings, mode=mode,
-                          compression=compression)
+                          compression=compression, settings_check=record.resume_check if record is not None else None)
     summary = SequenceSummary(path=out)
     total = len(frames) if hasattr(frames, "__len__") else None
     for d in (vtk_dir, figure_dir):

@@ -227,6 +227,10 @@ class ResultWriter(_ResultFile):
         :func:`dic.store.image_digest` of the reference image(s); a resumed file must match.
     settings : dict
         The run's settings, stored as JSON; a resumed file must hold the same.
+    settings_check : callable(stored settings dict) -> str or None, optional
+        Compares a resumed file's settings instead of requiring the same JSON: None when they describe
+        this run (e.g. :meth:`dic.sequence.options.TrackOptions.resume_check`, which reads every form
+        of the run record), else the text of the refusal. The file keeps the settings it holds.
     rig : calibration.stereo.StereoRig or its dict
         Stereo only (required there); a resumed file must hold the same rig.
     mode : "resume" | "overwrite" | "new"
@@ -249,7 +253,7 @@ class ResultWriter(_ResultFile):
 
     def __init__(self, path, *, reference_path="", reference_shape=None, reference_sha256="",
                  settings: dict | None = None, mode: str = "resume", kind: str = "dic2d", rig=None,
-                 compression=None):
+                 compression=None, settings_check=None):
         import h5py
 
         self.kind = _kind(kind)
@@ -258,6 +262,7 @@ class ResultWriter(_ResultFile):
             raise ValueError(f"mode must be 'resume', 'overwrite' or 'new', got {mode!r}")
         self.path = Path(os.fspath(path))
         self._settings_json = settings_json(settings)
+        self._settings_check = settings_check
         paths = _per_image(self.kind, reference_path, "reference_path")
         digests = _per_image(self.kind, reference_sha256, "reference_sha256")
         shape = tuple(int(n) for n in reference_shape) if reference_shape is not None else ()
@@ -465,7 +470,11 @@ class ResultWriter(_ResultFile):
             raise ValueError(f"{self.path} holds results for a reference of shape {tuple(stored['shape'])}, not {shape}")
         old_json = f["settings"].attrs.get("json", "{}")
         old, new = json.loads(old_json), json.loads(self._settings_json)
-        if old != new:
+        if self._settings_check is not None:
+            refusal = self._settings_check(old)
+            if refusal is not None:
+                raise ValueError(f"{self.path} was written with different settings: {refusal}")
+        elif old != new:
             differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
             raise ValueError(
                 f"{self.path} was written with different settings ({', '.join(differ)} differ; stored: {old_json}); "
