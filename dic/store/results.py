@@ -641,6 +641,7 @@ class ResultReader(_ResultFile):
         self.path = Path(os.fspath(path))
         if not self.path.exists():
             raise ValueError(f"result file not found: {self.path}")
+        files.check_not_in_use(self.path)  # a run still writing it: refused before HDF5 opens it (any HDF5 locking)
         try:
             self._h5 = h5py.File(self.path, "r")
         except OSError as exc:
