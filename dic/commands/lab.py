@@ -36,6 +36,7 @@ def render_cmd(scene, out_dir, cameras, samples, seed, no_noise, as_float, devic
     import tifffile
 
     from dic.lab import load_scene, render
+    from kernels._atomic import atomic_output
 
     try:
         sc = load_scene(scene)
@@ -50,13 +51,15 @@ def render_cmd(scene, out_dir, cameras, samples, seed, no_noise, as_float, devic
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
         path = out_dir / f"{_safe(cam.name or f'camera{sc.cameras.index(cam)}')}.tif"
-        tifffile.imwrite(path, img)
+        with atomic_output(path) as tmp:  # whole or not at all
+            tifffile.imwrite(tmp, img)
         written.append(path)
         click.echo(f"{path}  {img.shape[1]}x{img.shape[0]} {img.dtype}  mean {float(img.mean()):.2f}")
     truth = sc.ground_truth()
     truth["render"] = {"samples": samples, "seed": seed, "noise": not no_noise, "quantized": not as_float,
                        "images": {(c.name or f"camera{sc.cameras.index(c)}"): p.name for c, p in zip(chosen, written)}}
-    (out_dir / "ground_truth.json").write_text(json.dumps(truth, indent=2))
+    with atomic_output(out_dir / "ground_truth.json") as tmp:
+        tmp.write_text(json.dumps(truth, indent=2))
     click.echo(f"{out_dir / 'ground_truth.json'}")
 
 

@@ -196,6 +196,11 @@ def output_lock(path, what: str = "output"):
     one process, is refused (two writers of one file).
     """
     target = Path(os.path.abspath(os.fspath(path)))
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)  # the lock file lives next to the output
+    except OSError as exc:
+        raise ValueError(f"cannot write the {what} {path}: cannot create the folder {target.parent} "
+                         f"({exc.strerror or exc})") from None
     lock = FileLock(target, what)
     lock.acquire()
     try:

@@ -383,6 +383,35 @@ class ResultWriter(_ResultFile):
             self._tmp = None
         if getattr(self, "_lock", None) is not None:
             self._lock.release()
+        for lock in getattr(self, "_side_locks", ()):
+            lock.release()
+        self._side_locks = []
+
+    def hold_outputs(self, *folders) -> None:
+        """Take the locks of this run's side outputs (its VTK and figure folders; None is skipped), creating
+        the folders, and hold them until the writer is closed: an export or another run writing into one
+        of them meanwhile is refused (:func:`dic.store.files.output_lock`), and so is this call when
+        another process holds one (:class:`ResultFileInUse`, the writer closed)."""
+        held = {lock.target for lock in getattr(self, "_side_locks", ())}
+        for folder in folders:
+            if folder is None:
+                continue
+            target = Path(os.path.abspath(os.fspath(folder)))
+            if target in held:  # one folder for VTK and figures: one lock
+                continue
+            held.add(target)
+            try:
+                target.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                self._release()
+                raise ValueError(f"cannot write into the folder {folder}: {exc.strerror or exc}") from None
+            lock = files.FileLock(target, "output folder")
+            try:
+                lock.acquire()
+            except BaseException:
+                self._release()
+                raise
+            self._side_locks = [*getattr(self, "_side_locks", ()), lock]
 
     def _fail(self, exc: BaseException, what: str) -> files.ResultWriteError:
         """After a failed write: close without writing anything more, and the message to raise."""
