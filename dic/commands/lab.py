@@ -107,9 +107,11 @@ def session_cmd(out_dir, scale, samples, tilts, cache):
     walk-through of docs/calibration.md calibrates with 'specula calibrate'.
     """
     from dic.lab.session import export_session
+    from dic.store.files import output_lock
 
     try:
-        export_session(str(out_dir), scale=scale, samples=samples, cache=cache, n_tilts=tilts, log=click.echo)
+        with output_lock(out_dir, "lab session folder"):  # a second session into the same folder is refused
+            export_session(str(out_dir), scale=scale, samples=samples, cache=cache, n_tilts=tilts, log=click.echo)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"wrote the session to {out_dir}")

@@ -231,16 +231,9 @@ def export_session(out_dir: str, *, scale: float = 1.0, samples: int = 16, cache
         OUT/check1/left, OUT/check1/right          another common view, for checking
         OUT/ground_truth.json                      the lab's cameras and rig (for comparison only)
 
-    Stacks come from the render cache when present (``cache``), else they are rendered."""
-    from ..store.files import output_lock
-
-    with output_lock(out_dir, "lab session folder"):  # a second session into the same folder is refused
-        _export_session(out_dir, scale, samples, cache, n_tilts, log)
-    return out_dir
-
-
-def _export_session(out_dir: str, scale: float, samples: int, cache: str | None, n_tilts: int, log) -> None:
-    """:func:`export_session` with the output's lock held; every file written whole or not at all."""
+    Stacks come from the render cache when present (``cache``), else they are rendered.
+    Every file is written whole or not at all (``kernels._atomic``); ``specula lab session`` holds the
+    folder's lock meanwhile (:func:`dic.store.files.output_lock`)."""
     from kernels.images import write_image
 
     S = LabSession(scale=scale, samples=samples, cache=cache, log=log)
@@ -270,3 +263,4 @@ def _export_session(out_dir: str, scale: float, samples: int, cache: str | None,
     with atomic_output(os.path.join(out_dir, "ground_truth.json")) as tmp, open(tmp, "w") as f:
         json.dump({"rig": truth.to_dict(), "R_left_target": R_l.tolist(), "t_left_target": t_l.tolist(),
                    "R_right_target": R_r.tolist(), "t_right_target": t_r.tolist()}, f, indent=1)
+    return out_dir
