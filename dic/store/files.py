@@ -38,7 +38,7 @@ except ImportError:  # pragma: no cover - Windows
 
 __all__ = ["ResultFileInUse", "ResultWriteError", "FileLock", "lock_path", "temp_path", "check_output_path",
            "write_error", "fsync_folder", "reserve", "abandon", "is_lock_error", "os_errno", "output_lock",
-           "check_not_in_use", "atomic_output", "OutputInUse"]
+           "check_not_in_use", "atomic_output", "OutputInUse", "ResultFileDamaged"]
 
 _DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
 
@@ -49,6 +49,13 @@ class ResultFileInUse(ValueError):
 
 #: an output (an export, a VTK folder, a lab session) held by another process: the same error as a result file's
 OutputInUse = ResultFileInUse
+
+
+class ResultFileDamaged(ValueError):
+    """A result file whose content is damaged or not Specula's layout: a frame whose checksum does not
+    match (a flipped bit, a zeroed block), a frame without its ``index`` or a required dataset, a
+    header group missing or of the wrong type. The message names the file, the frame and what is
+    wrong, and says what to do (``specula repair`` for a damaged frame)."""
 
 
 class ResultWriteError(OSError, ValueError):
