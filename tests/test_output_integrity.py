@@ -104,6 +104,52 @@ def test_output_lock_names_the_output_and_the_holder(tmp_path):
     assert not (tmp_path / "export.lock").exists()
 
 
+
+class _Holder:
+    """Another process holding the lock of ``target`` (as an export or a run writing there does)."""
+
+    def __init__(self, target: Path):
+        self.proc = subprocess.Popen([sys.executable, "-c", (
+            "import sys; from dic.store.files import output_lock\n"
+            f"with output_lock({str(target)!r}):\n"
+            "    print('held', flush=True); sys.stdin.read()\n")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            text=True, env=ENV)
+        assert self.proc.stdout.readline().strip() == "held"
+
+    def release(self):
+        self.proc.communicate("", timeout=60)
+
+
+def test_exports_and_side_outputs_refuse_an_output_another_process_writes(tmp_path):
+    """Before: two exports into one folder, or an export into the VTK folder of a running track, wrote
+    over each other's files."""
+    from dic.export import export_results
+
+    src = _finished(tmp_path / "run.h5")
+    for fmt, name in (("csv", "out_csv"), ("mat", "out.mat"), ("netcdf", "out.nc"), ("vtk", "out_vtk")):
+        out = tmp_path / name
+        holder = _Holder(out)
+        try:
+            with pytest.raises(ResultFileInUse, match=rf"{name} is in use by another process \(pid \d+"):
+                export_results(src, fmt, out)
+        finally:
+            holder.release()
+        assert not out.exists()
+        export_results(src, fmt, out)  # released
+    vtk = tmp_path / "vtk"
+    holder = _Holder(vtk)
+    try:
+        w = ResultWriter(tmp_path / "new.h5", **KW2)
+        with pytest.raises(ResultFileInUse, match="vtk is in use by another process"):
+            w.hold_outputs(vtk, tmp_path / "figures")
+    finally:
+        holder.release()
+    assert not (tmp_path / "new.h5").exists() and not (tmp_path / "new.h5.lock").exists()
+    with ResultWriter(tmp_path / "new.h5", **KW2) as w:  # one folder for both: one lock
+        w.hold_outputs(vtk, vtk, None)
+        w.write_frame(0, fake_field(0))
+    assert not (tmp_path / "vtk.lock").exists()
+
 # ------------------------------------------------------------------------------------------------
 # defect 2: side files of finished frames are checked on resume and rewritten when cut short or gone
 
