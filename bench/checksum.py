@@ -16,7 +16,14 @@ Reported per setting: the median wall and CPU time of ``write_frame`` (the datas
 fsync of the file), of ``read_frame`` (every dataset read back, checksums verified), the file's MiB
 per frame; and the difference with - without, per frame and as a fraction of the sequence's time per
 frame (``--sequence-seconds``, default 0.80 s: the 40 401-POI frame of docs/dic2d.md's sequence
-throughput, 1024², step 5, 2 CPU cores). Writes bench/results/checksum_cpu.json (``--out``).
+throughput, 1024², step 5, 2 CPU cores).
+
+With ``--sequence-frames N`` (default 12; 0 skips it) the same in a real sequence: four
+``dic.sequence.track_sequence`` runs of N frames (arrays in memory, the pair's pattern moved by
+(0.05 k, -0.03 k) px, step ``--step``, strain window 5), checksums off, on, on, off, with the
+writer thread's CPU time (``time.thread_time``) and wall time around each ``write_frame`` (median
+over the frames but the first) and each run's CPU and wall seconds per frame. Writes
+bench/results/checksum_cpu.json (``--out``).
 """
 from __future__ import annotations
 
@@ -97,6 +104,47 @@ def run(args) -> dict:
     }
 
 
+def in_sequence(args) -> list[dict]:
+    """Writer-thread CPU per frame inside ``track_sequence``, checksums off / on / on / off."""
+    from dic.sequence import track_sequence
+    from dic.store import ResultWriter
+    from dic.store.layout import Compression
+    from dic.synth import speckle_pair
+
+    size = args.size
+    ref, _ = speckle_pair((size, size), (0, 0), seed=2024)
+    frames = [speckle_pair((size, size), (0.05 * k, -0.03 * k), seed=2024)[1] for k in range(1, args.sequence_frames + 1)]
+    real = ResultWriter.write_frame
+    times: list[tuple[float, float]] = []
+
+    def timed(self, *a, **k):
+        c0, t0 = time.thread_time(), time.perf_counter()
+        real(self, *a, **k)
+        times.append((time.thread_time() - c0, time.perf_counter() - t0))
+    ResultWriter.write_frame = timed
+    runs = []
+    try:
+        for setting in ("off", "on", "on", "off"):
+            times.clear()
+            with tempfile.TemporaryDirectory(dir=args.tmp) as folder:
+                c0, t0 = time.process_time(), time.perf_counter()
+                track_sequence(ref, frames, os.path.join(folder, "r.h5"), step=args.step, strain_window=5, device="cpu",
+                               compression=Compression(None, checksum=setting == "on"))
+                cpu, wall = time.process_time() - c0, time.perf_counter() - t0
+            w = np.asarray(times[1:] or times)
+            runs.append({"checksum": setting, "writer_cpu_seconds_median": float(np.median(w[:, 0])),
+                         "writer_wall_seconds_median": float(np.median(w[:, 1])),
+                         "run_cpu_seconds_per_frame": cpu / len(frames), "run_wall_seconds_per_frame": wall / len(frames),
+                         "load_average_1min": os.getloadavg()[0]})
+            r = runs[-1]
+            print(f"  sequence, checksums {setting:3s}: writer thread CPU {1e3 * r['writer_cpu_seconds_median']:.2f} ms, "
+                  f"wall {1e3 * r['writer_wall_seconds_median']:.2f} ms per frame; run CPU "
+                  f"{r['run_cpu_seconds_per_frame']:.3f} s per frame (load {r['load_average_1min']:.1f})", flush=True)
+    finally:
+        ResultWriter.write_frame = real
+    return runs
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="128x128 px, 4 frames (a smoke test)")
@@ -105,11 +153,15 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=None, help="frames per setting (default 30; quick 4)")
     parser.add_argument("--sequence-seconds", type=float, default=0.80,
                         help="the sequence's wall time per frame the cost is compared with (default 0.80 s)")
+    parser.add_argument("--sequence-frames", type=int, default=None,
+                        help="frames of each of the four track_sequence runs (default 12; quick 3; 0: skip them)")
     parser.add_argument("--tmp", default=None, help="folder for the result files (default: the system's temp)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     args.size = args.size or (128 if args.quick else 1024)
     args.frames = args.frames or (4 if args.quick else 30)
+    if args.sequence_frames is None:
+        args.sequence_frames = 3 if args.quick else 12
     load_before = os.getloadavg()[0]
     result = run(args)
     result.update({"device": "cpu", "cpu": cpu_model(), "cores": os.cpu_count(), "load_average_1min_before": load_before,
@@ -122,6 +174,9 @@ def main(argv=None) -> None:
               f"read {1e3 * med[name]['read']:7.2f} ms  file {result['file_mib_per_frame'][name]:.2f} MiB/frame")
     print(f"  checksums add {1e3 * result['checksum_extra_write_seconds_per_frame']:.2f} ms per frame written "
           f"({100 * result['checksum_extra_fraction_of_sequence_frame']:.2f} % of a {args.sequence_seconds:.2f} s frame)")
+    if args.sequence_frames > 0:
+        result["in_sequence"] = in_sequence(args)
+        result["load_average_1min_after"] = os.getloadavg()[0]
     out = args.out or os.path.join("bench", "results", "checksum_cpu.json" if not args.quick else "checksum_quick.json")
     write_json(result, out)
 

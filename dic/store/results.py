@@ -367,7 +367,9 @@ class ResultWriter(_ResultFile):
         How a new file's datasets are compressed (:func:`dic.store.layout.parse_compression`; default
         :data:`dic.store.layout.DEFAULT_COMPRESSION`), recorded as the root attribute ``compression``.
         A resumed file keeps its own setting (frames appended to a gzip-4 file are gzip-4), whatever
-        is given here: :attr:`compression` says which one is used.
+        is given here: :attr:`compression` says which one is used. Every dataset also carries HDF5's
+        Fletcher-32 checksum, verified on every read (a :class:`dic.store.layout.Compression` with
+        ``checksum=False`` writes without; root attribute ``checksum``).
 
     The writer holds an exclusive lock (``<file>.lock``) while it is open: a second writer on the
     same file gets :class:`dic.store.ResultFileInUse`. A new run (a new file, or ``overwrite``) is
@@ -375,7 +377,8 @@ class ResultWriter(_ResultFile):
     reference match), so a run that fails before that leaves an existing file untouched.
     :meth:`write_frame` reserves the frame's space first, then flushes and fsyncs the file; a
     write that fails (a full disk) raises :class:`dic.store.ResultWriteError` and closes the
-    writer, leaving every finished frame readable and resumable. Use as a context manager.
+    writer, leaving every finished frame readable and resumable. :meth:`hold_outputs` holds the locks
+    of a run's side folders (VTK, figures) with the file's. Use as a context manager.
     """
 
     def __init__(self, path, *, reference_path="", reference_shape=None, reference_sha256="",
