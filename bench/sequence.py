@@ -20,7 +20,9 @@ are part of the run). Three parts (``--parts``):
   The track-only times are taken before and after the sequence run (median of both), and the
   same ratio of CPU times (all threads; ``cpu_ratio``) is reported too: on a machine shared with
   other jobs it moves less with their load than the wall-time ratio. ``--compression`` sets the
-  result file's compression (default: the store's).
+  result file's compression (default: the store's), ``--checksum off`` writes it without HDF5's
+  Fletcher-32 checksums (default on, as the store; for the cost of checksums, see also
+  ``bench/checksum.py``).
 * **memory**: the same run over ``--frames`` and ``--long-frames`` (1000) frames, each in its own
   process (peak RSS is a per-process high-water mark): peak RSS from ``resource.getrusage``
   (``ru_maxrss``) and the current RSS (``/proc/self/statm``) sampled every 0.2 s. Target: peak at
@@ -288,6 +290,11 @@ def part_throughput(args, run, engine_name, folder):
     out = os.path.join(folder, "throughput.h5")
     c0, t0 = time.process_time(), time.perf_counter()
     extra = {"compression": args.compression} if args.compression else {}
+    if args.checksum == "off":
+        from dic.store.layout import Compression, parse_compression
+
+        comp = parse_compression(args.compression)
+        extra = {"compression": Compression(comp.filter, comp.level, checksum=False)}
     run(ref_path, frames, out, "fixed", device=args.device, **_tracker_options(args), **extra)
     wall = time.perf_counter() - t0
     cpu = time.process_time() - c0
@@ -307,7 +314,7 @@ def part_throughput(args, run, engine_name, folder):
         "ratio": sequence_rate / track_only, "target_ratio": 0.9, "track_only_cpu_seconds": cpu_times,
         "cpu_ratio": cpu_ratio, "load_average_1min_at_end_of_sequence": load_during,
         "valid_fraction_min": min(valid) if valid else None,
-        "frames_stored": len(valid), "compression": args.compression or "default",
+        "frames_stored": len(valid), "compression": args.compression or "default", "checksum": args.checksum,
         "results_file_mb_per_frame": file_mb / len(frames),
     }
 
@@ -500,6 +507,8 @@ def parse_args(argv=None):
     parser.add_argument("--noise", type=float, default=1.0, help="grey-level noise std of the evolving frames")
     parser.add_argument("--modes", default="fixed,incremental,every:10,auto", help="reference modes of the evolving part")
     parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    parser.add_argument("--checksum", default="on", choices=["on", "off"],
+                        help="Fletcher-32 checksums in the result file of the throughput run (default on)")
     parser.add_argument("--compression", default=None,
                         help="result file compression of the throughput run (none, lzf, gzip:N; default: the store's)")
     parser.add_argument("--engine", default="auto", choices=["auto", "fallback"],

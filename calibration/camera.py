@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from kernels._atomic import atomic_output
 from kernels.checks import as_points
 
 #: Name and version of the camera JSON schema written by :meth:`Camera.save`.
@@ -543,12 +544,10 @@ def _check_schema(data: dict, schema: str, version: int, what: str) -> None:
 
 
 def _write_json(path, data: dict) -> None:
-    path = os.fspath(path)
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
-    os.replace(tmp, path)
+    with atomic_output(path, mkdir=False) as tmp:  # whole or not at all
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(data, f, indent=2)
+            f.write("\n")
 
 
 def _read_json(path, what: str) -> dict:

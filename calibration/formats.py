@@ -30,6 +30,8 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from kernels._atomic import atomic_output
+
 from .camera import Camera, nearest_rotation, require_image_size
 from .stereo import StereoRig
 
@@ -163,7 +165,12 @@ def save_opencv(path, obj) -> None:
 
     if not isinstance(obj, (Camera, StereoRig)):
         raise ValueError(f"save_opencv writes a Camera or a StereoRig, got {type(obj).__name__}")
-    fs = cv2.FileStorage(os.fspath(path), cv2.FILE_STORAGE_WRITE)
+    with atomic_output(path, mkdir=False) as tmp:  # whole or not at all
+        _save_opencv(tmp, path, obj, cv2)
+
+
+def _save_opencv(tmp, path, obj, cv2) -> None:
+    fs = cv2.FileStorage(os.fspath(tmp), cv2.FILE_STORAGE_WRITE)
     if not fs.isOpened():
         raise ValueError(f"cannot open {os.fspath(path)!r} for writing")
     try:
@@ -363,7 +370,8 @@ def save_dice_xml(path, rig: StereoRig) -> None:
             param(rot, f"ROW {r}", "string", "{ " + ", ".join(repr(float(v)) for v in R[r]) + " }")
         param(pl, "IMAGE_HEIGHT_WIDTH", "string", f"{{ {int(cam.size[1])}, {int(cam.size[0])} }}")
     ET.indent(root)
-    ET.ElementTree(root).write(os.fspath(path), encoding="utf-8", xml_declaration=True)
+    with atomic_output(path, mkdir=False) as tmp:  # whole or not at all
+        ET.ElementTree(root).write(os.fspath(tmp), encoding="utf-8", xml_declaration=True)
 
 
 def _parse_xml(path):
@@ -545,7 +553,7 @@ def save_vic3d_xml(path, rig: StereoRig, *, allow_lossy: bool = False) -> None:
     lines += [" </calibration>", ' <projectaois lri="projectaois">', '  <aoinode lri="aoinode">',
               f'   <polygonmask width="{w}" height="{h}" lri="polygonmask">', "   </polygonmask>",
               "  </aoinode>", " </projectaois>", "</project>", ""]
-    with open(os.fspath(path), "w", encoding="iso-8859-1") as f:
+    with atomic_output(path, mkdir=False) as tmp, open(tmp, "w", encoding="iso-8859-1") as f:
         f.write("\n".join(lines))
 
 

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from kernels._atomic import atomic_output
 from kernels.checks import positive_float, positive_int
 
 #: the default monitor: a 27-inch 1920 x 1080 panel, 0.311 mm pixels (the paper's; dic.lab.paper uses these)
@@ -285,13 +286,14 @@ class _ScreenTarget:
         paths = []
         for k, img in enumerate(self.images()):
             path = os.path.join(directory, f"{prefix}_{k:02d}.png")
-            iio.imwrite(path, img)
+            with atomic_output(path, mkdir=False) as tmp:
+                iio.imwrite(tmp, img)
             paths.append(path)
         return paths
 
     def save_json(self, path) -> None:
         """Write the target description (parameters, code, object points) as JSON."""
-        with open(path, "w", encoding="utf-8") as fh:
+        with atomic_output(path, mkdir=False) as tmp, open(tmp, "w", encoding="utf-8") as fh:
             json.dump(self.to_dict(), fh, indent=1)
 
 

@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "profile": ("dic.commands.postprocess:profile", "A quantity along a line, per frame"),
     "export": ("dic.commands.export:export", "Export a result file as CSV, MATLAB, netCDF or VTK (ParaView)"),
     "speckle": ("dic.commands.speckle:speckle", "Speckle quality (MIG, SSSIG) and a subset size for a target uncertainty"),
+    "repair": ("dic.commands.repair:repair", "Drop the damaged frames of a result file so that a rerun recomputes them"),
 }
 
 

@@ -25,6 +25,13 @@ Every export is written by the library that owns the format and starts from the 
 * :func:`export_results` — any of these from a result file (``specula export``).
 
 PNG maps of the same fields are drawn by :mod:`dic.plots.fields`.
+
+Every export holds its output's lock while it writes (:func:`dic.store.files.output_lock`: a second
+process exporting to the same file or folder, or a run writing its VTK files there, is refused
+with one message naming it), reads a result file only when no run is writing it, and writes each
+file whole or not at all (:func:`dic.store.files.atomic_output`: a temporary name, fsync, rename; a
+full disk leaves no truncated CSV, MAT, netCDF, VTU or PVD file, and a previous file of that name
+untouched).
 """
 from __future__ import annotations
 
@@ -39,9 +46,11 @@ from kernels.conventions import Status
 from .field2d import Field2D
 from .field3d import SCALAR_FIELDS, Field3D
 from .store import FrameResult, ResultFrames, ResultReader, StereoResults, TrackResults, read_results, read_stereo
+from .store.files import atomic_output, output_lock
 
 __all__ = ["write_vtk", "write_vtk_series", "write_pvd", "write_csv", "write_mat", "write_netcdf", "to_xarray", "to_dataframe",
-           "read_any", "export_results", "EXPORT_FORMATS", "NETCDF_ENGINE", "MAT_MAX_BYTES"]
+           "read_any", "export_results", "restore_vtk_files", "vtk_file_complete", "EXPORT_FORMATS", "NETCDF_ENGINE",
+           "MAT_MAX_BYTES"]
 
 #: formats of :func:`export_results` (``specula export --format``)
 EXPORT_FORMATS = ("csv", "mat", "netcdf", "vtk")
@@ -213,7 +222,7 @@ def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
     if directory.exists() and not directory.is_dir():
         raise ValueError(f"the CSV output must be a folder, but {directory} is a file")
     stem = None if stem is None else _check_stem(stem)
-    with ResultFrames(results) as frames:
+    with ResultFrames(results) as frames, output_lock(directory, "CSV folder"):
         table = _FrameTable(frames)
         stem = _stem(table.kind) if stem is None else stem
         directory.mkdir(parents=True, exist_ok=True)
@@ -222,7 +231,8 @@ def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
             per_frame = [c for c in ds.coords if ds.coords[c].dims == ("frame",) and c != "frame"]
             one = ds.isel(frame=0).drop_vars(["frame", *per_frame])
             path = directory / f"{stem}_{int(index):06d}.csv"
-            dataframe(one).to_csv(path)
+            with atomic_output(path) as tmp:  # whole or not at all
+                dataframe(one).to_csv(tmp)
             written.append(path)
     return written
 
@@ -256,12 +266,18 @@ def write_mat(results, path, *, max_bytes: int = MAT_MAX_BYTES) -> Path:
     :func:`write_netcdf` (MATLAB reads it with ``ncread``), :func:`write_csv` or
     :func:`write_vtk_series`, which are written one frame at a time.
     """
-    import scipy.io
-
     from kernels.checks import positive_int
 
     max_bytes = positive_int(max_bytes, "max_bytes", detail=" (bytes)")
     p = _out_path(path, (".mat",), "the MATLAB")
+    with output_lock(p, "MATLAB file"):
+        return _write_mat(results, p, max_bytes)
+
+
+def _write_mat(results, p: Path, max_bytes: int) -> Path:
+    """:func:`write_mat` with the output's lock held."""
+    import scipy.io
+
     with ResultFrames(results) as frames:
         if frames.indices:  # refused early from the first frame's columns, before the pass over the whole file
             cols = _frame_columns(frames.kind, frames.read(frames.indices[0]))
@@ -296,7 +312,8 @@ def write_mat(results, path, *, max_bytes: int = MAT_MAX_BYTES) -> Path:
         out["grid_shape"] = np.asarray(grid[2], dtype=np.float64)
     out["units"] = units
     out["info"] = {str(k): (v if isinstance(v, str) else np.asarray(v)) for k, v in attrs.items()}
-    scipy.io.savemat(p, out, do_compression=True, oned_as="row")
+    with atomic_output(p) as tmp:  # whole or not at all
+        scipy.io.savemat(tmp, out, do_compression=True, oned_as="row")
     return p
 
 
@@ -340,32 +357,30 @@ def write_netcdf(results, path) -> Path:
     if not isinstance(results, (str, os.PathLike)) and not isinstance(results, _RESULTS):
         field = _tabular(results)  # a field (or a clear error)
         p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
-        field.to_xarray().to_netcdf(p, engine=NETCDF_ENGINE)
+        with output_lock(p, "netCDF file"), atomic_output(p) as tmp:
+            field.to_xarray().to_netcdf(tmp, engine=NETCDF_ENGINE)
         return p
     p = _out_path(path, (".nc", ".nc4", ".netcdf"), "the netCDF")
-    with ResultFrames(results) as frames:
+    with ResultFrames(results) as frames, output_lock(p, "netCDF file"):
         table = _FrameTable(frames)
-        try:
+        with atomic_output(p) as tmp:  # whole or not at all (the previous file kept until the new one is)
             rows = table.rows()
             index, row = next(rows)
             ds = table.dataset(index, row)
             chunks = (1, max(1, min(table.n_points, NETCDF_CHUNK_POINTS)))
             encoding = {name: {"chunksizes": chunks} for name, var in ds.variables.items()
                         if var.dims == ("frame", "point")}
-            ds.to_netcdf(p, engine=NETCDF_ENGINE, unlimited_dims=["frame"], encoding=encoding)
+            ds.to_netcdf(tmp, engine=NETCDF_ENGINE, unlimited_dims=["frame"], encoding=encoding)
             del ds
             # the netCDF-4 variables are HDF5 datasets and `frame` is unlimited: each frame's row of a variable is
             # whole chunks, written straight to the file (a chunk cache held 220 MB more over 1000 frames)
-            with h5py.File(p, "a", rdcc_nbytes=0) as h5:
+            with h5py.File(tmp, "a", rdcc_nbytes=0) as h5:
                 targets = {name: h5[name] for name in row if name in h5 and h5[name].maxshape[:1] == (None,)}
                 for target in targets.values():
                     target.resize(table.n_frames, axis=0)
                 for k, (_, row) in enumerate(rows, start=1):
                     for name, target in targets.items():
                         target[k] = _nc_row(row[name], target.dtype)
-        except BaseException:
-            p.unlink(missing_ok=True)  # no half-written file left behind
-            raise
     return p
 
 
@@ -515,7 +530,8 @@ def write_vtk(field, path, *, kind: str = "grid", deformed: bool = False, invali
     f = _check_field(field)
     p = _out_path(path, (".vtu", ".vtk"), "VTK")
     mesh = _mesh(f, kind, deformed, invalid=invalid, strain=strain)
-    mesh.write(p)
+    with atomic_output(p) as tmp:  # whole or not at all (a full disk leaves no truncated .vtu)
+        mesh.write(tmp, file_format="vtu" if p.suffix.lower() == ".vtu" else "vtk")
     return p
 
 
@@ -563,14 +579,58 @@ def write_vtk_series(fields, directory, *, stem: str | None = None, kind: str = 
     directory = Path(os.fspath(directory))
     if directory.exists() and not directory.is_dir():
         raise ValueError(f"the VTK output must be a folder, but {directory} is a file")
-    directory.mkdir(parents=True, exist_ok=True)
-    entries = []
-    for k, f in enumerate(series()):  # second pass: one file per field, as it is read
-        index = int(f.index) if f.index is not None else k + 1  # a lone Field2D has no index
-        name = f"{stem}_{index:06d}.vtu"
-        _mesh(f, kind, deformed, invalid="nan", keep=keep, positions=positions).write(directory / name)
-        entries.append((index, name))
-    return write_pvd(directory, entries, stem=stem)
+    with output_lock(directory, "VTK folder"):
+        directory.mkdir(parents=True, exist_ok=True)
+        entries = []
+        for k, f in enumerate(series()):  # second pass: one file per field, as it is read
+            index = int(f.index) if f.index is not None else k + 1  # a lone Field2D has no index
+            name = f"{stem}_{index:06d}.vtu"
+            with atomic_output(directory / name) as tmp:  # whole or not at all
+                _mesh(f, kind, deformed, invalid="nan", keep=keep, positions=positions).write(tmp, file_format="vtu")
+            entries.append((index, name))
+        return write_pvd(directory, entries, stem=stem)
+
+
+def vtk_file_complete(path) -> bool:
+    """Whether a VTK XML file (``.vtu``, ``.pvd``) is whole: present, and its last bytes the closing
+    ``</VTKFile>`` tag (a file cut short by a full disk or a kill before atomic writes is not)."""
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 64))
+            tail = fh.read()
+    except OSError:
+        return False
+    return tail.rstrip().endswith(b"</VTKFile>")
+
+
+def restore_vtk_files(writer, directory, stem: str, indices) -> list[int]:
+    """On resume: the VTK file ``<directory>/<stem>_<index>.vtu`` of every finished frame ``indices`` of the
+    result ``writer`` (a :class:`dic.store.ResultWriter` or reader) checked (:func:`vtk_file_complete`)
+    and rewritten from the stored frame when it is missing or cut short; temporary files left by a
+    killed writer are removed. Returns the indices rewritten, ascending.
+
+    The sequence runs call it when they resume with a VTK folder (``vtk_dir=``, ``--vtk``), so that a
+    file deleted, or truncated by a full disk in an earlier run, is regenerated rather than skipped
+    with its frame; the files are written as the run writes them (``invalid="nan"``; a 2-D frame with
+    its stored strain).
+    """
+    from kernels._atomic import TEMP_MARK
+
+    directory = Path(os.fspath(directory))
+    for leftover in directory.glob(f".{stem}_*{TEMP_MARK}*"):  # a writer killed between write and rename
+        try:
+            leftover.unlink()
+        except OSError:
+            pass
+    rewritten = []
+    for k in sorted(int(i) for i in indices):
+        path = directory / f"{stem}_{k:06d}.vtu"
+        if not vtk_file_complete(path):
+            write_vtk(writer.read_frame(k), path, invalid="nan")
+            rewritten.append(k)
+    return rewritten
 
 
 def _field_series(fields):
@@ -600,9 +660,8 @@ def write_pvd(directory, entries, *, stem: str) -> Path:
         lines.append(f'    <DataSet timestep="{int(index)}" group="" part="0" file={quoteattr(str(name))}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
     pvd = Path(os.fspath(directory)) / f"{stem}.pvd"
-    tmp = pvd.with_name(pvd.name + ".tmp")
-    tmp.write_text("\n".join(lines), encoding="utf-8")
-    os.replace(tmp, pvd)  # a reader never sees half a file
+    with atomic_output(pvd) as tmp:  # a reader never sees half a file
+        tmp.write_text("\n".join(lines), encoding="utf-8")
     return pvd
 
 

@@ -450,8 +450,12 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     frame attributes); the settings record the new ``strain_window`` (grid points). Returns the
     path written. Frames are read, strained and written one at a time (memory independent of the
     number of frames).
+
+    The output's lock is held throughout (:func:`dic.store.files.output_lock`, the one protocol of
+    every writer): an output, or a ``results`` file, that another process is writing (a running
+    ``specula track``) is refused with :class:`dic.store.ResultFileInUse` and left untouched.
     """
-    from .store import ResultReader, ResultWriter
+    from .store import ResultReader, ResultWriter, files
     from .strain import grid_layout, strain
 
     if not isinstance(results, (str, os.PathLike)):
@@ -460,8 +464,9 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     dst = Path(os.fspath(output)) if output is not None else src
     if dst.suffix.lower() not in (".h5", ".hdf5"):
         raise ValueError(f"the output must be an HDF5 file ending in .h5, got {dst.name}")
+    files.check_output_path(dst)
     tmp = None
-    with ResultReader(src) as r:  # read, strained and written one frame at a time
+    with files.output_lock(dst, "result file"), ResultReader(src) as r:  # read, strained and written one frame at a time
         if r.kind.name != "dic2d":
             raise ValueError(f"{src} is a {r.kind.label} result file; recompute_strain recomputes the strain of "
                              "2-D results (stereo surface strain is computed by the stereo run, strain_window=)")
@@ -476,7 +481,6 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
             settings[SCALE_KEY] = _scale_value(scale)
         ref = r.reference
         try:
-            dst.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(suffix=".h5", prefix=f".{dst.stem}.", dir=dst.parent)
             os.close(fd)
             with ResultWriter(tmp, reference_path=ref.get("path", ""), reference_shape=ref.get("shape") or None,
@@ -486,6 +490,9 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
                     w.write_frame(i, f, strain=strain(f, window=n, min_points=min_points), path=f.path, attrs=attrs)
             r.close()  # before the new file replaces it (in place)
             os.replace(tmp, dst)
+            files.fsync_folder(dst.parent)
+        except files.ResultWriteError:
+            raise
         except OSError as exc:
             raise ValueError(f"cannot write {dst}: {exc.strerror or exc}") from None
         finally:

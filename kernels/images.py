@@ -497,15 +497,17 @@ def write_image(path, array, *, bits: int | None = None) -> Path:
         raise ValueError("image contains NaN or infinite values")
     dtype = np.uint8 if bits == 8 else np.uint16
     out = np.clip(np.rint(arr.astype(np.float64)), 0, 2**bits - 1).astype(dtype)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    if suffix in (".tif", ".tiff"):
-        import tifffile
+    from ._atomic import atomic_output
 
-        tifffile.imwrite(p, out)
-    else:
-        import imageio.v3 as iio
+    with atomic_output(p) as tmp:  # whole or not at all (a full disk leaves no truncated image)
+        if suffix in (".tif", ".tiff"):
+            import tifffile
 
-        iio.imwrite(p, out, plugin="pillow")
+            tifffile.imwrite(tmp, out)
+        else:
+            import imageio.v3 as iio
+
+            iio.imwrite(tmp, out, plugin="pillow")
     return p
 
 

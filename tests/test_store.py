@@ -185,7 +185,8 @@ def test_2d_and_stereo_files_share_the_layout(tmp_path):
         w.write_frame(0, fake_field3d(0, 0), path=("l0.tif", "r0.tif"), attrs={"seconds": 0.5})
     root2, groups2, frame2, fmt2, v2 = _layout(tmp_path / "a.h5")
     root3, groups3, frame3, fmt3, v3 = _layout(tmp_path / "b.h5")
-    assert root2 == root3 == {"format", "schema_version", "specula_version", "created", "updated", "compression"}
+    assert root2 == root3 == {"format", "schema_version", "specula_version", "created", "updated", "compression",
+                                  "checksum"}
     assert (fmt2, fmt3) == (FORMAT_NAME, STEREO_FORMAT_NAME) and v2 == v3 == SCHEMA_VERSION
     assert groups2 == {"reference", "settings", "frames"} and groups3 == groups2 | {"rig"}
     common = {"index", "complete", "written", "seconds"}

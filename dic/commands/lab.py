@@ -37,6 +37,7 @@ def render_cmd(scene, out_dir, cameras, samples, seed, no_noise, as_float, devic
 
     from dic.lab import load_scene, render
     from dic.lab.io import file_names
+    from kernels._atomic import atomic_output
 
     try:
         sc = load_scene(scene)
@@ -56,13 +57,15 @@ def render_cmd(scene, out_dir, cameras, samples, seed, no_noise, as_float, devic
         except ValueError as exc:
             raise click.ClickException(str(exc)) from None
         path = out_dir / f"{stems[id(cam)]}.tif"
-        tifffile.imwrite(path, img)
+        with atomic_output(path) as tmp:  # whole or not at all
+            tifffile.imwrite(tmp, img)
         written.append(path)
         click.echo(f"{path}  {img.shape[1]}x{img.shape[0]} {img.dtype}  mean {float(img.mean()):.2f}")
     truth = sc.ground_truth()
     truth["render"] = {"samples": samples, "seed": seed, "noise": not no_noise, "quantized": not as_float,
                        "images": {(c.name or f"camera{sc.cameras.index(c)}"): p.name for c, p in zip(chosen, written)}}
-    (out_dir / "ground_truth.json").write_text(json.dumps(truth, indent=2))
+    with atomic_output(out_dir / "ground_truth.json") as tmp:
+        tmp.write_text(json.dumps(truth, indent=2))
     click.echo(f"{out_dir / 'ground_truth.json'}")
 
 
@@ -110,9 +113,11 @@ def session_cmd(out_dir, scale, samples, tilts, cache):
     walk-through of docs/calibration.md calibrates with 'specula calibrate'.
     """
     from dic.lab.session import export_session
+    from dic.store.files import output_lock
 
     try:
-        export_session(str(out_dir), scale=scale, samples=samples, cache=cache, n_tilts=tilts, log=click.echo)
+        with output_lock(out_dir, "lab session folder"):  # a second session into the same folder is refused
+            export_session(str(out_dir), scale=scale, samples=samples, cache=cache, n_tilts=tilts, log=click.echo)
     except (ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"wrote the session to {out_dir}")

@@ -81,8 +81,9 @@ def _fmt(x) -> str:
 
 
 def _write_csv(path: Path, names, table) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as fh:
+    from dic.store.files import atomic_output, output_lock
+
+    with output_lock(path, "CSV file"), atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(names)
         for row in table:

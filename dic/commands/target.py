@@ -58,9 +58,12 @@ def _write(target, out: str, prefix: str, dense: bool = False) -> None:
     if dense:
         import imageio.v3 as iio
 
+        from kernels._atomic import atomic_output
+
         for k, img in enumerate(target.dense_images()):
             path = os.path.join(out, f"{prefix}_dense_{k:02d}.png")
-            iio.imwrite(path, img)
+            with atomic_output(path) as tmp:  # whole or not at all
+                iio.imwrite(tmp, img)
             paths.append(path)
     json_path = os.path.join(out, f"{prefix}.json")
     target.save_json(json_path)

@@ -47,6 +47,7 @@ import numpy as np
 
 from calibration.camera import Camera
 from calibration.targets import MONITOR_PIXEL_PITCH_MM
+from kernels._atomic import atomic_output
 from kernels.images import read_image
 
 from .camera import LabCamera, look_at
@@ -402,7 +403,8 @@ def save_scene(scene: Scene, path) -> list[Path]:
     file_names([s.name or f"{kind}{k}" for kind, k, s in surfaces], "surface")
     for k, s in enumerate(scene.screens):
         img_path = path.parent / f"{stem}_{screen_tags[k]}.npy"
-        np.save(img_path, s.image.astype(np.float32))
+        with atomic_output(img_path) as tmp:
+            np.save(tmp, s.image.astype(np.float32))
         written.append(img_path)
         table("screen", {"name": s.name, "resolution": list(s.resolution), "pixel_pitch_mm": list(s.pixel_pitch_mm),
                          "image": img_path.name, "brightness": s.brightness, "black_level": s.black_level,
@@ -419,17 +421,20 @@ def save_scene(scene: Scene, path) -> list[Path]:
             entry.update(albedo=list(s.albedo), R_world_surface=s.R_world_surface, t_world_surface=s.t_world_surface)
             if s.speckle is not None:
                 p = path.parent / f"{stem}_{tag}_speckle.npz"
-                np.savez(p, centres=np.asarray(s.speckle.centres), radii=np.asarray(s.speckle.radii))
+                with atomic_output(p) as tmp:
+                    np.savez(tmp, centres=np.asarray(s.speckle.centres), radii=np.asarray(s.speckle.radii))
                 written.append(p)
                 entry["speckle_file"] = p.name
             if s.displacement is not None:
                 p = path.parent / f"{stem}_{tag}_displacement.npz"
                 d = s.displacement
-                np.savez(p, values=d.values, origin=np.asarray(d.origin), step=np.asarray(d.step))
+                with atomic_output(p) as tmp:
+                    np.savez(tmp, values=d.values, origin=np.asarray(d.origin), step=np.asarray(d.step))
                 written.append(p)
                 entry["displacement"] = p.name
             table(kind, entry)
-    path.write_text("\n".join(lines))
+    with atomic_output(path) as tmp:  # each file of the scene whole or not at all
+        tmp.write_text("\n".join(lines))
     written.insert(0, path)
     return written
 

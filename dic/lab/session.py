@@ -23,6 +23,7 @@ import numpy as np
 from calibration.camera import rotation_from_vector
 from calibration.stereo import StereoRig
 from calibration.targets import PhaseTarget, make_cell_code
+from kernels._atomic import atomic_output
 
 __all__ = ["DIRECT_POSES", "EXTRA_DIRECT_POSES", "MIRROR_TILTS", "DENSE_DIRECT_POSES", "paper_target", "dense_target",
            "direct_pose", "common_pose", "render_view_stack", "target_pose", "true_rig", "Cache", "LabSession",
@@ -152,8 +153,8 @@ class Cache:
         if os.path.exists(path):
             return np.load(path)
         arr = make()
-        np.save(path + ".tmp.npy", arr)
-        os.replace(path + ".tmp.npy", path)
+        with atomic_output(path) as tmp:
+            np.save(tmp, arr)
         return arr
 
 
@@ -230,7 +231,9 @@ def export_session(out_dir: str, *, scale: float = 1.0, samples: int = 16, cache
         OUT/check1/left, OUT/check1/right          another common view, for checking
         OUT/ground_truth.json                      the lab's cameras and rig (for comparison only)
 
-    Stacks come from the render cache when present (``cache``), else they are rendered."""
+    Stacks come from the render cache when present (``cache``), else they are rendered.
+    Every file is written whole or not at all (``kernels._atomic``); ``specula lab session`` holds the
+    folder's lock meanwhile (:func:`dic.store.files.output_lock`)."""
     from kernels.images import write_image
 
     S = LabSession(scale=scale, samples=samples, cache=cache, log=log)
@@ -257,7 +260,7 @@ def export_session(out_dir: str, *, scale: float = 1.0, samples: int = 16, cache
     truth = true_rig(S.rig)
     R_l, t_l = S.mirror_truth("left")
     R_r, t_r = S.mirror_truth("right")
-    with open(os.path.join(out_dir, "ground_truth.json"), "w") as f:
+    with atomic_output(os.path.join(out_dir, "ground_truth.json")) as tmp, open(tmp, "w") as f:
         json.dump({"rig": truth.to_dict(), "R_left_target": R_l.tolist(), "t_left_target": t_l.tolist(),
                    "R_right_target": R_r.tolist(), "t_right_target": t_r.tolist()}, f, indent=1)
     return out_dir

@@ -49,8 +49,12 @@ def save_figure(fig, path, *, dpi: float) -> Path:
     p = Path(os.fspath(path))
     if not dpi > 0:
         raise ValueError(f"dpi must be positive, got {dpi!r}")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=dpi)
+    from kernels._atomic import atomic_output
+
+    if not p.suffix:  # what Matplotlib does with a name without a suffix
+        p = p.with_name(p.name + ".png")
+    with atomic_output(p) as tmp:  # whole or not at all
+        fig.savefig(tmp, dpi=dpi, format=p.suffix.lstrip(".").lower())
     return p
 
 

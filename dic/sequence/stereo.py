@@ -177,9 +177,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     writer = ResultWriter(out, kind="stereo", reference_path=(lp, rp), reference_shape=np.shape(left_ref),
                           reference_sha256=ref_digests, settings=settings, rig=rig, mode=mode,
                           compression=compression, settings_check=record.resume_check)
-    for d in (vtk_dir, figure_dir):
-        if d is not None:
-            Path(os.fspath(d)).mkdir(parents=True, exist_ok=True)
+    writer.hold_outputs(vtk_dir, figure_dir)  # their locks, released with the writer's (dic.store.files)
     summary = SequenceSummary(path=out)
     with writer:
         done = set(writer.done_frames())
@@ -193,13 +191,11 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         if match is None:
             writer.write_match(sc.match)
         vtk_written: set[int] = set()  # states with a VTK file of this run or of the run before (resuming)
-        if vtk_dir is not None and done:
-            from ..export import write_pvd, write_vtk
+        if vtk_dir is not None and done:  # the VTK files of finished states: whole, or rewritten now
+            from ..export import restore_vtk_files, write_pvd
 
-            vtk_written = {k for k in done if (Path(vtk_dir) / f"{vtk_stem}_{k:06d}.vtu").exists()}
-            for k in sorted(done - vtk_written):  # resuming into a new VTK folder: the finished states first
-                write_vtk(writer.read_frame(k), Path(vtk_dir) / f"{vtk_stem}_{k:06d}.vtu", invalid="nan")
-                vtk_written.add(k)
+            restore_vtk_files(writer, vtk_dir, vtk_stem, done)
+            vtk_written = set(done)
             write_pvd(vtk_dir, [(i, f"{vtk_stem}_{i:06d}.vtu") for i in sorted(vtk_written)], stem=vtk_stem)
 
         def finish(k, f, paths, digests, seconds):

@@ -381,12 +381,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                           compression=compression, settings_check=record.resume_check if record is not None else None)
     summary = SequenceSummary(path=out)
     total = len(frames) if hasattr(frames, "__len__") else None
-    for d in (vtk_dir, figure_dir):
-        if d is not None:
-            Path(d).mkdir(parents=True, exist_ok=True)
+    writer.hold_outputs(vtk_dir, figure_dir)  # their locks, released with the writer's (dic.store.files)
 
     with writer:
         done = set(writer.done_frames())
+        if vtk_dir is not None and done:  # the VTK files of finished frames: whole, or rewritten now
+            from ..export import restore_vtk_files
+
+            restore_vtk_files(writer, vtk_dir, "frame", done)
         wb = WriteBehind(depth=write_depth(n, order, budget))  # huge frames: none waits (memory)
 
         def finish(k: int, lag, raw_seconds: float, item: Loaded):

@@ -18,12 +18,22 @@ temporary file, space reservation, fsync, the in-use and write errors), :mod:`~d
 (writer, reader, whole-file readers).
 """
 from .dic2d import FORMAT_NAME, FrameResult, TrackResults
-from .files import ResultFileInUse, ResultWriteError
+from .files import ResultFileDamaged, ResultFileInUse, ResultWriteError
 from .layout import DEVICE_CHECKSUM_PREFIX, SCHEMA_VERSION, device_checksum, image_digest
-from .results import KINDS, ResultFrames, ResultReader, ResultWriter, read_field, read_results, read_stereo
+from .results import (
+    KINDS,
+    ResultFrames,
+    ResultReader,
+    ResultWriter,
+    read_field,
+    read_results,
+    read_stereo,
+    repair_results,
+)
 from .stereo import FORMAT_NAME as STEREO_FORMAT_NAME
 from .stereo import StereoResults
 
 __all__ = ["ResultWriter", "ResultReader", "ResultFrames", "read_results", "read_stereo", "read_field", "TrackResults",
            "FrameResult", "StereoResults", "SCHEMA_VERSION", "FORMAT_NAME", "STEREO_FORMAT_NAME", "KINDS",
-           "image_digest", "device_checksum", "DEVICE_CHECKSUM_PREFIX", "ResultFileInUse", "ResultWriteError"]
+           "image_digest", "device_checksum", "DEVICE_CHECKSUM_PREFIX", "ResultFileInUse", "ResultWriteError",
+           "ResultFileDamaged", "repair_results"]

@@ -235,7 +235,11 @@ def write_field2d(group, field2d, strain=None, compression: Compression | str | 
 
 
 def read_field2d(group) -> FrameResult:
-    """A complete ``/frames/<index>`` group of a 2-D file as a :class:`FrameResult`."""
+    """A complete ``/frames/<index>`` group of a 2-D file as a :class:`FrameResult` (``ValueError`` naming
+    a missing dataset)."""
+    for key in ("points", "u", "v"):
+        if key not in group:
+            raise ValueError(f"has no '{key}' dataset")
     data = {k: group[k][()] for k in FIELD_DATASETS if k in group}
     strain = None
     if "strain" in group:

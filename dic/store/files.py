@@ -14,13 +14,22 @@ reservation, fsync, and the errors a user can meet (file in use, disk full, unwr
   end of allocation), so a full disk stops the run *between* frames with
   :class:`ResultWriteError` instead of in the middle of an HDF5 flush, which corrupts the file;
 - every frame ends with a flush and an ``fsync`` of the file.
+
+The same lock guards every other output Specula writes (:func:`output_lock`: exports, strain
+recomputation, a run's VTK and figure folders, lab sessions), and readers of a result file refuse
+one that a writer holds (:func:`check_not_in_use`), before HDF5 opens it: whatever
+``HDF5_USE_FILE_LOCKING`` says, a file being written is never read half-way. Every side file is
+written whole or not at all (:func:`atomic_output`, from :mod:`kernels._atomic`).
 """
 from __future__ import annotations
 
 import errno
 import os
 import re
+from contextlib import contextmanager
 from pathlib import Path
+
+from kernels._atomic import atomic_output, fsync_folder
 
 try:  # POSIX only; elsewhere the store runs without the cross-process lock
     import fcntl
@@ -28,13 +37,25 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 __all__ = ["ResultFileInUse", "ResultWriteError", "FileLock", "lock_path", "temp_path", "check_output_path",
-           "write_error", "fsync_folder", "reserve", "abandon", "is_lock_error", "os_errno"]
+           "write_error", "fsync_folder", "reserve", "abandon", "is_lock_error", "os_errno", "output_lock",
+           "check_not_in_use", "atomic_output", "OutputInUse", "ResultFileDamaged"]
 
 _DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
 
 
 class ResultFileInUse(ValueError):
     """The result file is held by another process (a running Specula job or any HDF5 program)."""
+
+
+#: an output (an export, a VTK folder, a lab session) held by another process: the same error as a result file's
+OutputInUse = ResultFileInUse
+
+
+class ResultFileDamaged(ValueError):
+    """A result file whose content is damaged or not Specula's layout: a frame whose checksum does not
+    match (a flipped bit, a zeroed block), a frame without its ``index`` or a required dataset, a
+    header group missing or of the wrong type. The message names the file, the frame and what is
+    wrong, and says what to do (``specula repair`` for a damaged frame)."""
 
 
 class ResultWriteError(OSError, ValueError):
@@ -117,8 +138,9 @@ class FileLock:
     lock) and is simply taken over.
     """
 
-    def __init__(self, target: Path):
+    def __init__(self, target: Path, what: str = "result file"):
         self.target = target
+        self.what = what
         self.path = lock_path(target)
         self.fd: int | None = None
 
@@ -130,9 +152,9 @@ class FileLock:
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             except OSError as exc:
                 if exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
-                    raise ResultWriteError(f"cannot write the result file {self.target}: cannot create its lock file "
+                    raise ResultWriteError(f"cannot write the {self.what} {self.target}: cannot create its lock file "
                                            f"{self.path}: {reason(exc)}", exc.errno) from None
-                raise ValueError(f"cannot write the result file {self.target}: the folder {self.target.parent} "
+                raise ValueError(f"cannot write the {self.what} {self.target}: the folder {self.target.parent} "
                                  f"does not take new files ({exc.strerror or exc})") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -140,7 +162,7 @@ class FileLock:
                 owner = _read_owner(fd)
                 os.close(fd)
                 raise ResultFileInUse(
-                    f"result file {self.target} is in use by another process ({owner}lock {self.path}); "
+                    f"{self.what} {self.target} is in use by another process ({owner}lock {self.path}); "
                     "wait for that run to finish, or write to another file") from None
             except OSError:  # no flock on this file system (some network mounts): go on without it
                 os.close(fd)
@@ -170,26 +192,68 @@ class FileLock:
         self.fd = None
 
 
+@contextmanager
+def output_lock(path, what: str = "output"):
+    """Hold the lock of an output (a file or a folder) while it is written: ``<path>.lock`` next to it.
+
+    The one file protocol of every Specula writer: a second process writing the same output gets
+    :class:`OutputInUse` (a ``ValueError``) naming it, and the output is left as the first process
+    writes it. ``what`` names the output in that message ("CSV folder", "MATLAB file", ...).
+    Re-entrant in one process only through separate outputs: the same output locked twice, even by
+    one process, is refused (two writers of one file).
+    """
+    target = Path(os.path.abspath(os.fspath(path)))
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)  # the lock file lives next to the output
+    except OSError as exc:
+        raise ValueError(f"cannot write the {what} {path}: cannot create the folder {target.parent} "
+                         f"({exc.strerror or exc})") from None
+    lock = FileLock(target, what)
+    lock.acquire()
+    try:
+        yield target
+    finally:
+        lock.release()
+
+
+def check_not_in_use(path, what: str = "result file") -> None:
+    """Refuse to read a file that another process is writing (it holds ``<path>.lock``).
+
+    Readers call this before HDF5 opens the file, so the refusal is the same with or without HDF5's
+    own file locking (``HDF5_USE_FILE_LOCKING=FALSE``, common on NFS/Lustre, lets HDF5 read a file in
+    the middle of a write). A lock held by this very process (a reader of the file a run of this
+    process writes) is no refusal. Raises :class:`ResultFileInUse` naming the file and the lock.
+    """
+    if fcntl is None:  # pragma: no cover - no flock on this platform
+        return
+    lock = lock_path(Path(os.path.abspath(os.fspath(path))))
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:  # no lock file: nobody writes it (a writer creates it before opening the file)
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = _read_owner(fd)
+            if owner == f"pid {os.getpid()}, ":
+                return
+            raise ResultFileInUse(
+                f"{what} {path} is in use by another process ({owner}lock {lock}): a run is still writing it; "
+                "read it when that run has finished") from None
+        except OSError:  # no flock on this file system
+            return
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
 def _read_owner(fd: int) -> str:
     try:
         pid = os.pread(fd, 32, 0).decode().strip()
     except (OSError, UnicodeDecodeError):
         return ""
     return f"pid {pid}, " if pid.isdigit() else ""
-
-
-def fsync_folder(folder: Path) -> None:
-    """fsync a folder (makes a rename in it durable); best effort."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def reserve(fd: int, start: int, nbytes: int) -> None:

@@ -52,10 +52,14 @@ class StoreKind:
 
 @dataclass(frozen=True)
 class Compression:
-    """How a result file's datasets are compressed: an HDF5 filter, or none.
+    """How a result file's datasets are compressed (an HDF5 filter, or none) and checksummed.
 
     filter : None (stored as they are), "lzf" (h5py's built-in LZF: fast) or "gzip" (zlib, any HDF5 reader)
     level : the gzip level 0-9 (None otherwise)
+    checksum : HDF5's Fletcher-32 filter on every dataset (default True): each chunk's checksum is
+        stored with it and verified by HDF5 on every read, so a flipped bit or a zeroed block in a
+        frame's data is an error naming the frame, not a silently wrong value (root attribute
+        ``checksum``: "fletcher32" or "none"; files without it were written without checksums)
 
     Compressed datasets also get HDF5's byte shuffle (measured: smaller and faster on these
     arrays). A dataset of fewer than 64 values, or one whose bytes do not compress (a probe of up
@@ -67,6 +71,7 @@ class Compression:
 
     filter: str | None = None
     level: int | None = None
+    checksum: bool = True
 
     MIN_GAIN = 0.15  # a dataset is compressed when the probe shrinks by at least this fraction
     MIN_SIZE = 64  # values; smaller datasets are stored as they are
@@ -78,15 +83,24 @@ class Compression:
             return "none"
         return self.filter if self.level is None else f"{self.filter}:{self.level}"
 
+    @property
+    def checksum_text(self) -> str:
+        """The checksum setting as written: the ``checksum`` root attribute ("fletcher32" or "none")."""
+        return "fletcher32" if self.checksum else "none"
+
     def dataset_options(self, arr: np.ndarray) -> dict:
         """The ``create_dataset`` keywords of an array: its filter and shuffle, or none (chunked storage
         all the same for arrays of ``MIN_SIZE`` values or more: files of contiguous datasets only made
-        the writing process's memory grow with the number of frames written, +20 MB over 800 frames)."""
-        if arr.size < self.MIN_SIZE:
+        the writing process's memory grow with the number of frames written, +20 MB over 800 frames),
+        and the Fletcher-32 checksum (:attr:`checksum`; small arrays then are one chunk: HDF5's filters
+        need chunked storage). Empty and 0-d arrays are stored as they are (nothing to checksum)."""
+        small = arr.size < self.MIN_SIZE
+        if small and not (self.checksum and arr.size and arr.ndim):
             return {}
-        if self.filter is None or not _compresses(arr, self.MIN_GAIN):
-            return {"chunks": _chunks(arr)}
-        opts = {"compression": self.filter, "shuffle": arr.dtype.itemsize > 1}
+        check = {"fletcher32": True} if self.checksum else {}
+        if small or self.filter is None or not _compresses(arr, self.MIN_GAIN):
+            return {"chunks": arr.shape if small else _chunks(arr), **check}
+        opts = {"compression": self.filter, "shuffle": arr.dtype.itemsize > 1, **check}
         if self.level is not None:
             opts["compression_opts"] = self.level
         return opts

@@ -48,10 +48,15 @@ from .layout import (
 )
 
 __all__ = ["ResultWriter", "ResultReader", "ResultFrames", "KINDS", "read_results", "read_stereo", "read_field",
-           "ResultFileInUse", "ResultWriteError"]
+           "repair_results", "ResultFileInUse", "ResultWriteError", "ResultFileDamaged"]
 
 ResultFileInUse = files.ResultFileInUse
 ResultWriteError = files.ResultWriteError
+ResultFileDamaged = files.ResultFileDamaged
+#: what h5py's errors say when a dataset's Fletcher-32 checksum (or another filter) fails on read
+_CHECKSUM_WORDS = ("fletcher32", "checksum", "filter returned failure")
+#: the exceptions h5py and the payload readers raise on a damaged or foreign frame
+_READ_ERRORS = (OSError, KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError)
 
 KINDS: dict[str, StoreKind] = {dic2d.KIND.name: dic2d.KIND, stereo.KIND.name: stereo.KIND}
 _BY_FORMAT = {k.format: k for k in KINDS.values()}
@@ -79,6 +84,89 @@ def _per_image(kind: StoreKind, value, what: str) -> tuple[str, ...]:
         raise ValueError(f"a {kind.label} file has {len(roles)} images per frame ({', '.join(roles)}); "
                          f"{what} must be a ({', '.join(roles)}) pair, got {value!r}")
     return tuple(os.fspath(v) if isinstance(v, os.PathLike) else str(v) for v in value)
+
+
+def _is_group(obj) -> bool:
+    import h5py
+
+    return isinstance(obj, h5py.Group)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().split("\n")[0].strip(" '\"")
+    return text or type(exc).__name__
+
+
+def _header_damage(path, what: str) -> files.ResultFileDamaged:
+    return files.ResultFileDamaged(f"{path} is damaged or not a Specula result file: {what}; recompute it, or restore "
+                                   "it from a copy")
+
+
+def _check_header(h5, path, kind: StoreKind) -> None:
+    """Refuse, with one :class:`ResultFileDamaged` line, a file whose header is not the store's layout: a
+    missing ``/reference`` or ``/settings`` (a header-only or cut file), one of them or ``/frames``
+    stored as a dataset, settings that are not a JSON object, a stereo file without its rig."""
+    try:
+        for name in ("reference", "settings") + (("rig",) if kind.needs_rig else ()):
+            if name not in h5:
+                raise _header_damage(path, f"it has no '/{name}' group (a header-only or cut file?)")
+            if not _is_group(h5[name]):
+                raise _header_damage(path, f"'/{name}' is a dataset, not a group")
+        if "frames" in h5 and not _is_group(h5["frames"]):
+            raise _header_damage(path, "'/frames' is a dataset, not a group")
+        for name in ("settings",) + (("rig",) if kind.needs_rig else ()):
+            text = h5[name].attrs.get("json", "{}")
+            if not isinstance(json.loads(plain(text)), dict):
+                raise _header_damage(path, f"'/{name}' holds no JSON object")
+    except files.ResultFileDamaged:
+        raise
+    except _READ_ERRORS as exc:  # unreadable metadata, JSON that does not parse
+        raise _header_damage(path, f"its header does not read ({_first_line(exc)})") from None
+
+
+def _damage_reason(group, exc: BaseException | None = None) -> str:
+    """Why a frame's group does not read: the first dataset whose data fail (a checksum mismatch, named as
+    such), else the reader's error (a missing dataset or attribute)."""
+    import h5py
+
+    failed = []
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset) and not failed:
+            try:
+                obj[()]
+            except Exception as err:  # noqa: BLE001 - any read failure is the damage to report
+                failed.append((name, err))
+    try:
+        group.visititems(visit)
+    except Exception as err:  # noqa: BLE001 - the group's own metadata are damaged
+        return f"does not read ({_first_line(err)})"
+    if failed:
+        name, err = failed[0]
+        if any(w in str(err).lower() for w in _CHECKSUM_WORDS):
+            return f"fails its checksum in dataset '{name}' (a flipped bit or a damaged block)"
+        return f"cannot read its dataset '{name}' ({_first_line(err)})"
+    return _first_line(exc) if exc is not None else ""
+
+
+def _frame_problem(kind: StoreKind, name: str, obj) -> str:
+    """What is wrong with a complete frame's group ("" when it reads whole, every checksum verified)."""
+    if not _is_group(obj):
+        return "is a dataset, not a group"
+    index = obj.attrs.get("index")
+    try:
+        if index is None or int(index) < 0:
+            return "has no 'index' attribute"
+    except (TypeError, ValueError):
+        return f"has an 'index' attribute that is no frame index ({index!r})"
+    reason = _damage_reason(obj)
+    if reason:
+        return reason
+    try:
+        kind.read_payload(obj)
+    except _READ_ERRORS as exc:
+        return _first_line(exc)
+    return ""
 
 
 def _rig_dict(rig) -> dict:
@@ -135,14 +223,16 @@ class _ResultFile:
     @property
     def compression(self) -> Compression:
         """The file's compression setting (root attribute ``compression``; files written before it
-        existed: gzip level 4). Readers need it for nothing: HDF5 filters are self-describing."""
+        existed: gzip level 4) with its checksum setting (root attribute ``checksum``: "none" turns
+        checksums off; absent in files written before checksums: frames appended to them get them).
+        Readers need it for nothing: HDF5 filters are self-describing."""
         text = self._h5.attrs.get("compression")
-        if text is None:
-            return LEGACY_COMPRESSION
         try:
-            return parse_compression(str(plain(text)))
+            comp = LEGACY_COMPRESSION if text is None else parse_compression(str(plain(text)))
         except ValueError:
             raise ValueError(f"{self.path} has an unknown compression setting {text!r}") from None
+        checksum = str(plain(self._h5.attrs.get("checksum", "fletcher32"))) != "none"
+        return Compression(comp.filter, comp.level, checksum)
 
     @property
     def rig(self) -> dict | None:
@@ -151,13 +241,34 @@ class _ResultFile:
 
     # -- frames
     def _frames(self):
-        return self._h5["frames"] if "frames" in self._h5 else {}
+        if "frames" not in self._h5:
+            return {}
+        g = self._h5["frames"]
+        if not _is_group(g):
+            raise _header_damage(self.path, "'/frames' is a dataset, not a group")
+        return g
+
+    def _damaged(self, frame, reason: str) -> files.ResultFileDamaged:
+        """The one message of a damaged frame: the file, the frame, what is wrong, what to do."""
+        return files.ResultFileDamaged(
+            f"{self.path} is damaged: {self.kind.frame_noun} {frame} {reason}; 'specula repair {self.path}' drops "
+            "it (dic.store.repair_results), and rerunning the same command then recomputes it")
 
     def done_frames(self) -> list[int]:
-        """Indices of the complete frames in the file, ascending."""
+        """Indices of the complete frames in the file, ascending (:class:`ResultFileDamaged` for a complete
+        frame without its ``index``)."""
         g = self._frames()
-        return sorted(int(g[n].attrs["index"]) for n in g
-                      if not n.endswith(".partial") and g[n].attrs.get("complete", 0))
+        done = []
+        for n in g:
+            if n.endswith(".partial") or not g[n].attrs.get("complete", 0):
+                continue
+            index = g[n].attrs.get("index")
+            try:
+                done.append(int(index))
+            except (TypeError, ValueError):
+                raise self._damaged(repr(n), "has no 'index' attribute" if index is None else
+                                    f"has an 'index' attribute that is no frame index ({index!r})") from None
+        return sorted(done)
 
     def is_done(self, index: int) -> bool:
         """True when frame ``index`` is already complete in the file."""
@@ -174,8 +285,17 @@ class _ResultFile:
         return self._frames()[frame_name(index)]
 
     def read_frame(self, index: int):
-        """A complete frame: :class:`dic.store.FrameResult` (2-D) or :class:`dic.field3d.Field3D` (stereo)."""
-        return self.kind.read_payload(self._complete_group(index))
+        """A complete frame: :class:`dic.store.FrameResult` (2-D) or :class:`dic.field3d.Field3D` (stereo).
+
+        Every dataset's checksum is verified as it is read (files with checksums); a frame that does not
+        read (a checksum mismatch, a missing dataset) raises :class:`ResultFileDamaged` naming it."""
+        g = self._complete_group(index)
+        try:
+            if not _is_group(g):
+                raise ValueError("is a dataset, not a group")
+            return self.kind.read_payload(g)
+        except _READ_ERRORS as exc:
+            raise self._damaged(index, _damage_reason(g, exc) if _is_group(g) else _first_line(exc)) from None
 
     def iter_frames(self, indices=None):
         """Yield ``(index, frame)`` for the complete frames (``indices``: those, in that order; default all,
@@ -200,13 +320,24 @@ class _ResultFile:
         if not self.is_done(index):
             return None
         g = self._frames()[frame_name(index)]
-        if any(n not in g for n in names):
+        if not _is_group(g) or any(n not in g for n in names):
             return None
-        return tuple(g[n][()] for n in names)
+        try:
+            return tuple(g[n][()] for n in names)
+        except _READ_ERRORS as exc:
+            raise self._damaged(index, _damage_reason(g, exc)) from None
 
     def read_match(self):
         """The stored reference :class:`dic.stereo.StereoMatch` (stereo files), or None."""
-        return stereo.read_match(self._h5["reference/match"]) if "reference/match" in self._h5 else None
+        if "reference/match" not in self._h5:
+            return None
+        g = self._h5["reference/match"]
+        try:
+            return stereo.read_match(g)
+        except _READ_ERRORS as exc:
+            reason = _damage_reason(g, exc) if _is_group(g) else _first_line(exc)
+            raise files.ResultFileDamaged(f"{self.path} is damaged: its reference match {reason}; recompute it "
+                                          "(--overwrite), or restore it from a copy") from None
 
 
 class ResultWriter(_ResultFile):
@@ -240,7 +371,9 @@ class ResultWriter(_ResultFile):
         How a new file's datasets are compressed (:func:`dic.store.layout.parse_compression`; default
         :data:`dic.store.layout.DEFAULT_COMPRESSION`), recorded as the root attribute ``compression``.
         A resumed file keeps its own setting (frames appended to a gzip-4 file are gzip-4), whatever
-        is given here: :attr:`compression` says which one is used.
+        is given here: :attr:`compression` says which one is used. Every dataset also carries HDF5's
+        Fletcher-32 checksum, verified on every read (a :class:`dic.store.layout.Compression` with
+        ``checksum=False`` writes without; root attribute ``checksum``).
 
     The writer holds an exclusive lock (``<file>.lock``) while it is open: a second writer on the
     same file gets :class:`dic.store.ResultFileInUse`. A new run (a new file, or ``overwrite``) is
@@ -248,7 +381,8 @@ class ResultWriter(_ResultFile):
     reference match), so a run that fails before that leaves an existing file untouched.
     :meth:`write_frame` reserves the frame's space first, then flushes and fsyncs the file; a
     write that fails (a full disk) raises :class:`dic.store.ResultWriteError` and closes the
-    writer, leaving every finished frame readable and resumable. Use as a context manager.
+    writer, leaving every finished frame readable and resumable. :meth:`hold_outputs` holds the locks
+    of a run's side folders (VTK, figures) with the file's. Use as a context manager.
     """
 
     def __init__(self, path, *, reference_path="", reference_shape=None, reference_sha256="",
@@ -331,6 +465,7 @@ class ResultWriter(_ResultFile):
             f.attrs["created"] = now()
             f.attrs["updated"] = f.attrs["created"]
             f.attrs["compression"] = self._compression.text
+            f.attrs["checksum"] = self._compression.checksum_text
             if rig_json is not None:
                 f.create_group("rig").attrs["json"] = rig_json
             ref = f.create_group("reference")
@@ -388,6 +523,35 @@ class ResultWriter(_ResultFile):
             self._tmp = None
         if getattr(self, "_lock", None) is not None:
             self._lock.release()
+        for lock in getattr(self, "_side_locks", ()):
+            lock.release()
+        self._side_locks = []
+
+    def hold_outputs(self, *folders) -> None:
+        """Take the locks of this run's side outputs (its VTK and figure folders; None is skipped), creating
+        the folders, and hold them until the writer is closed: an export or another run writing into one
+        of them meanwhile is refused (:func:`dic.store.files.output_lock`), and so is this call when
+        another process holds one (:class:`ResultFileInUse`, the writer closed)."""
+        held = {lock.target for lock in getattr(self, "_side_locks", ())}
+        for folder in folders:
+            if folder is None:
+                continue
+            target = Path(os.path.abspath(os.fspath(folder)))
+            if target in held:  # one folder for VTK and figures: one lock
+                continue
+            held.add(target)
+            try:
+                target.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                self._release()
+                raise ValueError(f"cannot write into the folder {folder}: {exc.strerror or exc}") from None
+            lock = files.FileLock(target, "output folder")
+            try:
+                lock.acquire()
+            except BaseException:
+                self._release()
+                raise
+            self._side_locks = [*getattr(self, "_side_locks", ()), lock]
 
     def _fail(self, exc: BaseException, what: str) -> files.ResultWriteError:
         """After a failed write: close without writing anything more, and the message to raise."""
@@ -451,7 +615,7 @@ class ResultWriter(_ResultFile):
     def _check_compatible(self, paths, digests, shape, rig_json) -> None:
         f, kind = self._h5, self.kind
         fmt = f.attrs.get("format")
-        if fmt != kind.format or "reference" not in f or "settings" not in f:
+        if fmt != kind.format:
             raise ValueError(f"{self.path} is not a Specula {kind.label} result file (format {fmt!r}); "
                              "write to another file or overwrite it")
         version = int(f.attrs.get("schema_version", -1))
@@ -459,6 +623,7 @@ class ResultWriter(_ResultFile):
             raise ValueError(
                 f"{self.path} uses result schema version {version}, this Specula writes version {SCHEMA_VERSION}; "
                 "write to another file or overwrite it")
+        _check_header(f, self.path, kind)
         stored = f["reference"].attrs
         for role, d in zip(kind.image_roles, digests):
             old = str(stored.get(role_attr(role, "sha256"), ""))
@@ -650,6 +815,7 @@ class ResultReader(_ResultFile):
         self.path = Path(os.fspath(path))
         if not self.path.exists():
             raise ValueError(f"result file not found: {self.path}")
+        files.check_not_in_use(self.path)  # a run still writing it: refused before HDF5 opens it (any HDF5 locking)
         try:
             self._h5 = h5py.File(self.path, "r")
         except OSError as exc:
@@ -669,6 +835,7 @@ class ResultReader(_ResultFile):
             if version > SCHEMA_VERSION:
                 raise ValueError(f"{self.path} uses result schema version {version}; this Specula reads up to "
                                  f"{SCHEMA_VERSION}")
+            _check_header(self._h5, self.path, found)
         except Exception:
             self._h5.close()
             raise
@@ -760,6 +927,78 @@ class ResultFrames:
             return stereo.table_attrs(self.settings, rig, self._reader.reference["shape"], first)
         res = self._results
         return stereo.table_attrs(res.settings, res.rig, res.reference_shape, first)
+
+
+# ------------------------------------------------------------------------------------------------
+# repair
+
+
+def repair_results(path) -> list[tuple[int | str, str]]:
+    """Drop the damaged frames of a result file, so that rerunning the command that wrote it recomputes them.
+
+    Every complete frame is read whole, each dataset's checksum verified (files with checksums: every
+    file written since they exist); a frame that does not read (a checksum mismatch from a flipped bit
+    or a zeroed block, a missing dataset, no ``index`` attribute, a dataset where its group should be)
+    is deleted, and so are leftovers of a frame cut short. The file keeps every other frame, and the
+    same ``specula track``/``stereo`` command (or ``track_sequence``/``stereo_sequence`` with the same
+    output) then resumes and recomputes the dropped ones. A damaged header (no ``/reference`` or
+    ``/settings``, ...) cannot be repaired: :class:`ResultFileDamaged`. The file's lock is held (a file
+    a run is writing is refused: :class:`ResultFileInUse`).
+
+    Returns ``[(frame index or group name, what was wrong), ...]`` for the frames dropped (empty: the
+    file was whole). Frames written without checksums (files of earlier versions) are checked for
+    readability and layout only: a flipped bit in their data cannot be seen.
+    """
+    import h5py
+
+    path = Path(os.fspath(path))
+    if not path.is_file():
+        raise ValueError(f"result file not found: {path}")
+    lock = files.FileLock(Path(os.path.abspath(path)))
+    lock.acquire()
+    try:
+        try:
+            h5 = h5py.File(path, "a")
+        except OSError as exc:
+            if files.is_lock_error(exc):
+                raise files.ResultFileInUse(f"result file {path} is in use by another process (HDF5 could not lock "
+                                            "it); repair it when that process has finished") from None
+            raise _header_damage(path, f"it does not open as HDF5 ({_first_line(exc)})") from None
+        with h5:
+            kind = _BY_FORMAT.get(h5.attrs.get("format"))
+            if kind is None:
+                raise ValueError(f"{path} is not a Specula result file (format {h5.attrs.get('format')!r}); "
+                                 "nothing to repair")
+            _check_header(h5, path, kind)
+            if "frames" not in h5:
+                return []
+            frames = h5["frames"]
+            dropped: list[tuple[int | str, str]] = []
+            for name in list(frames.keys()):
+                obj = frames[name]
+                if name.endswith(".partial") or not obj.attrs.get("complete", 0):
+                    reason = "was cut short (unfinished)"
+                else:
+                    reason = _frame_problem(kind, name, obj)
+                    if not reason:
+                        continue
+                label = int(name) if name.isdigit() else name
+                try:
+                    del frames[name]
+                except Exception as exc:  # noqa: BLE001 - metadata too damaged to unlink the group
+                    raise _header_damage(path, f"{kind.frame_noun} {label} {reason} and cannot be dropped "
+                                         f"({_first_line(exc)})") from None
+                if reason != "was cut short (unfinished)":
+                    dropped.append((label, reason))
+            if dropped:
+                h5.attrs["updated"] = now()
+            h5.flush()
+            fd = h5.id.get_vfd_handle()
+            if isinstance(fd, int):
+                os.fsync(fd)
+            return dropped
+    finally:
+        lock.release()
 
 
 # ------------------------------------------------------------------------------------------------

@@ -141,16 +141,17 @@ def table_attrs(settings: dict, rig, reference_shape, first) -> dict:
 def write_field3d(group, field3d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:
     """Write one state's :class:`dic.field3d.Field3D` (arrays and details) into an empty h5py ``group``.
 
-    ``compression``: :func:`dic.store.layout.parse_compression` (booleans are stored as they are)."""
+    ``compression``: :func:`dic.store.layout.parse_compression` (booleans are not compressed)."""
     compression = parse_compression(compression)
     if strain is not None:
         raise ValueError("a stereo frame carries its strain in the Field3D; pass strain=None")
     if not hasattr(field3d, "arrays") or not hasattr(field3d, "R_frame_left"):
         raise ValueError(f"a stereo frame must be a dic.field3d.Field3D, got {type(field3d).__name__}")
+    flags = Compression(None, checksum=compression.checksum)
     for key, arr in field3d.arrays().items():
         arr = np.asarray(arr)
-        if arr.dtype == bool:  # flags: stored as they are
-            group.create_dataset(key, data=arr)
+        if arr.dtype == bool:  # flags: not compressed (checksummed all the same)
+            write_dataset(group, key, arr, flags)
         else:
             write_dataset(group, key, arr, compression)
     group.attrs.update({"grid_shape": list(field3d.grid_shape) if field3d.grid_shape is not None else [],
@@ -162,6 +163,9 @@ def read_field3d(group):
     """A complete ``/frames/<index>`` group of a stereo file as a :class:`dic.field3d.Field3D`."""
     from ..field3d import Field3D
 
+    for key in FIELD_DATASETS:
+        if key not in group:
+            raise ValueError(f"has no '{key}' dataset")
     arrays = {k: group[k][()] for k in FIELD_DATASETS}
     details = {k: group[k][()] for k in group.keys() if k not in FIELD_DATASETS}
     gs = [int(v) for v in group.attrs.get("grid_shape", [])]
