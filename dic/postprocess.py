@@ -14,9 +14,13 @@ docs/postprocessing.md has worked examples; the CLI verbs are ``specula strain``
 * :func:`point_history`, :func:`line_profile` — a quantity at a point over the frames, and
   along a line per frame.
 
-Values at arbitrary points are interpolated linearly (:class:`scipy.interpolate.LinearNDInterpolator`,
-a Delaunay triangulation of the frame's valid points): exact for fields that are linear in the
-position, NaN outside the convex hull of the valid points.
+Values at arbitrary points come from the grid cell of the points that contains them
+(:mod:`dic.gridinterp`): bilinear in the cell when every corner it depends on is a point of the
+result and valid in the frame, exact for fields linear in the position; otherwise NaN, with a
+:class:`~dic.gridinterp.QueryStatus` saying why (outside the grid, in a hole or an excluded
+region, among invalid points). Nothing is interpolated across a hole, an excluded region or
+invalid points. Points on no grid (given by hand) use a Delaunay triangulation without the
+triangles longer than 1.5 point spacings.
 
 Derived strains (tensor shear ``exy``, as everywhere in Specula; the engineering shear strain is
 ``γxy = 2 exy``)::
@@ -46,7 +50,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PrincipalStrains", "principal_strains", "recompute_strain", "window_points", "results_scale",
+from .gridinterp import QueryStatus
+
+__all__ = ["QueryStatus", "PrincipalStrains", "principal_strains", "recompute_strain", "window_points", "results_scale",
            "SCALE_KEY", "Extensometer", "extensometer", "History", "point_history", "Profile", "line_profile",
            "quantities", "load_results"]
 
@@ -195,7 +201,8 @@ class _Source:
         except BaseException:
             self._frames.close()
             raise
-        self._interp_cache: dict = {}
+        self._cells: dict = {}  # "px" / "mm" -> the cells of the points (dic.gridinterp)
+        self._located: dict = {}  # (units, query bytes) -> where the queries fall in those cells
         self._last: tuple | None = None  # (index, frame): the one frame held
 
     def __enter__(self):
@@ -207,7 +214,7 @@ class _Source:
     def close(self) -> None:
         self._frames.close()
         self._last = None
-        self._interp_cache = {}
+        self._cells, self._located = {}, {}
 
     def frame(self, index: int):
         """Frame ``index`` (read from the file unless it is the one read last)."""
@@ -312,36 +319,63 @@ class _Source:
             return pts * self.scale
         return np.column_stack([f.X, f.Y]).astype(np.float64)
 
-    def interpolate(self, index: int, at: str, values, valid, query) -> np.ndarray:
-        """Linear interpolation of ``values`` (N, k) over the valid points at ``query`` (M, 2); NaN outside."""
-        from scipy.interpolate import LinearNDInterpolator
-        from scipy.spatial import QhullError
+    def cells(self, index: int, at: str):
+        """The cells of frame ``index``'s points in the units of ``at`` (:mod:`dic.gridinterp`).
 
-        dom = self.domain(index, at)
-        ok = valid & np.all(np.isfinite(dom), axis=1)
-        values = np.asarray(values, np.float64).reshape(dom.shape[0], -1)
+        2-D (either unit) and stereo px: :class:`~dic.gridinterp.GridCells` of the points (px), or the
+        scattered-points fallback when they are on no grid; stereo mm: the grid's cells over the
+        points' ``(X, Y)`` (:meth:`~dic.gridinterp.TriangleCells.from_grid`). Every frame of a file
+        has the same points, so the cells are built once (and again only if a frame's differ).
+        """
+        from .gridinterp import GridCells, TriangleCells, cells_for
+
+        f = self.frame(index)
+        pts = np.asarray(f.points, np.float64)
+        grid = self._cells.get("px")
+        if grid is None or not grid.matches(pts):
+            grid = cells_for(pts)
+            self._cells = {"px": grid}
+            self._located = {}
+        if at == "px" or self.is_2d:
+            return grid
+        xy = np.column_stack([f.X, f.Y]).astype(np.float64)
+        cells = self._cells.get("mm")
+        if cells is None or not cells.matches(xy):
+            cells = TriangleCells.from_grid(grid, xy) if isinstance(grid, GridCells) else TriangleCells.scattered(xy)
+            self._cells["mm"] = cells
+            self._located = {k: v for k, v in self._located.items() if k[0] != "mm"}
+        return cells
+
+    def interpolate(self, index: int, at: str, values, valid, query) -> tuple[np.ndarray, np.ndarray]:
+        """``values`` (N, k) of frame ``index`` at the reference positions ``query`` (M, 2), units ``at``.
+
+        Interpolated in the grid cell containing each query, from its corners only, when they are
+        valid (:mod:`dic.gridinterp`). Returns the (M, k) values (NaN where there is none) and the
+        (M,) :class:`~dic.gridinterp.QueryStatus` codes saying why.
+        """
         query = np.asarray(query, np.float64).reshape(-1, 2)
-        out = np.full((query.shape[0], values.shape[1]), np.nan)
-        if ok.sum() < 3:
-            return out
-        key = (index, at, ok.tobytes())
-        tri = self._interp_cache.get(key)
-        if tri is None:
-            from scipy.spatial import Delaunay
-
-            try:
-                tri = Delaunay(dom[ok])
-            except (QhullError, ValueError):  # collinear or degenerate valid points
-                tri = False
-            self._interp_cache = {key: tri}  # one triangulation at a time: frames are visited in turn
-        if tri is False:
-            return out
-        return LinearNDInterpolator(tri, values[ok])(query)
+        if self.is_2d and at == "mm":
+            query = query / self.scale  # 2-D mm positions are px times the scale
+            at = "px"
+        cells = self.cells(index, at)
+        key = ("px" if at == "px" or self.is_2d else "mm", query.tobytes())
+        located = self._located.get(key)
+        if located is None:
+            located = self._located[key] = cells.locate(query)
+        return located.evaluate(values, valid)
 
     def grid_spacing(self, at: str) -> float:
-        """Spacing of the points (in ``at`` units): the smallest nearest-neighbour distance's median."""
+        """Spacing of the points (in ``at`` units): the grid step (the smaller one), else the median
+        nearest-neighbour distance."""
         from scipy.spatial import cKDTree
 
+        from .gridinterp import GridCells
+
+        grid = self.cells(self.indices[0], "px")
+        if isinstance(grid, GridCells) and (at == "px" or self.is_2d) and grid.points.shape[0] > 1:
+            # the step along each axis with more than one node
+            steps = [d for d, n in zip(grid.step, (grid.shape[1], grid.shape[0])) if n > 1]
+            return min(steps) * (self.scale if at == "mm" else 1.0)
         dom = self.domain(self.indices[0], at)
         dom = dom[np.all(np.isfinite(dom), axis=1)]
         if dom.shape[0] < 2:
@@ -484,7 +518,9 @@ class Extensometer:
     (arrays of length F, aligned with ``frames``): ``length0`` the reference gauge length,
     ``length`` the deformed one, ``elongation = length - length0``, ``strain = elongation /
     length0`` (engineering), ``start_displacement`` / ``end_displacement`` (F, 2 | 3) the
-    displacement of each end, ``valid`` both ends inside the valid points (NaN otherwise).
+    displacement of each end, ``valid`` both ends have a value (lengths NaN otherwise), and
+    ``start_status`` / ``end_status`` (F,) int8 the :class:`~dic.gridinterp.QueryStatus` of each
+    end in each frame (why an end has no value: ``QueryStatus(code).reason``).
     """
 
     start: np.ndarray
@@ -499,6 +535,8 @@ class Extensometer:
     start_displacement: np.ndarray
     end_displacement: np.ndarray
     valid: np.ndarray
+    start_status: np.ndarray
+    end_status: np.ndarray
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Column names and an (F, k) table (frame, length0, length, elongation, strain, end displacements)."""
@@ -526,7 +564,8 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
     scale : float, optional
         mm/px of a 2-D result (default: the stored one, else px).
 
-    The displacement at each end is interpolated linearly from the frame's valid points; the
+    The displacement at each end is interpolated in its grid cell (module docstring; NaN, with
+    ``start_status`` / ``end_status`` saying why, when the cell is not entirely valid); the
     gauge length is the distance between the ends (2-D in the image plane; stereo in 3-D).
     """
     with _Source(results, scale) as src:
@@ -539,6 +578,7 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
         F = len(idx)
         L0, L = np.full(F, np.nan), np.full(F, np.nan)
         dA, dB = np.full((F, dim), np.nan), np.full((F, dim), np.nan)
+        status = np.zeros((F, 2), np.int8)
         q = np.stack([a, b])
         for k, i in enumerate(idx):
             if src.is_2d:
@@ -546,30 +586,34 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
                 v, valid_v = src.values(i, "v")
                 s = src.scale or 1.0
                 q_px = q / s if at == "mm" else q
-                disp = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
+                disp, status[k] = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
                 ref = q_px * s
             else:
                 f = src.frame(i)
                 valid = np.asarray(f.valid, bool) & np.all(np.isfinite(f.xyz), 1) & np.all(np.isfinite(f.uvw), 1)
-                both = src.interpolate(i, at, np.column_stack([f.xyz, f.uvw]), valid, q)
+                both, status[k] = src.interpolate(i, at, np.column_stack([f.xyz, f.uvw]), valid, q)
                 ref, disp = both[:, :3], both[:, 3:]
             dA[k], dB[k] = disp[0], disp[1]
             L0[k] = np.linalg.norm(ref[1] - ref[0])
             L[k] = np.linalg.norm(ref[1] + disp[1] - ref[0] - disp[0])
-        ok = np.isfinite(L) & np.isfinite(L0)
+        ok = np.isfinite(L) & np.isfinite(L0) & np.all(status == QueryStatus.OK, axis=1)
         L[~ok] = np.nan
         elong = L - L0
         with np.errstate(invalid="ignore", divide="ignore"):
             eps = elong / L0
         return Extensometer(start=a, end=b, at=at, unit=src.length_unit, frames=np.asarray(idx, np.int64), length0=L0,
-                            length=L, elongation=elong, strain=eps, start_displacement=dA, end_displacement=dB, valid=ok)
+                            length=L, elongation=elong, strain=eps, start_displacement=dA, end_displacement=dB, valid=ok,
+                            start_status=status[:, 0], end_status=status[:, 1])
 
 
 @dataclass
 class History:
     """A quantity at one reference point over the frames (:func:`point_history`).
 
-    ``values`` (F,) aligned with ``frames``; NaN where the point is outside the frame's valid points.
+    ``values`` (F,) aligned with ``frames``; NaN where the point has no value in a frame, and
+    ``status`` (F,) int8 the :class:`~dic.gridinterp.QueryStatus` saying why
+    (``QueryStatus(code).reason``: outside the grid, in a hole or an excluded region, among
+    invalid points).
     """
 
     quantity: str
@@ -578,6 +622,7 @@ class History:
     at: str
     frames: np.ndarray
     values: np.ndarray
+    status: np.ndarray
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Column names and the (F, 2) table (frame, value)."""
@@ -591,7 +636,8 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
     ``point`` (x, y) in reference image px (``at="px"``) or mm (``at="mm"``, see :func:`extensometer`);
     ``quantity`` one of :func:`quantities` (2-D: u, v, magnitude, the strain components, e1, e2,
     angle, max_shear, von_mises, zncc; stereo: U, V, W, magnitude, X, Y, Z, exx, eyy, exy, e1 ...).
-    Values are interpolated linearly from the frame's valid points (strain: its strain-valid points).
+    Values are interpolated in the grid cell that contains the point, from its corners when they are
+    valid (strain: strain-valid); else NaN with ``status`` saying why (module docstring).
     """
     with _Source(results, scale) as src:
         at = src.check_at(at)
@@ -599,11 +645,13 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
         p = _xy(point, "point")
         idx = src.select(frames)
         out = np.full(len(idx), np.nan)
+        status = np.zeros(len(idx), np.int8)
         for k, i in enumerate(idx):
             vals, valid = src.values(i, quantity)
-            out[k] = src.interpolate(i, at, vals, valid, p)[0, 0]
+            value, code = src.interpolate(i, at, vals, valid, p)
+            out[k], status[k] = value[0, 0], code[0]
         return History(quantity=quantity, unit=src.unit(quantity), point=p, at=at, frames=np.asarray(idx, np.int64),
-                       values=out)
+                       values=out, status=status)
 
 
 @dataclass
@@ -611,7 +659,9 @@ class Profile:
     """A quantity along a line, per frame (:func:`line_profile`).
 
     ``positions`` (n, 2) the sample points (units ``at``), ``distance`` (n,) their distance from
-    ``start`` (units ``at``), ``values`` (F, n): row ``k`` is frame ``frames[k]``.
+    ``start`` (units ``at``), ``values`` (F, n): row ``k`` is frame ``frames[k]``, NaN where a
+    sample has no value, and ``status`` (F, n) int8 the :class:`~dic.gridinterp.QueryStatus` of
+    each sample saying why.
     """
 
     quantity: str
@@ -623,6 +673,7 @@ class Profile:
     distance: np.ndarray
     frames: np.ndarray
     values: np.ndarray
+    status: np.ndarray
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Long-format column names and table: one row per (frame, sample): frame, distance, x, y, value."""
@@ -656,8 +707,10 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
         pos = a[None, :] + t[:, None] * (b - a)[None, :]
         idx = src.select(frames)
         vals = np.full((len(idx), samples), np.nan)
+        status = np.zeros((len(idx), samples), np.int8)
         for k, i in enumerate(idx):
             v, valid = src.values(i, quantity)
-            vals[k] = src.interpolate(i, at, v, valid, pos)[:, 0]
+            value, status[k] = src.interpolate(i, at, v, valid, pos)
+            vals[k] = value[:, 0]
         return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
-                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals)
+                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals, status=status)
