@@ -39,6 +39,9 @@ __all__ = ["QueryStatus", "GridCells", "TriangleCells", "Located", "MAX_EDGE_SPA
 #: (the median edge) gives no value (a grid cell's diagonal is sqrt(2) = 1.41 steps)
 MAX_EDGE_SPACINGS = 1.5
 
+# points filling fewer than 1 in this many nodes of their grid are taken for scattered points
+_MAX_NODES_PER_POINT = 64
+
 # a position this close to a grid line (in grid steps) or a triangle edge (barycentric) is on it
 _SNAP = 1e-9
 
@@ -67,7 +70,7 @@ _REASONS = {
     QueryStatus.OK: "interpolated",
     QueryStatus.OUTSIDE: "outside the grid of points",
     QueryStatus.NO_POINTS: "in a hole or an excluded region (no points there)",
-    QueryStatus.INVALID: "among points with no valid value in this frame",
+    QueryStatus.INVALID: "among points with no valid value in the frame",
 }
 
 
@@ -161,6 +164,11 @@ class GridCells:
 
         pts = np.array(points, dtype=np.float64, copy=True)
         index, shape, step = grid_layout(pts)
+        if shape[0] * shape[1] > _MAX_NODES_PER_POINT * pts.shape[0] + 4096:
+            # grid_layout's tolerance grows as the spacing shrinks: scattered points pass it with a
+            # spacing of their smallest coordinate difference and a grid of billions of nodes
+            raise ValueError(f"the points fill fewer than 1 in {_MAX_NODES_PER_POINT} nodes of their "
+                             f"{shape[0]} x {shape[1]} grid: not a grid of points")
         pts.flags.writeable = False
         self.points = pts
         self.shape = shape
