@@ -173,37 +173,46 @@ def load_results(results):
 class _Source:
     """The frames of a 2-D or stereo result, with quantities, validity and positions per frame.
 
-    A result file is read one frame at a time (:class:`dic.store.ResultFrames`; the last frame read is
-    kept, so the quantities of one frame cost one read): a time series over a 10 000-frame file holds
-    one frame, whatever the file's length. Use as a context manager (it closes the file).
+    A result file is read one frame at a time, and of each frame only the datasets a quantity
+    needs (``u``, ``v`` and ``valid`` for a 2-D displacement, ``strain/eyy`` and ``strain/valid``
+    for a strain ...: :meth:`dic.store.ResultReader.frame_arrays`); the arrays of the last frame
+    read are kept. A time series over a 10 000-frame file holds one frame's arrays, whatever the
+    file's length. A results object already read (:class:`dic.store.TrackResults`,
+    :class:`~dic.store.StereoResults`) is used as it is. Use as a context manager (it closes the file).
     """
 
     def __init__(self, results, scale=None):
-        from .store import ResultFrames, StereoResults, TrackResults
+        from .store import ResultFrames, ResultReader, StereoResults, TrackResults
 
         if not isinstance(results, (str, os.PathLike, TrackResults, StereoResults)):
             raise ValueError("results must be a result file (path) or what dic.store.read_results / read_stereo "
                              f"return, got {type(results).__name__}")
-        self._frames = ResultFrames(results)
+        if isinstance(results, (str, os.PathLike)):
+            self._reader, self._frames = ResultReader(results), None
+        else:
+            self._reader, self._frames = None, ResultFrames(results)
         try:
-            self.is_2d = self._frames.kind == "dic2d"
+            if self._reader is not None:
+                kind, self.indices, self.settings = self._reader.kind.name, self._reader.done_frames(), self._reader.settings
+            else:
+                kind, self.indices, self.settings = self._frames.kind, list(self._frames.indices), self._frames.settings
+            self.is_2d = kind == "dic2d"
             if self.is_2d:
-                self.scale = _scale_value(scale) if scale is not None else results_scale(self._frames)
+                self.scale = _scale_value(scale) if scale is not None else results_scale(self)
                 self.length_unit = "mm" if self.scale is not None else "px"
             else:
                 if scale is not None:
                     raise ValueError("a scale applies to 2-D results only; stereo results are in mm already")
                 self.scale = None
                 self.length_unit = "mm"
-            self.indices = list(self._frames.indices)
             if not self.indices:
                 raise ValueError("the results hold no finished frame")
         except BaseException:
-            self._frames.close()
+            self.close()
             raise
         self._cells: dict = {}  # "px" / "mm" -> the cells of the points (dic.gridinterp)
         self._located: dict = {}  # (units, query bytes) -> where the queries fall in those cells
-        self._last: tuple | None = None  # (index, frame): the one frame held
+        self._held: tuple[int, dict] | None = None  # (index, {dataset: array}): the arrays of one frame
 
     def __enter__(self):
         return self
@@ -212,16 +221,28 @@ class _Source:
         self.close()
 
     def close(self) -> None:
-        self._frames.close()
-        self._last = None
+        for source in (self._reader, self._frames):
+            if source is not None:
+                source.close()
+        self._held = None
         self._cells, self._located = {}, {}
 
-    def frame(self, index: int):
-        """Frame ``index`` (read from the file unless it is the one read last)."""
-        if self._last is None or self._last[0] != index:
-            self._last = None  # the previous frame is let go before the next is read
-            self._last = (index, self._frames.read(index))
-        return self._last[1]
+    def arrays(self, index: int, names) -> dict:
+        """Datasets ``names`` of frame ``index`` (``"u"``, ``"strain/exx"``, ``"status"`` ...) by name;
+        a name the frame lacks is absent from the result. Read from the file unless held already."""
+        if self._held is None or self._held[0] != index:
+            self._held = (index, {})
+        held = self._held[1]
+        wanted = [n for n in names if n not in held]
+        if wanted:
+            if self._reader is not None:
+                got = self._reader.frame_arrays(index, wanted)
+                if got is None:  # one of them is missing: read those present
+                    got = [(self._reader.frame_arrays(index, [n]) or (None,))[0] for n in wanted]
+                held.update((n, a) for n, a in zip(wanted, got) if a is not None)
+            else:
+                held.update(_object_arrays(self._frames.read(index), wanted))
+        return {n: held[n] for n in names if n in held}
 
     @property
     def kind(self) -> str:
@@ -275,49 +296,68 @@ class _Source:
     # -- per frame
     def values(self, index: int, name: str):
         """(values (N,), valid (N,)) of a quantity in frame ``index`` (displacements scaled)."""
-        f = self.frame(index)
         if self.is_2d:
-            n = f.points.shape[0]
-            valid = np.ones(n, bool) if f.valid is None else np.asarray(f.valid, bool)
             s = self.scale or 1.0
-            if name in _Q2D_DISP:
-                u, v = np.asarray(f.u, np.float64) * s, np.asarray(f.v, np.float64) * s
-                vals = {"u": u, "v": v}.get(name)
-                vals = np.hypot(u, v) if vals is None else vals
-            elif name == "zncc":
-                if f.zncc is None:
+            if name in _Q2D_DISP or name == "zncc":
+                needed = ("u", "v") if name in _Q2D_DISP else ("zncc",)
+                a = self.arrays(index, needed + ("valid",))
+                if name == "zncc" and "zncc" not in a:
                     raise ValueError(f"frame {index} has no zncc")
-                vals = np.asarray(f.zncc, np.float64)
+                if name in _Q2D_DISP:
+                    u, v = np.asarray(a["u"], np.float64) * s, np.asarray(a["v"], np.float64) * s
+                    vals = {"u": u, "v": v}.get(name)
+                    vals = np.hypot(u, v) if vals is None else vals
+                else:
+                    vals = np.asarray(a["zncc"], np.float64)
+                valid = np.asarray(a["valid"], bool) if "valid" in a else np.ones(vals.shape[0], bool)
             else:
-                if f.strain is None:
+                comps = ("exx", "eyy", "exy") if name in _DERIVED else (name,)
+                a = self.arrays(index, ["strain/valid"] + [f"strain/{c}" for c in comps])
+                if len(a) != len(comps) + 1:
                     raise ValueError(f"frame {index} has no strain; recompute it with `specula strain` "
                                      "(dic.postprocess.recompute_strain)")
-                valid = np.asarray(f.strain["valid"], bool)
+                valid = np.asarray(a["strain/valid"], bool)
                 if name in _DERIVED:
-                    vals = getattr(principal_strains(f.strain), name)
+                    vals = getattr(principal_strains(*(a[f"strain/{c}"] for c in comps)), name)
                 else:
-                    vals = np.asarray(f.strain[name], np.float64)
+                    vals = np.asarray(a[f"strain/{name}"], np.float64)
         else:
-            valid = np.asarray(f.valid, bool)
-            if name == "magnitude":
-                vals = np.linalg.norm(f.uvw, axis=1)
-            elif name in _Q3D_STRAIN:
-                valid = np.asarray(f.strain_valid, bool)
-                vals = getattr(principal_strains(f), name) if name in _DERIVED else np.asarray(getattr(f, name), float)
+            if name in _Q3D_STRAIN:
+                comps = ("exx", "eyy", "exy") if name in _DERIVED else (name,)
+                a = self.arrays(index, ("strain_valid",) + comps)
+                valid = np.asarray(a["strain_valid"], bool)
+                vals = getattr(principal_strains(*(a[c] for c in comps)), name) if name in _DERIVED else a[name]
             else:
-                vals = np.asarray(getattr(f, name), np.float64)
+                comps = ("U", "V", "W") if name == "magnitude" else (name,)
+                a = self.arrays(index, ("status",) + comps)
+                valid = self._stereo_valid(a["status"])
+                vals = np.sqrt(sum(np.asarray(a[c], np.float64) ** 2 for c in comps)) if name == "magnitude" else a[name]
         vals = np.asarray(vals, np.float64)
         return vals, valid & np.isfinite(vals)
 
+    @staticmethod
+    def _stereo_valid(status) -> np.ndarray:
+        from .field3d import StereoStatus
+
+        return np.asarray(status) == StereoStatus.OK
+
+    def stereo_positions(self, index: int):
+        """Stereo: the (N, 3) reference positions and (N, 3) displacements (mm) and their validity (N,)."""
+        a = self.arrays(index, ("status", "X", "Y", "Z", "U", "V", "W"))
+        xyz = np.column_stack([a["X"], a["Y"], a["Z"]]).astype(np.float64)
+        uvw = np.column_stack([a["U"], a["V"], a["W"]]).astype(np.float64)
+        valid = self._stereo_valid(a["status"]) & np.all(np.isfinite(xyz), 1) & np.all(np.isfinite(uvw), 1)
+        return xyz, uvw, valid
+
     def domain(self, index: int, at: str) -> np.ndarray:
         """(N, 2) positions of the points in the units of ``at`` (where queries are given)."""
-        f = self.frame(index)
-        pts = np.asarray(f.points, np.float64)
+        pts = np.asarray(self.arrays(index, ("points",))["points"], np.float64)
         if at == "px":
             return pts
         if self.is_2d:
             return pts * self.scale
-        return np.column_stack([f.X, f.Y]).astype(np.float64)
+        a = self.arrays(index, ("X", "Y"))
+        return np.column_stack([a["X"], a["Y"]]).astype(np.float64)
 
     def cells(self, index: int, at: str):
         """The cells of frame ``index``'s points in the units of ``at`` (:mod:`dic.gridinterp`).
@@ -329,8 +369,7 @@ class _Source:
         """
         from .gridinterp import GridCells, TriangleCells, cells_for
 
-        f = self.frame(index)
-        pts = np.asarray(f.points, np.float64)
+        pts = self.domain(index, "px")
         grid = self._cells.get("px")
         if grid is None or not grid.matches(pts):
             grid = cells_for(pts)
@@ -338,7 +377,7 @@ class _Source:
             self._located = {}
         if at == "px" or self.is_2d:
             return grid
-        xy = np.column_stack([f.X, f.Y]).astype(np.float64)
+        xy = self.domain(index, "mm")
         cells = self._cells.get("mm")
         if cells is None or not cells.matches(xy):
             cells = TriangleCells.from_grid(grid, xy) if isinstance(grid, GridCells) else TriangleCells.scattered(xy)
@@ -382,6 +421,21 @@ class _Source:
             return 1.0
         d, _ = cKDTree(dom).query(dom, k=2)
         return float(np.median(d[:, 1])) or 1.0
+
+
+def _object_arrays(frame, names) -> dict:
+    """Datasets ``names`` of a frame object read already (a :class:`dic.store.FrameResult` or a
+    :class:`dic.field3d.Field3D`), by their names in the file; missing ones are left out."""
+    out = {}
+    for name in names:
+        if name.startswith("strain/"):
+            strain = getattr(frame, "strain", None)
+            value = None if strain is None else strain.get(name[len("strain/"):])
+        else:
+            value = getattr(frame, name, None)
+        if value is not None:
+            out[name] = np.asarray(value)
+    return out
 
 
 def quantities(results) -> tuple[str, ...]:
@@ -589,9 +643,8 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
                 disp, status[k] = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
                 ref = q_px * s
             else:
-                f = src.frame(i)
-                valid = np.asarray(f.valid, bool) & np.all(np.isfinite(f.xyz), 1) & np.all(np.isfinite(f.uvw), 1)
-                both, status[k] = src.interpolate(i, at, np.column_stack([f.xyz, f.uvw]), valid, q)
+                xyz, uvw, valid = src.stereo_positions(i)
+                both, status[k] = src.interpolate(i, at, np.column_stack([xyz, uvw]), valid, q)
                 ref, disp = both[:, :3], both[:, 3:]
             dA[k], dB[k] = disp[0], disp[1]
             L0[k] = np.linalg.norm(ref[1] - ref[0])
