@@ -406,8 +406,6 @@ class _Source:
     def grid_spacing(self, at: str) -> float:
         """Spacing of the points (in ``at`` units): the grid step (the smaller one), else the median
         nearest-neighbour distance."""
-        from scipy.spatial import cKDTree
-
         from .gridinterp import GridCells
 
         grid = self.cells(self.indices[0], "px")
@@ -415,6 +413,8 @@ class _Source:
             # the step along each axis with more than one node
             steps = [d for d, n in zip(grid.step, (grid.shape[1], grid.shape[0])) if n > 1]
             return min(steps) * (self.scale if at == "mm" else 1.0)
+        from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3-1 s to import, and the grid needs none
+
         dom = self.domain(self.indices[0], at)
         dom = dom[np.all(np.isfinite(dom), axis=1)]
         if dom.shape[0] < 2:

@@ -108,11 +108,15 @@ def _load(results, quantity=None):
 
 
 def _outputs(csv_path, plot_path, names, table, plot, obj, quiet) -> None:
+    """Write the CSV and the figure (``plot``: the name of a writer of dic.plots.postprocess, imported only
+    when a figure is asked for: Matplotlib takes 0.3-1 s to import) and print the table."""
     if csv_path is not None:
         _write_csv_checked(csv_path, names, table)
     if plot_path is not None:
+        from dic.plots import postprocess as figures
+
         try:
-            _run(plot, plot_path, obj)
+            _run(getattr(figures, plot), plot_path, obj)
         except OSError as exc:
             raise click.ClickException(f"cannot write {plot_path}: {exc.strerror or exc}") from None
     if not quiet:
@@ -233,7 +237,6 @@ def extensometer(results, start, end, at, scale, frames, csv_path, plot_path, qu
     no value in any frame (outside the grid, in a hole, among invalid points) is an error that
     says why; frames with no value are NaN, with a warning.
     """
-    from dic.plots.postprocess import write_extensometer_figure
     from dic.postprocess import extensometer as run
 
     ext = _run(run, results, start, end, at=at, frames=_frames(frames), scale=scale)
@@ -241,7 +244,7 @@ def extensometer(results, start, end, at, scale, frames, csv_path, plot_path, qu
         if np.all(status != 0):
             _check_point(what, point, at, ext.frames, status)
     names, table = ext.table()
-    _outputs(csv_path, plot_path, names, table, write_extensometer_figure, ext, quiet)
+    _outputs(csv_path, plot_path, names, table, "write_extensometer_figure", ext, quiet)
     for what, point, status in (("gauge start", ext.start, ext.start_status), ("gauge end", ext.end, ext.end_status)):
         _check_point(what, point, at, ext.frames, status)
 
@@ -266,7 +269,6 @@ def history(results, point, quantity, at, scale, frames, csv_path, plot_path, qu
     points). A point with no value in any frame (outside the grid, in a hole, among invalid
     points) is an error that says why; frames with no value are NaN, with a warning.
     """
-    from dic.plots.postprocess import write_history_figure
     from dic.postprocess import point_history
 
     res, quantity = _load(results, quantity)
@@ -274,7 +276,7 @@ def history(results, point, quantity, at, scale, frames, csv_path, plot_path, qu
     if np.all(h.status != 0):
         _check_point("point", h.point, at, h.frames, h.status)
     names, table = h.table()
-    _outputs(csv_path, plot_path, names, table, write_history_figure, h, quiet)
+    _outputs(csv_path, plot_path, names, table, "write_history_figure", h, quiet)
     _check_point("point", h.point, at, h.frames, h.status)
 
 
@@ -298,7 +300,6 @@ def profile(results, start, end, quantity, samples, at, scale, frames, csv_path,
     region, among invalid points, outside the grid) are NaN, with a warning that says where and
     why. A line with no value anywhere in any frame is an error.
     """
-    from dic.plots.postprocess import write_profile_figure
     from dic.postprocess import line_profile
 
     res, quantity = _load(results, quantity)
@@ -308,7 +309,7 @@ def profile(results, start, end, quantity, samples, at, scale, frames, csv_path,
         raise click.ClickException(f"no value along the line from {_where(p.start, at)} to {_where(p.end, at)} in "
                                    f"any frame: {'; '.join(_profile_gaps(p, at))}")
     names, table = p.table()
-    _outputs(csv_path, plot_path, names, table, write_profile_figure, p, quiet)
+    _outputs(csv_path, plot_path, names, table, "write_profile_figure", p, quiet)
     for clause in _profile_gaps(p, at):
         click.echo(f"Warning: no value {clause}", err=True)
 
