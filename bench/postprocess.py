@@ -16,7 +16,8 @@ has (78 400 - 5 025 = 73 375 points) -- and a 9 x 9 block of points invalid from
 Each command then runs in a fresh process through the CLI (``specula history / profile /
 extensometer / strain``, as a user types it), with BLAS and OpenMP left at their defaults (the
 ``*_NUM_THREADS`` variables of this process are removed from the child's environment), and its
-wall time is reported, with the time of ``import dic.cli`` alone for reference (median of
+wall time and CPU time (user + system over all its threads: less sensitive to the load of a shared
+machine) are reported, with those of ``import dic.cli`` alone for reference (median of
 ``--repeats``, default 3). ``--code DIR`` runs the commands with ``PYTHONPATH=DIR`` (e.g.
 ``/work/main``, the code before issue 25) instead of this repository; ``--out`` (default
 ``bench/results/postprocess_cpu.json``).
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import resource
 import shutil
 import subprocess
 import sys
@@ -137,11 +139,17 @@ def commands(kind: str, src: str, c: float, hole: float, out: str) -> dict[str, 
     return cmds
 
 
-def run_cli(args: list[str], env: dict) -> tuple[float, int, str]:
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def run_cli(args: list[str], env: dict) -> tuple[float, float, int, str]:
+    """Wall time, CPU time (user + system, all threads), exit status and output tail of one command."""
     code = "import sys; from dic.cli import main; sys.argv = ['specula'] + sys.argv[1:]; main()"
-    t = time.perf_counter()
+    cpu, t = _children_cpu(), time.perf_counter()
     p = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, text=True)
-    return time.perf_counter() - t, p.returncode, (p.stdout + p.stderr).strip()[-300:]
+    return time.perf_counter() - t, _children_cpu() - cpu, p.returncode, (p.stdout + p.stderr).strip()[-300:]
 
 
 def main(argv=None) -> None:
@@ -161,13 +169,15 @@ def main(argv=None) -> None:
     result = {"benchmark": "postprocess", "cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
               "numpy": np.__version__, "code": code, "frames": args.frames, "side": args.side, "hole_steps": args.hole,
               "repeats": args.repeats, "thread_variables_removed": list(THREAD_VARIABLES), "runs": {}}
-    times = []
+    times, cpus = [], []
     for _ in range(args.repeats):
-        t = time.perf_counter()
+        cpu, t = _children_cpu(), time.perf_counter()
         subprocess.run([sys.executable, "-c", "import dic.cli"], env=env, check=True)
         times.append(time.perf_counter() - t)
+        cpus.append(_children_cpu() - cpu)
     result["import_seconds"] = round(float(np.median(times)), 3)
-    print(f"import dic.cli: {result['import_seconds']:.2f} s  (code: {code})")
+    result["import_cpu_seconds"] = round(float(np.median(cpus)), 3)
+    print(f"import dic.cli: {result['import_seconds']:.2f} s wall, {result['import_cpu_seconds']:.2f} s CPU  (code: {code})")
     workdir = tempfile.mkdtemp(prefix="bench_postprocess_")
     try:
         for kind in [k for k in args.kinds.split(",") if k]:
@@ -178,15 +188,18 @@ def main(argv=None) -> None:
                   f"{os.path.getsize(src) / 2**20:.0f} MiB")
             runs = result["runs"].setdefault(kind, {"points": n})
             for name, cmd in commands(kind, src, c, args.hole, workdir).items():
-                walls = []
+                walls, cpus = [], []
                 for _ in range(args.repeats):
-                    wall, rc, tail = run_cli(cmd, env)
+                    wall, cpu, rc, tail = run_cli(cmd, env)
                     walls.append(wall)
+                    cpus.append(cpu)
                 runs[name] = {"command": "specula " + " ".join(os.path.basename(a) if a.startswith(workdir) else a
                                                                for a in cmd),
                               "seconds": round(float(np.median(walls)), 3), "all_seconds": [round(w, 3) for w in walls],
+                              "cpu_seconds": round(float(np.median(cpus)), 3),
                               "exit_status": rc, "output_tail": tail}
-                print(f"  {name:>15}: {runs[name]['seconds']:7.2f} s (exit {rc})  {runs[name]['command']}")
+                print(f"  {name:>15}: {runs[name]['seconds']:7.2f} s wall, {runs[name]['cpu_seconds']:7.2f} s CPU "
+                      f"(exit {rc})  {runs[name]['command']}")
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     result["load_average"] = {"before": load0, "after": os.getloadavg()}

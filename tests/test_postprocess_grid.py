@@ -299,11 +299,14 @@ def test_cli_says_why(holed):
     assert r.exit_code == 1 and "it is outside the grid of points" in r.output
     r = _invoke("history", holed, "--point", "137,35", "--quantity", "u")
     assert r.exit_code == 0, r.output
-    assert ("Warning: no value at the point (137, 35) px in frames 3: it is among points with no valid value in "
+    assert ("Warning: no value at the point (137, 35) px in frame 3: it is among points with no valid value in "
             "the frame") in r.output
     r = _invoke("profile", holed, "--from", "20,92", "--to", "160,92", "--samples", 71, "-q")
     assert r.exit_code == 0, r.output
-    assert r.output.startswith("Warning: no value at ") and "in every frame: in a hole or an excluded region" in r.output
+    x = np.linspace(20.0, 160.0, 71)  # the samples; those in a cell with a node in the hole have no value
+    gap = x[[not all(_is_point(*n) for n in _needed_nodes(xi, 92.0)) for xi in x]] - 20.0
+    assert r.output.strip() == (f"Warning: no value at {gap.size} of 71 samples ({gap.min():.4g} to {gap.max():.4g} px "
+                                "along the line) in every frame: in a hole or an excluded region (no points there)")
     r = _invoke("profile", holed, "--from", "80,88", "--to", "100,92", "-q")
     assert r.exit_code == 1 and "no value along the line from (80, 88) px to (100, 92) px in any frame" in r.output
     r = _invoke("extensometer", holed, "--from", "20,92", "--to", "160,92", "-q")

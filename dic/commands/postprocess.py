@@ -141,6 +141,11 @@ def _ranges(values) -> str:
     return ", ".join(parts)
 
 
+def _frames_text(frames) -> str:
+    """``[3]`` -> ``"frame 3"``, ``[1, 2, 5]`` -> ``"frames 1-2, 5"``."""
+    return f"frame{'s' if len(frames) > 1 else ''} {_ranges(frames)}"
+
+
 def _why(frames, status) -> str:
     """Why a query has no value in ``frames``: its reason, or the reason in each group of frames."""
     from dic.gridinterp import QueryStatus
@@ -149,7 +154,7 @@ def _why(frames, status) -> str:
     codes = [c for c in dict.fromkeys(int(c) for c in status) if c != QueryStatus.OK]
     if len(codes) == 1:
         return f"it is {QueryStatus(codes[0]).reason}"
-    return "; ".join(f"in frames {_ranges(frames[status == c])} it is {QueryStatus(c).reason}" for c in codes)
+    return "; ".join(f"in {_frames_text(frames[status == c])} it is {QueryStatus(c).reason}" for c in codes)
 
 
 def _where(point, at) -> str:
@@ -165,9 +170,8 @@ def _check_point(what, point, at, frames, status) -> None:
     if missing.all():
         raise click.ClickException(f"no value at the {what} {_where(point, at)} in any frame: {_why(frames, status)}")
     if missing.any():
-        click.echo(f"Warning: no value at the {what} {_where(point, at)} in frames "
-                   f"{_ranges(np.asarray(frames)[missing])}: {_why(np.asarray(frames)[missing], np.asarray(status)[missing])}",
-                   err=True)
+        click.echo(f"Warning: no value at the {what} {_where(point, at)} in {_frames_text(np.asarray(frames)[missing])}: "
+                   f"{_why(np.asarray(frames)[missing], np.asarray(status)[missing])}", err=True)
 
 
 def _write_csv_checked(path, names, table) -> None:
@@ -324,7 +328,7 @@ def _profile_gaps(p, at) -> list[str]:
         if mask.any():
             cols, rows = np.flatnonzero(mask.any(axis=0)), mask.any(axis=1)
             d = p.distance[cols]
-            frames = "every frame" if rows.all() else f"frames {_ranges(p.frames[rows])}"
+            frames = "every frame" if rows.all() else _frames_text(p.frames[rows])
             clauses.append(f"at {cols.size} of {p.distance.size} samples ({d.min():.4g} to {d.max():.4g} {at} along "
                            f"the line) in {frames}: {code.reason}")
     return clauses
