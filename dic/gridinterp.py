@@ -91,7 +91,7 @@ class Located:
     support: np.ndarray
     status: np.ndarray
 
-    def evaluate(self, values, valid) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(self, values, valid, present=None) -> tuple[np.ndarray, np.ndarray]:
         """The values at the query points in one frame.
 
         Parameters
@@ -100,6 +100,10 @@ class Located:
             The frame's values at the points.
         valid : (N,) bool
             Which points have a valid value (non-finite values are not valid either).
+        present : (N,) bool, optional
+            Which points count as points at all: a query whose cell has a needed corner that is not
+            present is NO_POINTS rather than INVALID (stereo points never computed, outside the
+            region or on a featureless subset of the reference). Default: all.
 
         Returns
         -------
@@ -113,9 +117,14 @@ class Located:
         out = np.full((M, values.shape[1]), np.nan)
         if M == 0:
             return out, status
-        present = self.support >= 0  # (M, G, S)
+        used = self.support >= 0  # (M, G, S)
+        safe = np.where(used, self.support, 0)
         # a candidate is usable when it has support points and all of them are valid
-        usable = np.all(~present | valid[np.where(present, self.support, 0)], axis=2) & np.any(present, axis=2)
+        usable = np.all(~used | valid[safe], axis=2) & np.any(used, axis=2)
+        if present is not None:
+            # no candidate whose support points are all present: no points there
+            whole = np.all(~used | np.asarray(present, bool)[safe], axis=2) & np.any(used, axis=2)
+            status[(status == QueryStatus.OK) & ~whole.any(axis=1)] = QueryStatus.NO_POINTS
         chosen = np.argmax(usable, axis=1)  # the first usable candidate
         found = usable[np.arange(M), chosen] & (status == QueryStatus.OK)
         status[(status == QueryStatus.OK) & ~found] = QueryStatus.INVALID

@@ -401,7 +401,18 @@ class _Source:
         located = self._located.get(key)
         if located is None:
             located = self._located[key] = cells.locate(query)
-        return located.evaluate(values, valid)
+        return located.evaluate(values, valid, present=self.present(index))
+
+    def present(self, index: int) -> np.ndarray | None:
+        """Stereo: the points that were computed at all (status not NOT_COMPUTED: inside the region, a
+        reference subset with texture inside the image); a cell with a corner that was not counts as
+        no points (a hole, an excluded region). 2-D: None (a region drops the points outside it, and
+        NOT_COMPUTED there may be a frame's failed guess)."""
+        if self.is_2d:
+            return None
+        from .field3d import StereoStatus
+
+        return np.asarray(self.arrays(index, ("status",))["status"]) != StereoStatus.NOT_COMPUTED
 
     def grid_spacing(self, at: str) -> float:
         """Spacing of the points (in ``at`` units): the grid step (the smaller one), else the median

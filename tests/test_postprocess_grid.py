@@ -234,12 +234,23 @@ def test_scattered_fallback_needs_valid_corners():
 # stereo: values at the left reference image's grid points (px), or over their (X, Y) (mm)
 
 
-def _stereo_file(path):
+def _stereo_file(path, hole_computed=False):
+    """Stereo results on the grid less the hole, or (``hole_computed``) on the whole grid with the
+    hole's points NOT_COMPUTED (as a stereo run with a region gives them) and the block MATCH_FAILED."""
     from test_store import fake_match, fake_rig
 
-    from dic.field3d import Field3D
+    from dic.field3d import Field3D, StereoStatus
 
-    pts = _grid_points()
+    if hole_computed:
+        g = X0 + STEP * np.arange(SIDE)
+        gy, gx = np.meshgrid(g, g, indexing="ij")
+        pts = np.column_stack([gx.ravel(), gy.ravel()])
+        status = np.where([not _is_point(x, y) for x, y in pts], StereoStatus.NOT_COMPUTED,
+                          np.where([_in_block(x, y) for x, y in pts], StereoStatus.MATCH_FAILED, StereoStatus.OK))
+    else:
+        pts = _grid_points()
+        status = np.zeros(len(pts), np.int8)
+    status = status.astype(np.int8)
     n = len(pts)
     X, Y = 0.2 * (pts[:, 0] - CX), 0.2 * (pts[:, 1] - CY)
     Z = 500.0 + 0.3 * X - 0.1 * Y
@@ -252,7 +263,7 @@ def _stereo_file(path):
                         exx=full(e), eyy=full(-0.3 * e), exy=full(0.1 * e), normal=np.tile([0.0, 0.0, -1.0], (n, 1)),
                         zncc_stereo=full(0.99), zncc_left=full(0.98), zncc_right=full(0.97), epipolar_ref_px=full(0.01),
                         epipolar_px=full(0.01), reprojection_ref_px=full(0.01), reprojection_px=full(0.01),
-                        status=np.zeros(n, np.int8), strain_valid=np.ones(n, bool), index=k)
+                        status=status, strain_valid=status == 0, index=k)
             w.write_frame(k, f, path=(f"l{k}.tif", f"r{k}.tif"))
     return path
 
@@ -280,6 +291,19 @@ def test_stereo_history_in_a_cut_out_is_nan(tmp_path):
     expect_value = np.array([all(_is_point(*n) for n in _needed_nodes(x, 92.0)) for x in p.positions[:, 0]])
     assert np.array_equal(np.isfinite(p.values[2]), expect_value)
     assert np.allclose(p.values[2][expect_value], 0.008 * 0.2 * (p.positions[expect_value, 0] - CX), rtol=0, atol=1e-12)
+
+
+def test_stereo_points_not_computed_are_no_points(tmp_path):
+    from dic.gridinterp import QueryStatus
+
+    path = _stereo_file(tmp_path / "stereo_full.h5", hole_computed=True)
+    for at, p in (("px", (CX, CY)), ("mm", (0.0, 0.0))):
+        h = point_history(path, p, "W", at=at)
+        assert np.isnan(h.values).all() and (h.status == QueryStatus.NO_POINTS).all()
+    h = point_history(path, (137.0, 35.0), "U")  # among MATCH_FAILED points: invalid, not a hole
+    assert np.isnan(h.values).all() and (h.status == QueryStatus.INVALID).all()
+    h = point_history(path, (31.3, 47.9), "U")
+    assert np.allclose(h.values, np.array([0.0, 0.004, 0.008]) * 0.2 * (31.3 - CX), rtol=0, atol=1e-12)
 
 
 # ------------------------------------------------------------------------------------------------
