@@ -19,7 +19,9 @@ extensometer / strain``, as a user types it), with BLAS and OpenMP left at their
 wall time and CPU time (user + system over all its threads: less sensitive to the load of a shared
 machine) are reported, with those of ``import dic.cli`` alone for reference (median of
 ``--repeats``, default 3). ``--code DIR`` runs the commands with ``PYTHONPATH=DIR`` (e.g.
-``/work/main``, the code before issue 25) instead of this repository; ``--out`` (default
+``/work/main``, the code before issue 25) instead of this repository (children run ``python -P``,
+so that the working directory does not come first on the path; the bench checks where ``dic``
+is imported from); ``--out`` (default
 ``bench/results/postprocess_cpu.json``).
 """
 from __future__ import annotations
@@ -148,7 +150,7 @@ def run_cli(args: list[str], env: dict) -> tuple[float, float, int, str]:
     """Wall time, CPU time (user + system, all threads), exit status and output tail of one command."""
     code = "import sys; from dic.cli import main; sys.argv = ['specula'] + sys.argv[1:]; main()"
     cpu, t = _children_cpu(), time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-P", "-c", code, *args], env=env, capture_output=True, text=True)
     return time.perf_counter() - t, _children_cpu() - cpu, p.returncode, (p.stdout + p.stderr).strip()[-300:]
 
 
@@ -164,7 +166,11 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     code = os.path.abspath(args.code or os.getcwd())
     env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
-    env["PYTHONPATH"] = code
+    env["PYTHONPATH"] = code  # and python -P: the working directory is not put first on the path
+    check = subprocess.run([sys.executable, "-P", "-c", "import dic; print(dic.__file__)"], env=env, check=True,
+                           capture_output=True, text=True).stdout.strip()
+    if not check.startswith(code + os.sep):
+        raise SystemExit(f"the child imports dic from {check}, not from {code}")
     load0 = os.getloadavg()
     result = {"benchmark": "postprocess", "cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
               "numpy": np.__version__, "code": code, "frames": args.frames, "side": args.side, "hole_steps": args.hole,
@@ -172,7 +178,7 @@ def main(argv=None) -> None:
     times, cpus = [], []
     for _ in range(args.repeats):
         cpu, t = _children_cpu(), time.perf_counter()
-        subprocess.run([sys.executable, "-c", "import dic.cli"], env=env, check=True)
+        subprocess.run([sys.executable, "-P", "-c", "import dic.cli"], env=env, check=True)
         times.append(time.perf_counter() - t)
         cpus.append(_children_cpu() - cpu)
     result["import_seconds"] = round(float(np.median(times)), 3)
