@@ -338,3 +338,24 @@ def test_cli_says_why(holed):
     r = _invoke("extensometer", holed, "--from", "90,90", "--to", "160,92")
     assert r.exit_code == 1
     assert "no value at the gauge start (90, 90) px in any frame: it is in a hole" in r.output
+
+
+# ------------------------------------------------------------------------------------------------
+# the CLI's post-processing imports neither Warp nor Matplotlib nor scipy.ndimage (0.5-2.5 s of
+# every command before issue 25), and the package's names stay what they were
+
+
+def test_post_processing_imports_stay_light():
+    import subprocess
+    import sys
+
+    code = ("import sys, dic.cli, dic.commands.postprocess, dic.postprocess, dic.gridinterp, dic.store; "
+            "print(sorted(m for m in ('warp', 'matplotlib', 'scipy.ndimage', 'dic.track', 'dic.sequence') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[]"
+    code = ("import types, dic, dic.track, dic.strain; from dic.strain import StrainPlan; import dic.stereo; "
+            "print([isinstance(getattr(dic, n), types.FunctionType) for n in ('track', 'strain', 'stereo', "
+            "'triangulate')], dic.Tracker.__module__, dic.write_figures.__module__, type(dic.sequence).__name__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[True, True, True, True] dic.track dic.plots.fields module"
