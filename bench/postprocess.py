@@ -27,6 +27,7 @@ is imported from); ``--out`` (default
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import resource
@@ -161,6 +162,8 @@ def main(argv=None) -> None:
     ap.add_argument("--hole", type=float, default=40.0, help="hole radius, grid steps")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--kinds", default="dic2d,stereo")
+    ap.add_argument("--only", default=None,
+                    help="commands to time, e.g. history_disp,profile,extensometer (default: all)")
     ap.add_argument("--code", default=None, help="PYTHONPATH of the code to time (default: this repository)")
     ap.add_argument("--out", default="bench/results/postprocess_cpu.json")
     args = ap.parse_args(argv)
@@ -194,6 +197,8 @@ def main(argv=None) -> None:
                   f"{os.path.getsize(src) / 2**20:.0f} MiB")
             runs = result["runs"].setdefault(kind, {"points": n})
             for name, cmd in commands(kind, src, c, args.hole, workdir).items():
+                if args.only and name not in args.only.split(","):
+                    continue
                 walls, cpus = [], []
                 for _ in range(args.repeats):
                     wall, cpu, rc, tail = run_cli(cmd, env)
@@ -205,11 +210,16 @@ def main(argv=None) -> None:
                               "cpu_seconds": round(float(np.median(cpus)), 3),
                               "exit_status": rc, "output_tail": tail}
                 print(f"  {name:>15}: {runs[name]['seconds']:7.2f} s wall, {runs[name]['cpu_seconds']:7.2f} s CPU "
-                      f"(exit {rc})  {runs[name]['command']}")
+                      f"(exit {rc})  {runs[name]['command']}", flush=True)
+                result["load_average"] = {"before": load0, "after": os.getloadavg()}
+                with open(args.out + ".partial", "w") as fh:  # what is done so far, should a slow run be stopped
+                    json.dump(result, fh, indent=1)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     result["load_average"] = {"before": load0, "after": os.getloadavg()}
     write_json(result, args.out)
+    if os.path.exists(args.out + ".partial"):
+        os.unlink(args.out + ".partial")
 
 
 if __name__ == "__main__":
