@@ -14,9 +14,13 @@ docs/postprocessing.md has worked examples; the CLI verbs are ``specula strain``
 * :func:`point_history`, :func:`line_profile` — a quantity at a point over the frames, and
   along a line per frame.
 
-Values at arbitrary points are interpolated linearly (:class:`scipy.interpolate.LinearNDInterpolator`,
-a Delaunay triangulation of the frame's valid points): exact for fields that are linear in the
-position, NaN outside the convex hull of the valid points.
+Values at arbitrary points come from the grid cell of the points that contains them
+(:mod:`dic.gridinterp`): bilinear in the cell when every corner it depends on is a point of the
+result and valid in the frame, exact for fields linear in the position; otherwise NaN, with a
+:class:`~dic.gridinterp.QueryStatus` saying why (outside the grid, in a hole or an excluded
+region, among invalid points). Nothing is interpolated across a hole, an excluded region or
+invalid points. Points on no grid (given by hand) use a Delaunay triangulation without the
+triangles longer than 1.5 point spacings.
 
 Derived strains (tensor shear ``exy``, as everywhere in Specula; the engineering shear strain is
 ``γxy = 2 exy``)::
@@ -46,7 +50,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PrincipalStrains", "principal_strains", "recompute_strain", "window_points", "results_scale",
+from .gridinterp import QueryStatus
+
+__all__ = ["QueryStatus", "PrincipalStrains", "principal_strains", "recompute_strain", "window_points", "results_scale",
            "SCALE_KEY", "Extensometer", "extensometer", "History", "point_history", "Profile", "line_profile",
            "quantities", "load_results"]
 
@@ -167,36 +173,46 @@ def load_results(results):
 class _Source:
     """The frames of a 2-D or stereo result, with quantities, validity and positions per frame.
 
-    A result file is read one frame at a time (:class:`dic.store.ResultFrames`; the last frame read is
-    kept, so the quantities of one frame cost one read): a time series over a 10 000-frame file holds
-    one frame, whatever the file's length. Use as a context manager (it closes the file).
+    A result file is read one frame at a time, and of each frame only the datasets a quantity
+    needs (``u``, ``v`` and ``valid`` for a 2-D displacement, ``strain/eyy`` and ``strain/valid``
+    for a strain ...: :meth:`dic.store.ResultReader.frame_arrays`); the arrays of the last frame
+    read are kept. A time series over a 10 000-frame file holds one frame's arrays, whatever the
+    file's length. A results object already read (:class:`dic.store.TrackResults`,
+    :class:`~dic.store.StereoResults`) is used as it is. Use as a context manager (it closes the file).
     """
 
     def __init__(self, results, scale=None):
-        from .store import ResultFrames, StereoResults, TrackResults
+        from .store import ResultFrames, ResultReader, StereoResults, TrackResults
 
         if not isinstance(results, (str, os.PathLike, TrackResults, StereoResults)):
             raise ValueError("results must be a result file (path) or what dic.store.read_results / read_stereo "
                              f"return, got {type(results).__name__}")
-        self._frames = ResultFrames(results)
+        if isinstance(results, (str, os.PathLike)):
+            self._reader, self._frames = ResultReader(results), None
+        else:
+            self._reader, self._frames = None, ResultFrames(results)
         try:
-            self.is_2d = self._frames.kind == "dic2d"
+            if self._reader is not None:
+                kind, self.indices, self.settings = self._reader.kind.name, self._reader.done_frames(), self._reader.settings
+            else:
+                kind, self.indices, self.settings = self._frames.kind, list(self._frames.indices), self._frames.settings
+            self.is_2d = kind == "dic2d"
             if self.is_2d:
-                self.scale = _scale_value(scale) if scale is not None else results_scale(self._frames)
+                self.scale = _scale_value(scale) if scale is not None else results_scale(self)
                 self.length_unit = "mm" if self.scale is not None else "px"
             else:
                 if scale is not None:
                     raise ValueError("a scale applies to 2-D results only; stereo results are in mm already")
                 self.scale = None
                 self.length_unit = "mm"
-            self.indices = list(self._frames.indices)
             if not self.indices:
                 raise ValueError("the results hold no finished frame")
         except BaseException:
-            self._frames.close()
+            self.close()
             raise
-        self._interp_cache: dict = {}
-        self._last: tuple | None = None  # (index, frame): the one frame held
+        self._cells: dict = {}  # "px" / "mm" -> the cells of the points (dic.gridinterp)
+        self._located: dict = {}  # (units, query bytes) -> where the queries fall in those cells
+        self._held: tuple[int, dict] | None = None  # (index, {dataset: array}): the arrays of one frame
 
     def __enter__(self):
         return self
@@ -205,16 +221,28 @@ class _Source:
         self.close()
 
     def close(self) -> None:
-        self._frames.close()
-        self._last = None
-        self._interp_cache = {}
+        for source in (self._reader, self._frames):
+            if source is not None:
+                source.close()
+        self._held = None
+        self._cells, self._located = {}, {}
 
-    def frame(self, index: int):
-        """Frame ``index`` (read from the file unless it is the one read last)."""
-        if self._last is None or self._last[0] != index:
-            self._last = None  # the previous frame is let go before the next is read
-            self._last = (index, self._frames.read(index))
-        return self._last[1]
+    def arrays(self, index: int, names) -> dict:
+        """Datasets ``names`` of frame ``index`` (``"u"``, ``"strain/exx"``, ``"status"`` ...) by name;
+        a name the frame lacks is absent from the result. Read from the file unless held already."""
+        if self._held is None or self._held[0] != index:
+            self._held = (index, {})
+        held = self._held[1]
+        wanted = [n for n in names if n not in held]
+        if wanted:
+            if self._reader is not None:
+                got = self._reader.frame_arrays(index, wanted)
+                if got is None:  # one of them is missing: read those present
+                    got = [(self._reader.frame_arrays(index, [n]) or (None,))[0] for n in wanted]
+                held.update((n, a) for n, a in zip(wanted, got) if a is not None)
+            else:
+                held.update(_object_arrays(self._frames.read(index), wanted))
+        return {n: held[n] for n in names if n in held}
 
     @property
     def kind(self) -> str:
@@ -268,75 +296,123 @@ class _Source:
     # -- per frame
     def values(self, index: int, name: str):
         """(values (N,), valid (N,)) of a quantity in frame ``index`` (displacements scaled)."""
-        f = self.frame(index)
         if self.is_2d:
-            n = f.points.shape[0]
-            valid = np.ones(n, bool) if f.valid is None else np.asarray(f.valid, bool)
             s = self.scale or 1.0
-            if name in _Q2D_DISP:
-                u, v = np.asarray(f.u, np.float64) * s, np.asarray(f.v, np.float64) * s
-                vals = {"u": u, "v": v}.get(name)
-                vals = np.hypot(u, v) if vals is None else vals
-            elif name == "zncc":
-                if f.zncc is None:
+            if name in _Q2D_DISP or name == "zncc":
+                needed = ("u", "v") if name in _Q2D_DISP else ("zncc",)
+                a = self.arrays(index, needed + ("valid",))
+                if name == "zncc" and "zncc" not in a:
                     raise ValueError(f"frame {index} has no zncc")
-                vals = np.asarray(f.zncc, np.float64)
+                if name in _Q2D_DISP:
+                    u, v = np.asarray(a["u"], np.float64) * s, np.asarray(a["v"], np.float64) * s
+                    vals = {"u": u, "v": v}.get(name)
+                    vals = np.hypot(u, v) if vals is None else vals
+                else:
+                    vals = np.asarray(a["zncc"], np.float64)
+                valid = np.asarray(a["valid"], bool) if "valid" in a else np.ones(vals.shape[0], bool)
             else:
-                if f.strain is None:
+                comps = ("exx", "eyy", "exy") if name in _DERIVED else (name,)
+                a = self.arrays(index, ["strain/valid"] + [f"strain/{c}" for c in comps])
+                if len(a) != len(comps) + 1:
                     raise ValueError(f"frame {index} has no strain; recompute it with `specula strain` "
                                      "(dic.postprocess.recompute_strain)")
-                valid = np.asarray(f.strain["valid"], bool)
+                valid = np.asarray(a["strain/valid"], bool)
                 if name in _DERIVED:
-                    vals = getattr(principal_strains(f.strain), name)
+                    vals = getattr(principal_strains(*(a[f"strain/{c}"] for c in comps)), name)
                 else:
-                    vals = np.asarray(f.strain[name], np.float64)
+                    vals = np.asarray(a[f"strain/{name}"], np.float64)
         else:
-            valid = np.asarray(f.valid, bool)
-            if name == "magnitude":
-                vals = np.linalg.norm(f.uvw, axis=1)
-            elif name in _Q3D_STRAIN:
-                valid = np.asarray(f.strain_valid, bool)
-                vals = getattr(principal_strains(f), name) if name in _DERIVED else np.asarray(getattr(f, name), float)
+            if name in _Q3D_STRAIN:
+                comps = ("exx", "eyy", "exy") if name in _DERIVED else (name,)
+                a = self.arrays(index, ("strain_valid",) + comps)
+                valid = np.asarray(a["strain_valid"], bool)
+                vals = getattr(principal_strains(*(a[c] for c in comps)), name) if name in _DERIVED else a[name]
             else:
-                vals = np.asarray(getattr(f, name), np.float64)
+                comps = ("U", "V", "W") if name == "magnitude" else (name,)
+                a = self.arrays(index, ("status",) + comps)
+                valid = self._stereo_valid(a["status"])
+                vals = np.sqrt(sum(np.asarray(a[c], np.float64) ** 2 for c in comps)) if name == "magnitude" else a[name]
         vals = np.asarray(vals, np.float64)
         return vals, valid & np.isfinite(vals)
 
+    @staticmethod
+    def _stereo_valid(status) -> np.ndarray:
+        from .field3d import StereoStatus
+
+        return np.asarray(status) == StereoStatus.OK
+
+    def stereo_positions(self, index: int):
+        """Stereo: the (N, 3) reference positions and (N, 3) displacements (mm) and their validity (N,)."""
+        a = self.arrays(index, ("status", "X", "Y", "Z", "U", "V", "W"))
+        xyz = np.column_stack([a["X"], a["Y"], a["Z"]]).astype(np.float64)
+        uvw = np.column_stack([a["U"], a["V"], a["W"]]).astype(np.float64)
+        valid = self._stereo_valid(a["status"]) & np.all(np.isfinite(xyz), 1) & np.all(np.isfinite(uvw), 1)
+        return xyz, uvw, valid
+
     def domain(self, index: int, at: str) -> np.ndarray:
         """(N, 2) positions of the points in the units of ``at`` (where queries are given)."""
-        f = self.frame(index)
-        pts = np.asarray(f.points, np.float64)
+        pts = np.asarray(self.arrays(index, ("points",))["points"], np.float64)
         if at == "px":
             return pts
         if self.is_2d:
             return pts * self.scale
-        return np.column_stack([f.X, f.Y]).astype(np.float64)
+        a = self.arrays(index, ("X", "Y"))
+        return np.column_stack([a["X"], a["Y"]]).astype(np.float64)
 
-    def interpolate(self, index: int, at: str, values, valid, query) -> np.ndarray:
-        """Linear interpolation of ``values`` (N, k) over the valid points at ``query`` (M, 2); NaN outside."""
-        from scipy.interpolate import LinearNDInterpolator
-        from scipy.spatial import QhullError
+    def cells(self, index: int, at: str):
+        """The cells of frame ``index``'s points in the units of ``at`` (:mod:`dic.gridinterp`).
 
-        dom = self.domain(index, at)
-        ok = valid & np.all(np.isfinite(dom), axis=1)
-        values = np.asarray(values, np.float64).reshape(dom.shape[0], -1)
+        2-D (either unit) and stereo px: :class:`~dic.gridinterp.GridCells` of the points (px), or the
+        scattered-points fallback when they are on no grid; stereo mm: the grid's cells over the
+        points' ``(X, Y)`` (:meth:`~dic.gridinterp.TriangleCells.from_grid`). Every frame of a file
+        has the same points, so the cells are built once (and again only if a frame's differ).
+        """
+        from .gridinterp import GridCells, TriangleCells, cells_for
+
+        pts = self.domain(index, "px")
+        grid = self._cells.get("px")
+        if grid is None or not grid.matches(pts):
+            grid = cells_for(pts)
+            self._cells = {"px": grid}
+            self._located = {}
+        if at == "px" or self.is_2d:
+            return grid
+        xy = self.domain(index, "mm")
+        cells = self._cells.get("mm")
+        if cells is None or not cells.matches(xy):
+            cells = TriangleCells.from_grid(grid, xy) if isinstance(grid, GridCells) else TriangleCells.scattered(xy)
+            self._cells["mm"] = cells
+            self._located = {k: v for k, v in self._located.items() if k[0] != "mm"}
+        return cells
+
+    def interpolate(self, index: int, at: str, values, valid, query) -> tuple[np.ndarray, np.ndarray]:
+        """``values`` (N, k) of frame ``index`` at the reference positions ``query`` (M, 2), units ``at``.
+
+        Interpolated in the grid cell containing each query, from its corners only, when they are
+        valid (:mod:`dic.gridinterp`). Returns the (M, k) values (NaN where there is none) and the
+        (M,) :class:`~dic.gridinterp.QueryStatus` codes saying why.
+        """
         query = np.asarray(query, np.float64).reshape(-1, 2)
-        out = np.full((query.shape[0], values.shape[1]), np.nan)
-        if ok.sum() < 3:
-            return out
-        key = (index, at, ok.tobytes())
-        tri = self._interp_cache.get(key)
-        if tri is None:
-            from scipy.spatial import Delaunay
+        if self.is_2d and at == "mm":
+            query = query / self.scale  # 2-D mm positions are px times the scale
+            at = "px"
+        cells = self.cells(index, at)
+        key = ("px" if at == "px" or self.is_2d else "mm", query.tobytes())
+        located = self._located.get(key)
+        if located is None:
+            located = self._located[key] = cells.locate(query)
+        return located.evaluate(values, valid, present=self.present(index))
 
-            try:
-                tri = Delaunay(dom[ok])
-            except (QhullError, ValueError):  # collinear or degenerate valid points
-                tri = False
-            self._interp_cache = {key: tri}  # one triangulation at a time: frames are visited in turn
-        if tri is False:
-            return out
-        return LinearNDInterpolator(tri, values[ok])(query)
+    def present(self, index: int) -> np.ndarray | None:
+        """Stereo: the points that were computed at all (status not NOT_COMPUTED: inside the region, a
+        reference subset with texture inside the image); a cell with a corner that was not counts as
+        no points (a hole, an excluded region). 2-D: None (a region drops the points outside it, and
+        NOT_COMPUTED there may be a frame's failed guess)."""
+        if self.is_2d:
+            return None
+        from .field3d import StereoStatus
+
+        return np.asarray(self.arrays(index, ("status",))["status"]) != StereoStatus.NOT_COMPUTED
 
     def check_inside(self, query, at: str, what: str, every: bool = True) -> None:
         """Refuse (``ValueError`` with the extent) query positions (M, 2) outside the measured points of the
@@ -358,8 +434,16 @@ class _Source:
                              "NaN in every frame")
 
     def grid_spacing(self, at: str) -> float:
-        """Spacing of the points (in ``at`` units): the smallest nearest-neighbour distance's median."""
-        from scipy.spatial import cKDTree
+        """Spacing of the points (in ``at`` units): the grid step (the smaller one), else the median
+        nearest-neighbour distance."""
+        from .gridinterp import GridCells
+
+        grid = self.cells(self.indices[0], "px")
+        if isinstance(grid, GridCells) and (at == "px" or self.is_2d) and grid.points.shape[0] > 1:
+            # the step along each axis with more than one node
+            steps = [d for d, n in zip(grid.step, (grid.shape[1], grid.shape[0])) if n > 1]
+            return min(steps) * (self.scale if at == "mm" else 1.0)
+        from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.3-1 s to import, and the grid needs none
 
         dom = self.domain(self.indices[0], at)
         dom = dom[np.all(np.isfinite(dom), axis=1)]
@@ -371,6 +455,21 @@ class _Source:
 
 #: the most samples of a line profile (a line across a 16384-px image at several samples per px)
 MAX_PROFILE_SAMPLES = 100_000
+
+
+def _object_arrays(frame, names) -> dict:
+    """Datasets ``names`` of a frame object read already (a :class:`dic.store.FrameResult` or a
+    :class:`dic.field3d.Field3D`), by their names in the file; missing ones are left out."""
+    out = {}
+    for name in names:
+        if name.startswith("strain/"):
+            strain = getattr(frame, "strain", None)
+            value = None if strain is None else strain.get(name[len("strain/"):])
+        else:
+            value = getattr(frame, name, None)
+        if value is not None:
+            out[name] = np.asarray(value)
+    return out
 
 
 def quantities(results) -> tuple[str, ...]:
@@ -514,7 +613,9 @@ class Extensometer:
     (arrays of length F, aligned with ``frames``): ``length0`` the reference gauge length,
     ``length`` the deformed one, ``elongation = length - length0``, ``strain = elongation /
     length0`` (engineering), ``start_displacement`` / ``end_displacement`` (F, 2 | 3) the
-    displacement of each end, ``valid`` both ends inside the valid points (NaN otherwise).
+    displacement of each end, ``valid`` both ends have a value (lengths NaN otherwise), and
+    ``start_status`` / ``end_status`` (F,) int8 the :class:`~dic.gridinterp.QueryStatus` of each
+    end in each frame (why an end has no value: ``QueryStatus(code).reason``).
     """
 
     start: np.ndarray
@@ -529,6 +630,8 @@ class Extensometer:
     start_displacement: np.ndarray
     end_displacement: np.ndarray
     valid: np.ndarray
+    start_status: np.ndarray
+    end_status: np.ndarray
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Column names and an (F, k) table (frame, length0, length, elongation, strain, end displacements)."""
@@ -556,7 +659,8 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
     scale : float, optional
         mm/px of a 2-D result (default: the stored one, else px).
 
-    The displacement at each end is interpolated linearly from the frame's valid points; the
+    The displacement at each end is interpolated in its grid cell (module docstring; NaN, with
+    ``start_status`` / ``end_status`` saying why, when the cell is not entirely valid); the
     gauge length is the distance between the ends (2-D in the image plane; stereo in 3-D).
     """
     with _Source(results, scale) as src:
@@ -569,6 +673,7 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
         F = len(idx)
         L0, L = np.full(F, np.nan), np.full(F, np.nan)
         dA, dB = np.full((F, dim), np.nan), np.full((F, dim), np.nan)
+        status = np.zeros((F, 2), np.int8)
         q = np.stack([a, b])
         for k, i in enumerate(idx):
             if src.is_2d:
@@ -576,30 +681,33 @@ def extensometer(results, start, end, *, at: str = "px", frames=None, scale=None
                 v, valid_v = src.values(i, "v")
                 s = src.scale or 1.0
                 q_px = q / s if at == "mm" else q
-                disp = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
+                disp, status[k] = src.interpolate(i, "px", np.column_stack([u, v]), valid_u & valid_v, q_px)
                 ref = q_px * s
             else:
-                f = src.frame(i)
-                valid = np.asarray(f.valid, bool) & np.all(np.isfinite(f.xyz), 1) & np.all(np.isfinite(f.uvw), 1)
-                both = src.interpolate(i, at, np.column_stack([f.xyz, f.uvw]), valid, q)
+                xyz, uvw, valid = src.stereo_positions(i)
+                both, status[k] = src.interpolate(i, at, np.column_stack([xyz, uvw]), valid, q)
                 ref, disp = both[:, :3], both[:, 3:]
             dA[k], dB[k] = disp[0], disp[1]
             L0[k] = np.linalg.norm(ref[1] - ref[0])
             L[k] = np.linalg.norm(ref[1] + disp[1] - ref[0] - disp[0])
-        ok = np.isfinite(L) & np.isfinite(L0)
+        ok = np.isfinite(L) & np.isfinite(L0) & np.all(status == QueryStatus.OK, axis=1)
         L[~ok] = np.nan
         elong = L - L0
         with np.errstate(invalid="ignore", divide="ignore"):
             eps = elong / L0
         return Extensometer(start=a, end=b, at=at, unit=src.length_unit, frames=np.asarray(idx, np.int64), length0=L0,
-                            length=L, elongation=elong, strain=eps, start_displacement=dA, end_displacement=dB, valid=ok)
+                            length=L, elongation=elong, strain=eps, start_displacement=dA, end_displacement=dB, valid=ok,
+                            start_status=status[:, 0], end_status=status[:, 1])
 
 
 @dataclass
 class History:
     """A quantity at one reference point over the frames (:func:`point_history`).
 
-    ``values`` (F,) aligned with ``frames``; NaN where the point is outside the frame's valid points.
+    ``values`` (F,) aligned with ``frames``; NaN where the point has no value in a frame, and
+    ``status`` (F,) int8 the :class:`~dic.gridinterp.QueryStatus` saying why
+    (``QueryStatus(code).reason``: outside the grid, in a hole or an excluded region, among
+    invalid points).
     """
 
     quantity: str
@@ -608,6 +716,7 @@ class History:
     at: str
     frames: np.ndarray
     values: np.ndarray
+    status: np.ndarray
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Column names and the (F, 2) table (frame, value)."""
@@ -621,7 +730,8 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
     ``point`` (x, y) in reference image px (``at="px"``) or mm (``at="mm"``, see :func:`extensometer`);
     ``quantity`` one of :func:`quantities` (2-D: u, v, magnitude, the strain components, e1, e2,
     angle, max_shear, von_mises, zncc; stereo: U, V, W, magnitude, X, Y, Z, exx, eyy, exy, e1 ...).
-    Values are interpolated linearly from the frame's valid points (strain: its strain-valid points).
+    Values are interpolated in the grid cell that contains the point, from its corners when they are
+    valid (strain: strain-valid); else NaN with ``status`` saying why (module docstring).
     """
     with _Source(results, scale) as src:
         at = src.check_at(at)
@@ -630,11 +740,13 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
         src.check_inside(p[None, :], at, "the point")
         idx = src.select(frames)
         out = np.full(len(idx), np.nan)
+        status = np.zeros(len(idx), np.int8)
         for k, i in enumerate(idx):
             vals, valid = src.values(i, quantity)
-            out[k] = src.interpolate(i, at, vals, valid, p)[0, 0]
+            value, code = src.interpolate(i, at, vals, valid, p)
+            out[k], status[k] = value[0, 0], code[0]
         return History(quantity=quantity, unit=src.unit(quantity), point=p, at=at, frames=np.asarray(idx, np.int64),
-                       values=out)
+                       values=out, status=status)
 
 
 @dataclass
@@ -642,7 +754,9 @@ class Profile:
     """A quantity along a line, per frame (:func:`line_profile`).
 
     ``positions`` (n, 2) the sample points (units ``at``), ``distance`` (n,) their distance from
-    ``start`` (units ``at``), ``values`` (F, n): row ``k`` is frame ``frames[k]``.
+    ``start`` (units ``at``), ``values`` (F, n): row ``k`` is frame ``frames[k]``, NaN where a
+    sample has no value, and ``status`` (F, n) int8 the :class:`~dic.gridinterp.QueryStatus` of
+    each sample saying why.
     """
 
     quantity: str
@@ -654,6 +768,7 @@ class Profile:
     distance: np.ndarray
     frames: np.ndarray
     values: np.ndarray
+    status: np.ndarray
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Long-format column names and table: one row per (frame, sample): frame, distance, x, y, value."""
@@ -696,8 +811,10 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
         src.check_inside(pos, at, "the line", every=False)
         idx = src.select(frames)
         vals = np.full((len(idx), samples), np.nan)
+        status = np.zeros((len(idx), samples), np.int8)
         for k, i in enumerate(idx):
             v, valid = src.values(i, quantity)
-            vals[k] = src.interpolate(i, at, v, valid, pos)[:, 0]
+            value, status[k] = src.interpolate(i, at, v, valid, pos)
+            vals[k] = value[:, 0]
         return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
-                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals)
+                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals, status=status)

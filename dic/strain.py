@@ -22,7 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from kernels.checks import as_points, odd_int, positive_int
 
@@ -193,6 +192,8 @@ def _kernels(window: int):
 
 def _correlate(a, k):
     """Σ over the window centred on each node of ``a * k`` (zeros outside the grid)."""
+    from scipy import ndimage  # here, not at the top: importing scipy.ndimage costs 0.2-1 s (the CLI's post-processing)
+
     return ndimage.correlate(a, k, mode="constant", cval=0.0)
 
 

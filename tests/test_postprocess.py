@@ -421,8 +421,8 @@ def test_cli_extensometer_history_profile(sequence, tmp_path):
     assert r.exit_code == 1 and "cannot write" in r.output and "Traceback" not in r.output
     r = _invoke("extensometer", sequence, "--from", "40,60", "--to", "120,60", "--plot", tmp_path / "e.xyz")
     assert r.exit_code == 1 and "not supported" in r.output
-    r = _invoke("extensometer", sequence, "--from", "1,1", "--to", "2,2")
-    assert r.exit_code == 0 and "outside the valid points in every frame" in r.output
+    r = _invoke("extensometer", sequence, "--from", "1,1", "--to", "2,2")  # no value at an end: an error that says why
+    assert r.exit_code == 1 and "gauge start (1, 1) px in any frame: it is outside the grid of points" in r.output
 
 
 def test_cli_on_stereo_results(stereo_file, tmp_path):

@@ -116,11 +116,15 @@ def _load(results, quantity=None):
 
 
 def _outputs(csv_path, plot_path, names, table, plot, obj, quiet) -> None:
+    """Write the CSV and the figure (``plot``: the name of a writer of dic.plots.postprocess, imported only
+    when a figure is asked for: Matplotlib takes 0.3-1 s to import) and print the table."""
     if csv_path is not None:
         _write_csv_checked(csv_path, names, table)
     if plot_path is not None:
+        from dic.plots import postprocess as figures
+
         try:
-            _run(plot, plot_path, obj)
+            _run(getattr(figures, plot), plot_path, obj)
         except OSError as exc:
             raise click.ClickException(f"cannot write {plot_path}: {exc.strerror or exc}") from None
     if not quiet:
@@ -130,6 +134,52 @@ def _outputs(csv_path, plot_path, names, table, plot, obj, quiet) -> None:
             click.echo(f"table: {csv_path}")
         if plot_path is not None:
             click.echo(f"figure: {plot_path}")
+
+
+def _ranges(values) -> str:
+    """``[1, 2, 3, 5, 7, 8]`` -> ``"1-3, 5, 7-8"``."""
+    values = sorted(int(v) for v in values)
+    parts, lo = [], None
+    for k, v in enumerate(values):
+        if lo is None:
+            lo = v
+        if k + 1 == len(values) or values[k + 1] != v + 1:
+            parts.append(f"{lo}" if lo == v else f"{lo}-{v}")
+            lo = None
+    return ", ".join(parts)
+
+
+def _frames_text(frames) -> str:
+    """``[3]`` -> ``"frame 3"``, ``[1, 2, 5]`` -> ``"frames 1-2, 5"``."""
+    return f"frame{'s' if len(frames) > 1 else ''} {_ranges(frames)}"
+
+
+def _why(frames, status) -> str:
+    """Why a query has no value in ``frames``: its reason, or the reason in each group of frames."""
+    from dic.gridinterp import QueryStatus
+
+    frames, status = np.asarray(frames), np.asarray(status)
+    codes = [c for c in dict.fromkeys(int(c) for c in status) if c != QueryStatus.OK]
+    if len(codes) == 1:
+        return f"it is {QueryStatus(codes[0]).reason}"
+    return "; ".join(f"in {_frames_text(frames[status == c])} it is {QueryStatus(c).reason}" for c in codes)
+
+
+def _where(point, at) -> str:
+    return f"({point[0]:g}, {point[1]:g}) {at}"
+
+
+def _check_point(what, point, at, frames, status) -> None:
+    """A point with no value in any frame is an error (exit status 1) that says why; a point with
+    no value in some frames a warning on stderr."""
+    from dic.gridinterp import QueryStatus
+
+    missing = np.asarray(status) != QueryStatus.OK
+    if missing.all():
+        raise click.ClickException(f"no value at the {what} {_where(point, at)} in any frame: {_why(frames, status)}")
+    if missing.any():
+        click.echo(f"Warning: no value at the {what} {_where(point, at)} in {_frames_text(np.asarray(frames)[missing])}: "
+                   f"{_why(np.asarray(frames)[missing], np.asarray(status)[missing])}", err=True)
 
 
 def _write_csv_checked(path, names, table) -> None:
@@ -193,18 +243,22 @@ def strain(results, window, in_px, output, min_points, scale, quiet):
 def extensometer(results, start, end, at, scale, frames, csv_path, plot_path, quiet):
     """A virtual extensometer: gauge length, length change and strain per frame.
 
-    The displacement at each gauge end is interpolated linearly from the valid points of each
-    frame; strain = (length - length0) / length0.
+    The displacement at each gauge end is interpolated in the grid cell of points that contains
+    it, from the cell's corners when they are valid in the frame (never across a hole, an
+    excluded region or invalid points); strain = (length - length0) / length0. A gauge end with
+    no value in any frame (outside the grid, in a hole, among invalid points) is an error that
+    says why; frames with no value are NaN, with a warning.
     """
-    from dic.plots.postprocess import write_extensometer_figure
     from dic.postprocess import extensometer as run
 
     ext = _run(run, results, start, end, at=at, frames=_frames(frames), scale=scale)
+    for what, point, status in (("gauge start", ext.start, ext.start_status), ("gauge end", ext.end, ext.end_status)):
+        if np.all(status != 0):
+            _check_point(what, point, at, ext.frames, status)
     names, table = ext.table()
-    _outputs(csv_path, plot_path, names, table, write_extensometer_figure, ext, quiet)
-    if not ext.valid.any():
-        click.echo("Warning: a gauge end lies outside the valid points in every frame; move it inside the "
-                   "measured region", err=True)
+    _outputs(csv_path, plot_path, names, table, "write_extensometer_figure", ext, quiet)
+    for what, point, status in (("gauge start", ext.start, ext.start_status), ("gauge end", ext.end, ext.end_status)):
+        _check_point(what, point, at, ext.frames, status)
 
 
 @click.command(name="history", context_settings=CONTEXT)
@@ -220,14 +274,22 @@ def extensometer(results, start, end, at, scale, frames, csv_path, plot_path, qu
 @_PLOT
 @click.option("-q", "--quiet", is_flag=True, help="Do not print the table.")
 def history(results, point, quantity, at, scale, frames, csv_path, plot_path, quiet):
-    """A quantity at one point over the frames (linear interpolation of the valid points)."""
-    from dic.plots.postprocess import write_history_figure
+    """A quantity at one point over the frames.
+
+    Interpolated in the grid cell of points that contains the point, from the cell's corners
+    when they are valid in the frame (never across a hole, an excluded region or invalid
+    points). A point with no value in any frame (outside the grid, in a hole, among invalid
+    points) is an error that says why; frames with no value are NaN, with a warning.
+    """
     from dic.postprocess import point_history
 
     res, quantity = _load(results, quantity)
     h = _run(point_history, res, point, quantity, at=at, frames=_frames(frames), scale=scale)
+    if np.all(h.status != 0):
+        _check_point("point", h.point, at, h.frames, h.status)
     names, table = h.table()
-    _outputs(csv_path, plot_path, names, table, write_history_figure, h, quiet)
+    _outputs(csv_path, plot_path, names, table, "write_history_figure", h, quiet)
+    _check_point("point", h.point, at, h.frames, h.status)
 
 
 @click.command(name="profile", context_settings=CONTEXT)
@@ -244,12 +306,37 @@ def history(results, point, quantity, at, scale, frames, csv_path, plot_path, qu
 @_PLOT
 @click.option("-q", "--quiet", is_flag=True, help="Do not print the table.")
 def profile(results, start, end, quantity, samples, at, scale, frames, csv_path, plot_path, quiet):
-    """A quantity along a line, per frame (one row per frame and sample)."""
-    from dic.plots.postprocess import write_profile_figure
+    """A quantity along a line, per frame (one row per frame and sample).
+
+    Samples are interpolated as for specula history; those with no value (in a hole, an excluded
+    region, among invalid points, outside the grid) are NaN, with a warning that says where and
+    why. A line with no value anywhere in any frame is an error.
+    """
     from dic.postprocess import line_profile
 
     res, quantity = _load(results, quantity)
     p = _run(line_profile, res, start, end, quantity, samples=samples, at=at, frames=_frames(frames),
              scale=scale)
+    if np.all(p.status != 0):
+        raise click.ClickException(f"no value along the line from {_where(p.start, at)} to {_where(p.end, at)} in "
+                                   f"any frame: {'; '.join(_profile_gaps(p, at))}")
     names, table = p.table()
-    _outputs(csv_path, plot_path, names, table, write_profile_figure, p, quiet)
+    _outputs(csv_path, plot_path, names, table, "write_profile_figure", p, quiet)
+    for clause in _profile_gaps(p, at):
+        click.echo(f"Warning: no value {clause}", err=True)
+
+
+def _profile_gaps(p, at) -> list[str]:
+    """Where and why samples of a profile have no value: one clause per reason."""
+    from dic.gridinterp import QueryStatus
+
+    clauses = []
+    for code in list(QueryStatus)[1:]:
+        mask = p.status == code  # (F, n)
+        if mask.any():
+            cols, rows = np.flatnonzero(mask.any(axis=0)), mask.any(axis=1)
+            d = p.distance[cols]
+            frames = "every frame" if rows.all() else _frames_text(p.frames[rows])
+            clauses.append(f"at {cols.size} of {p.distance.size} samples ({d.min():.4g} to {d.max():.4g} {at} along "
+                           f"the line) in {frames}: {code.reason}")
+    return clauses
