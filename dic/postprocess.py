@@ -239,6 +239,10 @@ class _Source:
                 got = self._reader.frame_arrays(index, wanted)
                 if got is None:  # one of them is missing: read those present
                     got = [(self._reader.frame_arrays(index, [n]) or (None,))[0] for n in wanted]
+                for n, a in zip(wanted, got):
+                    # a finished frame always has its displacements and statuses; strain may be absent
+                    if a is None and not n.startswith("strain/") and self._reader.is_done(index):
+                        raise self._reader._damaged(index, f"has no {n!r} dataset")
                 held.update((n, a) for n, a in zip(wanted, got) if a is not None)
             else:
                 held.update(_object_arrays(self._frames.read(index), wanted))

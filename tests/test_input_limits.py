@@ -569,10 +569,13 @@ def test_stereo_exits_non_zero_when_no_state_has_a_valid_point(tmp_path, monkeyp
             return len(self.valid)
 
     def fake(rig, pairs, output, *, callback, **kw):
+        summary = dic.sequence.SequenceSummary(path=output)
         for index in range(len(pairs)):
             valid = np.zeros(10, bool)
             valid[: valid_counts.get(index, 0)] = True
-            callback(Field(index=index, valid=valid, reference_index=0))
+            callback(index, Field(index=index, valid=valid, reference_index=0), None)
+            summary.add(index, int(valid.sum()), len(valid), 0.0, 0)
+        return summary
 
     monkeypatch.setattr(dic.sequence, "stereo_sequence", fake)
     base = ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "-o", str(tmp_path / "s.h5"), "-q"]

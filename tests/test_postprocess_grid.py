@@ -135,9 +135,14 @@ def test_invalid_points_give_nan_in_their_frames_only(holed):
 def test_point_outside_the_grid_is_nan_with_the_reason(holed):
     from dic.gridinterp import QueryStatus
 
-    for p in ((300.0, 40.0), (-5.0, 40.0), (40.0, 170.5), (5.0, 5.0)):
+    # within one grid spacing of the points: NaN with the reason
+    for p in ((7.0, 40.0), (40.0, 170.5), (8.0, 8.0)):
         h = point_history(holed, p, "u")
         assert np.isnan(h.values).all() and list(h.status) == [QueryStatus.OUTSIDE] * 3
+    # farther out: refused before any frame is read (issue 24, "history at a point outside the image")
+    for p in ((300.0, 40.0), (-5.0, 40.0), (5.0, 5.0)):
+        with pytest.raises(ValueError, match="lies outside the measured points"):
+            point_history(holed, p, "u")
     assert QueryStatus.OUTSIDE.reason == "outside the grid of points"
 
 
@@ -197,8 +202,8 @@ def test_scattered_points_fallback_does_not_bridge(tmp_path):
     path = _write_2d(tmp_path / "scattered.h5", pts, with_strain=False)
     h = point_history(path, (CX, CY), "u")
     assert np.isnan(h.values).all() and (h.status == QueryStatus.NO_POINTS).all()
-    h = point_history(path, (300.0, 40.0), "u")
-    assert np.isnan(h.values).all() and (h.status == QueryStatus.OUTSIDE).all()
+    with pytest.raises(ValueError, match="lies outside the measured points"):
+        point_history(path, (300.0, 40.0), "u")
     # linear on each triangle: exact for a linear field away from the hole
     for x, y in ((31.3, 47.9), (150.0, 150.0), (60.0, 140.0)):
         h = point_history(path, (x, y), "u")
@@ -279,8 +284,8 @@ def test_stereo_history_in_a_cut_out_is_nan(tmp_path):
     # (X, Y) mm of the hole's centre: no triangle of the grid's cells there
     h = point_history(path, (0.0, 0.0), "W", at="mm")
     assert np.isnan(h.values).all() and (h.status == QueryStatus.NO_POINTS).all()
-    h = point_history(path, (100.0, 0.0), "W", at="mm")
-    assert np.isnan(h.values).all() and (h.status == QueryStatus.OUTSIDE).all()
+    with pytest.raises(ValueError, match="lies outside the measured points"):
+        point_history(path, (100.0, 0.0), "W", at="mm")
     # elsewhere exact (the fields are affine in x, y and in X, Y)
     x, y = 31.3, 47.9
     X, Y = 0.2 * (x - CX), 0.2 * (y - CY)
@@ -320,7 +325,7 @@ def test_cli_says_why(holed):
     assert r.output.strip() == ("Error: no value at the point (90, 90) px in any frame: it is in a hole or an "
                                 "excluded region (no points there)")
     r = _invoke("history", holed, "--point", "300,40")
-    assert r.exit_code == 1 and "it is outside the grid of points" in r.output
+    assert r.exit_code == 1 and "lies outside the measured points" in r.output
     r = _invoke("history", holed, "--point", "137,35", "--quantity", "u")
     assert r.exit_code == 0, r.output
     assert ("Warning: no value at the point (137, 35) px in frame 3: it is among points with no valid value in "
