@@ -34,7 +34,7 @@ _EXPORTS = {
     "extensometer_figure": "postprocess", "write_extensometer_figure": "postprocess",
     "history_figure": "postprocess", "write_history_figure": "postprocess",
     "profile_figure": "postprocess", "write_profile_figure": "postprocess",
-    "write_animation": "animate", "animation_frames": "animate", "animation_quantities": "animate",
+    "write_animation": "animate", "animation_frames": "animate", "animation_limits": "animate", "animation_quantities": "animate",
 }
 
 __all__ = sorted(_EXPORTS)

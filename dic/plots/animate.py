@@ -3,6 +3,7 @@
 * :func:`write_animation` — an MP4 (H.264 through imageio-ffmpeg, streamed frame by frame) or an animated
   GIF (Pillow) of one quantity over the frames of a 2-D or stereo result file (``specula animate``).
 * :func:`animation_frames` — the same frames as RGB arrays, one at a time (what is encoded).
+* :func:`animation_limits` — the one colour range of a movie.
 * :func:`animation_quantities` — the quantities a result file can be animated with.
 
 Each frame is the figure of :mod:`dic.plots.fields` (:func:`~dic.plots.fields.field_figure` for a 2-D
@@ -11,7 +12,7 @@ selection: the 1st-99th percentiles of every selected frame's valid values toget
 for a signed quantity whose range spans zero; :func:`dic.plots._common.colour_scale`), so a colour means the
 same value in every frame. The file is read through :class:`dic.store.ResultFrames` one frame at a time,
 twice (the colour range, then the pictures); besides one frame, the first pass keeps the selected
-quantity's valid values as float32 (4 bytes per point and frame).
+quantity's valid values (8 bytes per valid point and frame).
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from ._common import colour_scale
 
-__all__ = ["write_animation", "animation_frames", "animation_quantities", "ANIMATION_SUFFIXES", "MAX_FPS"]
+__all__ = ["write_animation", "animation_frames", "animation_limits", "animation_quantities", "ANIMATION_SUFFIXES", "MAX_FPS"]
 
 #: movie formats by file suffix
 ANIMATION_SUFFIXES = (".mp4", ".gif")
@@ -122,7 +123,7 @@ def animation_frames(results, quantity: str, *, frames=None, image=None, dpi: fl
     alpha : opacity of the map over the reference image
     """
     from ..store import ResultFrames
-    from .fields import SIGNED, field3d_figure, field_figure
+    from .fields import field3d_figure, field_figure
 
     if not (isinstance(dpi, (int, float)) and np.isfinite(dpi) and 10 <= dpi <= 600):
         raise ValueError(f"dpi must be a number from 10 to 600, got {dpi!r}")
@@ -131,23 +132,8 @@ def animation_frames(results, quantity: str, *, frames=None, image=None, dpi: fl
     img = _check_image(image)
     with ResultFrames(results) as src:
         indices = _select(src, frames)
-        known = animation_quantities(src)
-        if quantity not in known:
-            raise ValueError(f"unknown quantity {quantity!r} for this {'stereo' if src.kind == 'stereo' else '2-D'} "
-                             f"result file; choose from {', '.join(known)}")
-        chunks = []
-        for index in indices:  # pass 1: the colour range of the whole selection
-            vals = _values(src.read(index), quantity, src.kind)
-            chunks.append(vals[np.isfinite(vals)].astype(np.float32))
-        values = np.concatenate(chunks)
-        del chunks
-        if values.size == 0:
-            raise ValueError(f"{quantity} has no valid value in the selected frames; nothing to animate")
-        _, lo, hi = colour_scale(values.astype(np.float64), signed=quantity in SIGNED)
-        del values
-        if not lo < hi:  # a constant field: widen so the colour map has a range
-            pad = max(abs(lo) * 1e-3, 1e-12)
-            lo, hi = lo - pad, hi + pad
+        _check_quantity(src, quantity)
+        lo, hi = _limits(src, indices, quantity)
         shape = None
         for index in indices:  # pass 2: one figure at a time
             f = src.read(index)
@@ -162,6 +148,41 @@ def animation_frames(results, quantity: str, *, frames=None, image=None, dpi: fl
             if shape is None:
                 shape = tuple(-(-n // _MACRO_BLOCK) * _MACRO_BLOCK for n in rgb.shape[:2])
             yield index, _fit(rgb, shape)
+
+
+def _check_quantity(src, quantity) -> None:
+    known = animation_quantities(src)
+    if quantity not in known:
+        raise ValueError(f"unknown quantity {quantity!r} for this {'stereo' if src.kind == 'stereo' else '2-D'} "
+                         f"result file; choose from {', '.join(known)}")
+
+
+def _limits(src, indices, quantity) -> tuple[float, float]:
+    from .fields import SIGNED
+
+    chunks = []
+    for index in indices:  # one frame at a time; only the quantity's valid values are kept
+        vals = _values(src.read(index), quantity, src.kind)
+        chunks.append(vals[np.isfinite(vals)])
+    values = np.concatenate(chunks)
+    del chunks
+    if values.size == 0:
+        raise ValueError(f"{quantity} has no valid value in the selected frames; nothing to animate")
+    _, lo, hi = colour_scale(values, signed=quantity in SIGNED)
+    return float(lo), float(hi)
+
+
+def animation_limits(results, quantity: str, *, frames=None) -> tuple[float, float]:
+    """The colour range ``(vmin, vmax)`` of a movie of ``quantity`` over the selected frames: the 1st-99th
+    percentiles of every selected frame's valid values together, symmetric about zero for a signed
+    quantity whose range spans zero (:func:`dic.plots._common.colour_scale`; nearly uniform values get
+    +-1 % about their middle). Arguments as in :func:`animation_frames`."""
+    from ..store import ResultFrames
+
+    with ResultFrames(results) as src:
+        indices = _select(src, frames)
+        _check_quantity(src, quantity)
+        return _limits(src, indices, quantity)
 
 
 def _check_fps(fps) -> float:
