@@ -1,6 +1,6 @@
 """``specula animate``: a movie (MP4 or GIF) of one quantity over the frames of a result file.
 
-The frames are drawn by :func:`dic.plots.animate.write_animation` with one colour range for the whole
+The movie is written by :func:`dic.animate.write_animation` with one colour range for the whole
 movie; docs/cli.md describes the verb.
 """
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from dic.plots.animate import MAX_FPS
+from dic.animate import MAX_FPS
 
 CONTEXT = {"help_option_names": ["-h", "--help"]}
 
@@ -66,8 +66,8 @@ def animate(results, quantity, output, fps, frames, dpi, no_image, quiet):
     specula animate run.h5 --quantity exx -o exx.mp4
     specula animate stereo.h5 --quantity W -o w.gif --fps 2 --frames 1-10
     """
+    from dic.animate import write_animation
     from dic.commands.postprocess import _frames
-    from dic.plots.animate import write_animation
 
     wanted = _frames(frames)
     image = None if no_image else _reference_image(results, quiet)  # errors: one line by the specula group

@@ -1,246 +1,77 @@
-"""Movies of a result file: one map per finished frame (2-D) or state (stereo), one colour range for all.
+"""The pictures of a movie (:mod:`dic.animate`, ``specula animate``): one frame of a result drawn as an RGB
+array with a given colour range.
 
-* :func:`write_animation` — an MP4 (H.264 through imageio-ffmpeg, streamed frame by frame) or an animated
-  GIF (Pillow) of one quantity over the frames of a 2-D or stereo result file (``specula animate``).
-* :func:`animation_frames` — the same frames as RGB arrays, one at a time (what is encoded).
-* :func:`animation_limits` — the one colour range of a movie.
-* :func:`animation_quantities` — the quantities a result file can be animated with.
+* :func:`frame_quantities` — the quantities a frame can be drawn with.
+* :func:`frame_values` — one quantity of a frame, NaN where the point is not valid.
+* :func:`movie_limits` — the one colour range of a movie from the values of all its frames.
+* :func:`frame_rgb` — one frame as (H, W, 3) uint8 pixels.
 
-Each frame is the figure of :mod:`dic.plots.fields` (:func:`~dic.plots.fields.field_figure` for a 2-D
-frame, :func:`~dic.plots.fields.field3d_figure` for a stereo state) with the colour limits of the whole
-selection: the 1st-99th percentiles of every selected frame's valid values together (symmetric about zero
-for a signed quantity whose range spans zero; :func:`dic.plots._common.colour_scale`), so a colour means the
-same value in every frame. The file is read through :class:`dic.store.ResultFrames` one frame at a time,
-twice (the colour range, then the pictures); besides one frame, the first pass keeps the selected
-quantity's valid values (8 bytes per valid point and frame).
+A 2-D frame is drawn by :func:`dic.plots.fields.field_figure`, a stereo state by
+:func:`dic.plots.fields.field3d_figure`, each with the range given, so a colour means the same value in
+every frame of a movie.
 """
 from __future__ import annotations
-
-import os
-from pathlib import Path
 
 import numpy as np
 
 from ._common import colour_scale
 
-__all__ = ["write_animation", "animation_frames", "animation_limits", "animation_quantities", "ANIMATION_SUFFIXES", "MAX_FPS"]
+__all__ = ["frame_quantities", "frame_values", "movie_limits", "frame_rgb"]
 
-#: movie formats by file suffix
-ANIMATION_SUFFIXES = (".mp4", ".gif")
-#: the highest frame rate accepted (frames per second)
-MAX_FPS = 60.0
-#: frames are padded (white) to a multiple of this many pixels: H.264 in yuv420p needs even sizes, and
-#: ffmpeg's encoders work in 16-pixel macro blocks (imageio-ffmpeg would otherwise rescale, with a warning)
-_MACRO_BLOCK = 16
 #: 2-D quantities that need no strain
 _DISPLACEMENTS_2D = ("u", "v", "magnitude")
 _STRAINS_2D = ("exx", "eyy", "exy", "Exx", "Eyy", "Exy")
 
 
-def animation_quantities(frames) -> list[str]:
-    """The quantities a result's frames can be animated with: 2-D ``u``, ``v``, ``magnitude`` and the
-    strains stored in the first frame; stereo the quantities of :data:`dic.plots.fields.FIGURE_QUANTITIES`
-    but ``status`` (``Z``, ``U``, ``V``, ``W``, ``exx``, ``eyy``, ``exy``, ``zncc_stereo``).
+def frame_quantities(frame) -> list[str]:
+    """The quantities ``frame`` can be drawn with: a 2-D frame ``u``, ``v``, ``magnitude`` and the strains it
+    holds; a stereo state (Field3D) those of :data:`dic.plots.fields.FIGURE_QUANTITIES` but ``status``
+    (``Z``, ``U``, ``V``, ``W``, ``exx``, ``eyy``, ``exy``, ``zncc_stereo``)."""
+    from .fields import FIGURE_QUANTITIES, _is_field3d
 
-    ``frames``: a :class:`dic.store.ResultFrames` with at least one finished frame."""
-    from .fields import FIGURE_QUANTITIES
-
-    if frames.kind == "stereo":
+    if _is_field3d(frame):
         return [q for q in FIGURE_QUANTITIES if q != "status"]
-    first = frames.read(frames.indices[0])
-    strain = getattr(first, "strain", None) or {}
-    return list(_DISPLACEMENTS_2D) + [q for q in _STRAINS_2D if q in strain]
+    strain = getattr(frame, "strain", None) or {}
+    has = (lambda q: q in strain) if isinstance(strain, dict) else (lambda q: getattr(strain, q, None) is not None)
+    return list(_DISPLACEMENTS_2D) + [q for q in _STRAINS_2D if has(q)]
 
 
-def _values(frame, quantity: str, kind: str) -> np.ndarray:
-    """(N,) float64 values of ``quantity`` in one frame, NaN where the point is not valid."""
-    from .fields import _component_values, _strain_view
+def frame_values(frame, quantity: str) -> np.ndarray:
+    """(N,) float64 values of ``quantity`` in ``frame`` (2-D frame or Field3D), NaN where the point is not valid."""
+    from .fields import _component_values, _is_field3d, _strain_view
 
-    if kind == "stereo":
+    if _is_field3d(frame):
         return np.where(frame.valid, np.asarray(getattr(frame, quantity), dtype=np.float64), np.nan)
     return _component_values(frame, _strain_view(getattr(frame, "strain", None)), quantity)
 
 
-def _select(frames, wanted) -> list[int]:
-    if not frames.indices:
-        raise ValueError("the result file has no finished frame to animate")
-    if wanted is None:
-        return list(frames.indices)
-    try:
-        wanted = [int(i) for i in wanted]
-    except (TypeError, ValueError):
-        raise ValueError(f"frames must be frame indices, got {wanted!r}") from None
-    if not wanted:
-        raise ValueError("frames is empty: name at least one frame")
-    missing = sorted(set(wanted) - set(frames.indices))
-    if missing:
-        raise ValueError(f"no finished frame {_list(missing)} in the result file; finished: {_list(frames.indices)}")
-    return sorted(set(wanted))
-
-
-def _list(indices, most: int = 10) -> str:
-    shown = ", ".join(str(i) for i in indices[:most])
-    return shown + (f", ... ({len(indices)} in all)" if len(indices) > most else "")
-
-
-def _check_image(image):
-    if image is None:
-        return None
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim != 2:
-        raise ValueError(f"image must be the (H, W) grey reference image, got shape {img.shape}")
-    return img
-
-
-def _rgb(fig) -> np.ndarray:
-    """(H, W, 3) uint8 pixels of a figure drawn by its Agg canvas."""
-    fig.canvas.draw()
-    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-
-
-def _fit(rgb: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """``rgb`` padded with white (or cropped) to ``shape`` (H, W), so every frame of a movie has one size."""
-    if rgb.shape[:2] == shape:
-        return rgb
-    out = np.full((*shape, 3), 255, dtype=np.uint8)
-    h, w = min(shape[0], rgb.shape[0]), min(shape[1], rgb.shape[1])
-    out[:h, :w] = rgb[:h, :w]
-    return out
-
-
-def animation_frames(results, quantity: str, *, frames=None, image=None, dpi: float = 80,
-                     alpha: float = 0.75):
-    """Yield ``(index, rgb)`` for every selected frame of a result: ``rgb`` (H, W, 3) uint8, the same
-    size for every frame (padded to a multiple of 16 px), drawn with one colour range for all.
-
-    Parameters
-    ----------
-    results : a result file (path), :class:`~dic.store.TrackResults` or :class:`~dic.store.StereoResults`
-    quantity : one of :func:`animation_quantities` (e.g. ``"exx"``, ``"W"``)
-    frames : iterable of frame indices (default: every finished frame); each must be finished
-    image : (H, W) grey reference image drawn beneath the maps (the left one for stereo), or None
-    dpi : resolution of the frames (a 5-inch stereo panel at 80 dpi is 400 px wide)
-    alpha : opacity of the map over the reference image
-    """
-    from ..store import ResultFrames
-    from .fields import field3d_figure, field_figure
-
-    if not (isinstance(dpi, (int, float)) and np.isfinite(dpi) and 10 <= dpi <= 600):
-        raise ValueError(f"dpi must be a number from 10 to 600, got {dpi!r}")
-    if not 0.0 <= alpha <= 1.0:
-        raise ValueError(f"alpha must be in [0, 1], got {alpha!r}")
-    img = _check_image(image)
-    with ResultFrames(results) as src:
-        indices = _select(src, frames)
-        _check_quantity(src, quantity)
-        lo, hi = _limits(src, indices, quantity)
-        shape = None
-        for index in indices:  # pass 2: one figure at a time
-            f = src.read(index)
-            if src.kind == "stereo":
-                fig = field3d_figure(f, quantity, img, vmin=lo, vmax=hi, alpha=alpha, dpi=dpi)
-            else:
-                fig = field_figure(img, f, getattr(f, "strain", None), components=[quantity],
-                                   limits={quantity: (lo, hi)}, title=f"frame {index}", alpha=alpha, dpi=dpi,
-                                   panel_size=5.0)
-            rgb = _rgb(fig)
-            del fig, f
-            if shape is None:
-                shape = tuple(-(-n // _MACRO_BLOCK) * _MACRO_BLOCK for n in rgb.shape[:2])
-            yield index, _fit(rgb, shape)
-
-
-def _check_quantity(src, quantity) -> None:
-    known = animation_quantities(src)
-    if quantity not in known:
-        raise ValueError(f"unknown quantity {quantity!r} for this {'stereo' if src.kind == 'stereo' else '2-D'} "
-                         f"result file; choose from {', '.join(known)}")
-
-
-def _limits(src, indices, quantity) -> tuple[float, float]:
+def movie_limits(values, quantity: str) -> tuple[float, float]:
+    """``(vmin, vmax)`` of ``quantity`` from ``values`` (every frame's values together): the 1st-99th
+    percentiles of the finite ones, symmetric about zero for a signed quantity whose range spans zero
+    (:func:`dic.plots._common.colour_scale`; nearly uniform values get +-1 % about their middle)."""
     from .fields import SIGNED
 
-    chunks = []
-    for index in indices:  # one frame at a time; only the quantity's valid values are kept
-        vals = _values(src.read(index), quantity, src.kind)
-        chunks.append(vals[np.isfinite(vals)])
-    values = np.concatenate(chunks)
-    del chunks
-    if values.size == 0:
+    v = np.asarray(values, dtype=np.float64)
+    if not np.isfinite(v).any():
         raise ValueError(f"{quantity} has no valid value in the selected frames; nothing to animate")
-    _, lo, hi = colour_scale(values, signed=quantity in SIGNED)
+    _, lo, hi = colour_scale(v, signed=quantity in SIGNED)
     return float(lo), float(hi)
 
 
-def animation_limits(results, quantity: str, *, frames=None) -> tuple[float, float]:
-    """The colour range ``(vmin, vmax)`` of a movie of ``quantity`` over the selected frames: the 1st-99th
-    percentiles of every selected frame's valid values together, symmetric about zero for a signed
-    quantity whose range spans zero (:func:`dic.plots._common.colour_scale`; nearly uniform values get
-    +-1 % about their middle). Arguments as in :func:`animation_frames`."""
-    from ..store import ResultFrames
+def frame_rgb(frame, quantity: str, limits: tuple[float, float], *, index=None, image=None, dpi: float = 80,
+              alpha: float = 0.75) -> np.ndarray:
+    """One frame drawn with the colour range ``limits`` as (H, W, 3) uint8 pixels (a 5-inch map at ``dpi``).
 
-    with ResultFrames(results) as src:
-        indices = _select(src, frames)
-        _check_quantity(src, quantity)
-        return _limits(src, indices, quantity)
+    ``frame``: a 2-D frame (titled ``frame <index>``) or a Field3D (titled with its state); ``image``: the
+    (H, W) grey reference image beneath the map (the left one for stereo), or None."""
+    from .fields import _is_field3d, field3d_figure, field_figure
 
-
-def _check_fps(fps) -> float:
-    try:
-        value = float(fps)
-    except (TypeError, ValueError):
-        raise ValueError(f"fps must be a number of frames per second, got {fps!r}") from None
-    if not (np.isfinite(value) and 0 < value <= MAX_FPS):
-        raise ValueError(f"fps must be above 0 and at most {MAX_FPS:g} frames per second, got {fps!r}")
-    return value
-
-
-def write_animation(results, path, *, quantity: str, fps: float = 5.0, frames=None, image=None,
-                    dpi: float = 80, alpha: float = 0.75) -> Path:
-    """Write a movie of one quantity over the frames of a result; returns the path.
-
-    ``path`` ends in ``.mp4`` (H.264, yuv420p, through imageio-ffmpeg; frames are encoded as they are
-    drawn) or ``.gif`` (Pillow, looping; Pillow holds the frames until the file is closed). ``fps``:
-    frames per second (above 0, at most :data:`MAX_FPS`). The other arguments are those of
-    :func:`animation_frames`. The movie is written to a hidden temporary file in the same folder and
-    renamed into place when complete: a failed or interrupted run leaves no file under ``path``.
-    """
-    p = Path(os.fspath(path))
-    suffix = p.suffix.lower()
-    if suffix not in ANIMATION_SUFFIXES:
-        raise ValueError(f"the movie file must end in {' or '.join(ANIMATION_SUFFIXES)}, got {p.name!r}")
-    rate = _check_fps(fps)
-    if p.is_dir():
-        raise ValueError(f"{p} is a folder; give the movie's file name")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.stem}.partial-{os.getpid()}{p.suffix}")
-    stream = animation_frames(results, quantity, frames=frames, image=image, dpi=dpi, alpha=alpha)
-    try:
-        first = next(stream)  # input errors are raised before any file is created
-        if suffix == ".mp4":
-            import imageio.v2 as iio2
-
-            writer = iio2.get_writer(tmp, format="FFMPEG", mode="I", fps=rate, codec="libx264", quality=8,
-                                     pixelformat="yuv420p", macro_block_size=_MACRO_BLOCK, ffmpeg_log_level="error")
-            try:
-                for _, rgb in _chain(first, stream):
-                    writer.append_data(rgb)
-            finally:
-                writer.close()
-        else:
-            import imageio.v3 as iio
-
-            with iio.imopen(tmp, "w", plugin="pillow", extension=".gif") as writer:
-                for _, rgb in _chain(first, stream):
-                    writer.write(rgb, is_batch=False, duration=1000.0 / rate, loop=0)
-        os.replace(tmp, p)
-    except BaseException:
-        stream.close()
-        tmp.unlink(missing_ok=True)
-        raise
-    return p
-
-
-def _chain(first, rest):
-    yield first
-    yield from rest
+    lo, hi = limits
+    if _is_field3d(frame):
+        fig = field3d_figure(frame, quantity, image, vmin=lo, vmax=hi, alpha=alpha, dpi=dpi)
+    else:
+        fig = field_figure(image, frame, getattr(frame, "strain", None), components=[quantity],
+                           limits={quantity: (lo, hi)}, title=None if index is None else f"frame {index}",
+                           alpha=alpha, dpi=dpi, panel_size=5.0)
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
