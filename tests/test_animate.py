@@ -114,6 +114,7 @@ def test_animate_writes_mp4_and_gif_with_one_frame_per_result_frame(results2d, r
     props = iio.improps(tmp_path / "w.gif", index=None)
     assert props.n_images == 2 and props.shape[1] % 16 == 0 and props.shape[2] % 16 == 0
     assert sorted(p.name for p in tmp_path.iterdir() if p.suffix in (".mp4", ".gif")) == ["exx.mp4", "w.gif"]
+    assert "animate" in run(["--help"]).output
 
 
 def test_one_colour_range_for_the_whole_movie(results2d):
@@ -143,6 +144,26 @@ def test_one_colour_range_for_the_whole_movie(results2d):
             fig.canvas.draw()
             own.append(np.asarray(fig.canvas.buffer_rgba())[..., :3])
     assert not np.array_equal(own[0][bar], own[1][bar])
+
+
+def test_a_signed_range_that_spans_zero_is_symmetric_and_frames_are_read_one_at_a_time(results3d, monkeypatch):
+    from dic.animate import animation_frames, animation_limits
+    from dic.plots._common import LIMIT_PERCENTILES
+    from dic.store import ResultFrames
+
+    w_all = np.concatenate([field3d(k).W[field3d(k).valid] for k in range(N_STATES)])
+    p1, p99 = np.percentile(w_all, LIMIT_PERCENTILES)
+    assert p1 < 0 < p99
+    m = max(abs(p1), abs(p99))
+    assert animation_limits(results3d, "W") == pytest.approx((-m, m), rel=1e-12)
+
+    reads = []
+    real = ResultFrames.read
+    monkeypatch.setattr(ResultFrames, "read", lambda self, i: reads.append(i) or real(self, i))
+    stream = animation_frames(results3d, "W", frames=[1, 2])
+    assert next(stream)[0] == 1
+    assert reads[-3:] == [1, 2, 1]  # the colour range (states 1, 2), then only the first picture so far
+    assert [i for i, _ in stream] == [2] and reads[-1] == 2
 
 
 def test_the_reference_image_is_drawn_beneath_the_maps(results3d, tmp_path):
