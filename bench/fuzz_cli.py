@@ -42,7 +42,7 @@ import click
 import numpy as np
 
 #: verbs whose valid command line is cheap enough to run when a malformed value is accepted
-CHEAP = {"track", "stereo", "strain", "extensometer", "history", "profile", "export", "speckle", "target fringes",
+CHEAP = {"track", "stereo", "strain", "extensometer", "history", "profile", "export", "animate", "speckle", "target fringes",
          "target checkerboard", "target circles", "lab render", "lab paper-rig"}
 INT_VALUES = ["", " ", "nan", "abc", "-1", "0", "1e300", str(2 ** 70), "3.5"]
 FLOAT_VALUES = ["", " ", "nan", "inf", "-inf", "abc", "-1", "0", "1e300", "-1e300"]
@@ -115,6 +115,7 @@ def baselines(p: dict) -> dict[str, list[str]]:
         "history": ["history", p["results"], "--point", "30,24"],
         "profile": ["profile", p["results"], "--from", "15,24", "--to", "45,24"],
         "export": ["export", p["results"], "-f", "csv", "-o", "{out}"],
+        "animate": ["animate", p["results"], "-Q", "u", "-o", "{out}.gif", "--dpi", "20", "-q"],
         "speckle": ["speckle", p["ref"], "--step", "16", "--device", "cpu"],
         "target fringes": ["target", "fringes", "-o", "{out}", "--screen", "320x240", "--grid", "4x2", "--pitch", "60",
                            "--steps", "3"],
@@ -214,7 +215,7 @@ def damaged_cases(paths: dict, folder: str, mutants: int, rng: random.Random) ->
              ("ref_png", ["speckle"], lambda d: mutate_image(d, rng, "ref.png")),
              ("rig", ["stereo"], lambda d: mutate_json(d, rng)),
              ("scene", ["lab render"], lambda d: mutate_bytes(d, rng)),
-             ("results", ["strain", "history", "profile", "export", "extensometer"], lambda d: _damage_h5(d, rng))]
+             ("results", ["strain", "history", "profile", "export", "extensometer", "animate"], lambda d: _damage_h5(d, rng))]
     out = []
     for key, verbs, mutate in kinds:
         data = open(paths[key], "rb").read()

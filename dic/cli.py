@@ -23,7 +23,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "extensometer": ("dic.commands.postprocess:extensometer", "Virtual extensometer: gauge length and strain per frame"),
     "history": ("dic.commands.postprocess:history", "A quantity at one point over the frames"),
     "profile": ("dic.commands.postprocess:profile", "A quantity along a line, per frame"),
-    "export": ("dic.commands.export:export", "Export a result file as CSV, MATLAB, netCDF or VTK (ParaView)"),
+    "export": ("dic.commands.export:export", "Export a result file as CSV, MATLAB, netCDF, VTK (ParaView) or PLY point clouds"),
+    "animate": ("dic.commands.animate:animate", "A movie (MP4, GIF) of one quantity over the frames of a result file"),
     "speckle": ("dic.commands.speckle:speckle", "Speckle quality (MIG, SSSIG) and a subset size for a target uncertainty"),
     "repair": ("dic.commands.repair:repair", "Drop the damaged frames of a result file so that a rerun recomputes them"),
 }

@@ -1,4 +1,4 @@
-"""Exports of DIC results that other tools open: CSV, MATLAB, netCDF/xarray and VTK (ParaView).
+"""Exports of DIC results that other tools open: CSV, MATLAB, netCDF/xarray, VTK (ParaView) and PLY.
 
 Every export is written by the library that owns the format and starts from the one table of
 :mod:`dic.tabular` (same names and units everywhere; docs/exports.md):
@@ -22,6 +22,8 @@ Every export is written by the library that owns the format and starts from the 
 * :func:`write_vtk_series` — a sequence (2-D or 3-D) as one ``.vtu`` per frame plus a ParaView
   collection (``.pvd``): **the same points and cells at every time step**, NaN where a point is
   invalid in that step, so ParaView's filters and probes follow each point through the sequence;
+* :func:`write_ply` — stereo states as PLY point clouds (x, y, z and U, V, W in mm, valid), one file
+  per state;
 * :func:`export_results` — any of these from a result file (``specula export``).
 
 PNG maps of the same fields are drawn by :mod:`dic.plots.fields`.
@@ -49,11 +51,12 @@ from .store import FrameResult, ResultFrames, ResultReader, StereoResults, Track
 from .store.files import atomic_output, output_lock
 
 __all__ = ["write_vtk", "write_vtk_series", "write_pvd", "write_csv", "write_mat", "write_netcdf", "to_xarray", "to_dataframe",
-           "read_any", "export_results", "restore_vtk_files", "vtk_file_complete", "EXPORT_FORMATS", "NETCDF_ENGINE",
+           "read_any", "export_results", "restore_vtk_files", "vtk_file_complete", "write_ply", "PLY_PROPERTIES",
+           "EXPORT_FORMATS", "NETCDF_ENGINE",
            "MAT_MAX_BYTES"]
 
 #: formats of :func:`export_results` (``specula export --format``)
-EXPORT_FORMATS = ("csv", "mat", "netcdf", "vtk")
+EXPORT_FORMATS = ("csv", "mat", "netcdf", "vtk", "ply")
 #: the xarray engine of :func:`write_netcdf` (netCDF-4 on h5py, which Specula already uses)
 NETCDF_ENGINE = "h5netcdf"
 #: points per HDF5 chunk of a (frame, point) netCDF variable (one frame per chunk; 8 MiB of float64)
@@ -678,7 +681,9 @@ def export_results(source, fmt: str, out, *, kind: str = "grid", deformed: bool 
 
     ``csv``: one file per frame in the folder ``out``; ``mat``: the file ``out`` (``.mat``);
     ``netcdf``: the file ``out`` (``.nc``); ``vtk``: a series (``.vtu`` per frame + ``.pvd``) in the
-    folder ``out`` (``kind``, ``deformed`` as in :func:`write_vtk_series`).
+    folder ``out`` (``kind``, ``deformed`` as in :func:`write_vtk_series`); ``ply`` (stereo only): one
+    ``.ply`` point cloud per state in the folder ``out`` (:func:`write_ply`, valid points only, ``deformed``
+    as there).
     """
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
@@ -696,8 +701,107 @@ def export_results(source, fmt: str, out, *, kind: str = "grid", deformed: bool 
         return [write_mat(source, out)]
     if fmt == "netcdf":
         return [write_netcdf(source, out)]
+    if fmt == "ply":
+        return write_ply(source, out, deformed=deformed)
     with ResultFrames(source) as frames:  # read one frame at a time, twice (the point set, then the files)
         if not frames.indices:
             raise ValueError("the result file has no finished frame to export")
     pvd = write_vtk_series(source, out, kind=kind, deformed=deformed)
     return sorted(pvd.parent.glob(f"{pvd.stem}_*.vtu")) + [pvd]
+
+
+# ------------------------------------------------------------------------------------------------
+# PLY point clouds (stereo)
+
+#: vertex properties of :func:`write_ply`: (name, PLY type, numpy little-endian type)
+PLY_PROPERTIES = (("x", "double", "<f8"), ("y", "double", "<f8"), ("z", "double", "<f8"),
+                  ("U", "double", "<f8"), ("V", "double", "<f8"), ("W", "double", "<f8"),
+                  ("valid", "uchar", "u1"), ("point", "int", "<i4"))
+
+
+def _ply_vertices(f: Field3D, *, invalid: str, deformed: bool) -> np.ndarray:
+    """The vertex table of one state: a structured array with the fields of :data:`PLY_PROPERTIES`."""
+    has_position = np.all(np.isfinite(f.xyz), axis=1)
+    valid = f.valid & has_position
+    keep = valid if invalid == "drop" else has_position
+    xyz = f.xyz_current if deformed else f.xyz
+    if deformed and invalid == "nan":  # an invalid point keeps its reference position (it has no current one)
+        xyz = np.where(valid[:, None], xyz, f.xyz)
+    uvw = np.where(valid[:, None], f.uvw, np.nan)
+    table = np.empty(int(np.count_nonzero(keep)), dtype=[(name, np_type) for name, _, np_type in PLY_PROPERTIES])
+    for j, name in enumerate("xyz"):
+        table[name] = xyz[keep, j]
+    for j, name in enumerate("UVW"):
+        table[name] = uvw[keep, j]
+    table["valid"] = valid[keep]
+    table["point"] = np.flatnonzero(keep)
+    return table
+
+
+def _ply_bytes(f: Field3D, table: np.ndarray, *, binary: bool) -> bytes:
+    head = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
+            "comment Specula stereo state " + str(int(f.index) if f.index is not None else 0),
+            f"comment x y z U V W in mm, {f.frame_name} frame; point: index in the result's point grid",
+            f"element vertex {len(table)}"]
+    head += [f"property {ply_type} {name}" for name, ply_type, _ in PLY_PROPERTIES]
+    head.append("end_header")
+    header = ("\n".join(head) + "\n").encode("ascii")
+    if binary:
+        return header + table.tobytes()
+    columns = [np.char.mod("%.17g" if np_type == "<f8" else "%d", table[name]) for name, _, np_type in PLY_PROPERTIES]
+    rows = "".join(" ".join(row) + "\n" for row in zip(*columns)) if len(table) else ""
+    return header + rows.encode("ascii")
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)  # a reader never sees half a file
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_ply(source, out, *, binary: bool = True, invalid: str = "drop", deformed: bool = False,
+              stem: str = "stereo") -> list[Path]:
+    """Write stereo states as PLY point clouds (MeshLab, CloudCompare, Open3D, ParaView); returns the paths.
+
+    ``source``: a :class:`~dic.field3d.Field3D` (``out`` is the ``.ply`` file) or a stereo result
+    (file path or :class:`~dic.store.StereoResults`; ``out`` is a folder that receives
+    ``<stem>_<state:06d>.ply`` per finished state, read one state at a time).
+
+    Each vertex has ``x``, ``y``, ``z`` (double, mm, the field's frame: the reference position, or
+    reference + displacement with ``deformed=True``), the displacement ``U``, ``V``, ``W`` (double, mm),
+    ``valid`` (uchar, 1 where the point's status is OK) and ``point`` (int, the point's index in the
+    result's point grid, to join with the other exports). ``invalid="drop"`` (default) writes the valid
+    points only; ``invalid="nan"`` every point that has a reference position, with NaN displacements and
+    ``valid`` 0 where the state failed (it stays at its reference position). Points without a reference
+    position (the reference stereo match failed) are never written. ``binary``: binary little-endian
+    (default) or ASCII. Each file is written under a temporary name and renamed into place.
+    """
+    if invalid not in ("drop", "nan"):
+        raise ValueError(f"invalid must be 'drop' or 'nan', got {invalid!r}")
+    out = Path(os.fspath(out))
+    if isinstance(source, Field3D):
+        p = _out_path(out, (".ply",), "PLY")
+        _write_atomic(p, _ply_bytes(source, _ply_vertices(source, invalid=invalid, deformed=deformed), binary=binary))
+        return [p]
+    if isinstance(source, (Field2D, FrameResult, TrackResults)):
+        raise ValueError("PLY export is for stereo results (3-D points); a 2-D result has no z: use csv, vtk or netcdf")
+    stem = _check_stem(stem)
+    written = []
+    with ResultFrames(source) as frames:
+        if frames.kind != "stereo":
+            raise ValueError("PLY export is for stereo result files (3-D points); a 2-D result has no z: use "
+                             "--format csv, vtk or netcdf")
+        if not frames.indices:
+            raise ValueError("the result file has no finished state to export")
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"a PLY export of a result file is a folder of files, but {out} is a file")
+        out.mkdir(parents=True, exist_ok=True)
+        for index, f in frames:
+            p = out / f"{stem}_{int(index):06d}.ply"
+            _write_atomic(p, _ply_bytes(f, _ply_vertices(f, invalid=invalid, deformed=deformed), binary=binary))
+            written.append(p)
+    return written

@@ -314,7 +314,7 @@ def test_cli_export_errors_are_one_line(results2d, tmp_path):
     bad = [
         ([str(tmp_path / "nope.h5"), "-f", "csv", "-o", str(tmp_path / "o")], 1, "result file not found"),
         ([str(results2d), "-f", "mat", "-o", str(tmp_path / "o.txt")], 1, "ending in .mat"),
-        ([str(results2d), "-f", "csv", "-o", str(tmp_path / "o"), "--deformed"], 2, "apply to --format vtk only"),
+        ([str(results2d), "-f", "csv", "-o", str(tmp_path / "o"), "--deformed"], 2, "--deformed applies to --format vtk and ply only"),
         ([str(results2d), "-f", "xlsx", "-o", str(tmp_path / "o")], 2, "Invalid value"),
     ]
     (tmp_path / "notes.h5").write_text("not hdf5")

@@ -9,6 +9,8 @@
 * :mod:`dic.plots.lab` — the layout of a virtual-lab scene (:func:`plot_layout`).
 * :mod:`dic.plots.postprocess` — virtual extensometers, point histories and line profiles
   (:func:`extensometer_figure`, :func:`history_figure`, :func:`profile_figure` and their ``write_*``).
+* :mod:`dic.plots.animate` — the pictures of a movie (:mod:`dic.animate`): one frame as RGB pixels with a
+  given colour range (:func:`frame_rgb`, :func:`movie_limits`, :func:`frame_values`, :func:`frame_quantities`).
 * :mod:`dic.plots._common` — shared plumbing: figures on their own Agg canvas (no pyplot, no global
   backend change), colour limits, saving.
 
@@ -32,6 +34,7 @@ _EXPORTS = {
     "extensometer_figure": "postprocess", "write_extensometer_figure": "postprocess",
     "history_figure": "postprocess", "write_history_figure": "postprocess",
     "profile_figure": "postprocess", "write_profile_figure": "postprocess",
+    "frame_quantities": "animate", "frame_values": "animate", "movie_limits": "animate", "frame_rgb": "animate",
 }
 
 __all__ = sorted(_EXPORTS)
