@@ -43,6 +43,7 @@ from kernels.checks import as_points, boolean, in_range, odd_int, positive_float
 from kernels.conventions import Status, round_half_away
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image
+from kernels.interp import FRAME_DTYPES
 
 from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
 from .correlation.engine import SOURCE_FEATURES, SOURCE_GLOBAL, SOURCE_NONE, SOURCE_PREVIOUS, Correlator, correlate
@@ -94,6 +95,16 @@ def check_rig_images(rig, shape: tuple[int, int]) -> None:
             raise ValueError(
                 f"the rig's {side} camera was calibrated for {size[0]}x{size[1]} px images but the images are "
                 f"{w}x{h} px; use the rig file made for these images (or images of the calibrated size)")
+
+
+def _frame(given, checked: np.ndarray) -> np.ndarray:
+    """The image for the device frame path: ``given`` itself when it is a NumPy array of a frame dtype (8/16-bit
+    or float32) of ``checked``'s shape (converted to float in the prefilter, no host copy), else ``checked``
+    (the float32 image :func:`_check_pair` made)."""
+    if (isinstance(given, np.ndarray) and given.shape == checked.shape
+            and given.dtype in FRAME_DTYPES):
+        return given
+    return checked
 
 
 def _check_pair(left, right, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -427,10 +438,16 @@ class StereoCorrelation:
 
     # -------------------------------------------------------------------------------------------
     def _track(self, corr: Correlator, image: np.ndarray, previous: np.ndarray | None, eligible: np.ndarray,
-               reference_image: np.ndarray, previous_image: np.ndarray | None):
+               reference_image: np.ndarray, previous_image: np.ndarray | None, frame: np.ndarray | None = None):
+        """One temporal track: the first pass over every POI on the device frame path
+        (:meth:`Correlator.run_frame`: the correlator's :class:`kernels.frames.FrameTracker`, buffers allocated
+        once per reference, ``frame`` (the image as given: 8/16-bit or float32; default ``image``) converted in
+        the prefilter), then propagation, the ``"features"`` fallback and the second opinion
+        (:func:`dic.correlation.engine.correlate`) for the POIs it did not accept, on the same prepared frame.
+        Bitwise the results of the host path (``prepare_current`` + indexed IC-GN) from the same guesses."""
         k = n_params(self.order)
         n = corr.points.shape[0]
-        current = prepare_current(image, device=self.device)
+        frame = image if frame is None else frame
         # initial guess: the previous state's parameters (or zero) plus the global integer shift
         # between the previous image (or the reference) and this one, by phase correlation. 2nd-order
         # IC-GN converges slowly from 2-3 px away on fine speckle (measured on the 5 MP benchmark: a
@@ -449,9 +466,12 @@ class StereoCorrelation:
         def fallback(idx):
             return features(ctx, idx)
 
+        first = corr.run_frame(frame, guess, name="current image")
+        current = corr.frame_current(frame.dtype)
         return correlate(corr, current, guess, has, src, eligible=eligible, zncc_min=self.zncc_min,
                          radius=self.radius, fallback=fallback, max_seeds=max(64, n),
-                         min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps, robust=self.robust)
+                         min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps, robust=self.robust,
+                         first=first)
 
     def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True, warn: bool = True) -> Field3D:
         """Track a current pair from the reference pair and return its :class:`Field3D`.
@@ -463,6 +483,7 @@ class StereoCorrelation:
         reference calls :meth:`warn_if_mostly_invalid` for the result it keeps).
         """
         L, R = _check_pair(left_cur, right_cur, "current")
+        frame_l, frame_r = _frame(left_cur, L), _frame(right_cur, R)
         if L.shape != self.shape:
             raise ValueError(f"the current images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
                              f"{self.shape[1]}x{self.shape[0]} px")
@@ -489,11 +510,11 @@ class StereoCorrelation:
                 guess_r[fresh_r] = np.nan
         self.timings = {}
         t0 = time.perf_counter()
-        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0])
+        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0], frame_l)
         self.timings["track_left_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if corr_r is not None:
-            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1])
+            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1], frame_r)
         else:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0

@@ -306,7 +306,8 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
               eligible: np.ndarray, zncc_min: float, radius: float, extra: Callable | None = None,
               fallback: Callable | None = None, max_attempts: int = 3, max_seeds: int = 64,
               max_fallback_rounds: int = 8, min_fallback: int = 1, zncc_drop: float = 0.05,
-              second_opinion: bool = True, check_warps: bool = True, robust: bool = False) -> CorrelationResult:
+              second_opinion: bool = True, check_warps: bool = True, robust: bool = False,
+              first: dict | None = None) -> CorrelationResult:
     """IC-GN of every eligible POI from the given guesses, then neighbour propagation and a fallback.
 
     Parameters
@@ -327,6 +328,12 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
     robust : refine the accepted POIs with outlier-robust IC-GN (:meth:`Correlator.refine_robust`) before
         the warp check; a refined POI stays accepted only if it still converges with a ZNCC of at least
         ``zncc_min`` and passes ``extra``.
+    first : optional host results of IC-GN over every POI from ``guess`` (``params`` (N, k), ``zncc``,
+        ``iterations``, ``status`` (N,); :meth:`Correlator.run_frame` or :meth:`Correlator.run_all`): the
+        first pass, taken at the POIs it would run (``has_guess & eligible``) instead of running them again
+        (each POI's result is bitwise what :meth:`Correlator.run` gives it from the same guess). The device
+        frame path of the stereo tracks; ``current`` is then the frame's prepared image
+        (:meth:`Correlator.frame_current`) for the later passes.
     """
     from scipy.spatial import cKDTree
 
@@ -346,7 +353,9 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
     def batch(idx: np.ndarray, g: np.ndarray, src: int) -> int:
         if idx.size == 0:
             return 0
-        r = corr.run(current, idx, g)
+        return take(idx, corr.run(current, idx, g), src)
+
+    def take(idx: np.ndarray, r: dict, src: int) -> int:
         p = r["params"].astype(np.float64)
         z = r["zncc"].astype(np.float64)
         st = r["status"].astype(np.int32)
@@ -368,7 +377,14 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         return int(np.count_nonzero((good & ext)[take]))
 
     start = np.flatnonzero(has_guess & eligible)
-    batch(start, guess[start], initial_source)
+    if first is None:
+        batch(start, guess[start], initial_source)
+    elif start.size:
+        r0 = {key: np.asarray(first[key]) for key in ("params", "zncc", "iterations", "status")}
+        if r0["params"].shape != (n, k) or any(r0[key].shape != (n,) for key in ("zncc", "iterations", "status")):
+            raise ValueError(f"first must hold the results of all {n} POIs (params ({n}, {k}), zncc, iterations, "
+                             f"status ({n},)), got params of shape {r0['params'].shape}")
+        take(start, {key: a[start] for key, a in r0.items()}, initial_source)
     fallback_tried = np.zeros(n, dtype=bool)
     for _ in range(max_fallback_rounds + 1):
         # reliability-guided propagation: POIs next to accepted ones start from their parameters
