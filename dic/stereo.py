@@ -219,6 +219,47 @@ def _warn_if_epipolar_mismatch(match: "StereoMatch", tol_px: float) -> None:
             RuntimeWarning, stacklevel=3)
 
 
+#: the reference match stops its epipolar-search fallback after this many rounds in a row that accepted no
+#: point (:func:`dic.correlation.engine.correlate`, ``max_fruitless_rounds``): what is left is out of the right
+#: view or unmatchable, and each round costs ~13 ms per seed (measured, docs/stereo.md)
+MATCH_FRUITLESS_ROUNDS = 1
+
+
+class _MatchProgress:
+    """Progress of the reference match (``StereoCorrelation(progress=...)``): a tqdm bar, a callable or nothing.
+
+    Called as ``report(stage, accepted, settled)`` (:func:`dic.correlation.engine.correlate`'s ``report``);
+    shows the POIs settled out of ``total``."""
+
+    def __init__(self, progress, total: int):
+        self.total = int(total)
+        self._bar = None
+        self._call = progress if callable(progress) else None
+        if progress is True:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=self.total, unit="POI", desc="stereo match", dynamic_ncols=True)
+
+    def __call__(self, stage: str, accepted: int, settled: int) -> None:
+        if self._bar is not None:
+            self._bar.set_postfix_str(f"{stage}, {accepted} accepted", refresh=False)
+            self._bar.update(max(0, min(settled, self.total) - self._bar.n))
+        if self._call is not None:
+            self._call(stage, int(settled), self.total)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
+def _check_progress(progress):
+    if progress is None or progress is False or progress is True or callable(progress):
+        return progress
+    raise ValueError(f"progress must be None, a bool or a callable progress(stage, done, total), "
+                     f"got {type(progress).__name__}")
+
+
 # ================================================================================================
 # the stereo correlation object
 
@@ -263,14 +304,20 @@ class StereoCorrelation:
         that changed, a glint seen by one camera only) do not bias it. Default False (docs/dic2d.md,
         "Robust correlation").
     device : None, "cpu" or "cuda:N".
+    progress : progress of the reference match (the long step of the constructor): None or False (silent),
+        True (a tqdm bar on stderr: POIs settled, the stage as its postfix), or a callable
+        ``progress(stage, done, total)`` called after each stage (``"features"``, ``"first pass"``,
+        ``"propagation"``, ``"fallback"``, ``"second opinion"``, ``"done"``) with the POIs settled so far and the
+        POIs to match (:func:`dic.correlation.engine.correlate`, ``report``).
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int = 10, roi=None, subset: int = 21,
                  order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
-                 noise_sigma: float | None = None, robust: bool = False, device=None):
+                 noise_sigma: float | None = None, robust: bool = False, device=None, progress=None):
         self.device = resolve_device(device)
+        self._progress = _check_progress(progress)
         self.robust = boolean(robust, "robust")
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.subset, self.order = check_subset_order(subset, order)
@@ -361,6 +408,8 @@ class StereoCorrelation:
         k = n_params(self.order)
         t0 = time.perf_counter()
         n = self.points.shape[0]
+        report = _MatchProgress(self._progress, int(np.count_nonzero(self.in_roi & self.left.ready)))
+        report("features", 0, 0)
 
         def epipolar_consistent(pa, pb):
             # epipolar filter on undistorted points (a looser tolerance than for the final match: SIFT
@@ -393,10 +442,14 @@ class StereoCorrelation:
 
         eligible = self.in_roi
         self.timings["features_s"] = time.perf_counter() - t0
+        report(f"features ({n_feat} matches)", 0, 0)
         t0 = time.perf_counter()
-        res = correlate(self.left, current, guess, has, SOURCE_FEATURES, eligible=eligible, zncc_min=self.zncc_min,
-                        radius=self.radius, extra=extra, fallback=fallback, check_warps=self.check_warps,
-                        robust=self.robust)
+        try:
+            res = correlate(self.left, current, guess, has, SOURCE_FEATURES, eligible=eligible, zncc_min=self.zncc_min,
+                            radius=self.radius, extra=extra, fallback=fallback, check_warps=self.check_warps,
+                            robust=self.robust, report=report, max_fruitless_rounds=MATCH_FRUITLESS_ROUNDS)
+        finally:
+            report.close()
         self.timings["match_icgn_s"] = time.perf_counter() - t0
         status = stage_status(res, eligible & self.left.ready, StereoStatus.MATCH_FAILED,
                                StereoStatus.EPIPOLAR_VIOLATION, self.zncc_min)

@@ -307,7 +307,8 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
               fallback: Callable | None = None, max_attempts: int = 3, max_seeds: int = 64,
               max_fallback_rounds: int = 8, min_fallback: int = 1, zncc_drop: float = 0.05,
               second_opinion: bool = True, check_warps: bool = True, robust: bool = False,
-              first: dict | None = None) -> CorrelationResult:
+              first: dict | None = None, report: Callable[[str, int, int], None] | None = None,
+              max_fruitless_rounds: int | None = None) -> CorrelationResult:
     """IC-GN of every eligible POI from the given guesses, then neighbour propagation and a fallback.
 
     Parameters
@@ -334,6 +335,14 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         (each POI's result is bitwise what :meth:`Correlator.run` gives it from the same guess). The device
         frame path of the stereo tracks; ``current`` is then the frame's prepared image
         (:meth:`Correlator.frame_current`) for the later passes.
+    max_fruitless_rounds : stop asking the fallback after this many rounds in a row that accepted no POI (their
+        seeds and the propagation from them); None: only ``max_fallback_rounds`` and ``min_fallback`` stop it.
+        For a costly fallback (the epipolar search of the stereo match: ~13 ms per POI) where the POIs left
+        over are out of the other view, every further round is spent in vain.
+    report : optional ``report(stage, accepted, settled)``, called after each pass (``stage``: ``"first pass"``,
+        ``"propagation"``, ``"fallback"``, ``"second opinion"``, ``"done"``) with the number of eligible POIs
+        accepted so far and of those settled (accepted, out of attempts, or tried by the fallback; all of them
+        at ``"done"``): progress of a long correlation (the stereo reference match).
     """
     from scipy.spatial import cKDTree
 
@@ -376,6 +385,12 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         accepted[t] = (good & ext)[take]
         return int(np.count_nonzero((good & ext)[take]))
 
+    def tell(stage: str) -> None:
+        if report is not None:
+            done = accepted | (attempts >= max_attempts) | (fallback_tried & (attempts > 0)) | (stage == "done")
+            report(stage, int(np.count_nonzero(accepted & eligible)), int(np.count_nonzero(done & eligible)))
+
+    fallback_tried = np.zeros(n, dtype=bool)
     start = np.flatnonzero(has_guess & eligible)
     if first is None:
         batch(start, guess[start], initial_source)
@@ -385,7 +400,8 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
             raise ValueError(f"first must hold the results of all {n} POIs (params ({n}, {k}), zncc, iterations, "
                              f"status ({n},)), got params of shape {r0['params'].shape}")
         take(start, {key: a[start] for key, a in r0.items()}, initial_source)
-    fallback_tried = np.zeros(n, dtype=bool)
+    tell("first pass")
+    fruitless, before = 0, None
     for _ in range(max_fallback_rounds + 1):
         # reliability-guided propagation: POIs next to accepted ones start from their parameters
         while True:
@@ -401,22 +417,28 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
             nb = acc[j[near]]
             g = extrapolate(params[nb], corr.points[idx] - corr.points[nb], corr.order)
             batch(idx, g, SOURCE_NEIGHBOUR)
-        if fallback is None:
+            tell("propagation")
+        if before is not None:  # the last fallback round: its seeds and the propagation from them
+            fruitless = fruitless + 1 if int(np.count_nonzero(accepted)) == before else 0
+        if fallback is None or (max_fruitless_rounds is not None and fruitless >= max_fruitless_rounds):
             break
         cand = np.flatnonzero(eligible & ~accepted & ~fallback_tried)
         if cand.size < max(1, min_fallback):
             break
         seeds = spread(corr.points, cand, max_seeds)
         fallback_tried[seeds] = True
+        before = int(np.count_nonzero(accepted))
         g, ok = fallback(seeds)
         if np.any(ok):
             batch(seeds[ok], g[ok], SOURCE_SEARCH)
             attempts[seeds[ok]] = np.minimum(attempts[seeds[ok]], max_attempts - 1)  # neighbours may still retry
+        tell("fallback")
     if second_opinion:
         idx, best = second_opinion_candidates(corr.points, zncc, accepted, radius, zncc_drop)
         if idx.size:
             g = extrapolate(params[best], corr.points[idx] - corr.points[best], corr.order)
             batch(idx, g, SOURCE_NEIGHBOUR)  # replaces a result only by an accepted one with a higher ZNCC
+            tell("second opinion")
     if robust and np.any(accepted):
         idx = np.flatnonzero(accepted)
         plain = {"params": np.nan_to_num(params).astype(np.float32), "zncc": zncc.astype(np.float32),
@@ -437,6 +459,7 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
     if check_warps:
         implausible = flag_implausible(corr, params, accepted, corr.order)
         accepted &= ~implausible
+    tell("done")
     return CorrelationResult(params, zncc, iters, status, accepted, source, extra_failed, implausible)
 
 
