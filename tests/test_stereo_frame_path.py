@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from dic.correlation.engine import SOURCE_PREVIOUS, Correlator, correlate
-from dic.synth import speckle_pair
 from dic.correlation.points import grid_points
+from dic.synth import speckle_pair
 from kernels.icgn import n_params, prepare_current
 
 FIELDS = ("params", "zncc", "iterations", "icgn_status", "accepted", "source", "extra_failed", "implausible")
