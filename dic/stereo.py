@@ -55,12 +55,12 @@ from .epipolar import epipolar_distance, epipolar_residuals, fundamental_matrix
 from .field3d import (
     Field3D,
     StereoStatus,
+    SurfaceStrainPlan,
     as_frame,
     check_grid_window,
     plane_frame,
     scattered_neighbours,
     surface_strain,
-    surface_strain_grid,
 )
 from .quality import check_noise_sigma, displacement_sigma, propagate_stereo_sigma, sigma_basis, triangulation_jacobian
 from .triangulate import TriangulationStatus, triangulate, undistort_points
@@ -380,6 +380,7 @@ class StereoCorrelation:
         self._jac_ref = None           # d(X_ref)/d(image points), for the uncertainty (dic.quality)
         self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
         self._moved: _TrackReference | None = None  # the temporal tracks' reference when not the reference pair
+        self._strain_plan: SurfaceStrainPlan | None = None  # grid strain: the reference positions' part, once
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
@@ -782,8 +783,12 @@ class StereoCorrelation:
         camera_center = t  # the left camera centre (origin of the left frame) in the output frame
         t0 = time.perf_counter()
         if self.grid_shape is not None:
-            strain = surface_strain_grid(xyz_ref_f, np.nan_to_num(uvw), valid, self.grid_shape, self.strain_window,
-                                         camera_center=camera_center)
+            # the reference positions' part of the fits worked out once and kept while the valid points stay
+            # the same (SurfaceStrainPlan: bit for bit surface_strain_grid)
+            if self._strain_plan is None or not np.array_equal(self._strain_plan.X, xyz_ref_f, equal_nan=True):
+                self._strain_plan = SurfaceStrainPlan(xyz_ref_f, self.grid_shape, self.strain_window,
+                                                      camera_center=camera_center)
+            strain = self._strain_plan(np.nan_to_num(uvw), valid)
         else:
             strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center)
         self.timings["strain_s"] = time.perf_counter() - t0
