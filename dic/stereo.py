@@ -14,9 +14,13 @@ Pipeline (docs/stereo.md, sections "Stereo matching" and "3-D fields"):
    neither from a ZNCC search along their epipolar line in the right image. A match is accepted
    when IC-GN converged, its ZNCC is at least ``zncc_min`` and the matched point lies within
    ``epipolar_tol_px`` of the epipolar line; the others keep a :class:`StereoStatus` saying why.
+   The epipolar search stops after a round that accepted nothing (:data:`MATCH_FRUITLESS_ROUNDS`);
+   ``progress=`` reports the match's stages (a tqdm bar or a callback).
 2. **Temporal tracking.** Each later state is tracked left-reference -> left-current and
    right-reference -> right-current (reference subsets precomputed once, the previous state's
-   parameters as initial guess, features and propagation for POIs that fail). The tracks may start
+   parameters as initial guess, the first IC-GN pass on the device frame path of
+   :class:`kernels.frames.FrameTracker` with its buffers allocated once per reference, features and
+   propagation for POIs that fail). The tracks may start
    from a later state's pair instead (:meth:`StereoCorrelation.move_reference`, the reference
    strategies of :func:`dic.sequence.stereo_sequence`); their results are composed back onto the
    reference pair, so every state stays relative to the reference state (Lagrangian), and points
