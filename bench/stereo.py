@@ -99,7 +99,8 @@ def _warm_up(rig, images, device):
 
     small = StereoRig(replace(rig.left, size=(0, 0)), replace(rig.right, size=(0, 0)), rig.R_right_left,
                       rig.t_right_left)
-    crop = (slice(800, 1120), slice(1000, 1400))
+    h, w = images[0][0].shape[:2]
+    crop = (slice(h // 2 - 160, h // 2 + 160), slice(w // 2 - 200, w // 2 + 200))
     with warnings.catch_warnings():
         # the crop does not fit the rig (its principal point moved): a compile-only run, nothing need match
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -209,5 +210,206 @@ def main(argv=None):
         print(f"wrote {path}")
 
 
+# ================================================================================================
+# the stereo state rate and the reference-match rate as ratios to the 2-D one-frame rate (issue 23), and a
+# 1920x1200 sequence end to end. These run on any Specula version with StereoCorrelation, Tracker, ResultWriter
+# and stereo_sequence (run as a script with PYTHONPATH=<old checkout> for the "before" figures).
+
+RATE_SIZE = (1024, 1024)
+E2E_SIZE = (1920, 1200)
+
+
+def _lab_pairs(size, states, plane_mm, cache, samples, tag):
+    """A toed-in 16 mm / 7.4 um stereo pair (baseline 300 mm, 1 m) of a speckled plane translated per state.
+
+    Returns ``(rig, pairs, files, specimen_box)``: image arrays, their PNG files in ``cache`` and the inclusive
+    box ``(x0, y0, x1, y1)`` px of the specimen in the left image (5 px inside its projected corners)."""
+    from dataclasses import replace
+
+    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+    from dic.synth import make_speckle
+
+    cams = [LabCamera.from_lens(name=name, size=size, focal_length_mm=16.0, f_number=float("inf"),
+                                focus_distance_mm=1000.0, position=(x, 0.0, 0.0), look_at_point=(0.0, 0.0, 1000.0),
+                                exposure_dn=200.0, bit_depth=8)
+            for name, x in (("left", -150.0), ("right", 150.0))]
+    w_mm, h_mm = plane_mm
+    speckle = make_speckle(region=(-5, -5, w_mm + 5, h_mm + 5), radius=0.8, density=0.5, bits=None, seed=3)
+    plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(w_mm, h_mm),
+                                speckle=speckle)
+    os.makedirs(cache, exist_ok=True)
+    pairs, files = [], []
+    for k in range(states):
+        t_local = plane.R_world_surface.T @ (k * TRANSLATION_PER_STATE_MM)
+        disp = Displacement(np.broadcast_to(t_local, (2, 2, 3)).copy(), (0.0, 0.0), (w_mm, h_mm))
+        scene = Scene(cameras=cams, planes=[replace(plane, displacement=disp)])
+        pair, names = [], []
+        for i in range(2):
+            path = os.path.join(cache, f"{tag}_{size[0]}x{size[1]}_state{k}_cam{i}_s{samples}.png")
+            if not os.path.exists(path):
+                cv2.imwrite(path, render(scene, i, samples=samples, seed=100 * k + i))
+            pair.append(cv2.imread(path, cv2.IMREAD_UNCHANGED))
+            names.append(path)
+        pairs.append(tuple(pair))
+        files.append(tuple(names))
+    rig = _rig(cams)
+    corners = np.array([[0.0, 0.0], [w_mm, 0.0], [0.0, h_mm], [w_mm, h_mm]])
+    world = plane.to_world(corners)
+    xyz = world @ cams[0].R_cam_world.T + cams[0].t_cam_world
+    uv = cams[0].camera.project(xyz)
+    box = (int(np.ceil(uv[:, 0].min())) + 5, int(np.ceil(uv[:, 1].min())) + 5,
+           int(np.floor(uv[:, 0].max())) - 5, int(np.floor(uv[:, 1].max())) - 5)
+    box = (max(box[0], 0), max(box[1], 0), min(box[2], size[0] - 1), min(box[3], size[1] - 1))
+    return rig, pairs, files, box
+
+
+def _load():
+    """The 1-minute load average and the machine's core count (the figures are taken on a shared machine)."""
+    try:
+        return {"loadavg_1min": os.getloadavg()[0], "cpu_count": os.cpu_count()}
+    except OSError:
+        return {"loadavg_1min": None, "cpu_count": os.cpu_count()}
+
+
+def bench_rate(device, step, subset, states, cache, samples):
+    """Stereo state rate and reference-match rate as ratios to the one-frame 2-D rate on the same POIs.
+
+    2-D: :class:`dic.track.Tracker` on the left reference with the stereo POIs (order 2, the stereo max_iter),
+    each left image of the sequence tracked from the previous frame's field (the device frame path), one frame
+    timed = ``Tracker.track``. Stereo: the reference (``StereoCorrelation(...)``: features, match, right
+    reference, reference field; also its match stages alone), then per state ``measure`` (two tracks,
+    triangulation, acceptance, strain, uncertainty) + ``ResultWriter.write_frame`` (HDF5, fsync).
+
+    On a shared, loaded machine the load drifts within seconds, so the 2-D frames and the stereo states are
+    interleaved (2-D frame k, then stereo state k) and each state is compared with the 2-D frame next to it:
+    the ratio is the median of the per-state ratios (the reference match: against the mean of the 2-D frames
+    timed just before and just after it)."""
+    import tempfile
+
+    from dic.stereo import StereoCorrelation
+    from dic.store import ResultWriter
+    from dic.track import Tracker
+
+    rig, pairs, files, _ = _lab_pairs(RATE_SIZE, states, (500.0, 450.0), cache, samples, "rate")
+    _warm_up(rig, pairs, device)
+    load_before = _load()
+    # the 2-D tracker first (its reference preparation is not timed), on the stereo POIs: the same grid rule
+    from dic.correlation.points import grid_points
+
+    points = grid_points(pairs[0][0].shape, step, subset, None)[0]
+    tracker = Tracker(pairs[0][0], points=points, subset=subset, order=2, max_iter=50, tol=1e-3, search=None,
+                      device=device)
+    prev = tracker.track(pairs[1][0])  # warm (buffers allocated)
+
+    def frame_2d(k, guess):
+        t0 = time.perf_counter()
+        f = tracker.track(pairs[k][0], guess=guess)
+        wp.synchronize_device(device)
+        return f, time.perf_counter() - t0
+
+    _, t_before = frame_2d(1, None)
+    t0 = time.perf_counter()
+    sc = StereoCorrelation(rig, pairs[0][0], pairs[0][1], step=step, subset=subset, order=2, device=device)
+    wp.synchronize_device(device)
+    t_ref = time.perf_counter() - t0
+    _, t_after = frame_2d(1, None)
+    if not np.array_equal(sc.points, points):
+        raise RuntimeError("the 2-D and stereo POIs differ")
+    timings = dict(sc.timings)
+    n = int(len(sc.points))
+    t2d, t_states, stages = [], [], []
+    prev = None
+    with tempfile.TemporaryDirectory() as tmp:
+        writer = ResultWriter(os.path.join(tmp, "rate.h5"), kind="stereo", reference_path=files[0],
+                              reference_shape=pairs[0][0].shape, settings={"step": step}, rig=rig, mode="overwrite")
+        with writer:
+            writer.write_match(sc.match)
+            writer.write_frame(0, sc.reference, path=files[0])
+            for k in range(1, states):
+                prev, dt = frame_2d(k, prev)
+                t2d.append(dt)
+                t0 = time.perf_counter()
+                f = sc.measure(pairs[k][0], pairs[k][1], index=k)
+                writer.write_frame(k, f, path=files[k])
+                wp.synchronize_device(device)
+                t_states.append(time.perf_counter() - t0)
+                stages.append(dict(sc.timings))
+    ratios = [a / b for a, b in zip(t2d, t_states)]
+    t_2d_ref = 0.5 * (t_before + t_after)
+    match_s = timings.get("features_s", 0.0) + timings.get("match_icgn_s", 0.0)
+    return {"n_points": n, "n_valid_reference": int(np.count_nonzero(sc.reference.valid)),
+            "two_d_frame_seconds": t2d, "two_d_pois_per_s": n / float(np.median(t2d)),
+            "two_d_around_reference_s": [t_before, t_after],
+            "reference_seconds": t_ref, "reference_stages_s": timings,
+            "reference_pois_per_s": n / t_ref, "reference_ratio_to_2d": t_2d_ref / t_ref,
+            "match_seconds": match_s, "match_ratio_to_2d": t_2d_ref / match_s if match_s else None,
+            "state_seconds": t_states, "state_stages_s": stages, "state_pois_per_s": n / float(np.median(t_states)),
+            "state_ratios_to_2d": ratios, "state_ratio_to_2d": float(np.median(ratios)),
+            "load_before": load_before, "load_after": _load()}
+
+
+def bench_end_to_end(device, step, states, cache, samples):
+    """``stereo_sequence`` over ``states`` 1920x1200 pairs (PNG files) with a ``step`` px grid over the specimen."""
+    import tempfile
+
+    from dic.sequence import stereo_sequence
+
+    rig, _, files, box = _lab_pairs(E2E_SIZE, states, (400.0, 250.0), cache, samples, "e2e")
+    load_before = _load()
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        fields = stereo_sequence(rig, files, os.path.join(tmp, "e2e.h5"), step=step, roi=box, mode="overwrite",
+                                 device=device)
+        seconds = time.perf_counter() - t0
+    valid = [int(np.count_nonzero(f.valid)) for f in fields] if isinstance(fields, list) else None
+    return {"seconds": seconds, "states": states, "roi": list(box), "n_points": int(len(fields[0].points))
+            if isinstance(fields, list) else None, "n_valid": valid, "load_before": load_before, "load_after": _load()}
+
+
+def main_rates(argv=None):
+    """``python bench/stereo.py rates|e2e ...``: the figures of issue 23 (docs/stereo.md, "Throughput")."""
+    parser = argparse.ArgumentParser(description="stereo rates as ratios to the 2-D rate; end-to-end sequence")
+    parser.add_argument("what", choices=("rates", "e2e"))
+    parser.add_argument("--step", type=int, default=5)
+    parser.add_argument("--subset", type=int, default=21)
+    parser.add_argument("--states", type=int, default=None, help="pairs incl. the reference (rates 7, e2e 6)")
+    parser.add_argument("--samples", type=int, default=2, help="render samples per pixel")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--cache", default=os.path.join(RESULTS, "..", ".cache"), help="rendered images")
+    parser.add_argument("--label", default="after", help="a name for this run (before/after)")
+    parser.add_argument("--out", default=None, help="results JSON (default bench/results/stereo_<what>_<label>.json)")
+    args = parser.parse_args(argv)
+    import dic
+
+    info = {"benchmark": f"stereo_{args.what}", "label": args.label, "dic": os.path.dirname(dic.__file__),
+            "device": args.device, "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "versions": {"python": sys.version.split()[0], "warp": wp.__version__, "numpy": np.__version__},
+            "host": {"machine": platform.machine(), "cpu_count": os.cpu_count()},
+            "parameters": {"step": args.step, "subset": args.subset, "order": 2, "render_samples": args.samples}}
+    if args.what == "rates":
+        info["parameters"]["image_size"] = list(RATE_SIZE)
+        info["result"] = bench_rate(args.device, args.step, args.subset, args.states or 7, args.cache, args.samples)
+        r = info["result"]
+        print(f"{args.label}: {r['n_points']} POIs; 2-D {np.median(r['two_d_frame_seconds']):.2f} s/frame; "
+              f"state {np.median(r['state_seconds']):.2f} s = {r['state_ratio_to_2d']:.3f} x 2-D (per state "
+              f"{np.round(r['state_ratios_to_2d'], 3).tolist()}); reference "
+              f"{r['reference_seconds']:.2f} s = {r['reference_ratio_to_2d']:.3f} x 2-D (match stages "
+              f"{r['match_seconds']:.2f} s = {r['match_ratio_to_2d']:.3f} x); load {r['load_before']} -> {r['load_after']}")
+    else:
+        info["parameters"]["image_size"] = list(E2E_SIZE)
+        info["result"] = bench_end_to_end(args.device, args.step, args.states or 6, args.cache, args.samples)
+        r = info["result"]
+        print(f"{args.label}: {r['states']} pairs, {r['n_points']} POIs, end to end {r['seconds']:.1f} s; "
+              f"valid {r['n_valid']}; load {r['load_before']} -> {r['load_after']}")
+    path = args.out or os.path.join(RESULTS, f"stereo_{args.what}_{args.label}.json")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w") as fh:
+        json.dump(info, fh, indent=2)
+    print(f"wrote {path}")
+
+
 if __name__ == "__main__":
-    main()
+    if len(sys.argv) > 1 and sys.argv[1] in ("rates", "e2e"):
+        main_rates()
+    else:
+        main()

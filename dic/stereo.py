@@ -14,9 +14,13 @@ Pipeline (docs/stereo.md, sections "Stereo matching" and "3-D fields"):
    neither from a ZNCC search along their epipolar line in the right image. A match is accepted
    when IC-GN converged, its ZNCC is at least ``zncc_min`` and the matched point lies within
    ``epipolar_tol_px`` of the epipolar line; the others keep a :class:`StereoStatus` saying why.
+   The epipolar search stops after a round that accepted nothing (:data:`MATCH_FRUITLESS_ROUNDS`);
+   ``progress=`` reports the match's stages (a tqdm bar or a callback).
 2. **Temporal tracking.** Each later state is tracked left-reference -> left-current and
    right-reference -> right-current (reference subsets precomputed once, the previous state's
-   parameters as initial guess, features and propagation for POIs that fail). The tracks may start
+   parameters as initial guess, the first IC-GN pass on the device frame path of
+   :class:`kernels.frames.FrameTracker` with its buffers allocated once per reference, features and
+   propagation for POIs that fail). The tracks may start
    from a later state's pair instead (:meth:`StereoCorrelation.move_reference`, the reference
    strategies of :func:`dic.sequence.stereo_sequence`); their results are composed back onto the
    reference pair, so every state stays relative to the reference state (Lagrangian), and points
@@ -43,6 +47,7 @@ from kernels.checks import as_points, boolean, in_range, odd_int, positive_float
 from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
 from kernels.images import as_float32_image
+from kernels.interp import FRAME_DTYPES
 
 from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
 from .correlation.engine import SOURCE_FEATURES, SOURCE_GLOBAL, SOURCE_NONE, SOURCE_PREVIOUS, Correlator, correlate
@@ -55,12 +60,12 @@ from .epipolar import epipolar_distance, epipolar_residuals, fundamental_matrix
 from .field3d import (
     Field3D,
     StereoStatus,
+    SurfaceStrainPlan,
     as_frame,
     check_grid_window,
     plane_frame,
     scattered_neighbours,
     surface_strain,
-    surface_strain_grid,
 )
 from .quality import check_noise_sigma, displacement_sigma, propagate_stereo_sigma, sigma_basis, triangulation_jacobian
 from .triangulate import TriangulationStatus, triangulate, undistort_points
@@ -95,6 +100,16 @@ def check_rig_images(rig, shape: tuple[int, int]) -> None:
             raise ValueError(
                 f"the rig's {side} camera was calibrated for {size[0]}x{size[1]} px images but the images are "
                 f"{w}x{h} px; use the rig file made for these images (or images of the calibrated size)")
+
+
+def _frame(given, checked: np.ndarray) -> np.ndarray:
+    """The image for the device frame path: ``given`` itself when it is a NumPy array of a frame dtype (8/16-bit
+    or float32) of ``checked``'s shape (converted to float in the prefilter, no host copy), else ``checked``
+    (the float32 image :func:`_check_pair` made)."""
+    if (isinstance(given, np.ndarray) and given.shape == checked.shape
+            and given.dtype in FRAME_DTYPES):
+        return given
+    return checked
 
 
 def _check_pair(left, right, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -209,6 +224,47 @@ def _warn_if_epipolar_mismatch(match: "StereoMatch", tol_px: float) -> None:
             RuntimeWarning, stacklevel=3)
 
 
+#: the reference match stops its epipolar-search fallback after this many rounds in a row that accepted no
+#: point (:func:`dic.correlation.engine.correlate`, ``max_fruitless_rounds``): what is left is out of the right
+#: view or unmatchable, and each round costs ~13 ms per seed (measured, docs/stereo.md)
+MATCH_FRUITLESS_ROUNDS = 1
+
+
+class _MatchProgress:
+    """Progress of the reference match (``StereoCorrelation(progress=...)``): a tqdm bar, a callable or nothing.
+
+    Called as ``report(stage, accepted, settled)`` (:func:`dic.correlation.engine.correlate`'s ``report``);
+    shows the POIs settled out of ``total``."""
+
+    def __init__(self, progress, total: int):
+        self.total = int(total)
+        self._bar = None
+        self._call = progress if callable(progress) else None
+        if progress is True:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=self.total, unit="POI", desc="stereo match", dynamic_ncols=True)
+
+    def __call__(self, stage: str, accepted: int, settled: int) -> None:
+        if self._bar is not None:
+            self._bar.set_postfix_str(f"{stage}, {accepted} accepted", refresh=False)
+            self._bar.update(max(0, min(settled, self.total) - self._bar.n))
+        if self._call is not None:
+            self._call(stage, int(settled), self.total)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
+def _check_progress(progress):
+    if progress is None or progress is False or progress is True or callable(progress):
+        return progress
+    raise ValueError(f"progress must be None, a bool or a callable progress(stage, done, total), "
+                     f"got {type(progress).__name__}")
+
+
 # ================================================================================================
 # the stereo correlation object
 
@@ -253,14 +309,20 @@ class StereoCorrelation:
         that changed, a glint seen by one camera only) do not bias it. Default False (docs/dic2d.md,
         "Robust correlation").
     device : None, "cpu" or "cuda:N".
+    progress : progress of the reference match (the long step of the constructor): None or False (silent),
+        True (a tqdm bar on stderr: POIs settled, the stage as its postfix), or a callable
+        ``progress(stage, done, total)`` called after each stage (``"features"``, ``"first pass"``,
+        ``"propagation"``, ``"fallback"``, ``"second opinion"``, ``"done"``) with the POIs settled so far and the
+        POIs to match (:func:`dic.correlation.engine.correlate`, ``report``).
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int = 10, roi=None, subset: int = 21,
                  order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
-                 noise_sigma: float | None = None, robust: bool = False, device=None):
+                 noise_sigma: float | None = None, robust: bool = False, device=None, progress=None):
         self.device = resolve_device(device)
+        self._progress = _check_progress(progress)
         self.robust = boolean(robust, "robust")
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.subset, self.order = check_subset_order(subset, order)
@@ -323,6 +385,7 @@ class StereoCorrelation:
         self._jac_ref = None           # d(X_ref)/d(image points), for the uncertainty (dic.quality)
         self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
         self._moved: _TrackReference | None = None  # the temporal tracks' reference when not the reference pair
+        self._strain_plan: SurfaceStrainPlan | None = None  # grid strain: the reference positions' part, once
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
@@ -351,6 +414,8 @@ class StereoCorrelation:
         k = n_params(self.order)
         t0 = time.perf_counter()
         n = self.points.shape[0]
+        report = _MatchProgress(self._progress, int(np.count_nonzero(self.in_roi & self.left.ready)))
+        report("features", 0, 0)
 
         def epipolar_consistent(pa, pb):
             # epipolar filter on undistorted points (a looser tolerance than for the final match: SIFT
@@ -383,10 +448,14 @@ class StereoCorrelation:
 
         eligible = self.in_roi
         self.timings["features_s"] = time.perf_counter() - t0
+        report(f"features ({n_feat} matches)", 0, 0)
         t0 = time.perf_counter()
-        res = correlate(self.left, current, guess, has, SOURCE_FEATURES, eligible=eligible, zncc_min=self.zncc_min,
-                        radius=self.radius, extra=extra, fallback=fallback, check_warps=self.check_warps,
-                        robust=self.robust)
+        try:
+            res = correlate(self.left, current, guess, has, SOURCE_FEATURES, eligible=eligible, zncc_min=self.zncc_min,
+                            radius=self.radius, extra=extra, fallback=fallback, check_warps=self.check_warps,
+                            robust=self.robust, report=report, max_fruitless_rounds=MATCH_FRUITLESS_ROUNDS)
+        finally:
+            report.close()
         self.timings["match_icgn_s"] = time.perf_counter() - t0
         status = stage_status(res, eligible & self.left.ready, StereoStatus.MATCH_FAILED,
                                StereoStatus.EPIPOLAR_VIOLATION, self.zncc_min)
@@ -428,10 +497,16 @@ class StereoCorrelation:
 
     # -------------------------------------------------------------------------------------------
     def _track(self, corr: Correlator, image: np.ndarray, previous: np.ndarray | None, eligible: np.ndarray,
-               reference_image: np.ndarray, previous_image: np.ndarray | None):
+               reference_image: np.ndarray, previous_image: np.ndarray | None, frame: np.ndarray | None = None):
+        """One temporal track: the first pass over every POI on the device frame path
+        (:meth:`Correlator.run_frame`: the correlator's :class:`kernels.frames.FrameTracker`, buffers allocated
+        once per reference, ``frame`` (the image as given: 8/16-bit or float32; default ``image``) converted in
+        the prefilter), then propagation, the ``"features"`` fallback and the second opinion
+        (:func:`dic.correlation.engine.correlate`) for the POIs it did not accept, on the same prepared frame.
+        Bitwise the results of the host path (``prepare_current`` + indexed IC-GN) from the same guesses."""
         k = n_params(self.order)
         n = corr.points.shape[0]
-        current = prepare_current(image, device=self.device)
+        frame = image if frame is None else frame
         # initial guess: the previous state's parameters (or zero) plus the global integer shift
         # between the previous image (or the reference) and this one, by phase correlation. 2nd-order
         # IC-GN converges slowly from 2-3 px away on fine speckle (measured on the 5 MP benchmark: a
@@ -450,9 +525,12 @@ class StereoCorrelation:
         def fallback(idx):
             return features(ctx, idx)
 
+        first = corr.run_frame(frame, guess, name="current image")
+        current = corr.frame_current(frame.dtype)
         return correlate(corr, current, guess, has, src, eligible=eligible, zncc_min=self.zncc_min,
                          radius=self.radius, fallback=fallback, max_seeds=max(64, n),
-                         min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps, robust=self.robust)
+                         min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps, robust=self.robust,
+                         first=first)
 
     def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True, warn: bool = True) -> Field3D:
         """Track a current pair from the reference pair and return its :class:`Field3D`.
@@ -464,6 +542,7 @@ class StereoCorrelation:
         reference calls :meth:`warn_if_mostly_invalid` for the result it keeps).
         """
         L, R = _check_pair(left_cur, right_cur, "current")
+        frame_l, frame_r = _frame(left_cur, L), _frame(right_cur, R)
         if L.shape != self.shape:
             raise ValueError(f"the current images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
                              f"{self.shape[1]}x{self.shape[0]} px")
@@ -490,11 +569,11 @@ class StereoCorrelation:
                 guess_r[fresh_r] = np.nan
         self.timings = {}
         t0 = time.perf_counter()
-        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0])
+        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0], frame_l)
         self.timings["track_left_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if corr_r is not None:
-            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1])
+            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1], frame_r)
         else:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0
@@ -731,8 +810,12 @@ class StereoCorrelation:
         camera_center = t  # the left camera centre (origin of the left frame) in the output frame
         t0 = time.perf_counter()
         if self.grid_shape is not None:
-            strain = surface_strain_grid(xyz_ref_f, np.nan_to_num(uvw), valid, self.grid_shape, self.strain_window,
-                                         camera_center=camera_center)
+            # the reference positions' part of the fits worked out once and kept while the valid points stay
+            # the same (SurfaceStrainPlan: bit for bit surface_strain_grid)
+            if self._strain_plan is None or not np.array_equal(self._strain_plan.X, xyz_ref_f, equal_nan=True):
+                self._strain_plan = SurfaceStrainPlan(xyz_ref_f, self.grid_shape, self.strain_window,
+                                                      camera_center=camera_center)
+            strain = self._strain_plan(np.nan_to_num(uvw), valid)
         else:
             strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center)
         self.timings["strain_s"] = time.perf_counter() - t0

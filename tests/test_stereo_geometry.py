@@ -227,3 +227,29 @@ def test_grid_strain_equals_gathered_strain(rng):
         # strains ~1e-3; both are the same least-squares problem, summed in a different order
         assert np.abs(a[k][ok] - b[k][ok]).max() < 1e-10
     assert np.allclose(a["normal"][ok], b["normal"][ok], atol=1e-9)
+
+
+def test_strain_plan_over_a_sequence_is_bitwise_a_fresh_computation(rng):
+    """SurfaceStrainPlan keeps the positions' part while the valid points stay the same: every state equals
+    surface_strain_grid computed from scratch bit for bit, also after the valid points change (and back)."""
+    from dic.field3d import SurfaceStrainPlan, surface_strain_grid
+
+    ny, nx = 19, 27
+    gy, gx = np.meshgrid(np.arange(ny) * 3.0, np.arange(nx) * 3.0, indexing="ij")
+    X = np.column_stack([gx.ravel(), gy.ravel(), 900 + 0.002 * (gx.ravel() - 40) ** 2 + 0.05 * gy.ravel()])
+    X[5] = np.nan  # a point without a reference position
+    plan = SurfaceStrainPlan(X, (ny, nx), 5, camera_center=(0.0, 0.0, 0.0))
+    valid_a = rng.random(len(X)) > 0.1
+    valid_b = valid_a.copy()
+    valid_b[40:60] = False
+    for k, valid in enumerate((valid_a, valid_a, valid_b, valid_a, valid_a)):
+        U = np.column_stack([1e-3 * k * X[:, 0], -2e-3 * X[:, 1], 0.01 * np.sin(X[:, 0] / 20)])
+        U += rng.normal(0, 1e-3, U.shape)
+        got = plan(U, valid)
+        fresh = surface_strain_grid(X, U, valid, (ny, nx), 5)
+        for name in ("exx", "eyy", "exy", "normal", "strain_valid"):
+            assert np.array_equal(got[name], fresh[name], equal_nan=name != "strain_valid"), (k, name)
+        assert got["strain_valid"].sum() > 0.7 * valid.sum()
+    assert plan.reused == 2  # states 1 and 4 (same valid points as the state before)
+    with pytest.raises(ValueError, match=r"must be \(ny\*nx, 3\)"):
+        plan(U[:-1], valid_a)

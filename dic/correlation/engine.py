@@ -306,7 +306,9 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
               eligible: np.ndarray, zncc_min: float, radius: float, extra: Callable | None = None,
               fallback: Callable | None = None, max_attempts: int = 3, max_seeds: int = 64,
               max_fallback_rounds: int = 8, min_fallback: int = 1, zncc_drop: float = 0.05,
-              second_opinion: bool = True, check_warps: bool = True, robust: bool = False) -> CorrelationResult:
+              second_opinion: bool = True, check_warps: bool = True, robust: bool = False,
+              first: dict | None = None, report: Callable[[str, int, int], None] | None = None,
+              max_fruitless_rounds: int | None = None) -> CorrelationResult:
     """IC-GN of every eligible POI from the given guesses, then neighbour propagation and a fallback.
 
     Parameters
@@ -327,6 +329,20 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
     robust : refine the accepted POIs with outlier-robust IC-GN (:meth:`Correlator.refine_robust`) before
         the warp check; a refined POI stays accepted only if it still converges with a ZNCC of at least
         ``zncc_min`` and passes ``extra``.
+    first : optional host results of IC-GN over every POI from ``guess`` (``params`` (N, k), ``zncc``,
+        ``iterations``, ``status`` (N,); :meth:`Correlator.run_frame` or :meth:`Correlator.run_all`): the
+        first pass, taken at the POIs it would run (``has_guess & eligible``) instead of running them again
+        (each POI's result is bitwise what :meth:`Correlator.run` gives it from the same guess). The device
+        frame path of the stereo tracks; ``current`` is then the frame's prepared image
+        (:meth:`Correlator.frame_current`) for the later passes.
+    max_fruitless_rounds : stop asking the fallback after this many rounds in a row that accepted no POI (their
+        seeds and the propagation from them); None: only ``max_fallback_rounds`` and ``min_fallback`` stop it.
+        For a costly fallback (the epipolar search of the stereo match: ~13 ms per POI) where the POIs left
+        over are out of the other view, every further round is spent in vain.
+    report : optional ``report(stage, accepted, settled)``, called after each pass (``stage``: ``"first pass"``,
+        ``"propagation"``, ``"fallback"``, ``"second opinion"``, ``"done"``) with the number of eligible POIs
+        accepted so far and of those settled (accepted, out of attempts, or tried by the fallback; all of them
+        at ``"done"``): progress of a long correlation (the stereo reference match).
     """
     from scipy.spatial import cKDTree
 
@@ -346,7 +362,9 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
     def batch(idx: np.ndarray, g: np.ndarray, src: int) -> int:
         if idx.size == 0:
             return 0
-        r = corr.run(current, idx, g)
+        return take(idx, corr.run(current, idx, g), src)
+
+    def take(idx: np.ndarray, r: dict, src: int) -> int:
         p = r["params"].astype(np.float64)
         z = r["zncc"].astype(np.float64)
         st = r["status"].astype(np.int32)
@@ -367,9 +385,23 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         accepted[t] = (good & ext)[take]
         return int(np.count_nonzero((good & ext)[take]))
 
-    start = np.flatnonzero(has_guess & eligible)
-    batch(start, guess[start], initial_source)
+    def tell(stage: str) -> None:
+        if report is not None:
+            done = accepted | (attempts >= max_attempts) | (fallback_tried & (attempts > 0)) | (stage == "done")
+            report(stage, int(np.count_nonzero(accepted & eligible)), int(np.count_nonzero(done & eligible)))
+
     fallback_tried = np.zeros(n, dtype=bool)
+    start = np.flatnonzero(has_guess & eligible)
+    if first is None:
+        batch(start, guess[start], initial_source)
+    elif start.size:
+        r0 = {key: np.asarray(first[key]) for key in ("params", "zncc", "iterations", "status")}
+        if r0["params"].shape != (n, k) or any(r0[key].shape != (n,) for key in ("zncc", "iterations", "status")):
+            raise ValueError(f"first must hold the results of all {n} POIs (params ({n}, {k}), zncc, iterations, "
+                             f"status ({n},)), got params of shape {r0['params'].shape}")
+        take(start, {key: a[start] for key, a in r0.items()}, initial_source)
+    tell("first pass")
+    fruitless, before = 0, None
     for _ in range(max_fallback_rounds + 1):
         # reliability-guided propagation: POIs next to accepted ones start from their parameters
         while True:
@@ -385,22 +417,28 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
             nb = acc[j[near]]
             g = extrapolate(params[nb], corr.points[idx] - corr.points[nb], corr.order)
             batch(idx, g, SOURCE_NEIGHBOUR)
-        if fallback is None:
+            tell("propagation")
+        if before is not None:  # the last fallback round: its seeds and the propagation from them
+            fruitless = fruitless + 1 if int(np.count_nonzero(accepted)) == before else 0
+        if fallback is None or (max_fruitless_rounds is not None and fruitless >= max_fruitless_rounds):
             break
         cand = np.flatnonzero(eligible & ~accepted & ~fallback_tried)
         if cand.size < max(1, min_fallback):
             break
         seeds = spread(corr.points, cand, max_seeds)
         fallback_tried[seeds] = True
+        before = int(np.count_nonzero(accepted))
         g, ok = fallback(seeds)
         if np.any(ok):
             batch(seeds[ok], g[ok], SOURCE_SEARCH)
             attempts[seeds[ok]] = np.minimum(attempts[seeds[ok]], max_attempts - 1)  # neighbours may still retry
+        tell("fallback")
     if second_opinion:
         idx, best = second_opinion_candidates(corr.points, zncc, accepted, radius, zncc_drop)
         if idx.size:
             g = extrapolate(params[best], corr.points[idx] - corr.points[best], corr.order)
             batch(idx, g, SOURCE_NEIGHBOUR)  # replaces a result only by an accepted one with a higher ZNCC
+            tell("second opinion")
     if robust and np.any(accepted):
         idx = np.flatnonzero(accepted)
         plain = {"params": np.nan_to_num(params).astype(np.float32), "zncc": zncc.astype(np.float32),
@@ -421,6 +459,7 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
     if check_warps:
         implausible = flag_implausible(corr, params, accepted, corr.order)
         accepted &= ~implausible
+    tell("done")
     return CorrelationResult(params, zncc, iters, status, accepted, source, extra_failed, implausible)
 
 

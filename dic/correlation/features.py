@@ -71,7 +71,7 @@ def feature_matches(image_a, image_b, *, max_features: int = 20000, ratio: float
     """
     a = _to_uint8(_image(image_a, "image_a"))
     b = _to_uint8(_image(image_b, "image_b"))
-    scale = max(1, int(np.sqrt(max(a.size, b.size) / float(max_pixels))))
+    scale = max(1, int(np.ceil(np.sqrt(max(a.size, b.size) / float(max_pixels)))))
     while True:
         pa, pb = _sift_matches(a, b, scale, max_features, ratio)
         if pa.shape[0] >= min_matches or scale == 1:

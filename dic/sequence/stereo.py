@@ -187,7 +187,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             writer.check_frame(0, (lp, rp), ref_digests)
         match = writer.read_match()
         t0 = time.perf_counter()
-        sc = StereoCorrelation(rig, left_ref, right_ref, match=match, device=device, **options)
+        sc = StereoCorrelation(rig, left_ref, right_ref, match=match, device=device, progress=progress, **options)
         if match is None:
             writer.write_match(sc.match)
         vtk_written: set[int] = set()  # states with a VTK file of this run or of the run before (resuming)
