@@ -8,13 +8,12 @@ import pandas as pd
 import pytest
 import scipy.io
 import xarray as xr
+from test_export_formats import NX, NY, field2d, field3d
 
 from dic.export import write_csv, write_mat, write_netcdf, write_vtk, write_vtk_series
 from dic.field3d import Field3D
 from dic.store import ResultWriter, read_results, read_stereo
 from dic.tabular import SIGMA_3D, UNITS
-
-from test_export_formats import NX, NY, field2d, field3d
 
 SIGMA_2D = ("sigma_u", "sigma_v")
 
