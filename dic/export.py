@@ -17,8 +17,10 @@ Every export is written by the library that owns the format and starts from the 
   writes every point that has a position, with NaN data where it is invalid. 3-D fields: positions
   in mm in the field's frame (``deformed=True``: reference + displacement), every per-point field
   as point data (``displacement``, ``normal`` as 3-vectors). 2-D fields: positions ``(x, y, 0)``
-  in px, point data ``u``, ``v``, ``displacement`` (u, v, 0), ``zncc``, ``iterations``, ``status``,
-  ``valid`` and the strains when there are any;
+  in px, point data ``u``, ``v``, ``displacement`` (u, v, 0), ``sigma_u``, ``sigma_v``, ``zncc``,
+  ``iterations``, ``status``, ``valid`` and the strains when there are any (the uncertainty columns,
+  ``sigma_u``, ``sigma_v`` px or ``sigma_X`` ... ``sigma_W`` mm, are in every export, NaN where a
+  point is not valid or the field has none);
 * :func:`write_vtk_series` — a sequence (2-D or 3-D) as one ``.vtu`` per frame plus a ParaView
   collection (``.pvd``): **the same points and cells at every time step**, NaN where a point is
   invalid in that step, so ParaView's filters and probes follow each point through the sequence;
@@ -421,6 +423,7 @@ class _Geometry:
             data["normal"] = np.nan_to_num(f.normal)
             data["strain_valid"] = f.strain_valid.astype(np.uint8)
             data["status"] = f.status.astype(np.int32)
+            data.update(_sigma_data(f))  # sigma_X ... sigma_W (mm), NaN where not valid or not computed
             data["image_x"] = f.points[:, 0]
             data["image_y"] = f.points[:, 1]
             self.vectors_3d = True
@@ -445,6 +448,7 @@ class _Geometry:
             except ValueError:
                 pass
             data = {"u": u, "v": v, "displacement": np.column_stack([u, v, np.zeros(n)])}
+            data.update(_sigma_data(f))  # sigma_u, sigma_v (px), NaN where not valid or not computed
             if f.zncc is not None:  # a Field2D (a result file's frame included; arrays a file lacks are None)
                 data["zncc"] = np.asarray(f.zncc, dtype=np.float64)
             if f.iterations is not None:
@@ -461,6 +465,19 @@ class _Geometry:
             self.vectors_3d = False
         self.data = data
         self.has_position = np.all(np.isfinite(self.ref), axis=1)
+
+
+def _sigma_data(f) -> dict[str, np.ndarray]:
+    """The uncertainty columns of one field as VTK point data, as in every table (:mod:`dic.tabular`):
+    ``sigma_u``, ``sigma_v`` (px) of a 2-D field, ``sigma_X`` ... ``sigma_W`` (mm) of a Field3D."""
+    from .tabular import SIGMA_3D, columns_2d, columns_3d
+
+    if isinstance(f, Field3D):
+        cols = columns_3d(f)
+        return {name: cols[name] for name in SIGMA_3D}
+    cols = columns_2d(f.points, f.u, f.v, valid=f.valid, sigma_u=getattr(f, "sigma_u", None),
+                      sigma_v=getattr(f, "sigma_v", None))
+    return {"sigma_u": cols["sigma_u"], "sigma_v": cols["sigma_v"]}
 
 
 def _cells(geo: _Geometry, keep: np.ndarray, new_index: np.ndarray, kind: str):

@@ -110,12 +110,13 @@ class Field2D:
 
         strain = self.strain if strain is None else strain
         return columns_2d(self.points, self.u, self.v, params=self.params, order=self.order, zncc=self.zncc,
-                          iterations=self.iterations, status=self.status, valid=self.valid, strain=strain)
+                          iterations=self.iterations, status=self.status, valid=self.valid, strain=strain,
+                          sigma_u=self.sigma_u, sigma_v=self.sigma_v)
 
     def to_xarray(self, strain=None):
         """An :class:`xarray.Dataset` over ``point``: coordinates ``x``, ``y`` (px); ``u``, ``v`` (px),
-        the other shape-function parameters, ``zncc``, ``iterations``, ``status``, ``valid`` and,
-        with ``strain`` (a :class:`dic.strain.StrainField`), the strain columns; units and
+        the other shape-function parameters, ``sigma_u``, ``sigma_v`` (px; NaN where not valid or not
+        computed), ``zncc``, ``iterations``, ``status``, ``valid`` and, with ``strain`` (a :class:`dic.strain.StrainField`), the strain columns; units and
         descriptions as attributes (:mod:`dic.tabular`)."""
         from .tabular import point_dataset
 

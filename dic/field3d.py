@@ -544,7 +544,8 @@ class Field3D:
 
     def to_xarray(self):
         """An :class:`xarray.Dataset` over ``point``: coordinates ``x``, ``y`` (left reference image,
-        px) and ``X``, ``Y``, ``Z`` (mm); ``U``, ``V``, ``W`` (mm), ``exx``, ``eyy``, ``exy``,
+        px) and ``X``, ``Y``, ``Z`` (mm); ``U``, ``V``, ``W`` (mm), ``exx``, ``eyy``, ``exy``, their
+        predicted std ``sigma_X`` ... ``sigma_W`` (mm; from ``details``, NaN where not valid or not computed),
         ``normal_x|y|z``, the ZNCCs, epipolar and reprojection residuals (px), ``status``,
         ``strain_valid``, ``valid``; units and descriptions as attributes (:mod:`dic.tabular`)."""
         from .tabular import columns_3d, point_dataset
@@ -607,7 +608,10 @@ class Field3D:
         ``frame`` is ``"left"``, ``"plane"`` (best-fit plane of the valid reference points, see
         :func:`plane_frame`) or ``(R_obj_left, t_obj_left)``. Strains are frame-independent
         except for the in-plane axis ``e1`` (the new frame's x axis projected on the surface), so
-        the tensor is rotated about each point's normal into the new basis (exact).
+        the tensor is rotated about each point's normal into the new basis (exact). The predicted std
+        ``details["sigma_xyz_mm"]``, ``["sigma_uvw_mm"]`` are per axis of the old frame (their
+        covariance is not kept), so they are dropped when the axes turn (NaN ``sigma_X`` ...
+        ``sigma_W`` in the tables).
         """
         if isinstance(frame, str):
             if frame == "left":
@@ -633,9 +637,13 @@ class Field3D:
         new_exx = q11 * q11 * exx + 2 * q11 * q12 * exy + q12 * q12 * eyy
         new_eyy = q21 * q21 * exx + 2 * q21 * q22 * exy + q22 * q22 * eyy
         new_exy = q11 * q21 * exx + (q11 * q22 + q12 * q21) * exy + q12 * q22 * eyy
+        details = self.details
+        if not np.allclose(R, self.R_frame_left, rtol=0.0, atol=1e-12):
+            # only the std per axis is kept, not the covariance: it has no value along other axes
+            details = {k: v for k, v in details.items() if k not in ("sigma_xyz_mm", "sigma_uvw_mm")}
         return replace(self, X=xyz[:, 0], Y=xyz[:, 1], Z=xyz[:, 2], U=uvw[:, 0], V=uvw[:, 1], W=uvw[:, 2],
                        exx=new_exx, eyy=new_eyy, exy=new_exy, normal=n_left @ R.T,
-                       R_frame_left=R, t_frame_left=t, frame_name=name)
+                       R_frame_left=R, t_frame_left=t, frame_name=name, details=details)
 
     def _xyz_left(self) -> np.ndarray:
         return (self.xyz - self.t_frame_left) @ self.R_frame_left

@@ -159,8 +159,9 @@ def estimate_noise(image, second=None, *, flat_fraction: float = 0.1, check_moti
     return float(np.sqrt(np.pi / 2.0) * np.abs(c[sel]).mean() / 6.0)
 
 
-def hessian_inverse_uv(subsets) -> np.ndarray:
-    """(N, 2) float64 ``[(H^-1)_uu, (H^-1)_vv]`` per POI from prepared subsets (px^2 per grey level^2).
+def hessian_inverse_uv(subsets, *, cross: bool = False) -> np.ndarray:
+    """(N, 2) float64 ``[(H^-1)_uu, (H^-1)_vv]`` per POI from prepared subsets (px^2 per grey level^2);
+    ``cross=True``: (N, 3) ``[(H^-1)_uu, (H^-1)_vv, (H^-1)_uv]`` (the u-v covariance's factor).
 
     ``subsets`` is a :class:`kernels.icgn.ReferenceSubsets` (``prepare_subsets``); the values are
     read from its packed ``H^-1`` table. NaN where the subset is not ready (out of bounds, flat,
@@ -173,11 +174,12 @@ def hessian_inverse_uv(subsets) -> np.ndarray:
     k = n_params(subsets.order)
     table = subsets.refdata.numpy()
     ready = subsets.status.numpy() == int(Status.CONVERGED)
-    out = np.full((table.shape[0], 2), np.nan)
-    for j, i in enumerate((0, k // 2)):  # u, v: unscaled parameters
-        # diagonal entry i of the packed upper triangle (row-major)
-        col = refdata_columns(subsets.order).hinv + i * k - i * (i - 1) // 2
-        out[ready, j] = table[ready, col]
+    out = np.full((table.shape[0], 3 if cross else 2), np.nan)
+    # entries (row, col) of the packed upper triangle (row-major) of u (0) and v (k // 2): unscaled parameters
+    entries = ((0, 0), (k // 2, k // 2), (0, k // 2))[:out.shape[1]]
+    for j, (row, col) in enumerate(entries):
+        at = refdata_columns(subsets.order).hinv + row * k - row * (row - 1) // 2 + (col - row)
+        out[ready, j] = table[ready, at]
     return out
 
 
@@ -201,22 +203,26 @@ class SigmaBasis:
     """What the uncertainty needs from prepared subsets, read back once (:func:`sigma_basis`).
 
     hinv_uv (N, 2): ``(H^-1)_uu, (H^-1)_vv`` (NaN where not ready); fnorm (N,): ``df`` of each
-    reference subset; subset, order.
+    reference subset; subset, order; rho_uv (N,): the correlation coefficient of the u and v
+    errors, ``(H^-1)_uv / sqrt((H^-1)_uu (H^-1)_vv)`` (independent of the noise; None: taken as 0).
     """
 
     hinv_uv: np.ndarray
     fnorm: np.ndarray
     subset: int
     order: int
+    rho_uv: np.ndarray | None = None
 
 
 def sigma_basis(subsets) -> SigmaBasis:
     """Read ``diag H^-1`` of u, v and ``df`` from a :class:`kernels.icgn.ReferenceSubsets` once (one host copy)."""
     from kernels.icgn import refdata_columns
 
-    hinv = hessian_inverse_uv(subsets)
+    hinv = hessian_inverse_uv(subsets, cross=True)
     fnorm = subsets.refdata.numpy()[:, refdata_columns(subsets.order).fnorm].astype(np.float64)
-    return SigmaBasis(hinv, fnorm, subsets.subset, subsets.order)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = hinv[:, 2] / np.sqrt(hinv[:, 0] * hinv[:, 1])
+    return SigmaBasis(hinv[:, :2].copy(), fnorm, subsets.subset, subsets.order, rho_uv=rho)
 
 
 def displacement_sigma(subsets, zncc=None, valid=None, noise_sigma=None) -> tuple[np.ndarray, float, str]:
@@ -285,14 +291,17 @@ def triangulation_jacobian(triangulate, points_left, points_right, step_px: floa
 
 
 def propagate_stereo_sigma(jac_ref, sigma_match, jac_cur=None, sigma_left=None, sigma_right=None,
-                           rotation=None) -> tuple[np.ndarray, np.ndarray | None]:
+                           rotation=None, *, rho_match=None, rho_left=None,
+                           rho_right=None) -> tuple[np.ndarray, np.ndarray | None]:
     """Std (mm) of the reference positions ``X, Y, Z`` and of the displacements ``U, V, W`` of stereo DIC.
 
     The left reference POI is exact; the match puts the right reference point at ``p_r + e_m``;
     the tracks put the current points at ``p_l + d_l + e_l`` and ``p_r + e_m + d_r + e_r`` (the
     right track follows the texture at the matched point, so the match error moves with it).
     With ``A = dX/dp_left``, ``B = dX/dp_right`` (``jac`` columns 0-1 and 2-3) of the reference
-    (``ref``) and current (``cur``) state and independent (u, v) errors of std ``sigma_*`` (N, 2) px:
+    (``ref``) and current (``cur``) state and (u, v) errors of std ``sigma_*`` (N, 2) px whose u and v
+    are correlated with coefficient ``rho_*`` (N,) (:attr:`SigmaBasis.rho_uv`; None or NaN: 0),
+    ``S = [[su^2, rho su sv], [rho su sv, sv^2]]``, independent between the three correlations:
 
         Cov(X_ref) = B_ref S_m B_ref^T
         Cov(U)     = A_cur S_l A_cur^T + B_cur S_r B_cur^T + (B_cur - B_ref) S_m (B_cur - B_ref)^T
@@ -300,8 +309,16 @@ def propagate_stereo_sigma(jac_ref, sigma_match, jac_cur=None, sigma_left=None, 
     ``rotation`` (3, 3): the output frame's rotation from the left camera frame. Returns
     ``(sigma_xyz (N, 3), sigma_uvw (N, 3) or None)``; NaN where an input is NaN.
     """
-    def cov(j, s):
-        return np.einsum("nik,nk,njk->nij", j, np.asarray(s, dtype=np.float64) ** 2, j)
+    def cov(j, s, rho):
+        s = np.asarray(s, dtype=np.float64)
+        S = np.zeros(s.shape[:1] + (2, 2))
+        S[:, 0, 0], S[:, 1, 1] = s[:, 0] ** 2, s[:, 1] ** 2
+        if rho is not None:
+            r = np.nan_to_num(np.asarray(rho, dtype=np.float64), nan=0.0)
+            if r.shape != s.shape[:1]:
+                raise ValueError(f"rho must have shape {s.shape[:1]}, got {r.shape}")
+            S[:, 0, 1] = S[:, 1, 0] = r * s[:, 0] * s[:, 1]
+        return np.einsum("nik,nkl,njl->nij", j, S, j)
 
     R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
 
@@ -309,11 +326,12 @@ def propagate_stereo_sigma(jac_ref, sigma_match, jac_cur=None, sigma_left=None, 
         return np.sqrt(np.einsum("ik,nkl,il->ni", R, c, R))
 
     b_ref = jac_ref[:, :, 2:]
-    xyz = sigma(cov(b_ref, sigma_match))
+    xyz = sigma(cov(b_ref, sigma_match, rho_match))
     if jac_cur is None:
         return xyz, None
     b_cur = jac_cur[:, :, 2:]
-    c = cov(jac_cur[:, :, :2], sigma_left) + cov(b_cur, sigma_right) + cov(b_cur - b_ref, sigma_match)
+    c = (cov(jac_cur[:, :, :2], sigma_left, rho_left) + cov(b_cur, sigma_right, rho_right)
+         + cov(b_cur - b_ref, sigma_match, rho_match))
     return xyz, sigma(c)
 
 

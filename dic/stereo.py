@@ -696,15 +696,20 @@ class StereoCorrelation:
         sig_m, noise_m, _ = displacement_sigma(self._basis["left"], m.zncc, m.valid, self.noise_sigma)
         sig_l = np.full((n, 2), np.nan)
         sig_r = np.full((n, 2), np.nan)
+        rho_r = np.zeros(n)  # u-v correlation of each stage's error (dic.quality.SigmaBasis.rho_uv)
+        rho_l = None
         noise_l = noise_r = np.nan
         if tracks is not None:
             tl, tr = tracks
             mv = self._moved
             basis = self._basis if mv is None else mv.basis()
             sig_l, noise_l, _ = displacement_sigma(basis["left"], tl.zncc, tl.accepted, self.noise_sigma)
+            rho_l = basis["left"].rho_uv
             if tr is not None:
                 sr, noise_r, _ = displacement_sigma(basis["right"], tr.zncc, tr.accepted, self.noise_sigma)
                 sig_r[self._matched] = sr
+                if basis["right"].rho_uv is not None:
+                    rho_r[self._matched] = basis["right"].rho_uv
             if mv is not None:  # the moved reference's own uncertainty adds in quadrature
                 sig_l, sig_r = mv.add_sigma(sig_l, sig_r)
         if self._jac_ref is None:
@@ -714,7 +719,8 @@ class StereoCorrelation:
         if tracks is not None:
             use = np.where(valid[:, None], 1.0, np.nan)
             jac_cur = triangulation_jacobian(self._tri_points, pl_cur * use, pr_cur * use)
-        sig_xyz, sig_uvw = propagate_stereo_sigma(self._jac_ref, sig_m, jac_cur, sig_l, sig_r, rotation=R)
+        sig_xyz, sig_uvw = propagate_stereo_sigma(self._jac_ref, sig_m, jac_cur, sig_l, sig_r, rotation=R,
+                                                  rho_match=self._basis["left"].rho_uv, rho_left=rho_l, rho_right=rho_r)
         if sig_uvw is None:
             sig_uvw = np.full((n, 3), np.nan)
         sig_xyz[~valid] = np.nan

@@ -24,7 +24,7 @@ import numpy as np
 
 from kernels.conventions import Status, param_names
 
-__all__ = ["UNITS", "LONG_NAMES", "columns_2d", "columns_3d", "point_dataset", "frame_dataset", "FrameSchema",
+__all__ = ["UNITS", "LONG_NAMES", "SIGMA_3D", "columns_2d", "columns_3d", "point_dataset", "frame_dataset", "FrameSchema",
            "dataframe", "clean_attrs"]
 
 #: unit of each column ("1": dimensionless; "" for codes and flags)
@@ -39,6 +39,8 @@ UNITS = {
     "normal_x": "1", "normal_y": "1", "normal_z": "1",
     "zncc_stereo": "1", "zncc_left": "1", "zncc_right": "1",
     "epipolar_ref_px": "px", "epipolar_px": "px", "reprojection_ref_px": "px", "reprojection_px": "px",
+    "sigma_u": "px", "sigma_v": "px",
+    "sigma_X": "mm", "sigma_Y": "mm", "sigma_Z": "mm", "sigma_U": "mm", "sigma_V": "mm", "sigma_W": "mm",
 }
 
 #: description of each column (netCDF ``long_name``)
@@ -60,10 +62,17 @@ LONG_NAMES = {
     "epipolar_ref_px": "epipolar distance, reference", "epipolar_px": "epipolar distance, current",
     "reprojection_ref_px": "RMS reprojection residual, reference",
     "reprojection_px": "RMS reprojection residual, current",
+    "sigma_u": "predicted standard deviation of u", "sigma_v": "predicted standard deviation of v",
+    "sigma_X": "predicted standard deviation of X", "sigma_Y": "predicted standard deviation of Y",
+    "sigma_Z": "predicted standard deviation of Z", "sigma_U": "predicted standard deviation of U",
+    "sigma_V": "predicted standard deviation of V", "sigma_W": "predicted standard deviation of W",
 }
 
 _STRAIN_2D = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy")
 _SCALARS_3D = ("X", "Y", "Z", "U", "V", "W", "exx", "eyy", "exy")
+#: the uncertainty columns of a stereo field and the Field3D.details array each is a column of (N, 3) mm
+SIGMA_3D = {"sigma_X": ("sigma_xyz_mm", 0), "sigma_Y": ("sigma_xyz_mm", 1), "sigma_Z": ("sigma_xyz_mm", 2),
+            "sigma_U": ("sigma_uvw_mm", 0), "sigma_V": ("sigma_uvw_mm", 1), "sigma_W": ("sigma_uvw_mm", 2)}
 _QUALITY_3D = ("zncc_stereo", "zncc_left", "zncc_right", "epipolar_ref_px", "epipolar_px", "reprojection_ref_px",
                "reprojection_px")
 
@@ -75,10 +84,13 @@ def _strain_get(strain, name):
 
 
 def columns_2d(points, u, v, *, params=None, order=None, zncc=None, iterations=None, status=None, valid=None,
-               strain=None) -> dict[str, np.ndarray]:
+               strain=None, sigma_u=None, sigma_v=None) -> dict[str, np.ndarray]:
     """Per-point columns of a 2-D field (any of the optional arrays may be None).
 
     ``strain`` is a :class:`dic.strain.StrainField` or the strain dict of a result file's frame.
+    ``sigma_u``, ``sigma_v`` (N,) px: the predicted displacement std (:mod:`dic.quality`); the two
+    columns are always there, NaN where a point is not valid and everywhere when the field has none
+    (a field built without them, a file written before they were stored).
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
@@ -94,6 +106,13 @@ def columns_2d(points, u, v, *, params=None, order=None, zncc=None, iterations=N
         for k, name in enumerate(param_names(order)):
             if name not in ("u", "v"):
                 cols[name] = p[:, k]
+    usable = None if valid is None else np.asarray(valid).astype(bool)
+    for name, arr in (("sigma_u", sigma_u), ("sigma_v", sigma_v)):
+        if arr is None:
+            cols[name] = np.full(n, np.nan)
+        else:
+            arr = np.asarray(arr, np.float64)
+            cols[name] = arr if usable is None or usable.shape != arr.shape else np.where(usable, arr, np.nan)
     for name, arr, dtype in (("zncc", zncc, np.float64), ("iterations", iterations, np.int32),
                              ("status", status, np.int8), ("valid", valid, bool)):
         if arr is not None:
@@ -109,11 +128,26 @@ def columns_2d(points, u, v, *, params=None, order=None, zncc=None, iterations=N
 
 
 def columns_3d(field) -> dict[str, np.ndarray]:
-    """Per-point columns of a :class:`dic.field3d.Field3D` (its stage-by-stage details are left out)."""
+    """Per-point columns of a :class:`dic.field3d.Field3D` (its stage-by-stage details are left out, but
+    for the predicted std of the positions and displacements: ``sigma_X`` ... ``sigma_W`` (mm), the
+    columns of ``details["sigma_xyz_mm"]`` and ``details["sigma_uvw_mm"]``, always there, NaN where
+    a point is not valid and everywhere when the field has none)."""
     pts = np.asarray(field.points, dtype=np.float64)
+    n = pts.shape[0]
     cols = {"x": pts[:, 0], "y": pts[:, 1]}
     for name in _SCALARS_3D:
         cols[name] = np.asarray(getattr(field, name), np.float64)
+    valid = np.asarray(field.valid).astype(bool)
+    details = getattr(field, "details", None) or {}
+    for name, (key, k) in SIGMA_3D.items():
+        arr = details.get(key)
+        if arr is None:
+            cols[name] = np.full(n, np.nan)
+            continue
+        arr = np.asarray(arr, np.float64)
+        if arr.shape != (n, 3):
+            raise ValueError(f"details[{key!r}] must be ({n}, 3) mm, got shape {arr.shape}")
+        cols[name] = np.where(valid, arr[:, k], np.nan)
     normal = np.asarray(field.normal, np.float64).reshape(-1, 3)
     for k, axis in enumerate("xyz"):
         cols[f"normal_{axis}"] = normal[:, k]
@@ -121,7 +155,10 @@ def columns_3d(field) -> dict[str, np.ndarray]:
         cols[name] = np.asarray(getattr(field, name), np.float64)
     cols["status"] = np.asarray(field.status).astype(np.int8)
     cols["strain_valid"] = np.asarray(field.strain_valid).astype(bool)
-    cols["valid"] = np.asarray(field.valid).astype(bool)
+    cols["valid"] = valid
+    for name, arr in cols.items():
+        if arr.shape != (n,):
+            raise ValueError(f"{name} must have one value per point ({n}), got shape {arr.shape}")
     return cols
 
 

@@ -103,7 +103,9 @@ def test_hessian_inverse_against_numpy(device, order, noisy_pairs):
     ref, _ = noisy_pairs[2.0]
     pts = np.array([[40.0, 50.0], [100.3, 160.7], [250.0, 33.0], [5.0, 5.0]])  # the last leaves the image
     prepared = prepare_reference(ref, device=device)
-    got = hessian_inverse_uv(prepare_subsets(prepared, pts, subset=21, order=order))
+    subsets = prepare_subsets(prepared, pts, subset=21, order=order)
+    got = hessian_inverse_uv(subsets)
+    cross = hessian_inverse_uv(subsets, cross=True)
     h, w = ref.shape
     fg = prepared.fgrad.numpy().reshape(h, w, 3).astype(np.float64)
     for n, (x, y) in enumerate(pts[:3]):
@@ -117,6 +119,10 @@ def test_hessian_inverse_against_numpy(device, order, noisy_pairs):
         hinv = np.linalg.inv(J.T @ J)
         k = J.shape[1]
         np.testing.assert_allclose(got[n], [hinv[0, 0], hinv[k // 2, k // 2]], rtol=2e-4)
+        # the u-v entry (the u-v covariance's factor), relative to the diagonal's scale
+        np.testing.assert_allclose(cross[n, :2], got[n])
+        assert abs(cross[n, 2] - hinv[0, k // 2]) <= 2e-4 * np.sqrt(hinv[0, 0] * hinv[k // 2, k // 2])
+        assert cross[n, 2] != 0.0
     assert np.all(np.isnan(got[3]))
     with pytest.raises(ValueError, match="ReferenceSubsets"):
         hessian_inverse_uv(np.zeros((3, 3)))
@@ -170,6 +176,43 @@ def test_stereo_propagation_against_monte_carlo():
     assert propagate_stereo_sigma(jr, sm)[1] is None
     with pytest.raises(ValueError, match="shape"):
         triangulation_jacobian(linear(m_ref), pl, pr[:2])
+
+
+def test_stereo_propagation_of_the_u_v_covariance_against_monte_carlo():
+    """Correlated u-v errors (coefficient rho per point and stage) propagate through the rig: the std
+    equals the scatter of simulated correlated errors, and differs from the independent-error result."""
+    rng = np.random.default_rng(2)
+    n = 4
+    m_ref = rng.normal(size=(n, 3, 4))
+    m_cur = m_ref + 0.3 * rng.normal(size=(n, 3, 4))
+    pl, pr = rng.normal(size=(n, 2)), rng.normal(size=(n, 2))
+
+    def linear(m):
+        return lambda a, b: np.einsum("nij,nj->ni", m, np.c_[a, b])
+
+    jr = triangulation_jacobian(linear(m_ref), pl, pr)
+    jc = triangulation_jacobian(linear(m_cur), pl, pr)
+    sm, sl, sr = (rng.uniform(0.01, 0.05, (n, 2)) for _ in range(3))
+    rm, rl, rr = (rng.uniform(-0.9, 0.9, n) for _ in range(3))
+    xyz, uvw = propagate_stereo_sigma(jr, sm, jc, sl, sr, rho_match=rm, rho_left=rl, rho_right=rr)
+    k = 200000
+
+    def draw(s, rho):  # (k, n, 2) errors of std s and u-v correlation rho
+        a, b = rng.normal(size=(2, k, n))
+        return np.stack([s[:, 0] * a, s[:, 1] * (rho * a + np.sqrt(1 - rho ** 2) * b)], axis=-1)
+
+    em, el, er = draw(sm, rm), draw(sl, rl), draw(sr, rr)
+    x_ref = np.einsum("nij,knj->kni", m_ref[:, :, 2:], em)
+    x_cur = np.einsum("nij,knj->kni", m_cur[:, :, :2], el) + np.einsum("nij,knj->kni", m_cur[:, :, 2:], em + er)
+    np.testing.assert_allclose(xyz, x_ref.std(axis=0), rtol=0.01)
+    np.testing.assert_allclose(uvw, (x_cur - x_ref).std(axis=0), rtol=0.01)
+    xyz0, uvw0 = propagate_stereo_sigma(jr, sm, jc, sl, sr)
+    assert np.max(np.abs(uvw / uvw0 - 1)) > 0.05  # the covariance matters with these correlations
+    # NaN rho (a subset not ready) counts as uncorrelated; a wrong shape is refused
+    nan_rho = propagate_stereo_sigma(jr, sm, jc, sl, sr, rho_match=np.full(n, np.nan))
+    np.testing.assert_allclose(nan_rho[0], xyz0)
+    with pytest.raises(ValueError, match="rho must have shape"):
+        propagate_stereo_sigma(jr, sm, rho_match=rm[:2])
 
 
 def test_residual_variance_formula():

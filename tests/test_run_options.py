@@ -283,3 +283,39 @@ def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
     with pytest.raises(ValueError, match=r"w\.h5 was written with different settings: --max-iter \(max_iter\): 30 in "
                                          r"the file, 31 now\. Resume with the file's settings, or start afresh"):
         ResultWriter(out, settings=other.to_settings(), settings_check=other.resume_check, **kw)
+
+
+def test_stereo_noise_sigma_from_the_command_line_is_used_recorded_and_compared(tmp_path):
+    """``specula stereo --noise-sigma`` (issue 25 item 4): the given noise is behind every stage's sigma, it is
+    stored in the run record, a resume with another value is refused naming the option, and a file written
+    before the option existed (no ``noise_sigma`` in its settings) resumes without it and is refused with it."""
+    import pandas as pd
+
+    from dic.tabular import SIGMA_3D
+
+    out = tmp_path / "n.h5"
+    r = _stereo_cli(out, 2, "--noise-sigma", "2")
+    assert r.exit_code == 0, r.output
+    res = read_stereo(out)
+    assert res.settings["noise_sigma"] == 2.0 and StereoOptions.from_settings(res.settings).noise_sigma == 2.0
+    f1 = res.fields[1]
+    assert np.all(f1.details["noise_sigma_grey"] == 2.0)  # given, not estimated: match, left and right track
+    assert np.isfinite(f1.details["sigma_uvw_mm"][f1.valid]).all() and np.count_nonzero(f1.valid) > 0
+    # the stored sigma reaches the exports (CSV read back with pandas)
+    r = CliRunner().invoke(main, ["export", str(out), "--format", "csv", "-o", str(tmp_path / "csv")])
+    assert r.exit_code == 0, r.output
+    table = pd.read_csv(tmp_path / "csv" / "stereo_000001.csv", index_col="point")
+    for name, (key, j) in SIGMA_3D.items():
+        want = np.where(f1.valid, f1.details[key][:, j], np.nan)
+        assert np.allclose(table[name].to_numpy(), want, rtol=1e-15, atol=0, equal_nan=True)
+    r = _stereo_cli(out, 3, "--noise-sigma", "3")
+    assert r.exit_code == 1 and "--noise-sigma (noise_sigma): 2.0 in the file, 3.0 now" in " ".join(r.output.split())
+    r = _stereo_cli(out, 3, "--noise-sigma", "0")
+    assert r.exit_code == 2 and "--noise-sigma" in r.output
+    old = _copy("stereo_cli_v1.h5", tmp_path)
+    assert "noise_sigma" not in read_stereo(old).settings
+    r = _stereo_cli(old, 3, "--noise-sigma", "2")
+    assert r.exit_code == 1 and "--noise-sigma (noise_sigma): none in the file, 2.0 now" in " ".join(r.output.split())
+    r = _stereo_cli(old, 3)
+    assert r.exit_code == 0, r.output
+    assert read_stereo(old).indices == [0, 1, 2]

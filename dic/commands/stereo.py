@@ -69,6 +69,10 @@ def _engine_pairs(pairs) -> list:
               help="Matches and tracks with a lower ZNCC are flagged.")
 @click.option("--strain-window", default=5, show_default=True, type=click.IntRange(min=3),
               help="Strain fit window in grid points (odd).")
+@click.option("--noise-sigma", default=None, type=click.FloatRange(min=0, min_open=True, max=1e6),
+              help="Image noise std in grey levels (at most 1e6), for the per-point uncertainty of the match and the "
+                   "tracks and its propagation to X, Y, Z and U, V, W (sigma_X ... sigma_W, mm; default: estimated "
+                   "from the correlation residuals of each stage).")
 @click.option("--robust", is_flag=True,
               help="Outlier-robust correlation (Tukey-weighted IC-GN) of matches and tracks: pixels whose texture "
                    "changed or differs between the views (glints, flaking paint) do not bias them; several times slower.")
@@ -98,7 +102,7 @@ def _engine_pairs(pairs) -> list:
                    "a swapped or foreign rig, or images that do not match).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
-           strain_window, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
+           strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
@@ -172,6 +176,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         region = None if region is None else check_region(region, size)
         record = StereoOptions(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
                                zncc_min=zncc_min, strain_window=strain_window, roi=region, robust=robust,
+                               noise_sigma=noise_sigma,
                                reference=reference_strategy)
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None

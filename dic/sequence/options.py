@@ -420,8 +420,8 @@ class StereoOptions(_Record):
     CLI_NAMES: ClassVar[dict[str, str]] = {
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
         "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
-        "strain_window": "--strain-window", "robust": "--robust", "reference": "--reference",
-        "guess": "--scheduler/--workers"}
+        "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust",
+        "reference": "--reference", "guess": "--scheduler/--workers"}
     KIND: ClassVar[str] = "stereo"
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess")
 

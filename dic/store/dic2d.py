@@ -64,7 +64,8 @@ class FrameResult(Field2D):
         from ..tabular import columns_2d
 
         return columns_2d(self.points, self.u, self.v, params=self.params, zncc=self.zncc,
-                          iterations=self.iterations, status=self.status, valid=self.valid, strain=self.strain)
+                          iterations=self.iterations, status=self.status, valid=self.valid, strain=self.strain,
+                          sigma_u=self.sigma_u, sigma_v=self.sigma_v)
 
     def to_xarray(self):
         """This frame as an :class:`xarray.Dataset` over ``point`` (the columns of
