@@ -12,6 +12,7 @@ import click
 from ._compression import compression_option
 from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
+from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 
 
@@ -185,7 +186,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
 
     streamed_figures = figure_dir if figure_limits == "frame" else None  # "sequence": drawn at the end
     try:
-        with dask_client(scheduler, workers) as client:
+        with report_interrupt(output, "state"), dask_client(scheduler, workers) as client:
             summary = stereo_sequence(rig, pairs, output, reference=reference_strategy,
                                       mode="overwrite" if overwrite else "resume", progress=not quiet,
                                       callback=after, vtk_dir=vtk_dir, vtk_stem=output.stem,

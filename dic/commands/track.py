@@ -12,6 +12,7 @@ import click
 from ._compression import compression_option
 from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
+from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 
 
@@ -156,7 +157,7 @@ def track(reference, current, output, subset, step, order, search, search_method
         return _make_tracker(image, device=device, **kwargs)
 
     try:
-        with dask_client(scheduler, workers) as client:
+        with report_interrupt(output, "frame"), dask_client(scheduler, workers) as client:
             result = track_sequence(
                 ref_frame, _Frames(source), output, reference=reference_strategy,
                 mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
