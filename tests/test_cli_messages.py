@@ -3,7 +3,7 @@ a closed pipe, option help, reprs and the messages of wrong inputs."""
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_cli_track import FakeTracker, images  # noqa: F401 - the fixture
+from test_cli_track import FakeTracker, fake, images  # noqa: F401 - the fixtures
 
 from dic.cli import main
 from dic.store import read_results
@@ -47,3 +47,23 @@ def test_ctrl_c_before_any_frame_says_none_was_saved(images, tmp_path, monkeypat
     out = tmp_path / "res.h5"
     r = CliRunner().invoke(main, ["track", *images, "-o", str(out), "--step", "8"], catch_exceptions=False)
     assert r.exit_code == 130 and f"no frame was saved in {out} yet" in r.output, r.output
+
+
+def test_every_refusal_to_resume_names_overwrite(images, tmp_path, fake):  # noqa: F811 - fixtures
+    """Another reference image, other settings, another kind of file: each refusal names --overwrite."""
+    out = tmp_path / "res.h5"
+    assert CliRunner().invoke(main, ["track", *images, "-o", str(out), "--step", "8"]).exit_code == 0
+    for args in ([images[1], images[0], images[2]], [*images, "--step", "6"]):
+        args = [*args, "--step", "8"] if "--step" not in args else args
+        r = CliRunner().invoke(main, ["track", *args, "-o", str(out)])
+        assert r.exit_code == 1 and "--overwrite" in r.output, r.output
+        assert "Traceback" not in r.output
+    import h5py
+
+    from dic.store import ResultWriter
+
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as h5:
+        h5.attrs["format"] = "someone else's"
+    with pytest.raises(ValueError, match="--overwrite"):  # not a Specula file
+        ResultWriter(other, settings={}, mode="resume").close()

@@ -61,6 +61,8 @@ _READ_ERRORS = (OSError, KeyError, TypeError, ValueError, RuntimeError, Attribut
 KINDS: dict[str, StoreKind] = {dic2d.KIND.name: dic2d.KIND, stereo.KIND.name: stereo.KIND}
 _BY_FORMAT = {k.format: k for k in KINDS.values()}
 _MODES = ("resume", "overwrite", "new")
+#: how a refusal to resume says to start afresh, for the CLI and for Python
+_START_AFRESH = "start afresh with --overwrite (mode='overwrite' in Python)"
 _RESERVE_MARGIN = 1 << 20  # bytes reserved beyond a frame's arrays: its metadata, the groups' growth
 _METADATA_CACHE = 4 << 20  # bytes: HDF5's metadata cache of a file being written (its default grows to 32 MiB)
 
@@ -617,12 +619,12 @@ class ResultWriter(_ResultFile):
         fmt = f.attrs.get("format")
         if fmt != kind.format:
             raise ValueError(f"{self.path} is not a Specula {kind.label} result file (format {fmt!r}); "
-                             "write to another file or overwrite it")
+                             f"write to another file or {_START_AFRESH}")
         version = int(f.attrs.get("schema_version", -1))
         if version != SCHEMA_VERSION:
             raise ValueError(
                 f"{self.path} uses result schema version {version}, this Specula writes version {SCHEMA_VERSION}; "
-                "write to another file or overwrite it")
+                f"write to another file or {_START_AFRESH}")
         _check_header(f, self.path, kind)
         stored = f["reference"].attrs
         for role, d in zip(kind.image_roles, digests):
@@ -630,7 +632,7 @@ class ResultWriter(_ResultFile):
             if d and old and old != d:
                 were = ", ".join(str(stored.get(role_attr(r, "path"), "?")) for r in kind.image_roles)
                 raise ValueError(f"{self.path} holds results for a different {kind.reference_noun} ({were}); "
-                                 "write to another file or overwrite it")
+                                 f"write to another file or {_START_AFRESH}")
         if shape and tuple(stored.get("shape", ())) != shape:
             raise ValueError(f"{self.path} holds results for a reference of shape {tuple(stored['shape'])}, not {shape}")
         old_json = f["settings"].attrs.get("json", "{}")
@@ -643,11 +645,11 @@ class ResultWriter(_ResultFile):
             differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
             raise ValueError(
                 f"{self.path} was written with different settings ({', '.join(differ)} differ; stored: {old_json}); "
-                f"resuming needs the same settings ({self._settings_json}). Write to another file or overwrite it")
+                f"resuming needs the same settings ({self._settings_json}). Write to another file or {_START_AFRESH}")
         if rig_json is not None:
             if "rig" not in f or json.loads(f["rig"].attrs["json"]) != json.loads(rig_json):
                 raise ValueError(f"{self.path} holds results computed with another rig; write to another file "
-                                 "or overwrite it")
+                                 f"or {_START_AFRESH}")
 
     # -- writing
     def write_frame(self, index: int, field, *, strain=None, path="", sha256="", attrs: dict | None = None) -> None:
