@@ -67,3 +67,25 @@ def test_every_refusal_to_resume_names_overwrite(images, tmp_path, fake):  # noq
         h5.attrs["format"] = "someone else's"
     with pytest.raises(ValueError, match="--overwrite"):  # not a Specula file
         ResultWriter(other, settings={}, mode="resume").close()
+
+
+def test_a_reader_that_closes_the_pipe_early_gets_no_error_message(tmp_path):
+    """``specula <command> | head -1``: the command's output stops quietly, without "Error: Broken pipe"."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    (tmp_path / "chatty.py").write_text(
+        "import click\n\n@click.command()\ndef chatty():\n    for k in range(200000):\n        click.echo(f'line {k}')\n")
+    script = ("import sys; sys.path.insert(0, sys.argv[1]); import dic.cli as cli; "
+              "cli.SUBCOMMANDS['chatty'] = ('chatty:chatty', 'prints many lines'); sys.argv[1:] = ['chatty']; cli.main()")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen([sys.executable, "-c", script, str(tmp_path)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env)
+    assert proc.stdout.readline() == b"line 0\n"
+    proc.stdout.close()  # what head does after its first line
+    err = proc.stderr.read().decode()
+    proc.wait(timeout=60)
+    assert "Broken pipe" not in err and "Traceback" not in err and "Error" not in err, err
+    assert proc.returncode == 1
