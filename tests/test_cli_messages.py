@@ -89,3 +89,18 @@ def test_a_reader_that_closes_the_pipe_early_gets_no_error_message(tmp_path):
     proc.wait(timeout=60)
     assert "Broken pipe" not in err and "Traceback" not in err and "Error" not in err, err
     assert proc.returncode == 1
+
+
+def test_stereo_help_names_only_its_own_options():
+    """``specula stereo --help`` named --search, an option of ``specula track`` only."""
+    import re
+
+    from dic.commands.stereo import stereo
+
+    stereo_help = CliRunner().invoke(main, ["stereo", "--help"], terminal_width=200)
+    assert stereo_help.exit_code == 0
+    own = {o for p in stereo.params for o in p.opts} | {"--help"}
+    text = stereo_help.output.replace("-\n  ", "-")  # an option name broken at the end of a line
+    named = set(re.findall(r"(?<![\w-])--[a-z][a-z-]+[a-z]", text))
+    assert named <= own, named - own
+    assert "--search" in CliRunner().invoke(main, ["track", "--help"], terminal_width=200).output
