@@ -104,3 +104,10 @@ def test_stereo_help_names_only_its_own_options():
     named = set(re.findall(r"(?<![\w-])--[a-z][a-z-]+[a-z]", text))
     assert named <= own, named - own
     assert "--search" in CliRunner().invoke(main, ["track", "--help"], terminal_width=200).output
+
+
+def test_strain_refuses_both_window_units(tmp_path):
+    """``--px --grid-points`` took the last one given; now they are refused together (before reading the file)."""
+    for units in (["--px", "--grid-points"], ["--grid-points", "--px"]):
+        r = CliRunner().invoke(main, ["strain", str(tmp_path / "res.h5"), "--window", "9", *units])
+        assert r.exit_code == 2 and "--px and --grid-points exclude each other" in r.output, r.output
