@@ -111,3 +111,36 @@ def test_strain_refuses_both_window_units(tmp_path):
     for units in (["--px", "--grid-points"], ["--grid-points", "--px"]):
         r = CliRunner().invoke(main, ["strain", str(tmp_path / "res.h5"), "--window", "9", *units])
         assert r.exit_code == 2 and "--px and --grid-points exclude each other" in r.output, r.output
+
+
+def test_stereo_summary_counts_valid_points_over_the_region(tmp_path):
+    """``state 0: 1292/8614 valid points`` divided by the whole grid, the points outside --roi included; the count is
+    now over the points computed in the region (status not NOT_COMPUTED), for the summary and the printed line."""
+    from test_stereo_sequence import STEP, _cameras  # the lab scene of the stereo sequence tests
+
+    from dic.field3d import StereoStatus
+    from dic.io import write_image
+    from dic.lab import Scene, SpecklePlane, render
+    from dic.store import read_stereo
+    from dic.synth import make_speckle
+
+    from calibration.stereo import StereoRig
+
+    cams = _cameras()
+    speckle = make_speckle(region=(-5, -5, 305, 255), radius=1.2, density=0.5, bits=None, seed=3)
+    plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(300.0, 250.0), speckle=speckle)
+    scene = Scene(cameras=cams, planes=[plane])
+    left, right = cams
+    R = right.R_cam_world @ left.R_cam_world.T
+    StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world).save(tmp_path / "rig.json")
+    paths = [str(write_image(tmp_path / f"{side}.png", render(scene, i, samples=4, seed=i)))
+             for i, side in enumerate(("L", "R"))]
+    out = tmp_path / "roi.h5"
+    r = CliRunner().invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "--step", str(STEP),
+                                  "--roi", "100", "80", "220", "160", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    f = read_stereo(out).fields[0]
+    computed = f.status != StereoStatus.NOT_COMPUTED
+    n_valid, n_region = int(np.count_nonzero(f.valid)), int(np.count_nonzero(computed))
+    assert 0 < n_region < len(f) // 2  # the region holds a minority of the grid
+    assert f"state 0: {n_valid}/{n_region} valid points in the region" in r.output

@@ -212,7 +212,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         for index, n_valid, n, ref_index in zip(summary.indices, summary.n_valid, summary.n_points,
                                                 summary.reference_indices):
             ref_note = f" (reference: state {ref_index})" if ref_index else ""
-            click.echo(f"state {index}: {n_valid}/{n} valid points{ref_note}")
+            click.echo(f"state {index}: {n_valid}/{n} valid points in the region{ref_note}")
         skipped = len(pairs) - len(summary)
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")

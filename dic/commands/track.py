@@ -171,7 +171,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     if not quiet:
         for f in result.frames:
             ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
-            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points, {f['seconds']:.2f} s{ref_note}")
+            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points in the region, {f['seconds']:.2f} s{ref_note}")
         if result.skipped:
             click.echo(f"{result.skipped} frame(s) were already in {output} and were skipped")
         if result.frames:
