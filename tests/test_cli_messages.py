@@ -144,3 +144,25 @@ def test_stereo_summary_counts_valid_points_over_the_region(tmp_path):
     n_valid, n_region = int(np.count_nonzero(f.valid)), int(np.count_nonzero(computed))
     assert 0 < n_region < len(f) // 2  # the region holds a minority of the grid
     assert f"state 0: {n_valid}/{n_region} valid points in the region" in r.output
+
+
+def test_short_reprs_of_result_files(tmp_path):
+    """ResultFrames and ResultReader had object reprs; a library-written file's repr names its order too, and the
+    sequence summary stays one short line (no dict per frame)."""
+    from dic.sequence import track_sequence
+    from dic.store import ResultFrames, ResultReader
+    from dic.synth import speckle_pair
+
+    ref, cur = speckle_pair((96, 112), (0.4, -0.3), seed=21)
+    out = tmp_path / "lib.h5"
+    summary = track_sequence(ref, [cur] * 3, out, subset=21, step=8, order=2, progress=False)
+    text = repr(summary)
+    assert text.startswith("<SequenceSummary: 3 computed (1..3)") and "{" not in text and len(text) < 200, text
+    assert "order 2" in repr(read_results(out))
+    expected = f"'{out}': 2-D DIC, frames 3 (1..3), order 2, subset 21, step 8>"
+    with ResultReader(out) as reader:
+        assert repr(reader) == "<ResultReader " + expected
+    assert repr(reader) == f"<ResultReader '{out}': 2-D DIC, closed>"
+    with ResultFrames(out) as frames:
+        assert repr(frames) == "<ResultFrames " + expected
+    assert repr(ResultFrames(read_results(out))) == "<ResultFrames " + expected

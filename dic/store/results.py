@@ -843,6 +843,11 @@ class ResultReader(_ResultFile):
             raise
 
 
+    def __repr__(self) -> str:
+        return _short_repr("ResultReader", self.path, self.kind.label, self._h5 is not None and bool(self._h5),
+                           lambda: (self.done_frames(), self.settings))
+
+
 # ------------------------------------------------------------------------------------------------
 # the frames of a result, one at a time
 
@@ -890,6 +895,14 @@ class ResultFrames:
     def __len__(self) -> int:
         return len(self.indices)
 
+    def __repr__(self) -> str:
+        if self._reader is not None:
+            path, is_open = self._reader.path, self._reader._h5 is not None and bool(self._reader._h5)
+        else:
+            path, is_open = getattr(self._results, "path", None), None
+        label = "2-D DIC" if self.kind == "dic2d" else "stereo"
+        return _short_repr("ResultFrames", path, label, is_open, lambda: (self.indices, self.settings))
+
     def read(self, index: int):
         """Frame ``index`` (one of :attr:`indices`)."""
         if self._reader is not None:
@@ -930,6 +943,20 @@ class ResultFrames:
         res = self._results
         return stereo.table_attrs(res.settings, res.rig, res.reference_shape, first)
 
+
+
+def _short_repr(name: str, path, label: str, is_open: bool | None, contents) -> str:
+    """``<ResultReader 'run.h5': 2-D DIC, frames 2 (1..2), order 1>`` (``", closed"`` once closed: then
+    ``contents`` is not called); ``contents() -> (frame indices, settings)``."""
+    where = f" {str(path)!r}" if path is not None else " (in memory)"
+    text = f"<{name}{where}: {label}"
+    if is_open is False:
+        return text + ", closed>"
+    indices, settings = contents()
+    noun = "frames" if label != "stereo" else "states"
+    text += f", {noun} {dic2d.frames_text(indices)}"
+    details = ", ".join(f"{k} {settings[k]}" for k in ("order", "subset", "step") if (settings or {}).get(k) is not None)
+    return text + (f", {details}" if details else "") + ">"
 
 # ------------------------------------------------------------------------------------------------
 # repair
