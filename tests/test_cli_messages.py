@@ -178,3 +178,34 @@ def test_dataframe_keeps_each_image_path_once(images, tmp_path, fake):  # noqa: 
     assert list(df["path"].cat.categories) == sorted(images[1:])
     assert (df.xs(2, level="frame")["path"] == images[2]).all()
     assert df["path"].memory_usage(deep=True, index=False) < 2 * len(df) + 1000  # int8 codes + the two texts
+
+
+@pytest.mark.parametrize("left_name, right_name", [("Left_{k}.png", "Right_{k}.png"), ("img_{k}_L.tif", "img_{k}_R.tif"),
+                                                   ("cam0_{k:03d}.tif", "cam1_{k:03d}.tif")])
+def test_a_folder_with_both_views_gets_the_left_and_right_patterns(tmp_path, left_name, right_name):
+    """``specula stereo FOLDER`` with the left and right images in one folder said "got 1"; it now names the
+    --left/--right glob patterns that split the folder, and those patterns select exactly each view."""
+    import re
+
+    from dic.io import write_image
+    from dic.sources import open_inputs
+
+    folder = tmp_path / "both"
+    folder.mkdir()
+    image = (np.arange(64 * 80).reshape(64, 80) % 251).astype(np.uint8)
+    lefts = [write_image(folder / left_name.format(k=k), image) for k in range(3)]
+    rights = [write_image(folder / right_name.format(k=k), image) for k in range(3)]
+    r = CliRunner().invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), str(folder), "-o",
+                                  str(tmp_path / "out.h5")], terminal_width=400)
+    assert r.exit_code == 2 and "got 1" in r.output, r.output
+    found = re.search(r"--left '([^']+)' --right '([^']+)'", r.output.replace("\n", " "))
+    assert found, r.output
+    assert "(3 image(s)" in r.output
+    for pattern, files in zip(found.groups(), (lefts, rights)):
+        assert open_inputs([pattern]).files == [str(f) for f in files]
+    # a folder of one view only: the general advice
+    (tmp_path / "one").mkdir()
+    write_image(tmp_path / "one" / "a.png", image)
+    r = CliRunner().invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), str(tmp_path / "one"), "-o",
+                                  str(tmp_path / "out.h5")])
+    assert r.exit_code == 2 and "give the left and right sequences as two inputs, or with --left and --right" in r.output

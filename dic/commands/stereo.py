@@ -23,6 +23,38 @@ def _single_image(path) -> bool:
     return is_single_image(path)
 
 
+#: name parts that tell a left view from a right one, tried in this order (case-insensitive)
+_SIDE_TOKENS = (("left", "right"), ("cam0", "cam1"), ("cam1", "cam2"), ("_l", "_r"), ("l_", "r_"))
+
+
+def _one_input_hint(path) -> str:
+    """For a single IMAGES input that holds one sequence (a folder, a pattern, a video): how to give the two views.
+    A folder whose image names tell left from right (``left``/``right``, ``cam0``/``cam1``, ``_L``/``_R``, ...)
+    gets the --left/--right glob patterns that split it."""
+    import os
+
+    from dic.sources import IMAGE_SUFFIXES
+
+    if _single_image(path):
+        return ": one image; give its right partner after it"
+    generic = ("; a folder, pattern or video holds one view's sequence: give the left and right sequences as two "
+               "inputs, or with --left and --right")
+    if not os.path.isdir(path):
+        return generic
+    names = [n for n in sorted(os.listdir(path)) if n.lower().endswith(IMAGE_SUFFIXES)]
+    for left, right in _SIDE_TOKENS:
+        n_left = sum(left in n.lower() and right not in n.lower() for n in names)
+        n_right = sum(right in n.lower() and left not in n.lower() for n in names)
+        if n_left and n_right:
+            def pattern(token):  # the token as the first name that has it spells it
+                name = next(n for n in names if token in n.lower())
+                at = name.lower().index(token)
+                return "'" + os.path.join(path, f"*{name[at:at + len(token)]}*") + "'"
+            return (f"; {path} holds both views ({n_left} image(s) named with {left!r}, {n_right} with {right!r}): "
+                    f"give them with --left {pattern(left)} --right {pattern(right)} (quoted glob patterns)")
+    return generic
+
+
 class _LazyImage:
     """One frame of a source, read when the engine asks for its pixels (``np.asarray``)."""
 
@@ -132,8 +164,9 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     elif len(images) == 2 and not all(_single_image(p) for p in images):
         left_inputs, right_inputs = (images[0],), (images[1],)  # two sequences
     elif len(images) < 2 or len(images) % 2:
-        raise click.BadParameter(f"give the images as LEFT RIGHT pairs (an even number, at least 2); got {len(images)}",
-                                 param_hint="IMAGES")
+        hint = _one_input_hint(images[0]) if len(images) == 1 else ""
+        raise click.BadParameter(f"give the images as LEFT RIGHT pairs (an even number, at least 2); got {len(images)}"
+                                 + hint, param_hint="IMAGES")
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window % 2 == 0:
