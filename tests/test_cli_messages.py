@@ -209,3 +209,33 @@ def test_a_folder_with_both_views_gets_the_left_and_right_patterns(tmp_path, lef
     r = CliRunner().invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), str(tmp_path / "one"), "-o",
                                   str(tmp_path / "out.h5")])
     assert r.exit_code == 2 and "give the left and right sequences as two inputs, or with --left and --right" in r.output
+
+
+@pytest.mark.parametrize("subset", [15, 21, 31])
+def test_one_default_step_rule_subset_over_two(images, tmp_path, fake, subset):  # noqa: F811 - fixtures
+    """The CLI's default step was 5 (track) and 10 (stereo), the library's subset // 2 (2-D) and 10 (stereo):
+    every one is now subset // 2."""
+    from dic.sequence.options import StereoOptions, TrackOptions
+
+    assert TrackOptions(subset=subset).step == StereoOptions(subset=subset).step == subset // 2
+    out = tmp_path / "res.h5"
+    r = CliRunner().invoke(main, ["track", *images, "-o", str(out), "--subset", str(subset)])
+    assert r.exit_code == 0, r.output
+    res = read_results(out)
+    assert res.settings["step"] == subset // 2
+    xs = np.unique(res.frames[1].points[:, 0])
+    assert np.all(np.diff(xs) == subset // 2)  # the grid the run tracked
+
+
+def test_stereo_correlation_default_step_is_subset_over_two():
+    """dic.stereo.StereoCorrelation's own default (without the run record) follows the same rule."""
+    import inspect
+
+    from dic.stereo import StereoCorrelation, stereo
+
+    for fn in (StereoCorrelation.__init__, stereo):
+        assert inspect.signature(fn).parameters["step"].default is None
+    from dic.commands.stereo import stereo as stereo_command
+
+    step_option = next(p for p in stereo_command.params if p.name == "step")
+    assert step_option.default is None and "subset // 2" in step_option.help

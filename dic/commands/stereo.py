@@ -89,7 +89,8 @@ def _engine_pairs(pairs) -> list:
 @click.option("--right", "right_inputs", multiple=True, help="Right images, as --left.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="HDF5 result file (.h5); an existing compatible file is resumed.")
-@click.option("--step", default=10, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
+@click.option("--step", default=None, type=click.IntRange(min=1),
+              help="Grid spacing of the points of interest, px  [default: subset // 2, 10 for --subset 21].")
 @click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
 @click.option("--order", default="2", show_default=True, type=click.Choice(["1", "2"]),
               help="Shape function: 1 (affine) or 2 (quadratic; recommended for the left-right match).")
