@@ -113,18 +113,14 @@ def test_strain_refuses_both_window_units(tmp_path):
         assert r.exit_code == 2 and "--px and --grid-points exclude each other" in r.output, r.output
 
 
-def test_stereo_summary_counts_valid_points_over_the_region(tmp_path):
-    """``state 0: 1292/8614 valid points`` divided by the whole grid, the points outside --roi included; the count is
-    now over the points computed in the region (status not NOT_COMPUTED), for the summary and the printed line."""
-    from test_stereo_sequence import STEP, _cameras  # the lab scene of the stereo sequence tests
-
-    from dic.field3d import StereoStatus
-    from dic.io import write_image
-    from dic.lab import Scene, SpecklePlane, render
-    from dic.store import read_stereo
-    from dic.synth import make_speckle
+def _stereo_scene(tmp_path):
+    """A rig file and one left/right pair of the stereo sequence tests' lab scene (a speckled plane; no motion)."""
+    from test_stereo_sequence import _cameras
 
     from calibration.stereo import StereoRig
+    from dic.io import write_image
+    from dic.lab import Scene, SpecklePlane, render
+    from dic.synth import make_speckle
 
     cams = _cameras()
     speckle = make_speckle(region=(-5, -5, 305, 255), radius=1.2, density=0.5, bits=None, seed=3)
@@ -133,8 +129,19 @@ def test_stereo_summary_counts_valid_points_over_the_region(tmp_path):
     left, right = cams
     R = right.R_cam_world @ left.R_cam_world.T
     StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world).save(tmp_path / "rig.json")
-    paths = [str(write_image(tmp_path / f"{side}.png", render(scene, i, samples=4, seed=i)))
-             for i, side in enumerate(("L", "R"))]
+    return [str(write_image(tmp_path / f"{side}.png", render(scene, i, samples=4, seed=i)))
+            for i, side in enumerate(("L", "R"))]
+
+
+def test_stereo_summary_counts_valid_points_over_the_region(tmp_path):
+    """``state 0: 1292/8614 valid points`` divided by the whole grid, the points outside --roi included; the count is
+    now over the points computed in the region (status not NOT_COMPUTED), for the summary and the printed line."""
+    from test_stereo_sequence import STEP
+
+    from dic.field3d import StereoStatus
+    from dic.store import read_stereo
+
+    paths = _stereo_scene(tmp_path)
     out = tmp_path / "roi.h5"
     r = CliRunner().invoke(main, ["stereo", "--rig", str(tmp_path / "rig.json"), *paths, "--step", str(STEP),
                                   "--roi", "100", "80", "220", "160", "-o", str(out)])
@@ -239,3 +246,28 @@ def test_stereo_correlation_default_step_is_subset_over_two():
 
     step_option = next(p for p in stereo_command.params if p.name == "step")
     assert step_option.default is None and "subset // 2" in step_option.help
+
+
+def test_ctrl_c_in_stereo_says_how_many_states_are_saved(tmp_path, monkeypatch):
+    """Ctrl-C once state 1 is written (raised from the run's callback): 2 states (0 and 1) are in the file."""
+    import dic.sequence
+    from dic.store import read_stereo
+
+    paths = _stereo_scene(tmp_path)
+    real = dic.sequence.stereo_sequence
+
+    def interrupted(*args, callback=None, **kwargs):
+        def stop(index, field, strain):
+            callback(index, field, strain)
+            if index == 1:
+                raise KeyboardInterrupt
+
+        return real(*args, callback=stop, **kwargs)
+
+    monkeypatch.setattr(dic.sequence, "stereo_sequence", interrupted)
+    out = tmp_path / "run.h5"
+    args = ["stereo", "--rig", str(tmp_path / "rig.json"), *paths * 3, "--step", "20", "-q", "-o", str(out)]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 130, r.output
+    assert f"Interrupted: 2 states saved in {out}; run the same command again to resume" in r.output
+    assert read_stereo(out).indices == [0, 1]
