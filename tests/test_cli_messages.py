@@ -50,7 +50,8 @@ def test_ctrl_c_before_any_frame_says_none_was_saved(images, tmp_path, monkeypat
 
 
 def test_every_refusal_to_resume_names_overwrite(images, tmp_path, fake):  # noqa: F811 - fixtures
-    """Another reference image, other settings, another kind of file: each refusal names --overwrite."""
+    """Another reference image, other settings, another image size, not a Specula file: each refusal names
+    --overwrite."""
     out = tmp_path / "res.h5"
     assert CliRunner().invoke(main, ["track", *images, "-o", str(out), "--step", "8"]).exit_code == 0
     for args in ([images[1], images[0], images[2]], [*images, "--step", "6"]):
@@ -67,6 +68,8 @@ def test_every_refusal_to_resume_names_overwrite(images, tmp_path, fake):  # noq
         h5.attrs["format"] = "someone else's"
     with pytest.raises(ValueError, match="--overwrite"):  # not a Specula file
         ResultWriter(other, settings={}, mode="resume").close()
+    with pytest.raises(ValueError, match=r"reference of shape \(96, 112\), not \(96, 128\).*--overwrite"):
+        ResultWriter(out, reference_shape=(96, 128), settings={}, mode="resume").close()  # no digest to compare
 
 
 def test_a_reader_that_closes_the_pipe_early_gets_no_error_message(tmp_path):

@@ -634,7 +634,9 @@ class ResultWriter(_ResultFile):
                 raise ValueError(f"{self.path} holds results for a different {kind.reference_noun} ({were}); "
                                  f"write to another file or {_START_AFRESH}")
         if shape and tuple(stored.get("shape", ())) != shape:
-            raise ValueError(f"{self.path} holds results for a reference of shape {tuple(stored['shape'])}, not {shape}")
+            raise ValueError(f"{self.path} holds results for a reference of shape {tuple(int(v) for v in stored['shape'])}, "
+                             f"not {tuple(int(v) for v in shape)}; "
+                             f"write to another file or {_START_AFRESH}")
         old_json = f["settings"].attrs.get("json", "{}")
         old, new = json.loads(old_json), json.loads(self._settings_json)
         if self._settings_check is not None:
