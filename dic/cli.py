@@ -121,9 +121,12 @@ class LazyGroup(click.Group):
         return refuse_empty_strings(getattr(module, attr))
 
     def invoke(self, ctx):
-        """Run the subcommand; an error the user can cause becomes one clear message (exit status 1)."""
+        """Run the subcommand; an error the user can cause becomes one clear message (exit status 1). A closed
+        stdout (``specula history ... | head -1``) ends the command quietly (exit status 1, as click does)."""
         try:
             return super().invoke(ctx)
+        except BrokenPipeError:  # the reader of stdout went away (``| head``): click exits quietly, no "Error: Broken pipe"
+            raise
         except USER_ERRORS as exc:
             raise click.ClickException(user_message(exc)) from None
 

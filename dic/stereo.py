@@ -285,7 +285,7 @@ class StereoCorrelation:
         (Specula JSON, OpenCV YAML/XML/JSON, VIC-3D XML, DICe XML; :func:`as_rig`).
     left_ref, right_ref : (H, W) grey images of the reference state (same size, the rig's size).
     points : (N, 2) px in the left reference image, optional. Default: a grid of ``step``.
-    step : int, grid spacing (px) when ``points`` is None.
+    step : int, grid spacing (px) when ``points`` is None; default ``subset // 2`` (as 2-D).
     roi : optional, in the left reference image: an inclusive box ``(x0, y0, x1, y1)``, a polygon
         ``[(x, y), ...]``, an (H, W) mask or a mask image file (:mod:`dic.correlation.points`; the
         same rule as 2-D tracking); grid POIs outside are ``NOT_COMPUTED``.
@@ -316,7 +316,7 @@ class StereoCorrelation:
         POIs to match (:func:`dic.correlation.engine.correlate`, ``report``).
     """
 
-    def __init__(self, rig, left_ref, right_ref, *, points=None, step: int = 10, roi=None, subset: int = 21,
+    def __init__(self, rig, left_ref, right_ref, *, points=None, step: int | None = None, roi=None, subset: int = 21,
                  order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
@@ -343,6 +343,7 @@ class StereoCorrelation:
         self.max_features = int(max_features)
         self.check_warps = bool(check_warps)
         if points is None:
+            step = max(1, self.subset // 2) if step is None else step  # the 2-D rule (dic.track.Tracker)
             self.points, self.grid_shape, in_roi = grid_points(self.shape, step, self.subset, roi)
             self.step = int(step)
             self.neighbours = None
@@ -957,7 +958,7 @@ def _fill_sigma(points: np.ndarray, sigma: np.ndarray, valid: np.ndarray, usable
     return out
 
 
-def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=None, step: int = 10, roi=None,
+def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=None, step: int | None = None, roi=None,
            subset: int = 21, order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
            strain_window: int = 5, device=None, **options) -> Field3D:
     """Stereo DIC of one reference pair, and of one current pair when given.

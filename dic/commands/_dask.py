@@ -9,13 +9,16 @@ import click
 
 def dask_options(what: str):
     """The two options, as a decorator (``what``: "frame" or "state")."""
+    # only ``specula track`` has --search: the stereo help must not name it
+    start = "zero (or --search)" if what == "frame" else "its own initial guess"
+
     def deco(f):
         f = click.option("--workers", default=None, type=click.IntRange(min=1, max=1024),
                          help=f"Measure the {what}s on a local Dask cluster of this many worker processes "
                               "(as --scheduler).")(f)
         f = click.option("--scheduler", default=None, metavar="ADDRESS",
                          help=f"Measure the {what}s on the Dask cluster of this scheduler (tcp://host:8786); this "
-                              f"process reads and writes. Each {what} then starts from zero (or --search), not from "
+                              f"process reads and writes. Each {what} then starts from {start}, not from "
                               "the previous one (docs/dic2d.md, Sequences on several machines).")(f)
         return f
     return deco

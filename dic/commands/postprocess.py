@@ -193,15 +193,15 @@ def _write_csv_checked(path, names, table) -> None:
 @click.argument("results", type=RESULTS)
 @click.option("--window", required=True, type=float,
               help="Strain fit window: grid points per side (odd >= 3), or its side in px with --px.")
-@click.option("--px/--grid-points", "in_px", default=False, show_default=True,
-              help="Whether --window is in px or in grid points.")
+@click.option("--px", "in_px", is_flag=True, help="--window is the window's side in px.")
+@click.option("--grid-points", "in_grid", is_flag=True, help="--window is in grid points (the default).")
 @click.option("-o", "--output", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="New result file (.h5); default: rewrite RESULTS in place.")
 @click.option("--min-points", default=None, type=click.IntRange(min=3), help="Fewest valid points per fit.")
 @click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Also store this scale, mm per px (positions and displacements of post-processing in mm).")
 @click.option("-q", "--quiet", is_flag=True, help="No summary.")
-def strain(results, window, in_px, output, min_points, scale, quiet):
+def strain(results, window, in_px, in_grid, output, min_points, scale, quiet):
     """Recompute the strain of a 2-D result file (specula track) with another window.
 
     Everything but the strain is copied unchanged; the new window (grid points) is recorded in
@@ -210,6 +210,8 @@ def strain(results, window, in_px, output, min_points, scale, quiet):
     from dic.postprocess import recompute_strain
     from dic.store import ResultReader
 
+    if in_px and in_grid:  # one unit for one number: the last one given must not silently win
+        raise click.UsageError("--px and --grid-points exclude each other: give the unit of --window once")
     if not np.isfinite(window):
         raise click.BadParameter(f"must be a finite number, got {window}", param_hint="--window")
     if not in_px:

@@ -12,6 +12,7 @@ import click
 from ._compression import compression_option
 from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
+from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 
 
@@ -20,6 +21,38 @@ def _single_image(path) -> bool:
     from dic.sources import is_single_image
 
     return is_single_image(path)
+
+
+#: name parts that tell a left view from a right one, tried in this order (case-insensitive)
+_SIDE_TOKENS = (("left", "right"), ("cam0", "cam1"), ("cam1", "cam2"), ("_l", "_r"), ("l_", "r_"))
+
+
+def _one_input_hint(path) -> str:
+    """For a single IMAGES input that holds one sequence (a folder, a pattern, a video): how to give the two views.
+    A folder whose image names tell left from right (``left``/``right``, ``cam0``/``cam1``, ``_L``/``_R``, ...)
+    gets the --left/--right glob patterns that split it."""
+    import os
+
+    from dic.sources import IMAGE_SUFFIXES
+
+    if _single_image(path):
+        return ": one image; give its right partner after it"
+    generic = ("; a folder, pattern or video holds one view's sequence: give the left and right sequences as two "
+               "inputs, or with --left and --right")
+    if not os.path.isdir(path):
+        return generic
+    names = [n for n in sorted(os.listdir(path)) if n.lower().endswith(IMAGE_SUFFIXES)]
+    for left, right in _SIDE_TOKENS:
+        n_left = sum(left in n.lower() and right not in n.lower() for n in names)
+        n_right = sum(right in n.lower() and left not in n.lower() for n in names)
+        if n_left and n_right:
+            def pattern(token):  # the token as the first name that has it spells it
+                name = next(n for n in names if token in n.lower())
+                at = name.lower().index(token)
+                return "'" + os.path.join(path, f"*{name[at:at + len(token)]}*") + "'"
+            return (f"; {path} holds both views ({n_left} image(s) named with {left!r}, {n_right} with {right!r}): "
+                    f"give them with --left {pattern(left)} --right {pattern(right)} (quoted glob patterns)")
+    return generic
 
 
 class _LazyImage:
@@ -56,7 +89,8 @@ def _engine_pairs(pairs) -> list:
 @click.option("--right", "right_inputs", multiple=True, help="Right images, as --left.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="HDF5 result file (.h5); an existing compatible file is resumed.")
-@click.option("--step", default=10, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
+@click.option("--step", default=None, type=click.IntRange(min=1),
+              help="Grid spacing of the points of interest, px  [default: subset // 2, 10 for --subset 21].")
 @click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
 @click.option("--order", default="2", show_default=True, type=click.Choice(["1", "2"]),
               help="Shape function: 1 (affine) or 2 (quadratic; recommended for the left-right match).")
@@ -135,8 +169,9 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     elif len(images) == 2 and not all(_single_image(p) for p in images):
         left_inputs, right_inputs = (images[0],), (images[1],)  # two sequences
     elif len(images) < 2 or len(images) % 2:
-        raise click.BadParameter(f"give the images as LEFT RIGHT pairs (an even number, at least 2); got {len(images)}",
-                                 param_hint="IMAGES")
+        hint = _one_input_hint(images[0]) if len(images) == 1 else ""
+        raise click.BadParameter(f"give the images as LEFT RIGHT pairs (an even number, at least 2); got {len(images)}"
+                                 + hint, param_hint="IMAGES")
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window % 2 == 0:
@@ -190,7 +225,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
 
     streamed_figures = figure_dir if figure_limits == "frame" else None  # "sequence": drawn at the end
     try:
-        with dask_client(scheduler, workers) as client:
+        with report_interrupt(output, "state"), dask_client(scheduler, workers) as client:
             summary = stereo_sequence(rig, pairs, output, reference=reference_strategy,
                                       mode="overwrite" if overwrite else "resume", progress=not quiet,
                                       callback=after, vtk_dir=vtk_dir, vtk_stem=output.stem,
@@ -216,7 +251,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         for index, n_valid, n, ref_index in zip(summary.indices, summary.n_valid, summary.n_points,
                                                 summary.reference_indices):
             ref_note = f" (reference: state {ref_index})" if ref_index else ""
-            click.echo(f"state {index}: {n_valid}/{n} valid points{ref_note}")
+            click.echo(f"state {index}: {n_valid}/{n} valid points in the region{ref_note}")
         skipped = len(pairs) - len(summary)
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")

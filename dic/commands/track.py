@@ -12,6 +12,7 @@ import click
 from ._compression import compression_option
 from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
+from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 
 
@@ -25,7 +26,8 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="HDF5 result file (.h5); an existing compatible file is resumed.")
 @click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
-@click.option("--step", default=5, show_default=True, type=click.IntRange(min=1), help="Grid spacing of the points of interest, px.")
+@click.option("--step", default=None, type=click.IntRange(min=1),
+              help="Grid spacing of the points of interest, px  [default: subset // 2, 10 for --subset 21].")
 @click.option("--order", default="1", show_default=True, type=click.Choice(["1", "2"]),
               help="Shape function: 1 (affine, 6 parameters) or 2 (quadratic, 12 parameters).")
 @click.option("--search", default=None, type=click.IntRange(min=1, max=2**31 - 1),
@@ -134,7 +136,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
 
-        planned = grid(ref.shape, step, margin=subset // 2, roi=region)
+        planned = grid(ref.shape, record.step, margin=subset // 2, roi=region)
     except ValueError as exc:
         raise _fail(exc) from None
     if budget is not None:
@@ -156,7 +158,7 @@ def track(reference, current, output, subset, step, order, search, search_method
         return _make_tracker(image, device=device, **kwargs)
 
     try:
-        with dask_client(scheduler, workers) as client:
+        with report_interrupt(output, "frame"), dask_client(scheduler, workers) as client:
             result = track_sequence(
                 ref_frame, _Frames(source), output, reference=reference_strategy,
                 mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
@@ -170,7 +172,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     if not quiet:
         for f in result.frames:
             ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
-            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points, {f['seconds']:.2f} s{ref_note}")
+            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points in the region, {f['seconds']:.2f} s{ref_note}")
         if result.skipped:
             click.echo(f"{result.skipped} frame(s) were already in {output} and were skipped")
         if result.frames:

@@ -54,7 +54,9 @@ class SequenceSummary:
     order, compact columns: ``indices``, ``n_valid``, ``n_points``, ``frame_seconds``,
     ``reference_indices`` (NumPy arrays), and ``frames``, the same as one dict per frame (``index``,
     ``n_valid``, ``n_points``, ``seconds``, ``reference_index``) built on request. A stereo run
-    counts the reference state 0 as a computed frame when it wrote it.
+    counts the reference state 0 as a computed frame when it wrote it. ``n_points`` counts the points of the
+    region, not the whole grid: 2-D, the tracked points (the region's grid); stereo, the grid points that were
+    computed (status not ``NOT_COMPUTED``: inside the region, a reference subset with texture in the image).
     """
 
     path: Path
@@ -160,7 +162,7 @@ class FrameMeasure(Protocol):
         """Frame k is finished (skipped): when the next is not, start its guess from k."""
 
     def counts(self, result) -> tuple[int, int]:
-        """(valid points, points) of a result."""
+        """(valid points, points of the region: see :class:`SequenceSummary`) of a result."""
 
     def write(self, k: int, result, item: Loaded, seconds: float) -> None: ...
 

@@ -5,7 +5,7 @@
 hold each option with its default written out. They are validated once, when built (with
 :mod:`kernels.checks`; a bad value raises :class:`OptionError`, a ``ValueError`` that names the
 option), by the library and the command line alike, so that both build the same record for the
-same run. Derived defaults are resolved (``step`` None -> ``subset // 2`` for 2-D grids,
+same run. Derived defaults are resolved (``step`` None -> ``subset // 2`` for 2-D and stereo grids,
 ``check_outliers`` None -> ``robust``), and options that cannot act are written ``None``
 (``search_radius`` without ``search``, ``auto_valid``/``auto_zncc`` unless ``reference="auto"``),
 so two records of the same run are equal whichever way they were written.
@@ -385,7 +385,7 @@ class TrackOptions(_Record):
 class StereoOptions(_Record):
     """Every option of a stereo sequence (:func:`dic.sequence.stereo_sequence`) that affects its results.
 
-    The :class:`dic.stereo.StereoCorrelation` options (``subset`` px, ``step`` px (None with ``points``:
+    The :class:`dic.stereo.StereoCorrelation` options (``subset`` px, ``step`` px (default ``subset // 2``; None with ``points``:
     their spacing), ``order``, ``points`` (N, 2) px in the left image, ``roi``, ``frame`` ("left",
     "plane" or ``[R_obj_left, t_obj_left]``), ``epipolar_tol_px``, ``zncc_min``, ``strain_window``
     grid points, ``max_iter``, ``tol`` px, ``triangulation``, ``max_features``, ``check_warps``,
@@ -394,7 +394,7 @@ class StereoOptions(_Record):
     """
 
     subset: int = 21
-    step: int | None = 10
+    step: int | None = None
     order: int = 2
     points: Any = None
     roi: Any = None
@@ -432,8 +432,9 @@ class StereoOptions(_Record):
             self._set("roi", json_form)
             if reg is not None:
                 self._set("region", reg)
-        if self.points is None:
-            self._set("step", _checked("step", positive_int, self.step, "step", detail=" number of pixels"))
+        if self.points is None:  # default: subset // 2, the 2-D rule
+            step = max(1, self.subset // 2) if self.step is None else self.step
+            self._set("step", _checked("step", positive_int, step, "step", detail=" number of pixels"))
         else:
             self._set("step", None)  # the POIs' spacing
         self._set("frame", _frame(self.frame))

@@ -27,7 +27,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..field3d import Field3D
+from ..field3d import Field3D, StereoStatus
 from ..stereo import StereoCorrelation, as_rig
 from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
@@ -220,8 +220,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         if 0 not in done:
             seconds = float(time.perf_counter() - t0)
             finish(0, sc.reference, (lp, rp), ref_digests, seconds)
-            n_ok = int(np.count_nonzero(sc.reference.valid))
-            summary.add(0, n_ok, int(sc.reference.valid.size), seconds, 0)
+            summary.add(0, *_counts(sc.reference), seconds, 0)
         else:
             summary.skipped += 1
         # the later states: the next pairs are read on a thread ahead, the finished ones written on one behind
@@ -247,6 +246,14 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         trim_memory()
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+def _counts(field: Field3D) -> tuple[int, int]:
+    """(valid points, points computed) of a state: the computed ones are those inside the region of interest
+    whose reference subset could be correlated (status not NOT_COMPUTED), not the whole grid, which keeps the
+    points outside the region."""
+    computed = np.asarray(field.status) != StereoStatus.NOT_COMPUTED
+    return int(np.count_nonzero(np.asarray(field.valid, bool) & computed)), int(np.count_nonzero(computed))
 
 
 class _Stereo:
@@ -305,8 +312,7 @@ class _Stereo:
             self.sc.set_previous(params_left, params_right, images=image)
 
     def counts(self, result: Field3D) -> tuple[int, int]:
-        valid = np.asarray(result.valid, bool)
-        return int(valid.sum()), int(valid.size)
+        return _counts(result)
 
     def write(self, k: int, result: Field3D, item: Loaded, seconds: float) -> None:
         self._finish(k, result, item.path, item.digest, float(seconds))
@@ -373,7 +379,7 @@ def _stereo_on_dask(client, reader, writer, wb, done, summary, bar, finish, buil
 
     def collect(k, item, _context, f, seconds):
         wb.submit(lambda k=k, f=f, p=item.path, d=item.digest, s=float(seconds): finish(k, f, p, d, s))
-        return int(np.count_nonzero(f.valid)), int(np.size(f.valid)), 0
+        return (*_counts(f), 0)
 
     def check_done(k, item):
         writer.check_frame(k, item.path, item.digest)

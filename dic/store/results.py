@@ -61,6 +61,8 @@ _READ_ERRORS = (OSError, KeyError, TypeError, ValueError, RuntimeError, Attribut
 KINDS: dict[str, StoreKind] = {dic2d.KIND.name: dic2d.KIND, stereo.KIND.name: stereo.KIND}
 _BY_FORMAT = {k.format: k for k in KINDS.values()}
 _MODES = ("resume", "overwrite", "new")
+#: how a refusal to resume says to start afresh, for the CLI and for Python
+_START_AFRESH = "start afresh with --overwrite (mode='overwrite' in Python)"
 _RESERVE_MARGIN = 1 << 20  # bytes reserved beyond a frame's arrays: its metadata, the groups' growth
 _METADATA_CACHE = 4 << 20  # bytes: HDF5's metadata cache of a file being written (its default grows to 32 MiB)
 
@@ -617,12 +619,12 @@ class ResultWriter(_ResultFile):
         fmt = f.attrs.get("format")
         if fmt != kind.format:
             raise ValueError(f"{self.path} is not a Specula {kind.label} result file (format {fmt!r}); "
-                             "write to another file or overwrite it")
+                             f"write to another file or {_START_AFRESH}")
         version = int(f.attrs.get("schema_version", -1))
         if version != SCHEMA_VERSION:
             raise ValueError(
                 f"{self.path} uses result schema version {version}, this Specula writes version {SCHEMA_VERSION}; "
-                "write to another file or overwrite it")
+                f"write to another file or {_START_AFRESH}")
         _check_header(f, self.path, kind)
         stored = f["reference"].attrs
         for role, d in zip(kind.image_roles, digests):
@@ -630,9 +632,11 @@ class ResultWriter(_ResultFile):
             if d and old and old != d:
                 were = ", ".join(str(stored.get(role_attr(r, "path"), "?")) for r in kind.image_roles)
                 raise ValueError(f"{self.path} holds results for a different {kind.reference_noun} ({were}); "
-                                 "write to another file or overwrite it")
+                                 f"write to another file or {_START_AFRESH}")
         if shape and tuple(stored.get("shape", ())) != shape:
-            raise ValueError(f"{self.path} holds results for a reference of shape {tuple(stored['shape'])}, not {shape}")
+            raise ValueError(f"{self.path} holds results for a reference of shape {tuple(int(v) for v in stored['shape'])}, "
+                             f"not {tuple(int(v) for v in shape)}; "
+                             f"write to another file or {_START_AFRESH}")
         old_json = f["settings"].attrs.get("json", "{}")
         old, new = json.loads(old_json), json.loads(self._settings_json)
         if self._settings_check is not None:
@@ -643,11 +647,11 @@ class ResultWriter(_ResultFile):
             differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
             raise ValueError(
                 f"{self.path} was written with different settings ({', '.join(differ)} differ; stored: {old_json}); "
-                f"resuming needs the same settings ({self._settings_json}). Write to another file or overwrite it")
+                f"resuming needs the same settings ({self._settings_json}). Write to another file or {_START_AFRESH}")
         if rig_json is not None:
             if "rig" not in f or json.loads(f["rig"].attrs["json"]) != json.loads(rig_json):
                 raise ValueError(f"{self.path} holds results computed with another rig; write to another file "
-                                 "or overwrite it")
+                                 f"or {_START_AFRESH}")
 
     # -- writing
     def write_frame(self, index: int, field, *, strain=None, path="", sha256="", attrs: dict | None = None) -> None:
@@ -841,6 +845,11 @@ class ResultReader(_ResultFile):
             raise
 
 
+    def __repr__(self) -> str:
+        return _short_repr("ResultReader", self.path, self.kind.label, self._h5 is not None and bool(self._h5),
+                           lambda: (self.done_frames(), self.settings))
+
+
 # ------------------------------------------------------------------------------------------------
 # the frames of a result, one at a time
 
@@ -888,6 +897,14 @@ class ResultFrames:
     def __len__(self) -> int:
         return len(self.indices)
 
+    def __repr__(self) -> str:
+        if self._reader is not None:
+            path, is_open = self._reader.path, self._reader._h5 is not None and bool(self._reader._h5)
+        else:
+            path, is_open = getattr(self._results, "path", None), None
+        label = "2-D DIC" if self.kind == "dic2d" else "stereo"
+        return _short_repr("ResultFrames", path, label, is_open, lambda: (self.indices, self.settings))
+
     def read(self, index: int):
         """Frame ``index`` (one of :attr:`indices`)."""
         if self._reader is not None:
@@ -928,6 +945,20 @@ class ResultFrames:
         res = self._results
         return stereo.table_attrs(res.settings, res.rig, res.reference_shape, first)
 
+
+
+def _short_repr(name: str, path, label: str, is_open: bool | None, contents) -> str:
+    """``<ResultReader 'run.h5': 2-D DIC, frames 2 (1..2), order 1>`` (``", closed"`` once closed: then
+    ``contents`` is not called); ``contents() -> (frame indices, settings)``."""
+    where = f" {str(path)!r}" if path is not None else " (in memory)"
+    text = f"<{name}{where}: {label}"
+    if is_open is False:
+        return text + ", closed>"
+    indices, settings = contents()
+    noun = "frames" if label != "stereo" else "states"
+    text += f", {noun} {dic2d.frames_text(indices)}"
+    details = ", ".join(f"{k} {settings[k]}" for k in ("order", "subset", "step") if (settings or {}).get(k) is not None)
+    return text + (f", {details}" if details else "") + ">"
 
 # ------------------------------------------------------------------------------------------------
 # repair
