@@ -116,6 +116,7 @@ def baselines(p: dict) -> dict[str, list[str]]:
         "profile": ["profile", p["results"], "--from", "15,24", "--to", "45,24"],
         "export": ["export", p["results"], "-f", "csv", "-o", "{out}"],
         "animate": ["animate", p["results"], "-Q", "u", "-o", "{out}.gif", "--dpi", "20", "-q"],
+        "repair": ["repair", p["results"]],
         "speckle": ["speckle", p["ref"], "--step", "16", "--device", "cpu"],
         "target fringes": ["target", "fringes", "-o", "{out}", "--screen", "320x240", "--grid", "4x2", "--pitch", "60",
                            "--steps", "3"],
