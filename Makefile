@@ -33,6 +33,12 @@ demo: $(DEMO_STAMP)
 test: $(STAMP) lint
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q --durations=15
 
+# The fast tier (under 3 minutes on 2 cores): every test not marked slow (tests/conftest.py, SLOW_FILES
+# and @pytest.mark.slow) - the kernels, the calibration and the library without the long accuracy runs,
+# sequences, the demo and the Dask cluster. `make test` runs everything.
+test-fast: $(STAMP) lint
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q -m "not slow and not dask" --durations=10
+
 # Guard rails: ruff (pyflakes, pycodestyle, import order) and the import-layer contract
 # (import-linter: dic -> calibration -> kernels, no circles; pyproject.toml [tool.importlinter])
 lint: $(STAMP)

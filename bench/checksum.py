@@ -6,7 +6,7 @@ Run from the repository root::
     .venv/bin/python -m bench.checksum                 # 1024x1024, step 5 (40 401 POIs), 30 frames per setting
     .venv/bin/python -m bench.checksum --quick         # 128x128, 4 frames (seconds; a smoke test)
 
-Conditions: one real frame of ``dic.track.Tracker`` (a :func:`dic.synth.speckle_pair` of ``--size``² px
+Conditions: one real frame of ``dic.Tracker`` (a :func:`dic.synth.speckle_pair` of ``--size``² px
 moved by (0.35, -0.2) px, 21 px subsets, step ``--step``, 1st order, strain with a 5-point window,
 CPU) is written ``--frames`` times into a result file through :class:`dic.store.ResultWriter`
 (``compression="none"``, the default; the same 21 datasets as a ``track_sequence`` frame), once with
@@ -39,9 +39,9 @@ from bench._host import cpu_model, write_json
 
 def one_frame(size: int, step: int):
     """A real tracked frame and its strain (what a sequence writes per frame)."""
-    from dic.strain import strain
+    from dic._strain import strain
+    from dic._track import Tracker
     from dic.synth import speckle_pair
-    from dic.track import Tracker
 
     ref, cur = speckle_pair((size, size), (0.35, -0.2), seed=2024)
     tracker = Tracker(ref, subset=21, step=step, device="cpu")

@@ -22,7 +22,7 @@ SVAL, EIATTR_REGCOUNT) and listed by open-source cubin tools (GVirtuS' ``CudaRtI
 cricket's ``cpu-elf2.h``). A non-zero stack on a kernel that calls nothing means local memory:
 arrays indexed at run time or register spills, which cost global-memory traffic on the GPU.
 
-Used by ``tests/test_kernel_resources.py`` to hold the kernels' registers and stack to bounds
+Used by ``tests/kernels/test_kernel_resources.py`` to hold the kernels' registers and stack to bounds
 (the binaries come from :func:`warp.compile_aot_module`, which needs no GPU).
 """
 from __future__ import annotations

@@ -30,9 +30,9 @@ TASKS = ("csv", "netcdf", "vtk", "mat", "extensometer", "point_history", "line_p
 
 
 def write_file(path, n_frames: int, n_side: int) -> None:
+    from dic._strain import strain
     from dic.field2d import Field2D
     from dic.store import ResultWriter
-    from dic.strain import strain
 
     gy, gx = np.meshgrid(np.arange(n_side) * 5.0 + 20, np.arange(n_side) * 5.0 + 20, indexing="ij")
     pts = np.column_stack([gx.ravel(), gy.ravel()])

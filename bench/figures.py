@@ -7,7 +7,7 @@ one per quantity) on a 1 MP (1024 x 1024) frame.
 
 Conditions: an 8-bit speckle reference image (1024 x 1024, ~4 px speckles, seed 0); a 2-D result on a grid
 of step 5 px (204 x 204 = 41 616 points, 1 % invalid) with u from +1 to +3 px and v from -12 to -5 px (offset,
-one-signed fields) and its strain (window 5, ``dic.strain.strain``); a stereo state (Field3D) on the same grid
+one-signed fields) and its strain (window 5, ``dic.strain``); a stereo state (Field3D) on the same grid
 with U, V, W in mm (W one-signed, 0.011 to 0.022 mm), strains spanning zero, ZNCC and status. Each figure is
 drawn and saved ``--repeats`` times (default 3) at the library's default dpi; reported: the median wall time
 per figure (wall and this process's CPU time), the PNG size and pixel size, and the load average (the machine is shared: compare runs made back
@@ -105,8 +105,8 @@ def main(argv=None):
     import matplotlib
 
     import dic
+    from dic._strain import strain
     from dic.plots.fields import write_field_figure, write_figures
-    from dic.strain import strain
 
     load_before = os.getloadavg()
     ref = speckle()

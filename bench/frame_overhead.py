@@ -5,7 +5,7 @@
 For each size (1024², step 5 and 2048², step 10; ``--quick``: 256², step 8), 8-bit frames of a synthetic
 speckle sequence (``dic.synth.speckle_pair``, small rigid shifts), subset 21, order 1, one reference:
 
-* ``tracker``: ``dic.track.Tracker.track(frame_uint8, guess=previous, search=None)`` through the general
+* ``tracker``: ``dic.Tracker.track(frame_uint8, guess=previous, search=None)`` through the general
   path (before issue 16: host conversion and checks of the frame, ``prepare_current``,
   ``Correlator.run_all``, acceptance, implausible-warp flags, uncertainty, the ``Field2D``);
 * ``tracker_resident``: the same call as it runs now (``Correlator.run_frame``: the device-resident path,
@@ -59,8 +59,8 @@ def run(device: str, sizes, n_frames: int) -> dict:
     import kernels.frames
     import kernels.icgn
     import kernels.interp
+    from dic._track import Tracker
     from dic.synth import speckle_pair
-    from dic.track import Tracker
     from kernels.frames import FrameTracker
     from kernels.icgn import icgn, prepare_current
 
@@ -98,7 +98,7 @@ def run(device: str, sizes, n_frames: int) -> dict:
                 ok = f.valid
                 state["g"] = np.where(ok[:, None], f.params, 0.0 if state["g"] is None else state["g"])
 
-            track_module = sys.modules["dic.track"]  # (dic.track is also the function dic.track)
+            track_module = sys.modules["dic._track"]
             resident = track_module._device_resident
             track_module._device_resident = lambda image: False  # today's general path
             try:

@@ -3,7 +3,7 @@
 Run from the repository root::
 
     .venv/bin/python -m bench.fuzz_cli                    # full: every malformed value for every option
-    .venv/bin/python -m bench.fuzz_cli --values 2         # reduced (tests/test_cli_fuzz.py): 2 values per option
+    .venv/bin/python -m bench.fuzz_cli --values 2         # reduced (tests/project/test_cli_fuzz.py): 2 values per option
     .venv/bin/python -m bench.fuzz_cli --mutants 20       # more damaged files per input kind
 
 The cases run in-process through click's ``CliRunner`` (``specula <verb> ...``) in a scratch folder

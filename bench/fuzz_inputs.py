@@ -3,7 +3,7 @@
 Run from the repository root::
 
     .venv/bin/python -m bench.fuzz_inputs                  # full: 500 mutants per seed file (9500 files)
-    .venv/bin/python -m bench.fuzz_inputs --per-seed 30    # reduced (tests/test_fuzz_inputs.py)
+    .venv/bin/python -m bench.fuzz_inputs --per-seed 30    # reduced (tests/project/test_fuzz_inputs.py)
     .venv/bin/python -m bench.fuzz_inputs --seed 7 --keep failures/   # other mutants; keep failing files
 
 Seed files (written fresh into a temporary folder each run): OpenCV FileStorage rigs (YAML, XML,

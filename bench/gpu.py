@@ -3,7 +3,7 @@
 Run by ``bench/gpu.sh run`` on a machine with an NVIDIA GPU (see bench/README.md, "GPU"), or directly::
 
     python -m bench.gpu --device cuda:0                  # everything, under --budget seconds (470)
-    python -m bench.gpu --device cpu --quick --out DIR   # the smoke test CI runs (tests/test_gpu_script.py)
+    python -m bench.gpu --device cpu --quick --out DIR   # the smoke test CI runs (tests/project/test_gpu_script.py)
     python -m bench.gpu --device cpu --save-reference    # rewrite bench/results/gpu_reference_cpu.npz
     python -m bench.gpu --prebuild-cache --arch 90       # compile every kernel module for sm_90 into
                                                          # the Warp kernel cache (WARP_CACHE_PATH)
@@ -134,7 +134,7 @@ def prebuild_cache(arch: int = 90) -> list[str]:
 def reference_case(device: str, images=None) -> dict:
     """The fixed pair (rendered here, or ``images``: the carried 8-bit pair) tracked on ``device``:
     the images and, per order, params, zncc, status and iterations (host arrays)."""
-    from dic.track import Tracker
+    from dic._track import Tracker
 
     c = REF_CASE
     if images is None:
@@ -153,7 +153,7 @@ def reference_case(device: str, images=None) -> dict:
 def section_reference(device: str) -> dict:
     import torch
 
-    from dic.track import Tracker
+    from dic._track import Tracker
 
     if not os.path.exists(REFERENCE):
         return {"error": f"{REFERENCE} is missing (python -m bench.gpu --device cpu --save-reference)"}
@@ -191,8 +191,8 @@ def section_reference(device: str) -> dict:
 
 def section_icgn(device: str, quick: bool) -> dict:
     from bench.icgn import bench_device
+    from dic._track import grid
     from dic.synth import speckle_pair
-    from dic.track import grid
 
     size, step, repeats = (256, 4, 1) if quick else (2048, 2, 3)
     shift = (0.35, -0.2)
@@ -217,8 +217,8 @@ def _sequence_frames(size: int, n: int, device: str):
 def section_sequence(device: str, quick: bool, workdir: str) -> dict:
     import torch
 
+    from dic._track import Tracker
     from dic.sequence import track_sequence
-    from dic.track import Tracker
 
     size, n, step = (128, 4, 8) if quick else (1024, 50, 5)
     t0 = time.perf_counter()
@@ -311,7 +311,7 @@ def section_kernel(device: str, quick: bool) -> dict:
     """
     import warp as wp
 
-    from dic.track import grid
+    from dic._track import grid
     from kernels.icgn import (
         IcgnResult,
         default_layout,
@@ -408,7 +408,7 @@ def section_kernel(device: str, quick: bool) -> dict:
 
 def section_prepare(device: str, quick: bool) -> dict:
     """Reference preparation (gradients; per-POI Hessians of both orders) and current-image prefilter times."""
-    from dic.track import grid
+    from dic._track import grid
     from kernels.icgn import prepare_current, prepare_reference, prepare_subsets
 
     size, step = (256, 4) if quick else (2048, 5)
@@ -435,8 +435,8 @@ def section_prepare(device: str, quick: bool) -> dict:
 def section_search(device: str, quick: bool) -> dict:
     """Each initial-guess search (zncc, fft, pyramid, rg) on a pair moved well beyond IC-GN's reach:
     seconds per frame, valid fraction and the displacement error against the exact shift."""
+    from dic._track import Tracker
     from dic.synth import speckle_pair
-    from dic.track import Tracker
 
     size, step = (256, 8) if quick else (512, 5)  # the searches run partly on the host: keep it bounded
     shift = (7.3, -4.6)
@@ -461,7 +461,7 @@ def output_checks(device: str) -> dict:
     """Outputs pre-filled with NaN / -1 must all be written; two runs must agree bitwise (determinism)."""
     import warp as wp
 
-    from dic.track import grid
+    from dic._track import grid
     from kernels.icgn import IcgnResult, icgn, n_params, prepare_current, prepare_reference, prepare_subsets
 
     c = REF_CASE
@@ -499,7 +499,7 @@ def section_pipeline(device: str, quick: bool) -> dict:
     bitwise the host loop's last frame."""
     import warp as wp
 
-    from dic.track import Tracker
+    from dic._track import Tracker
     from kernels.frames import FrameTracker
 
     size, n, step = (128, 3, 8) if quick else (1024, 20, 5)

@@ -41,8 +41,8 @@ import warp as wp
 from scipy import ndimage
 
 from bench._host import cpu_model
+from dic._track import grid
 from dic.synth import speckle_pair
-from dic.track import grid
 from kernels._device import available_devices, resolve_device
 from kernels._launch import cpu_threads
 from kernels.conventions import Status

@@ -8,10 +8,10 @@ l + 2L, ...`` (row-major), and the per-iteration sums (``sum J^T g``, ``sum g``,
 same Gauss-Newton update (the reference side, ``H^-1`` and friends, comes from
 :func:`kernels.icgn.prepare_subsets` unchanged). The criterion, update, statuses and convergence
 test are those of ``kernels.icgn._icgn_1st``; only the order of the float32 sums differs, so the
-results agree to float32 rounding (tests/test_kernel_variants.py).
+results agree to float32 rounding (tests/kernels/test_kernel_variants.py).
 
 Status: a prototype, not used by the engine, so it lives in ``bench/`` (not installed); ``bench.gpu``
-times it and ``tests/test_kernel_variants.py`` checks it. It is correct on the CPU (where Warp runs the lanes
+times it and ``tests/kernels/test_kernel_variants.py`` checks it. It is correct on the CPU (where Warp runs the lanes
 of a block one after another when ``wp.config.enable_cpu_blocks`` is set), and its sm_90 resources
 are recorded in docs/dic2d.md ("GPU"); whether it beats one thread per POI must be measured on a
 GPU (``bench/gpu.sh``).

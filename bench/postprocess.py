@@ -8,7 +8,7 @@ step 5 px: a 1440 x 1440 px reference image) less a circular hole of radius ``--
 has (78 400 - 5 025 = 73 375 points) -- and a 9 x 9 block of points invalid from frame 6 on:
 
 * ``dic2d``: a 2-D result with the exactly linear field ``u = a_k (x - cx)``, ``v = -0.3 a_k (y - cy)``,
-  ``a_k = 0.001 k``, and its strain (``dic.strain.strain``, window 5);
+  ``a_k = 0.001 k``, and its strain (``dic.strain``, window 5);
 * ``stereo``: a stereo result on the same left-image grid: a tilted plane ``X = 0.05 (x - cx)`` mm,
   ``Y = 0.05 (y - cy)``, ``Z = 500 + 0.3 X - 0.1 Y``, displacements ``U = a_k X``, ``W = 0.5 a_k X``
   and a uniform surface strain.
@@ -65,9 +65,9 @@ def _invalid_block(points, c, frame):
 
 
 def write_2d(path, frames: int, side: int, hole: float):
+    from dic._strain import StrainPlan
     from dic.field2d import Field2D
     from dic.store import ResultWriter
-    from dic.strain import StrainPlan
 
     pts, c, shape = grid_points(side, hole)
     n = len(pts)
@@ -91,8 +91,8 @@ def write_2d(path, frames: int, side: int, hole: float):
 def write_stereo(path, frames: int, side: int, hole: float):
     from calibration.camera import Camera
     from calibration.stereo import StereoRig
+    from dic._stereo import StereoMatch
     from dic.field3d import Field3D
-    from dic.stereo import StereoMatch
     from dic.store import ResultWriter
 
     pts, c, shape = grid_points(side, hole)

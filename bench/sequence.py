@@ -3,7 +3,7 @@
 Run from the repository root::
 
     .venv/bin/python -m bench.sequence                    # full: 1024x1024, 100/1000 frames, 300 evolving frames
-    .venv/bin/python -m bench.sequence --quick            # 128x128, a few frames (seconds; tests/test_bench_sequence.py)
+    .venv/bin/python -m bench.sequence --quick            # 128x128, a few frames (seconds; tests/project/test_bench_sequence.py)
     .venv/bin/python -m bench.sequence --parts evolving --modes fixed,auto --evolving-frames 100
 
 Conditions (all parts): 8-bit Boolean speckle from :mod:`dic.synth` (mean radius 2 px, density
@@ -44,7 +44,7 @@ are part of the run). Three parts (``--parts``):
 
 The engine: ``dic.sequence.track_sequence(reference, frames, out, *, reference=MODE, ...)`` when the
 library has it (issue 13); otherwise (``engine: fallback`` in the results) a loop of
-``dic.track.Tracker`` that does what ``specula track`` does today (read, track with the previous
+``dic.Tracker`` that does what ``specula track`` does today (read, track with the previous
 frame as guess, strain with a 5-point window, write the frame to the results store), for the
 ``fixed`` mode only; the other modes are then reported as skipped. ``--engine fallback`` forces it.
 Writes bench/results/sequence_<device>.json (``--out`` to write elsewhere).
@@ -90,9 +90,9 @@ def fallback_track_sequence(reference, frames, out, *, reference_mode="fixed", s
     Frames are numbered 1, 2, ... in the results file, as ``specula track`` numbers them. Only the
     fixed reference exists here.
     """
+    from dic._strain import strain as compute_strain
+    from dic._track import Tracker
     from dic.store import ResultWriter, image_digest
-    from dic.strain import strain as compute_strain
-    from dic.track import Tracker
     from kernels.images import read_image
 
     if reference_mode != "fixed":
@@ -266,7 +266,7 @@ def _tracker_options(args, roi=None):
 
 
 def part_throughput(args, run, engine_name, folder):
-    from dic.track import Tracker
+    from dic._track import Tracker
     from kernels.images import read_image
 
     ref_path, paths, _ = rigid_frames(folder, args.size)

@@ -1,4 +1,4 @@
-"""Stereo-DIC throughput on a 2-camera 5-megapixel sequence (dic.stereo.StereoCorrelation).
+"""Stereo-DIC throughput on a 2-camera 5-megapixel sequence (dic.StereoCorrelation).
 
 Run from the repository root::
 
@@ -95,7 +95,7 @@ def _warm_up(rig, images, device):
     from dataclasses import replace
 
     from calibration.stereo import StereoRig
-    from dic.stereo import StereoCorrelation
+    from dic._stereo import StereoCorrelation
 
     small = StereoRig(replace(rig.left, size=(0, 0)), replace(rig.right, size=(0, 0)), rig.R_right_left,
                       rig.t_right_left)
@@ -109,7 +109,7 @@ def _warm_up(rig, images, device):
 
 
 def bench_device(device, rig, images, plane_left, step, subset):
-    from dic.stereo import StereoCorrelation
+    from dic._stereo import StereoCorrelation
 
     _warm_up(rig, images, device)
     wp.synchronize_device(device)
@@ -274,7 +274,7 @@ def _load():
 def bench_rate(device, step, subset, states, cache, samples):
     """Stereo state rate and reference-match rate as ratios to the one-frame 2-D rate on the same POIs.
 
-    2-D: :class:`dic.track.Tracker` on the left reference with the stereo POIs (order 2, the stereo max_iter),
+    2-D: :class:`dic.Tracker` on the left reference with the stereo POIs (order 2, the stereo max_iter),
     each left image of the sequence tracked from the previous frame's field (the device frame path), one frame
     timed = ``Tracker.track``. Stereo: the reference (``StereoCorrelation(...)``: features, match, right
     reference, reference field; also its match stages alone), then per state ``measure`` (two tracks,
@@ -286,9 +286,9 @@ def bench_rate(device, step, subset, states, cache, samples):
     timed just before and just after it)."""
     import tempfile
 
-    from dic.stereo import StereoCorrelation
+    from dic._stereo import StereoCorrelation
+    from dic._track import Tracker
     from dic.store import ResultWriter
-    from dic.track import Tracker
 
     rig, pairs, files, _ = _lab_pairs(RATE_SIZE, states, (500.0, 450.0), cache, samples, "rate")
     _warm_up(rig, pairs, device)

@@ -4,7 +4,7 @@ Run from the repository root::
 
     .venv/bin/python -m bench.stereo_memory [--states 100 1000] [--before /path/to/old/checkout]
 
-Scene: the virtual lab of tests/test_stereo_sequence.py (two 320 x 240 px cameras 300 mm apart,
+Scene: the virtual lab of tests/dic/test_stereo_sequence.py (two 320 x 240 px cameras 300 mm apart,
 toed in on a speckled plane 1 m away; 4 samples per pixel, no noise), rendered once: the
 reference pair and one pair with the plane translated by (0.5, -0.3, 1.0) mm. The sequence is the
 reference pair followed by the moved pair repeated (the same two arrays: the input holds no

@@ -30,7 +30,7 @@ import numpy as np
 import warp as wp
 
 from calibration.camera import Camera
-from dic.triangulate import triangulate, undistort_points
+from dic._triangulate import triangulate, undistort_points
 from kernels._device import available_devices, resolve_device
 from kernels._launch import cpu_threads
 

@@ -839,7 +839,7 @@ def as_rig(rig_or_path, *, image_size=None):
     path read with :func:`load_rig` (any format, detected from the content; ``image_size`` (width,
     height) stands in where the file records no size). Anything else raises ``ValueError``.
 
-    Every function that takes a rig calls this (``dic.stereo.StereoCorrelation``, ``stereo``,
+    Every function that takes a rig calls this (``dic.StereoCorrelation``, ``stereo``,
     ``dic.sequence.stereo_sequence``, ``specula stereo --rig``), so a rig may be given as an object
     or as the path of its file.
     """

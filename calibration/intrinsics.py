@@ -602,7 +602,7 @@ def _intrinsic_covariance(cv2, objs, imgs, sol, estimated: set, ndist: int):
 
     The intrinsic block of the full bundle covariance (poses included, i.e. the Schur complement),
     with the residual variance as OpenCV scales its ``stdDeviationsIntrinsics``; their square roots
-    agree (tests/test_intrinsics.py)."""
+    agree (tests/calibration/test_intrinsics.py)."""
     model = _bundle_model(cv2, objs, imgs, sol, estimated, ndist)
     cov = model.covariance(model.x0, np.ones(model.V))
     return model.names, cov[:model.n_int, :model.n_int]

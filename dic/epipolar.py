@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .triangulate import TriangulationStatus, undistort_points
+from ._triangulate import TriangulationStatus, undistort_points
 
 __all__ = ["fundamental_matrix", "epipolar_distance", "epipolar_residuals", "epipolar_candidates", "epipolar_search"]
 
@@ -50,7 +50,7 @@ def epipolar_distance(F, ideal_left, ideal_right) -> np.ndarray:
 def epipolar_residuals(rig, points_left, points_right, *, device=None) -> np.ndarray:
     """Epipolar distance (px, undistorted right image) of matched observed pixels (N, 2) and (N, 2).
 
-    Both sets are undistorted with the rig's lens models (:func:`dic.triangulate.undistort_points`,
+    Both sets are undistorted with the rig's lens models (:func:`dic.undistort_points`,
     converged to 1e-9 px); NaN where an input is NaN or cannot be undistorted.
     """
     pl = np.asarray(points_left, dtype=np.float64).reshape(-1, 2)

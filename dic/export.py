@@ -244,7 +244,7 @@ def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
 
 def _grid_index(x, y):
     """1-based (row, col) of each point and the grid shape, or None when the points are not a grid."""
-    from .strain import grid_layout
+    from ._strain import grid_layout
 
     try:
         index, shape, _ = grid_layout(np.column_stack([x, y]))
@@ -439,7 +439,7 @@ class _Geometry:
             self.lattice = None
             self.grid_hint = "the points are not on a regular grid"
             try:
-                from .strain import grid_layout
+                from ._strain import grid_layout
 
                 index, shape, _ = grid_layout(pts)
                 lat = np.full(shape, -1, dtype=np.int64)
@@ -544,7 +544,7 @@ def write_vtk(field, path, *, kind: str = "grid", deformed: bool = False, invali
     ``field``: a :class:`~dic.field3d.Field3D` (mm), a :class:`~dic.field2d.Field2D` or a result
     file's frame (px, z = 0). ``path`` ends in ``.vtu`` (XML, compressed) or ``.vtk`` (legacy).
     ``invalid``: ``"drop"`` writes the valid points only, ``"nan"`` every point with a position
-    (NaN data where invalid). ``strain``: a :class:`dic.strain.StrainField` to add to a Field2D.
+    (NaN data where invalid). ``strain``: a :class:`dic.StrainField` to add to a Field2D.
     NaN strains (too few neighbours) stay NaN, which ParaView shows as blank.
     """
     f = _check_field(field)

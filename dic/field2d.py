@@ -60,7 +60,7 @@ class Field2D:
         Correlated against a moved reference: the valid points whose place in it was interpolated from
         their neighbours (:mod:`dic.sequence.reference`); None otherwise.
     strain : StrainField, dict or None
-        The frame's strain when a sequence computed it (a :class:`dic.strain.StrainField`; a result
+        The frame's strain when a sequence computed it (a :class:`dic.StrainField`; a result
         file's frame: the stored strain as a dict), used by :meth:`to_xarray` and :meth:`plot` when
         they are given none.
     """
@@ -116,7 +116,7 @@ class Field2D:
     def to_xarray(self, strain=None):
         """An :class:`xarray.Dataset` over ``point``: coordinates ``x``, ``y`` (px); ``u``, ``v`` (px),
         the other shape-function parameters, ``sigma_u``, ``sigma_v`` (px; NaN where not valid or not
-        computed), ``zncc``, ``iterations``, ``status``, ``valid`` and, with ``strain`` (a :class:`dic.strain.StrainField`), the strain columns; units and
+        computed), ``zncc``, ``iterations``, ``status``, ``valid`` and, with ``strain`` (a :class:`dic.StrainField`), the strain columns; units and
         descriptions as attributes (:mod:`dic.tabular`)."""
         from .tabular import point_dataset
 

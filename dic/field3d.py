@@ -318,7 +318,7 @@ class SurfaceStrainPlan:
     while the next calls have the same valid points (most states of a sequence), so a state costs the
     displacement moments (12 box filters) and a 2x2 solve per point. Bit for bit
     ``surface_strain_grid(X, U, valid, grid_shape, window, ...)`` (the same operations on the same values;
-    tested); :class:`dic.strain.StrainPlan` does the same for 2-D strain.
+    tested); :class:`dic.StrainPlan` does the same for 2-D strain.
 
     Parameters
     ----------
@@ -481,13 +481,13 @@ class Field3D:
         reference state (Lagrangian).
     reference_interpolated : (N,) bool or None
         Measured from a moved reference: the valid points whose place in that state was interpolated
-        from their neighbours (not valid there; :meth:`dic.stereo.StereoCorrelation.move_reference`).
+        from their neighbours (not valid there; :meth:`dic.StereoCorrelation.move_reference`).
         None otherwise (and for states read back from a file, which store only their count, the
         ``reference_interpolated`` attribute).
     details : dict
         Stage-by-stage codes: ``match_status``, ``track_left_status``, ``track_right_status``
         (:class:`kernels.conventions.Status`), ``triangulation_ref_status``,
-        ``triangulation_status`` (:class:`dic.triangulate.TriangulationStatus`), ``guess_source``
+        ``triangulation_status`` (:class:`dic._triangulate.TriangulationStatus`), ``guess_source``
         (0 features, 1 neighbour propagation, 2 epipolar search, -1 none), and the matched
         image positions ``points_right_ref``, ``points_left_cur``, ``points_right_cur`` (N, 2) float64.
     """

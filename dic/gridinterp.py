@@ -1,7 +1,7 @@
 """Values of a result at arbitrary points, from the points' grid cells, never across a hole.
 
 The points of a Specula result lie on a regular grid (``x0 + i dx, y0 + j dy``; a subset of it
-when a region excluded some: :func:`dic.strain.grid_layout`). A query point is given a value
+when a region excluded some: :func:`dic.grid_layout`). A query point is given a value
 only from the **grid cell that contains it**, and only when every corner of that cell that the
 value depends on is a point of the result and valid in the frame; otherwise the value is NaN
 with a :class:`QueryStatus` that says why. Nothing is ever bridged across a hole, an excluded
@@ -160,7 +160,7 @@ class GridCells:
     ----------
     points : (N, 2) float
         Positions on a regular grid or a subset of one (px); raises ``ValueError`` otherwise
-        (:func:`dic.strain.grid_layout`).
+        (:func:`dic.grid_layout`).
 
     Attributes
     ----------
@@ -169,7 +169,7 @@ class GridCells:
     """
 
     def __init__(self, points):
-        from .strain import grid_layout
+        from ._strain import grid_layout
 
         pts = np.array(points, dtype=np.float64, copy=True)
         index, shape, step = grid_layout(pts)

@@ -98,7 +98,7 @@ def _components_of(source):
         return source.exx, source.eyy, source.exy
     except AttributeError:
         raise ValueError("principal_strains takes exx, eyy, exy arrays, or one object with them (a "
-                         f"dic.strain.StrainField, a dic.field3d.Field3D, a strain dict); got {type(source).__name__}"
+                         f"dic._strain.StrainField, a dic.field3d.Field3D, a strain dict); got {type(source).__name__}"
                          ) from None
 
 
@@ -109,7 +109,7 @@ def principal_strains(exx, eyy=None, exy=None) -> PrincipalStrains:
     ----------
     exx, eyy, exy : array-like of one shape (or scalars)
         Normal strains and the **tensor** shear (``exy = γxy / 2``), e.g. a
-        :class:`dic.strain.StrainField`'s small strain or a :class:`dic.field3d.Field3D`'s
+        :class:`dic.StrainField`'s small strain or a :class:`dic.field3d.Field3D`'s
         Green-Lagrange surface strain. Alternatively pass one object with attributes or keys
         ``exx``, ``eyy``, ``exy`` as ``exx`` alone (then the Green-Lagrange ``Exx``... of a
         StrainField are not used: call with ``s.Exx, s.Eyy, s.Exy`` for those).
@@ -503,7 +503,7 @@ def window_points(window, step, unit: str = "grid") -> int:
     ``unit="px"``: ``window`` is a side length in px; the window is the largest odd number of grid
     points ``n`` whose span ``(n - 1) · step`` does not exceed it (at least 3: a window narrower
     than two grid steps is refused). ``step`` is the grid spacing in px (a number, or the
-    ``(dx, dy)`` of :func:`dic.strain.grid_layout`, which must then be equal).
+    ``(dx, dy)`` of :func:`dic.grid_layout`, which must then be equal).
     """
     from kernels.checks import odd_int
 
@@ -542,10 +542,10 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
         The new ``.h5`` file (overwritten if it exists). None: replace ``results`` in place (a new
         file is written next to it and renamed over it only when complete).
     window : int or float
-        The fit window of :func:`dic.strain.strain`: grid points per side (``unit="grid"``) or
+        The fit window of :func:`dic.strain`: grid points per side (``unit="grid"``) or
         its side in px (``unit="px"``, see :func:`window_points`).
     min_points : int, optional
-        Passed to :func:`dic.strain.strain`.
+        Passed to :func:`dic.strain`.
     scale : float, optional
         Also store this mm/px scale (settings key :data:`SCALE_KEY`); None keeps the stored one.
 
@@ -558,8 +558,8 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     every writer): an output, or a ``results`` file, that another process is writing (a running
     ``specula track``) is refused with :class:`dic.store.ResultFileInUse` and left untouched.
     """
+    from ._strain import grid_layout, strain
     from .store import ResultReader, ResultWriter, files
-    from .strain import grid_layout, strain
 
     if not isinstance(results, (str, os.PathLike)):
         raise ValueError(f"results must be the path of a 2-D result file, got {type(results).__name__}")

@@ -87,7 +87,7 @@ def columns_2d(points, u, v, *, params=None, order=None, zncc=None, iterations=N
                strain=None, sigma_u=None, sigma_v=None) -> dict[str, np.ndarray]:
     """Per-point columns of a 2-D field (any of the optional arrays may be None).
 
-    ``strain`` is a :class:`dic.strain.StrainField` or the strain dict of a result file's frame.
+    ``strain`` is a :class:`dic.StrainField` or the strain dict of a result file's frame.
     ``sigma_u``, ``sigma_v`` (N,) px: the predicted displacement std (:mod:`dic.quality`); the two
     columns are always there, NaN where a point is not valid and everywhere when the field has none
     (a field built without them, a file written before they were stored).

@@ -24,7 +24,7 @@ _POOL: ThreadPoolExecutor | None = None
 #: ahead-of-time cache (``bench/gpu.py --prebuild-cache``) holds exactly what is launched.
 #: Occupancy on sm_90 (65536 registers and at most 64 warps per SM, registers allocated per warp in
 #: units of 256), registers read from the compiled cubins (docs/dic2d.md, "GPU";
-#: tests/test_kernel_resources.py holds them):
+#: tests/kernels/test_kernel_resources.py holds them):
 #:
 #: ======================  ======  ========================================================
 #: kernel                  bounds  reason

@@ -8,7 +8,7 @@ every buffer allocated once, and IC-GN launches over (frames x POIs).
   also flags a non-finite pixel: that is the frame's only validity check (no host pass over it);
 * the raw frame, the coefficients, the row-expanded layout, the guess, the results and the packed
   host copy are allocated once, in the constructor: tracking a frame allocates no Warp memory
-  (``tests/test_frames.py`` counts the allocations);
+  (``tests/kernels/test_frames.py`` counts the allocations);
 * the guess of frame k is frame k-1's result, taken on the device (:func:`_propagate_guess`): a POI
   whose IC-GN status is CONVERGED or MAX_ITERATIONS with ``zncc >= zncc_min`` passes its parameters
   on, any other POI keeps its previous guess;

@@ -593,7 +593,7 @@ def _make_prepare_subsets(order: int):
     size), so the compiler can unroll the loops and keep constant-indexed values in registers.
 
     The arithmetic is that of the former run-time-``k`` kernel, operation for operation, so the
-    results are bitwise identical (tests/test_kernel_variants.py compares against a copy of it).
+    results are bitwise identical (tests/kernels/test_kernel_variants.py compares against a copy of it).
     """
     kk = n_params(order)  # parameters
     dj = order  # highest total degree of the shape-function monomials (1 or 2)

@@ -409,7 +409,7 @@ def _plain_grey_png(data: bytes) -> tuple[int, int] | None:
 
 def _read_plain_grey_png(p: Path) -> np.ndarray | None:
     """The pixels of an 8- or 16-bit grey, non-interlaced PNG decoded by OpenCV (about 20 % less CPU than
-    Pillow; the same pixels, tests/test_io.py), or None (then Pillow reads it, as for every other PNG):
+    Pillow; the same pixels, tests/dic/test_io.py), or None (then Pillow reads it, as for every other PNG):
     another kind of PNG, a file whose chunks do not run whole to the end, anything OpenCV does not decode."""
     with open(p, "rb") as fh:
         head = fh.read(29)

@@ -32,7 +32,7 @@ with read noise 1 DN and shot noise, 28 mm f/2.8 lenses focused at 5.4 m, 1650 m
 * writes ``repro/results/calibration_lab.json`` (or ``--out``) and prints a table.
 
 The helpers (:func:`direct_pose`, :func:`render_view_stack`, :class:`LabTruth` ...) are also used by
-tests/test_calibration_lab.py at reduced resolution.
+tests/calibration/test_calibration_lab.py at reduced resolution.
 """
 from __future__ import annotations
 

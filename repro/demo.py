@@ -114,7 +114,7 @@ def generate(state: DemoState) -> None:
 
 def track_step(state: DemoState) -> None:
     """Step 2: 2-D DIC."""
-    from dic.track import track
+    from dic._track import track
 
     cfg = state.config
     t0 = time.perf_counter()
@@ -125,7 +125,7 @@ def track_step(state: DemoState) -> None:
 
 def strain_step(state: DemoState) -> None:
     """Step 3: strain."""
-    from dic.strain import strain
+    from dic._strain import strain
 
     t0 = time.perf_counter()
     state.strain = strain(state.field, window=state.config.strain_window)
@@ -214,7 +214,7 @@ def write_step(state: DemoState) -> None:
         "",
         "## Accuracy against the exact displacement",
         "",
-        "Errors are measured minus exact at the valid points. The bounds are those of `tests/test_demo.py`: the noise "
+        "Errors are measured minus exact at the valid points. The bounds are those of `tests/project/test_demo.py`: the noise "
         "floor of 21 px subsets at 1 grey level is about 0.002-0.003 px, so 0.015 px RMS leaves room for the sine's "
         "curvature and still catches a convention error (a sign or half-pixel slip gives >= 0.5 px); a 7-point plane "
         "fit over 36 px of the 192 px sine stays well below 5e-3 strain RMS (largest true strain "
@@ -247,7 +247,7 @@ def write_step(state: DemoState) -> None:
 
 
 def _checks_2d(e: dict) -> list[tuple[str, str, str, bool]]:
-    """(quantity, measured, bound, within the bound) of the 2-D demo's errors; the bounds of tests/test_demo.py."""
+    """(quantity, measured, bound, within the bound) of the 2-D demo's errors; the bounds of tests/project/test_demo.py."""
     rows = [("valid points", f"{e['valid_points']} / {e['points']}", "> 90 %", e["valid_points"] > 0.9 * e["points"])]
     for q in ("u", "v"):
         v = e[f"{q}_rms_error_px"]
@@ -393,7 +393,7 @@ def stereo_report_step(state: DemoState) -> None:
         "## What was measured, and is it good?",
         "",
         "Each row says what the number is, what a correct chain gives (the truth the demo knows) and the bound it "
-        "is checked against; the bounds are those of `tests/test_experiments.py` at this quarter resolution "
+        "is checked against; the bounds are those of `tests/project/test_experiments.py` at this quarter resolution "
         "(1 monitor px = " f"{MONITOR_PITCH_MM:g} mm).",
         "",
         "| quantity | measured | expected | bound | |",
@@ -434,7 +434,7 @@ def stereo_report_step(state: DemoState) -> None:
 
 def _checks_stereo(f: dict, dots: dict, de: dict, pitch_mm: float) -> list[tuple[str, str, str, str, bool | None]]:
     """(quantity, measured, expected, bound, within the bound or None where only reported) of the stereo demo;
-    the bounds of tests/test_experiments.py."""
+    the bounds of tests/project/test_experiments.py."""
     rp, A = f["reprojection_rms_px"], de["imposed_amplitude_px"]
     scale_err = dots["mean_distance_mm"] / dots["true_mm"] - 1.0
     return [

@@ -530,7 +530,7 @@ def _matched(det_l, det_r):
 
 def triangulate_dots(rig, det_l, det_r, target):
     """Triangulated dots (left frame, mm), their ids and the target's object points."""
-    from dic.triangulate import triangulate
+    from dic._triangulate import triangulate
 
     ids, ql, qr = _matched(det_l, det_r)
     res = triangulate(rig, ql, qr, method="optimal")
@@ -645,7 +645,7 @@ def run_dot_tests(exp: Experiment, rigs: dict, positions=None, log=print) -> dic
 
 def run_planarity(exp: Experiment, rig, dets: dict, positions=None, log=print) -> dict:
     """Speckle at each position: stereo-DIC shape, deviation from the best-fit plane."""
-    from dic.stereo import stereo
+    from dic._stereo import stereo
 
     positions = exp.cfg.positions if positions is None else positions
     out = {"positions": [], "labels": [], "rms_mm": [], "mean_abs_mm": [], "points": [], "valid": [], "centres_mm": [],
@@ -685,7 +685,7 @@ def _central_position(exp):
 
 def run_displacement_test(exp: Experiment, rig, dets_centre, log=print) -> dict:
     """Eight horizontal shifts of the displayed speckle at (2, 2, 2): measured vs imposed (Table 1)."""
-    from dic.stereo import StereoCorrelation
+    from dic._stereo import StereoCorrelation
 
     p = _central_position(exp)
     L0, R0 = exp.speckle_pair(p)
@@ -714,7 +714,7 @@ def run_displacement_test(exp: Experiment, rig, dets_centre, log=print) -> dict:
 
 def run_deformation_test(exp: Experiment, rig, dets_centre, log=print) -> dict:
     """x_d = x + A sin(2 pi f y) on the displayed speckle at (2, 2, 2): u profile, spurious v, w."""
-    from dic.stereo import stereo
+    from dic._stereo import stereo
 
     A, fr = exp.cfg.deform_amplitude_px, exp.cfg.deform_frequency
     p = _central_position(exp)

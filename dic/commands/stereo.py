@@ -191,8 +191,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         sources.right[0]  # a missing or unreadable right reference image: one clear error now
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
+    from dic._stereo import as_rig, check_rig_images
     from dic.correlation.points import region as check_region
-    from dic.stereo import as_rig, check_rig_images
 
     try:  # any calibration format; the images' size stands in where the file records none
         rig = as_rig(rig_path, image_size=(size[1], size[0]))

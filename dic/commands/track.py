@@ -142,7 +142,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     if budget is not None:
         _check_budget(budget, max_memory, len(planned), order, ref.shape)
     if strain_window:
-        from dic.strain import check_strain_window, grid_layout
+        from dic._strain import check_strain_window, grid_layout
 
         try:
             check_strain_window(strain_window, grid_layout(planned)[1])
@@ -259,9 +259,9 @@ def _sequence_figures(output, ref, figure_dir) -> None:
 
 
 def _make_tracker(reference, *, device, **options):
-    """A :class:`dic.track.Tracker` of the run record's tracker ``options`` (the reference-side work is done once
+    """A :class:`dic.Tracker` of the run record's tracker ``options`` (the reference-side work is done once
     for all frames)."""
-    from dic.track import Tracker
+    from dic._track import Tracker
 
     return Tracker(reference, device=device, **options)
 

@@ -1,8 +1,8 @@
 """The correlation engine: IC-GN of one reference image's POIs into current images.
 
-Everything that correlates subsets goes through here: 2-D tracking (:class:`dic.track.Tracker`),
+Everything that correlates subsets goes through here: 2-D tracking (:class:`dic.Tracker`),
 the stereo match left -> right and the temporal tracks of stereo DIC
-(:class:`dic.stereo.StereoCorrelation`).
+(:class:`dic.StereoCorrelation`).
 
 * :class:`Correlator` holds a reference image, its POIs and the per-POI reference quantities
   (B-spline gradients, IC-GN Hessians; :func:`kernels.icgn.prepare_subsets`), computed once, and

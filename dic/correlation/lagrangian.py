@@ -1,7 +1,7 @@
 """Lagrangian composition of shape-function parameters across reference updates (pure NumPy).
 
 Used by the sequence engine's reference strategies (:mod:`dic.sequence.reference`, 2-D) and by the
-moved references of stereo tracks (:meth:`dic.stereo.StereoCorrelation.move_reference`): a
+moved references of stereo tracks (:meth:`dic.StereoCorrelation.move_reference`): a
 displacement ``w`` measured against a reference at the moved points ``X_r = X0 + d_r(X0)``
 composes as ``d(X0) = d_r(X0) + w(X_r)``, the gradients by the chain rule.
 """

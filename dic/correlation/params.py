@@ -82,7 +82,7 @@ def guess_params(guess, n: int, order: int) -> np.ndarray | None:
     """Normalise a user's guess to (N, K) float64 parameters (None stays None).
 
     ``guess``: ``(u, v)``, an (N, 2) array of ``(u, v)``, an (N, 6|12) parameter array, or an object
-    with ``params`` and ``n_points`` (a :class:`dic.track.Field2D`, e.g. the previous frame; its
+    with ``params`` and ``n_points`` (a :class:`dic.Field2D`, e.g. the previous frame; its
     NaNs become 0).
     """
     if guess is None:

@@ -76,7 +76,7 @@ def textured_pixels(reference_image, *, window: int = 7, relative_threshold: flo
     speckle tens of grey levels (dic.synth defaults, 8 bits: s95 = 65-67 GL, t ≈ 6.6 GL; the 5th
     percentile on a fully speckled image is 33 GL); pixels within
     ``window // 2`` px of a specimen edge count as textured (the edge itself has contrast).
-    Measured on the band case of tests/test_edge_subsets.py (Boolean speckle, radius 2 px,
+    Measured on the band case of tests/dic/test_edge_subsets.py (Boolean speckle, radius 2 px,
     density 0.5, 2 GL noise, 10 GL background): 99.86 % of the specimen's pixels are textured and
     1.9 % of the background's (those next to the edge); a subset wholly on the speckle has a
     textured fraction of 0.94 or more (large gaps between speckles are locally flat).
@@ -197,7 +197,7 @@ def implausible_warps(points, params, order: int, accepted, textured_fraction, *
     1. it is accepted and its subset is *partial*: ``textured_fraction < partial_below``
        (0.8: the wrong POIs below had at most 60 % specimen, a textured fraction of 0.7 or less
        with the edge's own contrast, while a subset wholly on rendered speckle with wide gaps can
-       read 0.9: 0.896 for an interior POI of the stereo scene of tests/test_stereo_dic.py, 0.039 px
+       read 0.9: 0.896 for an interior POI of the stereo scene of tests/dic/test_stereo_dic.py, 0.039 px
        from the truth, which a threshold of 0.9 flagged); and
     2. its displacement or its displacement gradient disagrees with the prediction of its
        well-textured neighbours: the ``neighbours`` nearest accepted POIs with
@@ -214,7 +214,7 @@ def implausible_warps(points, params, order: int, accepted, textured_fraction, *
     tried first, flagged 31 correct edge POIs of a 128 px sinusoid instead of 7); its error is the
     neighbours' noise amplified by the extrapolation, plus the cubic part of the field.
 
-    Measured (tests/test_edge_subsets.py: 256² speckled band with slanted edges on a dark
+    Measured (tests/dic/test_edge_subsets.py: 256² speckled band with slanted edges on a dark
     featureless background, 2 GL noise, subset 21, step 8, strains ~1 %, 20 neighbours): the
     prediction is within 0.028 px of the truth (RMS 0.012 px, 2nd order); the wrong POIs (0.05 to
     0.58 px off, ZNCC >= 0.997) disagree with it by 0.032 px or more (median 0.15 px, 2nd order;

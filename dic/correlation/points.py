@@ -269,7 +269,7 @@ def grid(shape, step: int, *, margin: int | None = None, roi=None) -> np.ndarray
         Grid spacing (px), the same along x and y.
     margin : int, optional
         Distance of the first and last rows/columns from the image border (px); default 0.
-        :func:`dic.track.track` uses ``subset // 2`` so that every subset fits in the image.
+        :func:`dic.track` uses ``subset // 2`` so that every subset fits in the image.
     roi : None, (x0, y0, x1, y1) inclusive box, polygon [(x, y), ...], (H, W) mask, mask image file
         or :class:`Region` (module docstring).
 

@@ -17,7 +17,7 @@
 The names above are importable from ``dic.plots`` too; each submodule is imported on first use of one
 of its names, so ``import dic.plots`` imports neither Matplotlib nor the calibration or lab packages.
 CLI commands call these functions; no module outside this package imports Matplotlib
-(tests/test_plots.py checks it).
+(tests/project/test_plots.py checks it).
 """
 from __future__ import annotations
 

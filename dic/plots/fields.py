@@ -1,7 +1,7 @@
 """Maps of DIC results over the reference image: 2-D fields (displacement, strain) and 3-D stereo fields.
 
-* :func:`field_figure` / :func:`write_field_figure` — a :class:`~dic.track.Field2D` (and optionally
-  its :class:`~dic.strain.StrainField`), one panel per component, on the POI grid (one cell per
+* :func:`field_figure` / :func:`write_field_figure` — a :class:`~dic.Field2D` (and optionally
+  its :class:`~dic.StrainField`), one panel per component, on the POI grid (one cell per
   point, ``step`` px wide) over the grey reference image; invalid points are transparent.
 * :func:`write_figures` — one PNG per quantity of a :class:`~dic.field3d.Field3D` over the left
   reference image: depth (Z), displacements U, V, W, strains exx, eyy, exy, ZNCC and status
@@ -167,7 +167,7 @@ def _component_values(field, strain, name) -> np.ndarray:
 
 def _grid_maps(field, strain, names):
     """Per-name (rows, cols) maps and the image extent of the grid, or (None, None) if not a grid."""
-    from ..strain import grid_layout
+    from .._strain import grid_layout
 
     pts = np.asarray(field.points, dtype=np.float64)
     try:
@@ -251,7 +251,7 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         if ref.ndim != 2:
             raise ValueError(f"reference must be a 2-D grey image, got shape {ref.shape}")
     if not hasattr(field, "points") or not hasattr(field, "u") or not hasattr(field, "v"):
-        raise ValueError(f"field must have points, u and v (a dic.track.Field2D), got {type(field).__name__}")
+        raise ValueError(f"field must have points, u and v (a dic.Field2D), got {type(field).__name__}")
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {alpha!r}")
     if not panel_size > 0:
@@ -270,7 +270,7 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         if c not in _LABELS:
             raise ValueError(f"unknown component {c!r}; choose from {', '.join(_LABELS)}")
         if c not in ("u", "v", "magnitude") and strain is None:
-            raise ValueError(f"component {c!r} needs a strain field (strain=dic.strain.strain(field))")
+            raise ValueError(f"component {c!r} needs a strain field (strain=dic.strain(field))")
     maps, extent = _grid_maps(field, strain, components)
     pts = np.asarray(field.points, dtype=np.float64)
     x0, x1, y0, y1 = _view_box(ref, pts, extent)

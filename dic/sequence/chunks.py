@@ -1,6 +1,6 @@
 """POIs in chunks under a memory budget (``max_memory`` of :func:`dic.sequence.track_sequence`).
 
-A :class:`dic.track.Tracker` keeps its per-POI reference data (the packed ``H^-1`` table, subset
+A :class:`dic.Tracker` keeps its per-POI reference data (the packed ``H^-1`` table, subset
 centres, IC-GN buffers: :func:`bytes_per_poi`) for the whole sequence. When that would exceed the
 budget, :class:`ChunkedTracker` stands in for it: for each frame it prepares the POIs a chunk at a
 time (at most ``chunk`` POIs' data alive at once) and frees each chunk before the next, so the
@@ -11,7 +11,7 @@ unchunked run. Reliability-guided propagation (``search="rg"``) follows neighbou
 grid and cannot run in chunks. The chunks' results are copied into the frame's arrays as each
 chunk finishes (no second copy of the whole frame's results). The arrays of a frame's result (host,
 about 0.11 KB per POI) are not chunked; its strain is computed a band of grid rows at a time
-(:func:`strain_in_bands`, identical to :func:`dic.strain.strain`), so that the strain's working
+(:func:`strain_in_bands`, identical to :func:`dic.strain`), so that the strain's working
 arrays (about 0.5 KB per POI at once) stay bounded too.
 """
 from __future__ import annotations
@@ -154,7 +154,7 @@ class ChunkedTracker:
                         cat["valid"], first.subset, first.order, first.step, first.zncc_min, {}, sigma_u=sigma_u,
                         sigma_v=sigma_v, noise_sigma=noise, noise_source=source)
         counts = status_counts(field.status[~field.valid], Status)
-        from ..track import _no_valid_hint
+        from .._track import _no_valid_hint
 
         warn_if_mostly_invalid(int(np.count_nonzero(field.valid)), n, counts, _no_valid_hint(self.search, counts),
                                what="2-D tracking")
@@ -165,19 +165,19 @@ _FIELD_ARRAYS = ("points", "u", "v", "params", "zncc", "iterations", "status", "
 
 
 def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS):
-    """:func:`dic.strain.strain` of ``field`` (``window`` grid points) computed a band of grid rows at a time.
+    """:func:`dic.strain` of ``field`` (``window`` grid points) computed a band of grid rows at a time.
 
     Each band holds at most about ``max_points`` POIs plus ``window // 2`` grid rows on either
     side, whose points enter the fits of the band's own rows and nothing else: every fit sees the
     same points, in the same places, as in one call over the whole grid, so the result is
     identical (tested), while the strain's working arrays are those of one band. A field of at
-    most ``max_points`` POIs is one call of :func:`dic.strain.strain`; so is a field whose bands
+    most ``max_points`` POIs is one call of :func:`dic.strain`; so is a field whose bands
     do not make grids of their own that a window fits (a region of interest only a few points
     wide in places).
     """
     from kernels.checks import positive_int
 
-    from ..strain import StrainField, grid_layout, strain
+    from .._strain import StrainField, grid_layout, strain
 
     max_points = positive_int(max_points, "max_points")
     if not all(hasattr(field, name) for name in ("points", "u", "v", "valid")):
@@ -218,7 +218,7 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS)
 
 
 class _Field:
-    """The points, displacements and flags of a band (what :func:`dic.strain.strain` reads)."""
+    """The points, displacements and flags of a band (what :func:`dic.strain` reads)."""
 
     def __init__(self, points, u, v, valid):
         self.points, self.u, self.v, self.valid = points, u, v, valid

@@ -41,7 +41,7 @@ OPTIONS_SCHEMA = 2
 _SCHEMA_KEY = "options_schema"
 #: IC-GN iterations per point at most (kernels.icgn.MAX_ITER, not imported here: that module loads Warp)
 _MAX_ITER = 10000
-#: the 2-D settings key of the image scale: dic.postprocess.SCALE_KEY (tests/test_run_options.py keeps them equal)
+#: the 2-D settings key of the image scale: dic.postprocess.SCALE_KEY (tests/dic/test_run_options.py keeps them equal)
 _SCALE_KEY = "scale_mm_per_px"
 
 
@@ -236,7 +236,7 @@ def _schema1_sequence(settings: dict) -> dict:
 class TrackOptions(_Record):
     """Every option of a 2-D sequence (:func:`dic.sequence.track_sequence`) that affects its results.
 
-    The :class:`dic.track.Tracker` options (``subset`` px, ``step`` px, ``order``, ``points`` (N, 2) px,
+    The :class:`dic.Tracker` options (``subset`` px, ``step`` px, ``order``, ``points`` (N, 2) px,
     ``roi``, ``search`` and ``search_radius`` px, ``max_iter``, ``tol`` px, ``zncc_min``, ``flat_std``
     grey levels, ``check_warps``, ``noise_sigma`` grey levels, ``robust``, ``check_outliers``) and the
     sequence's (``strain_window`` grid points, ``reference``, ``auto_valid``, ``auto_zncc``, ``guess``,
@@ -334,7 +334,7 @@ class TrackOptions(_Record):
         return cls(**kw)
 
     def tracker_kwargs(self) -> dict:
-        """The :class:`dic.track.Tracker` keywords of this record (no ``device``): the POIs as given, the
+        """The :class:`dic.Tracker` keywords of this record (no ``device``): the POIs as given, the
         checked region (a record read from a file has neither: it cannot build a tracker)."""
         if (self.points is not None and self.points_array is None) or (self.roi is not None and self.region is None):
             raise ValueError("a run record read from a file holds only digests of its POIs and region; "
@@ -385,7 +385,7 @@ class TrackOptions(_Record):
 class StereoOptions(_Record):
     """Every option of a stereo sequence (:func:`dic.sequence.stereo_sequence`) that affects its results.
 
-    The :class:`dic.stereo.StereoCorrelation` options (``subset`` px, ``step`` px (default ``subset // 2``; None with ``points``:
+    The :class:`dic.StereoCorrelation` options (``subset`` px, ``step`` px (default ``subset // 2``; None with ``points``:
     their spacing), ``order``, ``points`` (N, 2) px in the left image, ``roi``, ``frame`` ("left",
     "plane" or ``[R_obj_left, t_obj_left]``), ``epipolar_tol_px``, ``zncc_min``, ``strain_window``
     grid points, ``max_iter``, ``tol`` px, ``triangulation``, ``max_features``, ``check_warps``,
@@ -462,7 +462,7 @@ class StereoOptions(_Record):
         return cls(**kw)
 
     def correlation_kwargs(self) -> dict:
-        """The :class:`dic.stereo.StereoCorrelation` keywords of this record (no ``device``, no ``match``)."""
+        """The :class:`dic.StereoCorrelation` keywords of this record (no ``device``, no ``match``)."""
         if (self.points is not None and self.points_array is None) or (self.roi is not None and self.region is None):
             raise ValueError("a run record read from a file holds only digests of its POIs and region; "
                              "build the record from the options to measure")

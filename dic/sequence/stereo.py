@@ -1,15 +1,15 @@
 """Stereo-DIC sequences: match the reference pair once, track every later pair, write as you go.
 
 Reference strategies (``reference=``, :mod:`dic.sequence.reference`): the temporal tracks of
-:class:`dic.stereo.StereoCorrelation` follow the reference pair ("fixed") or move to a later state's
-pair (:meth:`~dic.stereo.StereoCorrelation.move_reference`: "incremental", "every:N", "auto"); the
+:class:`dic.StereoCorrelation` follow the reference pair ("fixed") or move to a later state's
+pair (:meth:`~dic.StereoCorrelation.move_reference`: "incremental", "every:N", "auto"); the
 left -> right match of the reference pair is done once, and every state is reported relative to the
 reference state (Lagrangian), with the state its tracks used in ``reference_index``.
 
 On the sequence engine's pipeline (:mod:`dic.sequence.pipeline`): the next pairs are read on a
 thread ahead of the correlation, the finished states written on a thread behind it.
 
-:func:`stereo_sequence` runs :class:`dic.stereo.StereoCorrelation` over a list of image pairs
+:func:`stereo_sequence` runs :class:`dic.StereoCorrelation` over a list of image pairs
 (arrays or image files; the first pair is the reference) and writes each state through the
 results store (:class:`dic.store.ResultWriter`, kind ``stereo``) as soon as it is finished, so
 that an interrupted run keeps every finished state and a rerun with the same output, images and
@@ -27,8 +27,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .._stereo import StereoCorrelation, as_rig
 from ..field3d import Field3D, StereoStatus
-from ..stereo import StereoCorrelation, as_rig
 from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
 from .engine import CannotServe, SequenceSummary, run_on_dask, run_sequence
@@ -52,7 +52,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     Parameters
     ----------
     rig : calibration.stereo.StereoRig, or a rig file in any format Specula reads (Specula JSON,
-        OpenCV YAML/XML/JSON, VIC-3D XML, DICe XML; :func:`dic.stereo.as_rig`)
+        OpenCV YAML/XML/JSON, VIC-3D XML, DICe XML; :func:`dic._stereo.as_rig`)
     pairs : sequence of (left, right)
         Images (arrays or file paths: TIFF, PNG, BMP). ``pairs[0]`` is the reference state;
         state ``k`` is ``pairs[k]``. Each state is tracked with the previous state's parameters
@@ -110,7 +110,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         How the file's datasets are compressed (default ``"none"``: the fastest; docs/results_format.md). A resumed
         file keeps the setting it was written with.
     options
-        :class:`dic.stereo.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
+        :class:`dic.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
         ``max_iter``, ``tol``, ``triangulation``, ``device``).
 
@@ -257,7 +257,7 @@ def _counts(field: Field3D) -> tuple[int, int]:
 
 
 class _Stereo:
-    """The stereo kind of :func:`dic.sequence.engine.run_sequence`: a :class:`dic.stereo.StereoCorrelation`
+    """The stereo kind of :func:`dic.sequence.engine.run_sequence`: a :class:`dic.StereoCorrelation`
     whose temporal tracks follow the reference pair or a later state's (its public sequence protocol:
     ``measure``, ``move_reference``, ``trackable``, ``set_previous``, ``saved_previous``)."""
 
@@ -335,7 +335,7 @@ def _quality(f: Field3D, reference_valid: np.ndarray) -> tuple[float, float]:
 
 
 class _StereoBuilder:
-    """A worker's :class:`dic.stereo.StereoCorrelation` of the reference pair with the client's match
+    """A worker's :class:`dic.StereoCorrelation` of the reference pair with the client's match
     (the builder interface of :func:`dic.sequence.distributed.track_on_worker`)."""
 
     def __init__(self, rig, left, right, match, device, options):

@@ -1,7 +1,7 @@
 """2-D DIC of an image sequence: :func:`track_sequence` (docs/dic2d.md, "Sequences").
 
 One engine for every 2-D sequence, used by the library and by ``specula track``: the reference's
-per-POI data are prepared once per reference (a :class:`dic.track.Tracker`), the next frames are
+per-POI data are prepared once per reference (a :class:`dic.Tracker`), the next frames are
 read on a thread ahead of the correlation and the finished ones are written (strain, result file,
 VTK, figures, callback) on a thread behind it (:mod:`dic.sequence.pipeline`), with bounded queues,
 so memory does not grow with the sequence. Reference strategies and the Lagrangian composition of
@@ -219,7 +219,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         (:mod:`dic.sequence.chunks`), with results identical to an unchunked run.
     make_tracker : callable(image, points) -> tracker, optional
         Builds the tracker of a reference image (``points`` None: the default grid of ``options``;
-        otherwise the moved POIs or a chunk of them). Default: :class:`dic.track.Tracker` with
+        otherwise the moved POIs or a chunk of them). Default: :class:`dic.Tracker` with
         ``options``. With a custom one, ``options`` are only used to plan chunks: give ``points`` and
         ``order`` (the POIs it would use) so that an over-budget run is chunked from the start.
     guess : "previous" | "none", optional
@@ -238,7 +238,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         How the result file's datasets are compressed (:func:`dic.store.layout.parse_compression`;
         default ``"none"``: the fastest, docs/results_format.md). A resumed file keeps the setting it was written with.
     options
-        :class:`dic.track.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
+        :class:`dic.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``flat_std``, ``check_warps``,
         ``noise_sigma``, ``robust``, ``check_outliers``, ``device``), and ``scale_mm_per_px`` (recorded in
         the file for post-processing). Validated once (:class:`dic.sequence.options.OptionError`, a
@@ -313,7 +313,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             options = {**record.tracker_kwargs(), "device": options.get("device")}
     if make_tracker is None:
         def make_tracker(image, points, _opts=dict(options)):
-            from ..track import Tracker
+            from .._track import Tracker
 
             kw = dict(_opts)
             if points is not None:
@@ -365,7 +365,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     n = len(points0)
     strain_plan = None  # the strain's grid and fits worked out once for the POIs (every frame has the same)
     if strain_window:
-        from ..strain import StrainPlan, check_strain_window, grid_layout
+        from .._strain import StrainPlan, check_strain_window, grid_layout
 
         try:
             if n <= STRAIN_BAND_POINTS:
@@ -396,7 +396,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             if strain_window:
                 try:
                     if strain_plan is not None and strain_plan.matches(lag.points):
-                        strain = strain_plan.strain(lag)  # bit for bit dic.strain.strain
+                        strain = strain_plan.strain(lag)  # bit for bit dic.strain
                     else:  # a band of grid rows at a time: bounded memory, the same strain (dic.sequence.chunks)
                         strain = strain_in_bands(lag, strain_window)
                 except ValueError as exc:
@@ -454,7 +454,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
 
 class _Track2D:
-    """The 2-D kind of :func:`dic.sequence.engine.run_sequence`: a :class:`dic.track.Tracker` per reference
+    """The 2-D kind of :func:`dic.sequence.engine.run_sequence`: a :class:`dic.Tracker` per reference
     (the reference image's, or a moved one's), results composed back to the reference image (Lagrangian)."""
 
     noun, images_noun, inputs_noun = "frame", "the image", "frames"

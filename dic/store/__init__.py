@@ -8,7 +8,7 @@ is the payload of a frame, written and read by small per-kind functions:
 ==========  =================  ==============================================  ===========================
 kind        format attr        frame payload                                   module
 ==========  =================  ==============================================  ===========================
-``dic2d``   ``specula-dic2d``  :class:`dic.track.Field2D` (+ strain)           :mod:`dic.store.dic2d`
+``dic2d``   ``specula-dic2d``  :class:`dic.Field2D` (+ strain)           :mod:`dic.store.dic2d`
 ``stereo``  ``specula-stereo`` :class:`dic.field3d.Field3D`; + rig, match      :mod:`dic.store.stereo`
 ==========  =================  ==============================================  ===========================
 

@@ -203,8 +203,8 @@ def write_field2d(group, field2d, strain=None, compression: Compression | str | 
 
     ``field2d`` has ``points`` (N, 2), ``u``, ``v`` (N,) px and optionally ``params``, ``zncc``,
     ``iterations``, ``status``, ``valid``, ``sigma_u``, ``sigma_v``, ``noise_sigma``, ``noise_source``
-    (a :class:`dic.track.Field2D`); ``strain`` is a
-    :class:`dic.strain.StrainField` or None. ``compression``: :func:`dic.store.layout.parse_compression`.
+    (a :class:`dic.Field2D`); ``strain`` is a
+    :class:`dic.StrainField` or None. ``compression``: :func:`dic.store.layout.parse_compression`.
     """
     compression = parse_compression(compression)
     n = None

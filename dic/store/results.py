@@ -330,7 +330,7 @@ class _ResultFile:
             raise self._damaged(index, _damage_reason(g, exc)) from None
 
     def read_match(self):
-        """The stored reference :class:`dic.stereo.StereoMatch` (stereo files), or None."""
+        """The stored reference :class:`dic.StereoMatch` (stereo files), or None."""
         if "reference/match" not in self._h5:
             return None
         g = self._h5["reference/match"]
@@ -350,7 +350,7 @@ class ResultWriter(_ResultFile):
     path : str or Path
         The ``.h5`` file.
     kind : "dic2d" | "stereo"
-        ``dic2d`` (format ``specula-dic2d``): frames are :class:`dic.track.Field2D` (+ strain).
+        ``dic2d`` (format ``specula-dic2d``): frames are :class:`dic.Field2D` (+ strain).
         ``stereo`` (format ``specula-stereo``): frames are :class:`dic.field3d.Field3D`, and the
         file also holds the rig and the reference match (:meth:`write_match`).
     reference_path : str, or (left, right) for stereo
@@ -657,9 +657,9 @@ class ResultWriter(_ResultFile):
     def write_frame(self, index: int, field, *, strain=None, path="", sha256="", attrs: dict | None = None) -> None:
         """Write one frame, mark it complete, then flush and fsync the file.
 
-        ``field``: a :class:`dic.track.Field2D`-like object (``points``, ``u``, ``v`` and optionally
+        ``field``: a :class:`dic.Field2D`-like object (``points``, ``u``, ``v`` and optionally
         ``params``, ``zncc``, ``iterations``, ``status``, ``valid``) for 2-D, with ``strain`` a
-        :class:`dic.strain.StrainField` or None; a :class:`dic.field3d.Field3D` for stereo.
+        :class:`dic.StrainField` or None; a :class:`dic.field3d.Field3D` for stereo.
         ``path``: the current image file (2-D) or (left, right) files (stereo). ``sha256``: the
         :func:`dic.store.image_digest` of that image (or pair), stored so that a resumed run can
         check it is given the same images (:meth:`check_frame`). ``attrs``: extra frame
@@ -709,7 +709,7 @@ class ResultWriter(_ResultFile):
         self._commit()
 
     def write_match(self, match) -> None:
-        """Store the reference :class:`dic.stereo.StereoMatch` (stereo files, once), then flush and fsync."""
+        """Store the reference :class:`dic.StereoMatch` (stereo files, once), then flush and fsync."""
         if self.kind is not stereo.KIND:
             raise ValueError(f"a {self.kind.label} result file has no reference match")
         h5 = self._writable()

@@ -38,7 +38,7 @@ class StereoResults:
     """A stereo result file read back (:func:`dic.store.read_stereo`).
 
     ``fields`` maps state index -> :class:`dic.field3d.Field3D` (0 = the reference shape);
-    ``match`` is the reference :class:`dic.stereo.StereoMatch`; ``rig`` the
+    ``match`` is the reference :class:`dic.StereoMatch`; ``rig`` the
     :class:`calibration.stereo.StereoRig`; ``settings`` the correlation settings; ``paths`` maps
     index -> (left, right) file names; ``reference_shape`` is (H, W) px.
     """
@@ -177,11 +177,11 @@ def read_field3d(group):
 
 
 def write_match(group, match, compression: Compression | str | None = None) -> None:
-    """Write the reference :class:`dic.stereo.StereoMatch` into an empty h5py ``group`` (``/reference/match``).
+    """Write the reference :class:`dic.StereoMatch` into an empty h5py ``group`` (``/reference/match``).
 
     Stored without compression unless ``compression`` is given (written once per file)."""
     if not hasattr(match, "arrays"):
-        raise ValueError(f"match must be a dic.stereo.StereoMatch, got {type(match).__name__}")
+        raise ValueError(f"match must be a dic.StereoMatch, got {type(match).__name__}")
     comp = Compression(None) if compression is None else parse_compression(compression)
     for key, arr in match.arrays().items():
         write_dataset(group, key, arr, comp)
@@ -189,8 +189,8 @@ def write_match(group, match, compression: Compression | str | None = None) -> N
 
 
 def read_match(group):
-    """``/reference/match`` as a :class:`dic.stereo.StereoMatch`."""
-    from ..stereo import StereoMatch
+    """``/reference/match`` as a :class:`dic.StereoMatch`."""
+    from .._stereo import StereoMatch
 
     arrays = {k: group[k][()] for k in MATCH_DATASETS}
     return StereoMatch(**arrays, n_features=int(group.attrs.get("n_features", 0)),

@@ -1,0 +1,340 @@
+"""Pointwise least-squares strain of a 2-D displacement field on a grid of points.
+
+Pan, Asundi, Xie & Gao, "Digital image correlation using iterative least squares and pointwise
+least squares for displacement field and strain field measurements", Optics and Lasers in
+Engineering 47 (2009), doi:10.1016/j.optlaseng.2008.10.014: at each grid point, planes
+``u ≈ a0 + a1 Δx + a2 Δy`` and ``v ≈ b0 + b1 Δx + b2 Δy`` are fitted by least squares to the valid
+points of a ``window × window`` neighbourhood (fewer at the edges of the grid or next to invalid
+points); the slopes are the displacement gradients at that point. For a full, symmetric window
+the slopes are exact for any quadratic field (the quadratic terms are orthogonal to the plane's
+basis), so the truncation error is third order.
+
+Strains (x right, y down, displacements in px, gradients dimensionless; docs/conventions.md):
+
+* small strain: ``exx = ∂u/∂x``, ``eyy = ∂v/∂y``, ``exy = ½(∂u/∂y + ∂v/∂x)``;
+* Green-Lagrange: ``Exx = ∂u/∂x + ½((∂u/∂x)² + (∂v/∂x)²)``, ``Eyy = ∂v/∂y + ½((∂u/∂y)² + (∂v/∂y)²)``,
+  ``Exy = ½(∂u/∂y + ∂v/∂x + ∂u/∂x ∂u/∂y + ∂v/∂x ∂v/∂y)``.
+
+Shears are tensor components (the engineering shear strain is ``2 exy``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kernels.checks import as_points, odd_int, positive_int
+
+__all__ = ["StrainField", "StrainPlan", "strain", "grid_layout", "check_strain_window"]
+
+
+@dataclass
+class StrainField:
+    """Strain at the points of a 2-D DIC result.
+
+    All per-point arrays are float64 of shape (N,), aligned with ``points``; entries where
+    ``valid`` is False are NaN.
+
+    Attributes
+    ----------
+    points : (N, 2) float64
+        Reference positions ``(x, y)`` px (those of the displacement field).
+    dudx, dudy, dvdx, dvdy :
+        Displacement gradients (dimensionless).
+    exx, eyy, exy :
+        Small (infinitesimal) strain; ``exy`` is the tensor shear.
+    Exx, Eyy, Exy :
+        Green-Lagrange strain; ``Exy`` is the tensor shear.
+    valid : (N,) bool
+        The point and at least ``min_points`` non-collinear neighbours were valid.
+    n_fit : (N,) int
+        Number of points in each fit.
+    window : int
+        Fit window side in grid points.
+    step : (2,) float
+        Grid spacing ``(dx, dy)`` px.
+    grid_index : (N, 2) int
+        Column and row of each point in the grid (see :meth:`to_grid`).
+    grid_shape : (rows, cols)
+    """
+
+    points: np.ndarray
+    dudx: np.ndarray
+    dudy: np.ndarray
+    dvdx: np.ndarray
+    dvdy: np.ndarray
+    exx: np.ndarray
+    eyy: np.ndarray
+    exy: np.ndarray
+    Exx: np.ndarray
+    Eyy: np.ndarray
+    Exy: np.ndarray
+    valid: np.ndarray
+    n_fit: np.ndarray
+    window: int
+    step: tuple[float, float]
+    grid_index: np.ndarray
+    grid_shape: tuple[int, int]
+
+    #: names of the per-point strain/gradient components
+    COMPONENTS = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy")
+
+    def to_grid(self, name: str) -> np.ndarray:
+        """The component ``name`` as a (rows, cols) map, NaN where absent or invalid."""
+        if name not in self.COMPONENTS:
+            raise ValueError(f"unknown strain component {name!r}; choose one of {', '.join(self.COMPONENTS)}")
+        out = np.full(self.grid_shape, np.nan)
+        out[self.grid_index[:, 1], self.grid_index[:, 0]] = getattr(self, name)
+        return out
+
+    def grid_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """x (cols,) and y (rows,) coordinates of the grid lines, px."""
+        x0 = self.points[:, 0].min() - self.grid_index[:, 0].min() * self.step[0] if len(self.points) else 0.0
+        y0 = self.points[:, 1].min() - self.grid_index[:, 1].min() * self.step[1] if len(self.points) else 0.0
+        return (x0 + self.step[0] * np.arange(self.grid_shape[1]), y0 + self.step[1] * np.arange(self.grid_shape[0]))
+
+
+def grid_layout(points, *, rtol: float = 1e-6):
+    """Recover the regular grid of ``points`` (N, 2): per-point (col, row), the shape and the step.
+
+    Points may be any subset of a regular lattice ``(x0 + i dx, y0 + j dy)`` (an ROI, a masked
+    grid). Raises ``ValueError`` when they are not on one.
+    """
+    pts = as_points(points)
+    index = np.empty(pts.shape, dtype=np.int64)
+    shape, step = [0, 0], [1.0, 1.0]
+    for axis in range(2):
+        vals = np.unique(pts[:, axis])
+        if vals.size == 1:
+            d = 1.0
+        else:
+            d = float(np.min(np.diff(vals)))
+        k = (pts[:, axis] - vals[0]) / d
+        ki = np.rint(k)
+        tol = max(rtol * max(1.0, np.abs(vals).max() / d), 1e-9)
+        if np.max(np.abs(k - ki)) > tol:
+            raise ValueError(
+                "points are not on a regular grid (strain needs the grid of dic.grid or a subset of it); "
+                f"{'xy'[axis]} coordinates are not multiples of the spacing {d:g} px")
+        index[:, axis] = ki.astype(np.int64)
+        shape[1 - axis] = int(ki.max()) + 1
+        step[axis] = d
+    flat = index[:, 1] * shape[1] + index[:, 0]
+    if np.unique(flat).size != flat.size:
+        raise ValueError("points contain duplicates; each grid node may appear once")
+    return index, (shape[0], shape[1]), (step[0], step[1])
+
+
+def _field_arrays(field):
+    try:
+        points = np.asarray(field.points, dtype=np.float64)
+        u = np.asarray(field.u, dtype=np.float64).reshape(-1)
+        v = np.asarray(field.v, dtype=np.float64).reshape(-1)
+    except AttributeError:
+        raise ValueError(
+            f"strain() needs a displacement field with points, u, v (and valid), e.g. a dic.Field2D; "
+            f"got {type(field).__name__}") from None
+    n = points.shape[0] if points.ndim == 2 else -1
+    if u.shape != (n,) or v.shape != (n,):
+        raise ValueError(f"u and v must have shape ({n},) to match points {points.shape}, got {u.shape}, {v.shape}")
+    valid = getattr(field, "valid", None)
+    valid = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool).reshape(-1)
+    if valid.shape != (n,):
+        raise ValueError(f"valid must have shape ({n},), got {valid.shape}")
+    return points, u, v, valid & np.isfinite(u) & np.isfinite(v)
+
+
+def _default_min_points(window: int) -> int:
+    return max(3, (window // 2 + 1) ** 2)  # a corner of the grid: a quarter window
+
+
+def check_strain_window(window, grid_shape, *, min_points: int | None = None) -> tuple[int, int]:
+    """``(window, min_points)`` checked for a grid of ``grid_shape = (ny, nx)`` points.
+
+    ``window`` must be odd and >= 3; ``min_points`` (default ``(window // 2 + 1)²``) in
+    ``[3, window²]``. A window for which no grid point could ever gather ``min_points`` points
+    (even with all of them valid) would give no strain at all: that is a ``ValueError`` naming the
+    largest window that works on this grid (e.g. ``2 n − 1`` on an ``n × n`` grid). A grid that no
+    window can serve (one row or one column of points: collinear) is not an error; its points
+    come out without strain (``valid`` False).
+    """
+    window = odd_int(window, "window", detail=" (grid points per side)")
+    given = min_points is not None
+    if not given:
+        min_points = _default_min_points(window)
+    mp = positive_int(min_points, "min_points") if given else min_points
+    if mp < 3 or mp > window * window:
+        raise ValueError(f"min_points must be in [3, {window * window}] for window {window}, got {min_points!r}")
+    ny, nx = (int(v) for v in grid_shape)
+
+    def reach(w: int) -> int:  # the most points a fit window of side w can hold on this grid
+        return min(ny, w) * min(nx, w)
+
+    if reach(window) < mp:
+        usable = [w for w in range(3, min(window, 2 * max(ny, nx) + 1), 2)
+                  if reach(w) >= (mp if given else _default_min_points(w))]
+        if usable:  # the window is to blame (a grid too thin for any window is not: its points come out invalid)
+            raise ValueError(f"strain window {window} needs {mp} valid points per fit, but no point of the {ny} x {nx} "
+                             f"grid has more than {reach(window)} within its window, so no strain could be computed; "
+                             f"use a window of at most {usable[-1]}")
+    return window, mp
+
+
+def _kernels(window: int):
+    """The fit window's weights: (1, Δcol, Δrow, Δcol², Δcol Δrow, Δrow²), each (window, window)."""
+    h = window // 2
+    off = np.arange(-h, h + 1, dtype=np.float64)
+    kx = np.broadcast_to(off[None, :], (window, window))  # Δcol
+    ky = np.broadcast_to(off[:, None], (window, window))  # Δrow
+    ones = np.ones((window, window))
+    return ones, kx, ky, kx * kx, kx * ky, ky * ky
+
+
+def _correlate(a, k):
+    """Σ over the window centred on each node of ``a * k`` (zeros outside the grid)."""
+    from scipy import ndimage  # here, not at the top: importing scipy.ndimage costs 0.2-1 s (the CLI's post-processing)
+
+    return ndimage.correlate(a, k, mode="constant", cval=0.0)
+
+
+class StrainPlan:
+    """What :func:`strain` works out from the points alone, computed once for fields that share them.
+
+    The frames of a sequence all have the same POIs. A plan holds their grid layout
+    (:func:`grid_layout`: ``np.unique`` over the points) and the grid cell of each point, and,
+    for the last set of valid points it was given, the fits' normal matrices and which points
+    have a fit. These change only when the valid points change. ``plan.strain(field)`` is
+    bit for bit ``strain(field, window=window, min_points=min_points)``; :func:`strain` itself
+    runs through a plan made for the call.
+
+    Parameters
+    ----------
+    points : (N, 2) float
+        The POIs (px) on a regular grid or a subset of one, as for :func:`strain`.
+    window, min_points : int
+        As for :func:`strain` (checked against the grid: :func:`check_strain_window`).
+
+    Attributes
+    ----------
+    points, grid_index, grid_shape, step, window, min_points
+        The points (a read-only copy) and their grid (as in :class:`StrainField`).
+
+    Memory: about 40 bytes per point for the layout, and about 100 more for the
+    normal matrices of the last set of valid points. Calls from several threads are safe; each
+    call reads the cached entry once.
+
+    Raises
+    ------
+    ValueError
+        Points not on a regular grid, duplicates, a window no grid point can fill.
+    """
+
+    def __init__(self, points, *, window: int = 5, min_points: int | None = None):
+        pts = np.array(as_points(points), dtype=np.float64, order="C", copy=True)
+        index, shape, step = grid_layout(pts)
+        self.window, self.min_points = check_strain_window(window, shape, min_points=min_points)
+        pts.flags.writeable = False
+        index.flags.writeable = False
+        self.points = pts
+        self.grid_index = index
+        self.grid_shape = shape
+        self.step = step
+        self._flat = index[:, 1] * shape[1] + index[:, 0]  # each point's node in the flattened grid
+        self._flat.flags.writeable = False
+        self._weights = _kernels(self.window)
+        self._fits_cache = None  # (valid, flat of the valid points, ok, n_fit, flat of the ok points, normal matrices)
+
+    def __repr__(self) -> str:
+        return (f"StrainPlan({len(self.points)} points, grid {self.grid_shape[0]} x {self.grid_shape[1]}, "
+                f"window {self.window})")
+
+    def matches(self, points) -> bool:
+        """Whether ``points`` (N, 2) are this plan's points (equal values, same order)."""
+        pts = np.asarray(points)
+        return pts.shape == self.points.shape and bool(np.array_equal(pts, self.points))
+
+    def strain(self, field) -> StrainField:
+        """:func:`strain` of ``field`` (its ``points`` must be the plan's; ValueError otherwise)."""
+        points, u, v, valid = _field_arrays(field)
+        if not self.matches(points):
+            raise ValueError(f"the field's points ({points.shape[0]} points) are not those of this StrainPlan "
+                             f"({len(self.points)} points): make a plan of the field's points")
+        return self._strain(points, u, v, valid)
+
+    def _fits(self, valid: np.ndarray):
+        """The parts of the fits that depend on which points are valid (cached for the last ``valid``)."""
+        cached = self._fits_cache
+        if cached is not None and np.array_equal(cached[0], valid):
+            return cached
+        flat = self._flat
+        mask = np.zeros(self.grid_shape)
+        flat_sel = flat[valid]
+        mask.reshape(-1)[flat_sel] = 1.0
+        s0, sx, sy, sxx, sxy, syy = (_correlate(mask, k).reshape(-1)[flat] for k in self._weights)
+        n_fit = np.rint(s0).astype(np.int64)
+        # a fit needs enough points that are not all on one line: the centred second moments'
+        # determinant is 0 for collinear points (in grid units, so the threshold is scale-free)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cxx = sxx - sx ** 2 / s0
+            cyy = syy - sy ** 2 / s0
+            cxy = sxy - sx * sy / s0
+            det = cxx * cyy - cxy**2
+        ok = valid & (n_fit >= self.min_points) & (det > 1e-6 * np.maximum(s0, 1.0) ** 2)
+        at = np.flatnonzero(ok)
+        normal = np.empty((at.size, 3, 3))  # the normal matrix of each fit
+        for i, row in enumerate(((s0, sx, sy), (sx, sxx, sxy), (sy, sxy, syy))):
+            for j, m in enumerate(row):
+                normal[:, i, j] = m[at]
+        cached = (valid.copy(), flat_sel, ok, n_fit, flat[ok], normal)
+        self._fits_cache = cached
+        return cached
+
+    def _strain(self, points, u, v, valid) -> StrainField:
+        _, flat_sel, ok, n_fit, flat_ok, normal = self._fits(valid)
+        step = self.step
+        ug = np.zeros(self.grid_shape)
+        vg = np.zeros(self.grid_shape)
+        ug.reshape(-1)[flat_sel] = u[valid]
+        vg.reshape(-1)[flat_sel] = v[valid]
+        grads = np.full((points.shape[0], 4), np.nan)
+        if normal.shape[0]:
+            rhs = np.empty((normal.shape[0], 3, 2))  # Σ u, Σ u Δcol, Σ u Δrow (and v) over each window
+            for j, k in enumerate(self._weights[:3]):
+                rhs[:, j, 0] = _correlate(ug, k).reshape(-1)[flat_ok]
+                rhs[:, j, 1] = _correlate(vg, k).reshape(-1)[flat_ok]
+            sol = np.linalg.solve(normal, rhs)
+            grads[ok] = np.stack([sol[:, 1, 0] / step[0], sol[:, 2, 0] / step[1],
+                                  sol[:, 1, 1] / step[0], sol[:, 2, 1] / step[1]], -1)
+        ux, uy, vx, vy = grads.T
+        return StrainField(
+            points=points.copy(), dudx=ux, dudy=uy, dvdx=vx, dvdy=vy,
+            exx=ux.copy(), eyy=vy.copy(), exy=0.5 * (uy + vx),
+            Exx=ux + 0.5 * (ux * ux + vx * vx),
+            Eyy=vy + 0.5 * (uy * uy + vy * vy),
+            Exy=0.5 * (uy + vx + ux * uy + vx * vy),
+            valid=ok.copy(), n_fit=n_fit.copy(), window=self.window, step=step, grid_index=self.grid_index.copy(),
+            grid_shape=self.grid_shape,
+        )
+
+
+def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainField:
+    """Pointwise least-squares strain (small and Green-Lagrange) of a displacement field.
+
+    Parameters
+    ----------
+    field : Field2D-like
+        Has ``points`` (N, 2) px on a regular grid (or a subset of one), ``u``, ``v`` (N,) px, and
+        optionally ``valid`` (N,) bool. Invalid and non-finite points are left out of every fit.
+    window : int
+        Side of the square fit window in grid points (odd, >= 3). The strain's spatial resolution
+        is about ``(window - 1) · step + subset`` px.
+    min_points : int, optional
+        Fewest valid points a fit needs (default ``(window // 2 + 1)²``, what a grid corner has).
+        A window that no grid point can fill is an error (:func:`check_strain_window`).
+
+    Returns
+    -------
+    StrainField
+    """
+    points, u, v, valid = _field_arrays(field)
+    return StrainPlan(points, window=window, min_points=min_points)._strain(points, u, v, valid)

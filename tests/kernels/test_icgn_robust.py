@@ -1,0 +1,204 @@
+"""Outlier-robust IC-GN (kernels/icgn_robust.py, Tracker(robust=True), track_sequence, the CLI).
+
+The ground truth is exact: the evolving-texture sequence of dic.synth (speckles disappear and new
+ones appear each frame, the material stretches by a known affine field) and speckle pairs with a
+known shift. What is checked is what the refinement is for: subsets whose texture partly changed
+are measured against the exact field far better than by plain IC-GN, unchanged subsets are not made
+worse, and the refinement is available wherever a user tracks (library, sequences, CLI).
+"""
+import numpy as np
+import pytest
+
+from dic.synth import evolving_sequence, speckle_pair
+from kernels.conventions import Status
+from kernels.icgn import icgn, n_params, prepare_current, prepare_reference, prepare_subsets
+from kernels.icgn_robust import icgn_robust, robust_result
+
+SIZE = 160
+HALF = 14  # subset half-size + margin
+ACCEPTED = [int(Status.CONVERGED), int(Status.MAX_ITERATIONS)]
+ZNCC_MIN = 0.8  # dic.Tracker's default
+
+
+@pytest.fixture(scope="module")
+def evolving():
+    # 0.2 % of the speckles replaced per frame; frame 40: 8 % replaced, 8 % stretch
+    return evolving_sequence((SIZE, SIZE), 300, stretch_final=0.3, fade_fraction=0.002, noise_sigma=1.0, seed=3)
+
+
+def _points(seq):
+    cx = seq.centre[0]
+    hx = ((SIZE - 1) / 2 - HALF) / 1.3
+    xs = np.arange(int(np.ceil(cx - hx)), int(cx + hx), 5)
+    ys = np.arange(HALF, SIZE - HALF, 5)
+    return np.array([(x, y) for y in ys for x in xs], dtype=np.float64)
+
+
+def _exact_guess(truth, order):
+    k = n_params(order)
+    g = np.zeros((truth.shape[0], k))
+    g[:, 0], g[:, k // 2] = truth[:, 0], truth[:, 1]
+    return g
+
+
+def _error(params, truth, order):
+    k = n_params(order)
+    return np.hypot(params[:, 0] - truth[:, 0], params[:, k // 2] - truth[:, 1])
+
+
+def _rms(e):
+    return float(np.sqrt(np.mean(e**2)))
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_robust_refinement_removes_the_bias_of_changed_speckles(evolving, order):
+    # frame 27: 5 % of the speckles replaced, as between two reference updates of the benchmark's auto mode
+    k_frame = 27
+    pts = _points(evolving)
+    ref = prepare_reference(evolving[0].astype(np.float32), device="cpu")
+    sub = prepare_subsets(ref, pts, subset=21, order=order)
+    cur = prepare_current(evolving[k_frame].astype(np.float32), device="cpu")
+    truth = evolving.displacement(pts, k_frame)
+    plain = icgn(sub, cur, _exact_guess(truth, order)).numpy()
+    ok = np.isin(plain["status"], ACCEPTED) & (plain["zncc"] >= ZNCC_MIN)  # valid, as a Tracker says
+    assert ok.mean() > 0.9
+    robust = icgn_robust(sub, cur, plain["params"], ok).numpy()
+    good = np.isin(robust["status"], ACCEPTED) & (robust["zncc"] >= ZNCC_MIN)
+    assert good[ok].mean() > 0.98
+    e_plain = _error(plain["params"], truth, order)[ok & good]
+    e_robust = _error(robust["params"], truth, order)[ok & good]
+    # plain IC-GN: each changed speckle biases its subset (~0.06 px per speckle, bench/sequence.py)
+    assert _rms(e_plain) > 0.08
+    # robust: the changed pixels are discounted; the target of issue 13 is 0.05 px after 300 frames
+    # (per reference segment: 0.05 px / sqrt(11 segments of the benchmark) = 0.015 px)
+    assert np.median(e_robust) < 0.01
+    assert _rms(e_robust) < 0.2 * _rms(e_plain)
+    if order == 1:  # the benchmark's order
+        assert _rms(e_robust) < 0.015
+    # (2nd order, measured: RMS 0.037 px against 0.234 plain, median 0.008 px; the RMS comes from a few subsets
+    # with many changed speckles that reach the iteration limit at 0.2-0.7 px, as their plain result does)
+    # most pixels are inliers
+    inl = robust["inliers"][ok & good]
+    assert 0.5 < np.median(inl) < 1.0
+    # the ZNCC reported is the unweighted one at the refined warp: what one plain IC-GN pass measures there
+    # (it is computed before the last, sub-tolerance update, like plain IC-GN's own)
+    check = icgn(sub, cur, robust["params"], max_iter=1).numpy()["zncc"]
+    conv = ok & (robust["status"] == int(Status.CONVERGED))
+    np.testing.assert_allclose(robust["zncc"][conv], check[conv], atol=1e-3)
+    assert np.median(robust["zncc"][ok & good] - plain["zncc"][ok & good]) > -0.02
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_robust_refinement_keeps_unchanged_subsets_accurate(order):
+    ref, cur = speckle_pair((128, 128), (0.37, -0.21), noise_sigma=1.0, seed=5)
+    pts = np.array([(x, y) for y in range(20, 108, 6) for x in range(20, 108, 6)], dtype=np.float64)
+    sub = prepare_subsets(prepare_reference(ref, device="cpu"), pts, subset=21, order=order)
+    c = prepare_current(cur, device="cpu")
+    plain = icgn(sub, c).numpy()
+    robust = icgn_robust(sub, c, plain["params"]).numpy()
+    k = n_params(order)
+    assert np.all(robust["status"] == int(Status.CONVERGED))
+    e_plain = np.hypot(plain["params"][:, 0] - 0.37, plain["params"][:, k // 2] + 0.21)
+    e_robust = np.hypot(robust["params"][:, 0] - 0.37, robust["params"][:, k // 2] + 0.21)
+    # Gaussian noise only: the weights cost a little efficiency, never accuracy
+    assert _rms(e_robust) < 0.01
+    assert _rms(e_robust) < 1.5 * _rms(e_plain) + 1e-3
+    # the scale estimate is consistent: most of the subset stays in (Tukey c = 3 keeps ~80 % of the weight)
+    assert np.median(robust["inliers"]) > 0.7
+
+
+def test_inactive_points_are_left_alone():
+    ref, cur = speckle_pair((96, 96), (0.5, 0.25), noise_sigma=1.0, seed=2)
+    pts = np.array([(40.0, 40.0), (50.0, 50.0), (60.0, 40.0)])
+    sub = prepare_subsets(prepare_reference(ref, device="cpu"), pts, subset=21, order=1)
+    guess = np.array([[0.4, 0, 0, 0.2, 0, 0]] * 3, dtype=np.float32)
+    out = robust_result(3, 6, "cpu")
+    res = icgn_robust(sub, prepare_current(cur, device="cpu"), guess, np.array([True, False, True]), out=out).numpy()
+    assert res["status"][1] == int(Status.NOT_COMPUTED)
+    np.testing.assert_array_equal(res["params"][1], guess[1])
+    assert np.isnan(res["zncc"][1]) and np.isnan(res["inliers"][1]) and res["iterations"][1] == 0
+    assert np.all(res["status"][[0, 2]] == int(Status.CONVERGED))
+    assert np.all(np.abs(res["params"][[0, 2], 0] - 0.5) < 0.02)
+
+
+def test_bad_inputs_are_refused_with_a_message():
+    ref, cur = speckle_pair((64, 64), (0.0, 0.0), seed=1)
+    sub = prepare_subsets(prepare_reference(ref, device="cpu"), [(32.0, 32.0)], subset=15, order=1)
+    c = prepare_current(cur, device="cpu")
+    g = np.zeros((1, 6))
+    with pytest.raises(ValueError, match="ReferenceSubsets"):
+        icgn_robust("subsets", c, g)
+    with pytest.raises(ValueError, match="CurrentImage"):
+        icgn_robust(sub, cur, g)
+    with pytest.raises(ValueError, match="guess must have shape"):
+        icgn_robust(sub, c, np.zeros((2, 6)))
+    with pytest.raises(ValueError, match="active"):
+        icgn_robust(sub, c, g, np.ones(3, bool))
+    with pytest.raises(ValueError, match="min_inliers"):
+        icgn_robust(sub, c, g, min_inliers=1.0)
+    with pytest.raises(ValueError, match="max_iter"):
+        icgn_robust(sub, c, g, max_iter=0)
+    with pytest.raises(ValueError, match="NaN"):
+        icgn_robust(sub, c, np.full((1, 6), np.nan))
+
+
+def _frames(seq, ks):
+    return [np.clip(np.round(seq[k]), 0, 255).astype(np.uint8) for k in ks]
+
+
+def test_tracker_robust_on_every_path(evolving):
+    from dic._track import Tracker
+
+    k_frame = 40
+    ref, cur = _frames(evolving, [0, k_frame])
+    pts = _points(evolving)
+    truth = evolving.displacement(pts, k_frame)
+    plain = Tracker(ref, points=pts, device="cpu")
+    robust = Tracker(ref, points=pts, robust=True, device="cpu")
+    guess = _exact_guess(truth, 1)
+    f_plain = plain.track(cur, guess=guess)  # the device-resident frame path (uint8, no search)
+    f_frame = robust.track(cur, guess=guess)
+    f_host = robust.track(cur.astype(np.float64), guess=guess, search="zncc")  # the general path (a search)
+    e_plain = np.hypot(f_plain.u - truth[:, 0], f_plain.v - truth[:, 1])[f_plain.valid]
+    for f in (f_frame, f_host):
+        assert f.valid.mean() > 0.9
+        e = np.hypot(f.u - truth[:, 0], f.v - truth[:, 1])[f.valid]
+        assert _rms(e) < 0.2 * _rms(e_plain)
+    # the same refinement from the same converged start on both paths
+    both = f_frame.valid & f_host.valid
+    assert np.max(np.abs(f_frame.u[both] - f_host.u[both])) < 5e-3
+    with pytest.raises(ValueError, match="robust must be True or False"):
+        Tracker(ref, points=pts, robust="yes")
+
+
+def test_track_sequence_and_cli_robust(evolving, tmp_path):
+    from click.testing import CliRunner
+
+    from dic.cli import main
+    from dic.sequence import track_sequence
+    from dic.store import ResultReader
+    from kernels.images import write_image
+
+    ks = [0, 14, 27]
+    frames = _frames(evolving, ks)
+    pts = _points(evolving)
+    out = tmp_path / "robust.h5"
+    track_sequence(frames[0], frames[1:], out, reference="fixed", points=pts, robust=True, device="cpu")
+    with ResultReader(out) as rd:
+        assert rd.settings.get("robust") is True
+        fields = [fr for _, fr in rd.iter_frames()]
+    last = fields[-1]
+    truth = evolving.displacement(np.asarray(last.points), ks[-1])
+    valid = np.asarray(last.valid)
+    e = np.hypot(np.asarray(last.u) - truth[:, 0], np.asarray(last.v) - truth[:, 1])[valid]
+    assert valid.mean() > 0.9 and _rms(e) < 0.015
+    paths = []
+    for k, img in zip(ks, frames):
+        p = tmp_path / f"f{k:03d}.png"
+        write_image(p, img)
+        paths.append(str(p))
+    res = CliRunner().invoke(main, ["track", *paths, "-o", str(tmp_path / "cli.h5"), "--robust", "--step", "8",
+                                    "--strain-window", "0", "-q", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    with ResultReader(tmp_path / "cli.h5") as rd:
+        assert rd.settings.get("robust") is True
