@@ -209,37 +209,15 @@ def _size(text: str) -> int:
     return int(value * scale)
 
 
-#: the fewest points per chunk a --max-memory budget must allow (unless the run has fewer)
-MIN_CHUNK_POINTS = 1024
-
-
 def _check_budget(budget: int, text: str, n_points: int, order: int, shape) -> None:
-    """``--max-memory`` against the run's working set: refused below one point's data (:func:`bytes_per_poi`);
-    a warning that says the bound below the working set: all the points' data when that is less, else the
-    larger of the reference image as float32 (4 x H x W bytes) and MIN_CHUNK_POINTS points. Below it the points
-    are tracked in small chunks, each preparing the whole image again (same results, but a 2-frame run of 2 s
-    took over a minute with 1K)."""
-    from dic.sequence.chunks import bytes_per_poi
+    """``--max-memory`` refused below one point's data (:func:`dic.sequence.chunks.check_budget`); below the
+    run's working set the library warns (``track_sequence``), printed as a ``Warning:`` line."""
+    from dic.sequence.chunks import check_budget
 
-    per_point = bytes_per_poi(order)
-    if budget < per_point:
-        raise click.BadParameter(f"{text} ({budget:,} bytes) cannot hold the data of one point ({per_point} bytes at "
-                                 f"order {order}); give at least {per_point} bytes", param_hint="--max-memory")
-    floor = min(n_points * per_point, max(4 * int(shape[0]) * int(shape[1]), MIN_CHUNK_POINTS * per_point))
-    if budget < floor:
-        click.echo(
-            f"Warning: --max-memory {text} ({budget:,} bytes) is below the working set of this run, {floor:,} bytes "
-            f"({_human(floor)}: the reference image as float32, {shape[1]} x {shape[0]} px x 4 bytes, or "
-            f"{MIN_CHUNK_POINTS} points x {per_point} bytes, whichever is larger, or all {n_points:,} points if "
-            f"that is less); the {n_points:,} points are tracked in chunks of {budget // per_point:,}, each "
-            "preparing the whole image again: the same results, much more slowly", err=True)
-
-
-def _human(n: int) -> str:
-    for unit, size in (("G", 2**30), ("M", 2**20), ("K", 2**10)):
-        if n >= size:
-            return f"{n / size:.1f}{unit}"
-    return f"{n} bytes"
+    try:
+        check_budget(budget, n_points, order, shape, name=f"--max-memory {text}")
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--max-memory") from None
 
 
 def _sequence_figures(output, ref, figure_dir) -> None:

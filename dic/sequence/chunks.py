@@ -28,6 +28,30 @@ __all__ = ["bytes_per_poi", "result_bytes_per_poi", "write_depth", "default_max_
 STRAIN_BAND_POINTS = 1 << 20
 
 
+#: the fewest points per chunk a memory budget must allow (unless the run has fewer)
+MIN_CHUNK_POINTS = 1024
+
+
+def check_budget(budget: int, n_points: int, order: int, shape, *, name: str = "max_memory") -> str | None:
+    """A memory budget (bytes) against a run's working set: ``ValueError`` below one point's data
+    (:func:`bytes_per_poi`); the text of a warning below the working set (all the points' data when that is
+    less, else the larger of the reference image as float32, 4 x H x W bytes, and ``MIN_CHUNK_POINTS``
+    points), None above it. Below the working set the points are tracked in small chunks, each preparing
+    the whole image again: the same results, but a 2-frame run of 2 s took over a minute with 1 KiB."""
+    per_point = bytes_per_poi(order)
+    if budget < per_point:
+        raise ValueError(f"{name} ({budget:,} bytes) cannot hold the data of one point ({per_point} bytes at "
+                         f"order {order}); give at least {per_point} bytes")
+    floor = min(n_points * per_point, max(4 * int(shape[0]) * int(shape[1]), MIN_CHUNK_POINTS * per_point))
+    if budget >= floor:
+        return None
+    return (f"{name} ({budget:,} bytes) is below the working set of this run, {floor:,} bytes (the reference "
+            f"image as float32, {shape[1]} x {shape[0]} px x 4 bytes, or {MIN_CHUNK_POINTS} points x {per_point} "
+            f"bytes, whichever is larger, or all {n_points:,} points if that is less); the {n_points:,} points "
+            f"are tracked in chunks of {budget // per_point:,}, each preparing the whole image again: the same "
+            "results, much more slowly")
+
+
 def bytes_per_poi(order: int) -> int:
     """Bytes per POI that tracking a frame needs at its peak: the tracker's reference table, centres
     and IC-GN buffers, and the host arrays at the end of one ``track`` call (the results read back as

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import os
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -24,6 +25,7 @@ from .chunks import (
     STRAIN_BAND_POINTS,
     ChunkedTracker,
     bytes_per_poi,
+    check_budget,
     default_max_memory,
     strain_in_bands,
     write_depth,
@@ -333,6 +335,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     # the POIs, known without preparing them (a custom tracker's only when options give points and order)
     planned = _planned_points(ref_img.shape, options) if custom_tracker is None or \
         (options.get("points") is not None and options.get("order") is not None) else None
+    if max_memory is not None and planned is not None:  # a budget below the working set crawls: say so
+        slow = check_budget(budget, len(planned[0]), planned[1], ref_img.shape)
+        if slow:
+            warnings.warn(slow, stacklevel=2)
     if planned is not None and len(planned[0]) * bytes_per_poi(planned[1]) > budget:  # chunked from the start
         tracker0 = ChunkedTracker(make_tracker, ref_img, planned[0], order=planned[1],
                                   chunk=budget // bytes_per_poi(planned[1]), search=options.get("search"))

@@ -12,6 +12,7 @@ import os
 import re
 import struct
 import time
+import warnings
 import zlib
 
 import numpy as np
@@ -259,6 +260,23 @@ def test_a_max_memory_below_the_working_set_says_the_bound(two_images, tmp_path)
     assert f"below the working set of this run, {floor:,} bytes" in res.output
     assert "chunks of 1," in res.output
 
+
+
+def test_the_library_says_the_bound_of_max_memory_too(two_images, tmp_path):
+    """Before: track_sequence(max_memory=1024) crawled without a word (only the CLI checked the budget)."""
+    from dic.io import read_image
+    from dic.sequence import track_sequence
+    from dic.sequence.chunks import bytes_per_poi
+
+    ref, cur = (read_image(p) for p in two_images)
+    with pytest.raises(ValueError, match=f"cannot hold the data of one point \\({bytes_per_poi(1)} bytes"):
+        track_sequence(ref, [cur], tmp_path / "a.h5", step=16, max_memory=100)
+    with pytest.warns(UserWarning, match="below the working set of this run") as caught:
+        summary = track_sequence(ref, [cur], tmp_path / "b.h5", step=16, max_memory=1024)
+    assert "chunks of 1," in str(caught[0].message) and len(summary) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a budget above the working set: no word
+        track_sequence(ref, [cur], tmp_path / "c.h5", step=16, max_memory=2**30)
 
 @pytest.fixture(scope="module")
 def result_file(two_images, tmp_path_factory):
