@@ -1,4 +1,4 @@
-"""Pointwise least-squares strain (dic/strain.py) against analytic fields with exact derivatives."""
+"""Pointwise least-squares strain (dic/_strain.py) against analytic fields with exact derivatives."""
 from types import SimpleNamespace
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Undistortion, projection and triangulation (kernels/triangulate.py, dic/triangulate.py).
+"""Undistortion, projection and triangulation (kernels/triangulate.py, dic/_triangulate.py).
 
 References are independent of the code under test: the exact inverse (ideal points distorted with
 ``calibration.camera.Camera``), OpenCV (``cv2.undistortPoints`` with an iteration criterion,
