@@ -124,6 +124,29 @@ class _Record:
     CLI_NAMES: ClassVar[dict[str, str]] = {}
     KIND: ClassVar[str] = ""
 
+    # -- built from a call's keywords
+    @classmethod
+    def from_keywords(cls, keywords: dict, *, shape=None):
+        """The record of a sequence call's keywords (:func:`dic.sequence.track_sequence`'s or
+        :func:`dic.sequence.stereo_sequence`'s ``options`` and the sequence's own). ``shape`` (H, W) px: the
+        (left) reference image's, to check a ``roi`` given in any form. Unknown keywords raise
+        :class:`OptionError`; ``device`` is not an option of the record."""
+        kw = {k: v for k, v in keywords.items() if k != "device"}
+        names = {f.name for f in fields(cls) if f.compare}
+        unknown = sorted(set(kw) - names)
+        if unknown:
+            raise OptionError(unknown[0], f"unknown option(s) {', '.join(unknown)}; the options are "
+                                          f"{', '.join(sorted(names))} (and device)")
+        if kw.get("roi") is not None:
+            kw["roi"] = _roi(kw["roi"], shape)[1] or kw["roi"]
+        return cls(**kw)
+
+    def _require_inputs(self, what: str) -> None:
+        """A record read from a file holds digests of its POIs and region, not them: refused to ``what``."""
+        if (self.points is not None and self.points_array is None) or (self.roi is not None and self.region is None):
+            raise ValueError("a run record read from a file holds only digests of its POIs and region; "
+                             f"build the record from the options to {what}")
+
     # -- the stored form
     def to_settings(self) -> dict:
         """The settings stored in a result file: every option (defaults included) and ``options_schema``."""
@@ -318,27 +341,10 @@ class TrackOptions(_Record):
                                                   "the scale", detail=" (mm per px)"))
         self._check_sequence()
 
-    @classmethod
-    def from_keywords(cls, keywords: dict, *, shape=None) -> "TrackOptions":
-        """The record of :func:`dic.sequence.track_sequence`'s keywords (its ``options`` and the sequence's
-        own). ``shape`` (H, W) px: the reference image's, to check a ``roi`` given in any form.
-        Unknown keywords raise :class:`OptionError`; ``device`` is not an option of the record."""
-        kw = {k: v for k, v in keywords.items() if k != "device"}
-        names = {f.name for f in fields(cls) if f.compare}
-        unknown = sorted(set(kw) - names)
-        if unknown:
-            raise OptionError(unknown[0], f"unknown option(s) {', '.join(unknown)}; the options are "
-                                          f"{', '.join(sorted(names))} (and device)")
-        if kw.get("roi") is not None:
-            kw["roi"] = _roi(kw["roi"], shape)[1] or kw["roi"]
-        return cls(**kw)
-
     def tracker_kwargs(self) -> dict:
         """The :class:`dic.Tracker` keywords of this record (no ``device``): the POIs as given, the
         checked region (a record read from a file has neither: it cannot build a tracker)."""
-        if (self.points is not None and self.points_array is None) or (self.roi is not None and self.region is None):
-            raise ValueError("a run record read from a file holds only digests of its POIs and region; "
-                             "build the record from the options to track")
+        self._require_inputs("track")
         kw = {"subset": self.subset, "step": self.step, "order": self.order, "search": self.search,
               "max_iter": self.max_iter, "tol": self.tol, "zncc_min": self.zncc_min, "flat_std": self.flat_std,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
@@ -447,25 +453,9 @@ class StereoOptions(_Record):
         self._set("max_features", _checked("max_features", positive_int, self.max_features, "max_features"))
         self._check_sequence()
 
-    @classmethod
-    def from_keywords(cls, keywords: dict, *, shape=None) -> "StereoOptions":
-        """The record of :func:`dic.sequence.stereo_sequence`'s keywords; ``shape`` (H, W) px: the left
-        reference image's (checks a ``roi``). ``device`` and ``match`` are not options of the record."""
-        kw = {k: v for k, v in keywords.items() if k != "device"}
-        names = {f.name for f in fields(cls) if f.compare}
-        unknown = sorted(set(kw) - names)
-        if unknown:
-            raise OptionError(unknown[0], f"unknown option(s) {', '.join(unknown)}; the options are "
-                                          f"{', '.join(sorted(names))} (and device)")
-        if kw.get("roi") is not None:
-            kw["roi"] = _roi(kw["roi"], shape)[1] or kw["roi"]
-        return cls(**kw)
-
     def correlation_kwargs(self) -> dict:
         """The :class:`dic.StereoCorrelation` keywords of this record (no ``device``, no ``match``)."""
-        if (self.points is not None and self.points_array is None) or (self.roi is not None and self.region is None):
-            raise ValueError("a run record read from a file holds only digests of its POIs and region; "
-                             "build the record from the options to measure")
+        self._require_inputs("measure")
         frame = self.frame if isinstance(self.frame, str) else (np.asarray(self.frame[0]), np.asarray(self.frame[1]))
         kw = {"subset": self.subset, "order": self.order, "frame": frame, "epipolar_tol_px": self.epipolar_tol_px,
               "zncc_min": self.zncc_min, "strain_window": self.strain_window, "max_iter": self.max_iter,
