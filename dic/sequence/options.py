@@ -123,6 +123,11 @@ class _Record:
     #: option keyword -> its command-line option (where the command has one)
     CLI_NAMES: ClassVar[dict[str, str]] = {}
     KIND: ClassVar[str] = ""
+    #: options added to the record after its schema-2 form first shipped (b36e3a0) -> the value that
+    #: reproduces what a file written without them holds (the behaviour before the option existed).
+    #: A schema-2 file that lacks such an option reads as that value, so it still resumes; add a new
+    #: option here whenever its default differs from the old behaviour or could change later.
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {}
 
     # -- built from a call's keywords
     @classmethod
@@ -164,6 +169,8 @@ class _Record:
         if version == OPTIONS_SCHEMA:
             names = {f.name for f in fields(cls) if f.compare}
             unknown = sorted(set(settings) - names - {_SCHEMA_KEY})
+            added = {k: v for k, v in cls.ADDED_OPTIONS.items() if k not in settings}
+            settings = {**settings, **added}
             missing = sorted(names - set(settings))
             if unknown or missing:
                 raise ValueError(f"settings of schema {OPTIONS_SCHEMA} with unknown options {unknown} or without "

@@ -319,3 +319,25 @@ def test_stereo_noise_sigma_from_the_command_line_is_used_recorded_and_compared(
     r = _stereo_cli(old, 3)
     assert r.exit_code == 0, r.output
     assert read_stereo(old).indices == [0, 1, 2]
+
+
+# -- schema-2 files written before options were added (tests/data/settings_v2: the settings b36e3a0 stored)
+V2 = Path(__file__).parents[1] / "data" / "settings_v2"
+
+
+@pytest.mark.parametrize("record, name, shape", [(TrackOptions, "track_b36e3a0.json", (80, 100)),
+                                                 (StereoOptions, "stereo_b36e3a0.json", (96, 128))])
+def test_schema2_file_without_later_options_still_resumes(record, name, shape):
+    """A schema-2 file written before an option existed reads that option as the behaviour it had
+    (``ADDED_OPTIONS``) and resumes with a run given those values; every other stored value survives."""
+    import json
+    stored = json.loads((V2 / name).read_text())
+    read = record.from_settings(stored)
+    assert {k: v for k, v in read.to_settings().items() if k in stored} == stored
+    for option, old_value in record.ADDED_OPTIONS.items():
+        assert getattr(read, option) == old_value
+    same_run = record.from_keywords({**{k: v for k, v in stored.items() if k != "options_schema"},
+                                     **record.ADDED_OPTIONS}, shape=shape)
+    assert same_run.resume_check(stored) is None
+    later = set(same_run.to_settings()) - set(stored)
+    assert later == set(record.ADDED_OPTIONS), "a new option needs its old behaviour in ADDED_OPTIONS"
