@@ -3,7 +3,7 @@
 Pipeline (docs/stereo.md, sections "Stereo matching" and "3-D fields"):
 
 1. **Reference stereo match.** Points of interest (POIs) of the left reference image are matched
-   into the right reference image with IC-GN (2nd order by default; Gao et al., Optics and Lasers
+   into the right reference image with IC-GN (1st order by default, chosen by measurement: docs/stereo.md "Defaults"; Gao et al., Optics and Lasers
    in Engineering 65, 2015, doi:10.1016/j.optlaseng.2014.04.002). The initial guess comes from
    the geometry: SIFT features (Lowe, IJCV 60, 2004, doi:10.1023/B:VISI.0000029664.99615.94)
    matched between the two images and kept when they satisfy the epipolar constraint of the
@@ -154,7 +154,7 @@ class StereoMatch:
     guess_source: np.ndarray
     status: np.ndarray
     n_features: int = 0
-    order: int = 2
+    order: int = 1
 
     @property
     def valid(self) -> np.ndarray:
@@ -289,7 +289,7 @@ class StereoCorrelation:
     roi : optional, in the left reference image: an inclusive box ``(x0, y0, x1, y1)``, a polygon
         ``[(x, y), ...]``, an (H, W) mask or a mask image file (:mod:`dic.correlation.points`; the
         same rule as 2-D tracking); grid POIs outside are ``NOT_COMPUTED``.
-    subset : odd int, subset size (px); order : 1 or 2 (shape function; 2 recommended for stereo).
+    subset : odd int, subset size (px); order : 1 (default) or 2 (shape function; docs/stereo.md "Defaults").
     frame : "left", "plane" or (R_obj_left, t_obj_left): output frame (see :class:`Field3D`).
     epipolar_tol_px : float, px (undistorted right image) beyond which a match is ``EPIPOLAR_VIOLATION``.
     zncc_min : float, matches and tracks below it are ``LOW_ZNCC``.
@@ -317,7 +317,7 @@ class StereoCorrelation:
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int | None = None, roi=None, subset: int = 21,
-                 order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
+                 order: int = 1, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool = False, device=None, progress=None):
@@ -959,7 +959,7 @@ def _fill_sigma(points: np.ndarray, sigma: np.ndarray, valid: np.ndarray, usable
 
 
 def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=None, step: int | None = None, roi=None,
-           subset: int = 21, order: int = 2, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
+           subset: int = 21, order: int = 1, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
            strain_window: int = 5, device=None, **options) -> Field3D:
     """Stereo DIC of one reference pair, and of one current pair when given.
 

@@ -92,8 +92,9 @@ def _engine_pairs(pairs) -> list:
 @click.option("--step", default=None, type=click.IntRange(min=1),
               help="Grid spacing of the points of interest, px  [default: subset // 2, 10 for --subset 21].")
 @click.option("--subset", default=21, show_default=True, type=int, help="Square subset side in px (odd).")
-@click.option("--order", default="2", show_default=True, type=click.Choice(["1", "2"]),
-              help="Shape function: 1 (affine) or 2 (quadratic; recommended for the left-right match).")
+@click.option("--order", default="1", show_default=True, type=click.Choice(["1", "2"]),
+              help="Shape function: 1 (affine; the more accurate on measured stereo data, docs/stereo.md "
+                   "'Defaults') or 2 (quadratic: large subsets on strongly curved or non-uniform fields).")
 @region_options
 @click.option("--frame", default="left", show_default=True, type=click.Choice(["left", "plane"]),
               help="Output coordinates: left camera frame, or the best-fit plane of the reference shape.")

@@ -408,7 +408,7 @@ class StereoOptions(_Record):
 
     subset: int = 21
     step: int | None = None
-    order: int = 2
+    order: int = 1
     points: Any = None
     roi: Any = None
     frame: Any = "left"
@@ -485,6 +485,8 @@ class StereoOptions(_Record):
         if unknown:
             raise ValueError(f"unknown settings {', '.join(unknown)}")
         kw.update({k: v for k, v in s.items() if k not in kw})
+        # 8d9f975 correlated with 2nd order unless told otherwise (the default is 1st order since issue 25)
+        kw.setdefault("order", 2)
         if isinstance(kw.get("points"), list):  # schema 1 stored the coordinates themselves
             kw["points"] = _points_digest(kw["points"])
         return cls(**kw)

@@ -79,7 +79,7 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
     auto = TrackOptions(reference="auto")
     assert (auto.auto_valid, auto.auto_zncc) == (0.95, 0.95) and TrackOptions(reference="auto", auto_valid=0.95) == auto
     stereo = StereoOptions()
-    assert stereo.to_settings()["max_iter"] == 50 and stereo.to_settings()["order"] == 2
+    assert stereo.to_settings()["max_iter"] == 50 and stereo.to_settings()["order"] == 1
     assert StereoOptions.from_settings(stereo.to_settings()) == stereo == StereoOptions(step=10, tol=1e-3)
 
 
@@ -135,8 +135,9 @@ def test_settings_of_8d9f975_are_read_as_records():
     expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0])
     assert TrackOptions.from_settings(cli) == expected == TrackOptions.from_settings(lib)
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
-    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20)
-    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental")
+    # 8d9f975's stereo default order was 2 (1 since issue 25): a file that did not record it holds order 2
+    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2)
+    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", order=2)
 
 
 def test_schema1_details_and_unknown_schemas():
@@ -224,7 +225,8 @@ def test_2d_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
 
 @pytest.mark.parametrize("written_by", ["cli", "lib"])
 def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
-    extra = ["--reference", "incremental"] if written_by == "lib" else []
+    # both were written with 8d9f975's default order 2 (the default is 1 since issue 25): resumed with it given
+    extra = ["--order", "2"] + (["--reference", "incremental"] if written_by == "lib" else [])
     for resume_with in ("cli", "lib"):
         d = tmp_path / resume_with
         d.mkdir()
@@ -235,21 +237,21 @@ def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path)
             r = _stereo_cli(out, 3, *extra)
             assert r.exit_code == 0, r.output
         else:
-            fields = stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu",
-                                     reference="incremental" if extra else "fixed")
+            fields = stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu", order=2,
+                                     reference="incremental" if written_by == "lib" else "fixed")
             assert list(fields.indices) == [2]  # a SequenceSummary (the engine)
         res = read_stereo(out)
         assert res.indices == [0, 1, 2] and np.array_equal(res.fields[1].xyz, x1, equal_nan=True)
         assert res.settings == settings
         assert np.count_nonzero(res.fields[2].valid) >= 0.5 * len(res.fields[2])
     with pytest.raises(ValueError, match=r"--zncc-min \(zncc_min\): 0\.8 in the file, 0\.9 now"):
-        stereo_sequence(RIG, _pairs(3), out, step=20, zncc_min=0.9, device="cpu",
-                        reference="incremental" if extra else "fixed")
+        stereo_sequence(RIG, _pairs(3), out, step=20, zncc_min=0.9, device="cpu", order=2,
+                        reference="incremental" if written_by == "lib" else "fixed")
 
 
 def test_stereo_library_file_resumes_with_the_cli_and_a_difference_is_refused(tmp_path):
     out = tmp_path / "s.h5"
-    stereo_sequence(RIG, _pairs(2), out, step=20, device="cpu", max_iter=50, order=2)  # explicit defaults
+    stereo_sequence(RIG, _pairs(2), out, step=20, device="cpu", max_iter=50, order=1)  # explicit defaults
     assert read_stereo(out).settings == StereoOptions(step=20).to_settings()
     r = _stereo_cli(out, 3)
     assert r.exit_code == 0, r.output
@@ -314,9 +316,9 @@ def test_stereo_noise_sigma_from_the_command_line_is_used_recorded_and_compared(
     assert r.exit_code == 2 and "--noise-sigma" in r.output
     old = _copy("stereo_cli_v1.h5", tmp_path)
     assert "noise_sigma" not in read_stereo(old).settings
-    r = _stereo_cli(old, 3, "--noise-sigma", "2")
+    r = _stereo_cli(old, 3, "--noise-sigma", "2", "--order", "2")
     assert r.exit_code == 1 and "--noise-sigma (noise_sigma): none in the file, 2.0 now" in " ".join(r.output.split())
-    r = _stereo_cli(old, 3)
+    r = _stereo_cli(old, 3, "--order", "2")  # 8d9f975's default order (1 since issue 25)
     assert r.exit_code == 0, r.output
     assert read_stereo(old).indices == [0, 1, 2]
 
