@@ -22,7 +22,8 @@ The maps are drawn without a figure per frame: each point's grid cell (the grid 
 :func:`dic.grid_layout`; points on no grid: the nearest point within half the point spacing) is
 coloured through the colour map's 256-entry table as Matplotlib colours a value (entry ``min(255,
 floor(256 t))`` for ``t = (value - vmin) / (vmax - vmin)`` clipped to [0, 1]), blended at :data:`MAP_ALPHA` over the grey reference image (when
-given), at most ``map_width`` pixels wide (a smaller reference image is enlarged by a whole factor).
+given; the grey backdrop of every Specula map, :func:`dic.plots._common.backdrop`), at most ``map_width``
+pixels wide (a smaller reference image is enlarged by a whole factor).
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_report", "report_frames", "render_map", "frame_quality", "default_quantity", "MAX_MAP_FRAMES",
+__all__ = ["write_report", "report_frames", "render_map", "map_geometry", "frame_quality", "default_quantity", "MAX_MAP_FRAMES",
            "MAP_WIDTH", "MAP_ALPHA"]
 
 #: the most frames whose map a report carries; longer runs show an evenly spaced selection of this many
@@ -70,30 +71,34 @@ def default_quantity(kind: str) -> str:
     return "W" if kind == "stereo" else "magnitude"
 
 
-def _backdrop(image, rows, cols) -> np.ndarray:
-    """The grey reference image sampled at the map's pixel centres, stretched over its 1st-99th
-    percentiles, (h, w) float64 in [0, 255]."""
-    img = np.asarray(image, dtype=np.float64)
-    sample = img[np.clip(rows, 0, img.shape[0] - 1)[:, None], np.clip(cols, 0, img.shape[1] - 1)[None, :]]
-    lo, hi = np.percentile(img[np.isfinite(img)], (1, 99)) if np.isfinite(img).any() else (0.0, 1.0)
-    if not hi > lo:
-        hi = lo + 1.0
-    return np.clip((sample - lo) / (hi - lo), 0.0, 1.0) * 255.0
+def _backdrop(image, xs, ys, map_width: int) -> np.ndarray:
+    """The grey reference image beneath a map, at the map's pixel centres ``xs`` (w,), ``ys`` (h,) (image px):
+    the backdrop of every Specula map (:func:`dic.plots._common.backdrop`: block means of ``f x f`` image px,
+    stretched over their 1st-99th percentiles, 8 grey levels; it shows the specimen, not the speckle, and
+    keeps the picture small), (h, w) float64 in [0, 255]."""
+    from .plots._common import BACKDROP_COARSENESS, backdrop
+
+    grey, _ = backdrop(image, map_width)
+    f = min(max(1, int(round(BACKDROP_COARSENESS * image.shape[1] / max(float(map_width), 1.0)))), *image.shape)
+    rows = np.clip(np.rint(ys).astype(np.int64) // f, 0, grey.shape[0] - 1)
+    cols = np.clip(np.rint(xs).astype(np.int64) // f, 0, grey.shape[1] - 1)
+    return grey[rows[:, None], cols[None, :]] * 255.0
 
 
-def _grid_lookup(points, values, xs, ys) -> np.ndarray:
-    """Values at the map's pixel centres ``xs`` (w,), ``ys`` (h,) (image px): the value of the grid cell
-    (``step`` wide, centred on its point) containing each pixel, NaN where none."""
+def _pixel_index(points, xs, ys) -> np.ndarray:
+    """For each map pixel (centres ``xs`` (w,), ``ys`` (h,), image px), the index of the point whose grid cell
+    (``step`` wide, centred on the point; :func:`dic.grid_layout`) contains it, -1 where none, (h, w) int64.
+    Points on no grid: the nearest point within half the median point spacing."""
     from ._strain import grid_layout
 
-    has = np.all(np.isfinite(points), axis=1)
-    pts, vals = points[has], values[has]
-    out = np.full((ys.size, xs.size), np.nan)
-    if pts.shape[0] == 0:
+    has = np.flatnonzero(np.all(np.isfinite(points), axis=1))
+    out = np.full((ys.size, xs.size), -1, dtype=np.int64)
+    if has.size == 0:
         return out
+    pts = points[has]
     try:
         index, (ny, nx), (dx, dy) = grid_layout(pts)
-    except ValueError:  # points on no grid: the nearest point within half the spacing
+    except ValueError:  # points on no grid
         from scipy.spatial import cKDTree
 
         tree = cKDTree(pts)
@@ -102,21 +107,19 @@ def _grid_lookup(points, values, xs, ys) -> np.ndarray:
         dist, nearest = tree.query(np.column_stack([gx.ravel(), gy.ravel()]), distance_upper_bound=0.5 * spacing)
         found = np.isfinite(dist)
         flat = out.reshape(-1)
-        flat[found] = vals[nearest[found]]
+        flat[found] = has[nearest[found]]
         return out
-    grid = np.full((ny, nx), np.nan)
-    grid[index[:, 1], index[:, 0]] = vals
-    x0, y0 = pts[:, 0].min(), pts[:, 1].min()
-    cols = np.rint((xs - x0) / dx).astype(np.int64)
-    rows = np.rint((ys - y0) / dy).astype(np.int64)
+    cell = np.full(ny * nx, -1, dtype=np.int64)
+    cell[index[:, 1] * nx + index[:, 0]] = has
+    cols = np.rint((xs - pts[:, 0].min()) / dx).astype(np.int64)
+    rows = np.rint((ys - pts[:, 1].min()) / dy).astype(np.int64)
     col_ok, row_ok = (cols >= 0) & (cols < nx), (rows >= 0) & (rows < ny)
-    sub = grid[np.clip(rows, 0, ny - 1)[:, None], np.clip(cols, 0, nx - 1)[None, :]]
-    sub[~(row_ok[:, None] & col_ok[None, :])] = np.nan
-    return sub
+    out[np.ix_(row_ok, col_ok)] = cell[rows[row_ok][:, None] * nx + cols[col_ok][None, :]]
+    return out
 
 
 def render_map(points, values, image_shape, limits, lut, *, image=None, width: int = MAP_WIDTH,
-               alpha: float = MAP_ALPHA) -> np.ndarray:
+               alpha: float = MAP_ALPHA, pixel_index=None) -> np.ndarray:
     """One field map as (h, w, 3) uint8 pixels (module docstring).
 
     ``points`` (N, 2) reference image px (NaN rows: no position), ``values`` (N,) (NaN: not valid),
@@ -124,39 +127,50 @@ def render_map(points, values, image_shape, limits, lut, *, image=None, width: i
     (:func:`dic.plots.report.colour_lut`), ``image`` the (H, W) grey reference image or None, ``width``
     the most pixels across (the map is ``round(W s)`` x ``round(H s)`` with ``s = width / W`` for an
     image wider than ``width``, else the largest whole enlargement ``s = width // W``, each image pixel
-    then drawn as an s x s block).
-    Map pixel (i, j) stands for image point ``((j + 0.5) / s - 0.5, (i + 0.5) / s - 0.5)``.
+    then drawn as an s x s block). Map pixel (i, j) stands for image point ``((j + 0.5) / s - 0.5,
+    (i + 0.5) / s - 0.5)``. ``pixel_index``: the cells of these points worked out before
+    (:func:`map_geometry`), for the frames of one file.
     """
     pts = np.asarray(points, dtype=np.float64)
     vals = np.asarray(values, dtype=np.float64).reshape(-1)
     if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] != vals.size:
         raise ValueError(f"points must be (N, 2) and values (N,), got {pts.shape} and {vals.shape}")
-    H, W = (int(n) for n in image_shape)
-    if H < 1 or W < 1:
-        raise ValueError(f"image_shape must be (H, W) with H, W >= 1, got {image_shape!r}")
     lo, hi = (float(v) for v in limits)
     if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
         raise ValueError(f"limits must be two finite numbers vmin < vmax, got {limits!r}")
     lut = np.asarray(lut)
     if lut.shape != (256, 3) or lut.dtype != np.uint8:
         raise ValueError(f"lut must be a (256, 3) uint8 table, got {lut.dtype} {lut.shape}")
+    xs, ys = map_geometry(image_shape, width)
+    H, W = (int(n) for n in image_shape)
     if image is not None and np.asarray(image).shape != (H, W):
         raise ValueError(f"image has shape {np.asarray(image).shape}, the result's reference image is {(H, W)}")
+    cell = _pixel_index(pts, xs, ys) if pixel_index is None else pixel_index
+    # colours per point (Matplotlib's rule: entry min(255, floor(256 t))), then one gather per pixel
+    t = np.clip((np.where(np.isfinite(vals), vals, lo) - lo) / (hi - lo), 0.0, 1.0)
+    colour = np.concatenate([lut[np.minimum(np.floor(t * 256.0), 255).astype(np.int64)],
+                             np.zeros((1, 3), np.uint8)])
+    valid = np.concatenate([np.isfinite(vals), [False]])
+    cell = np.where(cell >= 0, cell, vals.size)  # no cell: the extra entry, not valid
+    has = valid[cell]
+    if image is None:
+        out = np.full((ys.size, xs.size, 3), _PAPER, dtype=np.uint8)
+        out[has] = colour[cell[has]]
+        return out
+    grey = _backdrop(np.asarray(image, dtype=np.float64), xs, ys, xs.size).astype(np.float32)
+    blend = alpha * colour[cell].astype(np.float32) + (1.0 - alpha) * grey[:, :, None]
+    out = np.where(has[:, :, None], blend, grey[:, :, None])
+    return np.rint(out).astype(np.uint8)
+
+
+def map_geometry(image_shape, width: int = MAP_WIDTH) -> tuple[np.ndarray, np.ndarray]:
+    """The image points (px) that the map pixels stand for: ``xs`` (w,) and ``ys`` (h,) (:func:`render_map`)."""
+    H, W = (int(n) for n in image_shape)
+    if H < 1 or W < 1:
+        raise ValueError(f"image_shape must be (H, W) with H, W >= 1, got {image_shape!r}")
     s = float(width) / W if W > width else float(max(1, int(width) // W))
     w, h = max(1, int(round(W * s))), max(1, int(round(H * s)))
-    xs, ys = (np.arange(w) + 0.5) / s - 0.5, (np.arange(h) + 0.5) / s - 0.5
-    sampled = _grid_lookup(pts, vals, xs, ys)
-    has = np.isfinite(sampled)
-    t = np.clip((np.where(has, sampled, lo) - lo) / (hi - lo), 0.0, 1.0)
-    colour = lut[np.minimum(np.floor(t * 256.0), 255).astype(np.int64)].astype(np.float64)  # Matplotlib's rule
-    if image is None:
-        out = np.full((h, w, 3), float(_PAPER))
-        out[has] = colour[has]
-    else:
-        grey = _backdrop(image, np.rint(ys).astype(np.int64), np.rint(xs).astype(np.int64))
-        out = np.repeat(grey[:, :, None], 3, axis=2)
-        out[has] = alpha * colour[has] + (1.0 - alpha) * out[has]
-    return np.rint(out).astype(np.uint8)
+    return (np.arange(w) + 0.5) / s - 0.5, (np.arange(h) + 0.5) / s - 0.5
 
 
 def frame_quality(reader, index: int) -> dict[str, float]:
@@ -401,8 +415,14 @@ def write_report(results, path, *, quantity: str | None = None, image=None, hist
         lo, hi = movie_limits(finite, quantity)
         cmap, lo, hi = colour_scale(finite, signed=quantity in SIGNED, fixed=(lo, hi))
         lut = pictures.colour_lut(cmap)
-        maps = [(i, pictures.png_bytes(render_map(p, v, shape, (lo, hi), lut, image=img, width=map_width)))
-                for i, p, v in per_frame]
+        maps, cells = [], {}
+        xs, ys = map_geometry(shape, map_width)
+        for i, p, v in per_frame:  # the cells of the points once per set of points (2-D: the same every frame)
+            key = p.tobytes()
+            if key not in cells:
+                cells = {key: _pixel_index(p, xs, ys)}
+            maps.append((i, pictures.png_bytes(render_map(p, v, shape, (lo, hi), lut, image=img, width=map_width,
+                                                          pixel_index=cells[key]))))
         bar = pictures.png_bytes(lut[None, :, :])
         # quality over every finished frame
         quality = [frame_quality(reader, i) for i in indices]
