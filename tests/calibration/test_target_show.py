@@ -152,3 +152,21 @@ def test_refusals(display, fringes, tmp_path):
     assert r.exit_code == 2 and "WxH+X+Y" in r.output
     r = CliRunner().invoke(main, ["target", "show", str(tmp_path / "none")])
     assert r.exit_code == 1 and "not a folder of target images" in r.output
+
+
+def test_geometry_places_the_image_unscaled_at_the_monitor_origin(display, tmp_path):
+    """A 'monitor' of 200 x 150 px at (50, 40) of the screen: a 100 x 80 random image lands on its top-left
+    pixels unscaled, the rest of the monitor black; ``{path}`` names the image shown."""
+    import imageio.v3 as iio
+
+    folder = tmp_path / "small"
+    folder.mkdir()
+    image = np.random.default_rng(3).integers(1, 256, size=(80, 100), dtype=np.uint8)  # no black pixel
+    iio.imwrite(folder / "pattern.png", image)
+    proc = show([folder, "--geometry", "200x150+50+40", "--interval", "0.2", "--settle", "0.1", "--after-each",
+                 f"{TOOLS['xwd']} -root -silent -out {{path}}.xwd"], display)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    shot = read_xwd(folder / "pattern.png.xwd")
+    assert np.array_equal(shot[40:120, 50:150, 0], image) and np.array_equal(shot[40:120, 50:150, 2], image)
+    assert not shot[40:190, 150:250].any() and not shot[120:190, 50:150].any()  # the monitor beyond the image: black
