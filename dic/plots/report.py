@@ -74,6 +74,9 @@ def quality_png(frames, series: dict, *, dpi: float = 80) -> bytes:
     from matplotlib.ticker import MaxNLocator
 
     axes[-1].xaxis.set_major_locator(MaxNLocator(integer=True))
+    if frames.size == 1:  # one frame: its index as the only tick, not a fractional axis about it
+        axes[-1].set_xlim(frames[0] - 1, frames[0] + 1)
+        axes[-1].set_xticks([frames[0]])
     return _figure_png(fig, dpi)
 
 

@@ -248,13 +248,13 @@ needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium 
 
 
 def chromium(url: str, profile, *, screenshot=None, size=(1000, 1400)) -> tuple[str, list[str]]:
-    """Load ``url`` in headless Chromium: (the DOM after the page's scripts ran, or "" with ``screenshot``; the
-    console messages, one line each). The flags keep it off the network (docs/…/python.md, "Known to work")."""
+    """Load ``url`` in headless Chromium: (the DOM after the page's scripts ran; the console messages, one line
+    each), and a screenshot of the window when ``screenshot`` names a PNG. The flags keep Chromium off the network."""
     args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
             "--disable-background-networking", "--disable-component-update", "--disable-sync",
             f"--user-data-dir={profile}", "--enable-logging=stderr", "--v=0", "--force-device-scale-factor=1",
             "--force-color-profile=srgb", "--hide-scrollbars", f"--window-size={size[0]},{size[1]}"]
-    args += [f"--screenshot={screenshot}"] if screenshot else ["--dump-dom"]
+    args += ["--dump-dom"] + ([f"--screenshot={screenshot}"] if screenshot else [])
     done = subprocess.run(args + [url], capture_output=True, text=True, timeout=60)
     console = [line for line in done.stderr.splitlines() if ":CONSOLE" in line]
     return done.stdout, console
@@ -277,19 +277,20 @@ def test_browser_shows_the_map_of_the_frame_in_the_address(results2d, results3d,
     assert run(["report", results2d, "-o", out, "-Q", "u", "--history", "28,28", "-q"]).exit_code == 0
     maps = embedded_maps(out.read_text(encoding="utf-8"))
     url = out.as_uri() + "#frame=2"
-    dom, console = chromium(url, tmp_path / "profile1")
+    shot = tmp_path / "shot.png"
+    dom, console = chromium(url, tmp_path / "profile1", screenshot=shot)
     assert console == []  # no error, no message at all
     body = re.search(r"<body([^>]*)>", dom).group(1)
     assert "data-report-ready=\"1\"" in body and "data-shown-frame=\"2\"" in body
     x, y, w, h = (int(v) for v in re.search(r'data-map-rect="([\d,]+)"', body).group(1).split(","))
     assert (h, w) == maps[2].shape[:2]
-    shot = tmp_path / "shot.png"
-    _, console = chromium(url, tmp_path / "profile2", screenshot=shot)
-    assert console == []
     pixels = np.asarray(iio.imread(shot))[..., :3]
     shown = pixels[y:y + h, x:x + w]
     assert np.array_equal(shown, maps[2])  # the embedded picture of frame 2, pixel for pixel
     assert not np.array_equal(shown, maps[3]) and not np.array_equal(shown, maps[1])  # not another frame's
+
+    dom, console = chromium(out.as_uri() + "#frame=7", tmp_path / "profile4")  # a frame the report does not hold
+    assert console == [] and 'data-shown-frame="3"' in dom and "frame 7 is not in this report" in dom
 
     out3 = tmp_path / "stereo.html"
     assert run(["report", results3d, "-o", out3, "-q"]).exit_code == 0
