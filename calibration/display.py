@@ -247,7 +247,12 @@ def _run(tk, root, files, images, area, interval, after_each, settle, loop, on_s
         elif event.keysym in PREVIOUS_KEYS:
             show(max(state["pos"] - 1, 0))
 
+    def tick():  # Python runs now and then, so that Ctrl-C in the terminal stops the show
+        if not state["done"]:
+            root.after(200, tick)
+
     root.bind("<Key>", on_key)
     root.after(0, lambda: (root.focus_force(), show(0)))
+    root.after(200, tick)
     root.mainloop()
     return ShowResult(shown=list(state["shown"]), completed=bool(state["completed"]), reason=str(state["reason"]))

@@ -84,7 +84,7 @@ def _common(f):
 
 @click.group(name="target")
 def target():
-    """Write calibration target images (PNG, shown full-screen, unscaled) and their JSON."""
+    """Write calibration target images (PNG, shown full-screen, unscaled) and their JSON; show them (target show)."""
 
 
 @target.command()
