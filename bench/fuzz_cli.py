@@ -42,7 +42,8 @@ import click
 import numpy as np
 
 #: verbs whose valid command line is cheap enough to run when a malformed value is accepted
-CHEAP = {"track", "stereo", "strain", "extensometer", "history", "profile", "export", "animate", "speckle", "target fringes",
+CHEAP = {"track", "stereo", "strain", "extensometer", "history", "profile", "export", "animate", "report", "speckle",
+         "target fringes",
          "target checkerboard", "target circles", "lab render", "lab paper-rig"}
 INT_VALUES = ["", " ", "nan", "abc", "-1", "0", "1e300", str(2 ** 70), "3.5"]
 FLOAT_VALUES = ["", " ", "nan", "inf", "-inf", "abc", "-1", "0", "1e300", "-1e300"]
@@ -116,12 +117,14 @@ def baselines(p: dict) -> dict[str, list[str]]:
         "profile": ["profile", p["results"], "--from", "15,24", "--to", "45,24"],
         "export": ["export", p["results"], "-f", "csv", "-o", "{out}"],
         "animate": ["animate", p["results"], "-Q", "u", "-o", "{out}.gif", "--dpi", "20", "-q"],
+        "report": ["report", p["results"], "-o", "{out}.html", "-Q", "u", "--map-width", "64", "-q"],
         "repair": ["repair", p["results"]],
         "speckle": ["speckle", p["ref"], "--step", "16", "--device", "cpu"],
         "target fringes": ["target", "fringes", "-o", "{out}", "--screen", "320x240", "--grid", "4x2", "--pitch", "60",
                            "--steps", "3"],
         "target checkerboard": ["target", "checkerboard", "-o", "{out}", "--screen", "320x240", "--corners", "4x3",
                                 "--square", "40"],
+        "target show": ["target", "show", os.path.dirname(p["target"]) or ".", "--interval", "1"],  # refusals only
         "target circles": ["target", "circles", "-o", "{out}", "--screen", "320x240", "--grid", "4x3", "--pitch", "60"],
         "lab render": ["lab", "render", p["scene"], "-o", "{out}", "--samples", "1", "--device", "cpu"],
         "lab paper-rig": ["lab", "paper-rig", "-o", "{out}.toml", "--scale", "0.05", "--tilt", "none"],
@@ -216,7 +219,7 @@ def damaged_cases(paths: dict, folder: str, mutants: int, rng: random.Random) ->
              ("ref_png", ["speckle"], lambda d: mutate_image(d, rng, "ref.png")),
              ("rig", ["stereo"], lambda d: mutate_json(d, rng)),
              ("scene", ["lab render"], lambda d: mutate_bytes(d, rng)),
-             ("results", ["strain", "history", "profile", "export", "extensometer", "animate"], lambda d: _damage_h5(d, rng))]
+             ("results", ["strain", "history", "profile", "export", "extensometer", "animate", "report"], lambda d: _damage_h5(d, rng))]
     out = []
     for key, verbs, mutate in kinds:
         data = open(paths[key], "rb").read()

@@ -53,6 +53,7 @@ _EXPORTS = {
     # images, figures, synthetic data, speckle quality
     "read_image": (".io", "read_image"), "write_image": (".io", "write_image"),
     "write_figures": (".plots.fields", "write_figures"),
+    "write_report": (".report", "write_report"),
     "synth": (".synth", None), "quality": (".quality", None),
 }
 
@@ -97,6 +98,7 @@ if TYPE_CHECKING:  # the names for type checkers and IDEs
     from .field3d import Field3D, StereoStatus  # noqa: F401
     from .io import read_image, write_image  # noqa: F401
     from .plots.fields import write_figures  # noqa: F401
+    from .report import write_report  # noqa: F401
     from .sequence import SequenceSummary, StereoOptions, TrackOptions, stereo_sequence, track_sequence  # noqa: F401
     from .store import (  # noqa: F401
         ResultFrames,

@@ -26,6 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "export": ("dic.commands.export:export", "Export a result file as CSV, MATLAB, netCDF, VTK (ParaView) or PLY point clouds"),
     "animate": ("dic.commands.animate:animate", "A movie (MP4, GIF) of one quantity over the frames of a result file"),
     "speckle": ("dic.commands.speckle:speckle", "Speckle quality (MIG, SSSIG) and a subset size for a target uncertainty"),
+    "report": ("dic.commands.report:report", "One self-contained HTML report of a result file: settings, quality, maps"),
     "repair": ("dic.commands.repair:repair", "Drop the damaged frames of a result file so that a rerun recomputes them"),
 }
 

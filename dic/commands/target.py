@@ -18,6 +18,7 @@ See docs/targets.md for the designs and the target frame (origin at the centre o
 from __future__ import annotations
 
 import os
+import re
 
 import click
 
@@ -83,7 +84,7 @@ def _common(f):
 
 @click.group(name="target")
 def target():
-    """Write calibration target images (PNG, shown full-screen, unscaled) and their JSON."""
+    """Write calibration target images (PNG, shown full-screen, unscaled) and their JSON; show them (target show)."""
 
 
 @target.command()
@@ -152,3 +153,53 @@ def circles(screen, pixel_pitch, out, grid, pitch, diameter, printable):
     _write(tg, out, "circles")
     if printable:
         _write_printable(tg, out, "circles")
+
+
+def _geometry(text):
+    """``--geometry WxH+X+Y`` -> (W, H, X, Y)."""
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)x(\d+)([+-]\d+)([+-]\d+)\s*", str(text))
+    if not m:
+        raise click.BadParameter(f"expected WxH+X+Y (px, e.g. 1920x1080+1920+0), got {text!r}", param_hint="--geometry")
+    w, h, x, y = (int(v) for v in m.groups())
+    if w < 1 or h < 1:
+        raise click.BadParameter(f"width and height must be at least 1 px, got {text!r}", param_hint="--geometry")
+    return w, h, x, y
+
+
+@target.command()
+@click.argument("folder", type=click.Path(file_okay=False))
+@click.option("--screen", "screen", default=0, show_default=True, type=click.IntRange(min=0),
+              help="The monitor: K-th of 'xrandr --listmonitors' (without xrandr: 0, the whole screen).")
+@click.option("--geometry", default=None, help="The monitor's area WxH+X+Y in px of the X screen (replaces --screen).")
+@click.option("--interval", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Seconds per image; without it, a key press steps (Space/Right: next, Left: back, Escape: stop).")
+@click.option("--after-each", default=None,
+              help="A command run after each image is on the screen (e.g. a camera trigger); {index} (0-based) and "
+                   "{path} are replaced. The next step waits for it; a failure stops the show.")
+@click.option("--settle", default=0.2, show_default=True, type=click.FloatRange(min=0),
+              help="Seconds between drawing an image and running --after-each.")
+@click.option("--loop", is_flag=True, help="Start again after the last image (stop with Escape).")
+def show(folder, screen, geometry, interval, after_each, settle, loop):
+    """Show the images of FOLDER (written by 'specula target') full screen, unscaled (1 image px = 1 screen px).
+
+    Images are shown in natural file order from the monitor's top-left pixel, on black. Step with a key
+    (Space/Return/Right: next, Left/BackSpace: back, Escape/q: stop) or with --interval; --after-each runs
+    a command after each image, e.g. to trigger a camera.
+
+    \b
+    specula target show fringes/ --screen 1
+    specula target show fringes/ --interval 1.5 --after-each "gphoto2 --capture-image-and-download --filename cap_{index}.jpg"
+    """
+    from calibration.display import show_images, target_images
+
+    files = target_images(folder)
+    area = _geometry(geometry)
+    click.echo(f"showing {len(files)} image(s) of {folder}: " + ("every " + f"{interval:g} s" if interval else
+               "Space/Right: next, Left: back, Escape: stop"))
+    result = show_images(files, screen=screen, geometry=area, interval=interval, after_each=after_each, settle=settle,
+                         loop=loop)
+    click.echo(f"{result.reason} ({len(result.shown)} step(s))")
+    if not result.completed and result.reason.startswith("the command"):
+        raise click.ClickException(result.reason)
