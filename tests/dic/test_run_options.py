@@ -147,8 +147,10 @@ def test_schema1_details_and_unknown_schemas():
     assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto").resume_check(old)
     # old stereo files hold the POIs themselves; the record holds their digest
     pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
-    assert StereoOptions(points=pts).resume_check({"points": pts.tolist()}) is None
-    assert "points" in StereoOptions(points=pts + 1).resume_check({"points": pts.tolist()})
+    assert StereoOptions(points=pts, order=2).resume_check({"points": pts.tolist()}) is None
+    assert "points" in StereoOptions(points=pts + 1, order=2).resume_check({"points": pts.tolist()})
+    # a schema-1 stereo file that did not record the order was correlated with 8d9f975's default, 2
+    assert "--order (order): 2 in the file, 1 now" in StereoOptions(points=pts).resume_check({"points": pts.tolist()})
     # a mask is the same region wherever it was read from
     mask = {"mask": "/a/m.png", "sha256": "ab" * 32, "shape": [80, 100]}
     assert TrackOptions(roi={**mask, "mask": "/b/m.png"}).resume_check({"roi": mask, "strain_window": 5}) is None
