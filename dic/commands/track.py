@@ -77,7 +77,7 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, noise_sigma, robust, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
+          scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
@@ -89,7 +89,8 @@ def track(reference, current, output, subset, step, order, search, search_method
     frames are written (with --vtk and --figures files) while the next one is; --reference chooses
     what each frame is correlated against (results are always relative to the reference). Per point the file holds u, v, the shape-function parameters, ZNCC,
     iterations, a status code and a validity flag, plus strain. A region of interest (--roi,
-    --roi-polygon or --mask, in the reference image) keeps only the grid points inside it.
+    --roi-polygon or --mask, in the reference image; less any --exclude shapes) keeps only the
+    grid points inside it.
     """
     from dic.sequence import parse_reference
     from dic.sources import open_inputs
@@ -109,7 +110,7 @@ def track(reference, current, output, subset, step, order, search, search_method
         raise click.BadParameter(f"must be 0 or an odd number >= 3, got {strain_window}", param_hint="--strain-window")
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
-    region = parse_region(roi, roi_polygon, mask)
+    region = parse_region(roi, roi_polygon, mask, exclude)
     try:
         source = open_inputs([reference, *current])
         n_frames = len(source)
