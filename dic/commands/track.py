@@ -169,7 +169,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
-        _sequence_figures(output, ref, figure_dir)
+        _sequence_figures(output, ref, figure_dir, region)
     if not quiet:
         for f in result.frames:
             ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
@@ -221,8 +221,9 @@ def _check_budget(budget: int, text: str, n_points: int, order: int, shape) -> N
         raise click.BadParameter(str(exc), param_hint="--max-memory") from None
 
 
-def _sequence_figures(output, ref, figure_dir) -> None:
-    """One figure per frame of the result file, with one colour range per quantity over all frames."""
+def _sequence_figures(output, ref, figure_dir, region=None) -> None:
+    """One figure per frame of the result file, with one colour range per quantity over all frames (and
+    the region of interest drawn: ``region``, a checked Region or None)."""
     from dic.plots.fields import sequence_limits, write_field_figure
     from dic.store import read_results
 
@@ -234,7 +235,7 @@ def _sequence_figures(output, ref, figure_dir) -> None:
     limits = sequence_limits(frames, components)
     for f in frames:
         write_field_figure(figure_dir / f"frame_{f.index:06d}.png", ref, f, f.strain, components=components,
-                           limits=limits, title=f"frame {f.index}: {Path(f.path).name}")
+                           limits=limits, title=f"frame {f.index}: {Path(f.path).name}", region=region)
 
 
 def _make_tracker(reference, *, device, **options):
