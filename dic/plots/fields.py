@@ -210,27 +210,76 @@ def _view_box(ref, pts, extent):
     return fin[:, 0].min() - pad, fin[:, 0].max() + pad, fin[:, 1].min() - pad, fin[:, 1].max() + pad
 
 
-def _region_parts(value, shape):
-    """(kind, data, exclusions) of a region to draw: ``value`` a Region, its stored JSON form or any ``roi``
-    form (checked against ``shape`` (H, W), or against the mask's own shape without an image). A stored
-    mask form holds only a digest of the mask: its exclusions are drawn, not its outline."""
-    from ..correlation.points import Region, exclusion, region
+class _Region:
+    """A region to draw: ``kind``, ``data`` and ``exclude`` as :class:`dic.correlation.points.Region` has them."""
 
-    if isinstance(value, Region):
-        return value.kind, value.data, value.exclude
-    if isinstance(value, dict) and "mask" in value and not isinstance(value["mask"], np.ndarray):
+    def __init__(self, kind, data, exclude):
+        self.kind, self.data, self.exclude = kind, data, exclude
+
+
+class _Shape:
+    """A shape to draw: ``kind`` and ``data`` as :class:`dic.correlation.points.Exclusion` has them."""
+
+    def __init__(self, kind, data):
+        self.kind, self.data = kind, data
+
+
+def _shape_from_form(form) -> _Shape:
+    """An excluded shape from its JSON form (``{"circle": [cx, cy, r]}``, ...), its text form
+    (``"circle:CX,CY,R"``, ...) or an object with ``kind`` and ``data`` (an ``Exclusion``)."""
+    if hasattr(form, "kind") and hasattr(form, "data"):
+        return _Shape(form.kind, form.data)
+    if isinstance(form, str) and ":" in form:
+        kind, _, rest = form.partition(":")
+        try:
+            nums = [float(c) for c in rest.replace(";", ",").split(",") if c.strip()]
+        except ValueError:
+            nums = []
+        form = {kind.strip().lower(): np.reshape(nums, (-1, 2)) if kind.strip().lower() == "polygon" and
+                len(nums) % 2 == 0 else nums}
+    if isinstance(form, dict) and len(form) == 1:
+        kind, data = next(iter(form.items()))
+        size = {"circle": 3, "box": 4}.get(kind)
+        arr = np.asarray(data, dtype=np.float64) if kind in ("circle", "box", "polygon") else None
+        if arr is not None and ((size and arr.shape == (size,)) or
+                                (kind == "polygon" and arr.ndim == 2 and arr.shape[1] == 2 and len(arr) >= 3)):
+            return _Shape(kind, tuple(arr) if size else arr)
+    raise ValueError(f"region: excluded shape {form!r} is not a circle [cx, cy, r], box [x0, y0, x1, y1] or "
+                     "polygon [[x, y], ...] (px)")
+
+
+def _region_parts(value):
+    """(kind, data, excluded shapes) of a region to draw. ``value``: a
+    :class:`dic.correlation.points.Region` (any object with ``kind``, ``data``, ``exclude``), the JSON
+    form a result file stores (a box ``[x0, y0, x1, y1]``, ``{"box" | "polygon" | "mask": ...,
+    "exclude": [...]}``), a polygon ``[(x, y), ...]`` or an (H, W) bool mask. Drawn as given: checking
+    a region is :func:`dic.correlation.points.region`'s job (done when the run was made); a stored
+    mask form holds only a digest of the mask, so its exclusions are drawn, not its outline."""
+    if all(hasattr(value, a) for a in ("kind", "data", "exclude")):
+        return value.kind, value.data, tuple(_shape_from_form(e) for e in value.exclude)
+    if isinstance(value, dict):
         shapes = value.get("exclude", [])
-        if not isinstance(shapes, (list, tuple)):
+        if isinstance(shapes, (str, dict)) or not isinstance(shapes, (list, tuple)):
             raise ValueError(f"region 'exclude' must be a list of shapes, got {shapes!r}")
-        return "mask", None, tuple(exclusion(e) for e in shapes)
-    if shape is None:
-        arr = value.get("mask") if isinstance(value, dict) else value
-        shape = np.shape(arr) if isinstance(arr, np.ndarray) and arr.ndim == 2 and arr.shape[1] != 2 else (1, 1)
-    try:
-        reg = region(value, shape)
-    except ValueError as exc:
-        raise ValueError(f"region: {exc}") from None
-    return (None, None, ()) if reg is None else (reg.kind, reg.data, reg.exclude)
+        exclude = tuple(_shape_from_form(e) for e in shapes)
+        if "box" in value:
+            return ("box",) + _region_parts(value["box"])[1:2] + (exclude,)
+        if "polygon" in value:
+            return ("polygon",) + _region_parts(np.asarray(value["polygon"], dtype=np.float64))[1:2] + (exclude,)
+        if "mask" in value:
+            mask = value["mask"]
+            return "mask", (np.asarray(mask, bool) if isinstance(mask, np.ndarray) else None), exclude
+        return "image", None, exclude
+    arr = value if isinstance(value, np.ndarray) else np.asarray(value, dtype=np.float64) \
+        if isinstance(value, (list, tuple)) else None
+    if arr is not None and arr.dtype != bool and arr.shape == (4,):
+        return "box", tuple(float(c) for c in arr), ()
+    if arr is not None and arr.ndim == 2 and arr.dtype != bool and arr.shape[1] == 2 and len(arr) >= 3:
+        return "polygon", np.asarray(arr, dtype=np.float64), ()
+    if arr is not None and arr.ndim == 2:
+        return "mask", arr != 0, ()
+    raise ValueError(f"region must be a Region (dic.correlation.points.region), the stored JSON form, a box "
+                     f"(x0, y0, x1, y1), a polygon [(x, y), ...] or an (H, W) mask; got {type(value).__name__}")
 
 
 def _draw_region(ax, parts) -> None:
@@ -302,8 +351,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         Resolution the figure is drawn at (:func:`write_field_figure` saves at its own dpi).
     region : optional
         The run's region of interest (a :class:`dic.correlation.points.Region`, the JSON form a result
-        file stores, or any ``roi`` form), drawn on every panel: its outline solid, its excluded
-        shapes dashed (module docstring).
+        file stores, a box, a polygon or an (H, W) mask), drawn on every panel: its outline solid, its
+        excluded shapes dashed (module docstring).
 
     Without fixed limits each panel spans the 1st-99th percentiles of its own values. POIs on a
     regular grid are drawn as cells, scattered POIs as dots. Every panel has x and y axes in image
@@ -325,7 +374,7 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
     if limits is not None and not isinstance(limits, dict):
         raise ValueError(f"limits must be a dict {{component: (vmin, vmax)}}, got {type(limits).__name__}")
     strain = _strain_view(strain)
-    outline = None if region is None else _region_parts(region, None if ref is None else ref.shape)
+    outline = None if region is None else _region_parts(region)
     if components is None:
         components = ["u", "v"] + (["exx", "eyy", "exy"] if strain is not None else [])
     components = [components] if isinstance(components, str) else list(components)
@@ -442,7 +491,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     panel_size : width of the map in inches (its height follows the image's aspect ratio)
     dpi : resolution the figure is drawn at
     region : the run's region of interest in the left reference image (a Region, the JSON form a
-        result file stores, or any ``roi`` form): outline solid, excluded shapes dashed
+        result file stores, a box, a polygon or an (H, W) mask): outline solid, excluded shapes dashed
 
     Only points with status OK are coloured (the status map shows every point). The map is drawn
     where the points are in the left reference image: axes x, y in left-image px; the colourbar,
@@ -461,7 +510,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     if not panel_size > 0:
         raise ValueError(f"panel_size must be positive (inches), got {panel_size!r}")
     label, unit, q_cmap = FIGURE_QUANTITIES[quantity]
-    outline = None if region is None else _region_parts(region, None if img is None else img.shape)
+    outline = None if region is None else _region_parts(region)
     names = [s.name for s in f.status_codes]
     pts = np.asarray(f.points, dtype=np.float64)
     if quantity == "status":
@@ -549,11 +598,7 @@ def write_figures(field, image, directory, *, quantities=None, prefix: str = "",
     if limits is not None and not isinstance(limits, dict):
         raise ValueError(f"limits must be a dict {{quantity: (vmin, vmax)}}, got {type(limits).__name__}")
     if region is not None:
-        from ..correlation.points import Region
-        from ..correlation.points import region as checked_region
-
-        if not (isinstance(region, Region) or (isinstance(region, dict) and "mask" in region)):
-            region = checked_region(region, img.shape)  # checked once for every quantity
+        region = _Region(*_region_parts(region))  # read once for every quantity
     directory = Path(os.fspath(directory))
     directory.mkdir(parents=True, exist_ok=True)
     written = []

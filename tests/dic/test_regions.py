@@ -34,7 +34,6 @@ def _in_triangle(x, y, a, b, c):
 # -- the library: one rule for every shape ------------------------------------------------------------------
 def test_each_excluded_shape_takes_exactly_its_points_out():
     box = (10.0, 10.0, 89.0, 69.0)
-    circle = (50, 40, 12)  # px; (50 +- 12, 40) lie exactly on the circle: excluded
     hole_box = (20, 20, 30, 28)
     tri = ((70, 20), (85, 20), (85, 35))
     cases = {
@@ -359,3 +358,28 @@ def test_stereo_figures_draw_the_region(tmp_path):
     mask[10:70, 20:80] = True
     fig = field3d_figure(f, "W", np.zeros(SHAPE), region=mask)
     assert [c for c in fig.axes[0].get_children() if c.get_gid() == "region"]
+
+
+def test_figures_take_the_region_as_checked_or_as_stored():
+    from types import SimpleNamespace
+
+    from dic.plots.fields import field_figure
+
+    form = {"polygon": [[5.0, 5.0], [95.0, 5.0], [50.0, 75.0]],
+            "exclude": [{"circle": [50.0, 30.0, 8.0]}, {"box": [40.0, 10.0, 60.0, 14.0]}]}
+    pts = grid(SHAPE, 4, roi=form)
+    field = SimpleNamespace(points=pts, u=pts[:, 0] * 0.0 + 1.0, v=pts[:, 1] * 0.01, valid=np.ones(len(pts), bool))
+
+    def drawn(fig):
+        ax = fig.axes[0]
+        return [(p.get_gid(), type(p).__name__, np.round(p.get_verts(), 6).tolist()) for p in ax.patches]
+    from_region = drawn(field_figure(None, field, region=region(form, SHAPE)))
+    assert drawn(field_figure(None, field, region=form)) == from_region  # the form a result file stores
+    assert [g for g, *_ in from_region] == ["region", "excluded", "excluded"]
+    # a stored mask form (a digest, no mask): the exclusions are drawn, not an outline
+    stored_mask = {"mask": "specimen.png", "sha256": "0" * 64, "shape": [80, 100], "exclude": [{"circle": [50, 30, 8]}]}
+    assert [p.get_gid() for p in field_figure(None, field, region=stored_mask).axes[0].patches] == ["excluded"]
+    for bad, message in [({"exclude": [{"ring": [1, 2, 3]}]}, "excluded shape"), ({"exclude": "circle:1,2,3"},
+                         "must be a list of shapes"), ("specimen.png", "region must be a Region")]:
+        with pytest.raises(ValueError, match=message):
+            field_figure(None, field, region=bad)
