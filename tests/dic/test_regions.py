@@ -383,3 +383,29 @@ def test_figures_take_the_region_as_checked_or_as_stored():
                          "must be a list of shapes"), ("specimen.png", "region must be a Region")]:
         with pytest.raises(ValueError, match=message):
             field_figure(None, field, region=bad)
+
+
+def test_stereo_exclude_flags_the_points_and_stores_the_region(tmp_path):
+    """specula stereo --roi ... --exclude circle: the grid points in the circle are NOT_COMPUTED like those outside
+    the box, the points computed are exactly the region's, the file stores the form, a figure is drawn."""
+    from test_cli_messages import _stereo_scene
+    from test_stereo_sequence import STEP
+
+    from dic.field3d import StereoStatus
+    from dic.store import read_stereo
+
+    paths = _stereo_scene(tmp_path)
+    out = tmp_path / "holed.h5"
+    r = _run("stereo", "--rig", tmp_path / "rig.json", *paths, "--step", STEP, "--roi", 100, 80, 220, 160,
+             "--exclude", "circle:160,120,20", "--figures", tmp_path / "figs", "-o", out, "-q")
+    assert r.exit_code == 0, r.output
+    res = read_stereo(out)
+    assert res.settings["roi"] == {"box": [100.0, 80.0, 220.0, 160.0], "exclude": [{"circle": [160.0, 120.0, 20.0]}]}
+    f = res.fields[0]
+    x, y = f.points[:, 0], f.points[:, 1]
+    in_region = (x >= 100) & (x <= 220) & (y >= 80) & (y <= 160) & ((x - 160) ** 2 + (y - 120) ** 2 > 400)
+    computed = f.status != StereoStatus.NOT_COMPUTED
+    assert np.any((x - 160) ** 2 + (y - 120) ** 2 <= 400)  # the circle holds grid points
+    assert np.array_equal(computed, in_region)
+    assert np.count_nonzero(f.valid) > 0.9 * np.count_nonzero(in_region)
+    assert sorted(p.name for p in (tmp_path / "figs").iterdir())  # state 0's maps
