@@ -192,6 +192,22 @@ def test_track_exclude_selects_stores_resumes_and_draws(pair, tmp_path):
                 and not (12 <= x <= 30 and 12 <= y <= 25) and not _in_triangle(x, y, (80, 70), (99, 70), (99, 83)))
     assert np.array_equal(res.frames[1].points, _lattice_truth((96, 112), 5, 10, keep))
     assert (tmp_path / "fig" / "frame_000001.png").is_file()
+    # the figures drawn once the run ends (one colour range over the sequence) draw the region too
+    import dic.plots.fields as fields
+
+    drawn = []
+    real = fields.write_field_figure
+
+    def spy(path, *args, **kwargs):
+        drawn.append(kwargs.get("region"))
+        return real(path, *args, **kwargs)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fields, "write_field_figure", spy)
+        r = _run("track", *pair, "-o", tmp_path / "seq.h5", "-q", "--figures", tmp_path / "seqfig", "--figure-limits",
+                 "sequence", *opts)
+    assert r.exit_code == 0, r.output
+    assert len(drawn) == 1 and drawn[0].settings() == stored
+    assert (tmp_path / "seqfig" / "frame_000001.png").is_file()
     # the same command resumes (nothing to do); another exclusion is refused naming the option
     r = _run("track", *pair, "-o", out, *opts)
     assert r.exit_code == 0, r.output
