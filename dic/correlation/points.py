@@ -236,11 +236,90 @@ class Region:
 
     def pixel_mask(self, shape) -> np.ndarray:
         """(H, W) bool: every pixel of an image of ``shape`` that is in the region (inside it and in
-        no excluded shape); the same rule as :func:`roi_mask` at each pixel centre."""
+        no excluded shape); the same rule as :func:`roi_mask` at each pixel centre (tested), each
+        shape evaluated on the pixels of its bounding box only."""
         h, w = image_shape(shape)
-        ys, xs = np.mgrid[0:h, 0:w]
-        pts = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
-        return roi_mask(pts, self, (h, w)).reshape(h, w)
+        if self.kind == "mask":
+            if np.shape(self.data) != (h, w):
+                raise ValueError(f"roi mask must have the image shape {(h, w)}, got {np.shape(self.data)}")
+            out = np.array(self.data, dtype=bool)
+        elif self.kind == "image":
+            out = np.ones((h, w), dtype=bool)
+        else:
+            out = np.zeros((h, w), dtype=bool)
+            inside = Exclusion(self.kind, self.data)  # a box or a polygon: the same pixel test
+            _paint(out, inside, True)
+        for shape_ in self.exclude:
+            _paint(out, shape_, False)
+        return out
+
+
+def _paint(out: np.ndarray, shape: Exclusion, value: bool) -> None:
+    """Set ``out`` (H, W) to ``value`` at the pixels (centres) ``shape`` contains, within its bounding box."""
+    h, w = out.shape
+    if shape.kind == "circle":
+        cx, cy, r = shape.data
+        lo, hi = (cx - r, cy - r), (cx + r, cy + r)
+    elif shape.kind == "box":
+        lo, hi = shape.data[:2], shape.data[2:]
+    else:
+        v = np.asarray(shape.data)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+    x0, y0 = max(int(np.ceil(lo[0])), 0), max(int(np.ceil(lo[1])), 0)
+    x1, y1 = min(int(np.floor(hi[0])), w - 1), min(int(np.floor(hi[1])), h - 1)
+    if x1 < x0 or y1 < y0:
+        return
+    if shape.kind == "box":  # inclusive bounds: exactly the pixels of the clipped box
+        out[y0:y1 + 1, x0:x1 + 1] = value
+        return
+    if shape.kind == "polygon":
+        out[y0:y1 + 1, x0:x1 + 1][_polygon_pixels(np.asarray(shape.data, np.float64), x0, y0, x1, y1)] = value
+        return
+    ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+    pts = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
+    block = out[y0:y1 + 1, x0:x1 + 1]
+    block[shape.contains(pts).reshape(block.shape)] = value
+
+
+def _polygon_pixels(vertices: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+    """(y1 - y0 + 1, x1 - x0 + 1) bool: the pixel centres of the block ``[x0, x1] x [y0, y1]`` that
+    :func:`_inside_polygon` finds inside ``vertices`` or on an edge, by scanlines: each edge toggles the
+    parity of the pixels left of its crossing of each row it straddles (the same float expression as
+    :func:`_inside_polygon`), and on-edge pixels are tested with the same exact cross product, at most
+    one candidate per row of an edge (every row of a horizontal one). O(edges x rows + pixels)."""
+    ny, nx = y1 - y0 + 1, x1 - x0 + 1
+    toggles = np.zeros((ny, nx + 1), dtype=np.int8)
+    edge = np.zeros((ny, nx), dtype=bool)
+    py = np.arange(y0, y1 + 1, dtype=np.float64)
+    rows = np.arange(ny)
+    for (ax, ay), (bx, by) in zip(vertices, np.roll(vertices, -1, axis=0)):
+        straddles = (ay > py) != (by > py)
+        if np.any(straddles):
+            yy = py[straddles]
+            x_at = ax + (yy - ay) * (bx - ax) / (by - ay)
+            k = np.clip(np.ceil(x_at) - x0, 0, nx).astype(np.intp)  # pixels px < x_at: columns [0, k)
+            r = rows[straddles]
+            toggles[r, 0] ^= 1
+            np.bitwise_xor.at(toggles, (r, k), 1)
+        on_rows = (py >= min(ay, by)) & (py <= max(ay, by))
+        if not np.any(on_rows):
+            continue
+        yy, r = py[on_rows], rows[on_rows]
+        if ay == by:  # horizontal: every pixel of the row between the ends
+            cand_x = np.arange(max(np.ceil(min(ax, bx)), x0), min(np.floor(max(ax, bx)), x1) + 1)
+            rr = np.repeat(r, cand_x.size)
+            cx = np.tile(cand_x, r.size)
+            cy = np.repeat(yy, cand_x.size)
+        else:
+            cx = np.round(ax + (yy - ay) * (bx - ax) / (by - ay))
+            rr, cy = r, yy
+        ok = (cx >= x0) & (cx <= x1)
+        cx, cy, rr = cx[ok], cy[ok], rr[ok]
+        cross = (cx - ax) * (by - ay) - (cy - ay) * (bx - ax)
+        hit = ((cross == 0) & (cx >= min(ax, bx)) & (cx <= max(ax, bx)) & (cy >= min(ay, by)) & (cy <= max(ay, by)))
+        edge[rr[hit], (cx[hit] - x0).astype(np.intp)] = True
+    odd = (np.cumsum(toggles[:, :nx], axis=1, dtype=np.int64) & 1).astype(bool)
+    return odd | edge
 
 
 def _mask_digest(mask: np.ndarray) -> str:

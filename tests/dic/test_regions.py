@@ -96,6 +96,31 @@ def test_pixel_mask_is_roi_mask_at_every_pixel():
     assert not m[40, 50] and not m[12, 15] and not m[65, 70] and m[40, 30]
 
 
+def test_pixel_mask_scanlines_match_the_point_rule_on_random_polygons():
+    """Region.pixel_mask fills polygons by scanlines (fast: a 2048 x 2048 px mask in about 0.1 s): the same
+    pixels as roi_mask's point test for random polygons (whole, half-pixel and arbitrary vertices, horizontal
+    edges, self-intersecting outlines, vertices outside the image), as a region and as an exclusion."""
+    shape = (60, 75)
+    pts, _ = lattice(shape, 1)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for k in range(120):
+        v = rng.uniform(-10, 85, (int(rng.integers(3, 9)), 2))
+        if k % 3 == 0:
+            v = np.round(v * 2) / 2  # half pixels: vertices and edges through pixel centres
+        if k % 4 == 0:
+            v[:, 1] = np.round(v[:, 1])
+            v[1, 1] = v[0, 1]  # a horizontal edge on a pixel row
+        for roi in ({"polygon": v.tolist()}, {"exclude": [{"polygon": v.tolist()}]}):
+            try:
+                reg = region(roi, shape)
+            except ValueError:  # a degenerate random polygon
+                continue
+            assert np.array_equal(reg.pixel_mask(shape).ravel(), roi_mask(pts, reg, shape)), v.tolist()
+            checked += 1
+    assert checked > 200
+
+
 def test_the_json_form_is_the_region_and_without_exclusions_it_is_what_it_was():
     forms = [
         ({"box": [1.0, 2.0, 90.0, 70.0], "exclude": [{"circle": [50.0, 40.0, 10.0]}]}, "box"),
