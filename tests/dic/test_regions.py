@@ -216,6 +216,13 @@ def test_track_exclude_selects_stores_resumes_and_draws(pair, tmp_path):
         return (12 <= x <= 99 and 12 <= y <= 83 and (x - 56) ** 2 + (y - 48) ** 2 > 225
                 and not (12 <= x <= 30 and 12 <= y <= 25) and not _in_triangle(x, y, (80, 70), (99, 70), (99, 83)))
     assert np.array_equal(res.frames[1].points, _lattice_truth((96, 112), 5, 10, keep))
+    # the library takes the same region through roi= (the one way), and a library-written file stores the same form
+    from dic._track import track
+    from dic.sequence import track_sequence
+
+    assert np.array_equal(track(pair[0], pair[1], step=5, roi=stored, device="cpu").points, res.frames[1].points)
+    track_sequence(pair[0], [pair[1]], tmp_path / "lib.h5", step=5, roi=stored, device="cpu", progress=False)
+    assert read_results(tmp_path / "lib.h5").settings["roi"] == stored
     assert (tmp_path / "fig" / "frame_000001.png").is_file()
     # the figures drawn once the run ends (one colour range over the sequence) draw the region too
     import dic.plots.fields as fields
