@@ -287,7 +287,8 @@ class StereoCorrelation:
     points : (N, 2) px in the left reference image, optional. Default: a grid of ``step``.
     step : int, grid spacing (px) when ``points`` is None; default ``subset // 2`` (as 2-D).
     roi : optional, in the left reference image: an inclusive box ``(x0, y0, x1, y1)``, a polygon
-        ``[(x, y), ...]``, an (H, W) mask or a mask image file (:mod:`dic.correlation.points`; the
+        ``[(x, y), ...]``, an (H, W) mask or a mask image file, or the dict form with excluded shapes
+        ``{"box": [...], "exclude": [{"circle": [cx, cy, r]}, ...]}`` (:mod:`dic.correlation.points`; the
         same rule as 2-D tracking); grid POIs outside are ``NOT_COMPUTED``.
     subset : odd int, subset size (px); order : 1 (default) or 2 (shape function; docs/stereo.md "Defaults").
     frame : "left", "plane" or (R_obj_left, t_obj_left): output frame (see :class:`Field3D`).

@@ -99,7 +99,8 @@ class Tracker:
     roi : optional
         Region of interest for the default grid (:mod:`dic.correlation.points`): an inclusive box
         ``(x0, y0, x1, y1)``, a polygon ``[(x, y), ...]`` (POIs inside or on the edge), an (H, W)
-        mask array or a mask image file (non-zero inside).
+        mask array or a mask image file (non-zero inside), or the dict form with excluded shapes
+        ``{"box": [...], "exclude": [{"circle": [cx, cy, r]}, ...]}`` (holes, notches).
     subset : odd int >= 3
         Subset size (px). Default 21.
     order : 1 or 2

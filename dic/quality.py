@@ -34,7 +34,7 @@ from kernels.icgn import check_subset_order, n_params
 from kernels.images import as_float32_image, read_image
 
 from .correlation.engine import Correlator
-from .correlation.points import grid
+from .correlation.points import grid, region
 
 __all__ = ["NOISE_SOURCES", "estimate_noise", "hessian_inverse_uv", "residual_variance", "displacement_sigma",
            "SigmaBasis", "sigma_basis", "triangulation_jacobian", "propagate_stereo_sigma", "predicted_sigma", "SpeckleQuality", "speckle_quality", "SubsetSuggestion", "suggest_subset"]
@@ -475,6 +475,7 @@ def suggest_subset(reference, target_sigma_px: float, noise_sigma=None, *, order
     if hi < lo:
         raise ValueError(f"max_subset ({hi}) must be >= min_subset ({lo})")
     noise = check_noise_sigma(noise_sigma)
+    roi = region(roi, ref.shape)  # checked once (a mask file read once); exclusions included
     grid(ref.shape, step, margin=lo // 2, roi=roi)  # a bad ROI or an image too small fails here, with its reason
     noise = estimate_noise(ref) if noise is None else noise
     out = SubsetSuggestion(None, target, coverage, order, float(noise))

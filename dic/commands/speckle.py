@@ -5,6 +5,8 @@ from pathlib import Path
 
 import click
 
+from ._region import parse_region, region_options
+
 
 @click.command(name="speckle", context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("reference", type=click.Path(dir_okay=False, path_type=Path))
@@ -21,12 +23,16 @@ import click
               help="Image noise std in grey levels, at most 1e6 (default: from --second, else estimated from REFERENCE).")
 @click.option("--second", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="A second image of the unmoved specimen: the noise is measured from the difference.")
+@region_options
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
-def speckle(reference, target, subset, step, order, coverage, noise_sigma, second, device):
+def speckle(reference, target, subset, step, order, coverage, noise_sigma, second, roi, roi_polygon, mask, exclude,
+            device):
     """Speckle quality of REFERENCE: mean intensity gradient (MIG), SSSIG and the smallest subset for --target.
 
     The predicted displacement std of a point is sqrt(2 noise^2 diag H^-1) with the IC-GN Hessian H
-    of its subset (docs/dic2d.md, "Uncertainty" and "Speckle quality").
+    of its subset (docs/dic2d.md, "Uncertainty" and "Speckle quality"). A region of interest (--roi,
+    --roi-polygon or --mask, less any --exclude shapes) restricts the points to the specimen: a
+    featureless background, black borders or a hole would otherwise push the suggestion up.
     """
     import numpy as np
 
@@ -37,8 +43,14 @@ def speckle(reference, target, subset, step, order, coverage, noise_sigma, secon
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if second is not None and noise_sigma is not None:
         raise click.UsageError("give either --noise-sigma or --second, not both")
+    roi_given = parse_region(roi, roi_polygon, mask, exclude)
     try:
         ref = read_image(reference)
+        region = None
+        if roi_given is not None:
+            from dic.correlation.points import region as check_region
+
+            region = check_region(roi_given, ref.shape)
         if noise_sigma is not None:
             noise, how = noise_sigma, "given"
         elif second is not None:
@@ -49,8 +61,9 @@ def speckle(reference, target, subset, step, order, coverage, noise_sigma, secon
                    "--second or --noise-sigma give a tighter one")
         if not noise > 0:
             raise ValueError("the measured noise is 0 (identical images?); give --noise-sigma")
-        q = speckle_quality(ref, subset, step=step, noise_sigma=noise, device=device)
-        s = suggest_subset(ref, target, noise, order=int(order), coverage=coverage, step=step, device=device)
+        q = speckle_quality(ref, subset, step=step, roi=region, noise_sigma=noise, device=device)
+        s = suggest_subset(ref, target, noise, order=int(order), coverage=coverage, step=step, roi=region,
+                           device=device)
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
     h, w = ref.shape
@@ -60,6 +73,7 @@ def speckle(reference, target, subset, step, order, coverage, noise_sigma, secon
     pct = round(100 * coverage)
     click.echo(f"{reference.name}: {w}x{h} px, noise sigma {noise:.3g} grey levels ({how})")
     click.echo(f"image MIG: {st['image_mig']:.4g} grey levels/px")
+    click.echo(f"region: {region.describe() if region is not None else 'whole image (no --roi/--exclude)'}")
     click.echo(f"subset {subset} px, {q.points.shape[0]} points (step {step} px):")
     click.echo(f"  MIG   median {st['mig_median']:.4g}, 5th percentile {st['mig_p5']:.4g} grey levels/px")
     click.echo(f"  SSSIG min(x, y) median {st['sssig_median']:.4g}, 5th percentile {st['sssig_p5']:.4g} "

@@ -136,7 +136,7 @@ def _engine_pairs(pairs) -> list:
               help="Exit with status 0 even when no state of the run has a valid point (by default that is an error: "
                    "a swapped or foreign rig, or images that do not match).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
-def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
+def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
@@ -147,8 +147,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
 
     The first pair is the reference state (state 0: the shape); later pairs are states 1, 2, ...
     (shape, 3-D displacement and surface strain). Coordinates are in mm. A region of interest
-    (--roi, --roi-polygon or --mask) is given in the left reference image: the grid points outside
-    it are kept in the file and flagged NOT_COMPUTED.
+    (--roi, --roi-polygon or --mask, less any --exclude shapes) is given in the left reference image:
+    the grid points outside it are kept in the file and flagged NOT_COMPUTED.
     """
 
     check_dask(scheduler, workers)
@@ -179,7 +179,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         raise click.BadParameter(f"must be an odd number >= 3, got {strain_window}", param_hint="--strain-window")
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
-    region = parse_region(roi, roi_polygon, mask)
+    region = parse_region(roi, roi_polygon, mask, exclude)
     try:
         if left_inputs:
             sources = open_pairs(open_inputs(left_inputs), open_inputs(right_inputs))
@@ -243,7 +243,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         limits = sequence_limits([f for f in fields if f.index > 0], moving)
         for f in fields:
             if f.index % figure_every == 0:
-                write_figures(f, first_left.image, figure_dir, prefix=f"state_{f.index:06d}_", limits=limits)
+                write_figures(f, first_left.image, figure_dir, prefix=f"state_{f.index:06d}_", limits=limits,
+                              region=region)
     if not quiet:
         if vtk_dir is not None and (vtk_dir / f"{output.stem}.pvd").exists():
             click.echo(f"ParaView: {vtk_dir / f'{output.stem}.pvd'}")

@@ -77,7 +77,7 @@ def _fail(exc: Exception) -> click.ClickException:
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
-          scale, noise_sigma, robust, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
+          scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
@@ -89,7 +89,8 @@ def track(reference, current, output, subset, step, order, search, search_method
     frames are written (with --vtk and --figures files) while the next one is; --reference chooses
     what each frame is correlated against (results are always relative to the reference). Per point the file holds u, v, the shape-function parameters, ZNCC,
     iterations, a status code and a validity flag, plus strain. A region of interest (--roi,
-    --roi-polygon or --mask, in the reference image) keeps only the grid points inside it.
+    --roi-polygon or --mask, in the reference image; less any --exclude shapes) keeps only the
+    grid points inside it.
     """
     from dic.sequence import parse_reference
     from dic.sources import open_inputs
@@ -109,7 +110,7 @@ def track(reference, current, output, subset, step, order, search, search_method
         raise click.BadParameter(f"must be 0 or an odd number >= 3, got {strain_window}", param_hint="--strain-window")
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
-    region = parse_region(roi, roi_polygon, mask)
+    region = parse_region(roi, roi_polygon, mask, exclude)
     try:
         source = open_inputs([reference, *current])
         n_frames = len(source)
@@ -168,7 +169,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
-        _sequence_figures(output, ref, figure_dir)
+        _sequence_figures(output, ref, figure_dir, region)
     if not quiet:
         for f in result.frames:
             ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
@@ -220,8 +221,9 @@ def _check_budget(budget: int, text: str, n_points: int, order: int, shape) -> N
         raise click.BadParameter(str(exc), param_hint="--max-memory") from None
 
 
-def _sequence_figures(output, ref, figure_dir) -> None:
-    """One figure per frame of the result file, with one colour range per quantity over all frames."""
+def _sequence_figures(output, ref, figure_dir, region=None) -> None:
+    """One figure per frame of the result file, with one colour range per quantity over all frames (and
+    the region of interest drawn: ``region``, a checked Region or None)."""
     from dic.plots.fields import sequence_limits, write_field_figure
     from dic.store import read_results
 
@@ -233,7 +235,7 @@ def _sequence_figures(output, ref, figure_dir) -> None:
     limits = sequence_limits(frames, components)
     for f in frames:
         write_field_figure(figure_dir / f"frame_{f.index:06d}.png", ref, f, f.strain, components=components,
-                           limits=limits, title=f"frame {f.index}: {Path(f.path).name}")
+                           limits=limits, title=f"frame {f.index}: {Path(f.path).name}", region=region)
 
 
 def _make_tracker(reference, *, device, **options):

@@ -19,6 +19,12 @@ percentiles of the drawn values (:mod:`dic.plots._common`) unless fixed by the c
 its axes labelled in image px, a title with the quantity and its unit, and a colourbar as tall as the
 panel; the grey reference image is drawn beneath the map (which has opacity ``alpha``) when it is given.
 
+The region of interest of a run (``region=``: a :class:`dic.correlation.points.Region` or the JSON form a
+result file stores) is drawn over the maps: its outline as a solid line (:data:`REGION_STYLE`; a box or
+a polygon, and a mask's boundary when the mask itself is given) and each excluded shape (circle, box,
+polygon) as a dashed one (:data:`EXCLUDED_STYLE`); the artists carry the gids ``"region"`` and
+``"excluded"``.
+
 The ``.plot()`` methods of :class:`~dic.field2d.Field2D`, :class:`~dic.field3d.Field3D` and of
 the result files (:mod:`dic.store`) call these functions and return the Figure.
 """
@@ -40,7 +46,12 @@ from ._common import (
 )
 
 __all__ = ["field_figure", "write_field_figure", "field3d_figure", "write_figures", "sequence_limits",
-           "FIGURE_QUANTITIES", "SIGNED", "DIVERGING_CMAP", "SEQUENTIAL_CMAP"]
+           "FIGURE_QUANTITIES", "SIGNED", "DIVERGING_CMAP", "SEQUENTIAL_CMAP", "REGION_STYLE", "EXCLUDED_STYLE"]
+
+#: the region of interest's outline (a box, a polygon or a mask's boundary) over the maps
+REGION_STYLE = {"color": "black", "linewidth": 1.2, "linestyle": "-"}
+#: the outline of each excluded shape
+EXCLUDED_STYLE = {"color": "black", "linewidth": 1.2, "linestyle": "--"}
 
 #: signed quantities: drawn on :data:`DIVERGING_CMAP` with limits symmetric about zero when their range
 #: spans zero, else on :data:`SEQUENTIAL_CMAP` over their own range
@@ -199,6 +210,104 @@ def _view_box(ref, pts, extent):
     return fin[:, 0].min() - pad, fin[:, 0].max() + pad, fin[:, 1].min() - pad, fin[:, 1].max() + pad
 
 
+class _Region:
+    """A region to draw: ``kind``, ``data`` and ``exclude`` as :class:`dic.correlation.points.Region` has them."""
+
+    def __init__(self, kind, data, exclude):
+        self.kind, self.data, self.exclude = kind, data, exclude
+
+
+class _Shape:
+    """A shape to draw: ``kind`` and ``data`` as :class:`dic.correlation.points.Exclusion` has them."""
+
+    def __init__(self, kind, data):
+        self.kind, self.data = kind, data
+
+
+def _shape_from_form(form) -> _Shape:
+    """An excluded shape from its JSON form (``{"circle": [cx, cy, r]}``, ...), its text form
+    (``"circle:CX,CY,R"``, ...) or an object with ``kind`` and ``data`` (an ``Exclusion``)."""
+    if hasattr(form, "kind") and hasattr(form, "data"):
+        return _Shape(form.kind, form.data)
+    if isinstance(form, str) and ":" in form:
+        kind, _, rest = form.partition(":")
+        try:
+            nums = [float(c) for c in rest.replace(";", ",").split(",") if c.strip()]
+        except ValueError:
+            nums = []
+        form = {kind.strip().lower(): np.reshape(nums, (-1, 2)) if kind.strip().lower() == "polygon" and
+                len(nums) % 2 == 0 else nums}
+    if isinstance(form, dict) and len(form) == 1:
+        kind, data = next(iter(form.items()))
+        size = {"circle": 3, "box": 4}.get(kind)
+        arr = np.asarray(data, dtype=np.float64) if kind in ("circle", "box", "polygon") else None
+        if arr is not None and ((size and arr.shape == (size,)) or
+                                (kind == "polygon" and arr.ndim == 2 and arr.shape[1] == 2 and len(arr) >= 3)):
+            return _Shape(kind, tuple(arr) if size else arr)
+    raise ValueError(f"region: excluded shape {form!r} is not a circle [cx, cy, r], box [x0, y0, x1, y1] or "
+                     "polygon [[x, y], ...] (px)")
+
+
+def _region_parts(value):
+    """(kind, data, excluded shapes) of a region to draw. ``value``: a
+    :class:`dic.correlation.points.Region` (any object with ``kind``, ``data``, ``exclude``), the JSON
+    form a result file stores (a box ``[x0, y0, x1, y1]``, ``{"box" | "polygon" | "mask": ...,
+    "exclude": [...]}``), a polygon ``[(x, y), ...]`` or an (H, W) bool mask. Drawn as given: checking
+    a region is :func:`dic.correlation.points.region`'s job (done when the run was made); a stored
+    mask form holds only a digest of the mask, so its exclusions are drawn, not its outline."""
+    if all(hasattr(value, a) for a in ("kind", "data", "exclude")):
+        return value.kind, value.data, tuple(_shape_from_form(e) for e in value.exclude)
+    if isinstance(value, dict):
+        shapes = value.get("exclude", [])
+        if isinstance(shapes, (str, dict)) or not isinstance(shapes, (list, tuple)):
+            raise ValueError(f"region 'exclude' must be a list of shapes, got {shapes!r}")
+        exclude = tuple(_shape_from_form(e) for e in shapes)
+        if "box" in value:
+            return ("box",) + _region_parts(value["box"])[1:2] + (exclude,)
+        if "polygon" in value:
+            return ("polygon",) + _region_parts(np.asarray(value["polygon"], dtype=np.float64))[1:2] + (exclude,)
+        if "mask" in value:
+            mask = value["mask"]
+            return "mask", (np.asarray(mask, bool) if isinstance(mask, np.ndarray) else None), exclude
+        return "image", None, exclude
+    arr = value if isinstance(value, np.ndarray) else np.asarray(value, dtype=np.float64) \
+        if isinstance(value, (list, tuple)) else None
+    if arr is not None and arr.dtype != bool and arr.shape == (4,):
+        return "box", tuple(float(c) for c in arr), ()
+    if arr is not None and arr.ndim == 2 and arr.dtype != bool and arr.shape[1] == 2 and len(arr) >= 3:
+        return "polygon", np.asarray(arr, dtype=np.float64), ()
+    if arr is not None and arr.ndim == 2:
+        return "mask", arr != 0, ()
+    raise ValueError(f"region must be a Region (dic.correlation.points.region), the stored JSON form, a box "
+                     f"(x0, y0, x1, y1), a polygon [(x, y), ...] or an (H, W) mask; got {type(value).__name__}")
+
+
+def _draw_region(ax, parts) -> None:
+    """The region's outline (gid ``"region"``) and its excluded shapes (gid ``"excluded"``) on ``ax``; px."""
+    from matplotlib.patches import Circle, Polygon, Rectangle
+
+    kind, data, exclude = parts
+    if kind == "box":
+        x0, y0, x1, y1 = data
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, gid="region", **REGION_STYLE))
+    elif kind == "polygon":
+        ax.add_patch(Polygon(np.asarray(data), closed=True, fill=False, gid="region", **REGION_STYLE))
+    elif kind == "mask" and data is not None and np.any(data) and not np.all(data):
+        cs = ax.contour(np.asarray(data, dtype=np.float32), levels=[0.5], colors=[REGION_STYLE["color"]],
+                        linewidths=REGION_STYLE["linewidth"])
+        cs.set_gid("region")
+    for shape in exclude:
+        if shape.kind == "circle":
+            cx, cy, r = shape.data
+            patch = Circle((cx, cy), r, fill=False, gid="excluded", **EXCLUDED_STYLE)
+        elif shape.kind == "box":
+            x0, y0, x1, y1 = shape.data
+            patch = Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, gid="excluded", **EXCLUDED_STYLE)
+        else:
+            patch = Polygon(np.asarray(shape.data), closed=True, fill=False, gid="excluded", **EXCLUDED_STYLE)
+        ax.add_patch(patch)
+
+
 def _max_n_locator(nbins):
     from matplotlib.ticker import MaxNLocator
 
@@ -207,7 +316,7 @@ def _max_n_locator(nbins):
 
 def field_figure(reference, field, strain=None, *, components=None, title: str | None = None,
                  cmap: str | None = None, alpha: float = 0.75, panel_size: float = 3.0, vmin: float | None = None,
-                 vmax: float | None = None, limits: dict | None = None, dpi: float = 100):
+                 vmax: float | None = None, limits: dict | None = None, dpi: float = 100, region=None):
     """A Matplotlib Figure with one panel per component over the reference image.
 
     Parameters
@@ -240,6 +349,10 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         so that every frame of a sequence has the same colour scale; takes precedence over ``vmin``/``vmax``.
     dpi : float
         Resolution the figure is drawn at (:func:`write_field_figure` saves at its own dpi).
+    region : optional
+        The run's region of interest (a :class:`dic.correlation.points.Region`, the JSON form a result
+        file stores, a box, a polygon or an (H, W) mask), drawn on every panel: its outline solid, its
+        excluded shapes dashed (module docstring).
 
     Without fixed limits each panel spans the 1st-99th percentiles of its own values. POIs on a
     regular grid are drawn as cells, scattered POIs as dots. Every panel has x and y axes in image
@@ -261,6 +374,7 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
     if limits is not None and not isinstance(limits, dict):
         raise ValueError(f"limits must be a dict {{component: (vmin, vmax)}}, got {type(limits).__name__}")
     strain = _strain_view(strain)
+    outline = None if region is None else _region_parts(region)
     if components is None:
         components = ["u", "v"] + (["exx", "eyy", "exy"] if strain is not None else [])
     components = [components] if isinstance(components, str) else list(components)
@@ -288,6 +402,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
                            interpolation="nearest", aspect="auto")
         else:  # scattered points: colour the points themselves (invalid ones included, as drawn before)
             im = ax.scatter(pts[:, 0], pts[:, 1], c=values, s=4, cmap=map_cmap, vmin=lo, vmax=hi)
+        if outline is not None:
+            _draw_region(ax, outline)
         ax.set_xlim(x0, x1)
         ax.set_ylim(y1, y0)
         ax.set_title(_LABELS[name], fontsize=10)
@@ -356,7 +472,8 @@ def _status_colours(n: int):
 
 
 def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None = None, vmax: float | None = None,
-                   cmap: str | None = None, alpha: float = 0.75, panel_size: float = 5.0, dpi: float = 110):
+                   cmap: str | None = None, alpha: float = 0.75, panel_size: float = 5.0, dpi: float = 110,
+                   region=None):
     """One quantity of a Field3D as a Matplotlib Figure, over the left reference image when given.
 
     Parameters
@@ -373,6 +490,8 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     alpha : opacity of the map
     panel_size : width of the map in inches (its height follows the image's aspect ratio)
     dpi : resolution the figure is drawn at
+    region : the run's region of interest in the left reference image (a Region, the JSON form a
+        result file stores, a box, a polygon or an (H, W) mask): outline solid, excluded shapes dashed
 
     Only points with status OK are coloured (the status map shows every point). The map is drawn
     where the points are in the left reference image: axes x, y in left-image px; the colourbar,
@@ -391,6 +510,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     if not panel_size > 0:
         raise ValueError(f"panel_size must be positive (inches), got {panel_size!r}")
     label, unit, q_cmap = FIGURE_QUANTITIES[quantity]
+    outline = None if region is None else _region_parts(region)
     names = [s.name for s in f.status_codes]
     pts = np.asarray(f.points, dtype=np.float64)
     if quantity == "status":
@@ -422,6 +542,8 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     else:
         fin = np.isfinite(vals)
         im = ax.scatter(f.points[fin, 0], f.points[fin, 1], c=vals[fin], s=6, alpha=alpha, **kw)
+    if outline is not None:
+        _draw_region(ax, outline)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y1, y0)
     cb = fig.colorbar(im, cax=cax)
@@ -442,7 +564,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
 
 
 def write_figures(field, image, directory, *, quantities=None, prefix: str = "", dpi: int = 100,
-                  alpha: float = 0.75, limits: dict | None = None) -> list[Path]:
+                  alpha: float = 0.75, limits: dict | None = None, region=None) -> list[Path]:
     """PNG maps of a Field3D over the left reference image; returns the written paths.
 
     Parameters
@@ -456,6 +578,7 @@ def write_figures(field, image, directory, *, quantities=None, prefix: str = "",
     dpi, alpha : resolution of the PNGs and opacity of the maps.
     limits : ``{quantity: (vmin, vmax)}``, fixed colour limits (e.g. :func:`sequence_limits` over
         every state of a sequence); the others are per figure.
+    region : the run's region of interest (:func:`field3d_figure`), drawn on every map.
 
     Each PNG is :func:`field3d_figure` stored as 8-bit RGB (:func:`dic.plots._common.save_map_png`):
     only points with status OK are coloured; colour limits are the 1st-99th percentiles (symmetric
@@ -474,11 +597,13 @@ def write_figures(field, image, directory, *, quantities=None, prefix: str = "",
         raise ValueError(f"alpha must be in [0, 1], got {alpha!r}")
     if limits is not None and not isinstance(limits, dict):
         raise ValueError(f"limits must be a dict {{quantity: (vmin, vmax)}}, got {type(limits).__name__}")
+    if region is not None:
+        region = _Region(*_region_parts(region))  # read once for every quantity
     directory = Path(os.fspath(directory))
     directory.mkdir(parents=True, exist_ok=True)
     written = []
     for q in quantities:
         lo, hi = (limits or {}).get(q, (None, None))
-        fig = field3d_figure(f, q, img, vmin=lo, vmax=hi, alpha=alpha, dpi=dpi)
+        fig = field3d_figure(f, q, img, vmin=lo, vmax=hi, alpha=alpha, dpi=dpi, region=region)
         written.append(save_map_png(fig, directory / f"{prefix}{q}.png", dpi=dpi))
     return written

@@ -303,7 +303,7 @@ class TrackOptions(_Record):
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
 
     CLI_NAMES: ClassVar[dict[str, str]] = {
-        "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
+        "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
         "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
         "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale"}
@@ -431,7 +431,7 @@ class StereoOptions(_Record):
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
 
     CLI_NAMES: ClassVar[dict[str, str]] = {
-        "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
+        "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
         "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
         "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust",
         "reference": "--reference", "guess": "--scheduler/--workers"}

@@ -420,7 +420,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 from ..plots.fields import write_field_figure
 
                 write_field_figure(Path(figure_dir) / f"frame_{k:06d}.png", ref_img, lag, strain,
-                                   title=f"frame {k}" + (f": {Path(item.path).name}" if item.path else ""))
+                                   title=f"frame {k}" + (f": {Path(item.path).name}" if item.path else ""),
+                                   region=record.region if record is not None else None)
             if callback is not None:
                 callback(k, lag, strain)
 
