@@ -136,6 +136,11 @@ class Tracker:
         Flag valid POIs whose displacement disagrees with their neighbours' (the normalised median
         test, :func:`dic.correlation.lagrangian.displacement_outliers`: false matches, often a whole
         pixel off) as NEIGHBOUR_OUTLIER, not valid. Default: on with ``robust``, off without.
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`): a :class:`dic.cracks.Crack`, an (M, 2) array of polyline
+        vertices (x, y) px in the reference image, or a list of them. Each subset keeps only the pixels on
+        its POI's side (:attr:`pixel_masks`); until the IC-GN kernels correlate masked subsets, a POI
+        whose subset reaches across a crack is refused with status CRACKED_SUBSET. Default: none.
     device : None or str
     """
 
@@ -143,7 +148,7 @@ class Tracker:
                  order: int = 1, search: str | None = None, search_radius: int = 32, max_iter: int = 30,
                  tol: float = 1e-3, zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool = False, check_outliers: bool | None = None,
-                 device=None):
+                 cracks=None, device=None):
         self.subset, self.order = check_subset_order(subset, order)
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.search = _check_search(search)
@@ -165,11 +170,27 @@ class Tracker:
             if roi is not None:
                 raise ValueError("give either points or roi (roi selects grid points), not both")
             self.points = as_points(points)
+        self._set_cracks(cracks)
         self.correlator = Correlator(self.reference, self.points, subset=self.subset, order=self.order,
                                      max_iter=self.max_iter, tol=self.tol, device=self.device, flat_std=flat_std)
         self._current_buf = None
         self._current_tensor = None  # the last torch image read in place (kept alive until the next one)
         self._sigma_basis = None  # diag H^-1 and df of the reference subsets, read back once (dic.quality)
+
+    def _set_cracks(self, cracks) -> None:
+        """``cracks`` (:mod:`dic.cracks`): the kept pixels of each subset and the POIs refused for want of masks."""
+        from .correlation.subset_masks import subset_pixel_masks
+        from .cracks import as_cracks, blocked_pixels
+
+        self.cracks = as_cracks(cracks)
+        #: (N, subset²) bool, the pixels of each reference subset on its POI's side of every crack (row-major,
+        #: the kernels' order: dic.correlation.subset_masks), None without cracks
+        self.pixel_masks = None
+        self._cracked = None  # (N,) bool: subsets that reach across a crack (refused: CRACKED_SUBSET)
+        if self.cracks:
+            blocked = blocked_pixels(self.points, self.subset, self.cracks)
+            self.pixel_masks = subset_pixel_masks(self.points, self.subset, None, blocked=blocked)
+            self._cracked = ~self.pixel_masks.all(axis=1)
 
     @property
     def n_points(self) -> int:
@@ -309,6 +330,9 @@ class Tracker:
         zncc = r["zncc"].astype(np.float64)
         status = r["status"].astype(np.int32)
         valid = accepted_mask(status, zncc, self.zncc_min)
+        if self._cracked is not None:  # no masked IC-GN yet: a subset across a crack is refused
+            status[self._cracked] = int(Status.CRACKED_SUBSET)
+            valid &= ~self._cracked
         if self.check_warps:
             implausible = flag_implausible(self.correlator, params, valid, self.order)
             status[implausible] = int(Status.IMPLAUSIBLE_WARP)
@@ -329,7 +353,7 @@ class Tracker:
 def track(reference, current, *, points=None, step: int | None = None, roi=None, subset: int = 21, order: int = 1,
           guess=None, search: str | None = None, search_radius: int = 32, max_iter: int = 30, tol: float = 1e-3,
           zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True, noise_sigma=None,
-          robust: bool = False, check_outliers: bool | None = None, device=None) -> Field2D:
+          robust: bool = False, check_outliers: bool | None = None, cracks=None, device=None) -> Field2D:
     """Track POIs of ``reference`` into ``current`` with IC-GN: every :class:`Tracker` option, plus ``guess``
     (initial parameters of this pair, as :meth:`Tracker.track` takes them).
 
@@ -345,5 +369,5 @@ def track(reference, current, *, points=None, step: int | None = None, roi=None,
     tracker = Tracker(reference, points=points, step=step, roi=roi, subset=subset, order=order, search=search,
                       search_radius=search_radius, max_iter=max_iter, tol=tol, zncc_min=zncc_min,
                       flat_std=flat_std, check_warps=check_warps, noise_sigma=noise_sigma, robust=robust,
-                      check_outliers=check_outliers, device=device)
+                      check_outliers=check_outliers, cracks=cracks, device=device)
     return tracker.track(current, guess=guess)

@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "animate": ("dic.commands.animate:animate", "A movie (MP4, GIF) of one quantity over the frames of a result file"),
     "speckle": ("dic.commands.speckle:speckle", "Speckle quality (MIG, SSSIG) and a subset size for a target uncertainty"),
     "repair": ("dic.commands.repair:repair", "Drop the damaged frames of a result file so that a rerun recomputes them"),
+    "crack": ("dic.commands.crack:crack", "Opening and sliding of declared cracks along their polylines (2D results)"),
 }
 
 

@@ -376,7 +376,8 @@ class _Source:
         pts = self.domain(index, "px")
         grid = self._cells.get("px")
         if grid is None or not grid.matches(pts):
-            grid = cells_for(pts)
+            # 2-D runs with declared cracks (settings "cracks", reference px): no cell across one (dic.cracks)
+            grid = cells_for(pts, cracks=(self.settings or {}).get("cracks") if self.is_2d else None)
             self._cells = {"px": grid}
             self._located = {}
         if at == "px" or self.is_2d:

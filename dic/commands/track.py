@@ -76,9 +76,14 @@ def _fail(exc: Exception) -> click.ClickException:
 @compression_option("array")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+# -- crack26: declared cracks
+@click.option("--crack", "cracks", multiple=True, metavar="x1,y1,x2,y2,...",
+              help="A declared crack: a polyline in reference-image px (repeat for several). No subset, strain window, "
+                   "interpolation or figure cell reaches across it; stored in the result file (specula crack measures "
+                   "its opening and sliding).")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
-          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet):
+          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, cracks):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -110,6 +115,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
     region = parse_region(roi, roi_polygon, mask)
+    cracks = _parse_cracks(cracks)
     try:
         source = open_inputs([reference, *current])
         n_frames = len(source)
@@ -132,7 +138,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     given = {"max_iter": max_iter, "tol": tol, "search_radius": search}
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
                      noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
-                     scale_mm_per_px=scale, **{k: v for k, v in given.items() if v is not None})
+                     scale_mm_per_px=scale, cracks=cracks, **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
 
@@ -168,7 +174,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
-        _sequence_figures(output, ref, figure_dir)
+        _sequence_figures(output, ref, figure_dir, cracks)
     if not quiet:
         for f in result.frames:
             ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
@@ -220,7 +226,20 @@ def _check_budget(budget: int, text: str, n_points: int, order: int, shape) -> N
         raise click.BadParameter(str(exc), param_hint="--max-memory") from None
 
 
-def _sequence_figures(output, ref, figure_dir) -> None:
+def _parse_cracks(texts):
+    """``--crack`` values -> the cracks (:func:`dic.cracks.parse_crack`), or None without any."""
+    from dic.cracks import parse_crack
+
+    out = []
+    for text in texts:
+        try:
+            out.append(parse_crack(text))
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--crack") from None
+    return out or None
+
+
+def _sequence_figures(output, ref, figure_dir, cracks=None) -> None:
     """One figure per frame of the result file, with one colour range per quantity over all frames."""
     from dic.plots.fields import sequence_limits, write_field_figure
     from dic.store import read_results
@@ -233,7 +252,7 @@ def _sequence_figures(output, ref, figure_dir) -> None:
     limits = sequence_limits(frames, components)
     for f in frames:
         write_field_figure(figure_dir / f"frame_{f.index:06d}.png", ref, f, f.strain, components=components,
-                           limits=limits, title=f"frame {f.index}: {Path(f.path).name}")
+                           limits=limits, cracks=cracks, title=f"frame {f.index}: {Path(f.path).name}")
 
 
 def _make_tracker(reference, *, device, **options):

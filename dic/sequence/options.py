@@ -295,6 +295,8 @@ class TrackOptions(_Record):
     auto_zncc: float | None = None
     guess: str = "previous"
     scale_mm_per_px: float | None = None
+    # -- crack26: declared cracks (dic.cracks), stored as a list of vertex lists [[x, y], ...] px; None: no cracks
+    cracks: Any = None
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
     #: the checked region (None when read from a file: it holds its JSON form)
@@ -306,10 +308,12 @@ class TrackOptions(_Record):
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
         "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
-        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale"}
+        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
+        "cracks": "--crack"}
     KIND: ClassVar[str] = "2-D"
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess")
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"cracks": None}
 
     def __post_init__(self):
         self._check_common()
@@ -346,6 +350,7 @@ class TrackOptions(_Record):
         if self.scale_mm_per_px is not None:
             self._set("scale_mm_per_px", _checked("scale_mm_per_px", positive_float, self.scale_mm_per_px,
                                                   "the scale", detail=" (mm per px)"))
+        self._set("cracks", _cracks(self.cracks))
         self._check_sequence()
 
     def tracker_kwargs(self) -> dict:
@@ -362,6 +367,8 @@ class TrackOptions(_Record):
             kw["points"] = self.points_array
         if self.region is not None:
             kw["roi"] = self.region
+        if self.cracks is not None:
+            kw["cracks"] = self.cracks
         return kw
 
     @classmethod
@@ -488,6 +495,13 @@ class StereoOptions(_Record):
         if isinstance(kw.get("points"), list):  # schema 1 stored the coordinates themselves
             kw["points"] = _points_digest(kw["points"])
         return cls(**kw)
+
+
+def _cracks(value):
+    """Declared cracks (any form :func:`dic.cracks.as_cracks` takes) -> their stored form (None: no cracks)."""
+    from ..cracks import cracks_settings
+
+    return _checked("cracks", cracks_settings, value)
 
 
 def _frame(frame):
