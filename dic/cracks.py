@@ -390,7 +390,7 @@ def _side_fit(dxy, values, sigmas, subset):
 
 
 def crack_opening(field, crack, *, spacing: float | None = None, radius: float | None = None,
-                  min_points: int = 6) -> CrackOpening:
+                  min_points: int = 6, subset: int | None = None) -> CrackOpening:
     """Opening and sliding of ``crack`` in a 2-D displacement field.
 
     At stations every ``spacing`` px along the polyline, the valid points within ``radius`` px of the
@@ -415,6 +415,9 @@ def crack_opening(field, crack, *, spacing: float | None = None, radius: float |
         refuses or masks them); a linear fit assumes the field is linear within ``radius``.
     min_points : int
         Fewest points a side's fit needs (>= 4). Default 6.
+    subset : int, optional
+        The subset size of the field's correlation (px), for the default ``radius`` and the correlation
+        of neighbouring points' errors. Default: the field's ``subset``.
 
     Returns
     -------
@@ -451,12 +454,14 @@ def crack_opening(field, crack, *, spacing: float | None = None, radius: float |
         step = getattr(field, "step", None)
         spacing = float(step) if isinstance(step, (int, float)) and not isinstance(step, bool) and step else 5.0
     spacing = positive_float(spacing, "spacing", detail=" (px)")
-    if radius is None:
+    if subset is not None:
+        sub = positive_int(subset, "subset", detail=" (px)")
+    else:
         sub = getattr(field, "subset", None)
-        radius = 3.0 * sub if isinstance(sub, (int, np.integer)) and not isinstance(sub, bool) and sub > 0 else 30.0
+        sub = int(sub) if isinstance(sub, (int, np.integer)) and not isinstance(sub, bool) and sub > 0 else None
+    if radius is None:
+        radius = 3.0 * sub if sub else 30.0
     radius = positive_float(radius, "radius", detail=" (px)")
-    sub = getattr(field, "subset", None)
-    sub = int(sub) if isinstance(sub, (int, np.integer)) and not isinstance(sub, bool) and sub > 0 else None
     min_points = positive_int(min_points, "min_points", minimum=4)
 
     s, pos, t = _stations(crack, spacing)
@@ -514,7 +519,7 @@ def results_crack_opening(results, frame: int | None = None, *, cracks=None, spa
         The cracks to measure (any form :func:`as_cracks` takes). Default: those the run declared
         (its settings' ``cracks``); a file without any needs them given.
     spacing, radius, min_points :
-        As for :func:`crack_opening` (defaults from the run's ``step`` and ``subset``).
+        As for :func:`crack_opening` (defaults from the run's ``step`` and ``subset`` in the file's settings).
 
     Returns
     -------
@@ -535,4 +540,11 @@ def results_crack_opening(results, frame: int | None = None, *, cracks=None, spa
     measured = as_cracks(cracks if cracks is not None else settings.get("cracks"))
     if not measured:
         raise ValueError(f"{results} declares no crack (its run had no --crack); give the crack to measure")
-    return [crack_opening(field, c, spacing=spacing, radius=radius, min_points=min_points) for c in measured]
+    def recorded(name):
+        value = settings.get(name)
+        return value if isinstance(value, int) and not isinstance(value, bool) and value > 0 else None
+
+    if spacing is None:
+        spacing = recorded("step")
+    return [crack_opening(field, c, spacing=spacing, radius=radius, min_points=min_points, subset=recorded("subset"))
+            for c in measured]

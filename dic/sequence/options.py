@@ -501,7 +501,10 @@ def _cracks(value):
     """Declared cracks (any form :func:`dic.cracks.as_cracks` takes) -> their stored form (None: no cracks)."""
     from ..cracks import cracks_settings
 
-    return _checked("cracks", cracks_settings, value)
+    try:
+        return cracks_settings(value)
+    except ValueError as exc:
+        raise OptionError("cracks", f"cracks: {exc}") from None
 
 
 def _frame(frame):
