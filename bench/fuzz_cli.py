@@ -42,7 +42,7 @@ import click
 import numpy as np
 
 #: verbs whose valid command line is cheap enough to run when a malformed value is accepted
-CHEAP = {"track", "stereo", "strain", "extensometer", "history", "profile", "export", "animate", "speckle", "target fringes",
+CHEAP = {"track", "stereo", "strain", "crack", "extensometer", "history", "profile", "export", "animate", "speckle", "target fringes",
          "target checkerboard", "target circles", "lab render", "lab paper-rig"}
 INT_VALUES = ["", " ", "nan", "abc", "-1", "0", "1e300", str(2 ** 70), "3.5"]
 FLOAT_VALUES = ["", " ", "nan", "inf", "-inf", "abc", "-1", "0", "1e300", "-1e300"]
@@ -117,6 +117,7 @@ def baselines(p: dict) -> dict[str, list[str]]:
         "export": ["export", p["results"], "-f", "csv", "-o", "{out}"],
         "animate": ["animate", p["results"], "-Q", "u", "-o", "{out}.gif", "--dpi", "20", "-q"],
         "repair": ["repair", p["results"]],
+        "crack": ["crack", p["results"], "--crack", "30,-5,30,60", "--frame", "1", "-o", "{out}.csv", "-q"],
         "speckle": ["speckle", p["ref"], "--step", "16", "--device", "cpu"],
         "target fringes": ["target", "fringes", "-o", "{out}", "--screen", "320x240", "--grid", "4x2", "--pitch", "60",
                            "--steps", "3"],
@@ -216,7 +217,7 @@ def damaged_cases(paths: dict, folder: str, mutants: int, rng: random.Random) ->
              ("ref_png", ["speckle"], lambda d: mutate_image(d, rng, "ref.png")),
              ("rig", ["stereo"], lambda d: mutate_json(d, rng)),
              ("scene", ["lab render"], lambda d: mutate_bytes(d, rng)),
-             ("results", ["strain", "history", "profile", "export", "extensometer", "animate"], lambda d: _damage_h5(d, rng))]
+             ("results", ["strain", "history", "profile", "export", "extensometer", "animate", "crack"], lambda d: _damage_h5(d, rng))]
     out = []
     for key, verbs, mutate in kinds:
         data = open(paths[key], "rb").read()
