@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["Crack", "CrackOpening", "as_cracks", "parse_crack", "cracks_settings", "blocked_pixels",
-           "segments_cross", "subset_crosses", "crack_opening", "results_crack_opening"]
+           "segments_cross", "subset_crosses", "crack_opening"]
 
 #: how many (point, pixel, crack segment) triples one vectorised pass of blocked_pixels holds at most
 _CHUNK = 4_000_000
@@ -504,47 +504,3 @@ def crack_opening(field, crack, *, spacing: float | None = None, radius: float |
                         sigma_opening=sig_o, sigma_sliding=sig_s, n_plus=n_plus, n_minus=n_minus,
                         valid=np.isfinite(opening), crack=crack, radius=float(radius))
 
-
-def results_crack_opening(results, frame: int | None = None, *, cracks=None, spacing: float | None = None,
-                          radius: float | None = None, min_points: int = 6) -> list[CrackOpening]:
-    """:func:`crack_opening` of every crack of a 2-D result file's frame.
-
-    Parameters
-    ----------
-    results : str or Path
-        A 2-D result file (``specula track`` / :func:`dic.sequence.track_sequence`).
-    frame : int, optional
-        The frame (default: the last finished one).
-    cracks : optional
-        The cracks to measure (any form :func:`as_cracks` takes). Default: those the run declared
-        (its settings' ``cracks``); a file without any needs them given.
-    spacing, radius, min_points :
-        As for :func:`crack_opening` (defaults from the run's ``step`` and ``subset`` in the file's settings).
-
-    Returns
-    -------
-    list of CrackOpening, one per crack, in order.
-    """
-    from .store import ResultReader
-
-    with ResultReader(results) as reader:
-        if reader.kind.name != "dic2d":
-            raise ValueError(f"{results} holds {reader.kind.label} results; crack opening is measured on 2-D results "
-                             "(declared cracks are reference-image px)")
-        settings = reader.settings or {}
-        done = reader.done_frames()
-        if not done:
-            raise ValueError(f"{results} has no finished frame")
-        index = done[-1] if frame is None else frame
-        field = reader.read_frame(index)
-    measured = as_cracks(cracks if cracks is not None else settings.get("cracks"))
-    if not measured:
-        raise ValueError(f"{results} declares no crack (its run had no --crack); give the crack to measure")
-    def recorded(name):
-        value = settings.get(name)
-        return value if isinstance(value, int) and not isinstance(value, bool) and value > 0 else None
-
-    if spacing is None:
-        spacing = recorded("step")
-    return [crack_opening(field, c, spacing=spacing, radius=radius, min_points=min_points, subset=recorded("subset"))
-            for c in measured]

@@ -30,7 +30,8 @@ def crack(results, frame, cracks, spacing, radius, output, quiet):
     the direction from the first vertex to the last) projected on the normal is the opening, on the
     tangent the sliding. Sigmas come from the points' sigma_u, sigma_v.
     """
-    from dic.cracks import parse_crack, results_crack_opening
+    from dic.cracks import parse_crack
+    from dic.postprocess import results_crack_opening
 
     try:
         given = [parse_crack(t) for t in cracks] or None
