@@ -258,23 +258,19 @@ def blocked_pixels(points, subset: int, cracks) -> np.ndarray:
     if n == 0 or a.shape[0] == 0:
         return out
     centres = np.stack([round_half_away(pts[:, 0]), round_half_away(pts[:, 1])], axis=1).astype(np.float64)
-    r = subset // 2
-    # only POIs whose subset box (with its centre) comes near a crack's box are tested
-    lo = np.minimum(centres - r, pts)
-    hi = np.maximum(centres + r, pts)
-    near = np.any((lo[:, None, 0] <= np.maximum(a[:, 0], b[:, 0])) & (hi[:, None, 0] >= np.minimum(a[:, 0], b[:, 0]))
-                  & (lo[:, None, 1] <= np.maximum(a[:, 1], b[:, 1])) & (hi[:, None, 1] >= np.minimum(a[:, 1], b[:, 1])),
-                  axis=1)
-    idx = np.flatnonzero(near)
-    if idx.size == 0:
-        return out
     offsets = _subset_offsets(subset)
-    rows = max(1, _CHUNK // (k * a.shape[0]))
-    for s in range(0, idx.size, rows):
-        sel = idx[s:s + rows]
-        pixels = centres[sel, None, :] + offsets[None]  # (m, k, 2)
-        start = np.broadcast_to(pts[sel, None, :], pixels.shape)
-        out[sel] = segments_cross(start, pixels, cracks)
+    # a segment from the POI to a pixel of its subset stays within this distance of the POI
+    reach = np.hypot(*(np.abs(pts - centres) + subset // 2).T) + 1e-9
+    for a_s, b_s in zip(a, b):  # one crack segment at a time, over the POIs it can reach
+        ab = b_s - a_s
+        t = np.clip(((pts[:, 0] - a_s[0]) * ab[0] + (pts[:, 1] - a_s[1]) * ab[1]) / (ab[0] ** 2 + ab[1] ** 2), 0.0, 1.0)
+        dist = np.hypot(*(a_s + t[:, None] * ab - pts).T)
+        idx = np.flatnonzero(dist <= reach)
+        rows = max(1, _CHUNK // k)
+        for s in range(0, idx.size, rows):
+            sel = idx[s:s + rows]
+            pixels = centres[sel, None, :] + offsets[None]  # (m, k, 2)
+            out[sel] |= _meet(pts[sel, None, :], pixels, a_s, b_s)
     return out
 
 
