@@ -302,6 +302,10 @@ def test_track_crack_option_is_stored_and_specula_crack_measures_it(tmp_path):
         rows = list(csv.DictReader(fh))
     opening = np.array([float(r["opening_px"]) for r in rows])
     assert len(rows) >= 30 and np.all(np.abs(opening - 0.5) < 0.01)
+    # post-processing reads the run's cracks: no value in a grid cell the crack cuts
+    hist = runner.invoke(main, ["history", str(out), "--point", "100,60"])
+    assert hist.exit_code == 1 and "in a grid cell cut by a declared crack" in hist.output
+    assert runner.invoke(main, ["history", str(out), "--point", "60,60"]).exit_code == 0
     bad = runner.invoke(main, ["track", str(tmp_path / "ref.tif"), str(tmp_path / "cur.tif"), "-o",
                                str(tmp_path / "x.h5"), "--crack", "1,2,3"])
     assert bad.exit_code != 0 and "--crack" in bad.output and "even count" in bad.output
