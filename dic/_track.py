@@ -23,7 +23,7 @@ from kernels._device import resolve_device
 from kernels.checks import as_points, boolean, in_range, non_negative_int
 from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
-from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION, min_kept_pixels
+from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION
 from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor, read_image
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
@@ -32,7 +32,7 @@ from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_gues
 from .correlation.lagrangian import displacement_outliers
 from .correlation.params import check_tol, guess_params
 from .correlation.points import check_step, grid
-from .correlation.subset_masks import check_subset_mask, tracking_pixel_masks
+from .correlation.subset_masks import check_min_kept_fraction, check_subset_mask, tracking_pixel_masks
 from .field2d import Field2D
 from .quality import check_noise_sigma, displacement_sigma, sigma_basis
 
@@ -152,6 +152,10 @@ class Tracker:
         :func:`dic.correlation.subset_masks.subset_pixel_masks`), e.g. those beyond a declared crack;
         a callable gets ``(points (N, 2), subset)`` and returns that array. Masks the subsets even
         without a mask ROI (and with ``subset_mask="none"``: it is an explicit request).
+    pixel_region : optional
+        With ``points`` (and no ``roi``): a region in any ROI form whose pixels the subsets keep (as
+        ``roi`` does for the grid's POIs, with ``subset_mask="region"``), without selecting the POIs;
+        e.g. the POIs of a chunk of a larger grid (:mod:`dic.sequence`).
     """
 
     def __init__(self, reference, *, points=None, step: int | None = None, roi=None, subset: int = 21,
@@ -159,7 +163,7 @@ class Tracker:
                  tol: float = 1e-3, zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool = False, check_outliers: bool | None = None,
                  device=None, subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
-                 blocked_pixels=None):
+                 blocked_pixels=None, pixel_region=None):
         self.subset, self.order = check_subset_order(subset, order)
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.search = _check_search(search)
@@ -179,11 +183,15 @@ class Tracker:
         else:
             self.step = check_step(step) if step is not None else None
             if roi is not None:
-                raise ValueError("give either points or roi (roi selects grid points), not both")
+                raise ValueError("give either points or roi (roi selects grid points), not both; pixel_region= "
+                                 "masks the subsets of given points")
             self.points = as_points(points)
+        if pixel_region is not None:
+            if points is None:
+                raise ValueError("pixel_region goes with points (a roi masks the subsets of its own grid)")
+            roi = pixel_region
         self.subset_mask = check_subset_mask(subset_mask)
-        self.min_kept_fraction = float(min_kept_fraction)
-        min_kept_pixels(min_kept_fraction, self.subset)  # validated (a number in (0, 1])
+        self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
         #: (N, subset**2) bool: the pixels each subset keeps, or None (every pixel)
         self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask,
                                                blocked_pixels)
@@ -354,7 +362,7 @@ def track(reference, current, *, points=None, step: int | None = None, roi=None,
           guess=None, search: str | None = None, search_radius: int = 32, max_iter: int = 30, tol: float = 1e-3,
           zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True, noise_sigma=None,
           robust: bool = False, check_outliers: bool | None = None, device=None, subset_mask: str = "region",
-          min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION, blocked_pixels=None) -> Field2D:
+          min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION, blocked_pixels=None, pixel_region=None) -> Field2D:
     """Track POIs of ``reference`` into ``current`` with IC-GN: every :class:`Tracker` option, plus ``guess``
     (initial parameters of this pair, as :meth:`Tracker.track` takes them).
 
@@ -371,5 +379,5 @@ def track(reference, current, *, points=None, step: int | None = None, roi=None,
                       search_radius=search_radius, max_iter=max_iter, tol=tol, zncc_min=zncc_min,
                       flat_std=flat_std, check_warps=check_warps, noise_sigma=noise_sigma, robust=robust,
                       check_outliers=check_outliers, device=device, subset_mask=subset_mask,
-                      min_kept_fraction=min_kept_fraction, blocked_pixels=blocked_pixels)
+                      min_kept_fraction=min_kept_fraction, blocked_pixels=blocked_pixels, pixel_region=pixel_region)
     return tracker.track(current, guess=guess)

@@ -27,7 +27,8 @@ from kernels.conventions import round_half_away
 from .points import Region, _inside_polygon, image_shape, region
 
 __all__ = ["subset_pixel_masks", "region_pixel_mask", "kept_fraction", "kept_textured_fraction", "subset_offsets",
-           "SUBSET_MASKS", "check_subset_mask", "tracking_pixel_masks", "shrink_region", "REGION_MARGIN_PX"]
+           "SUBSET_MASKS", "check_subset_mask", "tracking_pixel_masks", "shrink_region", "REGION_MARGIN_PX",
+           "check_min_kept_fraction"]
 
 #: the choices of ``subset_mask`` (Tracker, track_sequence, ``specula track --subset-mask``): "region" masks
 #: subsets by a mask or polygon region (the default), "none" correlates every subset pixel (before the option)
@@ -52,6 +53,15 @@ def shrink_region(region_mask, margin_px: int) -> np.ndarray:
     if margin_px <= 0:
         return m
     return binary_erosion(m, structure=np.ones((3, 3), bool), iterations=int(margin_px), border_value=1)
+
+
+def check_min_kept_fraction(fraction) -> float:
+    """``fraction`` as a float in (0, 1] (the minimum kept fraction of a masked subset), else ``ValueError``."""
+    if isinstance(fraction, bool) or not isinstance(fraction, (int, float, np.floating, np.integer)) \
+            or not np.isfinite(fraction) or not 0.0 < fraction <= 1.0:
+        raise ValueError(f"min_kept_fraction must be a number in (0, 1] (the fraction of a subset's pixels it "
+                         f"must keep), got {fraction!r}")
+    return float(fraction)
 
 
 def check_subset_mask(subset_mask) -> str:
