@@ -827,7 +827,7 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
 
 # -- crack26: opening and sliding of declared cracks (dic.cracks) in a 2-D result file
 def results_crack_opening(results, frame: int | None = None, *, cracks=None, spacing: float | None = None,
-                          radius: float | None = None, min_points: int = 6) -> list:
+                          radius: float | None = None, min_points: int = 6, gap: float | None = None) -> list:
     """:func:`dic.cracks.crack_opening` of every crack of a 2-D result file's frame.
 
     Parameters
@@ -839,7 +839,7 @@ def results_crack_opening(results, frame: int | None = None, *, cracks=None, spa
     cracks : optional
         The cracks to measure (any form :func:`dic.cracks.as_cracks` takes). Default: those the run declared
         (its settings' ``cracks``); a file without any needs them given.
-    spacing, radius, min_points :
+    spacing, radius, min_points, gap :
         As for :func:`dic.cracks.crack_opening` (defaults from the run's ``step`` and ``subset`` in the file's settings).
 
     Returns
@@ -868,5 +868,5 @@ def results_crack_opening(results, frame: int | None = None, *, cracks=None, spa
 
     if spacing is None:
         spacing = recorded("step")
-    return [crack_opening(field, c, spacing=spacing, radius=radius, min_points=min_points, subset=recorded("subset"))
-            for c in measured]
+    return [crack_opening(field, c, spacing=spacing, radius=radius, min_points=min_points, subset=recorded("subset"),
+                          gap=gap) for c in measured]

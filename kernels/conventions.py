@@ -60,8 +60,6 @@ class Status(IntEnum):
     #:                      match; the normalised median test, dic.correlation.lagrangian; 2-D robust mode)
     TOO_FEW_PIXELS = 9   #: a masked subset (holes, free edges, cracks: kernels.icgn_masked) keeps fewer
     #:                      of its pixels than the minimum kept fraction
-    CRACKED_SUBSET = 10  #: the subset reaches across a declared crack (dic.cracks) and the run does not correlate
-    #:                      masked subsets; refused (set by dic.Tracker, never by the kernels)
 
 
 #: the distribution name on PyPI (``pip install specula-dic``); the command and the packages keep the

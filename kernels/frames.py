@@ -154,6 +154,12 @@ def _pack_results(offset: int, n_points: int, frames: FrameArrays, packed: wp.ar
 def _launch_icgn_frames(subsets: ReferenceSubsets, frames: FrameArrays, n_frames: int, guess: wp.array,
                         guess_stride: int, max_iter: int, tol: float) -> None:
     n = subsets.n_points
+    if subsets.mask is not None:  # per-POI pixel masks: the masked body (kernels.icgn_masked)
+        from .icgn_masked import launch_icgn_frames_masked
+
+        launch_icgn_frames_masked(subsets.order, n, n_frames, subsets.table, subsets.mask, frames, guess, guess_stride,
+                                  max_iter, tol, subsets.device)
+        return
     kernel = _icgn_frames_1st if subsets.order == 1 else _icgn_frames_2nd
     launch_1d(kernel, n_frames * n, [0, n, subsets.table, frames, guess, guess_stride, int(max_iter), float(tol)],
               subsets.device, offset_index=0, min_chunk=64)

@@ -18,17 +18,20 @@ import numpy as np
               help="Distance between stations along the crack, px  [default: the run's grid step].")
 @click.option("--radius", default=None, type=click.FloatRange(min=0, min_open=True),
               help="Radius of each side's linear fit around a station, px  [default: 3 x the run's subset].")
+@click.option("--gap", default=None, type=click.FloatRange(min=0),
+              help="Points closer than this to the crack are left out of the fits, px  [default: half the run's "
+                   "subset: the points whose subsets lie wholly on one side].")
 @click.option("-o", "--output", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="CSV file: one row per station (crack, arclength, x, y, opening, sliding and their sigmas, px; "
                    "the points in each side's fit).")
 @click.option("-q", "--quiet", is_flag=True, help="No table on the terminal.")
-def crack(results, frame, cracks, spacing, radius, output, quiet):
+def crack(results, frame, cracks, spacing, radius, gap, output, quiet):
     """Opening (normal jump) and sliding (tangential jump) of the displacement across each crack of RESULTS.
 
-    At stations along the polyline, the valid points within --radius on each side are fitted by a
-    linear field, evaluated on the crack; the jump U+ - U- (positive side: the normal (-t_y, t_x) of
-    the direction from the first vertex to the last) projected on the normal is the opening, on the
-    tangent the sliding. Sigmas come from the points' sigma_u, sigma_v.
+    At stations along the polyline, the valid points within --radius on each side (and no nearer the
+    crack than --gap) are fitted by a linear field, evaluated on the crack; the jump U+ - U- (positive
+    side: the normal (-t_y, t_x) of the direction from the first vertex to the last) projected on the
+    normal is the opening, on the tangent the sliding. Sigmas come from the points' sigma_u, sigma_v.
     """
     from dic.cracks import parse_crack
     from dic.postprocess import results_crack_opening
@@ -38,7 +41,7 @@ def crack(results, frame, cracks, spacing, radius, output, quiet):
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--crack") from None
     try:
-        measured = results_crack_opening(results, frame, cracks=given, spacing=spacing, radius=radius)
+        measured = results_crack_opening(results, frame, cracks=given, spacing=spacing, radius=radius, gap=gap)
     except ValueError as exc:
         raise click.ClickException(str(exc)) from None
     names = ["crack"] + [f"{n}_{u}" if u else n for n, u in measured[0].COLUMNS]

@@ -76,6 +76,11 @@ def _fail(exc: Exception) -> click.ClickException:
 @compression_option("array")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+@click.option("--subset-mask", default="region", show_default=True, type=click.Choice(["region", "none"]),
+              help="region: with --mask or --roi-polygon, each subset is correlated on the pixels inside the region "
+                   "only (holes, free edges; a box --roi masks no pixel); none: on all its pixels.")
+@click.option("--min-kept-fraction", default=0.5, show_default=True, type=click.FloatRange(min=0, min_open=True, max=1),
+              help="A masked subset keeping fewer than this fraction of its pixels is not tracked (TOO_FEW_PIXELS).")
 # -- crack26: declared cracks
 @click.option("--crack", "cracks", multiple=True, metavar="x1,y1,x2,y2,...",
               help="A declared crack: a polyline in reference-image px (repeat for several). No subset, strain window, "
@@ -83,7 +88,8 @@ def _fail(exc: Exception) -> click.ClickException:
                    "its opening and sliding).")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
-          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, cracks):
+          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, subset_mask,
+          min_kept_fraction, cracks):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -138,7 +144,8 @@ def track(reference, current, output, subset, step, order, search, search_method
     given = {"max_iter": max_iter, "tol": tol, "search_radius": search}
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
                      noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
-                     scale_mm_per_px=scale, cracks=cracks, **{k: v for k, v in given.items() if v is not None})
+                     scale_mm_per_px=scale, subset_mask=subset_mask, min_kept_fraction=min_kept_fraction, cracks=cracks,
+                     **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
 
@@ -159,8 +166,10 @@ def track(reference, current, output, subset, step, order, search, search_method
     def make_tracker(image, points):
         kwargs = record.tracker_kwargs()
         if points is not None:  # a moved reference or a chunk (dic.sequence): these POIs, not the region's grid
-            kwargs.pop("roi", None)
+            region = kwargs.pop("roi", None)
             kwargs["points"] = points
+            if image is ref and region is not None:  # a chunk of the reference: its subsets masked by the region
+                kwargs["pixel_region"] = region
         return _make_tracker(image, device=device, **kwargs)
 
     try:

@@ -26,7 +26,71 @@ from kernels.conventions import round_half_away
 
 from .points import Region, _inside_polygon, image_shape, region
 
-__all__ = ["subset_pixel_masks", "region_pixel_mask", "kept_fraction", "subset_offsets"]
+__all__ = ["subset_pixel_masks", "region_pixel_mask", "kept_fraction", "kept_textured_fraction", "subset_offsets",
+           "SUBSET_MASKS", "check_subset_mask", "tracking_pixel_masks", "shrink_region", "REGION_MARGIN_PX",
+           "check_min_kept_fraction"]
+
+#: the choices of ``subset_mask`` (Tracker, track_sequence, ``specula track --subset-mask``): "region" masks
+#: subsets by a mask or polygon region (the default), "none" correlates every subset pixel (before the option)
+SUBSET_MASKS = ("region", "none")
+
+
+#: the region's pixels within this distance (px, 8-connected) of its outline are not kept by
+#: :func:`tracking_pixel_masks`: their grey level and B-spline gradient mix in what lies beyond the edge
+#: (the imaging blur and the spline's support). Measured (bench/holes.py, docs/dic2d.md "Holes, edges and
+#: masks"): with a textured background behind a hole, the kept edge points' RMS error is 2.5-3.7 x the
+#: interior's with the region as given and 1.4-1.7 x with 1 px less; on a featureless background both
+#: stay below 1.7 x.
+REGION_MARGIN_PX = 1
+
+
+def shrink_region(region_mask, margin_px: int) -> np.ndarray:
+    """``region_mask`` (H, W) bool less its pixels within ``margin_px`` px (8-connected: a 3x3 erosion per
+    px) of its outline; the image border is not an outline (pixels beyond it count as inside)."""
+    from scipy.ndimage import binary_erosion
+
+    m = np.asarray(region_mask, dtype=bool)
+    if margin_px <= 0:
+        return m
+    return binary_erosion(m, structure=np.ones((3, 3), bool), iterations=int(margin_px), border_value=1)
+
+
+def check_min_kept_fraction(fraction) -> float:
+    """``fraction`` as a float in (0, 1] (the minimum kept fraction of a masked subset), else ``ValueError``."""
+    if isinstance(fraction, bool) or not isinstance(fraction, (int, float, np.floating, np.integer)) \
+            or not np.isfinite(fraction) or not 0.0 < fraction <= 1.0:
+        raise ValueError(f"min_kept_fraction must be a number in (0, 1] (the fraction of a subset's pixels it "
+                         f"must keep), got {fraction!r}")
+    return float(fraction)
+
+
+def check_subset_mask(subset_mask) -> str:
+    """``subset_mask`` as one of :data:`SUBSET_MASKS`, else ``ValueError``."""
+    if not isinstance(subset_mask, str) or subset_mask not in SUBSET_MASKS:
+        raise ValueError(f"subset_mask must be one of {SUBSET_MASKS} (\"region\": subsets keep the pixels of a mask or "
+                         f"polygon ROI; \"none\": every pixel), got {subset_mask!r}")
+    return subset_mask
+
+
+def tracking_pixel_masks(points, subset: int, shape, roi, subset_mask: str = "region",
+                         blocked_pixels=None) -> np.ndarray | None:
+    """The pixel masks a tracker uses: ``(N, S*S)`` bool, or None when no pixel is masked.
+
+    ``roi`` (any ROI form) masks the subsets when ``subset_mask`` is ``"region"`` and it is a mask or a
+    polygon (:func:`region_pixel_mask`), shrunk by :data:`REGION_MARGIN_PX` (:func:`shrink_region`); ``blocked_pixels`` ((N, S*S) bool or a callable
+    ``(points, subset) -> array``) drops pixels in any case. None when neither applies (or when every
+    pixel is kept: the unmasked kernels then run, bit for bit as without masks).
+    """
+    subset_mask = check_subset_mask(subset_mask)
+    pts = as_points(points)
+    region_mask = region_pixel_mask(roi, shape) if subset_mask == "region" else None
+    if region_mask is not None:
+        region_mask = shrink_region(region_mask, REGION_MARGIN_PX)
+    blocked = blocked_pixels(pts, subset) if callable(blocked_pixels) else blocked_pixels
+    if region_mask is None and blocked is None:
+        return None
+    kept = subset_pixel_masks(pts, subset, region_mask, blocked=blocked)
+    return None if kept.all() else kept
 
 
 def subset_offsets(subset: int) -> tuple[np.ndarray, np.ndarray]:
@@ -118,3 +182,32 @@ def kept_fraction(masks) -> np.ndarray:
     if m.ndim != 2 or m.shape[1] < 1:
         raise ValueError(f"masks must be (N, S*S), got shape {m.shape}")
     return m.astype(bool).mean(axis=1)
+
+
+def kept_textured_fraction(reference_image, points, subset: int, masks) -> np.ndarray:
+    """(N,) float64: the fraction of each subset's *kept* pixels that carry texture
+    (:func:`dic.correlation.plausibility.textured_pixels`), 0 where a subset keeps none: the textured
+    fraction of a masked subset, for the implausible-warp rule (:mod:`dic.correlation.plausibility`)."""
+    from .plausibility import textured_pixels
+
+    pts = as_points(points)
+    subset = odd_int(subset, "subset", detail=" (e.g. 21)")
+    m = np.asarray(masks, dtype=bool)
+    if m.shape != (pts.shape[0], subset * subset):
+        raise ValueError(f"masks must have shape (N, subset*subset) = {(pts.shape[0], subset * subset)}, got {m.shape}")
+    textured = textured_pixels(reference_image)
+    h, w = textured.shape
+    di, dj = subset_offsets(subset)
+    centre = round_half_away(pts).astype(np.int64)
+    out = np.zeros(pts.shape[0], dtype=np.float64)
+    for start in range(0, pts.shape[0], 4096):  # bounded memory: 4096 x S^2 indices at a time
+        c = centre[start:start + 4096]
+        xs = c[:, :1] + di[None, :]
+        ys = c[:, 1:] + dj[None, :]
+        inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+        tex = np.zeros(xs.shape, dtype=bool)
+        tex[inside] = textured[ys[inside], xs[inside]]
+        kept = m[start:start + 4096]
+        n_kept = kept.sum(axis=1)
+        out[start:start + 4096] = np.where(n_kept > 0, (tex & kept).sum(axis=1) / np.maximum(n_kept, 1), 0.0)
+    return out

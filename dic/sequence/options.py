@@ -32,6 +32,7 @@ import numpy as np
 
 from kernels.checks import boolean, in_range, non_negative_int, odd_int, positive_float, positive_int
 
+from ..correlation.subset_masks import check_min_kept_fraction, check_subset_mask
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
 __all__ = ["OPTIONS_SCHEMA", "OptionError", "TrackOptions", "StereoOptions"]
@@ -295,6 +296,9 @@ class TrackOptions(_Record):
     auto_zncc: float | None = None
     guess: str = "previous"
     scale_mm_per_px: float | None = None
+    # -- per-POI pixel masks (issue 26: holes, free edges; dic.correlation.subset_masks)
+    subset_mask: str = "region"
+    min_kept_fraction: float = 0.5
     # -- crack26: declared cracks (dic.cracks), stored as a list of vertex lists [[x, y], ...] px; None: no cracks
     cracks: Any = None
     #: the POIs given (None when read from a file: it holds their digest only)
@@ -309,11 +313,12 @@ class TrackOptions(_Record):
         "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
         "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
+        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction",
         "cracks": "--crack"}
     KIND: ClassVar[str] = "2-D"
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5, "cracks": None}
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess")
-    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"cracks": None}
 
     def __post_init__(self):
         self._check_common()
@@ -350,6 +355,8 @@ class TrackOptions(_Record):
         if self.scale_mm_per_px is not None:
             self._set("scale_mm_per_px", _checked("scale_mm_per_px", positive_float, self.scale_mm_per_px,
                                                   "the scale", detail=" (mm per px)"))
+        self._set("subset_mask", _checked("subset_mask", check_subset_mask, self.subset_mask))
+        self._set("min_kept_fraction", _checked("min_kept_fraction", check_min_kept_fraction, self.min_kept_fraction))
         self._set("cracks", _cracks(self.cracks))
         self._check_sequence()
 
@@ -360,7 +367,8 @@ class TrackOptions(_Record):
         kw = {"subset": self.subset, "step": self.step, "order": self.order, "search": self.search,
               "max_iter": self.max_iter, "tol": self.tol, "zncc_min": self.zncc_min, "flat_std": self.flat_std,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
-              "check_outliers": self.check_outliers}
+              "check_outliers": self.check_outliers, "subset_mask": self.subset_mask,
+              "min_kept_fraction": self.min_kept_fraction}
         if self.search is not None:
             kw["search_radius"] = self.search_radius
         if self.points_array is not None:

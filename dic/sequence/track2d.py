@@ -319,8 +319,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
             kw = dict(_opts)
             if points is not None:
-                kw.pop("roi", None)
+                region = kw.pop("roi", None)
                 kw["points"] = points
+                if image is ref_img and region is not None:  # a chunk of the reference's grid: its subsets masked
+                    kw["pixel_region"] = region  # alike (a moved reference's are not: docs/dic2d.md)
             return Tracker(image, **kw)
     if record is None:  # settings given as a dict (a custom tracker's): stored as given, compared as they are
         settings = dict(settings)

@@ -234,15 +234,14 @@ def _jump_pair(noise=1.0, seed=3):
 
 
 def test_a_displacement_jump_is_measured_without_smearing_and_its_opening_within_001_px():
-    """Subset 21, step 4, 1 GL noise, 8-bit. Bounds (measured on this image: no-crack smearing up to 0.22 px at
-    the line; with the crack the points of the next half subset at most 0.0098 px off; opening per station at most
-    0.0081 px off 0.5, sliding 0.0066 px):
-    * without cracks, points within half a subset of the line are smeared (error > 0.15 px somewhere);
-    * with the crack, every point whose subset reaches across it is refused (CRACKED_SUBSET: no masked IC-GN yet),
-      and every point between half a subset and one subset from the line is within 0.012 px of its side's u;
-    * the opening at every station is within 0.01 px of 0.5 px, the sliding within 0.01 px of 0."""
+    """Subset 21, step 4, 1st order, 1 GL noise, 8-bit. Measured on this image (docs/dic2d.md, Declared cracks):
+    without the crack the points within half a subset of the line are smeared (up to 0.22 px off their side's u);
+    with it every subset is correlated on its own side's pixels (masked IC-GN) and every point within one subset of
+    the line is kept and at most 0.0248 px off (RMS 0.0068 px; the interior: at most 0.0124 px); the opening at
+    every station at most 0.0081 px off 0.5 (points within half a subset left out of the fits), sliding 0.0066 px.
+    Bounds: smearing > 0.15 px without the crack; with it every point within one subset valid and within 0.03 px,
+    RMS within 0.012 px; every station's opening within 0.01 px of 0.5 px, sliding within 0.01 px of 0."""
     from dic import Tracker
-    from kernels.conventions import Status
 
     ref, cur = _jump_pair()
     crack = Crack([[C, -20.0], [C, H + 20.0]])
@@ -250,16 +249,16 @@ def test_a_displacement_jump_is_measured_without_smearing_and_its_opening_within
     f = Tracker(ref, subset=21, step=4, cracks=crack, device="cpu").track(cur)
     d = np.abs(f.points[:, 0] - C)
     truth = np.where(f.points[:, 0] < C, -0.25, 0.25)
-    near = d < 10.5  # the subset reaches across the crack
-    assert np.max(np.abs(plain.u - truth)[plain.valid & near]) > 0.15
-    assert np.all(f.status[near] == int(Status.CRACKED_SUBSET)) and not f.valid[near].any()
-    band = (d > 10.5) & (d < 21)
-    assert f.valid[band & (f.points[:, 1] > 10)].all() and band.sum() >= 100  # row y = 10 touches the image border
-    band &= f.valid
-    assert np.max(np.abs(f.u - truth)[band]) < 0.012
-    assert np.max(np.abs(f.v)[band]) < 0.012
+    assert np.max(np.abs(plain.u - truth)[plain.valid & (d < 10.5)]) > 0.15
+    near = (d < 21) & (f.points[:, 1] > 10)  # row y = 10 touches the image border (OUT_OF_BOUNDS either way)
+    assert near.sum() == 240 and f.valid[near].all()
+    err = np.abs(f.u - truth)[near]
+    assert np.max(err) < 0.03 and np.sqrt(np.mean(err ** 2)) < 0.012
+    assert np.max(np.abs(f.v)[near]) < 0.03
+    kept = f.status[near]
+    assert np.all((kept == 0) | (kept == 1))
     out = crack_opening(f, crack)
-    assert out.valid.all() and out.radius == 63.0
+    assert out.valid.all() and out.radius == 63.0 and out.gap == 10.5
     assert np.max(np.abs(out.opening - 0.5)) < 0.01
     assert np.max(np.abs(out.sliding)) < 0.01
     assert np.all(out.sigma_opening > 0) and np.all(out.sigma_opening < 0.01)
@@ -272,7 +271,6 @@ def test_track_crack_option_is_stored_and_specula_crack_measures_it(tmp_path):
     from dic.io import write_image
     from dic.sequence.options import TrackOptions
     from dic.store import ResultReader
-    from kernels.conventions import Status
 
     ref, cur = _jump_pair()
     write_image(tmp_path / "ref.tif", ref.astype(np.uint8))
@@ -288,7 +286,9 @@ def test_track_crack_option_is_stored_and_specula_crack_measures_it(tmp_path):
         frame = r.read_frame(1)
     assert settings["cracks"] == [[[C, -20.0], [C, H + 20.0]]]
     d = np.abs(frame.points[:, 0] - C)
-    assert np.all(frame.status[d < 10.5] == int(Status.CRACKED_SUBSET))
+    near = (d < 10.5) & (frame.points[:, 1] > 10)
+    assert frame.valid[near].all()  # masked to their own side
+    assert np.max(np.abs(frame.u - np.where(frame.points[:, 0] < C, -0.25, 0.25))[near]) < 0.03
     assert TrackOptions.from_settings(settings).cracks == [[[C, -20.0], [C, H + 20.0]]]
     # resuming with the same crack is the same run; another crack is refused by name
     assert runner.invoke(main, args).exit_code == 0
@@ -323,7 +323,9 @@ def test_track_sequence_cracks_keyword_and_old_files_read_as_no_cracks(tmp_path)
     with ResultReader(out) as r:
         assert r.settings["cracks"] == [crack.vertices.tolist()]
         f = r.read_frame(1)
-    assert not f.valid[np.abs(f.points[:, 0] - C) < 10.5].any()
+    truth = np.where(f.points[:, 0] < C, -0.25, 0.25)
+    near = (np.abs(f.points[:, 0] - C) < 10.5) & (f.points[:, 1] > 10)
+    assert f.valid[near].all() and np.max(np.abs(f.u - truth)[near]) < 0.03
     # a schema-2 record without the option reads as no cracks (its old behaviour)
     settings = TrackOptions().to_settings()
     del settings["cracks"]
