@@ -271,8 +271,9 @@ class TrackOptions(_Record):
     ``roi``, ``search`` and ``search_radius`` px, ``max_iter``, ``tol`` px, ``zncc_min``, ``flat_std``
     grey levels, ``check_warps``, ``noise_sigma`` grey levels, ``robust``, ``check_outliers``) and the
     sequence's (``strain_window`` grid points, ``reference``, ``auto_valid``, ``auto_zncc``, ``guess``,
-    ``scale_mm_per_px``, recorded for post-processing). The device is not one: it does not change
-    the results a file holds beyond rounding.
+    ``scale_mm_per_px``, recorded for post-processing), and ``cracks``: declared cracks
+    (:mod:`dic.cracks`), stored as a list of vertex lists ``[[x, y], ...]`` px, None without any. The
+    device is not one: it does not change the results a file holds beyond rounding.
     """
 
     subset: int = 21

@@ -242,8 +242,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     options
         :class:`dic.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``flat_std``, ``check_warps``,
-        ``noise_sigma``, ``robust``, ``check_outliers``, ``device``), and ``scale_mm_per_px`` (recorded in
-        the file for post-processing). Validated once (:class:`dic.sequence.options.OptionError`, a
+        ``noise_sigma``, ``robust``, ``check_outliers``, ``cracks``, ``device``), and ``scale_mm_per_px``
+        (recorded in the file for post-processing). ``cracks`` (:mod:`dic.cracks`, reference px) also keeps
+        the strain windows and figure cells from reaching across them, and is stored in the file's settings
+        for post-processing (``specula crack``). Validated once (:class:`dic.sequence.options.OptionError`, a
         ValueError naming the option).
 
     Returns
