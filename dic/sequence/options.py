@@ -442,6 +442,9 @@ class StereoOptions(_Record):
     auto_valid: float | None = None
     auto_zncc: float | None = None
     guess: str = "previous"
+    # -- per-POI pixel masks of the left reference's subsets (issue 26; dic.correlation.subset_masks)
+    subset_mask: str = "region"
+    min_kept_fraction: float = 0.5
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
@@ -450,8 +453,10 @@ class StereoOptions(_Record):
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
         "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
         "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust",
-        "reference": "--reference", "guess": "--scheduler/--workers"}
+        "reference": "--reference", "guess": "--scheduler/--workers",
+        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction"}
     KIND: ClassVar[str] = "stereo"
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5}
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess")
 
     def __post_init__(self):
@@ -474,6 +479,8 @@ class StereoOptions(_Record):
         if self.triangulation not in ("optimal", "linear"):
             raise OptionError("triangulation", f"triangulation must be 'optimal' or 'linear', got {self.triangulation!r}")
         self._set("max_features", _checked("max_features", positive_int, self.max_features, "max_features"))
+        self._set("subset_mask", _checked("subset_mask", check_subset_mask, self.subset_mask))
+        self._set("min_kept_fraction", _checked("min_kept_fraction", check_min_kept_fraction, self.min_kept_fraction))
         self._check_sequence()
 
     def correlation_kwargs(self) -> dict:
@@ -483,7 +490,8 @@ class StereoOptions(_Record):
         kw = {"subset": self.subset, "order": self.order, "frame": frame, "epipolar_tol_px": self.epipolar_tol_px,
               "zncc_min": self.zncc_min, "strain_window": self.strain_window, "max_iter": self.max_iter,
               "tol": self.tol, "triangulation": self.triangulation, "max_features": self.max_features,
-              "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust}
+              "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
+              "subset_mask": self.subset_mask, "min_kept_fraction": self.min_kept_fraction}
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:

@@ -108,3 +108,26 @@ def test_cli_and_sequence_record_the_option_and_mask_the_subsets(tmp_path):
     out = tmp_path / "lib.h5"
     track_sequence(ref, [cur], out, roi=region, step=4, device="cpu")
     assert read_results(out).settings["subset_mask"] == "region"
+
+
+def test_stereo_masks_the_left_subsets_by_a_mask_region(tmp_path):
+    """The match left -> right and the left track use the left reference's mask; "none" and a box do not."""
+    from pathlib import Path
+
+    from dic import StereoCorrelation
+    from dic.correlation.subset_masks import shrink_region
+    from kernels.images import read_image
+
+    data = Path(__file__).parents[1] / "data" / "settings_v1"
+    left, right = read_image(str(data / "L0.png")), read_image(str(data / "R0.png"))
+    h, w = left.shape
+    region = np.ones((h, w), bool)
+    region[h // 2 - 6:h // 2 + 6, w // 2 - 6:w // 2 + 6] = False  # a 12 px hole
+    kw = dict(step=10, subset=21, order=1, device="cpu")
+    masked = StereoCorrelation(str(data / "rig.json"), left, right, roi=region, **kw)
+    assert masked.pixel_mask is not None and masked.left.subsets.mask is not None
+    assert np.array_equal(masked.pixel_mask, subset_pixel_masks(masked.points, 21, shrink_region(region, 1)))
+    plain = StereoCorrelation(str(data / "rig.json"), left, right, roi=region, subset_mask="none", **kw)
+    assert plain.pixel_mask is None and plain.left.subsets.mask is None
+    boxed = StereoCorrelation(str(data / "rig.json"), left, right, roi=(10, 10, w - 11, h - 11), **kw)
+    assert boxed.pixel_mask is None
