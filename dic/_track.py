@@ -159,7 +159,8 @@ class Tracker:
     cracks : optional
         Declared cracks (:mod:`dic.cracks`): a :class:`dic.Crack`, an (M, 2) array of polyline vertices
         (x, y) px in the reference image, or a list of them. Each subset is correlated on the pixels on
-        its POI's side only (:func:`dic.cracks.blocked_pixels` added to ``blocked_pixels``; a subset
+        its POI's side only, less those within 1 px of a crack (:func:`dic.cracks.blocked_pixels` added to
+        ``blocked_pixels``; a subset
         keeping fewer than ``min_kept_fraction`` of its pixels gets TOO_FEW_PIXELS). Default: none.
     """
 

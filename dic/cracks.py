@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Crack", "CrackOpening", "as_cracks", "parse_crack", "cracks_settings", "blocked_pixels",
+__all__ = ["CRACK_MARGIN_PX", "Crack", "CrackOpening", "as_cracks", "parse_crack", "cracks_settings", "blocked_pixels",
            "segments_cross", "subset_crosses", "crack_opening"]
 
 #: how many (point, pixel, crack segment) triples one vectorised pass of blocked_pixels holds at most
@@ -226,7 +226,11 @@ def _check_subset(subset) -> int:
     return odd_int(subset, "subset", detail=" (px)")
 
 
-def blocked_pixels(points, subset: int, cracks) -> np.ndarray:
+#: blocked_pixels' default margin, px: the pixels whose centre lies nearer a crack are dropped too
+CRACK_MARGIN_PX = 1.0
+
+
+def blocked_pixels(points, subset: int, cracks, *, margin: float = CRACK_MARGIN_PX) -> np.ndarray:
     """Which pixels of each POI's subset lie across a crack from the POI.
 
     Parameters
@@ -238,19 +242,27 @@ def blocked_pixels(points, subset: int, cracks) -> np.ndarray:
     subset : odd int >= 3
         Subset size (px).
     cracks : anything :func:`as_cracks` takes
+    margin : float >= 0
+        Pixels whose centre lies nearer than this to a crack (px) are dropped too, on both sides
+        (default :data:`CRACK_MARGIN_PX`, 1 px: the column of pixels along the crack). In an image
+        their grey level mixes both faces or the gap, and the current image's B-spline
+        interpolation next to the crack reaches the other side: in docs/dic2d.md's case the 1 px margin
+        took the RMS error of the points within half a subset of a crack from 0.0091 to 0.0056 px.
+        0: the crossing rule alone.
 
     Returns
     -------
     (N, subset * subset) bool
         True where the straight segment from the POI ``(x, y)`` to the pixel's centre crosses a crack
-        (the module's crossing rule); pixels in row order (row ``j`` outer, column ``i`` inner), the
-        order of the IC-GN kernels. All False without cracks.
+        (the module's crossing rule) or the pixel lies within ``margin`` of one; pixels in row order
+        (row ``j`` outer, column ``i`` inner), the order of the IC-GN kernels. All False without cracks.
     """
-    from kernels.checks import as_points
+    from kernels.checks import as_points, in_range
     from kernels.conventions import round_half_away
 
     pts = as_points(points, allow_empty=True)
     subset = _check_subset(subset)
+    margin = in_range(margin, 0.0, 1e6, "margin", detail=" (px)")
     cracks = as_cracks(cracks)
     n, k = pts.shape[0], subset * subset
     out = np.zeros((n, k), bool)
@@ -260,7 +272,7 @@ def blocked_pixels(points, subset: int, cracks) -> np.ndarray:
     centres = np.stack([round_half_away(pts[:, 0]), round_half_away(pts[:, 1])], axis=1).astype(np.float64)
     offsets = _subset_offsets(subset)
     # a segment from the POI to a pixel of its subset stays within this distance of the POI
-    reach = np.hypot(*(np.abs(pts - centres) + subset // 2).T) + 1e-9
+    reach = np.hypot(*(np.abs(pts - centres) + subset // 2).T) + 1e-9 + margin
     for a_s, b_s in zip(a, b):  # one crack segment at a time, over the POIs it can reach
         ab = b_s - a_s
         t = np.clip(((pts[:, 0] - a_s[0]) * ab[0] + (pts[:, 1] - a_s[1]) * ab[1]) / (ab[0] ** 2 + ab[1] ** 2), 0.0, 1.0)
@@ -271,12 +283,16 @@ def blocked_pixels(points, subset: int, cracks) -> np.ndarray:
             sel = idx[s:s + rows]
             pixels = centres[sel, None, :] + offsets[None]  # (m, k, 2)
             out[sel] |= _meet(pts[sel, None, :], pixels, a_s, b_s)
+            if margin > 0:
+                w = np.clip(((pixels[..., 0] - a_s[0]) * ab[0] + (pixels[..., 1] - a_s[1]) * ab[1])
+                            / (ab[0] ** 2 + ab[1] ** 2), 0.0, 1.0)
+                out[sel] |= np.hypot(a_s[0] + w * ab[0] - pixels[..., 0], a_s[1] + w * ab[1] - pixels[..., 1]) < margin
     return out
 
 
 def subset_crosses(points, subset: int, cracks) -> np.ndarray:
-    """(N,) bool: whether any pixel of each POI's subset lies across a crack (:func:`blocked_pixels`)."""
-    return blocked_pixels(points, subset, cracks).any(axis=1)
+    """(N,) bool: whether any pixel of each POI's subset lies across a crack (:func:`blocked_pixels`, no margin)."""
+    return blocked_pixels(points, subset, cracks, margin=0.0).any(axis=1)
 
 
 # -- opening and sliding ---------------------------------------------------------------------------------------

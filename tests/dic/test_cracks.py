@@ -58,7 +58,7 @@ def test_blocked_pixels_of_a_straight_crack_are_the_far_half_plane():
     rng = np.random.default_rng(1)
     points = rng.uniform(5, 40, size=(60, 2))
     subset = 11
-    got = blocked_pixels(points, subset, crack)
+    got = blocked_pixels(points, subset, crack, margin=0)
     assert got.shape == (60, 121) and got.dtype == bool
     r = subset // 2
     centre = np.floor(points + 0.5)  # positive coordinates: half away from zero = floor(x + 0.5)
@@ -74,16 +74,16 @@ def test_blocked_pixels_of_a_straight_crack_are_the_far_half_plane():
 
 def test_blocked_pixels_order_rounding_touching_and_tips():
     # a vertical crack between pixel columns 10 and 11; POI 7.5 rounds half away to 8: columns 5..11, row by row
-    got = blocked_pixels([[7.5, 10.0]], 7, [[10.5, -50], [10.5, 50]]).reshape(7, 7)
+    got = blocked_pixels([[7.5, 10.0]], 7, [[10.5, -50], [10.5, 50]], margin=0).reshape(7, 7)
     expected = np.zeros((7, 7), bool)
     expected[:, 6] = True  # column 11 only
     assert np.array_equal(got, expected)
     # a pixel on the crack counts as across (touching is crossing): the crack x = 11 blocks column 11 too
-    got = blocked_pixels([[8.0, 10.0]], 7, [[11.0, -50], [11.0, 50]]).reshape(7, 7)
+    got = blocked_pixels([[8.0, 10.0]], 7, [[11.0, -50], [11.0, 50]], margin=0).reshape(7, 7)
     assert np.array_equal(got, expected)
     # a short crack x = 3.5, y in [-1.5, 1.5] seen from (0, 0): a pixel is blocked when its straight segment
     # from the POI passes x = 3.5 at |y| <= 1.5 (independent truth); pixels behind the tip stay reachable
-    got = blocked_pixels([[0.0, 0.0]], 11, [[3.5, -1.5], [3.5, 1.5]]).reshape(11, 11)
+    got = blocked_pixels([[0.0, 0.0]], 11, [[3.5, -1.5], [3.5, 1.5]], margin=0).reshape(11, 11)
     dy, dx = np.mgrid[-5:6, -5:6].astype(float)
     with np.errstate(divide="ignore", invalid="ignore"):
         y_at = dy * 3.5 / dx
@@ -92,8 +92,22 @@ def test_blocked_pixels_order_rounding_touching_and_tips():
     assert got[5 + 1, 5 + 5] and not got[5 + 3, 5 + 5]  # (5, 1) blocked, (5, 3) behind the tip is not
     # no crack: nothing blocked; a POI on the crack has no side: everything off the crack's line is blocked
     assert not blocked_pixels([[8.0, 8.0]], 5, None).any()
-    on = blocked_pixels([[10.0, 10.0]], 5, [[10.0, 0.0], [10.0, 20.0]]).reshape(5, 5)
+    on = blocked_pixels([[10.0, 10.0]], 5, [[10.0, 0.0], [10.0, 20.0]], margin=0).reshape(5, 5)
     assert on[:, [0, 1, 3, 4]].all()
+
+
+def test_blocked_pixels_margin_drops_the_pixels_along_the_crack_on_both_sides():
+    crack = [[10.5, -50.0], [10.5, 50.0]]
+    # default 1 px: the columns at 0.5 px from the crack (x = 10 on the POI's side, 11 across)
+    got = blocked_pixels([[8.0, 10.0]], 7, crack).reshape(7, 7)  # columns x = 5..11
+    assert np.array_equal(got.all(axis=0), [False] * 5 + [True, True]) and np.array_equal(got.any(axis=0), got.all(axis=0))
+    wider = blocked_pixels([[8.0, 10.0]], 7, crack, margin=1.6).reshape(7, 7)  # x = 9 (1.5 px) too
+    assert np.array_equal(wider.all(axis=0), [False] * 4 + [True] * 3)
+    # near a tip the margin is the distance to the segment's end: pixel (12, 52) is hypot(1.5, 2) = 2.5 px away
+    tip = blocked_pixels([[12.0, 52.0]], 3, crack, margin=2.4).reshape(3, 3)
+    assert not tip[1, 1] and tip[0, 0]  # (11, 51): hypot(0.5, 1) = 1.1 px
+    with pytest.raises(ValueError, match="margin"):
+        blocked_pixels([[8.0, 10.0]], 7, crack, margin=-1)
 
 
 def test_segments_cross_broadcasts_and_handles_collinear_segments():
@@ -236,11 +250,12 @@ def _jump_pair(noise=1.0, seed=3):
 def test_a_displacement_jump_is_measured_without_smearing_and_its_opening_within_001_px():
     """Subset 21, step 4, 1st order, 1 GL noise, 8-bit. Measured on this image (docs/dic2d.md, Declared cracks):
     without the crack the points within half a subset of the line are smeared (up to 0.22 px off their side's u);
-    with it every subset is correlated on its own side's pixels (masked IC-GN) and every point within one subset of
-    the line is kept and at most 0.0248 px off (RMS 0.0068 px; the interior: at most 0.0124 px); the opening at
-    every station at most 0.0081 px off 0.5 (points within half a subset left out of the fits), sliding 0.0066 px.
-    Bounds: smearing > 0.15 px without the crack; with it every point within one subset valid and within 0.03 px,
-    RMS within 0.012 px; every station's opening within 0.01 px of 0.5 px, sliding within 0.01 px of 0."""
+    with it every subset is correlated on its own side's pixels (masked IC-GN, the 1 px margin along the crack
+    dropped too) and every point within one subset of the line is kept and at most 0.0197 px off (RMS 0.0044 px;
+    the interior: at most 0.0124 px); the opening at every station at most 0.0074 px off 0.5 (points within half a
+    subset left out of the fits), sliding 0.0071 px.
+    Bounds: smearing > 0.15 px without the crack; with it every point within one subset valid and within 0.025 px,
+    RMS within 0.008 px; every station's opening within 0.01 px of 0.5 px, sliding within 0.01 px of 0."""
     from dic import Tracker
 
     ref, cur = _jump_pair()
@@ -253,8 +268,8 @@ def test_a_displacement_jump_is_measured_without_smearing_and_its_opening_within
     near = (d < 21) & (f.points[:, 1] > 10)  # row y = 10 touches the image border (OUT_OF_BOUNDS either way)
     assert near.sum() == 240 and f.valid[near].all()
     err = np.abs(f.u - truth)[near]
-    assert np.max(err) < 0.03 and np.sqrt(np.mean(err ** 2)) < 0.012
-    assert np.max(np.abs(f.v)[near]) < 0.03
+    assert np.max(err) < 0.025 and np.sqrt(np.mean(err ** 2)) < 0.008
+    assert np.max(np.abs(f.v)[near]) < 0.025
     kept = f.status[near]
     assert np.all((kept == 0) | (kept == 1))
     out = crack_opening(f, crack)
