@@ -129,8 +129,7 @@ def as_cracks(cracks) -> tuple[Crack, ...]:
     elif not isinstance(cracks, (list, tuple)):
         raise ValueError(f"cracks must be a Crack, an (M, 2) array of vertices or a list of them, "
                          f"got {type(cracks).__name__}")
-    elif cracks and all(isinstance(c, (int, float, np.floating, np.integer)) for c in np.ravel(cracks[0])) \
-            and np.ndim(cracks[0]) == 1 and len(cracks[0]) == 2:
+    elif cracks and _is_vertex(cracks[0]):
         cracks = [cracks]  # one crack as a list of (x, y) vertices
     out = []
     for k, c in enumerate(cracks):
@@ -139,6 +138,13 @@ def as_cracks(cracks) -> tuple[Crack, ...]:
         except ValueError as exc:
             raise ValueError(f"crack {k}: {exc}") from None
     return tuple(out)
+
+
+def _is_vertex(item) -> bool:
+    """Whether ``item`` is one vertex ``(x, y)``: two real numbers."""
+    return (isinstance(item, (list, tuple, np.ndarray)) and np.ndim(item) == 1 and len(item) == 2
+            and all(isinstance(c, (int, float, np.integer, np.floating)) and not isinstance(c, (bool, np.bool_))
+                    for c in item))
 
 
 def cracks_settings(cracks) -> list | None:
