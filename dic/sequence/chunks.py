@@ -204,12 +204,13 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS,
     from .._strain import StrainField, grid_layout, strain
 
     max_points = positive_int(max_points, "max_points")
+    crack_kw = {} if cracks is None else {"cracks": cracks}  # declared cracks: no fit across them
     if not all(hasattr(field, name) for name in ("points", "u", "v", "valid")):
         raise ValueError(f"strain_in_bands needs a 2-D field (points, u, v, valid), got {type(field).__name__}")
     points = np.asarray(field.points, np.float64)
     n = len(points)
     if n <= max_points:
-        return strain(field, window=window, cracks=cracks)
+        return strain(field, window=window, **crack_kw)
     index, shape, step = grid_layout(points)
     h = int(window) // 2
     rows = index[:, 1]
@@ -226,11 +227,11 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS,
         sel = np.sort(order[starts[max(0, r0 - h)]:starts[min(shape[0], r1 + h)]])
         part = _Field(points[sel], u[sel], v[sel], valid[sel])
         try:
-            s = strain(part, window=window, cracks=cracks)
+            s = strain(part, window=window, **crack_kw)
         except ValueError:  # a band that is no grid a window fits on its own: the whole field at once
-            return strain(field, window=window, cracks=cracks)
+            return strain(field, window=window, **crack_kw)
         if tuple(s.step) != tuple(step):
-            return strain(field, window=window, cracks=cracks)
+            return strain(field, window=window, **crack_kw)
         keep = (rows[sel] >= r0) & (rows[sel] < r1)
         if out is None:
             out = {name: np.empty(n, getattr(s, name).dtype) for name in StrainField.COMPONENTS + ("valid", "n_fit")}
