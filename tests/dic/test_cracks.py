@@ -285,6 +285,25 @@ def test_a_displacement_jump_is_measured_without_smearing_and_its_opening_within
     assert np.all(out.sigma_opening > 0) and np.all(out.sigma_opening < 0.01)
 
 
+def test_robust_refinement_leaves_subsets_a_crack_cuts_masked():
+    """The robust (Tukey) refinement weighs every pixel of a subset: run on the subsets a crack cuts, it pulled them
+    across the jump (measured: up to 0.25 px off); they keep their masked result, the others are refined."""
+    from dic import Tracker
+
+    ref, cur = _jump_pair()
+    crack = Crack([[C, -20.0], [C, H + 20.0]])
+    f = Tracker(ref, subset=21, step=4, cracks=crack, robust=True, device="cpu").track(cur)
+    plain = Tracker(ref, subset=21, step=4, cracks=crack, device="cpu").track(cur)
+    cut = blocked_pixels(f.points, 21, crack).any(axis=1)
+    # cut: the subset (half width 10 px) reaches the crack or the 1 px margin along it (pixel columns 100, 101)
+    assert np.array_equal(cut, np.abs(f.points[:, 0] - C) <= 10.5) and cut.sum() == 150
+    assert np.array_equal(f.u[cut], plain.u[cut])
+    assert not np.array_equal(f.u[~cut & f.valid], plain.u[~cut & f.valid])  # the others are refined
+    near = (np.abs(f.points[:, 0] - C) < 21) & (f.points[:, 1] > 10)
+    truth = np.where(f.points[:, 0] < C, -0.25, 0.25)
+    assert f.valid[near].all() and np.max(np.abs(f.u - truth)[near]) < 0.025
+
+
 def test_track_crack_option_is_stored_and_specula_crack_measures_it(tmp_path):
     from click.testing import CliRunner
 
