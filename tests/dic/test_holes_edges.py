@@ -131,3 +131,24 @@ def test_stereo_masks_the_left_subsets_by_a_mask_region(tmp_path):
     assert plain.pixel_mask is None and plain.left.subsets.mask is None
     boxed = StereoCorrelation(str(data / "rig.json"), left, right, roi=(10, 10, w - 11, h - 11), **kw)
     assert boxed.pixel_mask is None
+
+
+def test_the_options_cannot_refuse_a_resume_where_nothing_is_masked():
+    from dic.sequence.options import StereoOptions, TrackOptions
+
+    poly = {"polygon": [[0.0, 0.0], [40.0, 0.0], [40.0, 30.0]]}
+    for record in (TrackOptions, StereoOptions):
+        for roi in (None, (1, 1, 50, 50)):  # nothing to mask: a file written before the options resumes
+            stored = {k: v for k, v in record(roi=roi).to_settings().items()
+                      if k not in ("subset_mask", "min_kept_fraction")}
+            assert record(roi=roi).resume_check(stored) is None
+            assert record(roi=roi, min_kept_fraction=0.9).resume_check(stored) is None
+        # a file written before the options with a polygon ROI: every pixel was correlated, a run now differs
+        stored = {k: v for k, v in record(roi=poly).to_settings().items()
+                  if k not in ("subset_mask", "min_kept_fraction")}
+        refusal = record(roi=poly).resume_check(stored)
+        assert "--subset-mask (subset_mask): 'none' in the file, 'region' now" in refusal
+        assert "min_kept_fraction" not in refusal  # "none" there: the fraction did not act
+        assert record(roi=poly, subset_mask="none").resume_check(stored) is None
+        assert "--min-kept-fraction" in record(roi=poly, min_kept_fraction=0.9).resume_check(
+            record(roi=poly).to_settings())
