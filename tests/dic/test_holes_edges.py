@@ -152,3 +152,25 @@ def test_the_options_cannot_refuse_a_resume_where_nothing_is_masked():
         assert record(roi=poly, subset_mask="none").resume_check(stored) is None
         assert "--min-kept-fraction" in record(roi=poly, min_kept_fraction=0.9).resume_check(
             record(roi=poly).to_settings())
+
+
+def test_reliability_guided_waves_on_masked_subsets_agree_and_measure_the_edges():
+    from dic.correlation.engine import reliability_guided
+    from kernels.icgn import prepare_current
+
+    ref, cur, region = holes.case("hole-textured")
+    tracker = Tracker(ref, step=6, roi=region, subset=21, device="cpu")
+    corr = tracker.correlator
+    current = prepare_current(cur, device="cpu")
+    base = np.zeros((corr.n_points, 6))
+    runs = {w: reliability_guided(corr, current, base, lambda idx: np.zeros((len(idx), 6)), zncc_min=0.8, step=6.0,
+                                  waves=w) for w in ("host", "device")}
+    for key in ("params", "zncc", "status", "iterations"):
+        assert np.array_equal(runs["host"][key], runs["device"][key], equal_nan=key == "zncc"), key
+    field = Tracker(ref, step=6, roi=region, subset=21, search="rg", device="cpu").track(cur)
+    pts = field.points
+    u, v = holes.displacement(pts[:, 0], pts[:, 1])
+    err = np.hypot(field.u - u, field.v - v)
+    edge = ~subset_pixel_masks(pts, 21, region).all(axis=1)
+    assert np.count_nonzero(field.valid & edge) >= 0.8 * np.count_nonzero(edge)
+    assert np.sqrt(np.mean(err[field.valid & edge] ** 2)) <= 2 * np.sqrt(np.mean(err[field.valid & ~edge] ** 2))
