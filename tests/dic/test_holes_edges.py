@@ -174,3 +174,26 @@ def test_reliability_guided_waves_on_masked_subsets_agree_and_measure_the_edges(
     edge = ~subset_pixel_masks(pts, 21, region).all(axis=1)
     assert np.count_nonzero(field.valid & edge) >= 0.8 * np.count_nonzero(edge)
     assert np.sqrt(np.mean(err[field.valid & edge] ** 2)) <= 2 * np.sqrt(np.mean(err[field.valid & ~edge] ** 2))
+
+
+def test_excluded_shapes_mask_the_subsets_even_in_a_box():
+    """Excluded shapes (a hole given as a circle, regions25's ``exclude``) describe the specimen: they mask the
+    subsets whatever the region they are taken out of; a plain box does not."""
+    from dic.correlation import points as points_module
+
+    if not hasattr(points_module, "exclusion"):
+        pytest.skip("regions without excluded shapes in this tree (regions25 not merged)")
+    ref, cur, region = holes.case("hole-textured")
+    cx, cy = holes.HOLE_CENTRE
+    hole = {"circle": [cx, cy, holes.HOLE_RADIUS]}
+    for roi in ({"exclude": [hole]}, {"box": [20.0, 20.0, 300.0, 180.0], "exclude": [hole]}):
+        tracker = Tracker(ref, step=4, roi=points_module.region(roi, ref.shape), subset=21, search="zncc",
+                          search_radius=4, device="cpu")
+        assert tracker.pixel_mask is not None
+        field = tracker.track(cur)
+        pts = field.points
+        u, v = holes.displacement(pts[:, 0], pts[:, 1])
+        err = np.hypot(field.u - u, field.v - v)
+        edge = ~subset_pixel_masks(pts, 21, region).all(axis=1)
+        assert np.count_nonzero(field.valid & edge) >= 0.8 * np.count_nonzero(edge)
+        assert np.sqrt(np.mean(err[field.valid & edge] ** 2)) <= 2 * np.sqrt(np.mean(err[field.valid & ~edge] ** 2))
