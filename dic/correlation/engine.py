@@ -170,6 +170,8 @@ class Correlator:
         n, k = self.n_points, n_params(self.order)
         status = np.asarray(r["status"])
         active = (status == int(Status.CONVERGED)) | (status == int(Status.MAX_ITERATIONS))
+        if self.pixel_mask is not None:  # the robust kernel reads whole subsets: masked ones keep their masked result
+            active &= self.pixel_mask.all(axis=1)
         if self._robust is None:
             self._robust = (wp.empty((n, k), dtype=wp.float32, device=self.device),
                             wp.empty(n, dtype=wp.int32, device=self.device), robust_result(n, k, self.device))
