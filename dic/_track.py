@@ -199,12 +199,9 @@ class Tracker:
         self.subset_mask = check_subset_mask(subset_mask)
         self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
         self.cracks = _check_cracks(cracks)
-        crack_blocked = []  # the pixels the cracks drop, kept by _with_cracks' callable
         #: (N, subset**2) bool: the pixels each subset keeps, or None (every pixel)
         self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask,
-                                               _with_cracks(blocked_pixels, self.cracks, crack_blocked))
-        # (N,) bool: the subsets a crack cuts (None without cracks): the robust refinement leaves them as they are
-        self._crack_cut = crack_blocked[-1].any(axis=1) if crack_blocked else None
+                                               _with_cracks(blocked_pixels, self.cracks))
         self.correlator = Correlator(self.reference, self.points, subset=self.subset, order=self.order,
                                      max_iter=self.max_iter, tol=self.tol, device=self.device, flat_std=flat_std,
                                      pixel_mask=self.pixel_mask,
@@ -292,19 +289,7 @@ class Tracker:
 
     def _refined(self, current, r: dict) -> dict:
         """``r`` refined by robust IC-GN when this tracker is ``robust`` (else ``r``)."""
-        if not self.robust:
-            return r
-        refined = self.correlator.refine_robust(current, r)
-        cut = self._crack_cut
-        if cut is not None and cut.any():
-            # the robust refinement weighs every pixel of a subset: one that a crack cuts would be pulled across it
-            # (a 0.5 px jump: 0.25 px off, tests/dic/test_cracks.py), so it keeps its masked result
-            for key in ("params", "zncc", "status", "iterations"):
-                refined[key][cut] = np.asarray(r[key])[cut]
-            for key in ("inliers", "outliers"):
-                if key in refined:
-                    refined[key][cut] = np.nan
-        return refined
+        return self.correlator.refine_robust(current, r) if self.robust else r
 
     def _device_view(self, current):
         """A torch tensor -> a Warp array viewing its float32 copy or itself on this tracker's device (checked there)."""
@@ -387,9 +372,9 @@ def _check_cracks(cracks):
     return as_cracks(cracks)
 
 
-def _with_cracks(blocked, cracks, kept: list):
+def _with_cracks(blocked, cracks):
     """``blocked_pixels`` with the pixels across ``cracks`` added: a callable ``(points, subset) -> (N, subset²)
-    bool`` (or ``blocked`` itself without cracks); the cracks' own blocked pixels are appended to ``kept``."""
+    bool`` (or ``blocked`` itself without cracks)."""
     if not cracks:
         return blocked
 
@@ -397,7 +382,6 @@ def _with_cracks(blocked, cracks, kept: list):
         from .cracks import blocked_pixels
 
         out = blocked_pixels(points, subset, cracks)
-        kept.append(out.copy())
         if blocked is not None:
             extra = np.asarray(blocked(points, subset) if callable(blocked) else blocked)
             if extra.shape != out.shape or extra.dtype != bool:

@@ -590,6 +590,11 @@ def _row_to_moments_func(deg: int):
 #: order -> the wp.funcs of :func:`_make_prepare_subsets` that :mod:`kernels.icgn_masked` reuses by name
 PREPARE_PARTS: dict[int, dict] = {}
 
+#: the masked path's launchers by job ("icgn", "frames", "gather", "buffers", "rows"), registered by
+#: :mod:`kernels.icgn_masked` when it is imported: masked subsets come from it, so they are there whenever
+#: one is used, and this module imports nothing of it (the kernel modules stay free of import cycles)
+MASKED_PATH: dict[str, Any] = {}
+
 
 def _make_prepare_subsets(order: int):
     """The ``_prepare_subsets`` kernel of one shape-function order, with K = 6 or 12 parameters and
@@ -977,8 +982,9 @@ class ReferenceSubsets:
     flat_std : float                      grey-level std of a flat subset (also applied to the
                                           warped subsets: DIVERGED when their texture vanishes).
     mask : kernels.icgn_masked.SubsetMask or None
-        The per-POI pixel masks (``prepare_subsets(..., pixel_mask=)``): IC-GN of these subsets runs
-        over their kept pixels only (:mod:`kernels.icgn_masked`); None: every pixel (this module's kernels).
+        The per-POI pixel masks (:func:`kernels.icgn_masked.prepare_subsets_masked`): IC-GN of these
+        subsets runs over their kept pixels only (the launchers of :data:`MASKED_PATH`); None: every
+        pixel (this module's kernels).
     """
 
     reference: ReferenceImage
@@ -1199,8 +1205,7 @@ def _reusable(out: CurrentImage | None, device: str, shape) -> wp.array | None:
 
 
 def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: int = 1,
-                    flat_std: float | None = None, *, pixel_mask=None,
-                    min_kept_fraction: float | None = None) -> ReferenceSubsets:
+                    flat_std: float | None = None) -> ReferenceSubsets:
     """Precompute the per-POI reference quantities of IC-GN (Pan et al. 2013, doi:10.1007/s11340-012-9640-x).
 
     Parameters
@@ -1214,20 +1219,13 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
     flat_std : float, optional
         A subset whose grey-level standard deviation is <= this is ``FLAT_SUBSET``.
         Default: 1e-3 of the reference image's grey-level range.
-    pixel_mask : (N, S*S) bool or 0/1 array, optional
-        The pixels each subset keeps (:func:`dic.correlation.subset_masks.subset_pixel_masks`; row-major
-        about the rounded POI). Given, every sum of the reference side and of :func:`icgn` runs over the
-        kept pixels only (:mod:`kernels.icgn_masked`); None (default): every pixel, this module's
-        kernels, bit for bit as without the option.
-    min_kept_fraction : float in (0, 1], optional
-        With ``pixel_mask``: a subset keeping fewer than ``ceil(min_kept_fraction * S^2)`` pixels is
-        ``TOO_FEW_PIXELS`` (default :data:`kernels.icgn_masked.DEFAULT_MIN_KEPT_FRACTION`, 0.5).
 
     Returns
     -------
     ReferenceSubsets
-        ``status`` is ``OUT_OF_BOUNDS`` where the subset leaves the image, ``TOO_FEW_PIXELS`` (masked),
-        ``FLAT_SUBSET``, ``SINGULAR_HESSIAN``, else ``CONVERGED`` (ready to track).
+        ``status`` is ``OUT_OF_BOUNDS`` where the subset leaves the image, ``FLAT_SUBSET``,
+        ``SINGULAR_HESSIAN``, else ``CONVERGED`` (ready to track). Subsets correlated on some of their
+        pixels only (holes, free edges): :func:`kernels.icgn_masked.prepare_subsets_masked`.
     """
     if not isinstance(reference, ReferenceImage):
         raise ValueError(f"reference must be a ReferenceImage from prepare_reference(), got {type(reference).__name__}")
@@ -1244,20 +1242,8 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
     refdata = wp.zeros((n, refdata_width(order)), dtype=wp.float32, device=device)
     status = wp.empty(n, dtype=wp.int32, device=device)
     pts_wp = wp.array(pts, dtype=wp.vec2d, device=device)
-    if pixel_mask is None:
-        if min_kept_fraction is not None:
-            raise ValueError("min_kept_fraction applies to masked subsets only: give pixel_mask too")
-        subsets = ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status, float(flat_std))
-        launch_1d(_prepare_subsets[order], n, [0, pts_wp, subsets.table], device, offset_index=0, min_chunk=64)
-        return subsets
-    from . import icgn_masked as masked
-
-    fraction = masked.DEFAULT_MIN_KEPT_FRACTION if min_kept_fraction is None else min_kept_fraction
-    min_kept = masked.min_kept_pixels(fraction, subset)
-    pixels = wp.array(masked.as_mask_pixels(pixel_mask, n, subset), dtype=wp.uint8, device=device)
-    mask = masked.subset_mask(pixels, wp.zeros(n, dtype=wp.int32, device=device), min_kept)
-    subsets = ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status, float(flat_std), mask)
-    masked.launch_prepare_masked(order, n, pts_wp, subsets.table, mask, device)
+    subsets = ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status, float(flat_std))
+    launch_1d(_prepare_subsets[order], n, [0, pts_wp, subsets.table], device, offset_index=0, min_chunk=64)
     return subsets
 
 
@@ -1352,10 +1338,8 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
         raise ValueError(f"out was allocated for {out.params.shape}, expected params of shape {(n, k)}")
     # the same kernel for both layouts (hence the same bits): only the array it reads differs
     if subsets.mask is not None:  # per-POI pixel masks: the kernels of kernels.icgn_masked
-        from .icgn_masked import launch_icgn_masked
-
-        launch_icgn_masked(subsets.order, n, subsets.table, subsets.mask, cur.coefficients(layout), g, max_iter, tol,
-                           out.outputs, device)
+        MASKED_PATH["icgn"](subsets.order, n, subsets.table, subsets.mask, cur.coefficients(layout), g, max_iter, tol,
+                            out.outputs, device)
         return out
     kernel = _icgn_1st if subsets.order == 1 else _icgn_2nd
     launch_1d(kernel, n, [0, subsets.table, cur.coefficients(layout), g, int(max_iter), float(tol), out.outputs],
@@ -1391,12 +1375,7 @@ def subset_buffers(subsets: ReferenceSubsets, capacity: int | None = None) -> Re
         raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
     m = subsets.n_points if capacity is None else positive_int(capacity, "capacity")
     dev = subsets.device
-    mask = None
-    if subsets.mask is not None:
-        from .icgn_masked import subset_mask
-
-        mask = subset_mask(wp.empty((m, subsets.subset ** 2), dtype=wp.uint8, device=dev),
-                           wp.empty(m, dtype=wp.int32, device=dev), subsets.mask.min_kept)
+    mask = None if subsets.mask is None else MASKED_PATH["buffers"](subsets.mask, m, subsets.subset, dev)
     return ReferenceSubsets(
         subsets.reference, np.full((m, 2), np.nan), subsets.subset, subsets.order,
         wp.empty(m, dtype=wp.vec2i, device=dev), wp.empty(m, dtype=wp.vec2, device=dev),
@@ -1410,11 +1389,7 @@ def subset_rows(subsets: ReferenceSubsets, count: int, points=None) -> Reference
     ``points`` (count, 2) their POIs when known on the host, else the buffer's rows (NaN for a gather
     made on the device)."""
     pts = subsets.points[:count] if points is None else np.asarray(points, dtype=np.float64).reshape(count, 2)
-    mask = None
-    if subsets.mask is not None:
-        from .icgn_masked import subset_mask
-
-        mask = subset_mask(subsets.mask.pixels[:count], subsets.mask.kept[:count], subsets.mask.min_kept)
+    mask = None if subsets.mask is None else MASKED_PATH["rows"](subsets.mask, count)
     return ReferenceSubsets(subsets.reference, pts, subsets.subset, subsets.order, subsets.centres[:count],
                             subsets.deltas[:count], subsets.refdata[:count], subsets.status[:count], subsets.flat_std,
                             mask)
@@ -1443,7 +1418,5 @@ def gather_subsets(subsets: ReferenceSubsets, idx: wp.array, count: int, out: Re
     launch_1d(_gather_subsets, int(count), [0, idx, subsets.table, out.table], subsets.device, offset_index=0,
               min_chunk=1024)
     if subsets.mask is not None:
-        from .icgn_masked import launch_gather_masks
-
-        launch_gather_masks(int(count), idx, subsets.mask, out.mask, subsets.device)
+        MASKED_PATH["gather"](int(count), idx, subsets.mask, out.mask, subsets.device)
     return subset_rows(out, int(count), points)

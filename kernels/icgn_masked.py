@@ -18,8 +18,9 @@ with the kept count ``n`` in place of ``S*S``. The arithmetic is otherwise that 
 This is a separate Warp module with its own kernels, so the unmasked kernels of :mod:`kernels.icgn`,
 :mod:`kernels.frames` and :mod:`kernels.rg_device` are untouched (the same code, the same bits, the
 same registers) and compile no faster or slower; the masked path is chosen by
-``prepare_subsets(..., pixel_mask=)`` and followed by :func:`kernels.icgn.icgn`,
-:func:`kernels.icgn.gather_subsets` and :class:`kernels.frames.FrameTracker`.
+:func:`prepare_subsets_masked` and followed by :func:`kernels.icgn.icgn`,
+:func:`kernels.icgn.gather_subsets` and :class:`kernels.frames.FrameTracker` (through
+:data:`kernels.icgn.MASKED_PATH`, which this module fills: no import runs the other way).
 
 The full ``S x S`` box must still lie in the image (``OUT_OF_BOUNDS`` as before), and a warped
 subset is checked against the image bounds on the whole box.
@@ -43,13 +44,18 @@ from ._common import (
     struct_of,
 )
 from ._launch import cuda_launch_bounds, launch_1d
+from .checks import as_points
 from .frames import FrameArrays, frame_current, frame_outputs
 from .icgn import (
+    MASKED_PATH,
     PREPARE_PARTS,
     CurrentCoefficients,
     IcgnOutputs,
+    ReferenceImage,
+    ReferenceSubsets,
     SubsetTable,
     _pad5,
+    check_subset_order,
     compose_1st,
     compose_2nd,
     gn_step_scale,
@@ -61,6 +67,7 @@ from .icgn import (
     mono_exponents,
     n_params,
     refdata_columns,
+    refdata_width,
     vec5,
     vec6,
     vec6d,
@@ -540,10 +547,47 @@ def as_mask_pixels(pixel_mask, n: int, subset: int) -> np.ndarray:
     return np.ascontiguousarray(m, dtype=np.uint8)
 
 
-def launch_prepare_masked(order: int, n: int, points_wp: wp.array, table: SubsetTable, mask: SubsetMask,
-                          device: str) -> None:
-    """The masked reference preparation of ``n`` POIs (:func:`kernels.icgn.prepare_subsets` with ``pixel_mask``)."""
-    launch_1d(_prepare_masked[order], n, [0, points_wp, table, mask], device, offset_index=0, min_chunk=64)
+def prepare_subsets_masked(reference: ReferenceImage, points, subset: int = 21, order: int = 1,
+                           flat_std: float | None = None, *, pixel_mask,
+                           min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION) -> ReferenceSubsets:
+    """:func:`kernels.icgn.prepare_subsets` of subsets correlated on some of their pixels only.
+
+    Parameters
+    ----------
+    reference, points, subset, order, flat_std : as :func:`kernels.icgn.prepare_subsets`.
+    pixel_mask : (N, S*S) bool or 0/1 array
+        The pixels each subset keeps (:func:`dic.correlation.subset_masks.subset_pixel_masks`; row-major
+        about the rounded POI): every sum of the reference side, and of :func:`kernels.icgn.icgn`,
+        :func:`kernels.icgn.gather_subsets` and :class:`kernels.frames.FrameTracker` on the result, runs
+        over the kept pixels only.
+    min_kept_fraction : float in (0, 1]
+        A subset keeping fewer than ``ceil(min_kept_fraction * S^2)`` pixels is ``TOO_FEW_PIXELS``.
+
+    Returns
+    -------
+    ReferenceSubsets with ``mask`` set (a :class:`SubsetMask`); ``status`` as :func:`kernels.icgn.prepare_subsets`
+    plus ``TOO_FEW_PIXELS``.
+    """
+    if not isinstance(reference, ReferenceImage):
+        raise ValueError(f"reference must be a ReferenceImage from prepare_reference(), got {type(reference).__name__}")
+    subset, order = check_subset_order(subset, order)
+    pts = as_points(points)
+    if flat_std is None:
+        flat_std = 1e-3 * reference.grey_range
+    if not np.isfinite(flat_std) or flat_std < 0:
+        raise ValueError(f"flat_std must be a finite non-negative grey level, got {flat_std!r}")
+    min_kept = min_kept_pixels(min_kept_fraction, subset)
+    n = pts.shape[0]
+    device = reference.device
+    pixels = wp.array(as_mask_pixels(pixel_mask, n, subset), dtype=wp.uint8, device=device)
+    mask = subset_mask(pixels, wp.zeros(n, dtype=wp.int32, device=device), min_kept)
+    subsets = ReferenceSubsets(reference, pts, subset, order, wp.empty(n, dtype=wp.vec2i, device=device),
+                               wp.empty(n, dtype=wp.vec2, device=device),
+                               wp.zeros((n, refdata_width(order)), dtype=wp.float32, device=device),
+                               wp.empty(n, dtype=wp.int32, device=device), float(flat_std), mask)
+    pts_wp = wp.array(pts, dtype=wp.vec2d, device=device)
+    launch_1d(_prepare_masked[order], n, [0, pts_wp, subsets.table, mask], device, offset_index=0, min_chunk=64)
+    return subsets
 
 
 def launch_icgn_masked(order: int, n: int, table: SubsetTable, mask: SubsetMask, coefficients: CurrentCoefficients,
@@ -568,7 +612,22 @@ def launch_gather_masks(count: int, idx: wp.array, src: SubsetMask, dst: SubsetM
     launch_1d(_gather_masks, int(count), [0, idx, src, dst], device, offset_index=0, min_chunk=1024)
 
 
+def mask_buffers(mask: SubsetMask, rows: int, subset: int, device: str) -> SubsetMask:
+    """Uninitialised mask rows shaped like ``mask`` (:func:`kernels.icgn.subset_buffers`)."""
+    return subset_mask(wp.empty((rows, subset * subset), dtype=wp.uint8, device=device),
+                       wp.empty(rows, dtype=wp.int32, device=device), mask.min_kept)
+
+
+def mask_rows(mask: SubsetMask, count: int) -> SubsetMask:
+    """The first ``count`` rows of ``mask`` as views (:func:`kernels.icgn.subset_rows`)."""
+    return subset_mask(mask.pixels[:count], mask.kept[:count], mask.min_kept)
+
+
+MASKED_PATH.update(icgn=launch_icgn_masked, frames=launch_icgn_frames_masked, gather=launch_gather_masks,
+                   buffers=mask_buffers, rows=mask_rows)
+
+
 __all__ = ["SubsetMask", "subset_mask", "min_kept_pixels", "DEFAULT_MIN_KEPT_FRACTION", "as_mask_pixels",
-           "icgn_point_masked_1st", "icgn_point_masked_2nd", "launch_prepare_masked", "launch_icgn_masked",
-           "launch_icgn_frames_masked", "launch_gather_masks"]
+           "prepare_subsets_masked", "icgn_point_masked_1st", "icgn_point_masked_2nd", "launch_icgn_masked",
+           "launch_icgn_frames_masked", "launch_gather_masks", "mask_buffers", "mask_rows"]
 

@@ -77,8 +77,14 @@ class Correlator:
         self.max_iter, self.tol, self.flat_std = max_iter, tol, flat_std
         self.pixel_mask = None if pixel_mask is None else np.asarray(pixel_mask, dtype=bool)
         self.reference = prepare_reference(reference, device=device)
-        self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std,
-                                       pixel_mask=self.pixel_mask, min_kept_fraction=min_kept_fraction)
+        if self.pixel_mask is None:
+            self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std)
+        else:
+            from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION, prepare_subsets_masked
+
+            self.subsets = prepare_subsets_masked(
+                self.reference, points, subset=subset, order=order, flat_std=flat_std, pixel_mask=self.pixel_mask,
+                min_kept_fraction=DEFAULT_MIN_KEPT_FRACTION if min_kept_fraction is None else min_kept_fraction)
         self.reference_status = self.subsets.status.numpy().astype(np.int32)
         self._out = None
         self._frames = {}  # device-resident frame trackers by frame dtype (run_frame)
@@ -164,6 +170,8 @@ class Correlator:
         n, k = self.n_points, n_params(self.order)
         status = np.asarray(r["status"])
         active = (status == int(Status.CONVERGED)) | (status == int(Status.MAX_ITERATIONS))
+        if self.pixel_mask is not None:  # the robust kernel reads whole subsets: masked ones keep their masked result
+            active &= self.pixel_mask.all(axis=1)
         if self._robust is None:
             self._robust = (wp.empty((n, k), dtype=wp.float32, device=self.device),
                             wp.empty(n, dtype=wp.int32, device=self.device), robust_result(n, k, self.device))
@@ -684,6 +692,10 @@ def _rg_sync_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: f
             wp.copy(st.counts_host, st.counts, src_offset=2 * w, count=2)
             wp.synchronize_device(corr.device)
             m, left = (int(x) for x in st.counts_host.numpy())
+        if m and corr.subsets.mask is not None:  # the wave gathered the candidates' tables: their masks follow
+            from kernels.icgn_masked import launch_gather_masks
+
+            launch_gather_masks(m, b.idx, corr.subsets.mask, b.subsets.mask, corr.device)
         if not m and not left:
             return
 

@@ -19,6 +19,8 @@ What a mask comes from (docs/dic2d.md, "Holes, edges and masks"):
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from kernels.checks import as_points, odd_int
@@ -107,13 +109,20 @@ def region_pixel_mask(roi, shape) -> np.ndarray | None:
 
     ``roi``: any ROI form of :mod:`dic.correlation.points` (or a :class:`~dic.correlation.points.Region`).
     A mask (array or image file) is returned as it is (non-zero = specimen); a polygon is rasterised
-    with the POI rule (a pixel is inside when its centre is inside the polygon or on its edge). A box
-    and None return None: a box chooses where the POIs are, it does not describe the specimen's outline.
+    with the POI rule (a pixel is inside when its centre is inside the polygon or on its edge); excluded
+    shapes (holes, notches: a region's ``exclude``) are taken out. A plain box and None return None: a box
+    chooses where the POIs are, it does not describe the specimen's outline (with excluded shapes, the
+    whole image less the shapes).
     """
     h, w = image_shape(shape)
     reg = region(roi, (h, w))
-    if reg is None or reg.kind == "box":
+    exclude = tuple(getattr(reg, "exclude", ()))  # excluded shapes (holes, notches) of a region, where it has them
+    if reg is None or (reg.kind == "box" and not exclude):
         return None
+    if hasattr(reg, "pixel_mask"):  # the region's own rasterisation (the POI rule at every pixel centre)
+        # a box with excluded shapes: the shapes describe the specimen, the box's sides do not
+        target = replace(reg, kind="image", data=None) if reg.kind == "box" else reg
+        return np.ascontiguousarray(target.pixel_mask((h, w)), dtype=bool)
     if reg.kind == "mask":
         return np.ascontiguousarray(reg.data, dtype=bool)
     yy, xx = np.mgrid[0:h, 0:w]

@@ -188,7 +188,7 @@ class _Record:
         skip = self.unrecorded | other.unrecorded
         out = []
         for f in fields(self):
-            if not f.compare or f.name in skip:
+            if not f.compare or f.name in skip or self._inert(other, f.name):
                 continue
             a, b = getattr(self, f.name), getattr(other, f.name)
             if f.name == "roi":
@@ -231,6 +231,28 @@ class _Record:
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)
 
+    def _subset_mask_options(self) -> None:
+        """``subset_mask`` and ``min_kept_fraction`` checked (written as given; :meth:`_inert` says when they
+        cannot act)."""
+        self._set("subset_mask", _checked("subset_mask", check_subset_mask, self.subset_mask))
+        self._set("min_kept_fraction", _checked("min_kept_fraction", check_min_kept_fraction, self.min_kept_fraction))
+
+    def _subset_mask_kwargs(self) -> dict:
+        """The tracker keywords of the two options."""
+        return {"subset_mask": self.subset_mask, "min_kept_fraction": self.min_kept_fraction}
+
+    def _inert(self, other, name: str) -> bool:
+        """Whether option ``name`` cannot change the results of either record, so that a difference in it is
+        none: ``subset_mask`` without a mask or polygon ROI on either side (no ROI or a box: nothing is
+        masked), ``min_kept_fraction`` unless a side masks its subsets. A file written before the options
+        (read as "none", 0.5) thus resumes with today's defaults unless its run had a mask or polygon ROI."""
+        if name not in ("subset_mask", "min_kept_fraction"):
+            return False
+        masks = [isinstance(r.roi, dict) and r.subset_mask == "region" for r in (self, other)]  # dict: mask, polygon
+        if name == "subset_mask":
+            return not (isinstance(self.roi, dict) or isinstance(other.roi, dict))
+        return not any(masks)
+
     def _check_common(self) -> None:
         self._set("subset", _checked("subset", odd_int, self.subset, "subset", detail=" (e.g. 21)"))
         if isinstance(self.order, bool) or self.order not in (1, 2):
@@ -252,6 +274,13 @@ class _Record:
             self._set("points_array", arr)
         if self.roi is not None and self.points is not None:
             raise OptionError("roi", "give either points or roi (roi selects grid points), not both")
+
+
+def _schema1_subset_mask(kw: dict) -> None:
+    """A schema-1 run with a mask or polygon ROI correlated every subset pixel: ``subset_mask`` "none" (issue 26;
+    elsewhere the option cannot act and keeps its default)."""
+    if isinstance(kw.get("roi"), dict):
+        kw.setdefault("subset_mask", "none")
 
 
 def _schema1_sequence(settings: dict) -> dict:
@@ -356,8 +385,7 @@ class TrackOptions(_Record):
         if self.scale_mm_per_px is not None:
             self._set("scale_mm_per_px", _checked("scale_mm_per_px", positive_float, self.scale_mm_per_px,
                                                   "the scale", detail=" (mm per px)"))
-        self._set("subset_mask", _checked("subset_mask", check_subset_mask, self.subset_mask))
-        self._set("min_kept_fraction", _checked("min_kept_fraction", check_min_kept_fraction, self.min_kept_fraction))
+        self._subset_mask_options()
         self._set("cracks", _cracks(self.cracks))
         self._check_sequence()
 
@@ -368,8 +396,7 @@ class TrackOptions(_Record):
         kw = {"subset": self.subset, "step": self.step, "order": self.order, "search": self.search,
               "max_iter": self.max_iter, "tol": self.tol, "zncc_min": self.zncc_min, "flat_std": self.flat_std,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
-              "check_outliers": self.check_outliers, "subset_mask": self.subset_mask,
-              "min_kept_fraction": self.min_kept_fraction}
+              "check_outliers": self.check_outliers, **self._subset_mask_kwargs()}
         if self.search is not None:
             kw["search_radius"] = self.search_radius
         if self.points_array is not None:
@@ -407,6 +434,7 @@ class TrackOptions(_Record):
         unknown = sorted(set(s) - known)
         if unknown:
             raise ValueError(f"unknown settings {', '.join(unknown)}")
+        _schema1_subset_mask(kw)
         return replace(cls(**kw), unrecorded=frozenset(unrecorded))
 
 
@@ -479,8 +507,7 @@ class StereoOptions(_Record):
         if self.triangulation not in ("optimal", "linear"):
             raise OptionError("triangulation", f"triangulation must be 'optimal' or 'linear', got {self.triangulation!r}")
         self._set("max_features", _checked("max_features", positive_int, self.max_features, "max_features"))
-        self._set("subset_mask", _checked("subset_mask", check_subset_mask, self.subset_mask))
-        self._set("min_kept_fraction", _checked("min_kept_fraction", check_min_kept_fraction, self.min_kept_fraction))
+        self._subset_mask_options()
         self._check_sequence()
 
     def correlation_kwargs(self) -> dict:
@@ -491,7 +518,7 @@ class StereoOptions(_Record):
               "zncc_min": self.zncc_min, "strain_window": self.strain_window, "max_iter": self.max_iter,
               "tol": self.tol, "triangulation": self.triangulation, "max_features": self.max_features,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
-              "subset_mask": self.subset_mask, "min_kept_fraction": self.min_kept_fraction}
+              **self._subset_mask_kwargs()}
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:
@@ -511,6 +538,7 @@ class StereoOptions(_Record):
         kw.update({k: v for k, v in s.items() if k not in kw})
         if isinstance(kw.get("points"), list):  # schema 1 stored the coordinates themselves
             kw["points"] = _points_digest(kw["points"])
+        _schema1_subset_mask(kw)
         return cls(**kw)
 
 

@@ -131,3 +131,83 @@ def test_stereo_masks_the_left_subsets_by_a_mask_region(tmp_path):
     assert plain.pixel_mask is None and plain.left.subsets.mask is None
     boxed = StereoCorrelation(str(data / "rig.json"), left, right, roi=(10, 10, w - 11, h - 11), **kw)
     assert boxed.pixel_mask is None
+
+
+def test_the_options_cannot_refuse_a_resume_where_nothing_is_masked():
+    from dic.sequence.options import StereoOptions, TrackOptions
+
+    poly = {"polygon": [[0.0, 0.0], [40.0, 0.0], [40.0, 30.0]]}
+    for record in (TrackOptions, StereoOptions):
+        for roi in (None, (1, 1, 50, 50)):  # nothing to mask: a file written before the options resumes
+            stored = {k: v for k, v in record(roi=roi).to_settings().items()
+                      if k not in ("subset_mask", "min_kept_fraction")}
+            assert record(roi=roi).resume_check(stored) is None
+            assert record(roi=roi, min_kept_fraction=0.9).resume_check(stored) is None
+        # a file written before the options with a polygon ROI: every pixel was correlated, a run now differs
+        stored = {k: v for k, v in record(roi=poly).to_settings().items()
+                  if k not in ("subset_mask", "min_kept_fraction")}
+        refusal = record(roi=poly).resume_check(stored)
+        assert "--subset-mask (subset_mask): 'none' in the file, 'region' now" in refusal
+        assert "min_kept_fraction" not in refusal  # "none" there: the fraction did not act
+        assert record(roi=poly, subset_mask="none").resume_check(stored) is None
+        assert "--min-kept-fraction" in record(roi=poly, min_kept_fraction=0.9).resume_check(
+            record(roi=poly).to_settings())
+
+
+def test_reliability_guided_waves_on_masked_subsets_agree_and_measure_the_edges():
+    from dic.correlation.engine import reliability_guided
+    from kernels.icgn import prepare_current
+
+    ref, cur, region = holes.case("hole-textured")
+    tracker = Tracker(ref, step=6, roi=region, subset=21, device="cpu")
+    corr = tracker.correlator
+    current = prepare_current(cur, device="cpu")
+    base = np.zeros((corr.n_points, 6))
+    runs = {w: reliability_guided(corr, current, base, lambda idx: np.zeros((len(idx), 6)), zncc_min=0.8, step=6.0,
+                                  waves=w) for w in ("host", "device")}
+    for key in ("params", "zncc", "status", "iterations"):
+        assert np.array_equal(runs["host"][key], runs["device"][key], equal_nan=key == "zncc"), key
+    field = Tracker(ref, step=6, roi=region, subset=21, search="rg", device="cpu").track(cur)
+    pts = field.points
+    u, v = holes.displacement(pts[:, 0], pts[:, 1])
+    err = np.hypot(field.u - u, field.v - v)
+    edge = ~subset_pixel_masks(pts, 21, region).all(axis=1)
+    assert np.count_nonzero(field.valid & edge) >= 0.8 * np.count_nonzero(edge)
+    assert np.sqrt(np.mean(err[field.valid & edge] ** 2)) <= 2 * np.sqrt(np.mean(err[field.valid & ~edge] ** 2))
+
+
+def test_excluded_shapes_mask_the_subsets_even_in_a_box():
+    """Excluded shapes (a hole given as a circle, regions25's ``exclude``) describe the specimen: they mask the
+    subsets whatever the region they are taken out of; a plain box does not."""
+    from dic.correlation import points as points_module
+
+    if not hasattr(points_module, "exclusion"):
+        pytest.skip("regions without excluded shapes in this tree (regions25 not merged)")
+    ref, cur, region = holes.case("hole-textured")
+    cx, cy = holes.HOLE_CENTRE
+    hole = {"circle": [cx, cy, holes.HOLE_RADIUS]}
+    for roi in ({"exclude": [hole]}, {"box": [20.0, 20.0, 300.0, 180.0], "exclude": [hole]}):
+        tracker = Tracker(ref, step=4, roi=points_module.region(roi, ref.shape), subset=21, search="zncc",
+                          search_radius=4, device="cpu")
+        assert tracker.pixel_mask is not None
+        field = tracker.track(cur)
+        pts = field.points
+        u, v = holes.displacement(pts[:, 0], pts[:, 1])
+        err = np.hypot(field.u - u, field.v - v)
+        edge = ~subset_pixel_masks(pts, 21, region).all(axis=1)
+        assert np.count_nonzero(field.valid & edge) >= 0.8 * np.count_nonzero(edge)
+        assert np.sqrt(np.mean(err[field.valid & edge] ** 2)) <= 2 * np.sqrt(np.mean(err[field.valid & ~edge] ** 2))
+
+
+def test_robust_refinement_leaves_masked_subsets_at_their_masked_result():
+    ref, cur, region = holes.case("hole-textured")
+    plain = Tracker(ref, step=6, roi=region, subset=21, search="zncc", search_radius=4, device="cpu")
+    robust = Tracker(ref, step=6, roi=region, subset=21, search="zncc", search_radius=4, robust=True,
+                     check_outliers=False, device="cpu")
+    fp, fr = plain.track(cur), robust.track(cur)
+    masked = ~plain.pixel_mask.all(axis=1)
+    assert np.any(masked)
+    assert np.array_equal(fp.params[masked], fr.params[masked])  # not refined on whole subsets
+    u, v = holes.displacement(fr.points[:, 0], fr.points[:, 1])
+    err = np.hypot(fr.u - u, fr.v - v)
+    assert np.sqrt(np.mean(err[fr.valid & masked] ** 2)) < 0.02  # bench/holes.py: 0.006 px

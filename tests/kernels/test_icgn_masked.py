@@ -15,6 +15,7 @@ from kernels.icgn import (
     prepare_subsets,
     subset_buffers,
 )
+from kernels.icgn_masked import prepare_subsets_masked
 
 SHAPE = (96, 128)
 SUBSET = 21
@@ -45,7 +46,7 @@ def test_masked_subsets_recover_the_translation_the_unmasked_miss(half_moving):
         k = 6 * order
         v_col = k // 2
         plain = icgn(prepare_subsets(reference, pts, SUBSET, order), cur).numpy()
-        masked = icgn(prepare_subsets(reference, pts, SUBSET, order, pixel_mask=masks, min_kept_fraction=0.3),
+        masked = icgn(prepare_subsets_masked(reference, pts, SUBSET, order, pixel_mask=masks, min_kept_fraction=0.3),
                       cur).numpy()
         assert np.all(masked["status"] == int(Status.CONVERGED))
         err_masked = np.hypot(masked["params"][:, 0] - SHIFT[0], masked["params"][:, v_col] - SHIFT[1])
@@ -59,8 +60,8 @@ def test_masked_subsets_recover_the_translation_the_unmasked_miss(half_moving):
 
 def test_reference_mean_and_norm_are_those_of_the_kept_pixels(half_moving):
     ref, _, pts, masks = half_moving
-    subsets = prepare_subsets(prepare_reference(ref, device="cpu"), pts, SUBSET, 1, pixel_mask=masks,
-                              min_kept_fraction=0.3)
+    subsets = prepare_subsets_masked(prepare_reference(ref, device="cpu"), pts, SUBSET, 1, pixel_mask=masks,
+                                     min_kept_fraction=0.3)
     table = subsets.refdata.numpy()
     r = SUBSET // 2
     for n, (x, y) in enumerate(pts.astype(int)):
@@ -76,7 +77,7 @@ def test_a_full_mask_gives_the_unmasked_results(half_moving):
     full = np.ones_like(masks)
     for order in (1, 2):
         plain = icgn(prepare_subsets(reference, pts, SUBSET, order), cur).numpy()
-        masked = icgn(prepare_subsets(reference, pts, SUBSET, order, pixel_mask=full), cur).numpy()
+        masked = icgn(prepare_subsets_masked(reference, pts, SUBSET, order, pixel_mask=full), cur).numpy()
         assert np.array_equal(plain["status"], masked["status"])
         assert np.abs(plain["params"] - masked["params"]).max() < 1e-5  # the same sums; float32 rounding only
 
@@ -86,26 +87,24 @@ def test_too_few_pixels_has_its_own_status_and_bad_masks_are_refused(half_moving
     reference = prepare_reference(ref, device="cpu")
     few = np.zeros_like(masks)
     few[:, : SUBSET * SUBSET // 2] = True  # 220 of 441 pixels: below half
-    sub = prepare_subsets(reference, pts, SUBSET, 1, pixel_mask=few, min_kept_fraction=0.5)
+    sub = prepare_subsets_masked(reference, pts, SUBSET, 1, pixel_mask=few, min_kept_fraction=0.5)
     assert np.all(sub.status.numpy() == int(Status.TOO_FEW_PIXELS))
     assert np.all(icgn(sub, cur).numpy()["status"] == int(Status.TOO_FEW_PIXELS))
-    sub = prepare_subsets(reference, pts, SUBSET, 1, pixel_mask=few, min_kept_fraction=0.49)
+    sub = prepare_subsets_masked(reference, pts, SUBSET, 1, pixel_mask=few, min_kept_fraction=0.49)
     assert np.all(sub.status.numpy() == int(Status.CONVERGED))
     with pytest.raises(ValueError, match="pixel_mask must have shape"):
-        prepare_subsets(reference, pts, SUBSET, 1, pixel_mask=masks[:, :-1])
+        prepare_subsets_masked(reference, pts, SUBSET, 1, pixel_mask=masks[:, :-1])
     with pytest.raises(ValueError, match="min_kept_fraction must be a number in"):
-        prepare_subsets(reference, pts, SUBSET, 1, pixel_mask=masks, min_kept_fraction=0.0)
-    with pytest.raises(ValueError, match="give pixel_mask too"):
-        prepare_subsets(reference, pts, SUBSET, 1, min_kept_fraction=0.5)
+        prepare_subsets_masked(reference, pts, SUBSET, 1, pixel_mask=masks, min_kept_fraction=0.0)
     with pytest.raises(ValueError, match="0/1 integers"):
-        prepare_subsets(reference, pts, SUBSET, 1, pixel_mask=masks.astype(np.int32) * 2)
+        prepare_subsets_masked(reference, pts, SUBSET, 1, pixel_mask=masks.astype(np.int32) * 2)
 
 
 @pytest.mark.parametrize("order", [1, 2])
 def test_indexed_and_frame_paths_give_the_same_bits(half_moving, order):
     ref, cur, pts, masks = half_moving
     reference = prepare_reference(ref, device="cpu")
-    subsets = prepare_subsets(reference, pts, SUBSET, order, pixel_mask=masks, min_kept_fraction=0.3)
+    subsets = prepare_subsets_masked(reference, pts, SUBSET, order, pixel_mask=masks, min_kept_fraction=0.3)
     current = prepare_current(cur, device="cpu")
     whole = icgn(subsets, current).numpy()
     idx = np.array([7, 2, 5], dtype=np.int32)
