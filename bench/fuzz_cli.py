@@ -42,7 +42,7 @@ import click
 import numpy as np
 
 #: verbs whose valid command line is cheap enough to run when a malformed value is accepted
-CHEAP = {"track", "stereo", "strain", "extensometer", "history", "profile", "export", "animate", "report", "speckle",
+CHEAP = {"track", "stereo", "strain", "crack", "extensometer", "history", "profile", "export", "animate", "report", "speckle",
          "target fringes",
          "target checkerboard", "target circles", "lab render", "lab paper-rig"}
 INT_VALUES = ["", " ", "nan", "abc", "-1", "0", "1e300", str(2 ** 70), "3.5"]
@@ -119,6 +119,7 @@ def baselines(p: dict) -> dict[str, list[str]]:
         "animate": ["animate", p["results"], "-Q", "u", "-o", "{out}.gif", "--dpi", "20", "-q"],
         "report": ["report", p["results"], "-o", "{out}.html", "-Q", "u", "--map-width", "64", "-q"],
         "repair": ["repair", p["results"]],
+        "crack": ["crack", p["results"], "--crack", "30,-5,30,60", "--frame", "1", "-o", "{out}.csv", "-q"],
         "speckle": ["speckle", p["ref"], "--step", "16", "--device", "cpu"],
         "target fringes": ["target", "fringes", "-o", "{out}", "--screen", "320x240", "--grid", "4x2", "--pitch", "60",
                            "--steps", "3"],
@@ -219,7 +220,8 @@ def damaged_cases(paths: dict, folder: str, mutants: int, rng: random.Random) ->
              ("ref_png", ["speckle"], lambda d: mutate_image(d, rng, "ref.png")),
              ("rig", ["stereo"], lambda d: mutate_json(d, rng)),
              ("scene", ["lab render"], lambda d: mutate_bytes(d, rng)),
-             ("results", ["strain", "history", "profile", "export", "extensometer", "animate", "report"], lambda d: _damage_h5(d, rng))]
+             ("results", ["strain", "history", "profile", "export", "extensometer", "animate", "report", "crack"],
+              lambda d: _damage_h5(d, rng))]
     out = []
     for key, verbs, mutate in kinds:
         data = open(paths[key], "rb").read()

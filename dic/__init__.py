@@ -50,6 +50,8 @@ _EXPORTS = {
     "write_vtk_series": (".export", "write_vtk_series"), "write_pvd": (".export", "write_pvd"),
     "export_results": (".export", "export_results"),
     "to_dataframe": (".export", "to_dataframe"), "to_xarray": (".export", "to_xarray"),
+    # declared cracks (dic.cracks)
+    "Crack": (".cracks", "Crack"), "crack_opening": (".cracks", "crack_opening"),
     # images, figures, synthetic data, speckle quality
     "read_image": (".io", "read_image"), "write_image": (".io", "write_image"),
     "write_figures": (".plots.fields", "write_figures"),
@@ -83,6 +85,7 @@ if TYPE_CHECKING:  # the names for type checkers and IDEs
     from ._strain import StrainField, StrainPlan, grid_layout, strain  # noqa: F401
     from ._track import Tracker, grid, track  # noqa: F401
     from ._triangulate import Triangulation, triangulate, undistort_points  # noqa: F401
+    from .cracks import Crack, crack_opening  # noqa: F401
     from .export import (  # noqa: F401
         export_results,
         to_dataframe,

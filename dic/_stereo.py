@@ -46,6 +46,7 @@ from kernels._device import resolve_device
 from kernels.checks import as_points, boolean, in_range, odd_int, positive_float
 from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
+from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION
 from kernels.images import as_float32_image
 from kernels.interp import FRAME_DTYPES
 
@@ -57,6 +58,7 @@ from .correlation.guesses import GuessContext, get_guess
 from .correlation.params import check_tol
 from .correlation.params import displacement as _displacement
 from .correlation.points import grid_points, typical_spacing
+from .correlation.subset_masks import check_min_kept_fraction, check_subset_mask, tracking_pixel_masks
 from .epipolar import epipolar_distance, epipolar_residuals, fundamental_matrix
 from .field3d import (
     Field3D,
@@ -315,13 +317,19 @@ class StereoCorrelation:
         ``progress(stage, done, total)`` called after each stage (``"features"``, ``"first pass"``,
         ``"propagation"``, ``"fallback"``, ``"second opinion"``, ``"done"``) with the POIs settled so far and the
         POIs to match (:func:`dic.correlation.engine.correlate`, ``report``).
+    subset_mask : "region" or "none": with a mask or polygon ``roi``, the left reference's subsets keep the
+        pixels inside it (:class:`dic.Tracker`'s option): the match left -> right and the left track correlate
+        those only; the right track (its subsets are right-image subsets) and moved references every pixel.
+        Default "region"; "none": the behaviour before the option.
+    min_kept_fraction : float in (0, 1], masked subsets keeping less are ``TOO_FEW_PIXELS``. Default 0.5.
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int | None = None, roi=None, subset: int = 21,
                  order: int = 1, frame="left", epipolar_tol_px: float = 1.0, zncc_min: float = 0.8,
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
-                 noise_sigma: float | None = None, robust: bool = False, device=None, progress=None):
+                 noise_sigma: float | None = None, robust: bool = False, device=None, progress=None,
+                 subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION):
         self.device = resolve_device(device)
         self._progress = _check_progress(progress)
         self.robust = boolean(robust, "robust")
@@ -368,7 +376,15 @@ class StereoCorrelation:
         #: seconds spent per stage in the constructor (reference) and in the last :meth:`measure`
         self.timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        self.left = self._correlator(left_ref, self.points)
+        # per-POI pixel masks of the left reference's subsets (a mask or polygon ROI, dic.correlation.subset_masks):
+        # the left track and the match left -> right correlate the kept pixels of the left subsets; the right
+        # track and moved references correlate every pixel (docs/stereo.md)
+        self.subset_mask = check_subset_mask(subset_mask)
+        self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
+        self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask)
+        self.left = Correlator(left_ref, self.points, subset=self.subset, order=self.order, max_iter=self.max_iter,
+                               tol=self.tol, device=self.device, pixel_mask=self.pixel_mask,
+                               min_kept_fraction=None if self.pixel_mask is None else self.min_kept_fraction)
         self.timings["reference_prepare_s"] = time.perf_counter() - t0
         self._ideal_left, _ = undistort_points(rig.left, self.points, device=self.device, margin_px=np.inf)
         self.match = self._match() if match is None else self._check_match(match)
@@ -972,7 +988,7 @@ def stereo(rig, left_ref, right_ref, left_cur=None, right_cur=None, *, points=No
     left_cur, right_cur : (H, W) grey images of a current state, optional (both or neither).
     points, step, roi, subset, order, frame, epipolar_tol_px, zncc_min, strain_window, device :
         see :class:`StereoCorrelation`; ``options`` passes ``max_iter``, ``tol``, ``triangulation``,
-        ``max_features``, ``robust``.
+        ``max_features``, ``robust``, ``subset_mask``, ``min_kept_fraction``.
 
     Returns
     -------

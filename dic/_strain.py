@@ -213,6 +213,10 @@ class StrainPlan:
         The POIs (px) on a regular grid or a subset of one, as for :func:`strain`.
     window, min_points : int
         As for :func:`strain` (checked against the grid: :func:`check_strain_window`).
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`): a point's fit leaves out the neighbours whose straight
+        segment from the point crosses a crack (those points' fits are summed directly rather than by
+        the grid correlation). Default: none.
 
     Attributes
     ----------
@@ -229,7 +233,7 @@ class StrainPlan:
         Points not on a regular grid, duplicates, a window no grid point can fill.
     """
 
-    def __init__(self, points, *, window: int = 5, min_points: int | None = None):
+    def __init__(self, points, *, window: int = 5, min_points: int | None = None, cracks=None):
         pts = np.array(as_points(points), dtype=np.float64, order="C", copy=True)
         index, shape, step = grid_layout(pts)
         self.window, self.min_points = check_strain_window(window, shape, min_points=min_points)
@@ -242,6 +246,7 @@ class StrainPlan:
         self._flat = index[:, 1] * shape[1] + index[:, 0]  # each point's node in the flattened grid
         self._flat.flags.writeable = False
         self._weights = _kernels(self.window)
+        self._cut = _crack_cut_windows(pts, index, shape, self.window, cracks)  # (rows, neighbours, offsets) or None
         self._fits_cache = None  # (valid, flat of the valid points, ok, n_fit, flat of the ok points, normal matrices)
 
     def __repr__(self) -> str:
@@ -271,6 +276,11 @@ class StrainPlan:
         flat_sel = flat[valid]
         mask.reshape(-1)[flat_sel] = 1.0
         s0, sx, sy, sxx, sxy, syy = (_correlate(mask, k).reshape(-1)[flat] for k in self._weights)
+        if self._cut is not None:  # windows a crack cuts: their sums over the neighbours on the point's side
+            rows, nbr, off = self._cut
+            use = (nbr >= 0) & valid[np.maximum(nbr, 0)]
+            for m, w in zip((s0, sx, sy, sxx, sxy, syy), (1.0, off[0], off[1], off[0] ** 2, off[0] * off[1], off[1] ** 2)):
+                m[rows] = np.sum(use * w, axis=1)
         n_fit = np.rint(s0).astype(np.int64)
         # a fit needs enough points that are not all on one line: the centred second moments'
         # determinant is 0 for collinear points (in grid units, so the threshold is scale-free)
@@ -302,6 +312,17 @@ class StrainPlan:
             for j, k in enumerate(self._weights[:3]):
                 rhs[:, j, 0] = _correlate(ug, k).reshape(-1)[flat_ok]
                 rhs[:, j, 1] = _correlate(vg, k).reshape(-1)[flat_ok]
+            if self._cut is not None:
+                rows, nbr, off = self._cut
+                at = np.flatnonzero(ok)
+                pos = np.searchsorted(at, rows)  # the cut rows among the fits
+                hit = (pos < at.size) & (at[np.minimum(pos, at.size - 1)] == rows)
+                if hit.any():
+                    take = nbr[hit]
+                    use = (take >= 0) & valid[np.maximum(take, 0)]
+                    for j, w in enumerate((1.0, off[0], off[1])):
+                        rhs[pos[hit], j, 0] = np.sum(np.where(use, u[np.maximum(take, 0)], 0.0) * w, axis=1)
+                        rhs[pos[hit], j, 1] = np.sum(np.where(use, v[np.maximum(take, 0)], 0.0) * w, axis=1)
             sol = np.linalg.solve(normal, rhs)
             grads[ok] = np.stack([sol[:, 1, 0] / step[0], sol[:, 2, 0] / step[1],
                                   sol[:, 1, 1] / step[0], sol[:, 2, 1] / step[1]], -1)
@@ -317,7 +338,32 @@ class StrainPlan:
         )
 
 
-def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainField:
+def _crack_cut_windows(points, index, shape, window: int, cracks):
+    """The fit windows that a declared crack cuts: ``(rows (m,), neighbours (m, w²), (Δcol, Δrow) (2, w²))``,
+    ``neighbours`` the point at each window node that the point reaches without crossing a crack (-1: none,
+    or across); None when no window is cut (or no cracks)."""
+    from .cracks import as_cracks, segments_cross
+
+    cracks = as_cracks(cracks)
+    if not cracks:
+        return None
+    h = window // 2
+    dr, dc = np.mgrid[-h:h + 1, -h:h + 1]
+    off = np.stack([dc.ravel(), dr.ravel()]).astype(np.float64)  # (2, w²) Δcol, Δrow: the order of _kernels
+    node = np.full(shape, -1, np.int64)
+    node[index[:, 1], index[:, 0]] = np.arange(points.shape[0])
+    cols = index[:, 0, None] + dc.ravel()[None, :]
+    rows = index[:, 1, None] + dr.ravel()[None, :]
+    inside = (cols >= 0) & (cols < shape[1]) & (rows >= 0) & (rows < shape[0])
+    nbr = np.where(inside, node[np.clip(rows, 0, shape[0] - 1), np.clip(cols, 0, shape[1] - 1)], -1)
+    across = (nbr >= 0) & segments_cross(points[:, None, :], points[np.maximum(nbr, 0)], cracks)
+    cut = np.flatnonzero(across.any(axis=1))
+    if cut.size == 0:
+        return None
+    return cut, np.where(across[cut], -1, nbr[cut]), off
+
+
+def strain(field, *, window: int = 5, min_points: int | None = None, cracks=None) -> StrainField:
     """Pointwise least-squares strain (small and Green-Lagrange) of a displacement field.
 
     Parameters
@@ -331,10 +377,12 @@ def strain(field, *, window: int = 5, min_points: int | None = None) -> StrainFi
     min_points : int, optional
         Fewest valid points a fit needs (default ``(window // 2 + 1)²``, what a grid corner has).
         A window that no grid point can fill is an error (:func:`check_strain_window`).
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`): no fit reaches across one (:class:`StrainPlan`).
 
     Returns
     -------
     StrainField
     """
     points, u, v, valid = _field_arrays(field)
-    return StrainPlan(points, window=window, min_points=min_points)._strain(points, u, v, valid)
+    return StrainPlan(points, window=window, min_points=min_points, cracks=cracks)._strain(points, u, v, valid)

@@ -23,6 +23,7 @@ from kernels._device import resolve_device
 from kernels.checks import as_points, boolean, in_range, non_negative_int
 from kernels.conventions import Status
 from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_current
+from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION
 from kernels.images import as_float32_image, as_float32_tensor, is_torch_tensor, read_image
 
 from .correlation.acceptance import accepted_mask, flag_implausible, status_counts, warn_if_mostly_invalid
@@ -31,6 +32,7 @@ from .correlation.guesses import TRACKING_SEARCHES, GuessContext, available_gues
 from .correlation.lagrangian import displacement_outliers
 from .correlation.params import check_tol, guess_params
 from .correlation.points import check_step, grid
+from .correlation.subset_masks import check_min_kept_fraction, check_subset_mask, tracking_pixel_masks
 from .field2d import Field2D
 from .quality import check_noise_sigma, displacement_sigma, sigma_basis
 
@@ -138,13 +140,37 @@ class Tracker:
         test, :func:`dic.correlation.lagrangian.displacement_outliers`: false matches, often a whole
         pixel off) as NEIGHBOUR_OUTLIER, not valid. Default: on with ``robust``, off without.
     device : None or str
+    subset_mask : "region" or "none"
+        ``"region"`` (default): when ``roi`` is a mask (array or image) or a polygon, each subset is
+        correlated on the pixels inside it only (:mod:`dic.correlation.subset_masks`,
+        :mod:`kernels.icgn_masked`): subsets that overlap a hole or a free edge keep the specimen's
+        pixels. A box ROI chooses where the POIs are and masks no pixel. ``"none"``: every subset
+        pixel, whatever the ROI (the behaviour before the option).
+    min_kept_fraction : float in (0, 1]
+        A masked subset keeping fewer than this fraction of its pixels gets TOO_FEW_PIXELS. Default 0.5.
+    blocked_pixels : (N, subset**2) bool array or callable, optional
+        Pixels to drop per POI whatever the ROI says (True = dropped, the order of
+        :func:`dic.correlation.subset_masks.subset_pixel_masks`), e.g. those beyond a declared crack;
+        a callable gets ``(points (N, 2), subset)`` and returns that array. Masks the subsets even
+        without a mask ROI (and with ``subset_mask="none"``: it is an explicit request).
+    pixel_region : optional
+        With ``points`` (and no ``roi``): a region in any ROI form whose pixels the subsets keep (as
+        ``roi`` does for the grid's POIs, with ``subset_mask="region"``), without selecting the POIs;
+        e.g. the POIs of a chunk of a larger grid (:mod:`dic.sequence`).
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`): a :class:`dic.Crack`, an (M, 2) array of polyline vertices
+        (x, y) px in the reference image, or a list of them. Each subset is correlated on the pixels on
+        its POI's side only, less those within 1 px of a crack (:func:`dic.cracks.blocked_pixels` added to
+        ``blocked_pixels``; a subset
+        keeping fewer than ``min_kept_fraction`` of its pixels gets TOO_FEW_PIXELS). Default: none.
     """
 
     def __init__(self, reference, *, points=None, step: int | None = None, roi=None, subset: int = 21,
                  order: int = 1, search: str | None = None, search_radius: int = 32, max_iter: int = 30,
                  tol: float = 1e-3, zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool = False, check_outliers: bool | None = None,
-                 device=None):
+                 device=None, subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
+                 blocked_pixels=None, pixel_region=None, cracks=None):
         self.subset, self.order = check_subset_order(subset, order)
         self.noise_sigma = check_noise_sigma(noise_sigma)
         self.search = _check_search(search)
@@ -164,10 +190,23 @@ class Tracker:
         else:
             self.step = check_step(step) if step is not None else None
             if roi is not None:
-                raise ValueError("give either points or roi (roi selects grid points), not both")
+                raise ValueError("give either points or roi (roi selects grid points), not both; pixel_region= "
+                                 "masks the subsets of given points")
             self.points = as_points(points)
+        if pixel_region is not None:
+            if points is None:
+                raise ValueError("pixel_region goes with points (a roi masks the subsets of its own grid)")
+            roi = pixel_region
+        self.subset_mask = check_subset_mask(subset_mask)
+        self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
+        self.cracks = _check_cracks(cracks)
+        #: (N, subset**2) bool: the pixels each subset keeps, or None (every pixel)
+        self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask,
+                                               _with_cracks(blocked_pixels, self.cracks))
         self.correlator = Correlator(self.reference, self.points, subset=self.subset, order=self.order,
-                                     max_iter=self.max_iter, tol=self.tol, device=self.device, flat_std=flat_std)
+                                     max_iter=self.max_iter, tol=self.tol, device=self.device, flat_std=flat_std,
+                                     pixel_mask=self.pixel_mask,
+                                     min_kept_fraction=None if self.pixel_mask is None else self.min_kept_fraction)
         self._current_buf = None
         self._current_tensor = None  # the last torch image read in place (kept alive until the next one)
         self._sigma_basis = None  # diag H^-1 and df of the reference subsets, read back once (dic.quality)
@@ -327,10 +366,40 @@ class Tracker:
                        noise_source=source)
 
 
+def _check_cracks(cracks):
+    """``cracks`` -> a tuple of :class:`dic.cracks.Crack` (empty: none)."""
+    from .cracks import as_cracks
+
+    return as_cracks(cracks)
+
+
+def _with_cracks(blocked, cracks):
+    """``blocked_pixels`` with the pixels across ``cracks`` added: a callable ``(points, subset) -> (N, subset²)
+    bool`` (or ``blocked`` itself without cracks)."""
+    if not cracks:
+        return blocked
+
+    def blocked_with_cracks(points, subset):
+        from .cracks import blocked_pixels
+
+        out = blocked_pixels(points, subset, cracks)
+        if blocked is not None:
+            extra = np.asarray(blocked(points, subset) if callable(blocked) else blocked)
+            if extra.shape != out.shape or extra.dtype != bool:
+                raise ValueError(f"blocked_pixels must be a bool array of shape (N, subset**2) = {out.shape}, "
+                                 f"got {extra.dtype} {extra.shape}")
+            out |= extra
+        return out
+
+    return blocked_with_cracks
+
+
 def track(reference, current, *, points=None, step: int | None = None, roi=None, subset: int = 21, order: int = 1,
           guess=None, search: str | None = None, search_radius: int = 32, max_iter: int = 30, tol: float = 1e-3,
           zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True, noise_sigma=None,
-          robust: bool = False, check_outliers: bool | None = None, device=None) -> Field2D:
+          robust: bool = False, check_outliers: bool | None = None, device=None, subset_mask: str = "region",
+          min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION, blocked_pixels=None, pixel_region=None,
+          cracks=None) -> Field2D:
     """Track POIs of ``reference`` into ``current`` with IC-GN: every :class:`Tracker` option, plus ``guess``
     (initial parameters of this pair, as :meth:`Tracker.track` takes them).
 
@@ -346,5 +415,7 @@ def track(reference, current, *, points=None, step: int | None = None, roi=None,
     tracker = Tracker(reference, points=points, step=step, roi=roi, subset=subset, order=order, search=search,
                       search_radius=search_radius, max_iter=max_iter, tol=tol, zncc_min=zncc_min,
                       flat_std=flat_std, check_warps=check_warps, noise_sigma=noise_sigma, robust=robust,
-                      check_outliers=check_outliers, device=device)
+                      check_outliers=check_outliers, device=device, subset_mask=subset_mask,
+                      min_kept_fraction=min_kept_fraction, blocked_pixels=blocked_pixels, pixel_region=pixel_region,
+                      cracks=cracks)
     return tracker.track(current, guess=guess)

@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "speckle": ("dic.commands.speckle:speckle", "Speckle quality (MIG, SSSIG) and a subset size for a target uncertainty"),
     "report": ("dic.commands.report:report", "One self-contained HTML report of a result file: settings, quality, maps"),
     "repair": ("dic.commands.repair:repair", "Drop the damaged frames of a result file so that a rerun recomputes them"),
+    "crack": ("dic.commands.crack:crack", "Opening and sliding of declared cracks along their polylines (2D results)"),
 }
 
 

@@ -21,6 +21,10 @@ region or invalid points.
   :data:`MAX_EDGE_SPACINGS` times the median edge (the typical point spacing), so that no
   triangle spans a hole or a gap; a triangle's three corners must be valid.
 
+Declared cracks (:mod:`dic.cracks`, ``GridCells(points, cracks=...)``): a cell that a crack enters
+(crosses one of its edges or holds one of its vertices) gives no value to a query that needs more than
+one of its corners (:attr:`QueryStatus.CRACK`): nothing is interpolated across a crack.
+
 Both separate what depends on the positions only (:meth:`locate`, computed once for the
 queries of a file, since every frame has the same points) from the values of a frame
 (:meth:`Located.evaluate`). Neither uses BLAS: a query costs a few array lookups, and locating
@@ -59,6 +63,8 @@ class QueryStatus(enum.IntEnum):
     #: in a cell of points of which one the value depends on has no valid value in this frame
     #: (a failed correlation; for strain also too few neighbours for the fit)
     INVALID = 3
+    #: in a grid cell that a declared crack cuts (dic.cracks): the corners lie on both sides of it
+    CRACK = 4
 
     @property
     def reason(self) -> str:
@@ -71,6 +77,7 @@ _REASONS = {
     QueryStatus.OUTSIDE: "outside the grid of points",
     QueryStatus.NO_POINTS: "in a hole or an excluded region (no points there)",
     QueryStatus.INVALID: "among points with no valid value in the frame",
+    QueryStatus.CRACK: "in a grid cell cut by a declared crack",
 }
 
 
@@ -161,14 +168,18 @@ class GridCells:
     points : (N, 2) float
         Positions on a regular grid or a subset of one (px); raises ``ValueError`` otherwise
         (:func:`dic.grid_layout`).
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`, reference px): the cells they cut give no value
+        (:attr:`QueryStatus.CRACK`). Default: none.
 
     Attributes
     ----------
     points : (N, 2) float64 (read-only copy); ``origin`` (x0, y0) and ``step`` (dx, dy) of the grid;
-    ``shape`` (rows, cols); ``node`` (rows, cols) int64, the point at each node (-1: none).
+    ``shape`` (rows, cols); ``node`` (rows, cols) int64, the point at each node (-1: none);
+    ``cut`` (rows - 1, cols - 1) bool, the cells a crack cuts (None without cracks).
     """
 
-    def __init__(self, points):
+    def __init__(self, points, *, cracks=None):
         from ._strain import grid_layout
 
         pts = np.array(points, dtype=np.float64, copy=True)
@@ -186,6 +197,7 @@ class GridCells:
         self.origin = (float(pts[:, 0].min()), float(pts[:, 1].min()))
         self.node = np.full(shape, -1, np.int64)
         self.node[index[:, 1], index[:, 0]] = np.arange(pts.shape[0])
+        self.cut = _cut_cells(self.origin, self.step, self.shape, cracks)
 
     def __repr__(self) -> str:
         return (f"GridCells({self.points.shape[0]} points on a {self.shape[0]} x {self.shape[1]} grid, step "
@@ -224,6 +236,9 @@ class GridCells:
         needed = weights > 0
         missing = np.any(needed & (corners < 0), axis=1)
         status = np.where(outside, QueryStatus.OUTSIDE, np.where(missing, QueryStatus.NO_POINTS, QueryStatus.OK))
+        if self.cut is not None and self.cut.size:
+            cracked = self.cut[np.minimum(j0, rows - 2), np.minimum(i0, cols - 2)] & (np.count_nonzero(needed, axis=1) > 1)
+            status = np.where((status == QueryStatus.OK) & cracked, QueryStatus.CRACK, status)
         corners = np.where(needed, corners, -1)
         weights = np.where(needed, weights, 0.0)
         group = np.where(needed, 0, -1)
@@ -357,6 +372,31 @@ class TriangleCells:
         return Located(corners=corners, weights=weights, group=group, support=support, status=status)
 
 
+def _cut_cells(origin, step, shape, cracks) -> np.ndarray | None:
+    """(rows - 1, cols - 1) bool: the grid cells that a crack enters (crosses an edge of, or holds a vertex of)."""
+    from .cracks import as_cracks, segments_cross
+
+    cracks = as_cracks(cracks)
+    if not cracks:
+        return None
+    rows, cols = shape
+    if rows < 2 or cols < 2:
+        return np.zeros((max(rows - 1, 0), max(cols - 1, 0)), bool)
+    x = origin[0] + step[0] * np.arange(cols)
+    y = origin[1] + step[1] * np.arange(rows)
+    X, Y = np.meshgrid(x, y)  # (rows, cols)
+    nodes = np.stack([X, Y], axis=-1)
+    horizontal = segments_cross(nodes[:, :-1], nodes[:, 1:], cracks)  # (rows, cols - 1)
+    vertical = segments_cross(nodes[:-1, :], nodes[1:, :], cracks)  # (rows - 1, cols)
+    cut = horizontal[:-1] | horizontal[1:] | vertical[:, :-1] | vertical[:, 1:]
+    for c in cracks:  # a crack that ends inside a cell without crossing its edges
+        f = (c.vertices[:, 0] - origin[0]) / step[0]
+        g = (c.vertices[:, 1] - origin[1]) / step[1]
+        inside = (f >= 0) & (f <= cols - 1) & (g >= 0) & (g <= rows - 1)
+        cut[np.minimum(g[inside].astype(np.int64), rows - 2), np.minimum(f[inside].astype(np.int64), cols - 2)] = True
+    return cut
+
+
 def _hull_equations(xy) -> np.ndarray | None:
     """The convex hull's facet equations ``(n_x, n_y, c)`` (inside: ``n·p + c <= 0``), or None."""
     from scipy.spatial import ConvexHull, QhullError
@@ -379,10 +419,14 @@ def _inside(equations, q) -> np.ndarray:
         return np.all(side <= 1e-9 * scale, axis=1)
 
 
-def cells_for(points):
-    """:class:`GridCells` of ``points`` (N, 2) when they lie on a regular grid, else the
-    :meth:`TriangleCells.scattered` fallback over them."""
+def cells_for(points, *, cracks=None):
+    """:class:`GridCells` of ``points`` (N, 2) when they lie on a regular grid (with ``cracks``), else the
+    :meth:`TriangleCells.scattered` fallback over them (declared cracks are not supported there: ValueError)."""
     try:
-        return GridCells(points)
+        return GridCells(points, cracks=cracks)
     except ValueError:
+        from .cracks import as_cracks
+
+        if as_cracks(cracks):
+            raise ValueError("declared cracks need points on a regular grid (dic.grid); these are scattered") from None
         return TriangleCells.scattered(points)

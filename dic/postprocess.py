@@ -54,7 +54,7 @@ from .gridinterp import QueryStatus
 
 __all__ = ["QueryStatus", "PrincipalStrains", "principal_strains", "recompute_strain", "window_points", "results_scale",
            "SCALE_KEY", "Extensometer", "extensometer", "History", "point_history", "Profile", "line_profile",
-           "quantities", "load_results"]
+           "quantities", "load_results", "results_crack_opening"]
 
 #: the settings key of a result file that holds its mm/px scale (2-D; absent: pixels)
 SCALE_KEY = "scale_mm_per_px"
@@ -376,7 +376,8 @@ class _Source:
         pts = self.domain(index, "px")
         grid = self._cells.get("px")
         if grid is None or not grid.matches(pts):
-            grid = cells_for(pts)
+            # 2-D runs with declared cracks (settings "cracks", reference px): no cell across one (dic.cracks)
+            grid = cells_for(pts, cracks=(self.settings or {}).get("cracks") if self.is_2d else None)
             self._cells = {"px": grid}
             self._located = {}
         if at == "px" or self.is_2d:
@@ -822,3 +823,50 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
             vals[k] = value[:, 0]
         return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
                        distance=t * length, frames=np.asarray(idx, np.int64), values=vals, status=status)
+
+
+# -- crack26: opening and sliding of declared cracks (dic.cracks) in a 2-D result file
+def results_crack_opening(results, frame: int | None = None, *, cracks=None, spacing: float | None = None,
+                          radius: float | None = None, min_points: int = 6, gap: float | None = None) -> list:
+    """:func:`dic.cracks.crack_opening` of every crack of a 2-D result file's frame.
+
+    Parameters
+    ----------
+    results : str or Path
+        A 2-D result file (``specula track`` / :func:`dic.sequence.track_sequence`).
+    frame : int, optional
+        The frame (default: the last finished one).
+    cracks : optional
+        The cracks to measure (any form :func:`dic.cracks.as_cracks` takes). Default: those the run declared
+        (its settings' ``cracks``); a file without any needs them given.
+    spacing, radius, min_points, gap :
+        As for :func:`dic.cracks.crack_opening` (defaults from the run's ``step`` and ``subset`` in the file's settings).
+
+    Returns
+    -------
+    list of dic.cracks.CrackOpening, one per crack, in order.
+    """
+    from .cracks import as_cracks, crack_opening
+    from .store import ResultReader
+
+    with ResultReader(results) as reader:
+        if reader.kind.name != "dic2d":
+            raise ValueError(f"{results} holds {reader.kind.label} results; crack opening is measured on 2-D results "
+                             "(declared cracks are reference-image px)")
+        settings = reader.settings or {}
+        done = reader.done_frames()
+        if not done:
+            raise ValueError(f"{results} has no finished frame")
+        index = done[-1] if frame is None else frame
+        field = reader.read_frame(index)
+    measured = as_cracks(cracks if cracks is not None else settings.get("cracks"))
+    if not measured:
+        raise ValueError(f"{results} declares no crack (its run had no --crack); give the crack to measure")
+    def recorded(name):
+        value = settings.get(name)
+        return value if isinstance(value, int) and not isinstance(value, bool) and value > 0 else None
+
+    if spacing is None:
+        spacing = recorded("step")
+    return [crack_opening(field, c, spacing=spacing, radius=radius, min_points=min_points, subset=recorded("subset"),
+                          gap=gap) for c in measured]

@@ -620,7 +620,7 @@ def specimen_on_background(shape, displacement=None, *, specimen, background_lev
                            radius: float = 2.0, density: float = 0.5, radius_spread: float = 0.2,
                            blur: float = 0.7, background: float | None = None, contrast: float | None = None,
                            noise_sigma: float = 0.0, poisson: bool = False, full_well: float = 20000.0,
-                           bits: int | None = 8, samples: int = 4, seed=0, device=None):
+                           bits: int | None = 8, samples: int = 4, seed=0, device=None, behind=None):
     """A speckled specimen in front of a dark featureless background, reference and deformed.
 
     The specimen is the region ``specimen`` of the reference image (material coordinates); it
@@ -651,6 +651,9 @@ def specimen_on_background(shape, displacement=None, *, specimen, background_lev
         specimen's grey level between speckles).
     noise_sigma, poisson, full_well, bits, seed, device :
         As in :func:`speckle_pair`.
+    behind : (H, W) array of grey levels, optional
+        What is seen where the specimen is not, in both images (it does not move): e.g. a textured
+        fixture seen through a hole. Default: the featureless ``background_level``.
 
     Returns
     -------
@@ -677,6 +680,10 @@ def specimen_on_background(shape, displacement=None, *, specimen, background_lev
     ref_fraction = _occupancy(inside, (H, W), None, int(samples), float(blur))
     cur_fraction = _occupancy(inside, (H, W), displacement, int(samples), float(blur))
     bg = float(background_level)
+    if behind is not None:
+        bg = np.asarray(behind, dtype=np.float64)
+        if bg.shape != (H, W) or not np.all(np.isfinite(bg)):
+            raise ValueError(f"behind must be a finite (H, W) = {(H, W)} array of grey levels, got shape {bg.shape}")
     noise = dict(noise_sigma=noise_sigma, poisson=poisson, full_well=full_well, bits=bits)
     reference = add_noise(ref_fraction * ref_speckle + (1.0 - ref_fraction) * bg, seed=_seed_entropy(seed, 1), **noise)
     current = add_noise(cur_fraction * cur_speckle + (1.0 - cur_fraction) * bg, seed=_seed_entropy(seed, 2), **noise)

@@ -58,6 +58,8 @@ class Status(IntEnum):
     #:                      (set by dic.correlation.acceptance, never by the kernels)
     NEIGHBOUR_OUTLIER = 8  #: converged, but its displacement disagrees with its neighbours' (a false
     #:                      match; the normalised median test, dic.correlation.lagrangian; 2-D robust mode)
+    TOO_FEW_PIXELS = 9   #: a masked subset (holes, free edges, cracks: kernels.icgn_masked) keeps fewer
+    #:                      of its pixels than the minimum kept fraction
 
 
 #: the distribution name on PyPI (``pip install specula-dic``); the command and the packages keep the

@@ -35,6 +35,7 @@ from ._device import host_copy
 from ._launch import cuda_launch_bounds, launch_1d
 from .checks import in_range, positive_float, positive_int
 from .icgn import (
+    MASKED_PATH,
     CurrentCoefficients,
     CurrentImage,
     IcgnOutputs,
@@ -154,6 +155,10 @@ def _pack_results(offset: int, n_points: int, frames: FrameArrays, packed: wp.ar
 def _launch_icgn_frames(subsets: ReferenceSubsets, frames: FrameArrays, n_frames: int, guess: wp.array,
                         guess_stride: int, max_iter: int, tol: float) -> None:
     n = subsets.n_points
+    if subsets.mask is not None:  # per-POI pixel masks: the masked body (kernels.icgn_masked)
+        MASKED_PATH["frames"](subsets.order, n, n_frames, subsets.table, subsets.mask, frames, guess, guess_stride,
+                              max_iter, tol, subsets.device)
+        return
     kernel = _icgn_frames_1st if subsets.order == 1 else _icgn_frames_2nd
     launch_1d(kernel, n_frames * n, [0, n, subsets.table, frames, guess, guess_stride, int(max_iter), float(tol)],
               subsets.device, offset_index=0, min_chunk=64)

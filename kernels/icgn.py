@@ -587,6 +587,15 @@ def _row_to_moments_func(deg: int):
     return row_to_moments
 
 
+#: order -> the wp.funcs of :func:`_make_prepare_subsets` that :mod:`kernels.icgn_masked` reuses by name
+PREPARE_PARTS: dict[int, dict] = {}
+
+#: the masked path's launchers by job ("icgn", "frames", "gather", "buffers", "rows"), registered by
+#: :mod:`kernels.icgn_masked` when it is imported: masked subsets come from it, so they are there whenever
+#: one is used, and this module imports nothing of it (the kernel modules stay free of import cycles)
+MASKED_PATH: dict[str, Any] = {}
+
+
 def _make_prepare_subsets(order: int):
     """The ``_prepare_subsets`` kernel of one shape-function order, with K = 6 or 12 parameters and
     the moment degree fixed at compile time (constant loop bounds, K x K matrices of the order's
@@ -769,6 +778,10 @@ def _make_prepare_subsets(order: int):
         store_refdata(sub.refdata, n, hinv, a, c, fmean, wp.sqrt(ss))
         sub.status[n] = ST_CONVERGED  # "ready"
 
+    # the order's closures, for the masked reference preparation of kernels.icgn_masked (the same wp.funcs:
+    # no second copy is registered in this module, whose kernels and bits stay as they are)
+    PREPARE_PARTS[order] = {"cholesky_inverse": cholesky_inverse, "store_refdata": store_refdata,
+                            "moments_hi": moments_hi, "moments_lo": moments_lo}
     name = "_prepare_subsets_1st" if order == 1 else "_prepare_subsets_2nd"
     prepare_subsets_kernel.__name__ = prepare_subsets_kernel.__qualname__ = name
     return wp.kernel(prepare_subsets_kernel, launch_bounds=cuda_launch_bounds(name))
@@ -968,6 +981,10 @@ class ReferenceSubsets:
                                           (``OUT_OF_BOUNDS``, ``FLAT_SUBSET``, ``SINGULAR_HESSIAN``).
     flat_std : float                      grey-level std of a flat subset (also applied to the
                                           warped subsets: DIVERGED when their texture vanishes).
+    mask : kernels.icgn_masked.SubsetMask or None
+        The per-POI pixel masks (:func:`kernels.icgn_masked.prepare_subsets_masked`): IC-GN of these
+        subsets runs over their kept pixels only (the launchers of :data:`MASKED_PATH`); None: every
+        pixel (this module's kernels).
     """
 
     reference: ReferenceImage
@@ -979,6 +996,7 @@ class ReferenceSubsets:
     refdata: wp.array
     status: wp.array
     flat_std: float = 0.0
+    mask: Any = None
 
     @property
     def device(self) -> str:
@@ -1206,7 +1224,8 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
     -------
     ReferenceSubsets
         ``status`` is ``OUT_OF_BOUNDS`` where the subset leaves the image, ``FLAT_SUBSET``,
-        ``SINGULAR_HESSIAN``, else ``CONVERGED`` (ready to track).
+        ``SINGULAR_HESSIAN``, else ``CONVERGED`` (ready to track). Subsets correlated on some of their
+        pixels only (holes, free edges): :func:`kernels.icgn_masked.prepare_subsets_masked`.
     """
     if not isinstance(reference, ReferenceImage):
         raise ValueError(f"reference must be a ReferenceImage from prepare_reference(), got {type(reference).__name__}")
@@ -1318,6 +1337,10 @@ def icgn(subsets: ReferenceSubsets, current, guess=None, max_iter: int = 30, tol
     elif out.params.shape != (n, k) or out.zncc.shape != (n,):
         raise ValueError(f"out was allocated for {out.params.shape}, expected params of shape {(n, k)}")
     # the same kernel for both layouts (hence the same bits): only the array it reads differs
+    if subsets.mask is not None:  # per-POI pixel masks: the kernels of kernels.icgn_masked
+        MASKED_PATH["icgn"](subsets.order, n, subsets.table, subsets.mask, cur.coefficients(layout), g, max_iter, tol,
+                            out.outputs, device)
+        return out
     kernel = _icgn_1st if subsets.order == 1 else _icgn_2nd
     launch_1d(kernel, n, [0, subsets.table, cur.coefficients(layout), g, int(max_iter), float(tol), out.outputs],
               device, offset_index=0, min_chunk=64)
@@ -1352,11 +1375,12 @@ def subset_buffers(subsets: ReferenceSubsets, capacity: int | None = None) -> Re
         raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
     m = subsets.n_points if capacity is None else positive_int(capacity, "capacity")
     dev = subsets.device
+    mask = None if subsets.mask is None else MASKED_PATH["buffers"](subsets.mask, m, subsets.subset, dev)
     return ReferenceSubsets(
         subsets.reference, np.full((m, 2), np.nan), subsets.subset, subsets.order,
         wp.empty(m, dtype=wp.vec2i, device=dev), wp.empty(m, dtype=wp.vec2, device=dev),
         wp.empty((m, refdata_width(subsets.order)), dtype=wp.float32, device=dev), wp.empty(m, dtype=wp.int32, device=dev),
-        subsets.flat_std,
+        subsets.flat_std, mask,
     )
 
 
@@ -1365,8 +1389,10 @@ def subset_rows(subsets: ReferenceSubsets, count: int, points=None) -> Reference
     ``points`` (count, 2) their POIs when known on the host, else the buffer's rows (NaN for a gather
     made on the device)."""
     pts = subsets.points[:count] if points is None else np.asarray(points, dtype=np.float64).reshape(count, 2)
+    mask = None if subsets.mask is None else MASKED_PATH["rows"](subsets.mask, count)
     return ReferenceSubsets(subsets.reference, pts, subsets.subset, subsets.order, subsets.centres[:count],
-                            subsets.deltas[:count], subsets.refdata[:count], subsets.status[:count], subsets.flat_std)
+                            subsets.deltas[:count], subsets.refdata[:count], subsets.status[:count], subsets.flat_std,
+                            mask)
 
 
 def gather_subsets(subsets: ReferenceSubsets, idx: wp.array, count: int, out: ReferenceSubsets,
@@ -1387,6 +1413,10 @@ def gather_subsets(subsets: ReferenceSubsets, idx: wp.array, count: int, out: Re
     if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 0 <= count <= min(idx.shape[0],
                                                                                                    out.n_points):
         raise ValueError(f"count must be an int in [0, {min(idx.shape[0], out.n_points)}], got {count!r}")
+    if (subsets.mask is None) != (out.mask is None):
+        raise ValueError("out must be subset_buffers() of the same subsets (both masked or both not)")
     launch_1d(_gather_subsets, int(count), [0, idx, subsets.table, out.table], subsets.device, offset_index=0,
               min_chunk=1024)
+    if subsets.mask is not None:
+        MASKED_PATH["gather"](int(count), idx, subsets.mask, out.mask, subsets.device)
     return subset_rows(out, int(count), points)

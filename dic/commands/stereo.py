@@ -136,9 +136,14 @@ def _engine_pairs(pairs) -> list:
               help="Exit with status 0 even when no state of the run has a valid point (by default that is an error: "
                    "a swapped or foreign rig, or images that do not match).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+@click.option("--subset-mask", default="region", show_default=True, type=click.Choice(["region", "none"]),
+              help="region: with --mask or --roi-polygon, the left reference's subsets are correlated on the pixels "
+                   "inside the region only (the match and the left track; holes, free edges); none: on all pixels.")
+@click.option("--min-kept-fraction", default=0.5, show_default=True, type=click.FloatRange(min=0, min_open=True, max=1),
+              help="A masked subset keeping fewer than this fraction of its pixels is not correlated (TOO_FEW_PIXELS).")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           compression, overwrite, allow_empty, quiet):
+           compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -213,7 +218,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         record = StereoOptions(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
                                zncc_min=zncc_min, strain_window=strain_window, roi=region, robust=robust,
                                noise_sigma=noise_sigma,
-                               reference=reference_strategy)
+                               reference=reference_strategy, subset_mask=subset_mask,
+                               min_kept_fraction=min_kept_fraction)
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images

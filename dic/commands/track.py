@@ -76,9 +76,20 @@ def _fail(exc: Exception) -> click.ClickException:
 @compression_option("array")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+@click.option("--subset-mask", default="region", show_default=True, type=click.Choice(["region", "none"]),
+              help="region: with --mask or --roi-polygon, each subset is correlated on the pixels inside the region "
+                   "only (holes, free edges; a box --roi masks no pixel); none: on all its pixels.")
+@click.option("--min-kept-fraction", default=0.5, show_default=True, type=click.FloatRange(min=0, min_open=True, max=1),
+              help="A masked subset keeping fewer than this fraction of its pixels is not tracked (TOO_FEW_PIXELS).")
+# -- crack26: declared cracks
+@click.option("--crack", "cracks", multiple=True, metavar="x1,y1,x2,y2,...",
+              help="A declared crack: a polyline in reference-image px (repeat for several). No subset, strain window, "
+                   "interpolation or figure cell reaches across it; stored in the result file (specula crack measures "
+                   "its opening and sliding).")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
-          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet):
+          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, subset_mask,
+          min_kept_fraction, cracks):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -111,6 +122,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     if output.suffix.lower() not in (".h5", ".hdf5"):
         raise click.BadParameter(f"the output must be an HDF5 file ending in .h5, got {output.name}", param_hint="--output")
     region = parse_region(roi, roi_polygon, mask, exclude)
+    cracks = _parse_cracks(cracks)
     try:
         source = open_inputs([reference, *current])
         n_frames = len(source)
@@ -133,7 +145,8 @@ def track(reference, current, output, subset, step, order, search, search_method
     given = {"max_iter": max_iter, "tol": tol, "search_radius": search}
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
                      noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
-                     scale_mm_per_px=scale, **{k: v for k, v in given.items() if v is not None})
+                     scale_mm_per_px=scale, subset_mask=subset_mask, min_kept_fraction=min_kept_fraction, cracks=cracks,
+                     **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
 
@@ -154,8 +167,10 @@ def track(reference, current, output, subset, step, order, search, search_method
     def make_tracker(image, points):
         kwargs = record.tracker_kwargs()
         if points is not None:  # a moved reference or a chunk (dic.sequence): these POIs, not the region's grid
-            kwargs.pop("roi", None)
+            region = kwargs.pop("roi", None)
             kwargs["points"] = points
+            if image is ref and region is not None:  # a chunk of the reference: its subsets masked by the region
+                kwargs["pixel_region"] = region
         return _make_tracker(image, device=device, **kwargs)
 
     try:
@@ -169,7 +184,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
-        _sequence_figures(output, ref, figure_dir, region)
+        _sequence_figures(output, ref, figure_dir, region, cracks)
     if not quiet:
         for f in result.frames:
             ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
@@ -221,9 +236,22 @@ def _check_budget(budget: int, text: str, n_points: int, order: int, shape) -> N
         raise click.BadParameter(str(exc), param_hint="--max-memory") from None
 
 
-def _sequence_figures(output, ref, figure_dir, region=None) -> None:
+def _parse_cracks(texts):
+    """``--crack`` values -> the cracks (:func:`dic.cracks.parse_crack`), or None without any."""
+    from dic.cracks import parse_crack
+
+    out = []
+    for text in texts:
+        try:
+            out.append(parse_crack(text))
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--crack") from None
+    return out or None
+
+
+def _sequence_figures(output, ref, figure_dir, region=None, cracks=None) -> None:
     """One figure per frame of the result file, with one colour range per quantity over all frames (and
-    the region of interest drawn: ``region``, a checked Region or None)."""
+    the region of interest drawn: ``region``, a checked Region or None; declared ``cracks`` drawn)."""
     from dic.plots.fields import sequence_limits, write_field_figure
     from dic.store import read_results
 
@@ -235,7 +263,7 @@ def _sequence_figures(output, ref, figure_dir, region=None) -> None:
     limits = sequence_limits(frames, components)
     for f in frames:
         write_field_figure(figure_dir / f"frame_{f.index:06d}.png", ref, f, f.strain, components=components,
-                           limits=limits, title=f"frame {f.index}: {Path(f.path).name}", region=region)
+                           limits=limits, cracks=cracks, title=f"frame {f.index}: {Path(f.path).name}", region=region)
 
 
 def _make_tracker(reference, *, device, **options):

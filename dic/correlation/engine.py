@@ -61,16 +61,30 @@ class Correlator:
     max_iter : int; tol : float (px) - IC-GN limits (:func:`kernels.icgn.icgn`).
     flat_std : float, optional - grey-level std below which a subset is FLAT_SUBSET.
     device : resolved device string.
+    pixel_mask : (N, subset**2) bool, optional - the pixels each subset keeps
+        (:func:`dic.correlation.subset_masks.subset_pixel_masks`): IC-GN over those only
+        (:mod:`kernels.icgn_masked`); None: every pixel.
+    min_kept_fraction : float in (0, 1], optional - with ``pixel_mask``, the fraction of its pixels a subset
+        must keep (else TOO_FEW_PIXELS; default :data:`kernels.icgn_masked.DEFAULT_MIN_KEPT_FRACTION`).
     """
 
     def __init__(self, reference: np.ndarray, points: np.ndarray, *, subset: int, order: int, max_iter: int,
-                 tol: float, device: str, flat_std: float | None = None):
+                 tol: float, device: str, flat_std: float | None = None, pixel_mask: np.ndarray | None = None,
+                 min_kept_fraction: float | None = None):
         self.image = reference
         self.points = points
         self.subset, self.order, self.device = subset, order, device
         self.max_iter, self.tol, self.flat_std = max_iter, tol, flat_std
+        self.pixel_mask = None if pixel_mask is None else np.asarray(pixel_mask, dtype=bool)
         self.reference = prepare_reference(reference, device=device)
-        self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std)
+        if self.pixel_mask is None:
+            self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std)
+        else:
+            from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION, prepare_subsets_masked
+
+            self.subsets = prepare_subsets_masked(
+                self.reference, points, subset=subset, order=order, flat_std=flat_std, pixel_mask=self.pixel_mask,
+                min_kept_fraction=DEFAULT_MIN_KEPT_FRACTION if min_kept_fraction is None else min_kept_fraction)
         self.reference_status = self.subsets.status.numpy().astype(np.int32)
         self._out = None
         self._frames = {}  # device-resident frame trackers by frame dtype (run_frame)
@@ -93,11 +107,17 @@ class Correlator:
         return self.reference_status == int(Status.CONVERGED)
 
     def textured_fraction(self) -> np.ndarray:
-        """(N,) fraction of each reference subset's pixels that carry texture (computed once)."""
+        """(N,) fraction of each reference subset's pixels that carry texture (computed once); with a
+        ``pixel_mask``, the fraction of its kept pixels (the pixels it is correlated on)."""
         if self._textured is None:
-            from .plausibility import textured_fraction
+            if self.pixel_mask is None:
+                from .plausibility import textured_fraction
 
-            self._textured = textured_fraction(self.image, self.points, self.subset)
+                self._textured = textured_fraction(self.image, self.points, self.subset)
+            else:
+                from .subset_masks import kept_textured_fraction
+
+                self._textured = kept_textured_fraction(self.image, self.points, self.subset, self.pixel_mask)
         return self._textured
 
     def run_all(self, current, guess: np.ndarray) -> dict:
@@ -150,6 +170,8 @@ class Correlator:
         n, k = self.n_points, n_params(self.order)
         status = np.asarray(r["status"])
         active = (status == int(Status.CONVERGED)) | (status == int(Status.MAX_ITERATIONS))
+        if self.pixel_mask is not None:  # the robust kernel reads whole subsets: masked ones keep their masked result
+            active &= self.pixel_mask.all(axis=1)
         if self._robust is None:
             self._robust = (wp.empty((n, k), dtype=wp.float32, device=self.device),
                             wp.empty(n, dtype=wp.int32, device=self.device), robust_result(n, k, self.device))
@@ -624,7 +646,9 @@ def _rg_device(corr: Correlator, current, base: np.ndarray, seeds: np.ndarray, s
         _upload(b.idx[:m], seeds.astype(np.int32))
         _upload(b.guess[:m], g.astype(np.float32))
         gather_subsets(corr.subsets, b.idx, m, b.subsets, points=corr.points[seeds])
-        kind = "sync" if sync else _loop_kind(wp.get_device(corr.device))
+        # masked subsets: the waves' counts read on the host (the counted kernel of kernels.rg_device has no
+        # masked variant; the same waves and results)
+        kind = "sync" if sync or corr.pixel_mask is not None else _loop_kind(wp.get_device(corr.device))
         if kind == "sync":
             _rg_sync_loop(corr, st, cur, zncc_min, 0, m)
         else:
@@ -668,6 +692,10 @@ def _rg_sync_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min: f
             wp.copy(st.counts_host, st.counts, src_offset=2 * w, count=2)
             wp.synchronize_device(corr.device)
             m, left = (int(x) for x in st.counts_host.numpy())
+        if m and corr.subsets.mask is not None:  # the wave gathered the candidates' tables: their masks follow
+            from kernels.icgn_masked import launch_gather_masks
+
+            launch_gather_masks(m, b.idx, corr.subsets.mask, b.subsets.mask, corr.device)
         if not m and not left:
             return
 

@@ -176,9 +176,11 @@ def _component_values(field, strain, name) -> np.ndarray:
     return vals
 
 
-def _grid_maps(field, strain, names):
-    """Per-name (rows, cols) maps and the image extent of the grid, or (None, None) if not a grid."""
+def _grid_maps(field, strain, names, cracks=None):
+    """Per-name (rows, cols) maps and the image extent of the grid, or (None, None) if not a grid; the
+    cells (a node's square, one step wide) that a declared crack enters are NaN (not drawn)."""
     from .._strain import grid_layout
+    from ..gridinterp import _cut_cells
 
     pts = np.asarray(field.points, dtype=np.float64)
     try:
@@ -192,6 +194,11 @@ def _grid_maps(field, strain, names):
         maps[name] = grid
     x0 = pts[:, 0].min() - index[:, 0].min() * step[0]
     y0 = pts[:, 1].min() - index[:, 1].min() * step[1]
+    # a node's cell is the cell of the grid shifted by half a step, one node larger each way
+    cut = _cut_cells((x0 - step[0] / 2, y0 - step[1] / 2), step, (shape[0] + 1, shape[1] + 1), cracks)
+    if cut is not None:
+        for grid in maps.values():
+            grid[cut] = np.nan
     extent = (x0 - step[0] / 2, x0 + (shape[1] - 0.5) * step[0], y0 + (shape[0] - 0.5) * step[1], y0 - step[1] / 2)
     return maps, extent
 
@@ -316,7 +323,7 @@ def _max_n_locator(nbins):
 
 def field_figure(reference, field, strain=None, *, components=None, title: str | None = None,
                  cmap: str | None = None, alpha: float = 0.75, panel_size: float = 3.0, vmin: float | None = None,
-                 vmax: float | None = None, limits: dict | None = None, dpi: float = 100, region=None):
+                 vmax: float | None = None, limits: dict | None = None, dpi: float = 100, region=None, cracks=None):
     """A Matplotlib Figure with one panel per component over the reference image.
 
     Parameters
@@ -353,6 +360,9 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         The run's region of interest (a :class:`dic.correlation.points.Region`, the JSON form a result
         file stores, a box, a polygon or an (H, W) mask), drawn on every panel: its outline solid, its
         excluded shapes dashed (module docstring).
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`, reference px): the grid cells they cut are not drawn, and
+        each crack is drawn as a black line.
 
     Without fixed limits each panel spans the 1st-99th percentiles of its own values. POIs on a
     regular grid are drawn as cells, scattered POIs as dots. Every panel has x and y axes in image
@@ -385,7 +395,10 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
             raise ValueError(f"unknown component {c!r}; choose from {', '.join(_LABELS)}")
         if c not in ("u", "v", "magnitude") and strain is None:
             raise ValueError(f"component {c!r} needs a strain field (strain=dic.strain(field))")
-    maps, extent = _grid_maps(field, strain, components)
+    from ..cracks import as_cracks
+
+    cracks = as_cracks(cracks)
+    maps, extent = _grid_maps(field, strain, components, cracks)
     pts = np.asarray(field.points, dtype=np.float64)
     x0, x1, y0, y1 = _view_box(ref, pts, extent)
     n = len(components)
@@ -404,6 +417,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
             im = ax.scatter(pts[:, 0], pts[:, 1], c=values, s=4, cmap=map_cmap, vmin=lo, vmax=hi)
         if outline is not None:
             _draw_region(ax, outline)
+        for crack in cracks:
+            ax.plot(crack.vertices[:, 0], crack.vertices[:, 1], color="k", linewidth=1.5)
         ax.set_xlim(x0, x1)
         ax.set_ylim(y1, y0)
         ax.set_title(_LABELS[name], fontsize=10)

@@ -32,6 +32,7 @@ import numpy as np
 
 from kernels.checks import boolean, in_range, non_negative_int, odd_int, positive_float, positive_int
 
+from ..correlation.subset_masks import check_min_kept_fraction, check_subset_mask
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
 
 __all__ = ["OPTIONS_SCHEMA", "OptionError", "TrackOptions", "StereoOptions"]
@@ -187,7 +188,7 @@ class _Record:
         skip = self.unrecorded | other.unrecorded
         out = []
         for f in fields(self):
-            if not f.compare or f.name in skip:
+            if not f.compare or f.name in skip or self._inert(other, f.name):
                 continue
             a, b = getattr(self, f.name), getattr(other, f.name)
             if f.name == "roi":
@@ -230,6 +231,28 @@ class _Record:
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)
 
+    def _subset_mask_options(self) -> None:
+        """``subset_mask`` and ``min_kept_fraction`` checked (written as given; :meth:`_inert` says when they
+        cannot act)."""
+        self._set("subset_mask", _checked("subset_mask", check_subset_mask, self.subset_mask))
+        self._set("min_kept_fraction", _checked("min_kept_fraction", check_min_kept_fraction, self.min_kept_fraction))
+
+    def _subset_mask_kwargs(self) -> dict:
+        """The tracker keywords of the two options."""
+        return {"subset_mask": self.subset_mask, "min_kept_fraction": self.min_kept_fraction}
+
+    def _inert(self, other, name: str) -> bool:
+        """Whether option ``name`` cannot change the results of either record, so that a difference in it is
+        none: ``subset_mask`` without a mask or polygon ROI on either side (no ROI or a box: nothing is
+        masked), ``min_kept_fraction`` unless a side masks its subsets. A file written before the options
+        (read as "none", 0.5) thus resumes with today's defaults unless its run had a mask or polygon ROI."""
+        if name not in ("subset_mask", "min_kept_fraction"):
+            return False
+        masks = [isinstance(r.roi, dict) and r.subset_mask == "region" for r in (self, other)]  # dict: mask, polygon
+        if name == "subset_mask":
+            return not (isinstance(self.roi, dict) or isinstance(other.roi, dict))
+        return not any(masks)
+
     def _check_common(self) -> None:
         self._set("subset", _checked("subset", odd_int, self.subset, "subset", detail=" (e.g. 21)"))
         if isinstance(self.order, bool) or self.order not in (1, 2):
@@ -253,6 +276,13 @@ class _Record:
             raise OptionError("roi", "give either points or roi (roi selects grid points), not both")
 
 
+def _schema1_subset_mask(kw: dict) -> None:
+    """A schema-1 run with a mask or polygon ROI correlated every subset pixel: ``subset_mask`` "none" (issue 26;
+    elsewhere the option cannot act and keeps its default)."""
+    if isinstance(kw.get("roi"), dict):
+        kw.setdefault("subset_mask", "none")
+
+
 def _schema1_sequence(settings: dict) -> dict:
     """The sequence-level options of schema-1 settings (written only when not the default)."""
     kw = {"reference": settings.get("reference", "fixed"), "guess": settings.get("guess", "previous")}
@@ -270,8 +300,9 @@ class TrackOptions(_Record):
     ``roi``, ``search`` and ``search_radius`` px, ``max_iter``, ``tol`` px, ``zncc_min``, ``flat_std``
     grey levels, ``check_warps``, ``noise_sigma`` grey levels, ``robust``, ``check_outliers``) and the
     sequence's (``strain_window`` grid points, ``reference``, ``auto_valid``, ``auto_zncc``, ``guess``,
-    ``scale_mm_per_px``, recorded for post-processing). The device is not one: it does not change
-    the results a file holds beyond rounding.
+    ``scale_mm_per_px``, recorded for post-processing), and ``cracks``: declared cracks
+    (:mod:`dic.cracks`), stored as a list of vertex lists ``[[x, y], ...]`` px, None without any. The
+    device is not one: it does not change the results a file holds beyond rounding.
     """
 
     subset: int = 21
@@ -295,6 +326,11 @@ class TrackOptions(_Record):
     auto_zncc: float | None = None
     guess: str = "previous"
     scale_mm_per_px: float | None = None
+    # -- per-POI pixel masks (issue 26: holes, free edges; dic.correlation.subset_masks)
+    subset_mask: str = "region"
+    min_kept_fraction: float = 0.5
+    # -- crack26: declared cracks (dic.cracks), stored as a list of vertex lists [[x, y], ...] px; None: no cracks
+    cracks: Any = None
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
     #: the checked region (None when read from a file: it holds its JSON form)
@@ -306,8 +342,11 @@ class TrackOptions(_Record):
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
         "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
-        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale"}
+        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
+        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction",
+        "cracks": "--crack"}
     KIND: ClassVar[str] = "2-D"
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5, "cracks": None}
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess")
 
@@ -346,6 +385,8 @@ class TrackOptions(_Record):
         if self.scale_mm_per_px is not None:
             self._set("scale_mm_per_px", _checked("scale_mm_per_px", positive_float, self.scale_mm_per_px,
                                                   "the scale", detail=" (mm per px)"))
+        self._subset_mask_options()
+        self._set("cracks", _cracks(self.cracks))
         self._check_sequence()
 
     def tracker_kwargs(self) -> dict:
@@ -355,13 +396,15 @@ class TrackOptions(_Record):
         kw = {"subset": self.subset, "step": self.step, "order": self.order, "search": self.search,
               "max_iter": self.max_iter, "tol": self.tol, "zncc_min": self.zncc_min, "flat_std": self.flat_std,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
-              "check_outliers": self.check_outliers}
+              "check_outliers": self.check_outliers, **self._subset_mask_kwargs()}
         if self.search is not None:
             kw["search_radius"] = self.search_radius
         if self.points_array is not None:
             kw["points"] = self.points_array
         if self.region is not None:
             kw["roi"] = self.region
+        if self.cracks is not None:
+            kw["cracks"] = self.cracks
         return kw
 
     @classmethod
@@ -391,6 +434,7 @@ class TrackOptions(_Record):
         unknown = sorted(set(s) - known)
         if unknown:
             raise ValueError(f"unknown settings {', '.join(unknown)}")
+        _schema1_subset_mask(kw)
         return replace(cls(**kw), unrecorded=frozenset(unrecorded))
 
 
@@ -426,6 +470,9 @@ class StereoOptions(_Record):
     auto_valid: float | None = None
     auto_zncc: float | None = None
     guess: str = "previous"
+    # -- per-POI pixel masks of the left reference's subsets (issue 26; dic.correlation.subset_masks)
+    subset_mask: str = "region"
+    min_kept_fraction: float = 0.5
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
@@ -434,8 +481,10 @@ class StereoOptions(_Record):
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
         "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
         "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust",
-        "reference": "--reference", "guess": "--scheduler/--workers"}
+        "reference": "--reference", "guess": "--scheduler/--workers",
+        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction"}
     KIND: ClassVar[str] = "stereo"
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5}
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess")
 
     def __post_init__(self):
@@ -458,6 +507,7 @@ class StereoOptions(_Record):
         if self.triangulation not in ("optimal", "linear"):
             raise OptionError("triangulation", f"triangulation must be 'optimal' or 'linear', got {self.triangulation!r}")
         self._set("max_features", _checked("max_features", positive_int, self.max_features, "max_features"))
+        self._subset_mask_options()
         self._check_sequence()
 
     def correlation_kwargs(self) -> dict:
@@ -467,7 +517,8 @@ class StereoOptions(_Record):
         kw = {"subset": self.subset, "order": self.order, "frame": frame, "epipolar_tol_px": self.epipolar_tol_px,
               "zncc_min": self.zncc_min, "strain_window": self.strain_window, "max_iter": self.max_iter,
               "tol": self.tol, "triangulation": self.triangulation, "max_features": self.max_features,
-              "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust}
+              "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
+              **self._subset_mask_kwargs()}
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:
@@ -489,7 +540,18 @@ class StereoOptions(_Record):
         kw.setdefault("order", 2)
         if isinstance(kw.get("points"), list):  # schema 1 stored the coordinates themselves
             kw["points"] = _points_digest(kw["points"])
+        _schema1_subset_mask(kw)
         return cls(**kw)
+
+
+def _cracks(value):
+    """Declared cracks (any form :func:`dic.cracks.as_cracks` takes) -> their stored form (None: no cracks)."""
+    from ..cracks import cracks_settings
+
+    try:
+        return cracks_settings(value)
+    except ValueError as exc:
+        raise OptionError("cracks", f"cracks: {exc}") from None
 
 
 def _frame(frame):

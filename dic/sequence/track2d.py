@@ -242,8 +242,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     options
         :class:`dic.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``flat_std``, ``check_warps``,
-        ``noise_sigma``, ``robust``, ``check_outliers``, ``device``), and ``scale_mm_per_px`` (recorded in
-        the file for post-processing). Validated once (:class:`dic.sequence.options.OptionError`, a
+        ``noise_sigma``, ``robust``, ``check_outliers``, ``cracks``, ``device``), and ``scale_mm_per_px``
+        (recorded in the file for post-processing). ``cracks`` (:mod:`dic.cracks`, reference px) also keeps
+        the strain windows and figure cells from reaching across them, and is stored in the file's settings
+        for post-processing (``specula crack``). Validated once (:class:`dic.sequence.options.OptionError`, a
         ValueError naming the option).
 
     Returns
@@ -319,8 +321,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
             kw = dict(_opts)
             if points is not None:
-                kw.pop("roi", None)
+                region = kw.pop("roi", None)
                 kw["points"] = points
+                if image is ref_img and region is not None:  # a chunk of the reference's grid: its subsets masked
+                    kw["pixel_region"] = region  # alike (a moved reference's are not: docs/dic2d.md)
             return Tracker(image, **kw)
     if record is None:  # settings given as a dict (a custom tracker's): stored as given, compared as they are
         settings = dict(settings)
@@ -369,13 +373,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         return tracker0_holder[0]
 
     n = len(points0)
+    cracks = record.cracks if record is not None else options.get("cracks")  # declared cracks (dic.cracks): no strain window or figure cell across one
     strain_plan = None  # the strain's grid and fits worked out once for the POIs (every frame has the same)
     if strain_window:
         from .._strain import StrainPlan, check_strain_window, grid_layout
 
         try:
             if n <= STRAIN_BAND_POINTS:
-                strain_plan = StrainPlan(points0, window=strain_window)
+                strain_plan = StrainPlan(points0, window=strain_window, cracks=cracks)
             else:  # huge grids: strain in bands of rows (bounded memory), the grid checked here
                 check_strain_window(strain_window, grid_layout(points0)[1])
         except ValueError as exc:
@@ -404,7 +409,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                     if strain_plan is not None and strain_plan.matches(lag.points):
                         strain = strain_plan.strain(lag)  # bit for bit dic.strain
                     else:  # a band of grid rows at a time: bounded memory, the same strain (dic.sequence.chunks)
-                        strain = strain_in_bands(lag, strain_window)
+                        strain = strain_in_bands(lag, strain_window, cracks=cracks)
                 except ValueError as exc:
                     raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
             lag.strain = strain  # the frame's field carries its strain (callback, later use)
@@ -419,7 +424,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             if figure_dir is not None and k % figure_every == 0:
                 from ..plots.fields import write_field_figure
 
-                write_field_figure(Path(figure_dir) / f"frame_{k:06d}.png", ref_img, lag, strain,
+                write_field_figure(Path(figure_dir) / f"frame_{k:06d}.png", ref_img, lag, strain, cracks=cracks,
                                    title=f"frame {k}" + (f": {Path(item.path).name}" if item.path else ""),
                                    region=record.region if record is not None else None)
             if callback is not None:

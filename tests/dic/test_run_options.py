@@ -67,7 +67,8 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
                         "search": None, "search_radius": None, "max_iter": 30, "tol": 1e-3, "zncc_min": 0.8,
                         "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": False,
                         "check_outliers": False, "strain_window": 5, "reference": "fixed", "auto_valid": None,
-                        "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None}
+                        "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None, "subset_mask": "region",
+                        "min_kept_fraction": 0.5, "cracks": None}
     from dic.postprocess import SCALE_KEY
 
     assert SCALE_KEY in settings  # where post-processing reads the scale
@@ -153,7 +154,9 @@ def test_schema1_details_and_unknown_schemas():
     assert "--order (order): 2 in the file, 1 now" in StereoOptions(points=pts).resume_check({"points": pts.tolist()})
     # a mask is the same region wherever it was read from
     mask = {"mask": "/a/m.png", "sha256": "ab" * 32, "shape": [80, 100]}
-    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}).resume_check({"roi": mask, "strain_window": 5}) is None
+    # (a schema-1 file correlated every subset pixel: the same run now is subset_mask="none", issue 26)
+    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}, subset_mask="none").resume_check(
+        {"roi": mask, "strain_window": 5}) is None
     for stored, fragment in (({"options_schema": 3}, "schema 3"), ({"subset": 21, "colour": "red"}, "colour"),
                              ({**TrackOptions().to_settings(), "colour": 1}, "colour")):
         refusal = TrackOptions().resume_check(stored)

@@ -45,9 +45,18 @@ BOUNDS = {
     # Hessian is assembled from float64 moments in the kernel (no precomputed H^-1 as in _icgn_*)
     "_icgn_robust_1st": (210, 112),  # the stack: the |residual| histogram, indexed at run time; 214 before issue 23
     "_icgn_robust_2nd": (255, 944),
+    # per-POI pixel masks (kernels/icgn_masked.py, issue 26): separate kernels, the unmasked ones above unchanged;
+    # module block size 256, no launch-bounds cap (measured at their introduction)
+    "_icgn_masked_1st": (80, 0),
+    "_icgn_masked_2nd": (227, 0),
+    "_icgn_frames_masked_1st": (112, 0),
+    "_icgn_frames_masked_2nd": (238, 0),
+    "_prepare_masked_1st": (181, 0),
+    "_prepare_masked_2nd": (255, 3488),  # the 12x12 float64 Cholesky of _prepare_subsets_2nd (3472 B)
+    "_gather_masks": (32, 0),
 }
 MODULES = ("kernels.icgn", "kernels.interp", "bench.icgn_tiled", "kernels.frames", "kernels.rg_device",
-           "kernels.icgn_robust")
+           "kernels.icgn_robust", "kernels.icgn_masked")
 
 
 @pytest.fixture(scope="session")
