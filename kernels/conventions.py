@@ -58,6 +58,9 @@ class Status(IntEnum):
     #:                      (set by dic.correlation.acceptance, never by the kernels)
     NEIGHBOUR_OUTLIER = 8  #: converged, but its displacement disagrees with its neighbours' (a false
     #:                      match; the normalised median test, dic.correlation.lagrangian; 2-D robust mode)
+    COMPOSED_MISMATCH = 9  #: valid against a moved reference, but its composed warp fails the check against the
+    #:                      original reference image (ZNCC below the threshold; kernels.verify, 2-D sequences
+    #:                      with verify_composed; set by dic.sequence.verification, never by the IC-GN kernels)
 
 
 #: the distribution name on PyPI (``pip install specula-dic``); the command and the packages keep the

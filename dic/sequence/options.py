@@ -33,6 +33,7 @@ import numpy as np
 from kernels.checks import boolean, in_range, non_negative_int, odd_int, positive_float, positive_int
 
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
+from .verification import VERIFY_ZNCC
 
 __all__ = ["OPTIONS_SCHEMA", "OptionError", "TrackOptions", "StereoOptions"]
 
@@ -270,8 +271,9 @@ class TrackOptions(_Record):
     ``roi``, ``search`` and ``search_radius`` px, ``max_iter``, ``tol`` px, ``zncc_min``, ``flat_std``
     grey levels, ``check_warps``, ``noise_sigma`` grey levels, ``robust``, ``check_outliers``) and the
     sequence's (``strain_window`` grid points, ``reference``, ``auto_valid``, ``auto_zncc``, ``guess``,
-    ``scale_mm_per_px``, recorded for post-processing). The device is not one: it does not change
-    the results a file holds beyond rounding.
+    ``scale_mm_per_px``, recorded for post-processing; ``verify_composed`` and ``verify_zncc``, the check of
+    composed results against the reference image, :mod:`dic.sequence.verification`). The device is not
+    one: it does not change the results a file holds beyond rounding.
     """
 
     subset: int = 21
@@ -295,6 +297,9 @@ class TrackOptions(_Record):
     auto_zncc: float | None = None
     guess: str = "previous"
     scale_mm_per_px: float | None = None
+    # -- re-verification of composed results (dic.sequence.verification; issue 26)
+    verify_composed: bool = False
+    verify_zncc: float | None = None
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
     #: the checked region (None when read from a file: it holds its JSON form)
@@ -306,10 +311,13 @@ class TrackOptions(_Record):
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
         "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
-        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale"}
+        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
+        "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc"}
     KIND: ClassVar[str] = "2-D"
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
-    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess")
+    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess",
+                                                    "verify_composed", "verify_zncc")
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"verify_composed": False, "verify_zncc": None}
 
     def __post_init__(self):
         self._check_common()
@@ -347,6 +355,18 @@ class TrackOptions(_Record):
             self._set("scale_mm_per_px", _checked("scale_mm_per_px", positive_float, self.scale_mm_per_px,
                                                   "the scale", detail=" (mm per px)"))
         self._check_sequence()
+        self._check_verification()
+
+    def _check_verification(self) -> None:
+        """``verify_composed`` a bool; ``verify_zncc`` in [-1, 1], :data:`dic.sequence.verification.VERIFY_ZNCC`
+        (0.95) when not given, and None without ``verify_composed`` (it cannot act)."""
+        self._set("verify_composed", _checked("verify_composed", boolean, self.verify_composed, "verify_composed"))
+        if self.verify_zncc is not None:
+            self._set("verify_zncc", _checked("verify_zncc", in_range, self.verify_zncc, -1.0, 1.0, "verify_zncc"))
+        if not self.verify_composed:
+            self._set("verify_zncc", None)
+        elif self.verify_zncc is None:
+            self._set("verify_zncc", VERIFY_ZNCC)
 
     def tracker_kwargs(self) -> dict:
         """The :class:`dic.Tracker` keywords of this record (no ``device``): the POIs as given, the
