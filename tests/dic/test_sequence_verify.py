@@ -39,21 +39,23 @@ def _errors(frame, k):
     return np.hypot(frame.u - tu, frame.v - tv)
 
 
-@pytest.mark.parametrize("strategy", ["incremental", "every:3"])
-def test_a_clean_sequence_has_no_false_positive(noisy_sequence, tmp_path, strategy):
-    """1 GL noise, exact field: no point of any composed frame fails, and the results are those of a run without
-    the check (it changes nothing when nothing fails); the frames count 0 mismatches."""
+@pytest.mark.parametrize("strategy, order", [("incremental", 1), ("every:3", 1), ("incremental", 2)])
+def test_a_clean_sequence_has_no_false_positive(noisy_sequence, tmp_path, strategy, order):
+    """1 GL noise, exact field: no point of any composed frame fails (1st and 2nd order: the 2nd-order composed
+    warp is checked with its second derivatives), and the results are those of a run without the check (it
+    changes nothing when nothing fails); the frames count 0 mismatches."""
     ref, frames = noisy_sequence
     plain, checked = tmp_path / "plain.h5", tmp_path / "checked.h5"
-    track_sequence(ref, frames, plain, reference=strategy, step=8, device="cpu", strain_window=0)
+    track_sequence(ref, frames, plain, reference=strategy, step=8, device="cpu", strain_window=0, order=order)
     s = track_sequence(ref, frames, checked, reference=strategy, step=8, device="cpu", strain_window=0,
-                       verify_composed=True)
+                       order=order, verify_composed=True)
     assert np.array_equal(s.n_mismatch, np.zeros(N_FRAMES)) and all(f["n_mismatch"] == 0 for f in s.frames)
     a, b = read_results(plain), read_results(checked)
     assert b.settings["verify_composed"] is True and b.settings["verify_zncc"] == VERIFY_ZNCC == 0.95
     assert a.settings["verify_composed"] is False and a.settings["verify_zncc"] is None
     for k in range(1, N_FRAMES + 1):
         fa, fb = a.frames[k], b.frames[k]
+        assert fb.params.shape[1] == 6 * order
         for name in ("u", "v", "params", "zncc", "status", "valid"):
             assert np.array_equal(getattr(fa, name), getattr(fb, name), equal_nan=True), (k, name)
         assert fb.valid.mean() > 0.8 and _errors(fb, k)[fb.valid].max() < 0.05
@@ -185,3 +187,51 @@ def test_cli_verify_composed(noisy_sequence, tmp_path):
     assert res.frames[2].attrs["composed_mismatch"] == 0 and "composed_mismatch" not in res.frames[1].attrs
     r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "b.h5"), "--verify-zncc", "0.9"])
     assert r.exit_code != 0 and "--verify-zncc needs --verify-composed" in r.output
+
+
+def test_resume_after_a_crash_keeps_the_failed_points_out_of_the_reference(noisy_sequence, tmp_path):
+    """The run of the wrong-match test stopped after frame 4 (whose failed points are in the file with their
+    status) and resumed: the reference moved to frame 4 is rebuilt from the file, without the failed points as
+    anchors, and frames 5-8 are those of the uninterrupted run."""
+    from dic._track import Tracker
+
+    ref, frames = noisy_sequence
+
+    def make_tracker(image, points):
+        tracker = Tracker(image, step=8, device="cpu") if points is None else Tracker(image, points=points,
+                                                                                     device="cpu")
+        track = tracker.track
+
+        def corrupted(current, **kw):
+            field = track(current, **kw)
+            if np.array_equal(current, frames[1]) and points is None:  # frame 2 against the reference image
+                xs, ys = np.unique(field.points[:, 0]), np.unique(field.points[:, 1])
+                j = np.flatnonzero(np.isin(field.points[:, 0], xs[len(xs) // 2 - 2:len(xs) // 2 + 2])
+                                   & np.isin(field.points[:, 1], ys[len(ys) // 2 - 2:len(ys) // 2 + 2]))
+                field.u[j] += 1.0
+                field.params[j, 0] += 1.0
+            return field
+
+        tracker.track = corrupted
+        return tracker
+
+    kw = dict(reference="every:2", make_tracker=make_tracker, points=None, order=1, strain_window=0,
+              verify_composed=True)
+    whole = tmp_path / "whole.h5"
+    track_sequence(ref, frames, whole, **kw)
+
+    def crash(k, field, strain):
+        if k == 4:
+            raise RuntimeError("killed")
+
+    out = tmp_path / "cut.h5"
+    with pytest.raises(RuntimeError, match="killed"):
+        track_sequence(ref, frames, out, callback=crash, **kw)
+    s = track_sequence(ref, frames, out, **kw)
+    assert s.skipped == 4 and s.indices.tolist() == [5, 6, 7, 8]
+    a, b = read_results(whole), read_results(out)
+    assert a.frames[4].attrs["composed_mismatch"] >= 8  # the failed points the resumed reference is built from
+    for k in range(1, N_FRAMES + 1):
+        for name in ("u", "v", "params", "zncc", "status", "valid"):
+            assert np.array_equal(getattr(a.frames[k], name), getattr(b.frames[k], name), equal_nan=True), (k, name)
+        assert a.frames[k].attrs.get("composed_mismatch") == b.frames[k].attrs.get("composed_mismatch")
