@@ -22,7 +22,9 @@ are part of the run). Three parts (``--parts``):
   other jobs it moves less with their load than the wall-time ratio. ``--compression`` sets the
   result file's compression (default: the store's), ``--checksum off`` writes it without HDF5's
   Fletcher-32 checksums (default on, as the store; for the cost of checksums, see also
-  ``bench/checksum.py``).
+  ``bench/checksum.py``) ``--throughput-reference`` sets the run's reference mode (default fixed;
+  ``incremental`` moves it every frame) and ``--verify-composed`` checks the composed frames against the
+  reference image (``verify_composed``: its cost, docs/dic2d.md "Re-verification of composed results").
 * **memory**: the same run over ``--frames`` and ``--long-frames`` (1000) frames, each in its own
   process (peak RSS is a per-process high-water mark): peak RSS from ``resource.getrusage``
   (``ru_maxrss``) and the current RSS (``/proc/self/statm``) sampled every 0.2 s. Target: peak at
@@ -295,7 +297,9 @@ def part_throughput(args, run, engine_name, folder):
 
         comp = parse_compression(args.compression)
         extra = {"compression": Compression(comp.filter, comp.level, checksum=False)}
-    run(ref_path, frames, out, "fixed", device=args.device, **_tracker_options(args), **extra)
+    if args.verify_composed:  # the check of composed results (dic.sequence.verification): its cost
+        extra["verify_composed"] = True
+    run(ref_path, frames, out, args.throughput_reference, device=args.device, **_tracker_options(args), **extra)
     wall = time.perf_counter() - t0
     cpu = time.process_time() - c0
     load_during = os.getloadavg()[0]
@@ -316,6 +320,7 @@ def part_throughput(args, run, engine_name, folder):
         "valid_fraction_min": min(valid) if valid else None,
         "frames_stored": len(valid), "compression": args.compression or "default", "checksum": args.checksum,
         "results_file_mb_per_frame": file_mb / len(frames),
+        "reference": args.throughput_reference, "verify_composed": bool(args.verify_composed),
     }
 
 
@@ -515,6 +520,10 @@ def parse_args(argv=None):
                         help="auto: dic.sequence.track_sequence when present; fallback: today's loop")
     parser.add_argument("--out", default=None, help="results JSON (default bench/results/sequence_<device>.json)")
     parser.add_argument("--keep", default=None, help="folder for the rendered frames (default a temporary one)")
+    parser.add_argument("--throughput-reference", default="fixed",
+                        help="reference mode of the throughput run (default fixed; e.g. incremental)")
+    parser.add_argument("--verify-composed", action="store_true",
+                        help="throughput run with verify_composed (the check of composed results against the reference)")
     parser.add_argument("--memory-child", type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--frames-dir", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

@@ -60,6 +60,9 @@ class Status(IntEnum):
     #:                      match; the normalised median test, dic.correlation.lagrangian; 2-D robust mode)
     TOO_FEW_PIXELS = 9   #: a masked subset (holes, free edges, cracks: kernels.icgn_masked) keeps fewer
     #:                      of its pixels than the minimum kept fraction
+    COMPOSED_MISMATCH = 10  #: valid against a moved reference, but its composed warp fails the check against the
+    #:                      original reference image (ZNCC below the threshold; kernels.verify, 2-D sequences
+    #:                      with verify_composed; set by dic.sequence.verification, never by the IC-GN kernels)
 
 
 #: the distribution name on PyPI (``pip install specula-dic``); the command and the packages keep the

@@ -86,10 +86,19 @@ def _fail(exc: Exception) -> click.ClickException:
               help="A declared crack: a polyline in reference-image px (repeat for several). No subset, strain window, "
                    "interpolation or figure cell reaches across it; stored in the result file (specula crack measures "
                    "its opening and sliding).")
+@click.option("--verify-composed", is_flag=True,
+              help="With a moved --reference: check every point of a frame correlated against a moved reference "
+                   "against the reference image itself (ZNCC of its reference subset and the frame at the composed "
+                   "warp); points below --verify-zncc are not valid (status COMPOSED_MISMATCH) and are counted per "
+                   "frame. Not with --scheduler/--workers.")
+@click.option("--verify-zncc", default=None, type=click.FloatRange(min=-1.0, max=1.0),
+              help="With --verify-composed: the ZNCC below which a composed point fails (default 0.95: a whole-pixel "
+                   "wrong match scores at most 0.92 on a 2 px speckle, a correct warp at least 0.994 at 4 grey levels "
+                   "of noise).")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, subset_mask,
-          min_kept_fraction, cracks):
+          min_kept_fraction, cracks, verify_composed, verify_zncc):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -115,6 +124,10 @@ def track(reference, current, output, subset, step, order, search, search_method
     if check_dask(scheduler, workers) and policy.kind not in ("fixed", "every"):
         raise click.BadParameter(f"{policy.text!r} cannot be distributed (each frame waits for the one before it); "
                                  "use fixed or every:N with --scheduler/--workers", param_hint="--reference")
+    if verify_zncc is not None and not verify_composed:
+        raise click.BadParameter("--verify-zncc needs --verify-composed", param_hint="--verify-zncc")
+    if verify_composed and check_dask(scheduler, workers):
+        raise click.BadParameter("not available with --scheduler/--workers", param_hint="--verify-composed")
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window and (strain_window < 3 or strain_window % 2 == 0):
@@ -146,6 +159,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
                      noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
                      scale_mm_per_px=scale, subset_mask=subset_mask, min_kept_fraction=min_kept_fraction, cracks=cracks,
+                     verify_composed=verify_composed, verify_zncc=verify_zncc,
                      **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
@@ -180,7 +194,8 @@ def track(reference, current, output, subset, step, order, search, search_method
                 mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
                 vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
                 settings=record, make_tracker=make_tracker, points=planned, order=order,
-                max_memory=budget, search=search_method if search else None, client=client, compression=compression)
+                max_memory=budget, search=search_method if search else None, client=client, compression=compression,
+                verify_composed=verify_composed, verify_zncc=verify_zncc, device=device)
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
@@ -188,11 +203,18 @@ def track(reference, current, output, subset, step, order, search, search_method
     if not quiet:
         for f in result.frames:
             ref_note = f" (reference: frame {f['reference_index']})" if f["reference_index"] else ""
-            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points in the region, {f['seconds']:.2f} s{ref_note}")
+            mismatch = f", {f['n_mismatch']} failed the check against the reference" if verify_composed and \
+                f["reference_index"] else ""
+            click.echo(f"frame {f['index']}: {f['n_valid']}/{f['n_points']} valid points in the region{mismatch}, "
+                       f"{f['seconds']:.2f} s{ref_note}")
         if result.skipped:
             click.echo(f"{result.skipped} frame(s) were already in {output} and were skipped")
         if result.frames:
             click.echo(f"{len(result.frames)} frame(s) in {result.seconds:.1f} s ({result.frames_per_second:.2f} frames/s)")
+            if verify_composed:
+                checked = int((result.reference_indices != 0).sum())
+                click.echo(f"composed results checked against the reference image in {checked} frame(s): "
+                           f"{int(result.n_mismatch.sum())} point(s) failed (ZNCC < {record.verify_zncc:g})")
         click.echo(f"results: {output}")
 
 

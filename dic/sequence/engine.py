@@ -8,8 +8,11 @@ after OpenCorr's ``DIC`` interface: the reference is prepared once, then each fr
 - ``move_reference(r, image, state)``: track the next frames from frame ``r`` (``r = 0``: the
   reference image or pair), :class:`CannotServe` when frame ``r`` has no valid point;
 - ``quality(result)``: valid fraction among the points the reference can track, median ZNCC;
-- ``accept(k, result, image)``, ``stored_state(r)``: the next frame's guess starts from a result; what
+- ``accept(k, result, image)``, ``stored_state(r)``: the next frame's guess starts from a result (2-D with
+  ``verify_composed``: checked against the reference image first, :mod:`dic.sequence.verification`); what
   a moved reference is built from (a frame computed in this call, or one read back from the file);
+- ``counts(result)``, ``mismatches(result)``: valid points and points of the region; points that failed the
+  check of composed results;
 - ``check_done``, ``resume``: the resume check of a finished frame and the initial guess after it;
 - ``write(k, result, item, seconds)``: the result file, side outputs and callback (writer thread).
 
@@ -52,8 +55,11 @@ class SequenceSummary:
     ``path``: the result file (read it with :func:`dic.store.read_results`); ``skipped``: finished
     frames already in the file; ``seconds``: the whole call; per frame computed in this call, in
     order, compact columns: ``indices``, ``n_valid``, ``n_points``, ``frame_seconds``,
-    ``reference_indices`` (NumPy arrays), and ``frames``, the same as one dict per frame (``index``,
-    ``n_valid``, ``n_points``, ``seconds``, ``reference_index``) built on request. A stereo run
+    ``reference_indices``, ``n_mismatch`` (NumPy arrays), and ``frames``, the same as one dict per frame
+    (``index``, ``n_valid``, ``n_points``, ``seconds``, ``reference_index``, ``n_mismatch``) built on request.
+    ``n_mismatch``: the points of a composed frame (correlated against a moved reference) that failed the
+    check against the reference image (2-D ``verify_composed``, :mod:`dic.sequence.verification`; they are
+    not in ``n_valid``); 0 where nothing was checked. A stereo run
     counts the reference state 0 as a computed frame when it wrote it. ``n_points`` counts the points of the
     region, not the whole grid: 2-D, the tracked points (the region's grid); stereo, the grid points that were
     computed (status not ``NOT_COMPUTED``: inside the region, a reference subset with texture in the image).
@@ -67,14 +73,17 @@ class SequenceSummary:
     _points: array = field(default_factory=lambda: array("q"), repr=False)
     _seconds: array = field(default_factory=lambda: array("d"), repr=False)
     _reference: array = field(default_factory=lambda: array("q"), repr=False)
+    _mismatch: array = field(default_factory=lambda: array("q"), repr=False)
 
-    def add(self, index: int, n_valid: int, n_points: int, seconds: float, reference_index: int) -> None:
+    def add(self, index: int, n_valid: int, n_points: int, seconds: float, reference_index: int,
+            n_mismatch: int = 0) -> None:
         """Record one computed frame."""
         self._index.append(int(index))
         self._valid.append(int(n_valid))
         self._points.append(int(n_points))
         self._seconds.append(float(seconds))
         self._reference.append(int(reference_index))
+        self._mismatch.append(int(n_mismatch))
 
     def __len__(self) -> int:
         return len(self._index)
@@ -100,10 +109,16 @@ class SequenceSummary:
         return np.asarray(self._reference, dtype=np.int64)
 
     @property
+    def n_mismatch(self) -> np.ndarray:
+        return np.asarray(self._mismatch, dtype=np.int64)
+
+    @property
     def frames(self) -> list[dict]:
-        """One dict per computed frame (``index``, ``n_valid``, ``n_points``, ``seconds``, ``reference_index``)."""
-        return [{"index": k, "n_valid": v, "n_points": n, "seconds": s, "reference_index": r}
-                for k, v, n, s, r in zip(self._index, self._valid, self._points, self._seconds, self._reference)]
+        """One dict per computed frame (``index``, ``n_valid``, ``n_points``, ``seconds``, ``reference_index``,
+        ``n_mismatch``)."""
+        return [{"index": k, "n_valid": v, "n_points": n, "seconds": s, "reference_index": r, "n_mismatch": m}
+                for k, v, n, s, r, m in zip(self._index, self._valid, self._points, self._seconds, self._reference,
+                                            self._mismatch)]
 
     @property
     def frames_per_second(self) -> float:
@@ -121,6 +136,8 @@ class SequenceSummary:
         if n and pts.min() > 0:
             share = 100.0 * self.n_valid / pts
             text += f", valid {share.min():.1f}-{share.max():.1f} %"
+        if n and any(self._mismatch):
+            text += f", {sum(self._mismatch)} composed mismatches"
         return f"<{text}; {self.path}>"
 
 
@@ -163,6 +180,9 @@ class FrameMeasure(Protocol):
 
     def counts(self, result) -> tuple[int, int]:
         """(valid points, points of the region: see :class:`SequenceSummary`) of a result."""
+
+    def mismatches(self, result) -> int:
+        """Points of an accepted result that failed the check against the reference image (0: none or no check)."""
 
     def write(self, k: int, result, item: Loaded, seconds: float) -> None: ...
 
@@ -254,7 +274,7 @@ def run_sequence(kind: FrameMeasure, reader, policy: ReferencePolicy, *, done: s
         wb.submit(_job(kind, k, result, item, seconds))
         prev_ref = kind.reference_index
         n_valid, n_points = kind.counts(result)
-        summary.add(k, n_valid, n_points, seconds, prev_ref)
+        summary.add(k, n_valid, n_points, seconds, prev_ref, kind.mismatches(result))
         hold(k, item.image, state if policy.kind != "fixed" else None)
         del result, state
         computed += 1

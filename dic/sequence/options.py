@@ -34,6 +34,7 @@ from kernels.checks import boolean, in_range, non_negative_int, odd_int, positiv
 
 from ..correlation.subset_masks import check_min_kept_fraction, check_subset_mask
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
+from .verification import VERIFY_ZNCC
 
 __all__ = ["OPTIONS_SCHEMA", "OptionError", "TrackOptions", "StereoOptions"]
 
@@ -300,9 +301,11 @@ class TrackOptions(_Record):
     ``roi``, ``search`` and ``search_radius`` px, ``max_iter``, ``tol`` px, ``zncc_min``, ``flat_std``
     grey levels, ``check_warps``, ``noise_sigma`` grey levels, ``robust``, ``check_outliers``) and the
     sequence's (``strain_window`` grid points, ``reference``, ``auto_valid``, ``auto_zncc``, ``guess``,
-    ``scale_mm_per_px``, recorded for post-processing), and ``cracks``: declared cracks
-    (:mod:`dic.cracks`), stored as a list of vertex lists ``[[x, y], ...]`` px, None without any. The
-    device is not one: it does not change the results a file holds beyond rounding.
+    ``scale_mm_per_px``, recorded for post-processing), ``cracks``: declared cracks (:mod:`dic.cracks`),
+    stored as a list of vertex lists ``[[x, y], ...]`` px, None without any, and ``verify_composed`` and
+    ``verify_zncc``, the check of composed results against the reference image
+    (:mod:`dic.sequence.verification`). The device is not one: it does not change the results a file
+    holds beyond rounding.
     """
 
     subset: int = 21
@@ -331,6 +334,9 @@ class TrackOptions(_Record):
     min_kept_fraction: float = 0.5
     # -- crack26: declared cracks (dic.cracks), stored as a list of vertex lists [[x, y], ...] px; None: no cracks
     cracks: Any = None
+    # -- re-verification of composed results (dic.sequence.verification; issue 26)
+    verify_composed: bool = False
+    verify_zncc: float | None = None
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
     #: the checked region (None when read from a file: it holds its JSON form)
@@ -344,11 +350,13 @@ class TrackOptions(_Record):
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
         "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
         "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction",
-        "cracks": "--crack"}
+        "cracks": "--crack", "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc"}
     KIND: ClassVar[str] = "2-D"
-    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5, "cracks": None}
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5, "cracks": None,
+                                               "verify_composed": False, "verify_zncc": None}
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
-    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess")
+    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess",
+                                                    "verify_composed", "verify_zncc")
 
     def __post_init__(self):
         self._check_common()
@@ -388,6 +396,18 @@ class TrackOptions(_Record):
         self._subset_mask_options()
         self._set("cracks", _cracks(self.cracks))
         self._check_sequence()
+        self._check_verification()
+
+    def _check_verification(self) -> None:
+        """``verify_composed`` a bool; ``verify_zncc`` in [-1, 1], :data:`dic.sequence.verification.VERIFY_ZNCC`
+        (0.95) when not given, and None without ``verify_composed`` (it cannot act)."""
+        self._set("verify_composed", _checked("verify_composed", boolean, self.verify_composed, "verify_composed"))
+        if self.verify_zncc is not None:
+            self._set("verify_zncc", _checked("verify_zncc", in_range, self.verify_zncc, -1.0, 1.0, "verify_zncc"))
+        if not self.verify_composed:
+            self._set("verify_zncc", None)
+        elif self.verify_zncc is None:
+            self._set("verify_zncc", VERIFY_ZNCC)
 
     def tracker_kwargs(self) -> dict:
         """The :class:`dic.Tracker` keywords of this record (no ``device``): the POIs as given, the

@@ -314,6 +314,9 @@ class _Stereo:
     def counts(self, result: Field3D) -> tuple[int, int]:
         return _counts(result)
 
+    def mismatches(self, result: Field3D) -> int:
+        return 0  # stereo tracks are not checked against the reference pair (docs/stereo.md)
+
     def write(self, k: int, result: Field3D, item: Loaded, seconds: float) -> None:
         self._finish(k, result, item.path, item.digest, float(seconds))
 

@@ -34,6 +34,7 @@ from .engine import CannotServe, SequenceSummary, run_sequence
 from .options import TrackOptions
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
+from .verification import VERIFY_ZNCC, ComposedVerifier, composed_mismatches
 
 __all__ = ["track_sequence", "SequenceSummary"]
 
@@ -172,7 +173,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                    vtk_dir=None, figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
                    auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
                    make_tracker: Callable | None = None, max_memory: int | None = None, guess: str | None = None,
-                   client=None, compression=None, **options) -> SequenceSummary:
+                   client=None, compression=None, verify_composed: bool = False, verify_zncc: float | None = None,
+                   **options) -> SequenceSummary:
     """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
 
     Parameters
@@ -239,6 +241,17 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     compression : "none" | "lzf" | "gzip" | "gzip:N", optional
         How the result file's datasets are compressed (:func:`dic.store.layout.parse_compression`;
         default ``"none"``: the fastest, docs/results_format.md). A resumed file keeps the setting it was written with.
+    verify_composed : bool
+        Check every frame correlated against a moved reference (its result a composition of several
+        correlations) against the reference image itself: each valid point's ZNCC between its reference
+        subset and the frame at the composed warp (:mod:`dic.sequence.verification`). Points below
+        ``verify_zncc`` are not valid and get the status ``COMPOSED_MISMATCH``; the frame's
+        ``composed_mismatch`` attribute and :attr:`SequenceSummary.n_mismatch` count them. Default False
+        (no check: the results of runs before the option). Not with ``client``.
+    verify_zncc : float in [-1, 1], optional
+        The ZNCC below which a composed point fails (default 0.95,
+        :data:`dic.sequence.verification.VERIFY_ZNCC`: a whole-pixel wrong match scores at most 0.92 on a
+        2 px speckle, a correct composed warp at least 0.994 at 4 grey levels of noise; docs/dic2d.md).
     options
         :class:`dic.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``flat_std``, ``check_warps``,
@@ -275,7 +288,16 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         guess = "previous" if client is None else "none"
     if guess not in ("previous", "none"):
         raise ValueError(f"guess must be 'previous' or 'none', got {guess!r}")
+    if not isinstance(verify_composed, (bool, np.bool_)):
+        raise ValueError(f"verify_composed must be True or False, got {verify_composed!r}")
+    if verify_zncc is not None:
+        from kernels.checks import in_range
+
+        verify_zncc = in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
     if client is not None:
+        if verify_composed:
+            raise ValueError("verify_composed is not available with client= (the Dask loop does not check composed "
+                             "frames yet); run without client, or without verify_composed")
         if guess != "none":
             raise ValueError("guess='previous' chains each frame to the one before it and cannot be distributed: "
                              "with client= every frame starts from guess='none' (leave guess out)")
@@ -311,7 +333,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         TrackOptions.from_keywords(options, shape=ref_img.shape) if settings is None else None
     if record is not None:
         record = replace(record, strain_window=strain_window, reference=policy.text, auto_valid=policy.auto_valid,
-                         auto_zncc=policy.auto_zncc, guess=guess)
+                         auto_zncc=policy.auto_zncc, guess=guess, verify_composed=bool(verify_composed),
+                         verify_zncc=verify_zncc)
         settings = record.to_settings()
         if make_tracker is None:
             options = {**record.tracker_kwargs(), "device": options.get("device")}
@@ -334,6 +357,13 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             settings["guess"] = "none"
             if policy.kind == "auto":
                 settings["auto_valid"], settings["auto_zncc"] = policy.auto_valid, policy.auto_zncc
+        if verify_composed:
+            settings["verify_composed"] = True
+            settings["verify_zncc"] = verify_zncc if verify_zncc is not None else VERIFY_ZNCC
+    # the ZNCC below which a composed point fails (None: no check; dic.sequence.verification)
+    verify_threshold = None
+    if verify_composed:
+        verify_threshold = record.verify_zncc if record is not None else settings["verify_zncc"]
 
     budget = default_max_memory() if max_memory is None else positive_int(max_memory, "max_memory", detail=" (bytes)")
     # the POIs, known without preparing them (a custom tracker's only when options give points and order)
@@ -416,6 +446,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             attrs = {"seconds": raw_seconds, "reference_index": int(lag.reference_index)}
             if lag.reference_interpolated is not None:  # the valid points whose place in the reference was interpolated
                 attrs["reference_interpolated"] = int(np.count_nonzero(lag.reference_interpolated))
+            if verify_threshold is not None and lag.reference_index != 0:  # checked against the reference image
+                attrs["composed_mismatch"] = composed_mismatches(lag)
             writer.write_frame(k, lag, strain=strain, path=item.path, sha256=item.digest, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_vtk
@@ -452,7 +484,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         kind = _Track2D(ref_img=ref_img, everywhere=everywhere, points0=points0, order=order, guess=guess,
                         reference_tracker=reference_tracker, tracker_for=tracker_for,
                         release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
-                        stored_state=stored_state, finish=finish, out=out)
+                        stored_state=stored_state, finish=finish, out=out, verify_threshold=verify_threshold,
+                        device=options.get("device"))
         try:
             run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out, lock=wb.lock)
         finally:
@@ -472,10 +505,12 @@ class _Track2D:
     noun, images_noun, inputs_noun = "frame", "the image", "frames"
 
     def __init__(self, *, ref_img, everywhere, points0, order, guess, reference_tracker, tracker_for, release_reference,
-                 writer, stored_state, finish, out):
+                 writer, stored_state, finish, out, verify_threshold=None, device=None):
         self.ref_img, self.everywhere, self.points0, self.order, self.guess = ref_img, everywhere, points0, order, guess
         self._reference_tracker, self._tracker_for, self._release = reference_tracker, tracker_for, release_reference
         self.writer, self.stored_state, self._finish, self.out = writer, stored_state, finish, out
+        self.verify_threshold, self.device = verify_threshold, device
+        self._verifier = None  # the check of composed frames (dic.sequence.verification), built at its first frame
         self.current = _Ref(0, ref_img, reference_tracker(), everywhere)
         self.prev: Field2D | None = None  # the last frame's field (computed or read back)
 
@@ -509,8 +544,16 @@ class _Track2D:
         return _quality(result, self.current.ok)
 
     def accept(self, k: int, result: Field2D, image) -> Field2D:
+        if self.verify_threshold is not None and result.reference_index != 0:
+            if self._verifier is None:
+                self._verifier = ComposedVerifier(self.ref_img, self.points0, int(result.subset), self.verify_threshold,
+                                                  device=self.device)
+            self._verifier.apply(result, image)  # before it can anchor a reference or guess the next frame
         self.prev = result
         return result
+
+    def mismatches(self, result: Field2D) -> int:
+        return composed_mismatches(result) if self.verify_threshold is not None else 0
 
     def check_done(self, k: int, item: Loaded) -> int:
         attrs = self.writer.frame_attrs(k)

@@ -68,7 +68,7 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
                         "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": False,
                         "check_outliers": False, "strain_window": 5, "reference": "fixed", "auto_valid": None,
                         "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None, "subset_mask": "region",
-                        "min_kept_fraction": 0.5, "cracks": None}
+                        "min_kept_fraction": 0.5, "cracks": None, "verify_composed": False, "verify_zncc": None}
     from dic.postprocess import SCALE_KEY
 
     assert SCALE_KEY in settings  # where post-processing reads the scale
