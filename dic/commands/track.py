@@ -86,11 +86,11 @@ def _fail(exc: Exception) -> click.ClickException:
               help="A declared crack: a polyline in reference-image px (repeat for several). No subset, strain window, "
                    "interpolation or figure cell reaches across it; stored in the result file (specula crack measures "
                    "its opening and sliding).")
-@click.option("--verify-composed", is_flag=True,
+@click.option("--verify-composed/--no-verify-composed", default=None,
               help="With a moved --reference: check every point of a frame correlated against a moved reference "
                    "against the reference image itself (ZNCC of its reference subset and the frame at the composed "
                    "warp); points below --verify-zncc are not valid (status COMPOSED_MISMATCH) and are counted per "
-                   "frame. Not with --scheduler/--workers.")
+                   "frame. Default: on, except with --scheduler/--workers (not available there yet).")
 @click.option("--verify-zncc", default=None, type=click.FloatRange(min=-1.0, max=1.0),
               help="With --verify-composed: the ZNCC below which a composed point fails (default 0.95: a whole-pixel "
                    "wrong match scores at most 0.92 on a 2 px speckle, a correct warp at least 0.994 at 4 grey levels "
@@ -124,10 +124,14 @@ def track(reference, current, output, subset, step, order, search, search_method
     if check_dask(scheduler, workers) and policy.kind not in ("fixed", "every"):
         raise click.BadParameter(f"{policy.text!r} cannot be distributed (each frame waits for the one before it); "
                                  "use fixed or every:N with --scheduler/--workers", param_hint="--reference")
-    if verify_zncc is not None and not verify_composed:
-        raise click.BadParameter("--verify-zncc needs --verify-composed", param_hint="--verify-zncc")
-    if verify_composed and check_dask(scheduler, workers):
-        raise click.BadParameter("not available with --scheduler/--workers", param_hint="--verify-composed")
+    if verify_zncc is not None and verify_composed is False:
+        raise click.BadParameter("--verify-zncc cannot act with --no-verify-composed", param_hint="--verify-zncc")
+    if check_dask(scheduler, workers):
+        if verify_composed:
+            raise click.BadParameter("not available with --scheduler/--workers", param_hint="--verify-composed")
+        verify_composed = False  # the default is on wherever the check can run; the Dask loop has none yet
+    if verify_composed is None:
+        verify_composed = policy.kind != "fixed"  # nothing is composed with the fixed reference
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window and (strain_window < 3 or strain_window % 2 == 0):
@@ -212,9 +216,12 @@ def track(reference, current, output, subset, step, order, search, search_method
         if result.frames:
             click.echo(f"{len(result.frames)} frame(s) in {result.seconds:.1f} s ({result.frames_per_second:.2f} frames/s)")
             if verify_composed:
+                from dic.sequence.verification import VERIFY_ZNCC
+
+                verify_threshold = VERIFY_ZNCC if verify_zncc is None else verify_zncc
                 checked = int((result.reference_indices != 0).sum())
                 click.echo(f"composed results checked against the reference image in {checked} frame(s): "
-                           f"{int(result.n_mismatch.sum())} point(s) failed (ZNCC < {record.verify_zncc:g})")
+                           f"{int(result.n_mismatch.sum())} point(s) failed (ZNCC < {verify_threshold:g})")
         click.echo(f"results: {output}")
 
 

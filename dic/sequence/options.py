@@ -335,7 +335,7 @@ class TrackOptions(_Record):
     # -- crack26: declared cracks (dic.cracks), stored as a list of vertex lists [[x, y], ...] px; None: no cracks
     cracks: Any = None
     # -- re-verification of composed results (dic.sequence.verification; issue 26)
-    verify_composed: bool = False
+    verify_composed: bool | None = True
     verify_zncc: float | None = None
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
@@ -399,9 +399,16 @@ class TrackOptions(_Record):
         self._check_verification()
 
     def _check_verification(self) -> None:
-        """``verify_composed`` a bool; ``verify_zncc`` in [-1, 1], :data:`dic.sequence.verification.VERIFY_ZNCC`
-        (0.95) when not given, and None without ``verify_composed`` (it cannot act)."""
-        self._set("verify_composed", _checked("verify_composed", boolean, self.verify_composed, "verify_composed"))
+        """``verify_composed`` a bool, None with the fixed reference (nothing is composed: it cannot act); None
+        given with a moved reference is the default, on. ``verify_zncc`` in [-1, 1],
+        :data:`dic.sequence.verification.VERIFY_ZNCC` (0.95) when not given, and None where the check does not
+        run."""
+        if self.reference == "fixed":
+            self._set("verify_composed", None)
+        elif self.verify_composed is None:
+            self._set("verify_composed", True)
+        else:
+            self._set("verify_composed", _checked("verify_composed", boolean, self.verify_composed, "verify_composed"))
         if self.verify_zncc is not None:
             self._set("verify_zncc", _checked("verify_zncc", in_range, self.verify_zncc, -1.0, 1.0, "verify_zncc"))
         if not self.verify_composed:

@@ -173,7 +173,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                    vtk_dir=None, figure_dir=None, figure_every: int = 1, auto_valid: float = AUTO_VALID,
                    auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
                    make_tracker: Callable | None = None, max_memory: int | None = None, guess: str | None = None,
-                   client=None, compression=None, verify_composed: bool = False, verify_zncc: float | None = None,
+                   client=None, compression=None, verify_composed: bool | None = None, verify_zncc: float | None = None,
                    **options) -> SequenceSummary:
     """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
 
@@ -246,8 +246,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         correlations) against the reference image itself: each valid point's ZNCC between its reference
         subset and the frame at the composed warp (:mod:`dic.sequence.verification`). Points below
         ``verify_zncc`` are not valid and get the status ``COMPOSED_MISMATCH``; the frame's
-        ``composed_mismatch`` attribute and :attr:`SequenceSummary.n_mismatch` count them. Default False
-        (no check: the results of runs before the option). Not with ``client``.
+        ``composed_mismatch`` attribute and :attr:`SequenceSummary.n_mismatch` count them. Default None:
+        on wherever it can run (a moved reference, no ``client``: the Dask loop does not check yet, and
+        its runs record False); False: no check (the results of runs before the option; a file written
+        before it resumes only with False, its record holding no check).
     verify_zncc : float in [-1, 1], optional
         The ZNCC below which a composed point fails (default 0.95,
         :data:`dic.sequence.verification.VERIFY_ZNCC`: a whole-pixel wrong match scores at most 0.92 on a
@@ -288,8 +290,10 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         guess = "previous" if client is None else "none"
     if guess not in ("previous", "none"):
         raise ValueError(f"guess must be 'previous' or 'none', got {guess!r}")
+    if verify_composed is None:  # the default: on wherever it can run
+        verify_composed = client is None and policy.kind != "fixed"
     if not isinstance(verify_composed, (bool, np.bool_)):
-        raise ValueError(f"verify_composed must be True or False, got {verify_composed!r}")
+        raise ValueError(f"verify_composed must be None, True or False, got {verify_composed!r}")
     if verify_zncc is not None:
         from kernels.checks import in_range
 

@@ -43,12 +43,13 @@ def _errors(frame, k):
 def test_a_clean_sequence_has_no_false_positive(noisy_sequence, tmp_path, strategy, order):
     """1 GL noise, exact field: no point of any composed frame fails (1st and 2nd order: the 2nd-order composed
     warp is checked with its second derivatives), and the results are those of a run without the check (it
-    changes nothing when nothing fails); the frames count 0 mismatches."""
+    changes nothing when nothing fails); the frames count 0 mismatches. The check is the default."""
     ref, frames = noisy_sequence
     plain, checked = tmp_path / "plain.h5", tmp_path / "checked.h5"
-    track_sequence(ref, frames, plain, reference=strategy, step=8, device="cpu", strain_window=0, order=order)
+    track_sequence(ref, frames, plain, reference=strategy, step=8, device="cpu", strain_window=0, order=order,
+                   verify_composed=False)
     s = track_sequence(ref, frames, checked, reference=strategy, step=8, device="cpu", strain_window=0,
-                       order=order, verify_composed=True)
+                       order=order)  # the check is on by default with a moved reference
     assert np.array_equal(s.n_mismatch, np.zeros(N_FRAMES)) and all(f["n_mismatch"] == 0 for f in s.frames)
     a, b = read_results(plain), read_results(checked)
     assert b.settings["verify_composed"] is True and b.settings["verify_zncc"] == VERIFY_ZNCC == 0.95
@@ -110,7 +111,7 @@ def test_a_wrong_match_carried_by_a_reference_update_is_flagged_and_counted(nois
     block = {}
     plain = tmp_path / "plain.h5"
     track_sequence(ref, frames, plain, reference="every:2", make_tracker=_corrupting_tracker(block), points=None,
-                   order=1, strain_window=0)
+                   order=1, strain_window=0, verify_composed=False)
     res = read_results(plain)
     j = block["j"]
     inherited = {k: np.flatnonzero(res.frames[k].valid & (_errors(res.frames[k], k) > 0.75)) for k in (3, 4)}
@@ -147,16 +148,19 @@ def test_a_wrong_match_carried_by_a_reference_update_is_flagged_and_counted(nois
 
 
 def test_options_and_refusals(noisy_sequence, tmp_path):
-    assert TrackOptions().verify_composed is False and TrackOptions().verify_zncc is None
-    assert TrackOptions(verify_composed=True).verify_zncc == 0.95
-    assert TrackOptions(verify_composed=True, verify_zncc=0.9).verify_zncc == 0.9
-    assert TrackOptions(verify_zncc=0.9).verify_zncc is None  # cannot act without verify_composed
+    assert TrackOptions().verify_composed is None and TrackOptions().verify_zncc is None  # fixed: cannot act
+    assert TrackOptions(reference="incremental").verify_zncc == 0.95
+    assert TrackOptions(reference="incremental", verify_zncc=0.9).verify_zncc == 0.9
+    assert TrackOptions(verify_zncc=0.9).verify_zncc is None  # the fixed reference: nothing is composed, the check cannot act
     with pytest.raises(OptionError, match="verify_composed must be True or False"):
-        TrackOptions(verify_composed=1)
+        TrackOptions(reference="incremental", verify_composed=1)
+    # with the fixed reference nothing is composed: the check cannot act and is recorded None
+    assert TrackOptions(verify_composed=True).verify_composed is None
+    assert TrackOptions(reference="every:2").verify_composed is True  # the default, with a moved reference
     with pytest.raises(OptionError, match=r"verify_zncc must be in \[-1.0, 1.0\]"):
         TrackOptions(verify_composed=True, verify_zncc=1.5)
     ref, frames = noisy_sequence
-    with pytest.raises(ValueError, match="verify_composed must be True or False"):
+    with pytest.raises(ValueError, match="verify_composed must be None, True or False"):
         track_sequence(ref, frames[:1], tmp_path / "a.h5", verify_composed="yes")
     with pytest.raises(ValueError, match=r"verify_zncc must be in \[-1.0, 1.0\]"):
         track_sequence(ref, frames[:1], tmp_path / "a.h5", verify_composed=True, verify_zncc=2)
@@ -185,8 +189,17 @@ def test_cli_verify_composed(noisy_sequence, tmp_path):
     res = read_results(out)
     assert res.settings["verify_composed"] is True and res.settings["verify_zncc"] == 0.97
     assert res.frames[2].attrs["composed_mismatch"] == 0 and "composed_mismatch" not in res.frames[1].attrs
-    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "b.h5"), "--verify-zncc", "0.9"])
-    assert r.exit_code != 0 and "--verify-zncc needs --verify-composed" in r.output
+    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "b.h5"), "--verify-zncc", "0.9",
+                             "--no-verify-composed"])
+    assert r.exit_code != 0 and "--verify-zncc cannot act with --no-verify-composed" in r.output
+    # on by default with a moved reference; recorded None (cannot act) with the fixed one
+    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "c.h5"), "--step", "8", "--reference", "incremental",
+                             "--device", "cpu", "--strain-window", "0", "-q"])
+    assert r.exit_code == 0, r.output
+    assert read_results(tmp_path / "c.h5").settings["verify_composed"] is True
+    r = runner.invoke(main, ["track", *paths[:2], "-o", str(tmp_path / "d.h5"), "--step", "8", "--device", "cpu", "-q"])
+    assert r.exit_code == 0, r.output
+    assert read_results(tmp_path / "d.h5").settings["verify_composed"] is None
 
 
 def test_resume_after_a_crash_keeps_the_failed_points_out_of_the_reference(noisy_sequence, tmp_path):
