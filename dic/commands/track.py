@@ -181,13 +181,14 @@ def track(reference, current, output, subset, step, order, search, search_method
         except ValueError as exc:
             raise click.BadParameter(f"{exc} (0 skips strain)", param_hint="--strain-window") from None
     from dic.sequence import track_sequence
+    from dic.sequence.track2d import _same_image
 
     def make_tracker(image, points):
         kwargs = record.tracker_kwargs()
         if points is not None:  # a moved reference or a chunk (dic.sequence): these POIs, not the region's grid
             region = kwargs.pop("roi", None)
             kwargs["points"] = points
-            if image is ref and region is not None:  # a chunk of the reference: its subsets masked by the region
+            if region is not None and _same_image(image, ref):  # a chunk of the reference: its subsets masked
                 kwargs["pixel_region"] = region
         return _make_tracker(image, device=device, **kwargs)
 

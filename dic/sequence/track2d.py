@@ -350,8 +350,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             if points is not None:
                 region = kw.pop("roi", None)
                 kw["points"] = points
-                if image is ref_img and region is not None:  # a chunk of the reference's grid: its subsets masked
-                    kw["pixel_region"] = region  # alike (a moved reference's are not: docs/dic2d.md)
+                if region is not None and _same_image(image, ref_img):  # a chunk of the reference's grid: its
+                    kw["pixel_region"] = region  # subsets masked alike (a moved reference's are not: docs/dic2d.md)
             return Tracker(image, **kw)
     if record is None:  # settings given as a dict (a custom tracker's): stored as given, compared as they are
         settings = dict(settings)
@@ -579,6 +579,14 @@ class _Track2D:
             return exc
         saved = f"; frames before it are saved in {self.out}" if item.index > 1 else ""
         return ValueError(f"frame {item.index} ({os.fspath(item.path) or 'array'}): {exc}{saved}")
+
+
+def _same_image(image, reference) -> bool:
+    """Whether ``image`` is the reference image (the same array, or equal values: a copy on a Dask worker)."""
+    if image is reference:
+        return True
+    a, b = np.asarray(image), np.asarray(reference)
+    return a.shape == b.shape and bool(np.array_equal(a, b))
 
 
 def _builder(make_tracker, budget, order, search):

@@ -211,3 +211,17 @@ def test_robust_refinement_leaves_masked_subsets_at_their_masked_result():
     u, v = holes.displacement(fr.points[:, 0], fr.points[:, 1])
     err = np.hypot(fr.u - u, fr.v - v)
     assert np.sqrt(np.mean(err[fr.valid & masked] ** 2)) < 0.02  # bench/holes.py: 0.006 px
+
+
+def test_chunks_of_the_reference_grid_are_masked_alike(tmp_path):
+    from dic.sequence import track_sequence
+    from dic.sequence.chunks import bytes_per_poi
+    from dic.store import read_results
+
+    ref, cur, region = holes.case("hole-textured")
+    whole, chunked = tmp_path / "whole.h5", tmp_path / "chunked.h5"
+    track_sequence(ref, [cur], whole, roi=region, step=6, device="cpu")
+    n = len(read_results(whole).frames[1].points)
+    track_sequence(ref, [cur], chunked, roi=region, step=6, device="cpu", max_memory=bytes_per_poi(1) * (n // 3 + 1))
+    a, b = read_results(whole).frames[1], read_results(chunked).frames[1]
+    assert np.array_equal(a.params, b.params) and np.array_equal(a.status, b.status)
