@@ -16,8 +16,10 @@ move reference pixel ``(x, y)`` to ``(x + u, y + v)`` in the current image.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+import scipy.fft
 import warp as wp
 
 from ._device import host_copy, resolve_device
@@ -276,32 +278,65 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
     return host_copy(best).astype(np.int32), host_copy(best_cc)
 
 
+@dataclass(frozen=True)
+class PhaseSpectrum:
+    """One image's side of :func:`phase_correlation`: ``spectrum`` (H, W // 2 + 1) complex128, the 2-D real
+    FFT of the image mean-removed and Hann-windowed, and the image's ``shape`` (H, W)."""
+
+    spectrum: np.ndarray
+    shape: tuple
+
+
+@lru_cache(maxsize=4)
+def _hann_window(shape: tuple) -> np.ndarray:
+    win = np.outer(np.hanning(shape[0]), np.hanning(shape[1]))
+    win.setflags(write=False)
+    return win
+
+
+def phase_spectrum(image, name: str = "image") -> PhaseSpectrum:
+    """The spectrum of ``image`` (H, W) for :func:`phase_correlation_spectra` (SciPy's pocketfft, float64).
+
+    Computed once per image, it serves every correlation of that image (in a sequence each image is the
+    current image of one state and the base of the next)."""
+    img = as_float32_image(image, name).astype(np.float64)
+    return PhaseSpectrum(scipy.fft.rfft2((img - img.mean()) * _hann_window(img.shape)), img.shape)
+
+
+def phase_correlation_spectra(reference: PhaseSpectrum, current: PhaseSpectrum) -> tuple[int, int, float]:
+    """:func:`phase_correlation` from the two images' :func:`phase_spectrum`; the same ``(u, v, peak)``."""
+    for name, sp in (("reference", reference), ("current", current)):
+        if not isinstance(sp, PhaseSpectrum):
+            raise ValueError(f"{name} must be a PhaseSpectrum (phase_spectrum(image)), got {type(sp).__name__}")
+    if reference.shape != current.shape:
+        raise ValueError(f"reference {reference.shape} and current {current.shape} images must have the same shape")
+    cross = current.spectrum * np.conj(reference.spectrum)
+    cross /= np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max() + 1e-30)
+    corr = scipy.fft.irfft2(cross, s=reference.shape)
+    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    h, w = reference.shape
+    v = iy - h if iy > h // 2 else iy
+    u = ix - w if ix > w // 2 else ix
+    return int(u), int(v), float(corr[iy, ix])
+
+
 def phase_correlation(reference, current) -> tuple[int, int, float]:
     """Global integer shift ``(u, v)`` of ``current`` relative to ``reference`` by phase correlation.
 
     Both images are mean-removed and Hann-windowed; the peak of the normalised cross-power
-    spectrum's inverse FFT gives the shift (|u| < W/2, |v| < H/2). NumPy FFT on the host.
+    spectrum's inverse FFT gives the shift (|u| < W/2, |v| < H/2). SciPy FFT (pocketfft) on the host;
+    :func:`phase_spectrum` and :func:`phase_correlation_spectra` keep an image's spectrum for reuse.
 
     Returns
     -------
     (u, v, peak) : the integer shift in pixels and the peak height (1 for a perfect circular shift,
     close to 0 when the images do not match).
     """
-    ref = as_float32_image(reference, "reference").astype(np.float64)
-    cur = as_float32_image(current, "current").astype(np.float64)
+    ref = as_float32_image(reference, "reference")
+    cur = as_float32_image(current, "current")
     if ref.shape != cur.shape:
         raise ValueError(f"reference {ref.shape} and current {cur.shape} images must have the same shape")
-    win = np.outer(np.hanning(ref.shape[0]), np.hanning(ref.shape[1]))
-    fr = np.fft.rfft2((ref - ref.mean()) * win)
-    fc = np.fft.rfft2((cur - cur.mean()) * win)
-    cross = fc * np.conj(fr)
-    cross /= np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max() + 1e-30)
-    corr = np.fft.irfft2(cross, s=ref.shape)
-    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
-    h, w = ref.shape
-    v = iy - h if iy > h // 2 else iy
-    u = ix - w if ix > w // 2 else ix
-    return int(u), int(v), float(corr[iy, ix])
+    return phase_correlation_spectra(phase_spectrum(ref, "reference"), phase_spectrum(cur, "current"))
 
 
 def reduce(image, device=None) -> np.ndarray:
