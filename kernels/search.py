@@ -4,7 +4,7 @@ and a Gaussian image pyramid for coarse-to-fine tracking.
 IC-GN (:mod:`kernels.icgn`) converges from guesses within a few pixels of the solution. For larger
 motions, :func:`zncc_search` scans an integer window per POI (one Warp thread per POI, exhaustive,
 cost ``(2R + 1)^2 S^2`` per POI), :func:`phase_correlation` finds one global integer shift of the
-whole image (NumPy FFT, Kuglin & Hines 1975), and :func:`pyramid` builds the reduced images for
+whole image (SciPy FFT, Kuglin & Hines 1975), and :func:`pyramid` builds the reduced images for
 coarse-to-fine tracking (Burt & Adelson, "The Laplacian pyramid as a compact image code", IEEE
 Trans. Commun. 31(4), 1983, doi:10.1109/TCOM.1983.1095851). The tracking orchestration (coarse-to-
 fine and reliability-guided propagation, Pan et al., Applied Optics 48(8), 2009,
