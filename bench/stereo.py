@@ -370,13 +370,16 @@ def bench_end_to_end(device, step, states, cache, samples):
     rig, _, files, box = _lab_pairs(E2E_SIZE, states, (400.0, 250.0), cache, samples, "e2e")
     load_before = _load()
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fields = stereo_sequence(rig, files, os.path.join(tmp, "e2e.h5"), step=step, roi=box, mode="overwrite",
                                  device=device)
-        seconds = time.perf_counter() - t0
-    valid = [int(np.count_nonzero(f.valid)) for f in fields] if isinstance(fields, list) else None
-    return {"seconds": seconds, "states": states, "roi": list(box), "n_points": int(len(fields[0].points))
-            if isinstance(fields, list) else None, "n_valid": valid, "load_before": load_before, "load_after": _load()}
+        seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
+    if isinstance(fields, list):  # a checkout before the sequence summary (8d9f975 and earlier)
+        valid, n_points = [int(np.count_nonzero(f.valid)) for f in fields], int(len(fields[0].points))
+    else:  # a SequenceSummary: points computed in the region and valid per state
+        valid, n_points = [int(v) for v in fields.n_valid], int(fields.n_points[0])
+    return {"seconds": seconds, "cpu_seconds": cpu_seconds, "states": states, "roi": list(box), "n_points": n_points,
+            "n_valid": valid, "load_before": load_before, "load_after": _load()}
 
 
 def main_rates(argv=None):
@@ -414,7 +417,8 @@ def main_rates(argv=None):
         info["parameters"]["image_size"] = list(E2E_SIZE)
         info["result"] = bench_end_to_end(args.device, args.step, args.states or 6, args.cache, args.samples)
         r = info["result"]
-        print(f"{args.label}: {r['states']} pairs, {r['n_points']} POIs, end to end {r['seconds']:.1f} s; "
+        print(f"{args.label}: {r['states']} pairs, {r['n_points']} POIs, end to end {r['seconds']:.1f} s "
+              f"(CPU {r['cpu_seconds']:.1f} s); "
               f"valid {r['n_valid']}; load {r['load_before']} -> {r['load_after']}")
     path = args.out or os.path.join(RESULTS, f"stereo_{args.what}_{args.label}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
