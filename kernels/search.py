@@ -300,7 +300,9 @@ def phase_spectrum(image, name: str = "image") -> PhaseSpectrum:
     Computed once per image, it serves every correlation of that image (in a sequence each image is the
     current image of one state and the base of the next)."""
     img = as_float32_image(image, name).astype(np.float64)
-    return PhaseSpectrum(scipy.fft.rfft2((img - img.mean()) * _hann_window(img.shape)), img.shape)
+    img -= img.mean()  # in place: the same values as (img - mean) * window, one temporary fewer
+    img *= _hann_window(img.shape)
+    return PhaseSpectrum(scipy.fft.rfft2(img), img.shape)
 
 
 def phase_correlation_spectra(reference: PhaseSpectrum, current: PhaseSpectrum) -> tuple[int, int, float]:
@@ -311,7 +313,8 @@ def phase_correlation_spectra(reference: PhaseSpectrum, current: PhaseSpectrum) 
     if reference.shape != current.shape:
         raise ValueError(f"reference {reference.shape} and current {current.shape} images must have the same shape")
     cross = current.spectrum * np.conj(reference.spectrum)
-    cross /= np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max() + 1e-30)
+    magnitude = np.abs(cross)
+    cross /= np.maximum(magnitude, 1e-12 * magnitude.max() + 1e-30)
     corr = scipy.fft.irfft2(cross, s=reference.shape)
     iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
     h, w = reference.shape
