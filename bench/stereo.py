@@ -283,7 +283,9 @@ def bench_rate(device, step, subset, states, cache, samples):
     On a shared, loaded machine the load drifts within seconds, so the 2-D frames and the stereo states are
     interleaved (2-D frame k, then stereo state k) and each state is compared with the 2-D frame next to it:
     the ratio is the median of the per-state ratios (the reference match: against the mean of the 2-D frames
-    timed just before and just after it)."""
+    timed just before and just after it). Each 2-D frame and state also records its process CPU time (every
+    thread: the IC-GN launches run on all cores), whose per-state ratios (``state_cpu_ratio_to_2d``) vary
+    less with the machine's load than the wall-time ratios."""
     import tempfile
 
     from dic._stereo import StereoCorrelation
@@ -302,22 +304,27 @@ def bench_rate(device, step, subset, states, cache, samples):
     prev = tracker.track(pairs[1][0])  # warm (buffers allocated)
 
     def frame_2d(k, guess):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         f = tracker.track(pairs[k][0], guess=guess)
         wp.synchronize_device(device)
+        cpu_2d.append(time.process_time() - c0)
         return f, time.perf_counter() - t0
 
+    cpu_2d = []
+
     _, t_before = frame_2d(1, None)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     sc = StereoCorrelation(rig, pairs[0][0], pairs[0][1], step=step, subset=subset, order=2, device=device)
     wp.synchronize_device(device)
-    t_ref = time.perf_counter() - t0
+    t_ref, c_ref = time.perf_counter() - t0, time.process_time() - c0
     _, t_after = frame_2d(1, None)
+    cpu_2d_ref = list(cpu_2d)
+    cpu_2d.clear()
     if not np.array_equal(sc.points, points):
         raise RuntimeError("the 2-D and stereo POIs differ")
     timings = dict(sc.timings)
     n = int(len(sc.points))
-    t2d, t_states, stages = [], [], []
+    t2d, t_states, c_states, stages = [], [], [], []
     prev = None
     with tempfile.TemporaryDirectory() as tmp:
         writer = ResultWriter(os.path.join(tmp, "rate.h5"), kind="stereo", reference_path=files[0],
@@ -328,13 +335,15 @@ def bench_rate(device, step, subset, states, cache, samples):
             for k in range(1, states):
                 prev, dt = frame_2d(k, prev)
                 t2d.append(dt)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 f = sc.measure(pairs[k][0], pairs[k][1], index=k)
                 writer.write_frame(k, f, path=files[k])
                 wp.synchronize_device(device)
                 t_states.append(time.perf_counter() - t0)
+                c_states.append(time.process_time() - c0)
                 stages.append(dict(sc.timings))
     ratios = [a / b for a, b in zip(t2d, t_states)]
+    cpu_ratios = [a / b for a, b in zip(cpu_2d, c_states)]
     t_2d_ref = 0.5 * (t_before + t_after)
     match_s = timings.get("features_s", 0.0) + timings.get("match_icgn_s", 0.0)
     return {"n_points": n, "n_valid_reference": int(np.count_nonzero(sc.reference.valid)),
@@ -345,6 +354,10 @@ def bench_rate(device, step, subset, states, cache, samples):
             "match_seconds": match_s, "match_ratio_to_2d": t_2d_ref / match_s if match_s else None,
             "state_seconds": t_states, "state_stages_s": stages, "state_pois_per_s": n / float(np.median(t_states)),
             "state_ratios_to_2d": ratios, "state_ratio_to_2d": float(np.median(ratios)),
+            # process CPU time (all threads; steadier than wall time on a loaded machine)
+            "two_d_frame_cpu_seconds": cpu_2d, "two_d_around_reference_cpu_s": cpu_2d_ref,
+            "reference_cpu_seconds": c_ref, "state_cpu_seconds": c_states, "state_cpu_ratios_to_2d": cpu_ratios,
+            "state_cpu_ratio_to_2d": float(np.median(cpu_ratios)),
             "load_before": load_before, "load_after": _load()}
 
 
@@ -357,13 +370,16 @@ def bench_end_to_end(device, step, states, cache, samples):
     rig, _, files, box = _lab_pairs(E2E_SIZE, states, (400.0, 250.0), cache, samples, "e2e")
     load_before = _load()
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fields = stereo_sequence(rig, files, os.path.join(tmp, "e2e.h5"), step=step, roi=box, mode="overwrite",
                                  device=device)
-        seconds = time.perf_counter() - t0
-    valid = [int(np.count_nonzero(f.valid)) for f in fields] if isinstance(fields, list) else None
-    return {"seconds": seconds, "states": states, "roi": list(box), "n_points": int(len(fields[0].points))
-            if isinstance(fields, list) else None, "n_valid": valid, "load_before": load_before, "load_after": _load()}
+        seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
+    if isinstance(fields, list):  # a checkout before the sequence summary (8d9f975 and earlier)
+        valid, n_points = [int(np.count_nonzero(f.valid)) for f in fields], int(len(fields[0].points))
+    else:  # a SequenceSummary: points computed in the region and valid per state
+        valid, n_points = [int(v) for v in fields.n_valid], int(fields.n_points[0])
+    return {"seconds": seconds, "cpu_seconds": cpu_seconds, "states": states, "roi": list(box), "n_points": n_points,
+            "n_valid": valid, "load_before": load_before, "load_after": _load()}
 
 
 def main_rates(argv=None):
@@ -392,14 +408,17 @@ def main_rates(argv=None):
         r = info["result"]
         print(f"{args.label}: {r['n_points']} POIs; 2-D {np.median(r['two_d_frame_seconds']):.2f} s/frame; "
               f"state {np.median(r['state_seconds']):.2f} s = {r['state_ratio_to_2d']:.3f} x 2-D (per state "
-              f"{np.round(r['state_ratios_to_2d'], 3).tolist()}); reference "
+              f"{np.round(r['state_ratios_to_2d'], 3).tolist()}); CPU time: 2-D "
+              f"{np.median(r['two_d_frame_cpu_seconds']):.2f} s, state {np.median(r['state_cpu_seconds']):.2f} s = "
+              f"{r['state_cpu_ratio_to_2d']:.3f} x 2-D; reference "
               f"{r['reference_seconds']:.2f} s = {r['reference_ratio_to_2d']:.3f} x 2-D (match stages "
               f"{r['match_seconds']:.2f} s = {r['match_ratio_to_2d']:.3f} x); load {r['load_before']} -> {r['load_after']}")
     else:
         info["parameters"]["image_size"] = list(E2E_SIZE)
         info["result"] = bench_end_to_end(args.device, args.step, args.states or 6, args.cache, args.samples)
         r = info["result"]
-        print(f"{args.label}: {r['states']} pairs, {r['n_points']} POIs, end to end {r['seconds']:.1f} s; "
+        print(f"{args.label}: {r['states']} pairs, {r['n_points']} POIs, end to end {r['seconds']:.1f} s "
+              f"(CPU {r['cpu_seconds']:.1f} s); "
               f"valid {r['n_valid']}; load {r['load_before']} -> {r['load_after']}")
     path = args.out or os.path.join(RESULTS, f"stereo_{args.what}_{args.label}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)

@@ -49,8 +49,9 @@ from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_c
 from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION
 from kernels.images import as_float32_image
 from kernels.interp import FRAME_DTYPES
+from kernels.search import phase_spectrum
 
-from ._triangulate import TriangulationStatus, triangulate, undistort_points
+from ._triangulate import TriangulationStatus, optimal_triangulation_jacobian, triangulate, undistort_points
 from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
 from .correlation.engine import SOURCE_FEATURES, SOURCE_GLOBAL, SOURCE_NONE, SOURCE_PREVIOUS, Correlator, correlate
 from .correlation.features import affine_guess, feature_matches
@@ -404,6 +405,8 @@ class StereoCorrelation:
         self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
         self._moved: _TrackReference | None = None  # the temporal tracks' reference when not the reference pair
         self._strain_plan: SurfaceStrainPlan | None = None  # grid strain: the reference positions' part, once
+        #: "left"/"right": the phase-correlation spectrum of the camera's last image (the next state's base)
+        self._spectra: dict[str, _SpectrumMemo] = {}
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
@@ -515,7 +518,8 @@ class StereoCorrelation:
 
     # -------------------------------------------------------------------------------------------
     def _track(self, corr: Correlator, image: np.ndarray, previous: np.ndarray | None, eligible: np.ndarray,
-               reference_image: np.ndarray, previous_image: np.ndarray | None, frame: np.ndarray | None = None):
+               reference_image: np.ndarray, previous_image: np.ndarray | None, frame: np.ndarray | None = None,
+               *, side: str):
         """One temporal track: the first pass over every POI on the device frame path
         (:meth:`Correlator.run_frame`: the correlator's :class:`kernels.frames.FrameTracker`, buffers allocated
         once per reference, ``frame`` (the image as given: 8/16-bit or float32; default ``image``) converted in
@@ -531,8 +535,9 @@ class StereoCorrelation:
         # 3 px motion took 32 iterations on average, many hitting max_iter; within 0.5 px, 6-8)
         prior = np.zeros((n, k)) if previous is None else np.nan_to_num(previous)
         base = reference_image if previous is None or previous_image is None else previous_image
+        spectrum = self._spectra.setdefault(side, _SpectrumMemo())  # this camera's last image's, for the next state
         ctx = GuessContext(corr, reference_image, image, prior, zncc_min=self.zncc_min,
-                           options={"base": base, "max_features": self.max_features,
+                           options={"base": base, "spectrum": spectrum, "max_features": self.max_features,
                                     "radius": max(6.0 * self.subset, 3.0 * self.step)})
         guess, has = get_guess("shift")(ctx)
         src = SOURCE_NONE if previous is None else SOURCE_PREVIOUS
@@ -587,11 +592,11 @@ class StereoCorrelation:
                 guess_r[fresh_r] = np.nan
         self.timings = {}
         t0 = time.perf_counter()
-        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0], frame_l)
+        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0], frame_l, side="left")
         self.timings["track_left_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if corr_r is not None:
-            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1], frame_r)
+            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1], frame_r, side="right")
         else:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0
@@ -703,9 +708,19 @@ class StereoCorrelation:
     def _tri_points(self, pl: np.ndarray, pr: np.ndarray) -> np.ndarray:
         return self._triangulate(pl, pr)[0]
 
-    def _sigmas(self, tracks, pl_cur: np.ndarray, pr_cur: np.ndarray, valid: np.ndarray) -> dict[str, np.ndarray]:
+    def _triangulation_jacobian(self, pl: np.ndarray, pr: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """(N, 3, 4) d(xyz)/d(pl, pr) (mm/px) of the triangulated points ``xyz`` (N, 3) mm, left camera frame:
+        analytic for the optimal triangulation (one launch), central differences of 8 triangulations for the
+        linear one."""
+        if self.triangulation == "optimal":
+            return optimal_triangulation_jacobian(self.rig, pl, pr, xyz, device=self.device)
+        return triangulation_jacobian(self._tri_points, pl, pr)
+
+    def _sigmas(self, tracks, pl_cur: np.ndarray, pr_cur: np.ndarray, valid: np.ndarray,
+                xyz_cur: np.ndarray) -> dict[str, np.ndarray]:
         """Per-point std of the match and both tracks (N, 2) px, the noise (N, 3) behind them, and
-        their propagation to the reference positions and displacements (N, 3) mm in the output frame."""
+        their propagation to the reference positions and displacements (N, 3) mm in the output frame.
+        ``xyz_cur`` (N, 3) mm, left camera frame: the triangulation of ``pl_cur``, ``pr_cur``."""
         n = self.points.shape[0]
         m = self.match
         for side, corr in (("left", self.left), ("right", self.right)):
@@ -731,12 +746,12 @@ class StereoCorrelation:
             if mv is not None:  # the moved reference's own uncertainty adds in quadrature
                 sig_l, sig_r = mv.add_sigma(sig_l, sig_r)
         if self._jac_ref is None:
-            self._jac_ref = triangulation_jacobian(self._tri_points, self.points, m.points_right)
+            self._jac_ref = self._triangulation_jacobian(self.points, m.points_right, self._tri_ref[0])
         R = self._frame[0]
         jac_cur = None
         if tracks is not None:
             use = np.where(valid[:, None], 1.0, np.nan)
-            jac_cur = triangulation_jacobian(self._tri_points, pl_cur * use, pr_cur * use)
+            jac_cur = self._triangulation_jacobian(pl_cur * use, pr_cur * use, xyz_cur * use)
         sig_xyz, sig_uvw = propagate_stereo_sigma(self._jac_ref, sig_m, jac_cur, sig_l, sig_r, rotation=R,
                                                   rho_match=self._basis["left"].rho_uv, rho_left=rho_l, rho_right=rho_r)
         if sig_uvw is None:
@@ -829,7 +844,7 @@ class StereoCorrelation:
         # reference positions are kept wherever the reference match and its triangulation are good
         xyz_ref_f[~(m.valid & (tri_ref == TriangulationStatus.OK))] = np.nan
         t0 = time.perf_counter()
-        details.update(self._sigmas(tracks, pl_cur, pr_cur, valid))
+        details.update(self._sigmas(tracks, pl_cur, pr_cur, valid, xyz_cur))
         self.timings["uncertainty_s"] = time.perf_counter() - t0
         camera_center = t  # the left camera centre (origin of the left frame) in the output frame
         t0 = time.perf_counter()
@@ -854,6 +869,22 @@ class StereoCorrelation:
             status=status, strain_valid=strain["strain_valid"], R_frame_left=R, t_frame_left=t, frame_name=name,
             index=int(index), details=details, reference_index=self.reference_index if tracks is not None else 0,
         )
+
+
+class _SpectrumMemo:
+    """:func:`kernels.search.phase_spectrum` that keeps the spectrum of the last image it was given, found again
+    by identity: a camera's current image of one state is the base of the next state's global shift
+    (``GuessContext.options["spectrum"]``), so each image is transformed once, not twice."""
+
+    def __init__(self):
+        self.image = None
+        self.spectrum = None
+
+    def __call__(self, image: np.ndarray):
+        if image is not self.image:
+            self.spectrum = phase_spectrum(image)
+            self.image = image
+        return self.spectrum
 
 
 class _TrackReference:

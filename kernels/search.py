@@ -4,7 +4,7 @@ and a Gaussian image pyramid for coarse-to-fine tracking.
 IC-GN (:mod:`kernels.icgn`) converges from guesses within a few pixels of the solution. For larger
 motions, :func:`zncc_search` scans an integer window per POI (one Warp thread per POI, exhaustive,
 cost ``(2R + 1)^2 S^2`` per POI), :func:`phase_correlation` finds one global integer shift of the
-whole image (NumPy FFT, Kuglin & Hines 1975), and :func:`pyramid` builds the reduced images for
+whole image (SciPy FFT, Kuglin & Hines 1975), and :func:`pyramid` builds the reduced images for
 coarse-to-fine tracking (Burt & Adelson, "The Laplacian pyramid as a compact image code", IEEE
 Trans. Commun. 31(4), 1983, doi:10.1109/TCOM.1983.1095851). The tracking orchestration (coarse-to-
 fine and reliability-guided propagation, Pan et al., Applied Optics 48(8), 2009,
@@ -16,8 +16,10 @@ move reference pixel ``(x, y)`` to ``(x + u, y + v)`` in the current image.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+import scipy.fft
 import warp as wp
 
 from ._device import host_copy, resolve_device
@@ -276,32 +278,68 @@ def zncc_search(reference, current, points, radius: int, subset: int = 21, start
     return host_copy(best).astype(np.int32), host_copy(best_cc)
 
 
+@dataclass(frozen=True)
+class PhaseSpectrum:
+    """One image's side of :func:`phase_correlation`: ``spectrum`` (H, W // 2 + 1) complex128, the 2-D real
+    FFT of the image mean-removed and Hann-windowed, and the image's ``shape`` (H, W)."""
+
+    spectrum: np.ndarray
+    shape: tuple
+
+
+@lru_cache(maxsize=4)
+def _hann_window(shape: tuple) -> np.ndarray:
+    win = np.outer(np.hanning(shape[0]), np.hanning(shape[1]))
+    win.setflags(write=False)
+    return win
+
+
+def phase_spectrum(image, name: str = "image") -> PhaseSpectrum:
+    """The spectrum of ``image`` (H, W) for :func:`phase_correlation_spectra` (SciPy's pocketfft, float64).
+
+    Computed once per image, it serves every correlation of that image (in a sequence each image is the
+    current image of one state and the base of the next)."""
+    img = as_float32_image(image, name).astype(np.float64)
+    img -= img.mean()  # in place: the same values as (img - mean) * window, one temporary fewer
+    img *= _hann_window(img.shape)
+    return PhaseSpectrum(scipy.fft.rfft2(img), img.shape)
+
+
+def phase_correlation_spectra(reference: PhaseSpectrum, current: PhaseSpectrum) -> tuple[int, int, float]:
+    """:func:`phase_correlation` from the two images' :func:`phase_spectrum`; the same ``(u, v, peak)``."""
+    for name, sp in (("reference", reference), ("current", current)):
+        if not isinstance(sp, PhaseSpectrum):
+            raise ValueError(f"{name} must be a PhaseSpectrum (phase_spectrum(image)), got {type(sp).__name__}")
+    if reference.shape != current.shape:
+        raise ValueError(f"reference {reference.shape} and current {current.shape} images must have the same shape")
+    cross = current.spectrum * np.conj(reference.spectrum)
+    magnitude = np.abs(cross)
+    cross /= np.maximum(magnitude, 1e-12 * magnitude.max() + 1e-30)
+    corr = scipy.fft.irfft2(cross, s=reference.shape)
+    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    h, w = reference.shape
+    v = iy - h if iy > h // 2 else iy
+    u = ix - w if ix > w // 2 else ix
+    return int(u), int(v), float(corr[iy, ix])
+
+
 def phase_correlation(reference, current) -> tuple[int, int, float]:
     """Global integer shift ``(u, v)`` of ``current`` relative to ``reference`` by phase correlation.
 
     Both images are mean-removed and Hann-windowed; the peak of the normalised cross-power
-    spectrum's inverse FFT gives the shift (|u| < W/2, |v| < H/2). NumPy FFT on the host.
+    spectrum's inverse FFT gives the shift (|u| < W/2, |v| < H/2). SciPy FFT (pocketfft) on the host;
+    :func:`phase_spectrum` and :func:`phase_correlation_spectra` keep an image's spectrum for reuse.
 
     Returns
     -------
     (u, v, peak) : the integer shift in pixels and the peak height (1 for a perfect circular shift,
     close to 0 when the images do not match).
     """
-    ref = as_float32_image(reference, "reference").astype(np.float64)
-    cur = as_float32_image(current, "current").astype(np.float64)
+    ref = as_float32_image(reference, "reference")
+    cur = as_float32_image(current, "current")
     if ref.shape != cur.shape:
         raise ValueError(f"reference {ref.shape} and current {cur.shape} images must have the same shape")
-    win = np.outer(np.hanning(ref.shape[0]), np.hanning(ref.shape[1]))
-    fr = np.fft.rfft2((ref - ref.mean()) * win)
-    fc = np.fft.rfft2((cur - cur.mean()) * win)
-    cross = fc * np.conj(fr)
-    cross /= np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max() + 1e-30)
-    corr = np.fft.irfft2(cross, s=ref.shape)
-    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
-    h, w = ref.shape
-    v = iy - h if iy > h // 2 else iy
-    u = ix - w if ix > w // 2 else ix
-    return int(u), int(v), float(corr[iy, ix])
+    return phase_correlation_spectra(phase_spectrum(ref, "reference"), phase_spectrum(cur, "current"))
 
 
 def reduce(image, device=None) -> np.ndarray:

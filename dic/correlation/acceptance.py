@@ -60,13 +60,25 @@ def second_opinion_candidates(points: np.ndarray, zncc: np.ndarray, accepted: np
     enough = np.sum(have, axis=1) >= 3
     med = np.full(acc.size, np.nan)
     if np.any(enough):
-        med[enough] = np.nanmedian(z_nb[enough], axis=1)
+        med[enough] = _row_nanmedian(z_nb[enough])
     suspect = np.isfinite(med) & (zncc[acc] < med - zncc_drop)
     if not np.any(suspect):
         return empty
     idx = acc[suspect]
     best = nb[suspect][np.arange(idx.size), np.nanargmax(np.where(nb[suspect] >= 0, z_nb[suspect], -np.inf), axis=1)]
     return idx, best
+
+
+def _row_nanmedian(values: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(values, axis=1)`` of an (M, K) array with at least one finite value per row, bit for bit
+    (NumPy takes the mean of the two middle values of the sorted finite ones, ``(low + high) / 2``, the same
+    value twice for an odd count) without its masked-array path, several times slower on small rows."""
+    ordered = np.sort(values, axis=1)  # NaN last
+    count = np.count_nonzero(~np.isnan(values), axis=1)
+    high = count // 2
+    low = np.where(count % 2 == 1, high, high - 1)
+    rows = np.arange(values.shape[0])
+    return (ordered[rows, low] + ordered[rows, high]) / 2.0
 
 
 def flag_implausible(correlator, params: np.ndarray, accepted: np.ndarray, order: int) -> np.ndarray:

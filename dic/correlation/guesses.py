@@ -31,7 +31,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from kernels.search import phase_correlation, pyramid, search_image, zncc_search
+from kernels.search import (
+    phase_correlation,
+    phase_correlation_spectra,
+    phase_spectrum,
+    pyramid,
+    search_image,
+    zncc_search,
+)
 
 from .acceptance import accepted_mask
 from .params import convert_order, embed_first_order, n_params
@@ -52,7 +59,7 @@ class GuessContext:
     prior : (N, k) float64 parameters to start from (zeros when there is no prior).
     search_radius : int, px - the largest motion a search has to find.
     zncc_min : float - acceptance threshold (used by strategies that run IC-GN themselves).
-    options : strategy-specific settings (``rig``, ``gradient``, ``base``, ``feature_filter``, ...).
+    options : strategy-specific settings (``rig``, ``gradient``, ``base``, ``spectrum``, ``feature_filter``, ...).
     cache : per-image scratch space shared by the strategies (e.g. feature matches, computed once).
     """
 
@@ -204,7 +211,9 @@ def _shift(ctx: GuessContext, idx: np.ndarray):
     g = ctx.prior[idx].copy()
     base = ctx.options.get("base")
     base = ctx.reference if base is None else base
-    u, v, peak = phase_correlation(base, ctx.current)
+    # options["spectrum"]: a caller's phase_spectrum that keeps each image's spectrum (a sequence reuses them)
+    spectrum = ctx.options.get("spectrum") or phase_spectrum
+    u, v, peak = phase_correlation_spectra(spectrum(base), spectrum(ctx.current))
     # a weak peak is no evidence of a shift; 0.05 separates speckle matches from noise (measured)
     applied = bool(peak > 0.05 and (u or v))
     if applied:

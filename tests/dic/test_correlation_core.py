@@ -186,3 +186,18 @@ def test_one_engine_runs_icgn():
 def test_status_code_for_implausible_warps_is_not_a_kernel_code():
     assert int(Status.IMPLAUSIBLE_WARP) == 7
     assert Status.IMPLAUSIBLE_WARP.name not in ("CONVERGED", "MAX_ITERATIONS")
+
+
+def test_second_opinion_row_median_is_numpys_nanmedian_bit_for_bit():
+    """The second opinion's neighbour median (rows of 8 with missing neighbours as NaN, odd and even counts,
+    ties) is np.nanmedian's value exactly."""
+    from dic.correlation.acceptance import _row_nanmedian
+
+    rng = np.random.default_rng(5)
+    values = 0.9 + 0.1 * rng.random((4000, 8))
+    values[rng.random(values.shape) < 0.35] = np.nan
+    values[:, 0] = np.where(np.isnan(values[:, 0]), 0.95, values[:, 0])  # at least one finite value per row
+    values[::5, 3] = values[::5, 0]  # ties
+    counts = np.count_nonzero(~np.isnan(values), axis=1)
+    assert {1, 2, 7, 8} <= set(counts.tolist())  # odd and even counts
+    assert np.array_equal(_row_nanmedian(values), np.nanmedian(values, axis=1))

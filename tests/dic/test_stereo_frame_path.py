@@ -4,7 +4,8 @@
   gives bitwise the result of ``correlate`` running that pass itself (indexed IC-GN from the same guesses).
 * ``correlate(max_fruitless_rounds=...)`` stops asking a fallback that accepts nothing.
 * ``StereoCorrelation(progress=...)``: the reference match reports its stages; a tqdm bar on request.
-* ``StereoCorrelation.measure``: the frame trackers are built once per reference and frame dtype; 8-bit and
+* ``StereoCorrelation.measure``: the frame trackers are built once per reference and frame dtype; each image is
+  phase-correlated from its spectrum computed once; 8-bit and
   float32 frames give the same bits.
 """
 import numpy as np
@@ -188,3 +189,34 @@ def test_tracks_reuse_their_frame_buffers_and_8_bit_frames_equal_float(lab):
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), name
     assert np.count_nonzero(fa.valid) > 0.8 * np.count_nonzero(a.match.valid)
     assert np.count_nonzero(fa2.valid) > 0.8 * np.count_nonzero(a.match.valid)  # from zero guess: same trackers
+
+
+def test_each_image_is_transformed_once_for_the_global_shift(lab, monkeypatch):
+    """The global shift of a state's guess correlates each camera's previous image with its current one: the
+    previous image's spectrum is the one kept from the state before, so a state transforms two images, not four,
+    and the fields are bitwise those of transforming every image every time."""
+    import dic._stereo as stereo_module
+    from kernels.search import phase_spectrum
+
+    rig, states = lab
+    (l0, r0), (l1, r1) = states
+    transformed = []
+
+    def counting(image):
+        transformed.append(image.shape)
+        return phase_spectrum(image)
+
+    monkeypatch.setattr(stereo_module, "phase_spectrum", counting)
+    kept = stereo_module.StereoCorrelation(rig, l0, r0, step=10, device="cpu")
+    kept_fields = [kept.measure(l1, r1, index=1)]
+    assert len(transformed) == 4  # the reference pair (the first state's base) and the current pair
+    kept_fields.append(kept.measure(l0, r0, index=2))  # back to the reference position: a shift from state 1
+    assert len(transformed) == 6  # only the new pair: state 1's images were kept
+    monkeypatch.setattr(stereo_module._SpectrumMemo, "__call__", lambda self, image: phase_spectrum(image))
+    every = stereo_module.StereoCorrelation(rig, l0, r0, step=10, device="cpu", match=kept.match)
+    every_fields = [every.measure(l1, r1, index=1), every.measure(l0, r0, index=2)]
+    for a, b in zip(kept_fields, every_fields):
+        for name in ("U", "V", "W", "exx", "zncc_left", "zncc_right", "status"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), name
+        assert np.count_nonzero(a.valid) > 0.8 * np.count_nonzero(kept.match.valid)

@@ -223,6 +223,66 @@ def test_optimal_is_the_maximum_likelihood_point(device, rng):
     assert abs((2 * optimal.residuals**2 / sigma**2).mean() - 1.0) < 5 * np.sqrt(2.0 / n)
 
 
+def _projection_jacobian(rig, X, h=1e-3):
+    """(N, 4, 3) d(left and right pixels)/dX by central differences of ``Camera.project`` (h mm)."""
+    J = np.empty((X.shape[0], 4, 3))
+    for k in range(3):
+        dX = np.zeros(3)
+        dX[k] = h
+        J[:, :, k] = (_stack_projection(rig, X + dX) - _stack_projection(rig, X - dX)) / (2 * h)
+    return J
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.5])
+def test_optimal_jacobian_matches_central_differences_of_the_triangulation(device, rng, noise_px):
+    """The analytic d(X)/d(pixels) of the optimal point (one kernel launch) against central differences of the
+    whole triangulation (8 solves, h = 0.05 px, what dic.quality.triangulation_jacobian does): measured
+    agreement 3e-9 (noise-free) and 5e-9 (0.5 px noise) of each point's largest entry; asserted 1e-7."""
+    from dic._triangulate import optimal_triangulation_jacobian
+    from dic.quality import triangulation_jacobian
+
+    rig = long_range_rig()
+    n = 1000
+    X, uvl, uvr = rig_points(rig, n, rng)
+    pl, pr = uvl + rng.normal(0, noise_px, uvl.shape), uvr + rng.normal(0, noise_px, uvr.shape)
+    tri = triangulate(rig, pl, pr, method="optimal", device=device)
+    assert np.all(tri.status == S.OK)
+    analytic = optimal_triangulation_jacobian(rig, pl, pr, tri.points, device=device)
+    assert analytic.shape == (n, 3, 4)
+    central = triangulation_jacobian(lambda a, b: triangulate(rig, a, b, method="optimal", device=device).points,
+                                     pl, pr, step_px=0.05)
+    scale = np.max(np.abs(central), axis=(1, 2), keepdims=True)  # mm/px
+    assert np.max(np.abs(analytic - central) / scale) < 1e-7
+    # independent of both: without residuals the optimal point's derivative is the pseudo-inverse of the
+    # projection Jacobian (Camera.project, central differences); with 0.5 px residuals it is not (the residual
+    # term of the implicit-function Jacobian is needed: here more than 1e-5 of the largest entry)
+    J = _projection_jacobian(rig, tri.points)
+    gauss_newton = np.linalg.solve(np.einsum("nik,nil->nkl", J, J), np.transpose(J, (0, 2, 1)))
+    gn_error = np.max(np.abs(gauss_newton - central) / scale)
+    if noise_px == 0.0:
+        assert gn_error < 1e-6
+    else:
+        assert gn_error > 1e-5
+
+
+def test_optimal_jacobian_rows_and_bad_arguments(device):
+    from dic._triangulate import optimal_triangulation_jacobian
+
+    rig = long_range_rig()
+    X = np.array([[0.0, 150.0, 5400.0], [0.0, 150.0, 5400.0], [0.0, 0.0, -1000.0]])
+    uvl = rig.left.project(X[:2])
+    uvr = rig.right.project(X[:2] @ rig.R_right_left.T + rig.t_right_left)
+    pl = np.vstack([uvl, [[100.0, 100.0]]])
+    pr = np.vstack([uvr, [[100.0, 100.0]]])
+    pl[1] = np.nan
+    jac = optimal_triangulation_jacobian(rig, pl, pr, X, device=device)
+    assert np.all(np.isfinite(jac[0]))
+    assert np.all(np.isnan(jac[1]))  # a NaN input
+    assert np.all(np.isnan(jac[2]))  # behind the cameras
+    with pytest.raises(ValueError, match="same N"):
+        optimal_triangulation_jacobian(rig, pl, pr, X[:2], device=device)
+
+
 def test_statuses_for_bad_points(device, rng):
     rig = long_range_rig()
     X, uvl, uvr = rig_points(rig, 3, rng)

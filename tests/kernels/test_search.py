@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from kernels.search import phase_correlation, pyramid, reduce, zncc_search
+from kernels.search import phase_correlation, phase_correlation_spectra, phase_spectrum, pyramid, reduce, zncc_search
 
 
 def texture(shape, seed=0, sigma=1.5):
@@ -65,6 +65,22 @@ def test_phase_correlation(shift):
     u, v, peak = phase_correlation(ref, cur)
     assert (u, v) == shift
     assert peak > 0.1  # well above the ~1/sqrt(N) noise level of a mismatch
+
+
+def test_phase_correlation_from_kept_spectra():
+    """A sequence keeps each image's spectrum (its current image is the next state's base): the shifts from kept
+    spectra are the known ones, and the same as from the images."""
+    ref, cur = shifted_pair(7, -5, shape=(128, 120), seed=3)
+    _, nxt = shifted_pair(-4, 9, shape=(128, 120), seed=3)  # the same texture shifted by (-4, 9) from ref
+    s_ref, s_cur, s_nxt = phase_spectrum(ref), phase_spectrum(cur), phase_spectrum(nxt)
+    assert s_ref.spectrum.shape == (128, 61) and s_ref.shape == (128, 120)
+    assert phase_correlation_spectra(s_ref, s_cur)[:2] == (7, -5)
+    assert phase_correlation_spectra(s_cur, s_nxt)[:2] == (-11, 14)  # cur -> nxt, the spectrum of cur reused
+    assert phase_correlation_spectra(s_cur, s_nxt) == phase_correlation(cur, nxt)
+    with pytest.raises(ValueError, match="same shape"):
+        phase_correlation_spectra(s_ref, phase_spectrum(ref[:, :-2]))
+    with pytest.raises(ValueError, match="PhaseSpectrum"):
+        phase_correlation_spectra(s_ref, cur)
 
 
 def test_reduce_matches_scipy(device):
