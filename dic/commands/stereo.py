@@ -135,9 +135,13 @@ def _engine_pairs(pairs) -> list:
               help="Exit with status 0 even when no state of the run has a valid point (by default that is an error: "
                    "a swapped or foreign rig, or images that do not match).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+@click.option("--strain-type", default="green-lagrange", show_default=True,
+              type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
+              help="What the surface strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's "
+                   "default), small (engineering) or Euler-Almansi; stored in the file.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           compression, overwrite, allow_empty, quiet):
+           compression, overwrite, allow_empty, quiet, strain_type):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -212,7 +216,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         record = StereoOptions(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
                                zncc_min=zncc_min, strain_window=strain_window, roi=region, robust=robust,
                                noise_sigma=noise_sigma,
-                               reference=reference_strategy)
+                               reference=reference_strategy, strain_type=strain_type)
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images
@@ -255,6 +259,9 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         skipped = len(pairs) - len(summary)
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")
+        from dic._strain import strain_type_label
+
+        click.echo(f"strain: {strain_type_label(strain_type)} surface strain, window {strain_window} grid points")
         click.echo(f"results: {output}")
     if len(summary) and not allow_empty and not any(summary.n_valid):
         raise click.ClickException(

@@ -76,9 +76,13 @@ def _fail(exc: Exception) -> click.ClickException:
 @compression_option("array")
 @click.option("--overwrite", is_flag=True, help="Start the output afresh instead of resuming it.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+@click.option("--strain-type", default="green-lagrange", show_default=True,
+              type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
+              help="What the strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's and DICe's "
+                   "default, and stereo's), small (engineering) or Euler-Almansi; stored in the file.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, device, figure_dir, figure_limits, figure_every, vtk_dir,
-          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet):
+          reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, strain_type):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -132,7 +136,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     given = {"max_iter": max_iter, "tol": tol, "search_radius": search}
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
                      noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
-                     scale_mm_per_px=scale, **{k: v for k, v in given.items() if v is not None})
+                     scale_mm_per_px=scale, strain_type=strain_type, **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
 
@@ -164,7 +168,8 @@ def track(reference, current, output, subset, step, order, search, search_method
                 mode="overwrite" if overwrite else "resume", progress=not quiet, strain_window=strain_window,
                 vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
                 settings=record, make_tracker=make_tracker, points=planned, order=order,
-                max_memory=budget, search=search_method if search else None, client=client, compression=compression)
+                max_memory=budget, search=search_method if search else None, client=client, compression=compression,
+                strain_type=strain_type)
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
@@ -177,6 +182,10 @@ def track(reference, current, output, subset, step, order, search, search_method
             click.echo(f"{result.skipped} frame(s) were already in {output} and were skipped")
         if result.frames:
             click.echo(f"{len(result.frames)} frame(s) in {result.seconds:.1f} s ({result.frames_per_second:.2f} frames/s)")
+        if strain_window:
+            from dic._strain import strain_type_label
+
+            click.echo(f"strain: {strain_type_label(strain_type)}, window {strain_window} grid points")
         click.echo(f"results: {output}")
 
 

@@ -188,7 +188,7 @@ class ChunkedTracker:
 _FIELD_ARRAYS = ("points", "u", "v", "params", "zncc", "iterations", "status", "valid")
 
 
-def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS):
+def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS, strain_type: str = "green-lagrange"):
     """:func:`dic.strain` of ``field`` (``window`` grid points) computed a band of grid rows at a time.
 
     Each band holds at most about ``max_points`` POIs plus ``window // 2`` grid rows on either
@@ -197,11 +197,11 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS)
     identical (tested), while the strain's working arrays are those of one band. A field of at
     most ``max_points`` POIs is one call of :func:`dic.strain`; so is a field whose bands
     do not make grids of their own that a window fits (a region of interest only a few points
-    wide in places).
+    wide in places). ``strain_type`` as for :func:`dic.strain`.
     """
     from kernels.checks import positive_int
 
-    from .._strain import StrainField, grid_layout, strain
+    from .._strain import StrainField, check_strain_type, grid_layout, strain
 
     max_points = positive_int(max_points, "max_points")
     if not all(hasattr(field, name) for name in ("points", "u", "v", "valid")):
@@ -209,7 +209,7 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS)
     points = np.asarray(field.points, np.float64)
     n = len(points)
     if n <= max_points:
-        return strain(field, window=window)
+        return strain(field, window=window, strain_type=strain_type)
     index, shape, step = grid_layout(points)
     h = int(window) // 2
     rows = index[:, 1]
@@ -226,11 +226,11 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS)
         sel = np.sort(order[starts[max(0, r0 - h)]:starts[min(shape[0], r1 + h)]])
         part = _Field(points[sel], u[sel], v[sel], valid[sel])
         try:
-            s = strain(part, window=window)
+            s = strain(part, window=window, strain_type=strain_type)
         except ValueError:  # a band that is no grid a window fits on its own: the whole field at once
-            return strain(field, window=window)
+            return strain(field, window=window, strain_type=strain_type)
         if tuple(s.step) != tuple(step):
-            return strain(field, window=window)
+            return strain(field, window=window, strain_type=strain_type)
         keep = (rows[sel] >= r0) & (rows[sel] < r1)
         if out is None:
             out = {name: np.empty(n, getattr(s, name).dtype) for name in StrainField.COMPONENTS + ("valid", "n_fit")}
@@ -238,7 +238,7 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS)
             arr[sel[keep]] = getattr(s, name)[keep]
         del s, part
     return StrainField(points=points.copy(), **out, window=int(window), step=step, grid_index=index,
-                       grid_shape=shape)
+                       grid_shape=shape, strain_type=check_strain_type(strain_type))
 
 
 class _Field:

@@ -179,7 +179,9 @@ class _Record:
             return cls(**kw)
         if version != 1:
             raise ValueError(f"settings of options schema {version!r}: this Specula reads schemas 1 and {OPTIONS_SCHEMA}")
-        return cls._from_schema1(settings)
+        record = cls._from_schema1(settings)
+        added = {k: v for k, v in cls.ADDED_OPTIONS.items() if k not in settings}  # older still: the old behaviour
+        return replace(record, **added) if added else record
 
     def differences(self, other) -> list[tuple[str, Any, Any]]:
         """``(option, value here, value in other)`` for every option that differs (those either side did
@@ -295,6 +297,8 @@ class TrackOptions(_Record):
     auto_zncc: float | None = None
     guess: str = "previous"
     scale_mm_per_px: float | None = None
+    # strain types by name (issue 25): what exx, eyy, exy are; files before it computed small strain
+    strain_type: str = "green-lagrange"
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
     #: the checked region (None when read from a file: it holds its JSON form)
@@ -306,10 +310,13 @@ class TrackOptions(_Record):
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
         "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
-        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale"}
+        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
+        "strain_type": "--strain-type"}
     KIND: ClassVar[str] = "2-D"
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
-    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess")
+    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess",
+                                                    "strain_type")
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"strain_type": "small"}  # 2-D exx was the small strain
 
     def __post_init__(self):
         self._check_common()
@@ -343,6 +350,7 @@ class TrackOptions(_Record):
             raise OptionError("strain_window", f"strain_window must be 0 (no strain) or an odd integer >= 3 "
                                                f"(grid points), got {self.strain_window!r}")
         self._set("strain_window", sw)
+        self._set("strain_type", _checked("strain_type", _strain_type, self.strain_type))
         if self.scale_mm_per_px is not None:
             self._set("scale_mm_per_px", _checked("scale_mm_per_px", positive_float, self.scale_mm_per_px,
                                                   "the scale", detail=" (mm per px)"))
@@ -426,6 +434,8 @@ class StereoOptions(_Record):
     auto_valid: float | None = None
     auto_zncc: float | None = None
     guess: str = "previous"
+    # strain types by name (issue 25): what exx, eyy, exy are; stereo strain was always Green-Lagrange
+    strain_type: str = "green-lagrange"
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
@@ -434,9 +444,10 @@ class StereoOptions(_Record):
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask",
         "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
         "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust",
-        "reference": "--reference", "guess": "--scheduler/--workers"}
+        "reference": "--reference", "guess": "--scheduler/--workers", "strain_type": "--strain-type"}
     KIND: ClassVar[str] = "stereo"
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess")
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"strain_type": "green-lagrange"}
 
     def __post_init__(self):
         self._check_common()
@@ -458,6 +469,7 @@ class StereoOptions(_Record):
         if self.triangulation not in ("optimal", "linear"):
             raise OptionError("triangulation", f"triangulation must be 'optimal' or 'linear', got {self.triangulation!r}")
         self._set("max_features", _checked("max_features", positive_int, self.max_features, "max_features"))
+        self._set("strain_type", _checked("strain_type", _strain_type, self.strain_type))
         self._check_sequence()
 
     def correlation_kwargs(self) -> dict:
@@ -467,7 +479,8 @@ class StereoOptions(_Record):
         kw = {"subset": self.subset, "order": self.order, "frame": frame, "epipolar_tol_px": self.epipolar_tol_px,
               "zncc_min": self.zncc_min, "strain_window": self.strain_window, "max_iter": self.max_iter,
               "tol": self.tol, "triangulation": self.triangulation, "max_features": self.max_features,
-              "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust}
+              "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
+              "strain_type": self.strain_type}
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:
@@ -500,6 +513,12 @@ def _frame(frame):
 
     R, t = _checked("frame", as_frame, frame)
     return [R.tolist(), t.tolist()]
+
+
+def _strain_type(strain_type):
+    from .._strain import check_strain_type
+
+    return check_strain_type(strain_type)
 
 
 def _check_search(search):

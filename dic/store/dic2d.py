@@ -8,7 +8,8 @@ Per frame ``/frames/<index>``::
     sigma_u, sigma_v (N,) f8         optional: predicted displacement std (px, NaN where not valid);
                                      attrs noise_sigma (grey levels), noise_source ("given" | "residual")
     strain/                          optional: dudx, dudy, dvdx, dvdy, exx, eyy, exy, Exx, Eyy, Exy (N,) f8,
-                                     valid (N,) bool; attrs window, step (dx, dy) px
+                                     valid (N,) bool; attrs window, step (dx, dy) px, strain_type (what exx,
+                                     eyy, exy are; absent before strain types: the settings' strain_type, else small)
 
 The frame protocol (``.partial`` -> complete, flush, resume) is :class:`dic.store.ResultWriter`'s.
 """
@@ -233,6 +234,7 @@ def write_field2d(group, field2d, strain=None, compression: Compression | str | 
             write_dataset(sg, key, np.asarray(getattr(strain, key)), compression)
         sg.attrs["window"] = int(strain.window)
         sg.attrs["step"] = np.asarray(strain.step, dtype=np.float64)
+        sg.attrs["strain_type"] = str(getattr(strain, "strain_type", "green-lagrange"))  # what exx, eyy, exy are
 
 
 def read_field2d(group) -> FrameResult:
@@ -247,6 +249,8 @@ def read_field2d(group) -> FrameResult:
         strain = {k: group["strain"][k][()] for k in group["strain"]}
         strain["window"] = int(group["strain"].attrs["window"])
         strain["step"] = tuple(group["strain"].attrs["step"])
+        if "strain_type" in group["strain"].attrs:  # absent in files before strain types (their run's: settings)
+            strain["strain_type"] = str(group["strain"].attrs["strain_type"])
     extra = {k: plain(v) for k, v in group.attrs.items() if k not in ("index", "path")}
     params = data.get("params")
     return FrameResult(points=data["points"], u=data["u"], v=data["v"], params=params, zncc=data.get("zncc"),
