@@ -35,7 +35,8 @@ import numpy as np
 from kernels.checks import as_points, odd_int, positive_int
 
 __all__ = ["StrainField", "StrainPlan", "strain", "grid_layout", "check_strain_window", "STRAIN_TYPES",
-           "DEFAULT_STRAIN_TYPE", "check_strain_type", "strain_type_label", "strain_from_gradient"]
+           "DEFAULT_STRAIN_TYPE", "check_strain_type", "strain_type_label", "strain_from_gradient",
+           "stored_strain_type"]
 
 #: the strain types by name, with what a label calls them
 STRAIN_TYPES = {"green-lagrange": "Green-Lagrange", "small": "small (engineering)", "euler-almansi": "Euler-Almansi"}
@@ -58,6 +59,26 @@ def strain_type_label(strain_type) -> str:
         return STRAIN_TYPES[check_strain_type(strain_type)]
     except ValueError:
         return "strain"
+
+
+#: the strain type of a file that names none: what its run computed before strain types existed (the run
+#: records' ADDED_OPTIONS, dic/sequence/options.py: 2-D exx was the small strain, stereo the Green-Lagrange one)
+_OLD_STRAIN_TYPE = {"dic2d": "small", "stereo": "green-lagrange"}
+
+
+def stored_strain_type(kind: str, settings: dict | None, frame=None) -> str:
+    """The strain type of a result file's strain: its settings' ``strain_type``, else the one a ``frame``
+    of it records (2-D: ``frame.strain["strain_type"]``; stereo: ``frame.strain_type``, read as
+    Green-Lagrange where absent), else what its kind (``"dic2d"`` or ``"stereo"``) computed before
+    strain types existed (2-D small, stereo Green-Lagrange)."""
+    stored = settings.get("strain_type") if isinstance(settings, dict) else None
+    if stored is None and frame is not None:
+        if kind == "dic2d":
+            strain = getattr(frame, "strain", None)
+            stored = strain.get("strain_type") if isinstance(strain, dict) else getattr(strain, "strain_type", None)
+        else:
+            stored = getattr(frame, "strain_type", None)
+    return check_strain_type(stored if stored is not None else _OLD_STRAIN_TYPE.get(kind, DEFAULT_STRAIN_TYPE))
 
 
 def strain_from_gradient(dudx, dudy, dvdx, dvdy, strain_type: str = DEFAULT_STRAIN_TYPE):

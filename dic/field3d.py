@@ -595,7 +595,7 @@ class Field3D:
 
         return point_dataset(columns_3d(self), kind="stereo", status_codes=StereoStatus,
                              attrs={"title": "Specula stereo-DIC field", "state": int(self.index),
-                                    "frame_name": self.frame_name,
+                                    "frame_name": self.frame_name, "strain_type": self.strain_type,
                                     "R_frame_left": np.asarray(self.R_frame_left, np.float64).ravel(),
                                     "t_frame_left": np.asarray(self.t_frame_left, np.float64)})
 

@@ -531,28 +531,6 @@ def window_points(window, step, unit: str = "grid") -> int:
     return n
 
 
-#: the strain type of a file whose settings name none: what its run computed before strain types existed
-#: (the run records' ADDED_OPTIONS: 2-D exx was the small strain, stereo the Green-Lagrange one)
-_OLD_STRAIN_TYPE = {"dic2d": "small", "stereo": "green-lagrange"}
-
-
-def stored_strain_type(kind: str, settings: dict, frame=None) -> str:
-    """The strain type of a result file's strain: its settings' ``strain_type``, else the one a ``frame``
-    of it records (2-D: ``frame.strain["strain_type"]``; stereo: ``frame.strain_type``, read as
-    Green-Lagrange where absent), else what its kind (``"dic2d"`` or ``"stereo"``) computed before
-    strain types existed (2-D small, stereo Green-Lagrange)."""
-    from ._strain import check_strain_type
-
-    stored = settings.get("strain_type") if isinstance(settings, dict) else None
-    if stored is None and frame is not None:
-        if kind == "dic2d":
-            strain = getattr(frame, "strain", None)
-            stored = strain.get("strain_type") if isinstance(strain, dict) else getattr(strain, "strain_type", None)
-        else:
-            stored = getattr(frame, "strain_type", None)
-    return check_strain_type(stored if stored is not None else _OLD_STRAIN_TYPE.get(kind, "green-lagrange"))
-
-
 def recompute_strain(results, output=None, *, window, unit: str = "grid", min_points: int | None = None,
                      scale=None, strain_type: str | None = None) -> Path:
     """Recompute the strain of a result file (2-D or stereo) with another fit window or strain type.
@@ -573,7 +551,8 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     scale : float, optional
         2-D: also store this mm/px scale (settings key :data:`SCALE_KEY`); None keeps the stored one.
     strain_type : "green-lagrange" | "small" | "euler-almansi", optional
-        What ``exx``, ``eyy``, ``exy`` are; None keeps the file's (:func:`stored_strain_type`).
+        What ``exx``, ``eyy``, ``exy`` are; None keeps the file's (:func:`dic._strain.stored_strain_type`:
+        a file written before strain types holds 2-D small strain, stereo Green-Lagrange).
 
     Everything but the strain is copied unchanged (points, displacements, parameters, statuses,
     frame attributes; stereo: the rig, the reference match, shapes and normals' positions); the
@@ -588,7 +567,7 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     every writer): an output, or a ``results`` file, that another process is writing (a running
     ``specula track``) is refused with :class:`dic.store.ResultFileInUse` and left untouched.
     """
-    from ._strain import check_strain_type, grid_layout
+    from ._strain import check_strain_type, grid_layout, stored_strain_type
     from .store import ResultReader, ResultWriter, files
     from .store.layout import role_attr
 

@@ -73,8 +73,10 @@ class FrameResult(Field2D):
         :meth:`dic.field2d.Field2D.to_xarray`, with the stored strain)."""
         from ..tabular import point_dataset
 
+        strain_type = self.strain.get("strain_type") if isinstance(self.strain, dict) else None
         return point_dataset(self._columns(), kind="dic2d",
-                             attrs={"title": "Specula 2-D DIC frame", "frame": int(self.index), "image_path": self.path})
+                             attrs={"title": "Specula 2-D DIC frame", "frame": int(self.index), "image_path": self.path,
+                                    "strain_type": strain_type})
 
     def to_dataframe(self):
         """This frame as a :class:`pandas.DataFrame`, one row per point."""
@@ -159,7 +161,7 @@ class TrackResults:
         from ..tabular import frame_dataset
 
         idx = self.indices
-        attrs = table_attrs(self.path, self.attrs, self.reference, self.settings)
+        attrs = table_attrs(self.path, self.attrs, self.reference, self.settings, self.frames[idx[0]] if idx else None)
         return frame_dataset([(i, self.frames[i]._columns()) for i in idx], kind="dic2d", attrs=attrs,
                              frame_coords={"path": [str(self.frames[i].path) for i in idx]})
 
@@ -191,12 +193,17 @@ class TrackResults:
         return frame.plot(reference, limits=limits, **kwargs)
 
 
-def table_attrs(path, attrs: dict, reference: dict, settings: dict) -> dict:
-    """The attributes of a 2-D result file's frame x point table (:meth:`TrackResults.to_xarray`, the exports)."""
+def table_attrs(path, attrs: dict, reference: dict, settings: dict, first=None) -> dict:
+    """The attributes of a 2-D result file's frame x point table (:meth:`TrackResults.to_xarray`, the exports);
+    ``first``: the first frame (its strain's type where the settings name none)."""
+    from .._strain import stored_strain_type
+
     shape = reference.get("shape") or ()
+    has_strain = first is None or getattr(first, "strain", None) is not None
     return {"title": "Specula 2-D DIC results", "source": str(path), "source_format": FORMAT_NAME,
             "specula_version": attrs.get("specula_version"), "reference_path": reference.get("path", ""),
-            "reference_shape": [int(v) for v in shape], "settings": settings}
+            "reference_shape": [int(v) for v in shape], "settings": settings,
+            "strain_type": stored_strain_type("dic2d", settings, first) if has_strain else None}
 
 
 def write_field2d(group, field2d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:

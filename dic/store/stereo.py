@@ -136,7 +136,8 @@ def table_attrs(settings: dict, rig, reference_shape, first) -> dict:
     return {"title": "Specula stereo-DIC results", "source_format": FORMAT_NAME, "settings": settings,
             "rig": rig, "reference_shape": [int(v) for v in reference_shape],
             "frame_name": first.frame_name if first is not None else None,
-            "grid_shape": list(first.grid_shape) if first is not None and first.grid_shape is not None else None}
+            "grid_shape": list(first.grid_shape) if first is not None and first.grid_shape is not None else None,
+            "strain_type": getattr(first, "strain_type", "green-lagrange") if first is not None else None}
 
 
 def write_field3d(group, field3d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dic._strain import STRAIN_TYPES, check_strain_type, strain, strain_from_gradient
-from dic.field3d import SurfaceStrainPlan, surface_strain, surface_strain_grid, grid_neighbours
-from dic.postprocess import recompute_strain, stored_strain_type
+from dic._strain import STRAIN_TYPES, check_strain_type, stored_strain_type, strain, strain_from_gradient
+from dic.field3d import SurfaceStrainPlan, grid_neighbours, surface_strain, surface_strain_grid
+from dic.postprocess import recompute_strain
 from dic.store import read_results, read_stereo
 
 DATA = Path(__file__).parents[1] / "data" / "settings_v1"
@@ -174,6 +174,17 @@ def test_2d_recomputed_strain_equals_a_run_with_that_window_and_type(tmp_path):
         for key in ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy", "valid"):
             assert _same(got.frames[i].strain[key], run.frames[i].strain[key]), key
         assert got.frames[i].strain["strain_type"] == "euler-almansi"
+    # the type in every label: xarray column attributes, the DataFrame, figure titles and colour bars
+    ds = got.to_xarray()
+    assert ds["exx"].attrs["long_name"] == "Euler-Almansi strain xx" and ds.attrs["strain_type"] == "euler-almansi"
+    assert ds["Exx"].attrs["long_name"] == "Green-Lagrange strain xx"
+    assert got.to_dataframe().attrs["strain_type"] == "euler-almansi"
+    from dic.plots.fields import field_figure
+    from dic.io import read_image
+
+    fig = field_figure(read_image(IMG["ref"]), got.frames[2], got.frames[2].strain)
+    texts = [ax.get_title() for ax in fig.axes] + [ax.get_ylabel() for ax in fig.axes]
+    assert "Euler-Almansi strain exx (1)" in texts and "exx, Euler-Almansi" in texts
     # without --strain-type the file's type is kept
     r = _cli("strain", tmp_path / "re.h5", "--window", 5, "-q")
     assert r.exit_code == 0 and read_results(tmp_path / "re.h5").settings["strain_type"] == "euler-almansi"
@@ -199,6 +210,13 @@ def test_stereo_recomputed_strain_equals_a_run_with_that_window(tmp_path):
             assert _same(getattr(a, key), getattr(b, key)), (i, key)
         assert a.strain_type == b.strain_type == "small"
     assert got.match is not None and _same(got.match.points_right, run.match.points_right)
+    ds = got.to_xarray()
+    assert ds["eyy"].attrs["long_name"] == "small (engineering) strain yy" and got.fields[2].to_dataframe().attrs[
+        "strain_type"] == "small"
+    from dic.plots.fields import field3d_figure
+
+    fig = field3d_figure(got.fields[2], "exx")
+    assert "small (engineering) strain exx" in fig.axes[0].get_title()
     # the library function names its keywords; the command its options
     with pytest.raises(ValueError, match="strain window 99 .* at most"):
         recompute_strain(w3, tmp_path / "x.h5", window=99)
