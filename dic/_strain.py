@@ -23,8 +23,8 @@ type is chosen by name (:data:`STRAIN_TYPES`, ``strain_type=``):
 
 ``exx``, ``eyy``, ``exy`` of a :class:`StrainField` are the chosen type; ``Exx``, ``Eyy``, ``Exy``
 are always Green-Lagrange (as in files before strain types existed). Shears are tensor components
-(the engineering shear strain is ``2 exy``). The three agree to first order in ``H``: at 10 %
-stretch they differ by about 5 % of the strain (``0.105``, ``0.1``, ``0.0909`` for ``F = 1.1``).
+(the engineering shear strain is ``2 exy``). The three agree to first order in ``H``: at a 10 %
+stretch (``F = diag(1.1, 1)``) ``exx`` is ``0.105``, ``0.1`` and ``0.0868``.
 """
 from __future__ import annotations
 
