@@ -270,10 +270,27 @@ def _kernels(window: int):
 
 
 def _correlate(a, k):
-    """Σ over the window centred on each node of ``a * k`` (zeros outside the grid)."""
-    from scipy import ndimage  # here, not at the top: importing scipy.ndimage costs 0.2-1 s (the CLI's post-processing)
+    """Σ over the window centred on each node of ``a * k`` (zeros outside the grid).
 
-    return ndimage.correlate(a, k, mode="constant", cval=0.0)
+    ``scipy.ndimage.correlate(a, k, mode="constant", cval=0.0)`` bit for bit (tested): the same
+    products of the kernel's nonzero weights (``|w| > DBL_EPSILON``, C order) added to 0.0 in the same
+    order, for an odd (window, window) kernel; without importing scipy.ndimage, which costs 0.4 s of
+    CPU (``specula strain``). Cost: one multiply-add over the grid per nonzero weight.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    ky, kx = k.shape
+    hy, hx = ky // 2, kx // 2
+    ny, nx = a.shape
+    pad = np.zeros((ny + 2 * hy, nx + 2 * hx))
+    pad[hy:hy + ny, hx:hx + nx] = a
+    out = np.zeros((ny, nx))
+    eps = np.finfo(np.float64).eps
+    for i in range(ky):
+        for j in range(kx):
+            w = float(k[i, j])
+            if abs(w) > eps:
+                out += pad[i:i + ny, j:j + nx] * w
+    return out
 
 
 class StrainPlan:
