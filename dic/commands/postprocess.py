@@ -248,10 +248,11 @@ def strain(results, window, in_px, in_grid, strain_type, output, min_points, sca
         with ResultReader(path) as r:  # one frame at a time
             n = r.settings.get("strain_window")
             label = strain_type_label(r.settings.get("strain_type"))
-            stereo = r.kind.name == "stereo"
-            for i, f in r.iter_frames():
-                ok = np.asarray(f.strain_valid if stereo else f.strain["valid"], bool)
-                exx = np.asarray(f.exx if stereo else f.strain["exx"])[ok]
+            names = ("strain_valid", "exx") if r.kind.name == "stereo" else ("strain/valid", "strain/exx")
+            for i in r.done_frames():  # only the two datasets the line needs
+                valid, exx = r.frame_arrays(i, names)
+                ok = np.asarray(valid, bool)
+                exx = np.asarray(exx)[ok]
                 click.echo(f"{r.kind.frame_noun} {i}: strain at {int(ok.sum())}/{ok.size} points, "
                            f"{label} exx mean {_fmt(exx.mean()) if exx.size else 'nan'}")
         click.echo(f"strain window {n} grid points, {label} strain; results: {path}")
