@@ -68,14 +68,16 @@ _OLD_STRAIN_TYPE = {"dic2d": "small", "stereo": "green-lagrange"}
 
 def stored_strain_type(kind: str, settings: dict | None, frame=None) -> str:
     """The strain type of a result file's strain: its settings' ``strain_type``, else the one a ``frame``
-    of it records (2-D: ``frame.strain["strain_type"]``; stereo: ``frame.strain_type``, read as
-    Green-Lagrange where absent), else what its kind (``"dic2d"`` or ``"stereo"``) computed before
-    strain types existed (2-D small, stereo Green-Lagrange)."""
+    of it records (2-D: ``frame.attrs["strain_type"]`` of a file's frame, or its StrainField's;
+    stereo: ``frame.strain_type``, read as Green-Lagrange where absent), else what its kind
+    (``"dic2d"`` or ``"stereo"``) computed before strain types existed (2-D small, stereo Green-Lagrange)."""
     stored = settings.get("strain_type") if isinstance(settings, dict) else None
     if stored is None and frame is not None:
         if kind == "dic2d":
-            strain = getattr(frame, "strain", None)
-            stored = strain.get("strain_type") if isinstance(strain, dict) else getattr(strain, "strain_type", None)
+            attrs = getattr(frame, "attrs", None)
+            stored = attrs.get("strain_type") if isinstance(attrs, dict) else None
+            if stored is None:
+                stored = getattr(getattr(frame, "strain", None), "strain_type", None)
         else:
             stored = getattr(frame, "strain_type", None)
     return check_strain_type(stored if stored is not None else _OLD_STRAIN_TYPE.get(kind, DEFAULT_STRAIN_TYPE))

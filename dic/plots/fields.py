@@ -295,7 +295,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         ax.set_ylim(y1, y0)
         title, unit_label = _LABELS[name], _UNITS[name]
         if name in ("exx", "eyy", "exy"):  # the strain's type by name
-            kind = strain_type_label(getattr(strain, "strain_type", None) or "small")  # files before it: small
+            kind = strain_type_label(getattr(strain, "strain_type", None)  # a StrainField; a file's frame: its attrs
+                                     or getattr(field, "attrs", {}).get("strain_type") or "small")  # before: small
             title, unit_label = f"{kind} strain {name} (1)", f"{name}, {kind}"
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("x (px)")

@@ -44,7 +44,8 @@ class FrameResult(Field2D):
     settings) and no mask of the points placed by interpolation at a moved reference
     (``reference_interpolated`` is None; their count is ``attrs["reference_interpolated"]``). Arrays a
     file of another writer lacks are None. Added: ``path`` (the frame's image, '' for an array) and
-    ``attrs`` (the frame's stored attributes: ``seconds``, ``sha256``, ``reference_index``, ...).
+    ``attrs`` (the frame's stored attributes: ``seconds``, ``sha256``, ``reference_index``, ..., and
+    ``strain_type``, the type of its strain, where the file records it).
     """
 
     path: str = ""
@@ -73,7 +74,7 @@ class FrameResult(Field2D):
         :meth:`dic.field2d.Field2D.to_xarray`, with the stored strain)."""
         from ..tabular import point_dataset
 
-        strain_type = self.strain.get("strain_type") if isinstance(self.strain, dict) else None
+        strain_type = self.attrs.get("strain_type") if self.strain is not None else None
         return point_dataset(self._columns(), kind="dic2d",
                              attrs={"title": "Specula 2-D DIC frame", "frame": int(self.index), "image_path": self.path,
                                     "strain_type": strain_type})
@@ -256,9 +257,9 @@ def read_field2d(group) -> FrameResult:
         strain = {k: group["strain"][k][()] for k in group["strain"]}
         strain["window"] = int(group["strain"].attrs["window"])
         strain["step"] = tuple(group["strain"].attrs["step"])
-        if "strain_type" in group["strain"].attrs:  # absent in files before strain types (their run's: settings)
-            strain["strain_type"] = str(group["strain"].attrs["strain_type"])
     extra = {k: plain(v) for k, v in group.attrs.items() if k not in ("index", "path")}
+    if strain is not None and "strain_type" in group["strain"].attrs:  # absent before strain types: the settings'
+        extra["strain_type"] = str(group["strain"].attrs["strain_type"])  # with the frame's attrs (the dict: arrays)
     params = data.get("params")
     return FrameResult(points=data["points"], u=data["u"], v=data["v"], params=params, zncc=data.get("zncc"),
                        iterations=data.get("iterations"), status=data.get("status"), valid=data.get("valid"),
