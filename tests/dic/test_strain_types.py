@@ -179,8 +179,8 @@ def test_2d_recomputed_strain_equals_a_run_with_that_window_and_type(tmp_path):
     assert ds["exx"].attrs["long_name"] == "Euler-Almansi strain xx" and ds.attrs["strain_type"] == "euler-almansi"
     assert ds["Exx"].attrs["long_name"] == "Green-Lagrange strain xx"
     assert got.to_dataframe().attrs["strain_type"] == "euler-almansi"
-    from dic.plots.fields import field_figure
     from dic.io import read_image
+    from dic.plots.fields import field_figure
 
     fig = field_figure(read_image(IMG["ref"]), got.frames[2], got.frames[2].strain)
     texts = [ax.get_title() for ax in fig.axes] + [ax.get_ylabel() for ax in fig.axes]
