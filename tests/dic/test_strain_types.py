@@ -233,3 +233,34 @@ def test_files_before_strain_types_read_as_their_old_type():
     assert stored_strain_type("dic2d", {"strain_type": "euler-almansi"}) == "euler-almansi"
     frame = SimpleNamespace(attrs={"strain_type": "green-lagrange"}, strain={"exx": np.zeros(3)})
     assert stored_strain_type("dic2d", {}, frame) == "green-lagrange"
+
+
+def test_2d_strain_types_from_a_synthetic_image_pair():
+    """Rendered speckle (dic.synth, 200 x 160 px, 8-bit, no added noise) deformed by a homogeneous F with a
+    10 % stretch, tracked (subset 31, step 8, pyramid search) and strained (window 5): each type within
+    5e-4 of its exact value at every valid point (measured: at most 1.9e-4), while the types differ from
+    each other by more than 3e-3 -- the image pair tells them apart."""
+    from dic._track import Tracker
+    from dic.synth import speckle_pair
+
+    F = np.array([[1.10, 0.03], [0.0, 0.96]])
+    H = F - np.eye(2)
+    centre = np.array([100.0, 80.0])
+
+    def displacement(x, y):
+        dx, dy = x - centre[0], y - centre[1]
+        return H[0, 0] * dx + H[0, 1] * dy, H[1, 0] * dx + H[1, 1] * dy
+
+    ref, cur = speckle_pair((160, 200), displacement, seed=3)
+    field = Tracker(ref, subset=31, step=8, search="pyramid", search_radius=16, device="cpu").track(cur)
+    assert field.valid.mean() > 0.8
+    t = truths(F)
+    for kind, want in t.items():
+        s = strain(field, window=5, strain_type=kind)
+        ok = s.valid
+        got = np.stack([s.exx[ok], s.eyy[ok], s.exy[ok]])
+        assert ok.sum() > 250
+        assert np.max(np.abs(got - np.array([want[0, 0], want[1, 1], want[0, 1]])[:, None])) < 5e-4
+        for other in t:
+            if other != kind:
+                assert abs(np.median(s.exx[ok]) - t[other][0, 0]) > 3e-3
