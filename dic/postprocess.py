@@ -227,6 +227,21 @@ class _Source:
         self._held = None
         self._cells, self._located = {}, {}
 
+    def strain_type(self, quantity: str) -> str | None:
+        """The strain type behind ``quantity`` (``exx``..., the principal and von Mises strains: the file's
+        type, :func:`dic._strain.stored_strain_type`; 2-D ``Exx``...: Green-Lagrange), None for others."""
+        from ._strain import stored_strain_type
+
+        if self.is_2d and quantity in ("Exx", "Eyy", "Exy"):
+            return "green-lagrange"
+        if quantity not in ("exx", "eyy", "exy") + _DERIVED:
+            return None
+        first = None
+        if self.settings.get("strain_type") is None:  # a file that records it per frame only (or not at all)
+            first = self._reader.read_frame(self.indices[0]) if self._reader is not None else \
+                self._frames.read(self.indices[0])
+        return stored_strain_type("dic2d" if self.is_2d else "stereo", self.settings, first)
+
     def arrays(self, index: int, names) -> dict:
         """Datasets ``names`` of frame ``index`` (``"u"``, ``"strain/exx"``, ``"status"`` ...) by name;
         a name the frame lacks is absent from the result. Read from the file unless held already."""
@@ -805,6 +820,8 @@ class History:
     frames: np.ndarray
     values: np.ndarray
     status: np.ndarray
+    #: the strain type of a strain quantity ("green-lagrange", "small", "euler-almansi"), else None
+    strain_type: str | None = None
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Column names and the (F, 2) table (frame, value)."""
@@ -834,7 +851,7 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
             value, code = src.interpolate(i, at, vals, valid, p)
             out[k], status[k] = value[0, 0], code[0]
         return History(quantity=quantity, unit=src.unit(quantity), point=p, at=at, frames=np.asarray(idx, np.int64),
-                       values=out, status=status)
+                       values=out, status=status, strain_type=src.strain_type(quantity))
 
 
 @dataclass
@@ -857,6 +874,8 @@ class Profile:
     frames: np.ndarray
     values: np.ndarray
     status: np.ndarray
+    #: the strain type of a strain quantity ("green-lagrange", "small", "euler-almansi"), else None
+    strain_type: str | None = None
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Long-format column names and table: one row per (frame, sample): frame, distance, x, y, value."""
@@ -905,4 +924,5 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
             value, status[k] = src.interpolate(i, at, v, valid, pos)
             vals[k] = value[:, 0]
         return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
-                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals, status=status)
+                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals, status=status,
+                       strain_type=src.strain_type(quantity))

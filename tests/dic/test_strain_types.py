@@ -185,6 +185,13 @@ def test_2d_recomputed_strain_equals_a_run_with_that_window_and_type(tmp_path):
     fig = field_figure(read_image(IMG["ref"]), got.frames[2], got.frames[2].strain)
     texts = [ax.get_title() for ax in fig.axes] + [ax.get_ylabel() for ax in fig.axes]
     assert "Euler-Almansi strain exx (1)" in texts and "exx, Euler-Almansi" in texts
+    from dic.plots.postprocess import history_figure
+    from dic.postprocess import point_history
+
+    h = point_history(tmp_path / "re.h5", (50, 40), "von_mises")
+    assert h.strain_type == "euler-almansi" and point_history(w5, (50, 40), "u").strain_type is None
+    assert point_history(w5, (50, 40), "Exx").strain_type == "green-lagrange"
+    assert history_figure(h).axes[0].get_ylabel() == "von_mises (Euler-Almansi)"
     # without --strain-type the file's type is kept
     r = _cli("strain", tmp_path / "re.h5", "--window", 5, "-q")
     assert r.exit_code == 0 and read_results(tmp_path / "re.h5").settings["strain_type"] == "euler-almansi"
