@@ -383,7 +383,7 @@ class TrackOptions(_Record):
             kw["search"] = method if radius is not None else None
             if radius is not None:
                 kw["search_radius"] = radius
-            for k in ("subset", "step", "order", "strain_window", "noise_sigma", "roi", _SCALE_KEY):
+            for k in ("subset", "step", "order", "strain_window", "noise_sigma", "roi", _SCALE_KEY, "strain_type"):
                 if s.get(k) is not None:
                     kw[k] = s[k]
             for k in ("max_iter", "tol"):  # null: the tracker's default
@@ -392,7 +392,8 @@ class TrackOptions(_Record):
             if s.get("robust"):
                 kw["robust"] = True
             known = {"search", "search_method", "subset", "step", "order", "strain_window", "noise_sigma", "roi",
-                     _SCALE_KEY, "max_iter", "tol", "robust", "reference", "guess", "auto_valid", "auto_zncc"}
+                     _SCALE_KEY, "max_iter", "tol", "robust", "reference", "guess", "auto_valid", "auto_zncc",
+                     "strain_type"}  # strain_type: written by specula strain into an old file
         else:  # the library's form: the keywords given (others at their defaults)
             known = {f.name for f in fields(cls) if f.compare}
             kw.update({k: v for k, v in s.items() if k in known and k not in kw})

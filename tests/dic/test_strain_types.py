@@ -271,3 +271,23 @@ def test_2d_strain_types_from_a_synthetic_image_pair():
         for other in t:
             if other != kind:
                 assert abs(np.median(s.exx[ok]) - t[other][0, 0]) > 3e-3
+
+
+def test_an_old_file_recomputed_keeps_its_type_and_still_reads_as_a_run_record(tmp_path):
+    """A 2-D file of Specula 8d9f975 (the command line's schema-1 settings, small strain): `specula strain`
+    keeps the small strain unless asked, records strain_type, and the file's record still reads (resume)."""
+    import shutil
+
+    from dic.sequence.options import TrackOptions
+
+    old = tmp_path / "old.h5"
+    shutil.copy(DATA / "track_cli_v1.h5", old)
+    stored = read_results(old)
+    assert "strain_type" not in stored.settings
+    r = _cli("strain", old, "--window", 3, "-q")
+    assert r.exit_code == 0, r.output
+    back = read_results(old)
+    assert back.settings["strain_type"] == "small"
+    assert TrackOptions.from_settings(back.settings).strain_type == "small"
+    f = back.frames[1]
+    assert np.array_equal(f.strain["exx"], f.strain["dudx"], equal_nan=True)  # small: exx = du/dx
