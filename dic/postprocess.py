@@ -609,8 +609,8 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
         settings = dict(r.settings)
         first = r.read_frame(indices[0])
         kind_type = strain_type if strain_type is not None else stored_strain_type(kind, settings, first)
-        _, grid_shape, step = grid_layout(first.points)
-        n = window_points(window, step, unit)
+        # the grid step only for a window in px (a stereo run given scattered points has no grid)
+        n = window_points(window, grid_layout(first.points)[2] if unit == "px" else None, unit)
         settings["strain_window"] = n
         settings["strain_type"] = kind_type
         if scale is not None:
@@ -675,21 +675,33 @@ def _strain_3d(first, window: int, min_points, strain_type: str):
     """``state -> (Field3D with the new strain, None)`` of a stereo file: the run's computation
     (:meth:`dic.StereoCorrelation.measure`): a :class:`dic.field3d.SurfaceStrainPlan` of the state's reference
     positions ``X, Y, Z`` (kept while they stay the same, as the run keeps it), the left camera centre
-    ``t_frame_left`` of the state's frame, the displacements of the valid points (status OK)."""
+    ``t_frame_left`` of the state's frame, the displacements of the valid points (status OK); points given
+    to the run (no grid): :func:`dic.field3d.surface_strain` over the ``window²`` nearest points within
+    ``window`` typical spacings, as the run."""
     from dataclasses import replace
 
-    from .field3d import SurfaceStrainPlan, check_grid_window
+    from .field3d import SurfaceStrainPlan, check_grid_window, scattered_neighbours, surface_strain
 
-    if first.grid_shape is None:
-        raise ValueError("the stereo file's points are not a grid of the left reference image (the run was given "
-                         "points); its strain cannot be recomputed with a window of grid points")
-    check_grid_window(window, first.grid_shape)
     min_neighbours = 6 if min_points is None else int(min_points)
+    neighbours = None
+    if first.grid_shape is None:  # a run given points: the window² nearest within window spacings, as the run
+        from .correlation.points import typical_spacing
+
+        points = np.asarray(first.points, np.float64)
+        neighbours = scattered_neighbours(points, window ** 2, max_distance=window * typical_spacing(points))
+    else:
+        check_grid_window(window, first.grid_shape)
     held = [None]
 
     def strain_of(state):
         X = np.stack([state.X, state.Y, state.Z], axis=1)
         t = np.asarray(state.t_frame_left, np.float64)
+        if neighbours is not None:
+            s = surface_strain(X, np.nan_to_num(np.stack([state.U, state.V, state.W], axis=1)),
+                               np.asarray(state.status) == 0, neighbours, camera_center=t,
+                               min_neighbours=min_neighbours, strain_type=strain_type)
+            return replace(state, exx=s["exx"], eyy=s["eyy"], exy=s["exy"], normal=s["normal"],
+                           strain_valid=s["strain_valid"], strain_type=strain_type), None
         plan = held[0]
         if plan is None or not (np.array_equal(plan.X, X, equal_nan=True) and np.array_equal(plan.camera_center, t)):
             plan = held[0] = SurfaceStrainPlan(X, state.grid_shape, window, camera_center=t,

@@ -234,6 +234,28 @@ def test_stereo_recomputed_strain_equals_a_run_with_that_window(tmp_path):
     assert not (tmp_path / "x.h5").exists()
 
 
+def test_stereo_recomputed_strain_of_a_run_given_points(tmp_path):
+    """A stereo run given its points (no grid: the window² nearest points within window spacings): the
+    recomputed strain equals a run made with that window, bit for bit."""
+    from dic.sequence import stereo_sequence
+
+    pairs = [(IMG[f"L{k}"], IMG[f"R{k}"]) for k in range(3)]
+    grid = tmp_path / "grid.h5"
+    stereo_sequence(RIG, pairs[:1], grid, step=20, device="cpu")
+    points = read_stereo(grid).fields[0].points[1:-2]  # the grid less three points: scattered points
+    runs = {}
+    for window in (3, 5):
+        runs[window] = tmp_path / f"p{window}.h5"
+        stereo_sequence(RIG, pairs, runs[window], points=points, strain_window=window, device="cpu")
+    assert read_stereo(runs[3]).fields[0].grid_shape is None
+    got = read_stereo(recompute_strain(runs[3], tmp_path / "re.h5", window=5))
+    run = read_stereo(runs[5])
+    assert got.settings == run.settings and np.count_nonzero(run.fields[2].strain_valid) > 0
+    for i in run.indices:
+        for key in ("exx", "eyy", "exy", "normal", "strain_valid"):
+            assert _same(getattr(got.fields[i], key), getattr(run.fields[i], key)), (i, key)
+
+
 def test_files_before_strain_types_read_as_their_old_type():
     assert stored_strain_type("dic2d", {"strain_window": 5}) == "small"
     assert stored_strain_type("stereo", {"step": 10}) == "green-lagrange"
