@@ -137,8 +137,8 @@ def commands(kind: str, src: str, c: float, hole: float, out: str) -> dict[str, 
                     "--quantity", strain_q, "-q"],
         "extensometer": ["extensometer", src, "--from", left, "--to", right, "-q"],
     }
-    if kind == "dic2d":
-        cmds["strain"] = ["strain", src, "--window", "7", "-o", os.path.join(out, "w7.h5"), "-q"]
+    # strain recomputed with another window: 2-D and (since issue 25's strain25) stereo files
+    cmds["strain"] = ["strain", src, "--window", "7", "-o", os.path.join(out, "w7.h5"), "-q"]
     return cmds
 
 

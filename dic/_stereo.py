@@ -299,6 +299,8 @@ class StereoCorrelation:
     zncc_min : float, matches and tracks below it are ``LOW_ZNCC``.
     strain_window : odd int, grid points per side of the strain neighbourhood (scattered points:
         the ``strain_window²`` nearest).
+    strain_type : "green-lagrange" (default), "small" or "euler-almansi": what ``exx``, ``eyy``, ``exy``
+        are (:mod:`dic.field3d`).
     max_iter, tol : IC-GN iteration limit (1..10000) and convergence threshold (px, see kernels/icgn.py).
     triangulation : "optimal" or "linear" (:func:`dic.triangulate`).
     match : StereoMatch, optional: a reference match computed before (e.g. read back from a
@@ -330,7 +332,11 @@ class StereoCorrelation:
                  strain_window: int = 5, max_iter: int = 50, tol: float = 1e-3, triangulation: str = "optimal",
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool = False, device=None, progress=None,
-                 subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION):
+                 subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
+                 strain_type: str = "green-lagrange"):
+        from ._strain import check_strain_type
+
+        self.strain_type = check_strain_type(strain_type)  # what exx, eyy, exy are (dic.field3d)
         self.device = resolve_device(device)
         self._progress = _check_progress(progress)
         self.robust = boolean(robust, "robust")
@@ -853,10 +859,11 @@ class StereoCorrelation:
             # the same (SurfaceStrainPlan: bit for bit surface_strain_grid)
             if self._strain_plan is None or not np.array_equal(self._strain_plan.X, xyz_ref_f, equal_nan=True):
                 self._strain_plan = SurfaceStrainPlan(xyz_ref_f, self.grid_shape, self.strain_window,
-                                                      camera_center=camera_center)
+                                                      camera_center=camera_center, strain_type=self.strain_type)
             strain = self._strain_plan(np.nan_to_num(uvw), valid)
         else:
-            strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center)
+            strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center,
+                                    strain_type=self.strain_type)
         self.timings["strain_s"] = time.perf_counter() - t0
         details.update(triangulation_status=tri_cur, points_left_cur=pl_cur, points_right_cur=pr_cur)
         zs = np.where(np.isfinite(m.zncc), m.zncc, np.nan)
@@ -868,6 +875,7 @@ class StereoCorrelation:
             epipolar_ref_px=m.epipolar_px, epipolar_px=epi_cur, reprojection_ref_px=res_ref, reprojection_px=res_cur,
             status=status, strain_valid=strain["strain_valid"], R_frame_left=R, t_frame_left=t, frame_name=name,
             index=int(index), details=details, reference_index=self.reference_index if tracks is not None else 0,
+            strain_type=self.strain_type,
         )
 
 

@@ -9,13 +9,22 @@ points); the slopes are the displacement gradients at that point. For a full, sy
 the slopes are exact for any quadratic field (the quadratic terms are orthogonal to the plane's
 basis), so the truncation error is third order.
 
-Strains (x right, y down, displacements in px, gradients dimensionless; docs/conventions.md):
+Strains (x right, y down, displacements in px, gradients dimensionless; docs/conventions.md), all
+from the same fitted gradient ``H = [[∂u/∂x, ∂u/∂y], [∂v/∂x, ∂v/∂y]]``, ``F = I + H``; the strain
+type is chosen by name (:data:`STRAIN_TYPES`, ``strain_type=``):
 
-* small strain: ``exx = ∂u/∂x``, ``eyy = ∂v/∂y``, ``exy = ½(∂u/∂y + ∂v/∂x)``;
-* Green-Lagrange: ``Exx = ∂u/∂x + ½((∂u/∂x)² + (∂v/∂x)²)``, ``Eyy = ∂v/∂y + ½((∂u/∂y)² + (∂v/∂y)²)``,
-  ``Exy = ½(∂u/∂y + ∂v/∂x + ∂u/∂x ∂u/∂y + ∂v/∂x ∂v/∂y)``.
+* ``"green-lagrange"`` (the default, 2-D and stereo alike): ``E = ½(FᵀF − I)``, i.e.
+  ``Exx = ∂u/∂x + ½((∂u/∂x)² + (∂v/∂x)²)``, ``Eyy = ∂v/∂y + ½((∂u/∂y)² + (∂v/∂y)²)``,
+  ``Exy = ½(∂u/∂y + ∂v/∂x + ∂u/∂x ∂u/∂y + ∂v/∂x ∂v/∂y)``; zero for any rigid motion, what VIC-3D,
+  DICe and Ncorr report by default;
+* ``"small"`` (engineering, infinitesimal): ``ε = ½(H + Hᵀ)``: ``exx = ∂u/∂x``, ``eyy = ∂v/∂y``,
+  ``exy = ½(∂u/∂y + ∂v/∂x)`` (not zero under a finite rotation);
+* ``"euler-almansi"``: ``e = ½(I − F⁻ᵀF⁻¹)`` (spatial, in the fixed x, y axes).
 
-Shears are tensor components (the engineering shear strain is ``2 exy``).
+``exx``, ``eyy``, ``exy`` of a :class:`StrainField` are the chosen type; ``Exx``, ``Eyy``, ``Exy``
+are always Green-Lagrange (as in files before strain types existed). Shears are tensor components
+(the engineering shear strain is ``2 exy``). The three agree to first order in ``H``: at a 10 %
+stretch (``F = diag(1.1, 1)``) ``exx`` is ``0.105``, ``0.1`` and ``0.0868``.
 """
 from __future__ import annotations
 
@@ -25,7 +34,76 @@ import numpy as np
 
 from kernels.checks import as_points, odd_int, positive_int
 
-__all__ = ["StrainField", "StrainPlan", "strain", "grid_layout", "check_strain_window"]
+__all__ = ["StrainField", "StrainPlan", "strain", "grid_layout", "check_strain_window", "STRAIN_TYPES",
+           "DEFAULT_STRAIN_TYPE", "check_strain_type", "strain_type_label", "strain_from_gradient",
+           "stored_strain_type"]
+
+#: the strain types by name, with what a label calls them
+STRAIN_TYPES = {"green-lagrange": "Green-Lagrange", "small": "small (engineering)", "euler-almansi": "Euler-Almansi"}
+#: the strain type of a run, a recomputation and ``dic.strain`` unless one is chosen (2-D and stereo alike)
+DEFAULT_STRAIN_TYPE = "green-lagrange"
+
+
+def check_strain_type(strain_type, name: str = "strain_type") -> str:
+    """The strain type's name (:data:`STRAIN_TYPES`): case and ``_``/space for ``-`` tolerated; ValueError otherwise."""
+    if isinstance(strain_type, str):
+        key = strain_type.strip().lower().replace("_", "-").replace(" ", "-")
+        if key in STRAIN_TYPES:
+            return key
+    raise ValueError(f"{name} must be one of {', '.join(STRAIN_TYPES)}, got {strain_type!r}")
+
+
+def strain_type_label(strain_type) -> str:
+    """How labels name a strain type, e.g. ``"Green-Lagrange"`` (an unknown or missing name: ``"strain"``)."""
+    try:
+        return STRAIN_TYPES[check_strain_type(strain_type)]
+    except ValueError:
+        return "strain"
+
+
+#: the strain type of a file that names none: what its run computed before strain types existed (the run
+#: records' ADDED_OPTIONS, dic/sequence/options.py: 2-D exx was the small strain, stereo the Green-Lagrange one)
+_OLD_STRAIN_TYPE = {"dic2d": "small", "stereo": "green-lagrange"}
+
+
+def stored_strain_type(kind: str, settings: dict | None, frame=None) -> str:
+    """The strain type of a result file's strain: its settings' ``strain_type``, else the one a ``frame``
+    of it records (2-D: ``frame.attrs["strain_type"]`` of a file's frame, or its StrainField's;
+    stereo: ``frame.strain_type``, read as Green-Lagrange where absent), else what its kind
+    (``"dic2d"`` or ``"stereo"``) computed before strain types existed (2-D small, stereo Green-Lagrange)."""
+    stored = settings.get("strain_type") if isinstance(settings, dict) else None
+    if stored is None and frame is not None:
+        if kind == "dic2d":
+            attrs = getattr(frame, "attrs", None)
+            stored = attrs.get("strain_type") if isinstance(attrs, dict) else None
+            if stored is None:
+                stored = getattr(getattr(frame, "strain", None), "strain_type", None)
+        else:
+            stored = getattr(frame, "strain_type", None)
+    return check_strain_type(stored if stored is not None else _OLD_STRAIN_TYPE.get(kind, DEFAULT_STRAIN_TYPE))
+
+
+def strain_from_gradient(dudx, dudy, dvdx, dvdy, strain_type: str = DEFAULT_STRAIN_TYPE):
+    """``(exx, eyy, exy)`` of the chosen type from the displacement gradient ``H`` (module docstring).
+
+    Arrays of any one shape (dimensionless); NaN in, NaN out. ``exy`` is the tensor shear.
+    Euler-Almansi uses ``F⁻ᵀF⁻¹ = (F Fᵀ)⁻¹`` in closed form (a 2 x 2 inverse; ``det F <= 0``, a
+    fold, gives NaN).
+    """
+    kind = check_strain_type(strain_type)
+    ux, uy, vx, vy = (np.asarray(a, dtype=np.float64) for a in (dudx, dudy, dvdx, dvdy))
+    if kind == "small":
+        return ux.copy(), vy.copy(), 0.5 * (uy + vx)
+    if kind == "green-lagrange":
+        return ux + 0.5 * (ux * ux + vx * vx), vy + 0.5 * (uy * uy + vy * vy), 0.5 * (uy + vx + ux * uy + vx * vy)
+    f11, f12, f21, f22 = 1.0 + ux, uy, vx, 1.0 + vy
+    b11 = f11 * f11 + f12 * f12  # b = F Fᵀ (left Cauchy-Green)
+    b22 = f21 * f21 + f22 * f22
+    b12 = f11 * f21 + f12 * f22
+    det = f11 * f22 - f12 * f21
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det2 = np.where(det > 0, det * det, np.nan)  # det b = (det F)²
+        return 0.5 * (1.0 - b22 / det2), 0.5 * (1.0 - b11 / det2), 0.5 * (b12 / det2)
 
 
 @dataclass
@@ -42,9 +120,9 @@ class StrainField:
     dudx, dudy, dvdx, dvdy :
         Displacement gradients (dimensionless).
     exx, eyy, exy :
-        Small (infinitesimal) strain; ``exy`` is the tensor shear.
+        Strain of the type ``strain_type`` (module docstring); ``exy`` is the tensor shear.
     Exx, Eyy, Exy :
-        Green-Lagrange strain; ``Exy`` is the tensor shear.
+        Green-Lagrange strain, whatever ``strain_type``; ``Exy`` is the tensor shear.
     valid : (N,) bool
         The point and at least ``min_points`` non-collinear neighbours were valid.
     n_fit : (N,) int
@@ -56,6 +134,8 @@ class StrainField:
     grid_index : (N, 2) int
         Column and row of each point in the grid (see :meth:`to_grid`).
     grid_shape : (rows, cols)
+    strain_type : str
+        What ``exx``, ``eyy``, ``exy`` are: ``"green-lagrange"``, ``"small"`` or ``"euler-almansi"``.
     """
 
     points: np.ndarray
@@ -75,6 +155,7 @@ class StrainField:
     step: tuple[float, float]
     grid_index: np.ndarray
     grid_shape: tuple[int, int]
+    strain_type: str = DEFAULT_STRAIN_TYPE
 
     #: names of the per-point strain/gradient components
     COMPONENTS = ("dudx", "dudy", "dvdx", "dvdy", "exx", "eyy", "exy", "Exx", "Eyy", "Exy")
@@ -191,10 +272,27 @@ def _kernels(window: int):
 
 
 def _correlate(a, k):
-    """Σ over the window centred on each node of ``a * k`` (zeros outside the grid)."""
-    from scipy import ndimage  # here, not at the top: importing scipy.ndimage costs 0.2-1 s (the CLI's post-processing)
+    """Σ over the window centred on each node of ``a * k`` (zeros outside the grid).
 
-    return ndimage.correlate(a, k, mode="constant", cval=0.0)
+    ``scipy.ndimage.correlate(a, k, mode="constant", cval=0.0)`` bit for bit (tested): the same
+    products of the kernel's nonzero weights (``|w| > DBL_EPSILON``, C order) added to 0.0 in the same
+    order, for an odd (window, window) kernel; without importing scipy.ndimage, which costs 0.4 s of
+    CPU (``specula strain``). Cost: one multiply-add over the grid per nonzero weight.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    ky, kx = k.shape
+    hy, hx = ky // 2, kx // 2
+    ny, nx = a.shape
+    pad = np.zeros((ny + 2 * hy, nx + 2 * hx))
+    pad[hy:hy + ny, hx:hx + nx] = a
+    out = np.zeros((ny, nx))
+    eps = np.finfo(np.float64).eps
+    for i in range(ky):
+        for j in range(kx):
+            w = float(k[i, j])
+            if abs(w) > eps:
+                out += pad[i:i + ny, j:j + nx] * w
+    return out
 
 
 class StrainPlan:
@@ -217,10 +315,12 @@ class StrainPlan:
         Declared cracks (:mod:`dic.cracks`): a point's fit leaves out the neighbours whose straight
         segment from the point crosses a crack (those points' fits are summed directly rather than by
         the grid correlation). Default: none.
+    strain_type : str
+        What ``exx``, ``eyy``, ``exy`` are (:data:`STRAIN_TYPES`; default Green-Lagrange).
 
     Attributes
     ----------
-    points, grid_index, grid_shape, step, window, min_points
+    points, grid_index, grid_shape, step, window, min_points, strain_type
         The points (a read-only copy) and their grid (as in :class:`StrainField`).
 
     Memory: about 40 bytes per point for the layout, and about 100 more for the
@@ -233,7 +333,9 @@ class StrainPlan:
         Points not on a regular grid, duplicates, a window no grid point can fill.
     """
 
-    def __init__(self, points, *, window: int = 5, min_points: int | None = None, cracks=None):
+    def __init__(self, points, *, window: int = 5, min_points: int | None = None, cracks=None,
+                 strain_type: str = DEFAULT_STRAIN_TYPE):
+        self.strain_type = check_strain_type(strain_type)
         pts = np.array(as_points(points), dtype=np.float64, order="C", copy=True)
         index, shape, step = grid_layout(pts)
         self.window, self.min_points = check_strain_window(window, shape, min_points=min_points)
@@ -251,7 +353,7 @@ class StrainPlan:
 
     def __repr__(self) -> str:
         return (f"StrainPlan({len(self.points)} points, grid {self.grid_shape[0]} x {self.grid_shape[1]}, "
-                f"window {self.window})")
+                f"window {self.window}, {self.strain_type})")
 
     def matches(self, points) -> bool:
         """Whether ``points`` (N, 2) are this plan's points (equal values, same order)."""
@@ -327,14 +429,16 @@ class StrainPlan:
             grads[ok] = np.stack([sol[:, 1, 0] / step[0], sol[:, 2, 0] / step[1],
                                   sol[:, 1, 1] / step[0], sol[:, 2, 1] / step[1]], -1)
         ux, uy, vx, vy = grads.T
+        Exx, Eyy, Exy = strain_from_gradient(ux, uy, vx, vy, "green-lagrange")
+        if self.strain_type == "green-lagrange":
+            exx, eyy, exy = Exx.copy(), Eyy.copy(), Exy.copy()
+        else:
+            exx, eyy, exy = strain_from_gradient(ux, uy, vx, vy, self.strain_type)
         return StrainField(
-            points=points.copy(), dudx=ux, dudy=uy, dvdx=vx, dvdy=vy,
-            exx=ux.copy(), eyy=vy.copy(), exy=0.5 * (uy + vx),
-            Exx=ux + 0.5 * (ux * ux + vx * vx),
-            Eyy=vy + 0.5 * (uy * uy + vy * vy),
-            Exy=0.5 * (uy + vx + ux * uy + vx * vy),
+            points=points.copy(), dudx=ux, dudy=uy, dvdx=vx, dvdy=vy, exx=exx, eyy=eyy, exy=exy,
+            Exx=Exx, Eyy=Eyy, Exy=Exy,
             valid=ok.copy(), n_fit=n_fit.copy(), window=self.window, step=step, grid_index=self.grid_index.copy(),
-            grid_shape=self.grid_shape,
+            grid_shape=self.grid_shape, strain_type=self.strain_type,
         )
 
 
@@ -363,8 +467,9 @@ def _crack_cut_windows(points, index, shape, window: int, cracks):
     return cut, np.where(across[cut], -1, nbr[cut]), off
 
 
-def strain(field, *, window: int = 5, min_points: int | None = None, cracks=None) -> StrainField:
-    """Pointwise least-squares strain (small and Green-Lagrange) of a displacement field.
+def strain(field, *, window: int = 5, min_points: int | None = None, cracks=None,
+           strain_type: str = DEFAULT_STRAIN_TYPE) -> StrainField:
+    """Pointwise least-squares strain of a displacement field (``exx``... of the chosen type).
 
     Parameters
     ----------
@@ -379,10 +484,14 @@ def strain(field, *, window: int = 5, min_points: int | None = None, cracks=None
         A window that no grid point can fill is an error (:func:`check_strain_window`).
     cracks : optional
         Declared cracks (:mod:`dic.cracks`): no fit reaches across one (:class:`StrainPlan`).
+    strain_type : str
+        ``"green-lagrange"`` (default), ``"small"`` or ``"euler-almansi"``: what ``exx``, ``eyy``,
+        ``exy`` are (module docstring); ``Exx``, ``Eyy``, ``Exy`` are always Green-Lagrange.
 
     Returns
     -------
     StrainField
     """
     points, u, v, valid = _field_arrays(field)
-    return StrainPlan(points, window=window, min_points=min_points, cracks=cracks)._strain(points, u, v, valid)
+    return StrainPlan(points, window=window, min_points=min_points, cracks=cracks,
+                      strain_type=strain_type)._strain(points, u, v, valid)

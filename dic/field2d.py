@@ -120,9 +120,14 @@ class Field2D:
         descriptions as attributes (:mod:`dic.tabular`)."""
         from .tabular import point_dataset
 
+        strain = self.strain if strain is None else strain
+        strain_type = None
+        if strain is not None:
+            strain_type = strain.get("strain_type") if isinstance(strain, dict) else getattr(strain, "strain_type", None)
         return point_dataset(self._columns(strain), kind="dic2d",
                              attrs={"title": "Specula 2-D DIC field", "subset_px": int(self.subset),
-                                    "order": int(self.order), "step_px": self.step, "zncc_min": float(self.zncc_min)})
+                                    "order": int(self.order), "step_px": self.step, "zncc_min": float(self.zncc_min),
+                                    "strain_type": strain_type})
 
     def to_dataframe(self, strain=None):
         """A :class:`pandas.DataFrame`, one row per point (index ``point``): the columns of :meth:`to_xarray`."""

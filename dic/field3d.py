@@ -28,6 +28,15 @@ doi:10.1016/j.optlaseng.2008.10.014), extended to a surface in 3-D as in Sutton,
 
 Rigid-body motions give exactly zero strain in this formulation (it is the exact Green-Lagrange
 strain of the fitted affine map, not a small-strain approximation).
+
+Other strain types by name (``strain_type=``, the names of :data:`dic._strain.STRAIN_TYPES`), from the
+same fit: ``"small"``, the symmetric in-plane part of the displacement gradient,
+``exx = e1·G_a``, ``eyy = e2·G_b``, ``exy = ½(e1·G_b + e2·G_a)`` (on a plane deformed in its own plane
+this is the 2-D small strain; it is not zero under a finite rotation); ``"euler-almansi"``,
+``e = ½(I − F₂⁻ᵀF₂⁻¹)`` with ``F₂ = Q'ᵀ[f_a f_b]`` the in-plane deformation gradient expressed in the
+deformed tangent basis ``Q' = (R e1, R e2)``, ``R`` the smallest rotation that turns the reference normal
+``n`` into the deformed one ``n' ∝ f_a × f_b`` (on a plane deformed in its own plane ``R = I`` and this
+is the 2-D Euler-Almansi strain in the same axes).
 """
 from __future__ import annotations
 
@@ -38,6 +47,8 @@ from typing import ClassVar
 import numpy as np
 
 from kernels.checks import as_points, odd_int
+
+from ._strain import DEFAULT_STRAIN_TYPE, check_strain_type
 
 __all__ = ["StereoStatus", "Field3D", "plane_frame", "surface_strain", "surface_strain_grid", "SurfaceStrainPlan",
            "check_grid_window",
@@ -200,9 +211,42 @@ def tangent_basis(normals, x_axis, y_axis=(0.0, 1.0, 0.0)) -> tuple[np.ndarray, 
     return e1, e2
 
 
+def _surface_components(e1, e2, nrm, ga, gb, strain_type: str):
+    """``(exx, eyy, exy)`` (each (n,)) of the chosen type from the tangent basis ``e1``, ``e2``, the
+    reference normal ``nrm`` and the fitted surface gradients ``ga``, ``gb`` (each (n, 3); module docstring)."""
+    if strain_type == "small":
+        return (np.sum(e1 * ga, axis=1), np.sum(e2 * gb, axis=1),
+                0.5 * (np.sum(e1 * gb, axis=1) + np.sum(e2 * ga, axis=1)))
+    fa = e1 + ga
+    fb = e2 + gb
+    if strain_type == "green-lagrange":
+        return 0.5 * (np.sum(fa * fa, axis=1) - 1.0), 0.5 * (np.sum(fb * fb, axis=1) - 1.0), 0.5 * np.sum(fa * fb, axis=1)
+    # Euler-Almansi: the deformed tangent basis is the reference one turned by the rotation n -> n'
+    # (Rodrigues: R v = v c + (k × v) + k (k·v) / (1 + c), k = n × n', c = n·n')
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n2 = np.cross(fa, fb)  # oriented as e1 x e2 is against n (e2 = ± n x e1): the deformed n' on n's side
+        side = np.sign(np.sum(np.cross(e1, e2) * nrm, axis=1))[:, None]
+        n2 = side * n2 / np.linalg.norm(n2, axis=1, keepdims=True)
+        k = np.cross(nrm, n2)
+        c = np.sum(nrm * n2, axis=1)[:, None]
+
+        def turn(v):
+            return v * c + np.cross(k, v) + k * (np.sum(k * v, axis=1)[:, None] / (1.0 + c))
+
+        q1, q2 = turn(e1), turn(e2)
+        f11, f12 = np.sum(q1 * fa, axis=1), np.sum(q1 * fb, axis=1)
+        f21, f22 = np.sum(q2 * fa, axis=1), np.sum(q2 * fb, axis=1)
+        b11 = f11 * f11 + f12 * f12
+        b22 = f21 * f21 + f22 * f22
+        b12 = f11 * f21 + f12 * f22
+        det = f11 * f22 - f12 * f21
+        det2 = np.where((det > 0) & (c[:, 0] > -1.0 + 1e-12), det * det, np.nan)
+        return 0.5 * (1.0 - b22 / det2), 0.5 * (1.0 - b11 / det2), 0.5 * (b12 / det2)
+
+
 def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_axis=(1.0, 0.0, 0.0),
-                   y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6):
-    """Green-Lagrange strain in the local tangent plane by pointwise least squares (module docstring).
+                   y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6, strain_type: str = DEFAULT_STRAIN_TYPE):
+    """Strain in the local tangent plane by pointwise least squares (module docstring), Green-Lagrange by default.
 
     Parameters
     ----------
@@ -221,6 +265,8 @@ def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_
         direction on the side of ``y_axis`` (:func:`tangent_basis`).
     min_neighbours : int
         A point needs this many valid neighbours (itself included), not all on a line.
+    strain_type : "green-lagrange" | "small" | "euler-almansi"
+        What ``exx``, ``eyy``, ``exy`` are (module docstring).
 
     Returns
     -------
@@ -228,6 +274,7 @@ def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_
     ``normal`` (N, 3), and ``strain_valid`` (N,) bool. Strains and normals are NaN exactly where
     ``strain_valid`` is False.
     """
+    strain_type = check_strain_type(strain_type)
     X = np.asarray(X, dtype=np.float64)
     U = np.asarray(U, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(U), axis=1)
@@ -280,11 +327,7 @@ def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_
     if np.any(solvable):
         coef[solvable] = np.linalg.solve(AtA[solvable], AtU[solvable])
     ga, gb = coef[:, 1, :], coef[:, 2, :]
-    fa = e1 + ga
-    fb = e2 + gb
-    exx = 0.5 * (np.sum(fa * fa, axis=1) - 1.0)
-    eyy = 0.5 * (np.sum(fb * fb, axis=1) - 1.0)
-    exy = 0.5 * np.sum(fa * fb, axis=1)
+    exx, eyy, exy = _surface_components(e1, e2, nrm, ga, gb, strain_type)
     good = solvable & np.isfinite(exx) & np.isfinite(eyy) & np.isfinite(exy)
     sel = idx[good]
     out["exx"][sel], out["eyy"][sel], out["exy"][sel] = exx[good], eyy[good], exy[good]
@@ -295,7 +338,8 @@ def surface_strain(X, U, valid, neighbours, *, camera_center=(0.0, 0.0, 0.0), x_
 
 
 def surface_strain_grid(X, U, valid, grid_shape, window: int, *, camera_center=(0.0, 0.0, 0.0),
-                        x_axis=(1.0, 0.0, 0.0), y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6):
+                        x_axis=(1.0, 0.0, 0.0), y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6,
+                        strain_type: str = DEFAULT_STRAIN_TYPE):
     """:func:`surface_strain` for points on a regular grid with ``window × window`` neighbourhoods, in O(N).
 
     Same result as ``surface_strain(X, U, valid, grid_neighbours(grid_shape, window), ...)`` (to
@@ -305,7 +349,7 @@ def surface_strain_grid(X, U, valid, grid_shape, window: int, *, camera_center=(
     sequence on the same reference positions use :class:`SurfaceStrainPlan` (bit for bit this).
     """
     plan = SurfaceStrainPlan(X, grid_shape, window, camera_center=camera_center, x_axis=x_axis, y_axis=y_axis,
-                             min_neighbours=min_neighbours)
+                             min_neighbours=min_neighbours, strain_type=strain_type)
     return plan(U, valid)
 
 
@@ -324,11 +368,12 @@ class SurfaceStrainPlan:
     ----------
     X : (ny*nx, 3) float64, reference positions (mm), row-major over ``grid_shape``.
     grid_shape : (ny, nx); window : odd int, grid points per side of the neighbourhood.
-    camera_center, x_axis, y_axis, min_neighbours : as :func:`surface_strain`.
+    camera_center, x_axis, y_axis, min_neighbours, strain_type : as :func:`surface_strain`.
     """
 
     def __init__(self, X, grid_shape, window: int, *, camera_center=(0.0, 0.0, 0.0), x_axis=(1.0, 0.0, 0.0),
-                 y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6):
+                 y_axis=(0.0, 1.0, 0.0), min_neighbours: int = 6, strain_type: str = DEFAULT_STRAIN_TYPE):
+        self.strain_type = check_strain_type(strain_type)
         self.ny, self.nx = (int(v) for v in grid_shape)
         self.X = np.asarray(X, dtype=np.float64)
         n_pts = self.ny * self.nx
@@ -413,11 +458,7 @@ class SurfaceStrainPlan:
         with np.errstate(invalid="ignore", divide="ignore"):
             ga = (sbb[:, None] * sat - sab[:, None] * sbt) / det[:, None]
             gb = (saa[:, None] * sbt - sab[:, None] * sat) / det[:, None]
-        fa = e1 + ga
-        fb = e2 + gb
-        exx = 0.5 * (np.sum(fa * fa, axis=1) - 1.0)
-        eyy = 0.5 * (np.sum(fb * fb, axis=1) - 1.0)
-        exy = 0.5 * np.sum(fa * fb, axis=1)
+        exx, eyy, exy = _surface_components(e1, e2, geo["nrm"], ga, gb, self.strain_type)
         good = geo["solvable"] & np.isfinite(exx) & np.isfinite(eyy) & np.isfinite(exy)
         sel = idx[good]
         out["exx"][sel], out["eyy"][sel], out["exy"][sel] = exx[good], eyy[good], exy[good]
@@ -520,6 +561,8 @@ class Field3D:
     details: dict = field(default_factory=dict)
     reference_index: int = 0
     reference_interpolated: np.ndarray | None = None
+    #: what ``exx``, ``eyy``, ``exy`` are: "green-lagrange", "small" or "euler-almansi" (module docstring)
+    strain_type: str = DEFAULT_STRAIN_TYPE
 
     #: the codes of ``status``
     status_codes: ClassVar[type] = StereoStatus
@@ -552,7 +595,7 @@ class Field3D:
 
         return point_dataset(columns_3d(self), kind="stereo", status_codes=StereoStatus,
                              attrs={"title": "Specula stereo-DIC field", "state": int(self.index),
-                                    "frame_name": self.frame_name,
+                                    "frame_name": self.frame_name, "strain_type": self.strain_type,
                                     "R_frame_left": np.asarray(self.R_frame_left, np.float64).ravel(),
                                     "t_frame_left": np.asarray(self.t_frame_left, np.float64)})
 

@@ -227,6 +227,21 @@ class _Source:
         self._held = None
         self._cells, self._located = {}, {}
 
+    def strain_type(self, quantity: str) -> str | None:
+        """The strain type behind ``quantity`` (``exx``..., the principal and von Mises strains: the file's
+        type, :func:`dic._strain.stored_strain_type`; 2-D ``Exx``...: Green-Lagrange), None for others."""
+        from ._strain import stored_strain_type
+
+        if self.is_2d and quantity in ("Exx", "Eyy", "Exy"):
+            return "green-lagrange"
+        if quantity not in ("exx", "eyy", "exy") + _DERIVED:
+            return None
+        first = None
+        if self.settings.get("strain_type") is None:  # a file that records it per frame only (or not at all)
+            first = self._reader.read_frame(self.indices[0]) if self._reader is not None else \
+                self._frames.read(self.indices[0])
+        return stored_strain_type("dic2d" if self.is_2d else "stereo", self.settings, first)
+
     def arrays(self, index: int, names) -> dict:
         """Datasets ``names`` of frame ``index`` (``"u"``, ``"strain/exx"``, ``"status"`` ...) by name;
         a name the frame lacks is absent from the result. Read from the file unless held already."""
@@ -533,37 +548,49 @@ def window_points(window, step, unit: str = "grid") -> int:
 
 
 def recompute_strain(results, output=None, *, window, unit: str = "grid", min_points: int | None = None,
-                     scale=None) -> Path:
-    """Recompute the strain of a 2-D result file with another fit window; write it through the store.
+                     scale=None, strain_type: str | None = None) -> Path:
+    """Recompute the strain of a result file (2-D or stereo) with another fit window or strain type.
 
     Parameters
     ----------
-    results : path of a 2-D result file (``specula track``)
+    results : path of a result file (``specula track`` or ``specula stereo``)
     output : path, optional
         The new ``.h5`` file (overwritten if it exists). None: replace ``results`` in place (a new
         file is written next to it and renamed over it only when complete).
     window : int or float
-        The fit window of :func:`dic.strain`: grid points per side (``unit="grid"``) or
-        its side in px (``unit="px"``, see :func:`window_points`).
+        The fit window: grid points per side (``unit="grid"``) or its side in px (``unit="px"``,
+        see :func:`window_points`; the grid of the (left) reference image's points).
     min_points : int, optional
-        Passed to :func:`dic.strain`.
+        Fewest valid points per fit: 2-D, :func:`dic.strain`'s ``min_points`` (default a quarter
+        window); stereo, :class:`dic.field3d.SurfaceStrainPlan`'s ``min_neighbours`` (default 6, as
+        the run).
     scale : float, optional
-        Also store this mm/px scale (settings key :data:`SCALE_KEY`); None keeps the stored one.
+        2-D: also store this mm/px scale (settings key :data:`SCALE_KEY`); None keeps the stored one.
+    strain_type : "green-lagrange" | "small" | "euler-almansi", optional
+        What ``exx``, ``eyy``, ``exy`` are; None keeps the file's (:func:`dic._strain.stored_strain_type`:
+        a file written before strain types holds 2-D small strain, stereo Green-Lagrange).
 
     Everything but the strain is copied unchanged (points, displacements, parameters, statuses,
-    frame attributes); the settings record the new ``strain_window`` (grid points). Returns the
-    path written. Frames are read, strained and written one at a time (memory independent of the
-    number of frames).
+    frame attributes; stereo: the rig, the reference match, shapes and normals' positions); the
+    settings record the new ``strain_window`` (grid points) and ``strain_type``. The strain is
+    computed exactly as the run computes it (2-D: one :class:`dic.StrainPlan` for the file, whose
+    frames share their points; stereo: one :class:`dic.field3d.SurfaceStrainPlan` per reference
+    shape, with the left camera centre of the state's frame), so a recomputation with a run's
+    window and type gives that run's strain bit for bit. Returns the path written. Frames are
+    read, strained and written one at a time (memory independent of the number of frames).
 
     The output's lock is held throughout (:func:`dic.store.files.output_lock`, the one protocol of
     every writer): an output, or a ``results`` file, that another process is writing (a running
     ``specula track``) is refused with :class:`dic.store.ResultFileInUse` and left untouched.
     """
-    from ._strain import grid_layout, strain
+    from ._strain import check_strain_type, grid_layout, stored_strain_type
     from .store import ResultReader, ResultWriter, files
+    from .store.layout import role_attr
 
     if not isinstance(results, (str, os.PathLike)):
-        raise ValueError(f"results must be the path of a 2-D result file, got {type(results).__name__}")
+        raise ValueError(f"results must be the path of a result file, got {type(results).__name__}")
+    if strain_type is not None:
+        strain_type = check_strain_type(strain_type)
     src = Path(os.fspath(results))
     dst = Path(os.fspath(output)) if output is not None else src
     if dst.suffix.lower() not in (".h5", ".hdf5"):
@@ -571,27 +598,52 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
     files.check_output_path(dst)
     tmp = None
     with files.output_lock(dst, "result file"), ResultReader(src) as r:  # read, strained and written one frame at a time
-        if r.kind.name != "dic2d":
-            raise ValueError(f"{src} is a {r.kind.label} result file; recompute_strain recomputes the strain of "
-                             "2-D results (stereo surface strain is computed by the stereo run, strain_window=)")
+        kind = r.kind.name
+        if kind not in ("dic2d", "stereo"):
+            raise ValueError(f"{src} is a {r.kind.label} result file; the strain of 2-D and stereo results can be "
+                             "recomputed")
+        if kind == "stereo" and scale is not None:
+            raise ValueError("a stereo result file is in mm already; a scale (mm per px) is for 2-D results")
         indices = r.done_frames()
         if not indices:
             raise ValueError(f"{src} holds no finished frame")
-        _, _, step = grid_layout(r.read_frame(indices[0]).points)
-        n = window_points(window, step, unit)
         settings = dict(r.settings)
+        first = r.read_frame(indices[0])
+        kind_type = strain_type if strain_type is not None else stored_strain_type(kind, settings, first)
+        # the grid step only for a window in px (a stereo run given scattered points has no grid)
+        n = window_points(window, grid_layout(first.points)[2] if unit == "px" else None, unit)
         settings["strain_window"] = n
+        settings["strain_type"] = kind_type
         if scale is not None:
             settings[SCALE_KEY] = _scale_value(scale)
         ref = r.reference
+        strain_of = _strain_2d(first.points, n, min_points, kind_type) if kind == "dic2d" else \
+            _strain_3d(first, n, min_points, kind_type)
+        del first
+        roles = r.kind.image_roles
+        extra = {}
+        if kind == "stereo":
+            extra = {"kind": "stereo", "rig": r.rig}
         try:
             fd, tmp = tempfile.mkstemp(suffix=".h5", prefix=f".{dst.stem}.", dir=dst.parent)
             os.close(fd)
-            with ResultWriter(tmp, reference_path=ref.get("path", ""), reference_shape=ref.get("shape") or None,
-                              reference_sha256=ref.get("sha256", ""), settings=settings, mode="overwrite") as w:
+            ref_paths = tuple(ref.get(role_attr(x, "path"), "") for x in roles)
+            ref_digests = tuple(ref.get(role_attr(x, "sha256"), "") for x in roles)
+            one = len(roles) == 1
+            with ResultWriter(tmp, reference_path=ref_paths[0] if one else ref_paths,
+                              reference_shape=ref.get("shape") or None,
+                              reference_sha256=ref_digests[0] if one else ref_digests, settings=settings,
+                              mode="overwrite", compression=r.compression, **extra) as w:
+                if kind == "stereo":
+                    match = r.read_match()
+                    if match is not None:
+                        w.write_match(match)
                 for i, f in r.iter_frames(indices):
-                    attrs = {k: v for k, v in f.attrs.items() if k not in ("complete", "written")}
-                    w.write_frame(i, f, strain=strain(f, window=n, min_points=min_points), path=f.path, attrs=attrs)
+                    # the frame's attributes as they were, less those the writer sets and the strain's own
+                    attrs = {k: v for k, v in r.frame_attrs(i).items() if k not in ("complete", "written", "strain_type")}
+                    field, strain = strain_of(f)
+                    w.write_frame(i, field, strain=strain, path=r.frame_paths(i)[0] if one else r.frame_paths(i),
+                                  attrs=attrs)
             r.close()  # before the new file replaces it (in place)
             os.replace(tmp, dst)
             files.fsync_folder(dst.parent)
@@ -603,6 +655,65 @@ def recompute_strain(results, output=None, *, window, unit: str = "grid", min_po
             if tmp is not None and os.path.exists(tmp):
                 os.unlink(tmp)
     return dst
+
+
+def _strain_2d(points, window: int, min_points, strain_type: str):
+    """``frame -> (frame, StrainField)`` of a 2-D file: one :class:`dic.StrainPlan` for the file (a
+    frame on other points, which no run writes, gets a plan of its own)."""
+    from ._strain import StrainPlan
+
+    plan = StrainPlan(points, window=window, min_points=min_points, strain_type=strain_type)
+
+    def strain_of(frame):
+        own = plan if plan.matches(frame.points) else StrainPlan(frame.points, window=window, min_points=min_points,
+                                                                 strain_type=strain_type)
+        return frame, own.strain(frame)
+
+    return strain_of
+
+
+def _strain_3d(first, window: int, min_points, strain_type: str):
+    """``state -> (Field3D with the new strain, None)`` of a stereo file: the run's computation
+    (:meth:`dic.StereoCorrelation.measure`): a :class:`dic.field3d.SurfaceStrainPlan` of the state's reference
+    positions ``X, Y, Z`` (kept while they stay the same, as the run keeps it), the left camera centre
+    ``t_frame_left`` of the state's frame, the displacements of the valid points (status OK); points given
+    to the run (no grid): :func:`dic.field3d.surface_strain` over the ``window²`` nearest points within
+    ``window`` typical spacings, as the run."""
+    from dataclasses import replace
+
+    from .field3d import SurfaceStrainPlan, check_grid_window, scattered_neighbours, surface_strain
+
+    min_neighbours = 6 if min_points is None else int(min_points)
+    neighbours = None
+    if first.grid_shape is None:  # a run given points: the window² nearest within window spacings, as the run
+        from .correlation.points import typical_spacing
+
+        points = np.asarray(first.points, np.float64)
+        neighbours = scattered_neighbours(points, window ** 2, max_distance=window * typical_spacing(points))
+    else:
+        check_grid_window(window, first.grid_shape)
+    held = [None]
+
+    def strain_of(state):
+        X = np.stack([state.X, state.Y, state.Z], axis=1)
+        t = np.asarray(state.t_frame_left, np.float64)
+        if neighbours is not None:
+            s = surface_strain(X, np.nan_to_num(np.stack([state.U, state.V, state.W], axis=1)),
+                               np.asarray(state.status) == 0, neighbours, camera_center=t,
+                               min_neighbours=min_neighbours, strain_type=strain_type)
+            return replace(state, exx=s["exx"], eyy=s["eyy"], exy=s["exy"], normal=s["normal"],
+                           strain_valid=s["strain_valid"], strain_type=strain_type), None
+        plan = held[0]
+        if plan is None or not (np.array_equal(plan.X, X, equal_nan=True) and np.array_equal(plan.camera_center, t)):
+            plan = held[0] = SurfaceStrainPlan(X, state.grid_shape, window, camera_center=t,
+                                               min_neighbours=min_neighbours, strain_type=strain_type)
+        uvw = np.stack([state.U, state.V, state.W], axis=1)
+        valid = np.asarray(state.status) == 0  # StereoStatus.OK: the points the run strained
+        s = plan(np.nan_to_num(uvw), valid)
+        return replace(state, exx=s["exx"], eyy=s["eyy"], exy=s["exy"], normal=s["normal"],
+                       strain_valid=s["strain_valid"], strain_type=strain_type), None
+
+    return strain_of
 
 
 # ------------------------------------------------------------------------------------------------
@@ -722,6 +833,8 @@ class History:
     frames: np.ndarray
     values: np.ndarray
     status: np.ndarray
+    #: the strain type of a strain quantity ("green-lagrange", "small", "euler-almansi"), else None
+    strain_type: str | None = None
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Column names and the (F, 2) table (frame, value)."""
@@ -751,7 +864,7 @@ def point_history(results, point, quantity: str, *, at: str = "px", frames=None,
             value, code = src.interpolate(i, at, vals, valid, p)
             out[k], status[k] = value[0, 0], code[0]
         return History(quantity=quantity, unit=src.unit(quantity), point=p, at=at, frames=np.asarray(idx, np.int64),
-                       values=out, status=status)
+                       values=out, status=status, strain_type=src.strain_type(quantity))
 
 
 @dataclass
@@ -774,6 +887,8 @@ class Profile:
     frames: np.ndarray
     values: np.ndarray
     status: np.ndarray
+    #: the strain type of a strain quantity ("green-lagrange", "small", "euler-almansi"), else None
+    strain_type: str | None = None
 
     def table(self) -> tuple[list[str], np.ndarray]:
         """Long-format column names and table: one row per (frame, sample): frame, distance, x, y, value."""
@@ -822,7 +937,8 @@ def line_profile(results, start, end, quantity: str, *, samples: int | None = No
             value, status[k] = src.interpolate(i, at, v, valid, pos)
             vals[k] = value[:, 0]
         return Profile(quantity=quantity, unit=src.unit(quantity), start=a, end=b, at=at, positions=pos,
-                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals, status=status)
+                       distance=t * length, frames=np.asarray(idx, np.int64), values=vals, status=status,
+                       strain_type=src.strain_type(quantity))
 
 
 # -- crack26: opening and sliding of declared cracks (dic.cracks) in a 2-D result file

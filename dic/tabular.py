@@ -167,10 +167,18 @@ def _status_attrs(codes) -> dict:
             "flag_meanings": " ".join(c.name for c in codes)}
 
 
-def _var_attrs(name: str, codes) -> dict:
+_TYPED = {"exx": "xx", "eyy": "yy", "exy": "xy (tensor shear)"}
+
+
+def _var_attrs(name: str, codes, strain_type: str | None = None) -> dict:
     attrs = {}
     if name in LONG_NAMES:
         attrs["long_name"] = LONG_NAMES[name]
+    if name in _TYPED and strain_type:  # the strain's type by name (dic._strain.STRAIN_TYPES)
+        from ._strain import strain_type_label
+
+        attrs["long_name"] = f"{strain_type_label(strain_type)} strain {_TYPED[name]}"
+        attrs["strain_type"] = strain_type
     if UNITS.get(name):
         attrs["units"] = UNITS[name]
     if name == "status":
@@ -207,9 +215,10 @@ def point_dataset(cols: dict[str, np.ndarray], *, kind: str, attrs: dict | None 
     n = len(cols["x"])
     coords = {"point": ("point", np.arange(n))}
     data = {}
+    strain_type = (attrs or {}).get("strain_type")
     for name, arr in cols.items():
         target = coords if name in _coord_names(kind) else data
-        target[name] = ("point", arr, _var_attrs(name, status_codes))
+        target[name] = ("point", arr, _var_attrs(name, status_codes, strain_type))
     return xr.Dataset(data, coords=coords, attrs=clean_attrs(attrs or {}))
 
 
@@ -258,7 +267,7 @@ def frame_dataset(frames: list[tuple[int, dict[str, np.ndarray]]], *, kind: str,
         if stacked.dtype != like.dtype and like.dtype != bool:
             stacked = stacked.astype(np.result_type(like.dtype, np.float64))
         target = coords if name in _coord_names(kind) else data
-        target[name] = (("frame", "point"), stacked, _var_attrs(name, status_codes))
+        target[name] = (("frame", "point"), stacked, _var_attrs(name, status_codes, (attrs or {}).get("strain_type")))
     for name, values in (frame_coords or {}).items():
         coords[name] = ("frame", np.asarray(values))
     return xr.Dataset(data, coords=coords, attrs=clean_attrs(attrs or {}))
@@ -341,4 +350,7 @@ def dataframe(dataset):
             df[name] = pd.Categorical(df[name])
     first = [c for c in ("x", "y", "X", "Y", "Z") if c in df.columns]
     rest = [c for c in df.columns if c not in first]
-    return df[first + rest]
+    df = df[first + rest]
+    if dataset.attrs.get("strain_type"):  # what exx, eyy, exy are (the columns' own attributes stay in xarray)
+        df.attrs["strain_type"] = dataset.attrs["strain_type"]
+    return df

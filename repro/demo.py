@@ -128,7 +128,8 @@ def strain_step(state: DemoState) -> None:
     from dic._strain import strain
 
     t0 = time.perf_counter()
-    state.strain = strain(state.field, window=state.config.strain_window)
+    # the small strain: what the demo's truth (exx = du/dx ...) and its report compare against (issue 25: named)
+    state.strain = strain(state.field, window=state.config.strain_window, strain_type="small")
     state.timings["strain_s"] = time.perf_counter() - t0
 
 
@@ -178,7 +179,8 @@ def write_step(state: DemoState) -> None:
     write_image(out / "current.tif", state.current, bits=8)
     # the run record of the options track_step used (docs/results_format.md, "The run record")
     settings = TrackOptions(subset=cfg.subset, step=cfg.step, order=cfg.order, search=cfg.search,
-                            search_radius=cfg.search_radius, strain_window=cfg.strain_window).to_settings()
+                            search_radius=cfg.search_radius, strain_window=cfg.strain_window,
+                            strain_type="small").to_settings()
     with ResultWriter(out / "results.h5", reference_path="reference.tif", reference_shape=state.reference.shape,
                       reference_sha256=image_digest(state.reference), settings=settings, mode="overwrite") as w:
         w.write_frame(1, state.field, strain=state.strain, path="current.tif")

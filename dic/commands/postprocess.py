@@ -189,24 +189,44 @@ def _write_csv_checked(path, names, table) -> None:
         raise click.ClickException(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
+#: library keywords of dic.postprocess.recompute_strain and the checks it calls -> this command's options
+_STRAIN_OPTIONS = {"min_points": "--min-points", "min_neighbours": "--min-points", "strain_type": "--strain-type",
+                   "strain_window": "--window", "strain window": "--window"}
+
+
+def _with_options(text: str) -> str:
+    """A library message with its keywords named as this command's options (``min_points`` -> ``--min-points``)."""
+    import re
+
+    pattern = "|".join(re.escape(k) for k in sorted(_STRAIN_OPTIONS, key=len, reverse=True))
+    return re.sub(rf"(?<![\w-])({pattern})(?![\w-])", lambda m: _STRAIN_OPTIONS[m.group(1)], text)
+
+
 @click.command(name="strain", context_settings=CONTEXT)
 @click.argument("results", type=RESULTS)
 @click.option("--window", required=True, type=float,
               help="Strain fit window: grid points per side (odd >= 3), or its side in px with --px.")
 @click.option("--px", "in_px", is_flag=True, help="--window is the window's side in px.")
 @click.option("--grid-points", "in_grid", is_flag=True, help="--window is in grid points (the default).")
+@click.option("--strain-type", default=None, type=click.Choice(["green-lagrange", "small", "euler-almansi"],
+                                                               case_sensitive=False),
+              help="What exx, eyy, exy are (default: the file's; files without one: 2-D small, stereo "
+                   "green-lagrange).")
 @click.option("-o", "--output", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="New result file (.h5); default: rewrite RESULTS in place.")
-@click.option("--min-points", default=None, type=click.IntRange(min=3), help="Fewest valid points per fit.")
+@click.option("--min-points", default=None, type=click.IntRange(min=3),
+              help="Fewest valid points per fit (2-D default: a quarter window; stereo default 6).")
 @click.option("--scale", default=None, type=click.FloatRange(min=0, min_open=True),
-              help="Also store this scale, mm per px (positions and displacements of post-processing in mm).")
+              help="2-D: also store this scale, mm per px (positions and displacements of post-processing in mm).")
 @click.option("-q", "--quiet", is_flag=True, help="No summary.")
-def strain(results, window, in_px, in_grid, output, min_points, scale, quiet):
-    """Recompute the strain of a 2-D result file (specula track) with another window.
+def strain(results, window, in_px, in_grid, strain_type, output, min_points, scale, quiet):
+    """Recompute the strain of a 2-D (specula track) or stereo (specula stereo) result file with
+    another window or strain type.
 
-    Everything but the strain is copied unchanged; the new window (grid points) is recorded in
-    the settings as strain_window.
+    Everything but the strain is copied unchanged; the new window (grid points) and strain type
+    are recorded in the settings as strain_window and strain_type.
     """
+    from dic._strain import strain_type_label
     from dic.postprocess import recompute_strain
     from dic.store import ResultReader
 
@@ -219,17 +239,23 @@ def strain(results, window, in_px, in_grid, output, min_points, scale, quiet):
             raise click.BadParameter(f"a window in grid points must be an odd integer >= 3, got {window:g}",
                                      param_hint="--window")
         window = int(window)
-    path = _run(recompute_strain, results, output, window=window, unit="px" if in_px else "grid",
-                min_points=min_points, scale=scale)
+    try:
+        path = recompute_strain(results, output, window=window, unit="px" if in_px else "grid",
+                                min_points=min_points, scale=scale, strain_type=strain_type)
+    except ValueError as exc:
+        raise click.ClickException(_with_options(str(exc))) from None
     if not quiet:
         with ResultReader(path) as r:  # one frame at a time
             n = r.settings.get("strain_window")
-            for i, f in r.iter_frames():
-                ok = np.asarray(f.strain["valid"], bool)
-                exx = np.asarray(f.strain["exx"])[ok]
-                click.echo(f"frame {i}: strain at {int(ok.sum())}/{ok.size} points, "
-                           f"exx mean {_fmt(exx.mean()) if exx.size else 'nan'}")
-        click.echo(f"strain window {n} grid points; results: {path}")
+            label = strain_type_label(r.settings.get("strain_type"))
+            names = ("strain_valid", "exx") if r.kind.name == "stereo" else ("strain/valid", "strain/exx")
+            for i in r.done_frames():  # only the two datasets the line needs
+                valid, exx = r.frame_arrays(i, names)
+                ok = np.asarray(valid, bool)
+                exx = np.asarray(exx)[ok]
+                click.echo(f"{r.kind.frame_noun} {i}: strain at {int(ok.sum())}/{ok.size} points, "
+                           f"{label} exx mean {_fmt(exx.mean()) if exx.size else 'nan'}")
+        click.echo(f"strain window {n} grid points, {label} strain; results: {path}")
 
 
 @click.command(name="extensometer", context_settings=CONTEXT)

@@ -141,9 +141,13 @@ def _engine_pairs(pairs) -> list:
                    "inside the region only (the match and the left track; holes, free edges); none: on all pixels.")
 @click.option("--min-kept-fraction", default=0.5, show_default=True, type=click.FloatRange(min=0, min_open=True, max=1),
               help="A masked subset keeping fewer than this fraction of its pixels is not correlated (TOO_FEW_PIXELS).")
+@click.option("--strain-type", default="green-lagrange", show_default=True,
+              type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
+              help="What the surface strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's "
+                   "default), small (engineering) or Euler-Almansi; stored in the file.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction):
+           compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -219,7 +223,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                                zncc_min=zncc_min, strain_window=strain_window, roi=region, robust=robust,
                                noise_sigma=noise_sigma,
                                reference=reference_strategy, subset_mask=subset_mask,
-                               min_kept_fraction=min_kept_fraction)
+                               min_kept_fraction=min_kept_fraction, strain_type=strain_type)
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images
@@ -263,6 +267,9 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         skipped = len(pairs) - len(summary)
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")
+        from dic._strain import strain_type_label
+
+        click.echo(f"strain: {strain_type_label(strain_type)} surface strain, window {strain_window} grid points")
         click.echo(f"results: {output}")
     if len(summary) and not allow_empty and not any(summary.n_valid):
         raise click.ClickException(

@@ -95,10 +95,14 @@ def _fail(exc: Exception) -> click.ClickException:
               help="With --verify-composed: the ZNCC below which a composed point fails (default 0.95: a whole-pixel "
                    "wrong match scores at most 0.92 on a 2 px speckle, a correct warp at least 0.994 at 4 grey levels "
                    "of noise).")
+@click.option("--strain-type", default="green-lagrange", show_default=True,
+              type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
+              help="What the strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's and DICe's "
+                   "default, and stereo's), small (engineering) or Euler-Almansi; stored in the file.")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, subset_mask,
-          min_kept_fraction, cracks, verify_composed, verify_zncc):
+          min_kept_fraction, cracks, verify_composed, verify_zncc, strain_type):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -163,7 +167,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
                      noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
                      scale_mm_per_px=scale, subset_mask=subset_mask, min_kept_fraction=min_kept_fraction, cracks=cracks,
-                     verify_composed=verify_composed, verify_zncc=verify_zncc,
+                     verify_composed=verify_composed, verify_zncc=verify_zncc, strain_type=strain_type,
                      **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
@@ -200,7 +204,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                 vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
                 settings=record, make_tracker=make_tracker, points=planned, order=order,
                 max_memory=budget, search=search_method if search else None, client=client, compression=compression,
-                verify_composed=verify_composed, verify_zncc=verify_zncc, device=device)
+                verify_composed=verify_composed, verify_zncc=verify_zncc, strain_type=strain_type, device=device)
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":
@@ -223,6 +227,10 @@ def track(reference, current, output, subset, step, order, search, search_method
                 checked = int((result.reference_indices != 0).sum())
                 click.echo(f"composed results checked against the reference image in {checked} frame(s): "
                            f"{int(result.n_mismatch.sum())} point(s) failed (ZNCC < {verify_threshold:g})")
+        if strain_window:
+            from dic._strain import strain_type_label
+
+            click.echo(f"strain: {strain_type_label(strain_type)}, window {strain_window} grid points")
         click.echo(f"results: {output}")
 
 

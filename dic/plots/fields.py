@@ -60,11 +60,11 @@ SIGNED = frozenset({"u", "v", "exx", "eyy", "exy", "Exx", "Eyy", "Exy", "U", "V"
 #: component of a 2-D field -> panel title of :func:`field_figure` (quantity and unit)
 _LABELS = {
     "u": "displacement u (px)", "v": "displacement v (px)", "magnitude": "displacement magnitude |d| (px)",
-    "exx": "small strain εxx (1)", "eyy": "small strain εyy (1)", "exy": "small strain εxy (1)",
+    "exx": "strain exx (1)", "eyy": "strain eyy (1)", "exy": "strain exy (1)",  # with the strain's type in front
     "Exx": "Green-Lagrange strain Exx (1)", "Eyy": "Green-Lagrange strain Eyy (1)", "Exy": "Green-Lagrange strain Exy (1)",
 }
 #: component of a 2-D field -> colourbar label
-_UNITS = {"u": "u (px)", "v": "v (px)", "magnitude": "|d| (px)", "exx": "εxx", "eyy": "εyy", "exy": "εxy",
+_UNITS = {"u": "u (px)", "v": "v (px)", "magnitude": "|d| (px)", "exx": "exx", "eyy": "eyy", "exy": "exy",
           "Exx": "Exx", "Eyy": "Eyy", "Exy": "Exy"}
 
 #: quantity -> (label, unit, colour map) of :func:`write_figures`; the signed quantities' map is
@@ -338,7 +338,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         gives its strain as a dict.
     components : sequence of str, optional
         Any of ``u``, ``v``, ``magnitude``, ``exx``, ``eyy``, ``exy``, ``Exx``, ``Eyy``, ``Exy``.
-        Default ``u``, ``v`` plus the small strains when ``strain`` is given.
+        Default ``u``, ``v`` plus the strains ``exx``, ``eyy``, ``exy`` (of the strain's type, named in the
+        panel titles) when ``strain`` is given.
     title : str, optional
         Figure title.
     cmap : str, optional
@@ -385,6 +386,8 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         raise ValueError(f"limits must be a dict {{component: (vmin, vmax)}}, got {type(limits).__name__}")
     strain = _strain_view(strain)
     outline = None if region is None else _region_parts(region)
+    from .._strain import strain_type_label
+
     if components is None:
         components = ["u", "v"] + (["exx", "eyy", "exy"] if strain is not None else [])
     components = [components] if isinstance(components, str) else list(components)
@@ -421,13 +424,18 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
             ax.plot(crack.vertices[:, 0], crack.vertices[:, 1], color="k", linewidth=1.5)
         ax.set_xlim(x0, x1)
         ax.set_ylim(y1, y0)
-        ax.set_title(_LABELS[name], fontsize=10)
+        title, unit_label = _LABELS[name], _UNITS[name]
+        if name in ("exx", "eyy", "exy"):  # the strain's type by name
+            kind = strain_type_label(getattr(strain, "strain_type", None)  # a StrainField; a file's frame: its attrs
+                                     or getattr(field, "attrs", {}).get("strain_type") or "small")  # before: small
+            title, unit_label = f"{kind} strain {name} (1)", f"{name}, {kind}"
+        ax.set_title(title, fontsize=10)
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
         cb = fig.colorbar(im, cax=cax)
         cb.formatter.set_useOffset(False)
         cb.locator = _max_n_locator(5)  # few labels: each costs a text draw
-        cb.set_label(_UNITS[name])
+        cb.set_label(unit_label)
         cb.update_ticks()
     if title:
         fig.suptitle(title, y=1.0 - 0.12 / fig.get_figheight(), va="top")
@@ -526,6 +534,10 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
         raise ValueError(f"panel_size must be positive (inches), got {panel_size!r}")
     label, unit, q_cmap = FIGURE_QUANTITIES[quantity]
     outline = None if region is None else _region_parts(region)
+    if quantity in ("exx", "eyy", "exy"):  # the field's strain type (Green-Lagrange unless chosen otherwise)
+        from .._strain import strain_type_label
+
+        label = f"{strain_type_label(getattr(f, 'strain_type', 'green-lagrange'))} strain {quantity}"
     names = [s.name for s in f.status_codes]
     pts = np.asarray(f.points, dtype=np.float64)
     if quantity == "status":

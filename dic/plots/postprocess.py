@@ -39,6 +39,16 @@ def _pt(p, at: str) -> str:
     return f"({p[0]:g}, {p[1]:g}) {at}"
 
 
+def _named(result) -> str:
+    """A History's or Profile's quantity with its strain type, e.g. ``exx (Green-Lagrange)``."""
+    kind = getattr(result, "strain_type", None)
+    if not kind:
+        return result.quantity
+    from .._strain import strain_type_label
+
+    return f"{result.quantity} ({strain_type_label(kind)})"
+
+
 def extensometer_figure(ext, *, title: str | None = None, figsize=(6.4, 5.6)):
     """Strain (top) and elongation (bottom) of a :class:`dic.postprocess.Extensometer` against the frame."""
     _check(ext, "Extensometer", ("frames", "strain", "elongation", "length0", "unit", "start", "end", "at"))
@@ -77,9 +87,9 @@ def history_figure(histories, *, title: str | None = None, figsize=(6.4, 4.0)):
     fig = new_figure(figsize, layout="constrained")
     ax = fig.subplots()
     for k, h in enumerate(items):
-        ax.plot(h.frames, h.values, "o-", color=f"C{k % 10}", label=f"{h.quantity} at {_pt(h.point, h.at)}")
+        ax.plot(h.frames, h.values, "o-", color=f"C{k % 10}", label=f"{_named(h)} at {_pt(h.point, h.at)}")
     units = {h.unit for h in items}
-    names = {h.quantity for h in items}
+    names = {_named(h) for h in items}
     ax.set_ylabel(_label(", ".join(sorted(names)), units.pop() if len(units) == 1 else ""))
     ax.set_xlabel("frame")
     _integer_frames(ax)
@@ -105,7 +115,7 @@ def profile_figure(profile, *, title: str | None = None, cmap: str = "viridis", 
     for k, (i, row) in enumerate(zip(profile.frames, profile.values)):
         ax.plot(profile.distance, row, "-", color=cm(k / max(F - 1, 1)), label=f"frame {int(i)}")
     ax.set_xlabel(f"distance along the line ({profile.at})")
-    ax.set_ylabel(_label(profile.quantity, profile.unit))
+    ax.set_ylabel(_label(_named(profile), profile.unit))
     ax.grid(True, alpha=0.3)
     if F <= 12:
         ax.legend(fontsize="small")

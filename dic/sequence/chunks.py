@@ -188,7 +188,8 @@ class ChunkedTracker:
 _FIELD_ARRAYS = ("points", "u", "v", "params", "zncc", "iterations", "status", "valid")
 
 
-def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS, cracks=None):
+def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS, cracks=None,
+                    strain_type: str = "green-lagrange"):
     """:func:`dic.strain` of ``field`` (``window`` grid points) computed a band of grid rows at a time.
 
     Each band holds at most about ``max_points`` POIs plus ``window // 2`` grid rows on either
@@ -197,14 +198,16 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS,
     identical (tested), while the strain's working arrays are those of one band. A field of at
     most ``max_points`` POIs is one call of :func:`dic.strain`; so is a field whose bands
     do not make grids of their own that a window fits (a region of interest only a few points
-    wide in places). ``cracks``: declared cracks no fit reaches across (:mod:`dic.cracks`).
+    wide in places). ``cracks``: declared cracks no fit reaches across (:mod:`dic.cracks`). ``strain_type``
+    as for :func:`dic.strain`.
     """
     from kernels.checks import positive_int
 
-    from .._strain import StrainField, grid_layout, strain
+    from .._strain import StrainField, check_strain_type, grid_layout, strain
 
     max_points = positive_int(max_points, "max_points")
-    crack_kw = {} if cracks is None else {"cracks": cracks}  # declared cracks: no fit across them
+    # declared cracks (no fit across them) and the strain type, passed on to every strain() below
+    crack_kw = {"strain_type": strain_type} if cracks is None else {"cracks": cracks, "strain_type": strain_type}
     if not all(hasattr(field, name) for name in ("points", "u", "v", "valid")):
         raise ValueError(f"strain_in_bands needs a 2-D field (points, u, v, valid), got {type(field).__name__}")
     points = np.asarray(field.points, np.float64)
@@ -239,7 +242,7 @@ def strain_in_bands(field, window: int, *, max_points: int = STRAIN_BAND_POINTS,
             arr[sel[keep]] = getattr(s, name)[keep]
         del s, part
     return StrainField(points=points.copy(), **out, window=int(window), step=step, grid_index=index,
-                       grid_shape=shape)
+                       grid_shape=shape, strain_type=check_strain_type(strain_type))
 
 
 class _Field:

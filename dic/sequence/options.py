@@ -181,7 +181,9 @@ class _Record:
             return cls(**kw)
         if version != 1:
             raise ValueError(f"settings of options schema {version!r}: this Specula reads schemas 1 and {OPTIONS_SCHEMA}")
-        return cls._from_schema1(settings)
+        record = cls._from_schema1(settings)
+        added = {k: v for k, v in cls.ADDED_OPTIONS.items() if k not in settings}  # older still: the old behaviour
+        return replace(record, **added) if added else record
 
     def differences(self, other) -> list[tuple[str, Any, Any]]:
         """``(option, value here, value in other)`` for every option that differs (those either side did
@@ -337,6 +339,8 @@ class TrackOptions(_Record):
     # -- re-verification of composed results (dic.sequence.verification; issue 26)
     verify_composed: bool | None = True
     verify_zncc: float | None = None
+    # strain types by name (issue 25): what exx, eyy, exy are; files before it computed small strain
+    strain_type: str = "green-lagrange"
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
     #: the checked region (None when read from a file: it holds its JSON form)
@@ -350,13 +354,15 @@ class TrackOptions(_Record):
         "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
         "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
         "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction",
-        "cracks": "--crack", "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc"}
+        "cracks": "--crack", "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc",
+        "strain_type": "--strain-type"}
     KIND: ClassVar[str] = "2-D"
+    # (strain_type: 2-D exx was the small strain before the option)
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5, "cracks": None,
-                                               "verify_composed": False, "verify_zncc": None}
+                                               "verify_composed": False, "verify_zncc": None, "strain_type": "small"}
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess",
-                                                    "verify_composed", "verify_zncc")
+                                                    "verify_composed", "verify_zncc", "strain_type")
 
     def __post_init__(self):
         self._check_common()
@@ -390,6 +396,7 @@ class TrackOptions(_Record):
             raise OptionError("strain_window", f"strain_window must be 0 (no strain) or an odd integer >= 3 "
                                                f"(grid points), got {self.strain_window!r}")
         self._set("strain_window", sw)
+        self._set("strain_type", _checked("strain_type", _strain_type, self.strain_type))
         if self.scale_mm_per_px is not None:
             self._set("scale_mm_per_px", _checked("scale_mm_per_px", positive_float, self.scale_mm_per_px,
                                                   "the scale", detail=" (mm per px)"))
@@ -445,7 +452,7 @@ class TrackOptions(_Record):
             kw["search"] = method if radius is not None else None
             if radius is not None:
                 kw["search_radius"] = radius
-            for k in ("subset", "step", "order", "strain_window", "noise_sigma", "roi", _SCALE_KEY):
+            for k in ("subset", "step", "order", "strain_window", "noise_sigma", "roi", _SCALE_KEY, "strain_type"):
                 if s.get(k) is not None:
                     kw[k] = s[k]
             for k in ("max_iter", "tol"):  # null: the tracker's default
@@ -454,7 +461,8 @@ class TrackOptions(_Record):
             if s.get("robust"):
                 kw["robust"] = True
             known = {"search", "search_method", "subset", "step", "order", "strain_window", "noise_sigma", "roi",
-                     _SCALE_KEY, "max_iter", "tol", "robust", "reference", "guess", "auto_valid", "auto_zncc"}
+                     _SCALE_KEY, "max_iter", "tol", "robust", "reference", "guess", "auto_valid", "auto_zncc",
+                     "strain_type"}  # strain_type: written by specula strain into an old file
         else:  # the library's form: the keywords given (others at their defaults)
             known = {f.name for f in fields(cls) if f.compare}
             kw.update({k: v for k, v in s.items() if k in known and k not in kw})
@@ -500,6 +508,8 @@ class StereoOptions(_Record):
     # -- per-POI pixel masks of the left reference's subsets (issue 26; dic.correlation.subset_masks)
     subset_mask: str = "region"
     min_kept_fraction: float = 0.5
+    # strain types by name (issue 25): what exx, eyy, exy are; stereo strain was always Green-Lagrange
+    strain_type: str = "green-lagrange"
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
@@ -509,9 +519,10 @@ class StereoOptions(_Record):
         "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
         "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust",
         "reference": "--reference", "guess": "--scheduler/--workers",
-        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction"}
+        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction", "strain_type": "--strain-type"}
     KIND: ClassVar[str] = "stereo"
-    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5}
+    ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5,
+                                               "strain_type": "green-lagrange"}
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess")
 
     def __post_init__(self):
@@ -535,6 +546,7 @@ class StereoOptions(_Record):
             raise OptionError("triangulation", f"triangulation must be 'optimal' or 'linear', got {self.triangulation!r}")
         self._set("max_features", _checked("max_features", positive_int, self.max_features, "max_features"))
         self._subset_mask_options()
+        self._set("strain_type", _checked("strain_type", _strain_type, self.strain_type))
         self._check_sequence()
 
     def correlation_kwargs(self) -> dict:
@@ -545,7 +557,7 @@ class StereoOptions(_Record):
               "zncc_min": self.zncc_min, "strain_window": self.strain_window, "max_iter": self.max_iter,
               "tol": self.tol, "triangulation": self.triangulation, "max_features": self.max_features,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
-              **self._subset_mask_kwargs()}
+              **self._subset_mask_kwargs(), "strain_type": self.strain_type}
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:
@@ -591,6 +603,12 @@ def _frame(frame):
 
     R, t = _checked("frame", as_frame, frame)
     return [R.tolist(), t.tolist()]
+
+
+def _strain_type(strain_type):
+    from .._strain import check_strain_type
+
+    return check_strain_type(strain_type)
 
 
 def _check_search(search):

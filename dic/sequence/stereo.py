@@ -112,7 +112,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     options
         :class:`dic.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
-        ``max_iter``, ``tol``, ``triangulation``, ``device``).
+        ``max_iter``, ``tol``, ``triangulation``, ``device``, ``strain_type``: "green-lagrange" (default),
+        "small" or "euler-almansi", recorded in the run record).
 
     Returns
     -------

@@ -174,7 +174,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                    auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
                    make_tracker: Callable | None = None, max_memory: int | None = None, guess: str | None = None,
                    client=None, compression=None, verify_composed: bool | None = None, verify_zncc: float | None = None,
-                   **options) -> SequenceSummary:
+                   strain_type: str = "green-lagrange", **options) -> SequenceSummary:
     """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
 
     Parameters
@@ -204,6 +204,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         (or None) once the frame is in the file (on the writer thread, in frame order).
     strain_window : int
         Strain fit window in grid points (odd >= 3), 0 for no strain.
+    strain_type : "green-lagrange" | "small" | "euler-almansi"
+        What the strain ``exx``, ``eyy``, ``exy`` is (:func:`dic.strain`); recorded in the settings.
     vtk_dir : folder, optional
         Write ``frame_<index>.vtu`` per frame as it finishes (every POI at its reference position, NaN
         where invalid: the same point set at every step).
@@ -314,6 +316,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         client = connect(client)
     mode = str(mode)
     strain_window = non_negative_int(strain_window, "strain_window")
+    from .._strain import check_strain_type
+
+    strain_type = check_strain_type(strain_type)
     figure_every = positive_int(figure_every, "figure_every")
     if callback is not None and not callable(callback):
         raise ValueError(f"callback must be callable, got {type(callback).__name__}")
@@ -338,7 +343,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     if record is not None:
         record = replace(record, strain_window=strain_window, reference=policy.text, auto_valid=policy.auto_valid,
                          auto_zncc=policy.auto_zncc, guess=guess, verify_composed=bool(verify_composed),
-                         verify_zncc=verify_zncc)
+                         verify_zncc=verify_zncc, strain_type=strain_type)
         settings = record.to_settings()
         if make_tracker is None:
             options = {**record.tracker_kwargs(), "device": options.get("device")}
@@ -414,7 +419,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
         try:
             if n <= STRAIN_BAND_POINTS:
-                strain_plan = StrainPlan(points0, window=strain_window, cracks=cracks)
+                strain_plan = StrainPlan(points0, window=strain_window, cracks=cracks, strain_type=strain_type)
             else:  # huge grids: strain in bands of rows (bounded memory), the grid checked here
                 check_strain_window(strain_window, grid_layout(points0)[1])
         except ValueError as exc:
@@ -443,7 +448,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                     if strain_plan is not None and strain_plan.matches(lag.points):
                         strain = strain_plan.strain(lag)  # bit for bit dic.strain
                     else:  # a band of grid rows at a time: bounded memory, the same strain (dic.sequence.chunks)
-                        strain = strain_in_bands(lag, strain_window, cracks=cracks)
+                        strain = strain_in_bands(lag, strain_window, cracks=cracks, strain_type=strain_type)
                 except ValueError as exc:
                     raise ValueError(f"frame {k} ({item.path or 'array'}): {exc}") from None
             lag.strain = strain  # the frame's field carries its strain (callback, later use)

@@ -8,7 +8,8 @@ Per frame ``/frames/<index>``::
     sigma_u, sigma_v (N,) f8         optional: predicted displacement std (px, NaN where not valid);
                                      attrs noise_sigma (grey levels), noise_source ("given" | "residual")
     strain/                          optional: dudx, dudy, dvdx, dvdy, exx, eyy, exy, Exx, Eyy, Exy (N,) f8,
-                                     valid (N,) bool; attrs window, step (dx, dy) px
+                                     valid (N,) bool; attrs window, step (dx, dy) px, strain_type (what exx,
+                                     eyy, exy are; absent before strain types: the settings' strain_type, else small)
 
 The frame protocol (``.partial`` -> complete, flush, resume) is :class:`dic.store.ResultWriter`'s.
 """
@@ -43,7 +44,8 @@ class FrameResult(Field2D):
     settings) and no mask of the points placed by interpolation at a moved reference
     (``reference_interpolated`` is None; their count is ``attrs["reference_interpolated"]``). Arrays a
     file of another writer lacks are None. Added: ``path`` (the frame's image, '' for an array) and
-    ``attrs`` (the frame's stored attributes: ``seconds``, ``sha256``, ``reference_index``, ...).
+    ``attrs`` (the frame's stored attributes: ``seconds``, ``sha256``, ``reference_index``, ..., and
+    ``strain_type``, the type of its strain, where the file records it).
     """
 
     path: str = ""
@@ -72,8 +74,10 @@ class FrameResult(Field2D):
         :meth:`dic.field2d.Field2D.to_xarray`, with the stored strain)."""
         from ..tabular import point_dataset
 
+        strain_type = self.attrs.get("strain_type") if self.strain is not None else None
         return point_dataset(self._columns(), kind="dic2d",
-                             attrs={"title": "Specula 2-D DIC frame", "frame": int(self.index), "image_path": self.path})
+                             attrs={"title": "Specula 2-D DIC frame", "frame": int(self.index), "image_path": self.path,
+                                    "strain_type": strain_type})
 
     def to_dataframe(self):
         """This frame as a :class:`pandas.DataFrame`, one row per point."""
@@ -158,7 +162,7 @@ class TrackResults:
         from ..tabular import frame_dataset
 
         idx = self.indices
-        attrs = table_attrs(self.path, self.attrs, self.reference, self.settings)
+        attrs = table_attrs(self.path, self.attrs, self.reference, self.settings, self.frames[idx[0]] if idx else None)
         return frame_dataset([(i, self.frames[i]._columns()) for i in idx], kind="dic2d", attrs=attrs,
                              frame_coords={"path": [str(self.frames[i].path) for i in idx]})
 
@@ -190,12 +194,17 @@ class TrackResults:
         return frame.plot(reference, limits=limits, **kwargs)
 
 
-def table_attrs(path, attrs: dict, reference: dict, settings: dict) -> dict:
-    """The attributes of a 2-D result file's frame x point table (:meth:`TrackResults.to_xarray`, the exports)."""
+def table_attrs(path, attrs: dict, reference: dict, settings: dict, first=None) -> dict:
+    """The attributes of a 2-D result file's frame x point table (:meth:`TrackResults.to_xarray`, the exports);
+    ``first``: the first frame (its strain's type where the settings name none)."""
+    from .._strain import stored_strain_type
+
     shape = reference.get("shape") or ()
+    has_strain = first is None or getattr(first, "strain", None) is not None
     return {"title": "Specula 2-D DIC results", "source": str(path), "source_format": FORMAT_NAME,
             "specula_version": attrs.get("specula_version"), "reference_path": reference.get("path", ""),
-            "reference_shape": [int(v) for v in shape], "settings": settings}
+            "reference_shape": [int(v) for v in shape], "settings": settings,
+            "strain_type": stored_strain_type("dic2d", settings, first) if has_strain else None}
 
 
 def write_field2d(group, field2d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:
@@ -233,6 +242,7 @@ def write_field2d(group, field2d, strain=None, compression: Compression | str | 
             write_dataset(sg, key, np.asarray(getattr(strain, key)), compression)
         sg.attrs["window"] = int(strain.window)
         sg.attrs["step"] = np.asarray(strain.step, dtype=np.float64)
+        sg.attrs["strain_type"] = str(getattr(strain, "strain_type", "green-lagrange"))  # what exx, eyy, exy are
 
 
 def read_field2d(group) -> FrameResult:
@@ -248,6 +258,8 @@ def read_field2d(group) -> FrameResult:
         strain["window"] = int(group["strain"].attrs["window"])
         strain["step"] = tuple(group["strain"].attrs["step"])
     extra = {k: plain(v) for k, v in group.attrs.items() if k not in ("index", "path")}
+    if strain is not None and "strain_type" in group["strain"].attrs:  # absent before strain types: the settings'
+        extra["strain_type"] = str(group["strain"].attrs["strain_type"])  # with the frame's attrs (the dict: arrays)
     params = data.get("params")
     return FrameResult(points=data["points"], u=data["u"], v=data["v"], params=params, zncc=data.get("zncc"),
                        iterations=data.get("iterations"), status=data.get("status"), valid=data.get("valid"),

@@ -930,11 +930,13 @@ class ResultFrames:
         """The attributes of the file's frame x point table (``to_xarray()``); ``first``: the first frame,
         when the caller has it (stereo tables name its frame and grid)."""
         if self.kind == "dic2d":
+            if first is None and self.indices:
+                first = self.read(self.indices[0])
             if self._reader is not None:
                 r = self._reader
-                return dic2d.table_attrs(r.path, r.attrs, r.reference, self.settings)
+                return dic2d.table_attrs(r.path, r.attrs, r.reference, self.settings, first)
             res = self._results
-            return dic2d.table_attrs(res.path, res.attrs, res.reference, res.settings)
+            return dic2d.table_attrs(res.path, res.attrs, res.reference, res.settings, first)
         if first is None and self.indices:
             first = self.read(self.indices[0])
         if self._reader is not None:  # the rig as read_stereo gives it (a StereoRig's dict)

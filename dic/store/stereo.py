@@ -6,7 +6,8 @@ Beyond the common layout a stereo file has::
     /reference/match       points_left, points_right, params, zncc, iterations, icgn_status,
                            epipolar_px, guess_source, status; attrs n_features, order
     /frames/<index>        one group per state ("000000" = the reference shape)
-        attrs: grid_shape, frame_name, R_frame_left, t_frame_left (besides the common ones); reference_index
+        attrs: grid_shape, frame_name, R_frame_left, t_frame_left, strain_type (what exx, eyy, exy are; absent in
+               files before it: "green-lagrange") (besides the common ones); reference_index
                (written by dic.sequence.stereo_sequence; read as Field3D.reference_index, 0 when absent)
         datasets: every per-point array of the Field3D (points, X ... W, exx, eyy, exy, normal,
                   zncc_*, epipolar_*, reprojection_*, status, strain_valid) and its details
@@ -135,7 +136,8 @@ def table_attrs(settings: dict, rig, reference_shape, first) -> dict:
     return {"title": "Specula stereo-DIC results", "source_format": FORMAT_NAME, "settings": settings,
             "rig": rig, "reference_shape": [int(v) for v in reference_shape],
             "frame_name": first.frame_name if first is not None else None,
-            "grid_shape": list(first.grid_shape) if first is not None and first.grid_shape is not None else None}
+            "grid_shape": list(first.grid_shape) if first is not None and first.grid_shape is not None else None,
+            "strain_type": getattr(first, "strain_type", "green-lagrange") if first is not None else None}
 
 
 def write_field3d(group, field3d, strain=None, compression: Compression | str | None = DEFAULT_COMPRESSION) -> None:
@@ -156,7 +158,8 @@ def write_field3d(group, field3d, strain=None, compression: Compression | str | 
             write_dataset(group, key, arr, compression)
     group.attrs.update({"grid_shape": list(field3d.grid_shape) if field3d.grid_shape is not None else [],
                         "frame_name": field3d.frame_name, "R_frame_left": np.asarray(field3d.R_frame_left),
-                        "t_frame_left": np.asarray(field3d.t_frame_left)})
+                        "t_frame_left": np.asarray(field3d.t_frame_left),
+                        "strain_type": str(getattr(field3d, "strain_type", "green-lagrange"))})
 
 
 def read_field3d(group):
@@ -173,7 +176,8 @@ def read_field3d(group):
                    R_frame_left=np.asarray(group.attrs["R_frame_left"]),
                    t_frame_left=np.asarray(group.attrs["t_frame_left"]), frame_name=str(group.attrs["frame_name"]),
                    index=int(group.attrs["index"]), details=details,
-                   reference_index=int(group.attrs.get("reference_index", 0)))
+                   reference_index=int(group.attrs.get("reference_index", 0)),
+                   strain_type=str(group.attrs.get("strain_type", "green-lagrange")))  # files before it: Green-Lagrange
 
 
 def write_match(group, match, compression: Compression | str | None = None) -> None:

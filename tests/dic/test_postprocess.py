@@ -341,8 +341,8 @@ def test_stereo_extensometer_and_histories_are_exact_for_affine_fields(stereo_fi
         extensometer(stereo_file, a, b, scale=0.1)
     with pytest.raises(ValueError, match="unknown quantity 'u' for stereo results"):
         point_history(stereo_file, a, "u")
-    with pytest.raises(ValueError, match="stereo result file; recompute_strain recomputes the strain of 2-D"):
-        recompute_strain(stereo_file, window=5)
+    with pytest.raises(ValueError, match="a stereo result file is in mm already"):
+        recompute_strain(stereo_file, window=5, scale=0.1)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -435,8 +435,9 @@ def test_cli_on_stereo_results(stereo_file, tmp_path):
     r = _invoke("profile", stereo_file, "--from", "40,50", "--to", "120,50", "--quantity", "von_mises", "-q",
                 "--plot", tmp_path / "p.png")
     assert r.exit_code == 0 and r.output == "" and (tmp_path / "p.png").exists()
+    # stereo strain is recomputed (issue 25 item 6; tests/dic/test_strain_types.py checks it against a run)
     r = _invoke("strain", stereo_file, "--window", 5, "-o", tmp_path / "s.h5")
-    assert r.exit_code == 1 and "stereo result file" in r.output
+    assert r.exit_code == 0 and "state 2: strain at" in r.output and "Green-Lagrange" in r.output
     r = _invoke("history", stereo_file, "--point", "100,80", "--scale", 0.1)
     assert r.exit_code == 1 and "scale applies to 2-D results only" in r.output
 

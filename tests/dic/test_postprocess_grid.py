@@ -116,8 +116,10 @@ def test_history_elsewhere_is_exact(holed):
     h = point_history(holed, (x, y), "u")
     assert np.allclose(h.values, [_u(k, x, y) for k in FRAMES], rtol=0, atol=1e-12)
     # strain of a linear field: the fit is exact where it is valid
+    # eyy is the Green-Lagrange strain (dic.strain's default type since issue 25): dv/dy + (du/dy² + dv/dy²) / 2
     h = point_history(holed, (40.0, 40.0), "eyy")
-    assert np.allclose(h.values, [-0.3 * 0.01 * k for k in FRAMES], rtol=0, atol=1e-12)
+    want = [-0.003 * k + 0.5 * ((0.002 * k) ** 2 + (0.003 * k) ** 2) for k in FRAMES]
+    assert np.allclose(h.values, want, rtol=0, atol=1e-12)
 
 
 def test_invalid_points_give_nan_in_their_frames_only(holed):

@@ -68,7 +68,8 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
                         "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": False,
                         "check_outliers": False, "strain_window": 5, "reference": "fixed", "auto_valid": None,
                         "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None, "subset_mask": "region",
-                        "min_kept_fraction": 0.5, "cracks": None, "verify_composed": None, "verify_zncc": None}
+                        "min_kept_fraction": 0.5, "cracks": None, "verify_composed": None, "verify_zncc": None,
+                        "strain_type": "green-lagrange"}
     from dic.postprocess import SCALE_KEY
 
     assert SCALE_KEY in settings  # where post-processing reads the scale
@@ -133,7 +134,8 @@ def test_settings_of_8d9f975_are_read_as_records():
     # (the keywords given) of the same run are the same record
     cli, lib = (read_results(DATA / f"track_{w}_v1.h5").settings for w in ("cli", "lib"))
     assert "search_method" in cli and cli["search"] == 4 and lib["search"] == "zncc"  # what 8d9f975 wrote
-    expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0])
+    # strain_type: 8d9f975 computed the small strain in 2-D (TrackOptions.ADDED_OPTIONS), Green-Lagrange in stereo
+    expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0], strain_type="small")
     assert TrackOptions.from_settings(cli) == expected == TrackOptions.from_settings(lib)
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
     # 8d9f975's stereo default order was 2 (1 since issue 25): a file that did not record it holds order 2
@@ -144,7 +146,7 @@ def test_settings_of_8d9f975_are_read_as_records():
 def test_schema1_details_and_unknown_schemas():
     # 8d9f975 wrote auto_valid/auto_zncc of a 2-D run only with guess="none": when absent they are not compared
     old = {"reference": "auto", "strain_window": 5, "step": 8}
-    assert TrackOptions(step=8, reference="auto", auto_valid=0.9).resume_check(old) is None
+    assert TrackOptions(step=8, reference="auto", auto_valid=0.9, strain_type="small").resume_check(old) is None
     assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto").resume_check(old)
     # old stereo files hold the POIs themselves; the record holds their digest
     pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
@@ -154,8 +156,9 @@ def test_schema1_details_and_unknown_schemas():
     assert "--order (order): 2 in the file, 1 now" in StereoOptions(points=pts).resume_check({"points": pts.tolist()})
     # a mask is the same region wherever it was read from
     mask = {"mask": "/a/m.png", "sha256": "ab" * 32, "shape": [80, 100]}
-    # (a schema-1 file correlated every subset pixel: the same run now is subset_mask="none", issue 26)
-    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}, subset_mask="none").resume_check(
+    # (a schema-1 file correlated every subset pixel: the same run now is subset_mask="none", issue 26;
+    # its exx was the small strain: strain_type="small", issue 25)
+    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}, subset_mask="none", strain_type="small").resume_check(
         {"roi": mask, "strain_window": 5}) is None
     for stored, fragment in (({"options_schema": 3}, "schema 3"), ({"subset": 21, "colour": "red"}, "colour"),
                              ({**TrackOptions().to_settings(), "colour": 1}, "colour")):
@@ -210,11 +213,16 @@ def test_2d_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
         out = _copy(f"track_{written_by}_v1.h5", d)
         stored = read_results(out)
         u1, settings = stored.frames[1].u.copy(), dict(stored.settings)
+        # its frames hold the small strain (what 2-D computed then): resumed with that type, not today's default
+        # Green-Lagrange, which would make exx mean two things in one file (refused, naming the option)
         if resume_with == "cli":
             r = _track_cli(out, ["f1", "f2"])
+            assert r.exit_code == 1 and "--strain-type (strain_type): 'small' in the file, 'green-lagrange' now" in \
+                " ".join(r.output.split())
+            r = _track_cli(out, ["f1", "f2"], "--strain-type", "small")
             assert r.exit_code == 0, r.output
         else:
-            s = _track_lib(out, ["f1", "f2"])
+            s = _track_lib(out, ["f1", "f2"], strain_type="small")
             assert s.skipped == 1 and [f["index"] for f in s.frames] == [2]
         res = read_results(out)
         assert sorted(res.frames) == [1, 2] and np.array_equal(res.frames[1].u, u1, equal_nan=True)
@@ -225,7 +233,7 @@ def test_2d_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
         assert np.max(np.abs(f.u[f.valid] - 1.2)) < 0.05 and np.max(np.abs(f.v[f.valid] + 0.6)) < 0.05
     # a real difference in an old file is refused as well
     with pytest.raises(ValueError, match=r"--step \(step\): 8 in the file, 10 now"):
-        _track_lib(out, ["f1", "f2"], step=10)
+        _track_lib(out, ["f1", "f2"], step=10, strain_type="small")
 
 
 @pytest.mark.parametrize("written_by", ["cli", "lib"])
@@ -278,7 +286,7 @@ def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
            "strain_window": 5}  # the 8d9f975 command line's form
     with ResultWriter(out, settings=old, **kw):
         pass
-    now = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=30)
+    now = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=30, strain_type="small")  # 8d9f975: small
     # equal records: resumed, and the file keeps the settings it holds
     with ResultWriter(out, settings=now.to_settings(), settings_check=now.resume_check, **kw):
         pass
@@ -286,7 +294,7 @@ def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
     # without the check the JSON texts are compared, as for settings given as a dict
     with pytest.raises(ValueError, match=r"different settings \(.*differ"):
         ResultWriter(out, settings=now.to_settings(), **kw)
-    other = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=31)
+    other = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=31, strain_type="small")
     with pytest.raises(ValueError, match=r"w\.h5 was written with different settings: --max-iter \(max_iter\): 30 in "
                                          r"the file, 31 now\. Resume with the file's settings, or start afresh"):
         ResultWriter(out, settings=other.to_settings(), settings_check=other.resume_check, **kw)

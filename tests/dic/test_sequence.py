@@ -418,7 +418,7 @@ def test_strain_in_bands_is_the_strain(window, max_points, monkeypatch):
     import sys
 
     sizes = []
-    monkeypatch.setattr(sys.modules["dic._strain"], "strain", lambda f, window: sizes.append(len(f.points)) or strain(f, window=window))
+    monkeypatch.setattr(sys.modules["dic._strain"], "strain", lambda f, window, **kw: sizes.append(len(f.points)) or strain(f, window=window, **kw))
     banded = strain_in_bands(field, window, max_points=max_points)
     if max_points < len(x):  # in bands, none of them the whole grid
         assert len(sizes) > 3 and max(sizes) < len(x) / 2, sizes

@@ -191,7 +191,8 @@ def test_2d_and_stereo_files_share_the_layout(tmp_path):
     assert groups2 == {"reference", "settings", "frames"} and groups3 == groups2 | {"rig"}
     common = {"index", "complete", "written", "seconds"}
     assert frame2 == common | {"path"}
-    assert frame3 == common | {"left_path", "right_path", "grid_shape", "frame_name", "R_frame_left", "t_frame_left"}
+    assert frame3 == common | {"left_path", "right_path", "grid_shape", "frame_name", "R_frame_left", "t_frame_left",
+                               "strain_type"}  # a state's strain type (issue 25; a 2-D frame's: in its strain group)
     # one reader for both kinds
     for name, kind in (("a.h5", "dic2d"), ("b.h5", "stereo")):
         with ResultReader(tmp_path / name) as r:

@@ -32,7 +32,7 @@ def test_affine_field_is_exact_everywhere_even_with_holes(rng):
 
     valid = rng.random(300) > 0.15
     f = make_field(affine, valid=valid)
-    s = strain(f, window=5)
+    s = strain(f, window=5, strain_type="small")  # exx... the small strain (Exx... Green-Lagrange whatever the type)
     # a plane fit reproduces a plane exactly (any window shape, borders and holes included):
     # only float64 rounding remains, bound 1e-12
     assert s.valid.sum() > 0.8 * valid.sum() and not np.any(s.valid & ~valid)
@@ -79,7 +79,7 @@ def test_finite_rotation_has_zero_green_lagrange_strain():
         d = (R - np.eye(2)) @ X
         return d[0], d[1]
 
-    s = strain(make_field(rot))
+    s = strain(make_field(rot), strain_type="small")
     assert np.max(np.abs(np.stack([s.Exx, s.Eyy, s.Exy]))) < 1e-12  # exact for a rigid motion
     assert np.allclose(s.exx, np.cos(th) - 1, atol=1e-12)  # the small strain is not objective
 
@@ -91,7 +91,8 @@ def test_to_grid_and_layout():
     f2.points, f2.u, f2.v, f2.valid = f.points[keep], f.u[keep], f.v[keep], f.valid[keep]
     s = strain(f2, window=3)
     g = s.to_grid("exx")
-    assert g.shape == (4, 6) and np.isnan(g[1, 1]) and np.allclose(g[~np.isnan(g)], 0.01)
+    # u = 0.01 x: Green-Lagrange (the default type) exx = 0.01 + 0.01² / 2
+    assert g.shape == (4, 6) and np.isnan(g[1, 1]) and np.allclose(g[~np.isnan(g)], 0.01 + 0.5 * 0.01**2, rtol=0, atol=1e-14)
     xs, ys = s.grid_axes()
     assert np.allclose(xs, 10 + 4 * np.arange(6)) and np.allclose(ys, 12 + 4 * np.arange(4))
     index, shape, step = grid_layout(f.points)
@@ -185,7 +186,7 @@ def test_a_plan_reused_over_frames_is_strain_bit_for_bit(rng, window):
     keep[rng.choice(len(keep), 40, replace=False)] = False  # an ROI: a subset of the grid
     points = base.points[keep]
     n = len(points)
-    plan = StrainPlan(points, window=window)
+    plan = StrainPlan(points, window=window, strain_type="small")  # _reference_strain's exx is the small strain
     masks = [np.ones(n, bool), rng.random(n) > 0.05, None, rng.random(n) > 0.6, None, None, np.zeros(n, bool)]
     masks[2] = masks[1].copy()  # the same valid points again: the cached fits are used
     masks[4] = masks[5] = masks[1]  # back after other ones: recomputed, then used
@@ -200,7 +201,7 @@ def test_a_plan_reused_over_frames_is_strain_bit_for_bit(rng, window):
         s = plan.strain(field)
         hits += before is not None and plan._fits_cache is before
         _assert_same_strain(s, _reference_strain(field, window))
-        _assert_same_strain(s, strain(field, window=window))
+        _assert_same_strain(s, strain(field, window=window, strain_type="small"))
     assert hits == 2
     # the valid array handed to the plan is not its cache key: changing it afterwards changes the next fit
     valid = np.ones(n, bool)
@@ -214,12 +215,12 @@ def test_strain_is_the_reference_algorithm_bit_for_bit(rng):
     f = make_field(lambda x, y: (0.012 * x - 0.003 * y ** 1.2, -0.007 * x + 0.002 * y), step=3.0, nx=40, ny=33,
                    valid=rng.random(40 * 33) > 0.1)
     for window in (3, 5, 9):
-        _assert_same_strain(strain(f, window=window), _reference_strain(f, window))
+        _assert_same_strain(strain(f, window=window, strain_type="small"), _reference_strain(f, window))
 
 
 def test_strain_plan_results_are_the_callers():
     f = make_field(lambda x, y: (0.01 * x, -0.02 * y), nx=12, ny=10)
-    plan = StrainPlan(f.points, window=5)
+    plan = StrainPlan(f.points, window=5, strain_type="small")
     a = plan.strain(f)
     a.grid_index[:] = -1
     a.valid[:] = False
@@ -256,3 +257,15 @@ def test_strain_plan_refuses_bad_input():
     with pytest.raises(ValueError, match="points, u, v"):
         plan.strain(object())
     assert plan.matches(f.points) and not plan.matches(other.points) and not plan.matches(f.points[::-1])
+
+
+@pytest.mark.parametrize("window", [3, 5, 7, 9])
+def test_the_window_sums_are_scipy_ndimage_correlate_bit_for_bit(rng, window):
+    """dic._strain._correlate (numpy, so that `specula strain` need not import scipy.ndimage: 0.4 s of CPU)
+    gives the bits of ndimage.correlate(mode="constant") for every fit kernel, on values of both signs."""
+    from dic._strain import _correlate, _kernels
+
+    a = rng.normal(0.0, 3.0, (23, 31)) * (rng.random((23, 31)) > 0.2)
+    for k in _kernels(window):
+        want = ndimage.correlate(a, k, mode="constant", cval=0.0)
+        assert _bits(_correlate(a, k)) == _bits(want)
