@@ -135,18 +135,24 @@ def test_settings_of_8d9f975_are_read_as_records():
     cli, lib = (read_results(DATA / f"track_{w}_v1.h5").settings for w in ("cli", "lib"))
     assert "search_method" in cli and cli["search"] == 4 and lib["search"] == "zncc"  # what 8d9f975 wrote
     # strain_type: 8d9f975 computed the small strain in 2-D (TrackOptions.ADDED_OPTIONS), Green-Lagrange in stereo
-    expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0], strain_type="small")
+    # (and correlated every subset pixel: subset_mask "none", issue 26)
+    expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0], strain_type="small",
+                            subset_mask="none")
     assert TrackOptions.from_settings(cli) == expected == TrackOptions.from_settings(lib)
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
     # 8d9f975's stereo default order was 2 (1 since issue 25): a file that did not record it holds order 2
-    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2)
-    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", order=2)
+    # (and its subsets kept every pixel: subset_mask "none", issue 26)
+    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2, subset_mask="none")
+    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", order=2,
+                                                               subset_mask="none")
 
 
 def test_schema1_details_and_unknown_schemas():
     # 8d9f975 wrote auto_valid/auto_zncc of a 2-D run only with guess="none": when absent they are not compared
     old = {"reference": "auto", "strain_window": 5, "step": 8}
-    assert TrackOptions(step=8, reference="auto", auto_valid=0.9, strain_type="small").resume_check(old) is None
+    # (nor did it check composed results: verify_composed False, the default with a moved reference since issue 26)
+    assert TrackOptions(step=8, reference="auto", auto_valid=0.9, strain_type="small",
+                        verify_composed=False).resume_check(old) is None
     assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto").resume_check(old)
     # old stereo files hold the POIs themselves; the record holds their digest
     pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
