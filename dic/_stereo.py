@@ -157,7 +157,12 @@ class StereoMatch:
     guess_source: np.ndarray
     status: np.ndarray
     n_features: int = 0
-    order: int = 1
+    #: the shape function's order; None: read from ``params`` (6 columns: 1, 12: 2)
+    order: int | None = None
+
+    def __post_init__(self):
+        if self.order is None:
+            self.order = 2 if np.asarray(self.params).shape[-1] == 12 else 1
 
     @property
     def valid(self) -> np.ndarray:

@@ -424,12 +424,12 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
             ax.plot(crack.vertices[:, 0], crack.vertices[:, 1], color="k", linewidth=1.5)
         ax.set_xlim(x0, x1)
         ax.set_ylim(y1, y0)
-        title, unit_label = _LABELS[name], _UNITS[name]
+        panel_title, unit_label = _LABELS[name], _UNITS[name]
         if name in ("exx", "eyy", "exy"):  # the strain's type by name
             kind = strain_type_label(getattr(strain, "strain_type", None)  # a StrainField; a file's frame: its attrs
                                      or getattr(field, "attrs", {}).get("strain_type") or "small")  # before: small
-            title, unit_label = f"{kind} strain {name} (1)", f"{name}, {kind}"
-        ax.set_title(title, fontsize=10)
+            panel_title, unit_label = f"{kind} strain {name} (1)", f"{name}, {kind}"
+        ax.set_title(panel_title, fontsize=10)
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
         cb = fig.colorbar(im, cax=cax)

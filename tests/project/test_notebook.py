@@ -6,7 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_export_formats import field2d, field3d, results2d, results3d  # noqa: F401 (fixtures)
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "dic"))  # the fixtures' module, whatever ran before
+from test_export_formats import field2d, field3d, results2d, results3d  # noqa: E402, F401 (fixtures)
 
 from dic._strain import strain
 from dic.plots.fields import DIVERGING_CMAP, SEQUENTIAL_CMAP, field3d_figure, field_figure, sequence_limits
