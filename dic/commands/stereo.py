@@ -14,6 +14,7 @@ from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
 from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
+from ._robust import robust_mode_option, robust_value
 
 
 def _single_image(path) -> bool:
@@ -108,8 +109,9 @@ def _engine_pairs(pairs) -> list:
                    "tracks and its propagation to X, Y, Z and U, V, W (sigma_X ... sigma_W, mm; default: estimated "
                    "from the correlation residuals of each stage).")
 @click.option("--robust", is_flag=True,
-              help="Outlier-robust correlation (Tukey-weighted IC-GN) of matches and tracks: pixels whose texture "
-                   "changed or differs between the views (glints, flaking paint) do not bias them; several times slower.")
+              help="Outlier-robust correlation (Tukey-weighted IC-GN) of every match and track: pixels whose texture "
+                   "changed or differs between the views (glints, flaking paint) do not bias them; several times slower "
+                   "(= --robust-mode on; the default, adaptive, refines only the subsets that need it).")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write ParaView files into this folder as each state finishes: <output>_<index>.vtu per "
@@ -135,9 +137,10 @@ def _engine_pairs(pairs) -> list:
               help="Exit with status 0 even when no state of the run has a valid point (by default that is an error: "
                    "a swapped or foreign rig, or images that do not match).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
+@robust_mode_option("matches and tracks")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           compression, overwrite, allow_empty, quiet):
+           compression, overwrite, allow_empty, quiet, robust_mode):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -210,7 +213,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     try:
         region = None if region is None else check_region(region, size)
         record = StereoOptions(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
-                               zncc_min=zncc_min, strain_window=strain_window, roi=region, robust=robust,
+                               zncc_min=zncc_min, strain_window=strain_window, roi=region,
+                               robust=robust_value(robust, robust_mode),
                                noise_sigma=noise_sigma,
                                reference=reference_strategy)
     except OptionError as exc:

@@ -141,7 +141,7 @@ class ChunkedTracker:
         from ..quality import SigmaBasis, displacement_sigma
         from .pipeline import trim_memory
 
-        bases, first, out = [], None, {}
+        bases, first, out, extra = [], None, {}, {}
         n = len(self.points)
         for s in range(0, n, self.chunk):
             tracker = self.make_tracker(self.image, self.points[s:s + self.chunk])
@@ -154,6 +154,8 @@ class ChunkedTracker:
                 if "2-D tracking" not in str(w.message):
                     warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             bases.append(tracker._sigma_basis)
+            if "robust_refined" in part.extra:  # points refined by robust IC-GN, summed over the chunks
+                extra["robust_refined"] = extra.get("robust_refined", 0) + int(part.extra["robust_refined"])
             del tracker  # this chunk's reference data are freed before the next chunk's are prepared
             if first is None:  # what every chunk shares (not its arrays: they are freed with the chunk)
                 first = SimpleNamespace(**{k: getattr(part, k) for k in ("subset", "order", "step", "zncc_min",
@@ -175,7 +177,7 @@ class ChunkedTracker:
             sigma, noise, source = displacement_sigma(basis, cat["zncc"], cat["valid"], given)
             sigma_u, sigma_v = sigma[:, 0].copy(), sigma[:, 1].copy()
         field = Field2D(cat["points"], cat["u"], cat["v"], cat["params"], cat["zncc"], cat["iterations"], cat["status"],
-                        cat["valid"], first.subset, first.order, first.step, first.zncc_min, {}, sigma_u=sigma_u,
+                        cat["valid"], first.subset, first.order, first.step, first.zncc_min, extra, sigma_u=sigma_u,
                         sigma_v=sigma_v, noise_sigma=noise, noise_source=source)
         counts = status_counts(field.status[~field.valid], Status)
         from .._track import _no_valid_hint

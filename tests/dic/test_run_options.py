@@ -65,17 +65,17 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
     # every option, with the values dic.Tracker and track_sequence use by default
     assert settings == {"options_schema": 2, "subset": 21, "step": 10, "order": 1, "points": None, "roi": None,
                         "search": None, "search_radius": None, "max_iter": 30, "tol": 1e-3, "zncc_min": 0.8,
-                        "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": False,
-                        "check_outliers": False, "strain_window": 5, "reference": "fixed", "auto_valid": None,
+                        "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": "adaptive",
+                        "check_outliers": True, "strain_window": 5, "reference": "fixed", "auto_valid": None,
                         "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None}
     from dic.postprocess import SCALE_KEY
 
     assert SCALE_KEY in settings  # where post-processing reads the scale
-    explicit = TrackOptions(subset=21, step=10, max_iter=30, tol=0.001, check_outliers=False, robust=False)
+    explicit = TrackOptions(subset=21, step=10, max_iter=30, tol=0.001, check_outliers=True, robust="adaptive")
     assert explicit == rec and not rec.differences(explicit)
     assert TrackOptions.from_settings(settings) == rec
-    # derived defaults: robust checks outliers; auto thresholds only with reference="auto"
-    assert TrackOptions(robust=True).check_outliers is True
+    # derived defaults: robust IC-GN (on or adaptive) checks outliers; auto thresholds only with reference="auto"
+    assert TrackOptions(robust=True).check_outliers is True and TrackOptions(robust=False).check_outliers is False
     auto = TrackOptions(reference="auto")
     assert (auto.auto_valid, auto.auto_zncc) == (0.95, 0.95) and TrackOptions(reference="auto", auto_valid=0.95) == auto
     stereo = StereoOptions()
@@ -132,25 +132,30 @@ def test_settings_of_8d9f975_are_read_as_records():
     # (the keywords given) of the same run are the same record
     cli, lib = (read_results(DATA / f"track_{w}_v1.h5").settings for w in ("cli", "lib"))
     assert "search_method" in cli and cli["search"] == 4 and lib["search"] == "zncc"  # what 8d9f975 wrote
-    expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0])
+    # (robust: off, the default before adaptive robust IC-GN became the default; 8d9f975 wrote it only when on)
+    expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0], robust=False)
     assert TrackOptions.from_settings(cli) == expected == TrackOptions.from_settings(lib)
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
-    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20)
-    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental")
+    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, robust=False)
+    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", robust=False)
 
 
 def test_schema1_details_and_unknown_schemas():
     # 8d9f975 wrote auto_valid/auto_zncc of a 2-D run only with guess="none": when absent they are not compared
     old = {"reference": "auto", "strain_window": 5, "step": 8}
-    assert TrackOptions(step=8, reference="auto", auto_valid=0.9).resume_check(old) is None
-    assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto").resume_check(old)
+    # (robust absent from a schema-1 file: off, the default then)
+    assert TrackOptions(step=8, reference="auto", auto_valid=0.9, robust=False).resume_check(old) is None
+    assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto", robust=False).resume_check(old)
+    assert ("--robust/--robust-mode (robust): False in the file, 'adaptive' now"
+            in TrackOptions(step=8, reference="auto", auto_valid=0.9).resume_check(old))
     # old stereo files hold the POIs themselves; the record holds their digest
     pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
-    assert StereoOptions(points=pts).resume_check({"points": pts.tolist()}) is None
-    assert "points" in StereoOptions(points=pts + 1).resume_check({"points": pts.tolist()})
+    assert StereoOptions(points=pts, robust=False).resume_check({"points": pts.tolist()}) is None
+    assert "points" in StereoOptions(points=pts + 1, robust=False).resume_check({"points": pts.tolist()})
     # a mask is the same region wherever it was read from
     mask = {"mask": "/a/m.png", "sha256": "ab" * 32, "shape": [80, 100]}
-    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}).resume_check({"roi": mask, "strain_window": 5}) is None
+    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}, robust=False).resume_check({"roi": mask,
+                                                                                      "strain_window": 5}) is None
     for stored, fragment in (({"options_schema": 3}, "schema 3"), ({"subset": 21, "colour": "red"}, "colour"),
                              ({**TrackOptions().to_settings(), "colour": 1}, "colour")):
         refusal = TrackOptions().resume_check(stored)
@@ -204,11 +209,12 @@ def test_2d_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
         out = _copy(f"track_{written_by}_v1.h5", d)
         stored = read_results(out)
         u1, settings = stored.frames[1].u.copy(), dict(stored.settings)
+        # robust IC-GN was off by default then (adaptive now): the file's value is given to resume it
         if resume_with == "cli":
-            r = _track_cli(out, ["f1", "f2"])
+            r = _track_cli(out, ["f1", "f2"], "--robust-mode", "off")
             assert r.exit_code == 0, r.output
         else:
-            s = _track_lib(out, ["f1", "f2"])
+            s = _track_lib(out, ["f1", "f2"], robust=False)
             assert s.skipped == 1 and [f["index"] for f in s.frames] == [2]
         res = read_results(out)
         assert sorted(res.frames) == [1, 2] and np.array_equal(res.frames[1].u, u1, equal_nan=True)
@@ -231,11 +237,11 @@ def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path)
         out = _copy(f"stereo_{written_by}_v1.h5", d)
         before = read_stereo(out)
         x1, settings = before.fields[1].xyz.copy(), dict(before.settings)
-        if resume_with == "cli":
-            r = _stereo_cli(out, 3, *extra)
+        if resume_with == "cli":  # robust IC-GN: off then, adaptive by default now
+            r = _stereo_cli(out, 3, *extra, "--robust-mode", "off")
             assert r.exit_code == 0, r.output
         else:
-            fields = stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu",
+            fields = stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu", robust=False,
                                      reference="incremental" if extra else "fixed")
             assert list(fields.indices) == [2]  # a SequenceSummary (the engine)
         res = read_stereo(out)
@@ -271,7 +277,7 @@ def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
            "strain_window": 5}  # the 8d9f975 command line's form
     with ResultWriter(out, settings=old, **kw):
         pass
-    now = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=30)
+    now = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=30, robust=False)  # robust: off then
     # equal records: resumed, and the file keeps the settings it holds
     with ResultWriter(out, settings=now.to_settings(), settings_check=now.resume_check, **kw):
         pass
@@ -279,7 +285,7 @@ def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
     # without the check the JSON texts are compared, as for settings given as a dict
     with pytest.raises(ValueError, match=r"different settings \(.*differ"):
         ResultWriter(out, settings=now.to_settings(), **kw)
-    other = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=31)
+    other = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=31, robust=False)
     with pytest.raises(ValueError, match=r"w\.h5 was written with different settings: --max-iter \(max_iter\): 30 in "
                                          r"the file, 31 now\. Resume with the file's settings, or start afresh"):
         ResultWriter(out, settings=other.to_settings(), settings_check=other.resume_check, **kw)
@@ -314,9 +320,9 @@ def test_stereo_noise_sigma_from_the_command_line_is_used_recorded_and_compared(
     assert r.exit_code == 2 and "--noise-sigma" in r.output
     old = _copy("stereo_cli_v1.h5", tmp_path)
     assert "noise_sigma" not in read_stereo(old).settings
-    r = _stereo_cli(old, 3, "--noise-sigma", "2")
+    r = _stereo_cli(old, 3, "--noise-sigma", "2", "--robust-mode", "off")
     assert r.exit_code == 1 and "--noise-sigma (noise_sigma): none in the file, 2.0 now" in " ".join(r.output.split())
-    r = _stereo_cli(old, 3)
+    r = _stereo_cli(old, 3, "--robust-mode", "off")  # robust IC-GN: off then, adaptive by default now
     assert r.exit_code == 0, r.output
     assert read_stereo(old).indices == [0, 1, 2]
 
@@ -341,3 +347,43 @@ def test_schema2_file_without_later_options_still_resumes(record, name, shape):
     assert same_run.resume_check(stored) is None
     later = set(same_run.to_settings()) - set(stored)
     assert later == set(record.ADDED_OPTIONS), "a new option needs its old behaviour in ADDED_OPTIONS"
+
+
+def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
+    """``robust`` became ``"adaptive"`` by default (issue 26): a file that stores ``robust: false`` (every
+    schema-2 file before it, and schema-1 files, which wrote it only when on) reads as off, resumes with
+    ``--robust-mode off`` / ``robust=False``, and a resume with the new default is refused naming the option."""
+    import json
+
+    from dic.commands._robust import robust_value
+
+    stored = json.loads((V2 / "track_b36e3a0.json").read_text())
+    read = TrackOptions.from_settings(stored)
+    assert read.robust is False and read.check_outliers is False
+    assert TrackOptions.from_settings(json.loads((V2 / "stereo_b36e3a0.json").read_text())).robust is False
+    given = {k: v for k, v in stored.items() if k != "options_schema"}
+    assert TrackOptions.from_keywords({**given, "robust": False}, shape=(80, 100)).resume_check(stored) is None
+    refusal = TrackOptions.from_keywords({**given, "robust": "adaptive", "check_outliers": False},
+                                         shape=(80, 100)).resume_check(stored)
+    assert "--robust/--robust-mode (robust): False in the file, 'adaptive' now" in refusal
+    # the three values in the record and in the file
+    for value in (False, True, "adaptive"):
+        assert TrackOptions.from_settings(TrackOptions(robust=value).to_settings()).robust == value
+        assert StereoOptions.from_settings(StereoOptions(robust=value).to_settings()).robust == value
+    # the command line: --robust keeps its meaning (on), --robust-mode chooses, the default is adaptive
+    assert [robust_value(False, None), robust_value(True, None), robust_value(False, "off"),
+            robust_value(False, "on"), robust_value(True, "on"), robust_value(False, "adaptive")] == \
+        ["adaptive", True, False, True, True, "adaptive"]
+    out = tmp_path / "off.h5"
+    r = _track_cli(out, ["f1"], "--robust-mode", "off")
+    assert r.exit_code == 0, r.output
+    assert read_results(out).settings["robust"] is False
+    r = _track_cli(tmp_path / "x.h5", ["f1"], "--robust", "--robust-mode", "adaptive")
+    assert r.exit_code == 2 and "--robust means --robust-mode on" in " ".join(r.output.split())
+    r = _track_cli(tmp_path / "y.h5", ["f1"], "--robust-mode", "sometimes")
+    assert r.exit_code == 2 and "--robust-mode" in r.output
+    default = tmp_path / "default.h5"
+    assert _track_cli(default, ["f1"]).exit_code == 0
+    res = read_results(default)
+    assert res.settings["robust"] == "adaptive" and res.settings["check_outliers"] is True
+    assert "robust_refined" in res.frames[1].attrs  # the points refined by robust IC-GN, counted per frame
