@@ -290,8 +290,8 @@ class Tracker:
         tensors (``wp.to_torch``): ``params`` (N, 6|12), ``zncc`` (N,), ``iterations`` (N,), ``status``
         (N,) and ``valid`` (N,) bool (status CONVERGED or MAX_ITERATIONS and ZNCC >= ``zncc_min``).
         They are overwritten by the next call: ``.clone()`` what you keep. Starts from ``guess``
-        (as in :meth:`track`) or zero; no search and no implausible-warp check (use :meth:`track`
-        for those). Only the finiteness check of the image reduces on the device to one scalar.
+        (as in :meth:`track`) or zero; plain IC-GN: no search, no robust refinement, no implausible-warp or
+        neighbour check (use :meth:`track` for those). Only the finiteness check of the image reduces on the device to one scalar.
         """
         import torch
         import warp as wp

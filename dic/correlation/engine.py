@@ -164,6 +164,7 @@ class Correlator:
         (:func:`kernels.icgn_robust.residual_outliers`, one pass over each subset); the others keep every
         entry of ``r`` bit for bit (no refinement is launched when none is flagged).
         """
+        from kernels import icgn_robust as robust_module
         from kernels.icgn_robust import icgn_robust, residual_outliers, robust_result
 
         cur = self._current(current)
@@ -177,7 +178,7 @@ class Correlator:
         _upload(guess, np.asarray(r["params"], dtype=np.float32))
         if adaptive and np.any(active):
             _upload(act, active.astype(np.int32))
-            active &= residual_outliers(self.subsets, cur, guess, act).flagged
+            active &= residual_outliers(self.subsets, cur, guess, act, kurtosis_max=robust_module.KURTOSIS_MAX).flagged
         if not np.any(active):
             refined = dict(r)
             refined["inliers"] = np.full(n, np.nan, dtype=np.float32)

@@ -411,8 +411,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             attrs = {"seconds": raw_seconds, "reference_index": int(lag.reference_index)}
             if lag.reference_interpolated is not None:  # the valid points whose place in the reference was interpolated
                 attrs["reference_interpolated"] = int(np.count_nonzero(lag.reference_interpolated))
-            if "robust_refined" in (lag.extra or {}):  # the points refined by robust IC-GN in this frame
-                attrs["robust_refined"] = int(lag.extra["robust_refined"])
+            refined = (getattr(lag, "extra", None) or {}).get("robust_refined")
+            if refined is not None:  # the points refined by robust IC-GN in this frame
+                attrs["robust_refined"] = int(refined)
             writer.write_frame(k, lag, strain=strain, path=item.path, sha256=item.digest, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_vtk
