@@ -261,12 +261,12 @@ def test_residual_test_flags_the_subsets_whose_texture_changed(evolving):
     flagged = residual_outliers(sub, cur, plain["params"], ok).flagged
     changed = _changed_speckles_near(evolving, k_frame, pts)
     assert np.count_nonzero(ok & (changed == 0)) >= 100 and np.count_nonzero(ok & (changed >= 2)) >= 100
-    # measured: 0.995 of the subsets with >= 2 changed speckles flagged, 0.81 of those with one (some of them
-    # only touch the subset's edge), 0.008 of those with none
+    # measured (KURTOSIS_MAX 4): 0.995 of the subsets with >= 2 changed speckles flagged, 0.83 of those with one
+    # (some of them only touch the subset's edge), 0.008 of those with none
     assert flagged[ok & (changed >= 2)].mean() > 0.95
     assert flagged[ok & (changed == 1)].mean() > 0.6
     assert flagged[ok & (changed == 0)].mean() < 0.05
-    # the subsets left unflagged are those plain IC-GN measures well (measured 0.0034 px RMS against 0.072)
+    # the subsets left unflagged are those plain IC-GN measures well (measured 0.0034 px RMS against 0.071)
     e = _error(plain["params"], truth, 1)
     assert _rms(e[ok & ~flagged]) < 0.01 and _rms(e[ok & flagged]) > 0.05
 

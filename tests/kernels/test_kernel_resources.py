@@ -92,6 +92,7 @@ def test_block_size_table_matches_kernels_and_modules():
     kernels = {k.func.__name__: k for mod in (icgn, interp, frames, rg_device) for k in vars(mod).values() if isinstance(k, wp.Kernel)}
     kernels.update({k.func.__name__: k for k in icgn._prepare_subsets.values()})
     kernels.update({k.func.__name__: k for k in icgn_robust._icgn_robust.values()})
+    kernels.update({k.func.__name__: k for k in icgn_robust._residual_outliers.values()})
     assert set(CUDA_LAUNCH) <= set(kernels)
     for name, kernel in kernels.items():
         # one block size per Warp module: the module is compiled (and AOT-cached) once
