@@ -176,6 +176,7 @@ class Tracker:
         self._current_buf = None
         self._current_tensor = None  # the last torch image read in place (kept alive until the next one)
         self._sigma_basis = None  # diag H^-1 and df of the reference subsets, read back once (dic.quality)
+        self._outlier_cache = {}  # the neighbour lists of the neighbour-outlier check (same valid points: reused)
 
     @property
     def n_points(self) -> int:
@@ -323,7 +324,8 @@ class Tracker:
             status[implausible] = int(Status.IMPLAUSIBLE_WARP)
             valid &= ~implausible
         if self.check_outliers:
-            outliers = displacement_outliers(self.points, params[:, 0], params[:, k // 2], valid)
+            outliers = displacement_outliers(self.points, params[:, 0], params[:, k // 2], valid,
+                                             cache=self._outlier_cache)
             status[outliers] = int(Status.NEIGHBOUR_OUTLIER)
             valid &= ~outliers
         if self._sigma_basis is None:

@@ -45,6 +45,10 @@ BOUNDS = {
     # Hessian is assembled from float64 moments in the kernel (no precomputed H^-1 as in _icgn_*)
     "_icgn_robust_1st": (210, 112),  # the stack: the |residual| histogram, indexed at run time; 214 before issue 23
     "_icgn_robust_2nd": (255, 944),
+    # the residual test of adaptive robust IC-GN (same module; 112 bytes of stack: the |residual| histogram of
+    # its optional second pass): measured 96 and 149 registers, issue 26
+    "_residual_outliers_1st": (100, 112),
+    "_residual_outliers_2nd": (152, 112),
 }
 MODULES = ("kernels.icgn", "kernels.interp", "bench.icgn_tiled", "kernels.frames", "kernels.rg_device",
            "kernels.icgn_robust")
