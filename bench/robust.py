@@ -25,6 +25,9 @@ subset refined). Conditions: 8-bit Boolean speckle from :mod:`dic.synth` (mean r
   Lagrangian displacement, the final valid fraction, the refined points per frame, the wall time;
   also adaptive without the neighbour-outlier check (``check_outliers=False``; on by default unless
   ``robust`` is False).
+* **renders**: stereo (``StereoCorrelation``, orders 2 and 1) on the virtual-lab renders of
+  tests/dic/test_stereo_dic.py (no added noise, a rigid translation): the std of the 3-D displacement error
+  per robust value (why stereo stays plain by default).
 * **speed**: ``Tracker.track`` of one clean frame (noise 1 GL, ``--size`` px, previous result as the
   guess), median of ``--repeats`` calls, plain against adaptive (the cost of the residual test).
 
@@ -184,9 +187,39 @@ def part_speed(args) -> dict:
             "repeats": args.repeats, **out}
 
 
+def part_renders(args) -> dict:
+    """Stereo on the virtual-lab renders of tests/dic/test_stereo_dic.py (its ``lab`` fixture: 320 x 240, 16
+    samples per pixel, no added noise, a rigid translation): std of the 3-D displacement error per robust value."""
+    import sys
+
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests", "dic"))
+    import test_stereo_dic as rig_test
+
+    from dic._stereo import StereoCorrelation
+
+    lab = rig_test.lab.__wrapped__()
+    (l0, r0), (l1, r1), _ = lab["states"]
+    true = lab["R_left_world"] @ rig_test.TRANSLATION_WORLD
+    rows = []
+    for order in (2, 1):
+        row = {"order": order}
+        for name, robust in ROBUST_VALUES.items():
+            sc = StereoCorrelation(lab["rig"], l0, r0, step=10, subset=21, order=order, robust=robust,
+                                   device=args.device)
+            f = sc.measure(l1, r1, index=1)
+            row[name] = {"std_xyz_mm": (f.uvw[f.valid] - true).std(axis=0).tolist(), "valid": int(f.valid.sum())}
+        row["adaptive_std_ratio"] = (np.array(row["adaptive"]["std_xyz_mm"]) / row["plain"]["std_xyz_mm"]).tolist()
+        print(f"renders order {order}: std plain {np.round(row['plain']['std_xyz_mm'], 4)} adaptive "
+              f"{np.round(row['adaptive']['std_xyz_mm'], 4)} on {np.round(row['on']['std_xyz_mm'], 4)}", flush=True)
+        rows.append(row)
+    return {"scene": "tests/dic/test_stereo_dic.py lab: 320 x 240 px, 16 samples per pixel, translation (1, -0.5, 2) mm",
+            "step": 10, "subset": 21, "cases": rows}
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--parts", default="clean,evolving,speed", help="comma-separated: clean, evolving, speed")
+    parser.add_argument("--parts", default="clean,evolving,speed,renders",
+                        help="comma-separated: clean, evolving, speed, renders")
     parser.add_argument("--size", type=int, default=512, help="image size (px, square)")
     parser.add_argument("--step", type=int, default=10, help="POI grid step (px)")
     parser.add_argument("--noise", default="0.5,1,2,4", help="noise levels of the clean part (grey levels)")
@@ -203,15 +236,15 @@ def main(argv=None) -> dict:
     args.parts = [p for p in args.parts.split(",") if p]
     args.noise = [float(x) for x in args.noise.split(",") if x]
     args.robust = [x for x in args.robust.split(",") if x]
-    bad = [p for p in args.parts if p not in ("clean", "evolving", "speed")]
+    bad = [p for p in args.parts if p not in ("clean", "evolving", "speed", "renders")]
     if bad:
-        parser.error(f"unknown part(s) {bad}; choose from clean, evolving, speed")
+        parser.error(f"unknown part(s) {bad}; choose from clean, evolving, speed, renders")
     result = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "device": args.device,
               "cpu": cpu_model(), "parts": {}}
     for part in args.parts:
         load_before = os.getloadavg()
         t0 = time.perf_counter()
-        res = {"clean": part_clean, "evolving": part_evolving, "speed": part_speed}[part](args)
+        res = {"clean": part_clean, "evolving": part_evolving, "speed": part_speed, "renders": part_renders}[part](args)
         res["load_before_after"] = [list(load_before), list(os.getloadavg())]
         res["seconds"] = time.perf_counter() - t0
         result["parts"][part] = res

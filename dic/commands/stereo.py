@@ -111,7 +111,7 @@ def _engine_pairs(pairs) -> list:
 @click.option("--robust", is_flag=True,
               help="Outlier-robust correlation (Tukey-weighted IC-GN) of every match and track: pixels whose texture "
                    "changed or differs between the views (glints, flaking paint) do not bias them; several times slower "
-                   "(= --robust-mode on; the default, adaptive, refines only the subsets that need it).")
+                   "(= --robust-mode on).")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write ParaView files into this folder as each state finishes: <output>_<index>.vtu per "
@@ -137,7 +137,7 @@ def _engine_pairs(pairs) -> list:
               help="Exit with status 0 even when no state of the run has a valid point (by default that is an error: "
                    "a swapped or foreign rig, or images that do not match).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar or summary.")
-@robust_mode_option("matches and tracks")
+@robust_mode_option("matches and tracks", default="off")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet, robust_mode):
@@ -214,7 +214,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         region = None if region is None else check_region(region, size)
         record = StereoOptions(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
                                zncc_min=zncc_min, strain_window=strain_window, roi=region,
-                               robust=robust_value(robust, robust_mode),
+                               robust=robust_value(robust, robust_mode, default="off"),
                                noise_sigma=noise_sigma,
                                reference=reference_strategy)
     except OptionError as exc:

@@ -95,7 +95,6 @@ class Correlator:
         self._spacing = None
         self._rg = None  # device state of the reliability-guided waves (per neighbour radius)
         self._robust = None  # buffers of refine_robust(): guesses, active flags, results
-        self._fnorm = None  # the reference subsets' norms, host copy (refine_robust(adaptive=True))
         #: per-reference work of initial-guess strategies, kept across frames (e.g. the reference
         #: pyramid and its level correlators of the "pyramid" guess)
         self.cache: dict = {}
@@ -162,9 +161,9 @@ class Correlator:
         One upload of the guesses, one launch, one copy back; the buffers are allocated once.
 
         ``adaptive``: refine only the POIs whose residuals at the plain warp show outliers: among those whose
-        plain RMS residual (from the ZNCC) exceeds ``RMS_GATE`` x the frame's ``RMS_GATE_PERCENTILE``-th percentile,
-        the ones :func:`kernels.icgn_robust.residual_outliers` flags (one pass over each subset); the others keep
-        every entry of ``r`` bit for bit (no refinement is launched when none is flagged).
+        plain RMS residual (from the ZNCC) exceeds ``RMS_GATE`` x the subset's grey-level std, the ones
+        :func:`kernels.icgn_robust.residual_outliers` flags (one pass over each subset); the others keep every
+        entry of ``r`` bit for bit (no refinement is launched when none is flagged).
         """
         from kernels import icgn_robust as robust_module
         from kernels.icgn_robust import icgn_robust, residual_outliers, robust_result
@@ -179,10 +178,8 @@ class Correlator:
         guess, act, out = self._robust
         _upload(guess, np.asarray(r["params"], dtype=np.float32))
         if adaptive and np.any(active):
-            # the residual test, on the subsets whose plain RMS residual stands out from the frame's noise floor
-            rms = self._plain_rms(np.asarray(r["zncc"], np.float64))
-            floor = np.percentile(rms[active], robust_module.RMS_GATE_PERCENTILE)
-            active &= rms > robust_module.RMS_GATE * floor
+            # the residual test, on the subsets whose plain RMS residual is a good part of their contrast
+            active &= self._plain_rms_ratio(np.asarray(r["zncc"], np.float64)) > robust_module.RMS_GATE
             if np.any(active):
                 _upload(act, active.astype(np.int32))
                 active &= residual_outliers(self.subsets, cur, guess, act,
@@ -207,16 +204,12 @@ class Correlator:
         refined["robust_flagged"] = active
         return refined
 
-    def _plain_rms(self, zncc: np.ndarray) -> np.ndarray:
-        """(N,) RMS residual (grey levels) of the least-squares intensity fit of each subset at a plain IC-GN result
-        of ZNCC ``zncc``: ``F sqrt((1 - C^2) / (n - 2))`` (F: the reference subset's norm, read back once)."""
-        if self._fnorm is None:
-            from kernels.icgn import refdata_columns
-
-            self._fnorm = self.subsets.refdata.numpy()[:, refdata_columns(self.order).fnorm].astype(np.float64)
+    def _plain_rms_ratio(self, zncc: np.ndarray) -> np.ndarray:
+        """(N,) RMS residual of the least-squares intensity fit of each subset at a plain IC-GN result of ZNCC
+        ``zncc``, over the reference subset's grey-level std: ``sqrt((1 - C^2) n / (n - 2))``."""
         npx = self.subset * self.subset
         with np.errstate(invalid="ignore"):
-            return self._fnorm * np.sqrt(np.clip(1.0 - zncc * zncc, 0.0, None) / (npx - 2))
+            return np.sqrt(np.clip(1.0 - zncc * zncc, 0.0, None) * npx / (npx - 2))
 
     def run_device(self, current, guess) -> IcgnResult:
         """IC-GN of every POI; the results stay on the device (:class:`kernels.icgn.IcgnResult`).

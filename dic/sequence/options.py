@@ -423,7 +423,7 @@ class StereoOptions(_Record):
     max_features: int = 20000
     check_warps: bool = True
     noise_sigma: float | None = None
-    robust: bool | str = "adaptive"
+    robust: bool | str = False
     reference: str = "fixed"
     auto_valid: float | None = None
     auto_zncc: float | None = None

@@ -136,8 +136,8 @@ def test_settings_of_8d9f975_are_read_as_records():
     expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0], robust=False)
     assert TrackOptions.from_settings(cli) == expected == TrackOptions.from_settings(lib)
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
-    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, robust=False)
-    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", robust=False)
+    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20)  # stereo: plain IC-GN by default still
+    assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental")
 
 
 def test_schema1_details_and_unknown_schemas():
@@ -150,8 +150,8 @@ def test_schema1_details_and_unknown_schemas():
             in TrackOptions(step=8, reference="auto", auto_valid=0.9).resume_check(old))
     # old stereo files hold the POIs themselves; the record holds their digest
     pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
-    assert StereoOptions(points=pts, robust=False).resume_check({"points": pts.tolist()}) is None
-    assert "points" in StereoOptions(points=pts + 1, robust=False).resume_check({"points": pts.tolist()})
+    assert StereoOptions(points=pts).resume_check({"points": pts.tolist()}) is None
+    assert "points" in StereoOptions(points=pts + 1).resume_check({"points": pts.tolist()})
     # a mask is the same region wherever it was read from
     mask = {"mask": "/a/m.png", "sha256": "ab" * 32, "shape": [80, 100]}
     assert TrackOptions(roi={**mask, "mask": "/b/m.png"}, robust=False).resume_check({"roi": mask,
@@ -237,11 +237,11 @@ def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path)
         out = _copy(f"stereo_{written_by}_v1.h5", d)
         before = read_stereo(out)
         x1, settings = before.fields[1].xyz.copy(), dict(before.settings)
-        if resume_with == "cli":  # robust IC-GN: off then, adaptive by default now
-            r = _stereo_cli(out, 3, *extra, "--robust-mode", "off")
+        if resume_with == "cli":
+            r = _stereo_cli(out, 3, *extra)
             assert r.exit_code == 0, r.output
         else:
-            fields = stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu", robust=False,
+            fields = stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu",
                                      reference="incremental" if extra else "fixed")
             assert list(fields.indices) == [2]  # a SequenceSummary (the engine)
         res = read_stereo(out)
@@ -320,9 +320,9 @@ def test_stereo_noise_sigma_from_the_command_line_is_used_recorded_and_compared(
     assert r.exit_code == 2 and "--noise-sigma" in r.output
     old = _copy("stereo_cli_v1.h5", tmp_path)
     assert "noise_sigma" not in read_stereo(old).settings
-    r = _stereo_cli(old, 3, "--noise-sigma", "2", "--robust-mode", "off")
+    r = _stereo_cli(old, 3, "--noise-sigma", "2")
     assert r.exit_code == 1 and "--noise-sigma (noise_sigma): none in the file, 2.0 now" in " ".join(r.output.split())
-    r = _stereo_cli(old, 3, "--robust-mode", "off")  # robust IC-GN: off then, adaptive by default now
+    r = _stereo_cli(old, 3)
     assert r.exit_code == 0, r.output
     assert read_stereo(old).indices == [0, 1, 2]
 
@@ -360,12 +360,13 @@ def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
     stored = json.loads((V2 / "track_b36e3a0.json").read_text())
     read = TrackOptions.from_settings(stored)
     assert read.robust is False and read.check_outliers is False
-    assert TrackOptions.from_settings(json.loads((V2 / "stereo_b36e3a0.json").read_text())).robust is False
+    assert StereoOptions.from_settings(json.loads((V2 / "stereo_b36e3a0.json").read_text())).robust is False
     given = {k: v for k, v in stored.items() if k != "options_schema"}
     assert TrackOptions.from_keywords({**given, "robust": False}, shape=(80, 100)).resume_check(stored) is None
     refusal = TrackOptions.from_keywords({**given, "robust": "adaptive", "check_outliers": False},
                                          shape=(80, 100)).resume_check(stored)
     assert "--robust/--robust-mode (robust): False in the file, 'adaptive' now" in refusal
+    assert StereoOptions().robust is False  # stereo stays plain by default (docs/dic2d.md, Robust correlation)
     # the three values in the record and in the file
     for value in (False, True, "adaptive"):
         assert TrackOptions.from_settings(TrackOptions(robust=value).to_settings()).robust == value
