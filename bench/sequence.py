@@ -74,8 +74,11 @@ RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 N_DISTINCT = 10  # rendered frames the throughput/memory runs cycle over
 SEED = 2026
 MODE_NAMES = ("fixed", "incremental", "auto")
-#: a mode name ending in this runs with robust IC-GN (Tracker(robust=True)), e.g. "auto+robust"
+#: a mode name ending in this runs with robust IC-GN on every point (Tracker(robust=True)), e.g. "auto+robust"
 ROBUST_SUFFIX = "+robust"
+#: a mode name ending in this runs plain IC-GN (Tracker(robust=False)), e.g. "auto+plain"; a mode name without a
+#: suffix runs the tracker's default (robust="adaptive" since issue 26)
+PLAIN_SUFFIX = "+plain"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -365,9 +368,14 @@ def part_memory(args, folder):
     return {"runs": rows, "peak_ratio": long["peak_rss_mb"] / short["peak_rss_mb"], "target_peak_ratio": 1.1}
 
 
-def split_mode(name: str) -> tuple[str, bool]:
-    """``"auto+robust"`` -> ``("auto", True)``: a reference mode, and whether it runs robust IC-GN."""
-    return (name[: -len(ROBUST_SUFFIX)], True) if name.endswith(ROBUST_SUFFIX) else (name, False)
+def split_mode(name: str) -> tuple[str, bool | None]:
+    """``"auto+robust"`` -> ``("auto", True)``, ``"auto+plain"`` -> ``("auto", False)``, ``"auto"`` -> ``("auto",
+    None)``: a reference mode, and the ``robust`` it runs (None: the tracker's default)."""
+    if name.endswith(ROBUST_SUFFIX):
+        return name[: -len(ROBUST_SUFFIX)], True
+    if name.endswith(PLAIN_SUFFIX):
+        return name[: -len(PLAIN_SUFFIX)], False
+    return name, None
 
 
 def part_evolving(args, run, engine_name, folder):
@@ -383,8 +391,8 @@ def part_evolving(args, run, engine_name, folder):
     modes = {}
     for mode_name in args.modes:
         mode, robust = split_mode(mode_name)
-        extra = {"robust": True} if robust else {}
-        if not supports(engine_name, mode) or (robust and engine_name != "dic.sequence.track_sequence"):
+        extra = {} if robust is None else {"robust": robust}
+        if not supports(engine_name, mode) or (robust is not None and engine_name != "dic.sequence.track_sequence"):
             modes[mode_name] = {"skipped": f"the {engine_name} engine has no {mode!r} reference mode "
                                       "(dic.sequence.track_sequence is not in this checkout)"}
             continue
@@ -540,8 +548,8 @@ def parse_args(argv=None):
     for m in args.modes:
         m = split_mode(m)[0]
         if m not in MODE_NAMES and not (m.startswith("every:") and m[6:].isdigit() and int(m[6:]) > 0):
-            parser.error(f"unknown reference mode {m!r}; choose from fixed, incremental, every:N, auto "
-                         "(each optionally +robust)")
+            parser.error(f"unknown reference mode {m!r}; choose from fixed, incremental, every:N, auto (each "
+                         "optionally +robust: robust IC-GN on every point, or +plain: plain IC-GN; none: adaptive)")
     for name in ("size", "step", "subset", "frames", "long_frames", "evolving_frames"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1")

@@ -55,6 +55,8 @@ _POOL: ThreadPoolExecutor | None = None
 #: _icgn_robust_1st/_2nd   128     opt-in Tukey-weighted refinement (kernels/icgn_robust.py):
 #:                                 the module's block size, registers left to the compiler
 #:                                 (214 and 255, stack 112 and 944 bytes: 8 warps per SM)
+#: _residual_outliers_1st/_2nd 128 the residual test of adaptive robust IC-GN (same module; 96 and 149
+#:                                 registers, stack 112 bytes)
 #: ======================  ======  ========================================================
 CUDA_LAUNCH = {
     "_icgn_2nd": (128, 0),
@@ -74,6 +76,8 @@ CUDA_LAUNCH = {
     "_icgn_counted_1st": (128, 8),
     "_icgn_robust_1st": (128, 0),
     "_icgn_robust_2nd": (128, 0),
+    "_residual_outliers_1st": (128, 0),
+    "_residual_outliers_2nd": (128, 0),
 }
 
 #: Warp's default threads per block on CUDA

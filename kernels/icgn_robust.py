@@ -1,4 +1,5 @@
-"""Outlier-robust IC-GN refinement: Tukey-weighted Gauss-Newton that discounts pixels the reference cannot explain.
+"""Outlier-robust IC-GN refinement: Tukey-weighted Gauss-Newton that discounts pixels the reference cannot explain,
+and the residual test that decides where it is needed (adaptive robust IC-GN).
 
 Why
     Plain IC-GN (:mod:`kernels.icgn`) weighs every subset pixel equally. When the texture itself
@@ -31,6 +32,11 @@ What
     weight. The weights were chosen on measurements (docs/dic2d.md, "Robust correlation"): narrower
     ones remove more of a changed texture's bias but cost precision where residuals are not noise-like
     (ray-traced renders), wider ones leave more bias.
+
+Adaptive use
+    :func:`residual_outliers` tells, in one pass over each subset at its plain IC-GN warp, whether its
+    residuals show outliers (their kurtosis above :data:`KURTOSIS_MAX`); ``Tracker(robust="adaptive")``,
+    the default, refines only those subsets, so that every other one keeps the plain result bit for bit.
 
 Outputs per POI: parameters, the plain (unweighted) ZNCC at the final warp (so quality thresholds
 mean what they mean for plain IC-GN), iterations, status, the inlier fraction ``sum w / n`` and the
@@ -101,6 +107,7 @@ HIST_BINS = wp.constant(27)
 HIST_PER_OCTAVE = wp.constant(3.0)
 HIST_TOP = wp.constant(8.0)
 vechist = wp.types.vector(length=27, dtype=wp.float32)
+vec5d = wp.types.vector(length=5, dtype=wp.float64)
 #: the residual scale never drops below this fraction of the reference subset's grey-level std
 #: (noise-free images: keeps interpolation residuals from being called outliers)
 SCALE_FLOOR = 0.01
@@ -526,15 +533,134 @@ def _make_robust_kernel(order: int):
         inliers[n] = inl
         outliers[n] = outl
 
+    @wp.func
+    def hist_beyond(hist: vechist, above: float, top: float, t: float):
+        """The number of pixels with |e| >= t from the histogram of :func:`weighted_pass` (``above``: those
+        beyond ``top``; within a bin, the count is split geometrically)."""
+        cnt = above
+        for i in range(HIST_BINS):
+            lo = top * wp.pow(2.0, -(float(i) + 1.0) / HIST_PER_OCTAVE)
+            hi = top * wp.pow(2.0, -float(i) / HIST_PER_OCTAVE)
+            if lo >= t:
+                cnt += hist[i]
+            elif hi > t:
+                cnt += hist[i] * wp.log2(hi / t) * HIST_PER_OCTAVE
+        return cnt
+
+    def statistics_kernel(
+        offset: int, sub: SubsetTable, cur: CurrentCoefficients, active: wp.array(dtype=wp.int32),
+        params: wp.array2d(dtype=float), kurtosis_max: float, beyond_max: float, with_scale: int, rms_out: wp.array(dtype=float),
+        kurtosis_out: wp.array(dtype=float), beyond_out: wp.array(dtype=float), flagged: wp.array(dtype=wp.int32),
+    ):
+        n = wp.tid() + offset
+        r = sub.r
+        rms = float(wp.nan)
+        kurt = float(wp.nan)
+        beyond = float(wp.nan)
+        flag = int(0)
+        if active[n] != 0 and sub.status[n] == ST_CONVERGED:
+            p = vecp()
+            for i in range(kk):
+                p[i] = params[n, i]
+            ctr = sub.centres[n]
+            dl = sub.deltas[n]
+            if wp.static(order == 1):
+                inside = warped_inside(ctr[0], ctr[1], r, dl, sub.width, sub.height, p[0], p[1], p[2], 0.0, 0.0, 0.0,
+                                       p[3], p[4], p[5], 0.0, 0.0, 0.0)
+            else:
+                inside = warped_inside(ctr[0], ctr[1], r, dl, sub.width, sub.height, p[0], p[1], p[2], p[3], p[4],
+                                       p[5], p[6], p[7], p[8], p[9], p[10], p[11])
+            if inside != 0:
+                fm = sub.refdata[n, col_fmean]
+                npx = (2 * r + 1) * (2 * r + 1)
+                nd = wp.float64(npx)
+                # one pass: the raw moments sum x^i y^j (i + j <= 4) of x = f - fm, y = g - fm, in float64
+                mom = mat55d()
+                for j in range(-r, r + 1):
+                    dy = float(j) + dl[1]
+                    row = (ctr[1] + j) * sub.width + ctr[0]
+                    for i in range(-r, r + 1):
+                        dx = float(i) + dl[0]
+                        uu, vv = warp_uv(p, dx, dy)
+                        x = wp.float64(sub.fgrad[row + i][0] - fm)
+                        y = wp.float64(warped_value(cur.coef, cur.pitch, ctr[0] + i, ctr[1] + j, uu, vv) - fm)
+                        x2 = x * x
+                        y2 = y * y
+                        mom[1, 0] += x
+                        mom[0, 1] += y
+                        mom[2, 0] += x2
+                        mom[1, 1] += x * y
+                        mom[0, 2] += y2
+                        mom[3, 0] += x2 * x
+                        mom[2, 1] += x2 * y
+                        mom[1, 2] += x * y2
+                        mom[0, 3] += y2 * y
+                        mom[4, 0] += x2 * x2
+                        mom[3, 1] += x2 * x * y
+                        mom[2, 2] += x2 * y2
+                        mom[1, 3] += x * y2 * y
+                        mom[0, 4] += y2 * y2
+                mom[0, 0] = nd
+                # least-squares contrast and offset of x = a y + b, then sum e^2 and sum e^4 of e = x - a y - b
+                # expanded in the moments: sum e^m = sum_{i+j+k=m} m!/(i! j! k!) (-a)^j (-b)^k sum x^i y^j
+                mx = mom[1, 0] / nd
+                my = mom[0, 1] / nd
+                vy = mom[0, 2] / nd - my * my
+                cxy = mom[1, 1] / nd - mx * my
+                if vy > wp.float64(0.0):
+                    a = cxy / vy
+                    b = mx - a * my
+                    fact = vec5d(wp.float64(1.0), wp.float64(1.0), wp.float64(2.0), wp.float64(6.0), wp.float64(24.0))
+                    pa = vec5d()
+                    pb = vec5d()
+                    pa[0] = wp.float64(1.0)
+                    pb[0] = wp.float64(1.0)
+                    for i in range(1, 5):
+                        pa[i] = pa[i - 1] * (-a)
+                        pb[i] = pb[i - 1] * (-b)
+                    se2 = wp.float64(0.0)
+                    se4 = wp.float64(0.0)
+                    for i in range(5):
+                        for jj in range(5):
+                            if i + jj <= 2:
+                                k2 = 2 - i - jj
+                                se2 += fact[2] / (fact[i] * fact[jj] * fact[k2]) * pa[jj] * pb[k2] * mom[i, jj]
+                            if i + jj <= 4:
+                                k4 = 4 - i - jj
+                                se4 += fact[4] / (fact[i] * fact[jj] * fact[k4]) * pa[jj] * pb[k4] * mom[i, jj]
+                    if se2 > wp.float64(0.0):
+                        rms = float(wp.sqrt(se2 / wp.float64(npx - 2)))
+                        kurt = float(nd * wp.max(se4, wp.float64(0.0)) / (se2 * se2))
+                        fstd = sub.refdata[n, col_fnorm] / wp.sqrt(float(npx))
+                        if with_scale != 0:
+                            # the comparison statistic: the fraction of pixels beyond CORE_A MAD-scales
+                            top = HIST_TOP * rms
+                            h, cj, cf, cg, sm, hist = weighted_pass(
+                                sub.fgrad, sub.width, cur.coef, cur.pitch, ctr[0], ctr[1], r, dl, p, fm, fm, float(a),
+                                float(b), 0.0, top, 0.0)
+                            mad = wp.max(MAD_TO_SIGMA * hist_median(hist, float(nd), top), scale_floor * fstd)
+                            beyond = hist_beyond(hist, float(sm[6]), top, core_a * mad) / float(npx)
+                        if (kurt > kurtosis_max or beyond > beyond_max) and rms > scale_floor * fstd:
+                            flag = 1
+        rms_out[n] = rms
+        kurtosis_out[n] = kurt
+        beyond_out[n] = beyond
+        flagged[n] = flag
+
     name = "_icgn_robust_1st" if order == 1 else "_icgn_robust_2nd"
     robust_kernel.__name__ = robust_kernel.__qualname__ = name
-    return wp.kernel(robust_kernel, launch_bounds=cuda_launch_bounds(name))
+    stats_name = "_residual_outliers_1st" if order == 1 else "_residual_outliers_2nd"
+    statistics_kernel.__name__ = statistics_kernel.__qualname__ = stats_name
+    return (wp.kernel(robust_kernel, launch_bounds=cuda_launch_bounds(name)),
+            wp.kernel(statistics_kernel, launch_bounds=cuda_launch_bounds(stats_name)))
 
 
 #: the robust refinement kernels by shape-function order
-_icgn_robust_1st = _make_robust_kernel(1)
-_icgn_robust_2nd = _make_robust_kernel(2)
+_icgn_robust_1st, _residual_outliers_1st = _make_robust_kernel(1)
+_icgn_robust_2nd, _residual_outliers_2nd = _make_robust_kernel(2)
 _icgn_robust = {1: _icgn_robust_1st, 2: _icgn_robust_2nd}
+#: the residual-statistics kernels (:func:`residual_outliers`) by shape-function order
+_residual_outliers = {1: _residual_outliers_1st, 2: _residual_outliers_2nd}
 
 
 def robust_result(n: int, k: int, device: str) -> RobustResult:
@@ -583,17 +709,7 @@ def icgn_robust(subsets: ReferenceSubsets, current: CurrentImage, guess, active=
     n = subsets.n_points
     k = n_params(subsets.order)
     g = _as_guess(guess, n, k, device)
-    if active is None:
-        act = wp.full(n, 1, dtype=wp.int32, device=device)
-    elif isinstance(active, wp.array):
-        if active.shape != (n,) or active.dtype != wp.int32:
-            raise ValueError(f"active must be an int32 array of shape {(n,)}, got {active.shape} {active.dtype}")
-        act = active
-    else:
-        a = np.asarray(active)
-        if a.shape != (n,) or not (a.dtype == bool or np.issubdtype(a.dtype, np.integer)):
-            raise ValueError(f"active must be a (N,) = ({n},) bool or integer array, got shape {a.shape} dtype {a.dtype}")
-        act = wp.array((a != 0).astype(np.int32), dtype=wp.int32, device=device)
+    act = _as_active(active, n, device)
     if out is None:
         out = robust_result(n, k, device)
     elif out.params.shape != (n, k):
@@ -607,4 +723,111 @@ def icgn_robust(subsets: ReferenceSubsets, current: CurrentImage, guess, active=
     return out
 
 
-__all__ = ["TUKEY_C", "CORE_A", "SCALE_FLOOR", "RobustResult", "icgn_robust", "robust_result"]
+@dataclass
+class ResidualOutliers:
+    """Per-POI output of :func:`residual_outliers`, host arrays.
+
+    ``rms`` (N,) float32, grey levels: RMS residual ``sqrt(sum e^2 / (n - 2))`` of the least-squares
+    intensity model at the given warp; ``kurtosis`` (N,) float32: ``n sum e^4 / (sum e^2)^2`` (3 for
+    Gaussian residuals, large when a few pixels carry large residuals); ``beyond`` (N,) float32: the
+    fraction of the subset's pixels whose |e| exceeds :data:`CORE_A` x the MAD-scale (only with
+    ``with_scale``, else NaN); ``flagged`` (N,) bool: ``kurtosis > kurtosis_max`` (or ``beyond >
+    beyond_max`` when given) and ``rms`` above :data:`SCALE_FLOOR` x the subset's grey-level std. NaN / False
+    where not computed.
+    """
+
+    rms: np.ndarray
+    kurtosis: np.ndarray
+    beyond: np.ndarray
+    flagged: np.ndarray
+
+
+#: the kurtosis n sum e^4 / (sum e^2)^2 of a subset's final residuals above which adaptive robust IC-GN
+#: refines it (3 for Gaussian noise, sd about sqrt(24 / n) = 0.23 for a 21 px subset: 4 is 4 sd above). Chosen on
+#: measurements (bench/robust.py, docs/dic2d.md "Robust correlation"): on the 60-frame evolving texture 4 gives
+#: 0.047 px final RMS error (as robust=True), 6 gives 0.051 px; on clean speckle pairs (noise 0.5-4 GL) the
+#: default refines at most 2 % of the subsets and the displacement std stays at or below plain IC-GN's
+KURTOSIS_MAX = 4.0
+#: adaptive robust IC-GN tests only the subsets whose plain RMS residual (known without a pass from the plain
+#: ZNCC C: sqrt((1 - C^2) n / (n - 2)) x the subset's grey-level std) exceeds RMS_GATE x that std: a changed
+#: speckle raises a subset's residual to a good part of its contrast, image noise of a few grey levels does not
+#: (a rule per subset, so that a POI's result does not depend on which other POIs are tracked with it)
+RMS_GATE = 0.05
+
+
+def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, active=None, *,
+                      kurtosis_max: float = KURTOSIS_MAX, beyond_max: float | None = None,
+                      with_scale: bool = False) -> ResidualOutliers:
+    """Whether the residuals of each subset at its warp show outliers (the test of adaptive robust IC-GN).
+
+    One pass over each warped subset accumulates the float64 moments ``sum x^i y^j`` (i + j <= 4) of
+    ``x = f - fm`` and ``y = g - fm`` (f: reference subset, g: current image at the warp, fm: the reference
+    subset mean); from them the least-squares contrast and offset ``x = a y + b`` and, exactly, the sums
+    of ``e^2`` and ``e^4`` of the residual ``e = x - a y - b``: the RMS residual and the kurtosis.
+    A subset is ``flagged`` when its kurtosis exceeds ``kurtosis_max`` (a few pixels with residuals far
+    above the rest: a speckle that changed, a glint) and its RMS is above the noise-free floor
+    (:data:`SCALE_FLOOR` of the subset's grey-level std, as :func:`icgn_robust`'s scale).
+    ``with_scale``: also the fraction of pixels beyond :data:`CORE_A` MAD-scales (a second pass with the
+    histogram of |e|; the alternative statistic, for measurements); ``beyond_max``: flag a subset also when
+    that fraction exceeds it (implies ``with_scale``).
+
+    Parameters
+    ----------
+    subsets : ReferenceSubsets; current : CurrentImage (either layout), on the subsets' device.
+    params : (N, 6|12) array or float32 ``wp.array``: the warps (normally converged plain IC-GN).
+    active : (N,) bool/int array, optional: the POIs to test (default all); others come out NaN / False.
+    kurtosis_max : float > 0 (None: the kurtosis flags nothing); beyond_max : float in [0, 1] or None;
+    with_scale : bool.
+
+    Returns
+    -------
+    ResidualOutliers (host arrays).
+    """
+    if not isinstance(subsets, ReferenceSubsets):
+        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
+    if not isinstance(current, CurrentImage):
+        raise ValueError(f"current must be a CurrentImage from prepare_current(), got {type(current).__name__}")
+    device = subsets.device
+    if current.device != device:
+        raise ValueError(f"current is on {current.device} but the subsets are on {device}")
+    if current.shape != subsets.reference.shape:
+        raise ValueError(f"current image has shape {current.shape} but the reference has shape "
+                         f"{subsets.reference.shape}")
+    kurtosis_max = float(np.inf) if kurtosis_max is None else positive_float(kurtosis_max, "kurtosis_max")
+    if not isinstance(with_scale, (bool, np.bool_)):
+        raise ValueError(f"with_scale must be True or False, got {with_scale!r}")
+    if beyond_max is None:
+        beyond_max = float(np.inf)
+    else:
+        beyond_max = in_range(beyond_max, 0.0, 1.0, "beyond_max")
+        with_scale = True
+    n = subsets.n_points
+    k = n_params(subsets.order)
+    g = _as_guess(params, n, k, device)
+    act = _as_active(active, n, device)
+    rms = wp.empty(n, dtype=wp.float32, device=device)
+    kurt = wp.empty(n, dtype=wp.float32, device=device)
+    beyond = wp.empty(n, dtype=wp.float32, device=device)
+    flagged = wp.empty(n, dtype=wp.int32, device=device)
+    launch_1d(_residual_outliers[subsets.order], n,
+              [0, subsets.table, current.coefficients(), act, g, float(kurtosis_max), float(beyond_max), int(bool(with_scale)),
+               rms, kurt, beyond, flagged], device, offset_index=0, min_chunk=64)
+    return ResidualOutliers(host_copy(rms), host_copy(kurt), host_copy(beyond), host_copy(flagged) != 0)
+
+
+def _as_active(active, n: int, device: str) -> wp.array:
+    """``active`` (None: all, an int32 ``wp.array`` or a (N,) bool/int array) as an int32 ``wp.array``."""
+    if active is None:
+        return wp.full(n, 1, dtype=wp.int32, device=device)
+    if isinstance(active, wp.array):
+        if active.shape != (n,) or active.dtype != wp.int32:
+            raise ValueError(f"active must be an int32 array of shape {(n,)}, got {active.shape} {active.dtype}")
+        return active
+    a = np.asarray(active)
+    if a.shape != (n,) or not (a.dtype == bool or np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"active must be a (N,) = ({n},) bool or integer array, got shape {a.shape} dtype {a.dtype}")
+    return wp.array((a != 0).astype(np.int32), dtype=wp.int32, device=device)
+
+
+__all__ = ["TUKEY_C", "CORE_A", "SCALE_FLOOR", "KURTOSIS_MAX", "RMS_GATE", "RobustResult", "ResidualOutliers", "icgn_robust",
+           "residual_outliers", "robust_result"]

@@ -14,6 +14,7 @@ from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
 from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
+from ._robust import robust_mode_option, robust_value
 
 
 def _single_image(path) -> bool:
@@ -109,8 +110,9 @@ def _engine_pairs(pairs) -> list:
                    "tracks and its propagation to X, Y, Z and U, V, W (sigma_X ... sigma_W, mm; default: estimated "
                    "from the correlation residuals of each stage).")
 @click.option("--robust", is_flag=True,
-              help="Outlier-robust correlation (Tukey-weighted IC-GN) of matches and tracks: pixels whose texture "
-                   "changed or differs between the views (glints, flaking paint) do not bias them; several times slower.")
+              help="Outlier-robust correlation (Tukey-weighted IC-GN) of every match and track: pixels whose texture "
+                   "changed or differs between the views (glints, flaking paint) do not bias them; several times slower "
+                   "(= --robust-mode on).")
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--vtk", "vtk_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
               help="Also write ParaView files into this folder as each state finishes: <output>_<index>.vtu per "
@@ -145,9 +147,10 @@ def _engine_pairs(pairs) -> list:
               type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
               help="What the surface strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's "
                    "default), small (engineering) or Euler-Almansi; stored in the file.")
+@robust_mode_option("matches and tracks", default="off")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type):
+           compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -220,7 +223,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
     try:
         region = None if region is None else check_region(region, size)
         record = StereoOptions(step=step, subset=subset, order=int(order), frame=frame, epipolar_tol_px=epipolar_tol,
-                               zncc_min=zncc_min, strain_window=strain_window, roi=region, robust=robust,
+                               zncc_min=zncc_min, strain_window=strain_window, roi=region,
+                               robust=robust_value(robust, robust_mode, default="off"),
                                noise_sigma=noise_sigma,
                                reference=reference_strategy, subset_mask=subset_mask,
                                min_kept_fraction=min_kept_fraction, strain_type=strain_type)

@@ -14,6 +14,7 @@ from ._dask import check as check_dask
 from ._dask import dask_client, dask_options
 from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
+from ._robust import robust_mode_option, robust_value
 
 
 def _fail(exc: Exception) -> click.ClickException:
@@ -50,8 +51,9 @@ def _fail(exc: Exception) -> click.ClickException:
               help="Image noise std in grey levels (at most 1e6), for the per-point uncertainty sigma_u, sigma_v "
                    "(default: estimated from the correlation residuals of each frame).")
 @click.option("--robust", is_flag=True,
-              help="Outlier-robust correlation (Tukey-weighted IC-GN): subset pixels whose texture changed (speckles "
-                   "flaking off or appearing, dust, glints) do not bias the displacement; several times slower.")
+              help="Outlier-robust correlation (Tukey-weighted IC-GN) of every point: subset pixels whose texture changed "
+                   "(speckles flaking off or appearing, dust, glints) do not bias the displacement; several times "
+                   "slower (= --robust-mode on; the default, adaptive, refines only the subsets that need it).")
 @region_options
 @click.option("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present).")
 @click.option("--figures", "--figure", "figure_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
@@ -99,10 +101,11 @@ def _fail(exc: Exception) -> click.ClickException:
               type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
               help="What the strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's and DICe's "
                    "default, and stereo's), small (engineering) or Euler-Almansi; stored in the file.")
+@robust_mode_option("the subsets")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, subset_mask,
-          min_kept_fraction, cracks, verify_composed, verify_zncc, strain_type):
+          min_kept_fraction, cracks, verify_composed, verify_zncc, strain_type, robust_mode):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -165,7 +168,8 @@ def track(reference, current, output, subset, step, order, search, search_method
     # the run record: the options the library's track_sequence takes (an option left out is the library's default)
     given = {"max_iter": max_iter, "tol": tol, "search_radius": search}
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
-                     noise_sigma=noise_sigma, robust=robust, roi=region, strain_window=strain_window,
+                     noise_sigma=noise_sigma, robust=robust_value(robust, robust_mode), roi=region,
+                     strain_window=strain_window,
                      scale_mm_per_px=scale, subset_mask=subset_mask, min_kept_fraction=min_kept_fraction, cracks=cracks,
                      verify_composed=verify_composed, verify_zncc=verify_zncc, strain_type=strain_type,
                      **{k: v for k, v in given.items() if v is not None})

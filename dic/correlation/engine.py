@@ -43,8 +43,24 @@ from kernels.icgn import (
 from .acceptance import GOOD, accepted_mask, flag_implausible, second_opinion_candidates
 from .params import convert_order, extrapolate
 
-__all__ = ["Correlator", "CorrelationResult", "correlate", "reliability_guided", "spread",
-           "SOURCE_NONE", "SOURCE_FEATURES", "SOURCE_NEIGHBOUR", "SOURCE_SEARCH", "SOURCE_PREVIOUS", "SOURCE_GLOBAL"]
+__all__ = ["Correlator", "CorrelationResult", "correlate", "reliability_guided", "spread", "check_robust",
+           "ADAPTIVE", "SOURCE_NONE", "SOURCE_FEATURES", "SOURCE_NEIGHBOUR", "SOURCE_SEARCH", "SOURCE_PREVIOUS",
+           "SOURCE_GLOBAL"]
+
+#: the ``robust`` value that refines only the subsets whose plain residuals show outliers (the default)
+ADAPTIVE = "adaptive"
+
+
+def check_robust(robust, name: str = "robust"):
+    """``robust`` checked: ``False`` (plain IC-GN), ``True`` (every accepted POI refined by Tukey-weighted
+    IC-GN) or ``"adaptive"`` (only the POIs whose plain residuals show outliers,
+    :func:`kernels.icgn_robust.residual_outliers`; the others keep the plain result bit for bit)."""
+    if isinstance(robust, (bool, np.bool_)):
+        return bool(robust)
+    if isinstance(robust, str) and robust == ADAPTIVE:
+        return ADAPTIVE
+    raise ValueError(f"{name} must be True or False, or 'adaptive' (robust IC-GN only where a subset's residuals "
+                     f"show outliers), got {robust!r}")
 
 #: where a POI's accepted initial guess came from (``guess_source`` in stereo results)
 SOURCE_NONE, SOURCE_FEATURES, SOURCE_NEIGHBOUR, SOURCE_SEARCH, SOURCE_PREVIOUS, SOURCE_GLOBAL = -1, 0, 1, 2, 3, 4
@@ -152,7 +168,7 @@ class Correlator:
             raise ValueError(f"no frame of dtype {np.dtype(frame_dtype)} was tracked with run_frame()")
         return tracker.current()
 
-    def refine_robust(self, current, r: dict) -> dict:
+    def refine_robust(self, current, r: dict, *, adaptive: bool = False) -> dict:
         """Refine the accepted POIs of a result ``r`` (host arrays as :meth:`run_all`) with Tukey-weighted IC-GN.
 
         :func:`kernels.icgn_robust.icgn_robust` starts from ``r["params"]`` at the POIs whose status is
@@ -161,10 +177,16 @@ class Correlator:
         (a :class:`kernels.icgn.CurrentImage` or a grey image). Returns a new dict: ``params``, ``zncc``
         (unweighted, at the refined warp), ``iterations`` (plain + weighted), ``status`` of the refined POIs
         replaced, ``inliers`` (N,) float32, the weighted fraction of each refined subset, and ``outliers`` (N,) float32, its
-        number of pixels given zero weight (both NaN elsewhere).
+        number of pixels given zero weight (both NaN elsewhere), and ``robust_flagged`` (N,) bool, the POIs refined.
         One upload of the guesses, one launch, one copy back; the buffers are allocated once.
+
+        ``adaptive``: refine only the POIs whose residuals at the plain warp show outliers: among those whose
+        plain RMS residual (from the ZNCC) exceeds ``RMS_GATE`` x the subset's grey-level std, the ones
+        :func:`kernels.icgn_robust.residual_outliers` flags (one pass over each subset); the others keep every
+        entry of ``r`` bit for bit (no refinement is launched when none is flagged).
         """
-        from kernels.icgn_robust import icgn_robust, robust_result
+        from kernels import icgn_robust as robust_module
+        from kernels.icgn_robust import icgn_robust, residual_outliers, robust_result
 
         cur = self._current(current)
         n, k = self.n_points, n_params(self.order)
@@ -177,6 +199,19 @@ class Correlator:
                             wp.empty(n, dtype=wp.int32, device=self.device), robust_result(n, k, self.device))
         guess, act, out = self._robust
         _upload(guess, np.asarray(r["params"], dtype=np.float32))
+        if adaptive and np.any(active):
+            # the residual test, on the subsets whose plain RMS residual is a good part of their contrast
+            active &= self._plain_rms_ratio(np.asarray(r["zncc"], np.float64)) > robust_module.RMS_GATE
+            if np.any(active):
+                _upload(act, active.astype(np.int32))
+                active &= residual_outliers(self.subsets, cur, guess, act,
+                                            kurtosis_max=robust_module.KURTOSIS_MAX).flagged
+        if not np.any(active):
+            refined = dict(r)
+            refined["inliers"] = np.full(n, np.nan, dtype=np.float32)
+            refined["outliers"] = np.full(n, np.nan, dtype=np.float32)
+            refined["robust_flagged"] = active
+            return refined
         _upload(act, active.astype(np.int32))
         res = icgn_robust(self.subsets, cur, guess, act, max_iter=self.max_iter, tol=self.tol, out=out).numpy()
         refined = dict(r)
@@ -188,7 +223,15 @@ class Correlator:
                                          np.asarray(r["iterations"])).astype(np.int32)
         refined["inliers"] = np.where(active, res["inliers"], np.float32(np.nan)).astype(np.float32)
         refined["outliers"] = np.where(active, res["outliers"], np.float32(np.nan)).astype(np.float32)
+        refined["robust_flagged"] = active
         return refined
+
+    def _plain_rms_ratio(self, zncc: np.ndarray) -> np.ndarray:
+        """(N,) RMS residual of the least-squares intensity fit of each subset at a plain IC-GN result of ZNCC
+        ``zncc``, over the reference subset's grey-level std: ``sqrt((1 - C^2) n / (n - 2))``."""
+        npx = self.subset * self.subset
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(np.clip(1.0 - zncc * zncc, 0.0, None) * npx / (npx - 2))
 
     def run_device(self, current, guess) -> IcgnResult:
         """IC-GN of every POI; the results stay on the device (:class:`kernels.icgn.IcgnResult`).
@@ -296,7 +339,9 @@ class CorrelationResult:
     icgn_status (N,) int32 :class:`kernels.conventions.Status` (NOT_COMPUTED where never run);
     accepted (N,) bool; source (N,) int8 (``SOURCE_*``); extra_failed (N,) bool (converged with a
     good ZNCC but rejected by the caller's extra check, e.g. the epipolar constraint);
-    implausible (N,) bool (converged with a good ZNCC to an implausible warp; not accepted).
+    implausible (N,) bool (converged with a good ZNCC to an implausible warp; not accepted);
+    robust_flagged (N,) bool (refined by robust IC-GN: every accepted POI with ``robust=True``, those whose
+    residuals showed outliers with ``"adaptive"``).
     """
 
     params: np.ndarray
@@ -307,6 +352,7 @@ class CorrelationResult:
     source: np.ndarray
     extra_failed: np.ndarray
     implausible: np.ndarray
+    robust_flagged: np.ndarray | None = None
 
 
 def spread(points: np.ndarray, candidates: np.ndarray, max_count: int) -> np.ndarray:
@@ -328,7 +374,7 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
               eligible: np.ndarray, zncc_min: float, radius: float, extra: Callable | None = None,
               fallback: Callable | None = None, max_attempts: int = 3, max_seeds: int = 64,
               max_fallback_rounds: int = 8, min_fallback: int = 1, zncc_drop: float = 0.05,
-              second_opinion: bool = True, check_warps: bool = True, robust: bool = False,
+              second_opinion: bool = True, check_warps: bool = True, robust: bool | str = False,
               first: dict | None = None, report: Callable[[str, int, int], None] | None = None,
               max_fruitless_rounds: int | None = None) -> CorrelationResult:
     """IC-GN of every eligible POI from the given guesses, then neighbour propagation and a fallback.
@@ -348,9 +394,10 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         of its accepted neighbours from its best neighbour; the better-correlating result is kept.
     check_warps : un-accept POIs whose warp is implausible (:func:`.acceptance.flag_implausible`);
         they are marked in ``CorrelationResult.implausible``.
-    robust : refine the accepted POIs with outlier-robust IC-GN (:meth:`Correlator.refine_robust`) before
-        the warp check; a refined POI stays accepted only if it still converges with a ZNCC of at least
-        ``zncc_min`` and passes ``extra``.
+    robust : False, True or ``"adaptive"`` (:func:`check_robust`): refine the accepted POIs (``"adaptive"``:
+        those whose plain residuals show outliers) with outlier-robust IC-GN (:meth:`Correlator.refine_robust`)
+        before the warp check; a refined POI stays accepted only if it still converges with a ZNCC of at least
+        ``zncc_min`` and passes ``extra``; the others keep their plain result bit for bit.
     first : optional host results of IC-GN over every POI from ``guess`` (``params`` (N, k), ``zncc``,
         ``iterations``, ``status`` (N,); :meth:`Correlator.run_frame` or :meth:`Correlator.run_all`): the
         first pass, taken at the POIs it would run (``has_guess & eligible``) instead of running them again
@@ -461,11 +508,13 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
             g = extrapolate(params[best], corr.points[idx] - corr.points[best], corr.order)
             batch(idx, g, SOURCE_NEIGHBOUR)  # replaces a result only by an accepted one with a higher ZNCC
             tell("second opinion")
+    robust_flagged = np.zeros(n, dtype=bool)
     if robust and np.any(accepted):
-        idx = np.flatnonzero(accepted)
         plain = {"params": np.nan_to_num(params).astype(np.float32), "zncc": zncc.astype(np.float32),
                  "iterations": iters, "status": np.where(accepted, status, int(Status.NOT_COMPUTED)).astype(np.int32)}
-        r = corr.refine_robust(current, plain)
+        r = corr.refine_robust(current, plain, adaptive=robust == ADAPTIVE)
+        robust_flagged = r["robust_flagged"] & accepted
+        idx = np.flatnonzero(robust_flagged)  # the POIs refined (all accepted ones unless adaptive)
         p = r["params"][idx].astype(np.float64)
         z = r["zncc"][idx].astype(np.float64)
         st = r["status"][idx].astype(np.int32)
@@ -482,7 +531,7 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
         implausible = flag_implausible(corr, params, accepted, corr.order)
         accepted &= ~implausible
     tell("done")
-    return CorrelationResult(params, zncc, iters, status, accepted, source, extra_failed, implausible)
+    return CorrelationResult(params, zncc, iters, status, accepted, source, extra_failed, implausible, robust_flagged)
 
 
 def reliability_guided(corr: Correlator, current, base: np.ndarray, seed_guess: Callable, *, zncc_min: float,

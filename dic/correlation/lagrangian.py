@@ -176,7 +176,7 @@ def _median_rows(a: np.ndarray) -> np.ndarray:
 
 def displacement_outliers(points: np.ndarray, u: np.ndarray, v: np.ndarray, valid: np.ndarray, *,
                           neighbours: int = OUTLIER_NEIGHBOURS, threshold: float = OUTLIER_THRESHOLD,
-                          noise_px: float = OUTLIER_NOISE_PX) -> np.ndarray:
+                          noise_px: float = OUTLIER_NOISE_PX, cache: dict | None = None) -> np.ndarray:
     """Valid points whose displacement disagrees with their valid neighbours': the normalised median test.
 
     Westerweel & Scarano, "Universal outlier detection for PIV data", Experiments in Fluids 39, 2005,
@@ -186,6 +186,8 @@ def displacement_outliers(points: np.ndarray, u: np.ndarray, v: np.ndarray, vali
     (a linear one exactly: the neighbours surround the point), a false match (a subset that converged to
     the wrong speckle, often a whole pixel off) does not. Points (N, 2) px; u, v (N,) px; valid (N,) bool.
     Returns (N,) bool, False wherever ``valid`` is (and where fewer than 3 valid neighbours exist).
+    ``cache``: a dict kept by the caller across calls on the same ``points`` (a tracker's frames): the
+    neighbour lists are reused while the usable points stay the same (the same result, without the k-d tree).
     """
     from scipy.spatial import cKDTree
 
@@ -206,7 +208,13 @@ def displacement_outliers(points: np.ndarray, u: np.ndarray, v: np.ndarray, vali
     if idx.size <= 3:
         return out
     k = min(int(neighbours), idx.size - 1)
-    _, j = cKDTree(pts[idx]).query(pts[idx], k=k + 1)
+    key = (k, pts.shape, ok.tobytes())
+    if cache is not None and cache.get("key") == key and np.array_equal(cache.get("points"), pts):
+        j = cache["j"]
+    else:
+        _, j = cKDTree(pts[idx]).query(pts[idx], k=k + 1)
+        if cache is not None:
+            cache.update(key=key, points=pts.copy(), j=j)
     nb = d[idx][j[:, 1:]]  # (M, k, 2): the neighbours' displacements (the point itself is the nearest)
     med = _median_rows(nb)
     spread = _median_rows(np.abs(nb - med[:, None, :]))

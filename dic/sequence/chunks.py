@@ -141,11 +141,15 @@ class ChunkedTracker:
         from ..quality import SigmaBasis, displacement_sigma
         from .pipeline import trim_memory
 
-        bases, first, out = [], None, {}
+        bases, first, out, extra = [], None, {}, {}
+        check_outliers = False
         n = len(self.points)
         for s in range(0, n, self.chunk):
             tracker = self.make_tracker(self.image, self.points[s:s + self.chunk])
             self._share_textured(tracker, s)
+            if getattr(tracker, "check_outliers", False):  # the neighbour test needs every POI: run below, once
+                check_outliers = True
+                tracker.check_outliers = False
             g = None if guess is None else np.asarray(guess)[s:s + self.chunk]
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
@@ -154,6 +158,9 @@ class ChunkedTracker:
                 if "2-D tracking" not in str(w.message):
                     warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             bases.append(tracker._sigma_basis)
+            refined = (getattr(part, "extra", None) or {}).get("robust_refined")
+            if refined is not None:  # points refined by robust IC-GN, summed over the chunks
+                extra["robust_refined"] = extra.get("robust_refined", 0) + int(refined)
             del tracker  # this chunk's reference data are freed before the next chunk's are prepared
             if first is None:  # what every chunk shares (not its arrays: they are freed with the chunk)
                 first = SimpleNamespace(**{k: getattr(part, k) for k in ("subset", "order", "step", "zncc_min",
@@ -166,6 +173,13 @@ class ChunkedTracker:
             del part
             trim_memory()  # the chunk's freed buffers go back to the system before the next chunk's are made
         cat = out
+        if check_outliers:  # as dic.Tracker does, over the whole frame (a chunk's edge would cut neighbourhoods)
+            from ..correlation.lagrangian import displacement_outliers
+
+            h = cat["params"].shape[1] // 2
+            outliers = displacement_outliers(cat["points"], cat["params"][:, 0], cat["params"][:, h], cat["valid"])
+            cat["status"][outliers] = int(Status.NEIGHBOUR_OUTLIER)
+            cat["valid"] &= ~outliers
         sigma_u = sigma_v = None
         noise, source = first.noise_sigma, first.noise_source
         if all(b is not None for b in bases):
@@ -175,7 +189,7 @@ class ChunkedTracker:
             sigma, noise, source = displacement_sigma(basis, cat["zncc"], cat["valid"], given)
             sigma_u, sigma_v = sigma[:, 0].copy(), sigma[:, 1].copy()
         field = Field2D(cat["points"], cat["u"], cat["v"], cat["params"], cat["zncc"], cat["iterations"], cat["status"],
-                        cat["valid"], first.subset, first.order, first.step, first.zncc_min, {}, sigma_u=sigma_u,
+                        cat["valid"], first.subset, first.order, first.step, first.zncc_min, extra, sigma_u=sigma_u,
                         sigma_v=sigma_v, noise_sigma=noise, noise_source=source)
         counts = status_counts(field.status[~field.valid], Status)
         from .._track import _no_valid_hint

@@ -6,7 +6,7 @@ hold each option with its default written out. They are validated once, when bui
 :mod:`kernels.checks`; a bad value raises :class:`OptionError`, a ``ValueError`` that names the
 option), by the library and the command line alike, so that both build the same record for the
 same run. Derived defaults are resolved (``step`` None -> ``subset // 2`` for 2-D and stereo grids,
-``check_outliers`` None -> ``robust``), and options that cannot act are written ``None``
+``check_outliers`` None -> on unless ``robust`` is False), and options that cannot act are written ``None``
 (``search_radius`` without ``search``, ``auto_valid``/``auto_zncc`` unless ``reference="auto"``),
 so two records of the same run are equal whichever way they were written.
 
@@ -270,7 +270,9 @@ class _Record:
         if self.noise_sigma is not None:
             self._set("noise_sigma", _checked("noise_sigma", positive_float, self.noise_sigma, "noise_sigma",
                                               detail=" (grey levels)"))
-        self._set("robust", _checked("robust", boolean, self.robust, "robust"))
+        from ..correlation.engine import check_robust
+
+        self._set("robust", _checked("robust", check_robust, self.robust))
         digest, arr = _points(self.points)
         self._set("points", digest)
         if arr is not None:
@@ -323,7 +325,7 @@ class TrackOptions(_Record):
     flat_std: float | None = None
     check_warps: bool = True
     noise_sigma: float | None = None
-    robust: bool = False
+    robust: bool | str = "adaptive"
     check_outliers: bool | None = None
     strain_window: int = 5
     reference: str = "fixed"
@@ -351,7 +353,7 @@ class TrackOptions(_Record):
     CLI_NAMES: ClassVar[dict[str, str]] = {
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
         "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
-        "noise_sigma": "--noise-sigma", "robust": "--robust", "strain_window": "--strain-window",
+        "noise_sigma": "--noise-sigma", "robust": "--robust/--robust-mode", "strain_window": "--strain-window",
         "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
         "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction",
         "cracks": "--crack", "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc",
@@ -389,7 +391,7 @@ class TrackOptions(_Record):
             if not math.isfinite(v):
                 raise OptionError("flat_std", f"flat_std must be a finite non-negative grey level, got {self.flat_std!r}")
             self._set("flat_std", v)
-        outliers = self.robust if self.check_outliers is None else self.check_outliers
+        outliers = bool(self.robust) if self.check_outliers is None else self.check_outliers
         self._set("check_outliers", _checked("check_outliers", boolean, outliers, "check_outliers"))
         sw = _checked("strain_window", non_negative_int, self.strain_window, "strain_window")
         if sw and (sw < 3 or sw % 2 == 0):
@@ -458,14 +460,14 @@ class TrackOptions(_Record):
             for k in ("max_iter", "tol"):  # null: the tracker's default
                 if s.get(k) is not None:
                     kw[k] = s[k]
-            if s.get("robust"):
-                kw["robust"] = True
+            kw["robust"] = bool(s.get("robust"))  # absent: off (before the adaptive default)
             known = {"search", "search_method", "subset", "step", "order", "strain_window", "noise_sigma", "roi",
                      _SCALE_KEY, "max_iter", "tol", "robust", "reference", "guess", "auto_valid", "auto_zncc",
                      "strain_type"}  # strain_type: written by specula strain into an old file
         else:  # the library's form: the keywords given (others at their defaults)
             known = {f.name for f in fields(cls) if f.compare}
             kw.update({k: v for k, v in s.items() if k in known and k not in kw})
+            kw.setdefault("robust", False)  # absent: the default then, off (before the adaptive default)
         unknown = sorted(set(s) - known)
         if unknown:
             raise ValueError(f"unknown settings {', '.join(unknown)}")
@@ -500,7 +502,7 @@ class StereoOptions(_Record):
     max_features: int = 20000
     check_warps: bool = True
     noise_sigma: float | None = None
-    robust: bool = False
+    robust: bool | str = False
     reference: str = "fixed"
     auto_valid: float | None = None
     auto_zncc: float | None = None
@@ -517,7 +519,7 @@ class StereoOptions(_Record):
     CLI_NAMES: ClassVar[dict[str, str]] = {
         "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
         "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
-        "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust",
+        "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust/--robust-mode",
         "reference": "--reference", "guess": "--scheduler/--workers",
         "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction", "strain_type": "--strain-type"}
     KIND: ClassVar[str] = "stereo"
@@ -577,6 +579,7 @@ class StereoOptions(_Record):
         kw.update({k: v for k, v in s.items() if k not in kw})
         # 8d9f975 correlated with 2nd order unless told otherwise (the default is 1st order since issue 25)
         kw.setdefault("order", 2)
+        kw.setdefault("robust", False)  # absent: the default then, off (before the adaptive default)
         if isinstance(kw.get("points"), list):  # schema 1 stored the coordinates themselves
             kw["points"] = _points_digest(kw["points"])
         _schema1_subset_mask(kw)

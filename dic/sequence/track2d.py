@@ -457,6 +457,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 attrs["reference_interpolated"] = int(np.count_nonzero(lag.reference_interpolated))
             if verify_threshold is not None and lag.reference_index != 0:  # checked against the reference image
                 attrs["composed_mismatch"] = composed_mismatches(lag)
+            refined = (getattr(lag, "extra", None) or {}).get("robust_refined")
+            if refined is not None:  # the points refined by robust IC-GN in this frame
+                attrs["robust_refined"] = int(refined)
             writer.write_frame(k, lag, strain=strain, path=item.path, sha256=item.digest, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_vtk

@@ -65,19 +65,19 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
     # every option, with the values dic.Tracker and track_sequence use by default
     assert settings == {"options_schema": 2, "subset": 21, "step": 10, "order": 1, "points": None, "roi": None,
                         "search": None, "search_radius": None, "max_iter": 30, "tol": 1e-3, "zncc_min": 0.8,
-                        "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": False,
-                        "check_outliers": False, "strain_window": 5, "reference": "fixed", "auto_valid": None,
+                        "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": "adaptive",
+                        "check_outliers": True, "strain_window": 5, "reference": "fixed", "auto_valid": None,
                         "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None, "subset_mask": "region",
                         "min_kept_fraction": 0.5, "cracks": None, "verify_composed": None, "verify_zncc": None,
                         "strain_type": "green-lagrange"}
     from dic.postprocess import SCALE_KEY
 
     assert SCALE_KEY in settings  # where post-processing reads the scale
-    explicit = TrackOptions(subset=21, step=10, max_iter=30, tol=0.001, check_outliers=False, robust=False)
+    explicit = TrackOptions(subset=21, step=10, max_iter=30, tol=0.001, check_outliers=True, robust="adaptive")
     assert explicit == rec and not rec.differences(explicit)
     assert TrackOptions.from_settings(settings) == rec
-    # derived defaults: robust checks outliers; auto thresholds only with reference="auto"
-    assert TrackOptions(robust=True).check_outliers is True
+    # derived defaults: robust IC-GN (on or adaptive) checks outliers; auto thresholds only with reference="auto"
+    assert TrackOptions(robust=True).check_outliers is True and TrackOptions(robust=False).check_outliers is False
     auto = TrackOptions(reference="auto")
     assert (auto.auto_valid, auto.auto_zncc) == (0.95, 0.95) and TrackOptions(reference="auto", auto_valid=0.95) == auto
     stereo = StereoOptions()
@@ -135,13 +135,14 @@ def test_settings_of_8d9f975_are_read_as_records():
     cli, lib = (read_results(DATA / f"track_{w}_v1.h5").settings for w in ("cli", "lib"))
     assert "search_method" in cli and cli["search"] == 4 and lib["search"] == "zncc"  # what 8d9f975 wrote
     # strain_type: 8d9f975 computed the small strain in 2-D (TrackOptions.ADDED_OPTIONS), Green-Lagrange in stereo
-    # (and correlated every subset pixel: subset_mask "none", issue 26)
+    # (and correlated every subset pixel: subset_mask "none", issue 26; robust: off, the default before adaptive
+    # robust IC-GN became the default; 8d9f975 wrote it only when on)
     expected = TrackOptions(step=8, search="zncc", search_radius=4, roi=[8.0, 8.0, 90.0, 70.0], strain_type="small",
-                            subset_mask="none")
+                            subset_mask="none", robust=False)
     assert TrackOptions.from_settings(cli) == expected == TrackOptions.from_settings(lib)
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
     # 8d9f975's stereo default order was 2 (1 since issue 25): a file that did not record it holds order 2
-    # (and its subsets kept every pixel: subset_mask "none", issue 26)
+    # (and its subsets kept every pixel: subset_mask "none", issue 26; stereo: plain IC-GN by default still)
     assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2, subset_mask="none")
     assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", order=2,
                                                                subset_mask="none")
@@ -150,10 +151,13 @@ def test_settings_of_8d9f975_are_read_as_records():
 def test_schema1_details_and_unknown_schemas():
     # 8d9f975 wrote auto_valid/auto_zncc of a 2-D run only with guess="none": when absent they are not compared
     old = {"reference": "auto", "strain_window": 5, "step": 8}
-    # (nor did it check composed results: verify_composed False, the default with a moved reference since issue 26)
+    # (nor did it check composed results: verify_composed False, the default with a moved reference since issue 26;
+    # robust absent from a schema-1 file: off, the default then)
     assert TrackOptions(step=8, reference="auto", auto_valid=0.9, strain_type="small",
-                        verify_composed=False).resume_check(old) is None
-    assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto").resume_check(old)
+                        verify_composed=False, robust=False).resume_check(old) is None
+    assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto", robust=False).resume_check(old)
+    assert ("--robust/--robust-mode (robust): False in the file, 'adaptive' now"
+            in TrackOptions(step=8, reference="auto", auto_valid=0.9).resume_check(old))
     # old stereo files hold the POIs themselves; the record holds their digest
     pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
     assert StereoOptions(points=pts, order=2).resume_check({"points": pts.tolist()}) is None
@@ -163,9 +167,9 @@ def test_schema1_details_and_unknown_schemas():
     # a mask is the same region wherever it was read from
     mask = {"mask": "/a/m.png", "sha256": "ab" * 32, "shape": [80, 100]}
     # (a schema-1 file correlated every subset pixel: the same run now is subset_mask="none", issue 26;
-    # its exx was the small strain: strain_type="small", issue 25)
-    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}, subset_mask="none", strain_type="small").resume_check(
-        {"roi": mask, "strain_window": 5}) is None
+    # its exx was the small strain: strain_type="small", issue 25; robust IC-GN was off)
+    assert TrackOptions(roi={**mask, "mask": "/b/m.png"}, subset_mask="none", strain_type="small",
+                        robust=False).resume_check({"roi": mask, "strain_window": 5}) is None
     for stored, fragment in (({"options_schema": 3}, "schema 3"), ({"subset": 21, "colour": "red"}, "colour"),
                              ({**TrackOptions().to_settings(), "colour": 1}, "colour")):
         refusal = TrackOptions().resume_check(stored)
@@ -220,15 +224,16 @@ def test_2d_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
         stored = read_results(out)
         u1, settings = stored.frames[1].u.copy(), dict(stored.settings)
         # its frames hold the small strain (what 2-D computed then): resumed with that type, not today's default
-        # Green-Lagrange, which would make exx mean two things in one file (refused, naming the option)
+        # Green-Lagrange, which would make exx mean two things in one file (refused, naming the option); robust
+        # IC-GN was off by default then (adaptive now): the file's value is given to resume it
         if resume_with == "cli":
-            r = _track_cli(out, ["f1", "f2"])
+            r = _track_cli(out, ["f1", "f2"], "--robust-mode", "off")
             assert r.exit_code == 1 and "--strain-type (strain_type): 'small' in the file, 'green-lagrange' now" in \
                 " ".join(r.output.split())
-            r = _track_cli(out, ["f1", "f2"], "--strain-type", "small")
+            r = _track_cli(out, ["f1", "f2"], "--strain-type", "small", "--robust-mode", "off")
             assert r.exit_code == 0, r.output
         else:
-            s = _track_lib(out, ["f1", "f2"], strain_type="small")
+            s = _track_lib(out, ["f1", "f2"], strain_type="small", robust=False)
             assert s.skipped == 1 and [f["index"] for f in s.frames] == [2]
         res = read_results(out)
         assert sorted(res.frames) == [1, 2] and np.array_equal(res.frames[1].u, u1, equal_nan=True)
@@ -239,7 +244,7 @@ def test_2d_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
         assert np.max(np.abs(f.u[f.valid] - 1.2)) < 0.05 and np.max(np.abs(f.v[f.valid] + 0.6)) < 0.05
     # a real difference in an old file is refused as well
     with pytest.raises(ValueError, match=r"--step \(step\): 8 in the file, 10 now"):
-        _track_lib(out, ["f1", "f2"], step=10, strain_type="small")
+        _track_lib(out, ["f1", "f2"], step=10, strain_type="small", robust=False)
 
 
 @pytest.mark.parametrize("written_by", ["cli", "lib"])
@@ -292,7 +297,8 @@ def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
            "strain_window": 5}  # the 8d9f975 command line's form
     with ResultWriter(out, settings=old, **kw):
         pass
-    now = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=30, strain_type="small")  # 8d9f975: small
+    now = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=30, strain_type="small",
+                       robust=False)  # 8d9f975: small strain, robust off
     # equal records: resumed, and the file keeps the settings it holds
     with ResultWriter(out, settings=now.to_settings(), settings_check=now.resume_check, **kw):
         pass
@@ -300,7 +306,7 @@ def test_result_writer_compares_settings_with_the_check_it_is_given(tmp_path):
     # without the check the JSON texts are compared, as for settings given as a dict
     with pytest.raises(ValueError, match=r"different settings \(.*differ"):
         ResultWriter(out, settings=now.to_settings(), **kw)
-    other = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=31, strain_type="small")
+    other = TrackOptions(step=8, search="zncc", search_radius=4, max_iter=31, strain_type="small", robust=False)
     with pytest.raises(ValueError, match=r"w\.h5 was written with different settings: --max-iter \(max_iter\): 30 in "
                                          r"the file, 31 now\. Resume with the file's settings, or start afresh"):
         ResultWriter(out, settings=other.to_settings(), settings_check=other.resume_check, **kw)
@@ -360,3 +366,44 @@ def test_schema2_file_without_later_options_still_resumes(record, name, shape):
     assert read.differences(same_run) == [] and same_run.resume_check(stored) is None
     later = set(same_run.to_settings()) - set(stored)
     assert later == set(record.ADDED_OPTIONS), "a new option needs its old behaviour in ADDED_OPTIONS"
+
+
+def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
+    """``robust`` became ``"adaptive"`` by default (issue 26): a file that stores ``robust: false`` (every
+    schema-2 file before it, and schema-1 files, which wrote it only when on) reads as off, resumes with
+    ``--robust-mode off`` / ``robust=False``, and a resume with the new default is refused naming the option."""
+    import json
+
+    from dic.commands._robust import robust_value
+
+    stored = json.loads((V2 / "track_b36e3a0.json").read_text())
+    read = TrackOptions.from_settings(stored)
+    assert read.robust is False and read.check_outliers is False
+    assert StereoOptions.from_settings(json.loads((V2 / "stereo_b36e3a0.json").read_text())).robust is False
+    given = {k: v for k, v in stored.items() if k != "options_schema"}
+    assert TrackOptions.from_keywords({**given, "robust": False}, shape=(80, 100)).resume_check(stored) is None
+    refusal = TrackOptions.from_keywords({**given, "robust": "adaptive", "check_outliers": False},
+                                         shape=(80, 100)).resume_check(stored)
+    assert "--robust/--robust-mode (robust): False in the file, 'adaptive' now" in refusal
+    assert StereoOptions().robust is False  # stereo stays plain by default (docs/dic2d.md, Robust correlation)
+    # the three values in the record and in the file
+    for value in (False, True, "adaptive"):
+        assert TrackOptions.from_settings(TrackOptions(robust=value).to_settings()).robust == value
+        assert StereoOptions.from_settings(StereoOptions(robust=value).to_settings()).robust == value
+    # the command line: --robust keeps its meaning (on), --robust-mode chooses, the default is adaptive
+    assert [robust_value(False, None), robust_value(True, None), robust_value(False, "off"),
+            robust_value(False, "on"), robust_value(True, "on"), robust_value(False, "adaptive")] == \
+        ["adaptive", True, False, True, True, "adaptive"]
+    out = tmp_path / "off.h5"
+    r = _track_cli(out, ["f1"], "--robust-mode", "off")
+    assert r.exit_code == 0, r.output
+    assert read_results(out).settings["robust"] is False
+    r = _track_cli(tmp_path / "x.h5", ["f1"], "--robust", "--robust-mode", "adaptive")
+    assert r.exit_code == 2 and "--robust means --robust-mode on" in " ".join(r.output.split())
+    r = _track_cli(tmp_path / "y.h5", ["f1"], "--robust-mode", "sometimes")
+    assert r.exit_code == 2 and "--robust-mode" in r.output
+    default = tmp_path / "default.h5"
+    assert _track_cli(default, ["f1"]).exit_code == 0
+    res = read_results(default)
+    assert res.settings["robust"] == "adaptive" and res.settings["check_outliers"] is True
+    assert "robust_refined" in res.frames[1].attrs  # the points refined by robust IC-GN, counted per frame

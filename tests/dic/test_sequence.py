@@ -584,9 +584,10 @@ def test_tracker_check_outliers_flags_a_false_match(sequence, monkeypatch):
 
     ref, frames = sequence
     cur = np.clip(np.round(frames[0]), 0, 255).astype(np.uint8)  # the device-resident frame path
-    plain = Tracker(ref, step=8, device="cpu")
-    checked = Tracker(ref, step=8, check_outliers=True, device="cpu")
-    assert Tracker(ref, step=8, robust=True, device="cpu").check_outliers  # on with robust by default
+    plain = Tracker(ref, step=8, robust=False, device="cpu")
+    checked = Tracker(ref, step=8, robust=False, check_outliers=True, device="cpu")
+    assert not plain.check_outliers  # off without robust IC-GN, on with it (True or "adaptive", the default)
+    assert Tracker(ref, step=8, robust=True, device="cpu").check_outliers and Tracker(ref, step=8).check_outliers
     j = checked.n_points // 2
     for tr in (plain, checked):
         run = tr.correlator.run_frame

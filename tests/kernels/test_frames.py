@@ -38,7 +38,10 @@ def points():
 
 
 def _tracker(ref, points, order):
-    return Tracker(ref, points=points, subset=17, order=order, check_warps=False, zncc_min=ZNCC_MIN, device="cpu")
+    # plain IC-GN (robust=False; the default, "adaptive", refines the subsets whose residuals show outliers):
+    # the results of the FrameTracker compared with it
+    return Tracker(ref, points=points, subset=17, order=order, check_warps=False, zncc_min=ZNCC_MIN, robust=False,
+                   device="cpu")
 
 
 def _today(tracker, frames):

@@ -12,7 +12,7 @@ import pytest
 from dic.synth import evolving_sequence, speckle_pair
 from kernels.conventions import Status
 from kernels.icgn import icgn, n_params, prepare_current, prepare_reference, prepare_subsets
-from kernels.icgn_robust import icgn_robust, robust_result
+from kernels.icgn_robust import KURTOSIS_MAX, icgn_robust, residual_outliers, robust_result
 
 SIZE = 160
 HALF = 14  # subset half-size + margin
@@ -153,7 +153,7 @@ def test_tracker_robust_on_every_path(evolving):
     ref, cur = _frames(evolving, [0, k_frame])
     pts = _points(evolving)
     truth = evolving.displacement(pts, k_frame)
-    plain = Tracker(ref, points=pts, device="cpu")
+    plain = Tracker(ref, points=pts, robust=False, device="cpu")  # plain IC-GN (the default is "adaptive")
     robust = Tracker(ref, points=pts, robust=True, device="cpu")
     guess = _exact_guess(truth, 1)
     f_plain = plain.track(cur, guess=guess)  # the device-resident frame path (uint8, no search)
@@ -202,3 +202,123 @@ def test_track_sequence_and_cli_robust(evolving, tmp_path):
     assert res.exit_code == 0, res.output
     with ResultReader(tmp_path / "cli.h5") as rd:
         assert rd.settings.get("robust") is True
+
+
+# -- adaptive robust IC-GN: the residual test and the default ----------------------------------------------
+
+
+def _changed_speckles_near(seq, k, pts, subset=21):
+    """Exact truth of the texture change: per POI, the speckles alive in frame 0 or frame k but not both whose
+    centres lie within reach of its subset (the subset's square grown by the mean radius and 2 blur sigmas)."""
+    from scipy.spatial import cKDTree
+
+    p = seq.pattern
+    changed = seq.alive(0) != seq.alive(k)
+    reach = subset // 2 + p.radius + 2 * p.blur
+    return np.asarray(cKDTree(p.centres[changed]).query_ball_point(pts, reach, p=np.inf, return_length=True))
+
+
+def test_residual_statistics_are_those_of_the_subset_residuals():
+    # an integer shift: the warped current subset is the current image's pixels, so the least-squares residual
+    # e = (f - fm) - a (g - fm) - b and its RMS and kurtosis follow from the pixels in NumPy
+    ref, cur = speckle_pair((96, 96), (3.0, -2.0), noise_sigma=2.0, seed=4)
+    cur = cur.copy()
+    cur[44:48, 50:53] = 250.0  # a bright blob: outliers in the subsets that hold it
+    pts = np.array([(40.0, 40.0), (50.0, 50.0), (60.0, 44.0), (30.0, 60.0)])
+    sub = prepare_subsets(prepare_reference(ref, device="cpu"), pts, subset=21, order=1)
+    params = np.array([[3.0, 0, 0, -2.0, 0, 0]] * 4)
+    stats = residual_outliers(sub, prepare_current(cur, device="cpu"), params, with_scale=True)
+    for i, (x, y) in enumerate(pts.astype(int)):
+        f = ref[y - 10:y + 11, x - 10:x + 11].astype(np.float64)
+        g = cur[y - 12:y + 9, x - 7:x + 14].astype(np.float64)  # (x + 3, y - 2)
+        A = np.column_stack([g.ravel(), np.ones(g.size)])
+        e = f.ravel() - A @ np.linalg.lstsq(A, f.ravel(), rcond=None)[0]
+        np.testing.assert_allclose(stats.rms[i], np.sqrt(np.sum(e**2) / (e.size - 2)), rtol=1e-4)
+        np.testing.assert_allclose(stats.kurtosis[i], e.size * np.sum(e**4) / np.sum(e**2) ** 2, rtol=1e-3)
+        # the MAD rule's fraction: pixels beyond 3 x 1.4826 x median |e| (the kernel reads the median from a
+        # histogram with bins of 2^(1/3): within a bin's width of the exact fraction)
+        s = 1.4826 * np.median(np.abs(e))
+        lo, hi = np.mean(np.abs(e) > 3 * s * 2 ** (1 / 3)), np.mean(np.abs(e) > 3 * s / 2 ** (1 / 3))
+        assert lo - 1e-3 <= stats.beyond[i] <= hi + 1e-3
+    # the blob (in reference coordinates x 47-49, y 46-49) is in the subsets of the first two POIs: their
+    # kurtosis is far above a Gaussian's 3, the others' is not
+    assert stats.flagged.tolist() == [True, True, False, False]
+    assert np.all(stats.kurtosis[[2, 3]] < 4.0) and np.all(stats.kurtosis[[0, 1]] > 2 * KURTOSIS_MAX)
+    # inactive POIs are left out
+    some = residual_outliers(sub, prepare_current(cur, device="cpu"), params, np.array([0, 1, 0, 1]))
+    assert np.isnan(some.kurtosis[0]) and not some.flagged[0] and some.flagged[1] and not some.flagged[3]
+
+
+def test_residual_test_flags_the_subsets_whose_texture_changed(evolving):
+    # frame 10: 2 % of the speckles replaced; exact truth of which subsets hold a changed speckle
+    k_frame = 10
+    pts = _points(evolving)
+    sub = prepare_subsets(prepare_reference(evolving[0].astype(np.float32), device="cpu"), pts, subset=21, order=1)
+    cur = prepare_current(evolving[k_frame].astype(np.float32), device="cpu")
+    truth = evolving.displacement(pts, k_frame)
+    plain = icgn(sub, cur, _exact_guess(truth, 1)).numpy()
+    ok = np.isin(plain["status"], ACCEPTED) & (plain["zncc"] >= ZNCC_MIN)
+    flagged = residual_outliers(sub, cur, plain["params"], ok).flagged
+    changed = _changed_speckles_near(evolving, k_frame, pts)
+    assert np.count_nonzero(ok & (changed == 0)) >= 100 and np.count_nonzero(ok & (changed >= 2)) >= 100
+    # measured (KURTOSIS_MAX 4): 0.995 of the subsets with >= 2 changed speckles flagged, 0.83 of those with one
+    # (some of them only touch the subset's edge), 0.008 of those with none
+    assert flagged[ok & (changed >= 2)].mean() > 0.95
+    assert flagged[ok & (changed == 1)].mean() > 0.6
+    assert flagged[ok & (changed == 0)].mean() < 0.05
+    # the subsets left unflagged are those plain IC-GN measures well (measured 0.0034 px RMS against 0.071)
+    e = _error(plain["params"], truth, 1)
+    assert _rms(e[ok & ~flagged]) < 0.01 and _rms(e[ok & flagged]) > 0.05
+
+
+def test_adaptive_is_the_default_and_keeps_clean_subsets_bitwise(evolving):
+    from dic._track import Tracker, track
+
+    k_frame = 10
+    ref, cur = _frames(evolving, [0, k_frame])
+    pts = _points(evolving)
+    truth = evolving.displacement(pts, k_frame)
+    guess = _exact_guess(truth, 1)
+    plain = Tracker(ref, points=pts, robust=False, device="cpu")
+    defaults = Tracker(ref, points=pts, device="cpu")
+    assert defaults.robust == "adaptive" and defaults.check_outliers and not plain.check_outliers
+    # the refinement alone (the neighbour check, on by default with robust IC-GN, may flag some valid POIs)
+    default = Tracker(ref, points=pts, check_outliers=False, device="cpu")
+    for path in ("frame", "host"):  # the device-resident frame path (uint8) and the general path (float64)
+        image = cur if path == "frame" else cur.astype(np.float64)
+        search = None if path == "frame" else "prior"
+        f_plain = plain.track(image, guess=guess, search=search)
+        f_adapt = default.track(image, guess=guess, search=search)
+        same = np.all(f_plain.params == f_adapt.params, axis=1)
+        for name in ("zncc", "iterations", "status"):
+            same_here = getattr(f_plain, name) == getattr(f_adapt, name)
+            assert np.all(same_here | ~same)
+        refined = f_adapt.extra["robust_refined"]
+        # every POI but the refined ones keeps the plain result bit for bit
+        assert np.count_nonzero(~same) <= refined < pts.shape[0]
+        assert "robust_refined" not in f_plain.extra
+        e_plain = np.hypot(f_plain.u - truth[:, 0], f_plain.v - truth[:, 1])[f_plain.valid]
+        e_adapt = np.hypot(f_adapt.u - truth[:, 0], f_adapt.v - truth[:, 1])[f_adapt.valid]
+        assert f_adapt.valid.mean() > 0.9 and _rms(e_adapt) < 0.2 * _rms(e_plain)
+    f = track(ref, cur, points=pts, guess=guess, check_outliers=False, device="cpu")
+    assert f.extra["robust_refined"] == refined
+    with pytest.raises(ValueError, match="robust must be True or False, or 'adaptive'"):
+        Tracker(ref, points=pts, robust="sometimes")
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_adaptive_leaves_clean_images_at_plain_precision(order):
+    # Gaussian noise only: few subsets flagged, the displacement error's std within 5 % of plain IC-GN
+    from dic._track import Tracker
+
+    ref, cur = speckle_pair((160, 160), lambda x, y: (0.3 + 0.005 * (x - 80), -0.2 + 0.004 * (y - 80)),
+                            noise_sigma=2.0, seed=7)
+    u_true = lambda f: 0.3 + 0.005 * (f.points[:, 0] - 80)  # noqa: E731
+    v_true = lambda f: -0.2 + 0.004 * (f.points[:, 1] - 80)  # noqa: E731
+    out = {}
+    for robust in (False, "adaptive"):
+        f = Tracker(ref, step=6, order=order, robust=robust, device="cpu").track(cur, guess=(0.3, -0.2))
+        err = np.concatenate([(f.u - u_true(f))[f.valid], (f.v - v_true(f))[f.valid]])
+        out[robust] = (np.std(err), f)
+    assert out["adaptive"][1].extra["robust_refined"] <= 0.05 * out["adaptive"][1].n_points
+    assert out["adaptive"][0] <= 1.05 * out[False][0]
