@@ -62,7 +62,7 @@ class ComposedVerifier:
         if params is None:  # translation only (a custom tracker's result)
             params = np.zeros((len(field.u), 6))
             params[:, 0], params[:, 3] = field.u, field.v
-        zncc, outcome = self._check.zncc(_host(image), params, valid)
+        zncc, outcome = self._check.zncc(_on_device(image, self._check.device), params, valid)
         checked = outcome == CHECKED
         failed = checked & valid & ~(zncc >= self.threshold)
         if np.any(failed):
@@ -81,7 +81,13 @@ class ComposedVerifier:
         return int(np.count_nonzero(checked)), int(np.count_nonzero(failed))
 
 
-def _host(image):
-    from kernels.images import as_float32_image, is_torch_tensor
+def _on_device(image, device):
+    """A torch tensor frame as a float32 ``wp.array`` on ``device``, converted there by torch (no copy through
+    the host, as the tracker reads it: kernels.images.as_float32_tensor); any other frame as it is."""
+    from kernels.images import as_float32_tensor, is_torch_tensor
 
-    return as_float32_image(image, "frame") if is_torch_tensor(image) else image
+    if not is_torch_tensor(image):
+        return image
+    import warp as wp
+
+    return wp.from_torch(as_float32_tensor(image, str(device), "frame"))

@@ -380,7 +380,8 @@ def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
     read = TrackOptions.from_settings(stored)
     assert read.robust is False and read.check_outliers is False
     assert StereoOptions.from_settings(json.loads((V2 / "stereo_b36e3a0.json").read_text())).robust is False
-    given = {k: v for k, v in stored.items() if k != "options_schema"}
+    # (with the options added since, at their old behaviour: TrackOptions.ADDED_OPTIONS)
+    given = {**{k: v for k, v in stored.items() if k != "options_schema"}, **TrackOptions.ADDED_OPTIONS}
     assert TrackOptions.from_keywords({**given, "robust": False}, shape=(80, 100)).resume_check(stored) is None
     refusal = TrackOptions.from_keywords({**given, "robust": "adaptive", "check_outliers": False},
                                          shape=(80, 100)).resume_check(stored)
