@@ -33,8 +33,12 @@ def test_edge_points_are_kept_and_as_accurate_as_the_interior(case, order):
 
 @pytest.mark.parametrize("order", [1, 2])
 def test_without_masks_a_textured_background_pulls_the_edge_points(order):
-    r = holes.measure("hole-textured", order, "none")
+    r = holes.measure("hole-textured", order, "none")  # plain IC-GN (robust=False)
     assert r["edge_rms_px"] > 10 * r["interior_rms_px"], r  # measured 41 x (1st order), 19 x (2nd)
+    # the 2-D default, adaptive robust IC-GN, refines the pulled subsets and takes back part of it, not all at
+    # 2nd order (measured 1.8 x and 9.1 x); the masks bring both within 2 x (the bounds of the other tests)
+    default = holes.measure("hole-textured", order, "region", robust="adaptive")
+    assert default["edge_rms_px"] < 2 * default["interior_rms_px"], default
 
 
 def test_box_roi_masks_no_pixel_and_none_reproduces_the_unmasked_tracker():
@@ -94,7 +98,8 @@ def test_cli_and_sequence_record_the_option_and_mask_the_subsets(tmp_path):
     for mode in ("region", "none"):
         out = tmp_path / f"{mode}.h5"
         res = CliRunner().invoke(main, ["track", paths["ref"], paths["cur"], "--mask", paths["mask"], "--step", "4",
-                                        "--subset-mask", mode, "-o", str(out), "--device", "cpu", "-q"])
+                                        "--subset-mask", mode, "--robust-mode", "off", "-o", str(out), "--device",
+                                        "cpu", "-q"])  # plain IC-GN: what the masks alone do
         assert res.exit_code == 0, res.output
         results = read_results(out)
         assert results.settings["subset_mask"] == mode and results.settings["min_kept_fraction"] == 0.5
