@@ -325,7 +325,7 @@ class TrackOptions(_Record):
     flat_std: float | None = None
     check_warps: bool = True
     noise_sigma: float | None = None
-    robust: bool | str = "adaptive"
+    robust: bool | str = False
     check_outliers: bool | None = None
     strain_window: int = 5
     reference: str = "fixed"
