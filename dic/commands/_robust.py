@@ -1,9 +1,9 @@
 """The ``--robust`` / ``--robust-mode`` options of ``specula track`` and ``specula stereo``.
 
 ``--robust`` keeps its meaning (every accepted point refined by Tukey-weighted IC-GN); ``--robust-mode``
-chooses among ``off`` (plain IC-GN; the default of ``specula stereo``), ``on`` (the same as ``--robust``) and
-``adaptive`` (the default of ``specula track``: robust IC-GN only for the subsets whose plain residuals show
-outliers, :mod:`kernels.icgn_robust`).
+chooses among ``off`` (plain IC-GN; the default of ``specula track`` and ``specula stereo``), ``on`` (the same as
+``--robust``) and ``adaptive`` (robust IC-GN only for the subsets whose plain residuals show outliers,
+:mod:`kernels.icgn_robust`; not the default: docs/dic2d.md, "Why adaptive is not the default").
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ __all__ = ["ROBUST_MODES", "robust_mode_option", "robust_value"]
 ROBUST_MODES = {"off": False, "on": True, "adaptive": "adaptive"}
 
 
-def robust_mode_option(what: str, default: str = "adaptive"):
+def robust_mode_option(what: str, default: str = "off"):
     """The ``--robust-mode`` click option; ``what`` names what is correlated, ``default`` the mode without it."""
     return click.option(
         "--robust-mode", default=None, type=click.Choice(sorted(ROBUST_MODES)),
@@ -24,7 +24,7 @@ def robust_mode_option(what: str, default: str = "adaptive"):
              "plain result of every other subset exactly; 'on' (= --robust) refines every point; 'off': plain IC-GN.")
 
 
-def robust_value(flag: bool, mode: str | None, default: str = "adaptive"):
+def robust_value(flag: bool, mode: str | None, default: str = "off"):
     """The library's ``robust`` from ``--robust`` (``flag``) and ``--robust-mode`` (``mode``, None: not given:
     ``default``, the command's default mode)."""
     if mode is None:
