@@ -14,27 +14,28 @@ import numpy as np
 CONTEXT = {"help_option_names": ["-h", "--help"]}
 
 
-class PointType(click.ParamType):
-    """A point ``x,y`` (two numbers separated by a comma)."""
+class NumbersType(click.ParamType):
+    """``count`` finite numbers separated by commas (``x,y`` for a point; the message names ``what``)."""
 
-    name = "x,y"
+    def __init__(self, count: int, name: str, what: str):
+        self.count, self.name, self.what = int(count), name, what
 
     def convert(self, value, param, ctx):
         if isinstance(value, tuple):
             return value
         parts = str(value).replace(" ", "").split(",")
         try:
-            if len(parts) != 2:
+            if len(parts) != self.count:
                 raise ValueError
-            x, y = (float(p) for p in parts)
-            if not (np.isfinite(x) and np.isfinite(y)):
+            vals = tuple(float(p) for p in parts)
+            if not np.all(np.isfinite(vals)):
                 raise ValueError
         except ValueError:
-            self.fail(f"expected a point x,y (two finite numbers separated by a comma), got {value!r}", param, ctx)
-        return x, y
+            self.fail(f"expected {self.what}, got {value!r}", param, ctx)
+        return vals
 
 
-POINT = PointType()
+POINT = NumbersType(2, "x,y", "a point x,y (two finite numbers separated by a comma)")
 RESULTS = click.Path(dir_okay=False, path_type=Path)
 _AT = click.option("--at", default="px", show_default=True, type=click.Choice(["px", "mm"]),
                    help="Units of the given positions: reference image px, or mm (2-D: with a scale; stereo: "

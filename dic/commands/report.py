@@ -9,29 +9,13 @@ from pathlib import Path
 
 import click
 
-from dic.commands.postprocess import POINT
+from dic.commands.postprocess import POINT, NumbersType
 from dic.report import MAP_WIDTH, MAX_MAP_FRAMES
 
 CONTEXT = {"help_option_names": ["-h", "--help"]}
 
 
-class GaugeType(click.ParamType):
-    """Two gauge ends ``x1,y1,x2,y2`` (four numbers separated by commas)."""
-
-    name = "x1,y1,x2,y2"
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, tuple):
-            return value
-        parts = str(value).replace(" ", "").split(",")
-        try:
-            vals = tuple(float(p) for p in parts)
-            if len(vals) != 4 or not all(v == v and abs(v) != float("inf") for v in vals):
-                raise ValueError
-        except ValueError:
-            self.fail(f"expected gauge ends x1,y1,x2,y2 (four finite numbers separated by commas), got {value!r}",
-                      param, ctx)
-        return vals
+GAUGE = NumbersType(4, "x1,y1,x2,y2", "gauge ends x1,y1,x2,y2 (four finite numbers separated by commas)")
 
 
 @click.command(name="report", context_settings=CONTEXT)
@@ -43,7 +27,7 @@ class GaugeType(click.ParamType):
                    "U, V, W, exx, eyy, exy or zncc_stereo. [default: magnitude (2-D), W (stereo)]")
 @click.option("--history", "history", multiple=True, type=POINT,
               help="A reference point X,Y (image px) whose quantity is shown over the frames; repeatable.")
-@click.option("--extensometer", "extensometer", multiple=True, type=GaugeType(),
+@click.option("--extensometer", "extensometer", multiple=True, type=GAUGE,
               help="A virtual extensometer between X1,Y1 and X2,Y2 (reference image px); repeatable.")
 @click.option("--max-frames", default=MAX_MAP_FRAMES, show_default=True, type=click.IntRange(min=1),
               help="The most frames with a map; longer runs show this many, evenly spaced.")

@@ -119,6 +119,14 @@ def _shown(value) -> str:
     return repr(value) if isinstance(value, str) else str(value)
 
 
+#: the command-line options that ``specula track`` and ``specula stereo`` share, by record keyword
+_SHARED_CLI_NAMES = {
+    "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
+    "noise_sigma": "--noise-sigma", "robust": "--robust/--robust-mode", "strain_window": "--strain-window",
+    "reference": "--reference", "guess": "--scheduler/--workers", "subset_mask": "--subset-mask",
+    "min_kept_fraction": "--min-kept-fraction", "strain_type": "--strain-type"}
+
+
 class _Record:
     """What :class:`TrackOptions` and :class:`StereoOptions` share: storage, comparison, messages."""
 
@@ -351,13 +359,9 @@ class TrackOptions(_Record):
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
 
     CLI_NAMES: ClassVar[dict[str, str]] = {
-        "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
-        "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter", "tol": "--tol",
-        "noise_sigma": "--noise-sigma", "robust": "--robust/--robust-mode", "strain_window": "--strain-window",
-        "reference": "--reference", "guess": "--scheduler/--workers", "scale_mm_per_px": "--scale",
-        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction",
-        "cracks": "--crack", "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc",
-        "strain_type": "--strain-type"}
+        **_SHARED_CLI_NAMES, "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter",
+        "tol": "--tol", "scale_mm_per_px": "--scale", "cracks": "--crack", "verify_composed": "--verify-composed",
+        "verify_zncc": "--verify-zncc"}
     KIND: ClassVar[str] = "2-D"
     # (strain_type: 2-D exx was the small strain before the option)
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5, "cracks": None,
@@ -517,11 +521,7 @@ class StereoOptions(_Record):
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
 
     CLI_NAMES: ClassVar[dict[str, str]] = {
-        "subset": "--subset", "step": "--step", "order": "--order", "roi": "--roi/--roi-polygon/--mask/--exclude",
-        "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
-        "strain_window": "--strain-window", "noise_sigma": "--noise-sigma", "robust": "--robust/--robust-mode",
-        "reference": "--reference", "guess": "--scheduler/--workers",
-        "subset_mask": "--subset-mask", "min_kept_fraction": "--min-kept-fraction", "strain_type": "--strain-type"}
+        **_SHARED_CLI_NAMES, "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min"}
     KIND: ClassVar[str] = "stereo"
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5,
                                                "strain_type": "green-lagrange"}
