@@ -41,6 +41,7 @@ from ._common import (
     backdrop,
     colormap,
     colour_scale,
+    draw_colourbar,
     map_panels,
     save_map_png,
 )
@@ -315,12 +316,6 @@ def _draw_region(ax, parts) -> None:
         ax.add_patch(patch)
 
 
-def _max_n_locator(nbins):
-    from matplotlib.ticker import MaxNLocator
-
-    return MaxNLocator(nbins=nbins)
-
-
 def field_figure(reference, field, strain=None, *, components=None, title: str | None = None,
                  cmap: str | None = None, alpha: float = 0.75, panel_size: float = 3.0, vmin: float | None = None,
                  vmax: float | None = None, limits: dict | None = None, dpi: float = 100, region=None, cracks=None):
@@ -407,21 +402,21 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
     n = len(components)
     aspect = (y1 - y0) / max(x1 - x0, 1e-9)
     fig, panels = map_panels(n, ncols=min(n, 3), panel_w=panel_size, aspect=aspect, suptitle=bool(title), dpi=dpi)
-    back = None if ref is None else backdrop(ref, panel_size * dpi)  # once for every panel
-    for (ax, cax), name in zip(panels, components):
+    back = None if ref is None else _grey_backdrop(ref, panel_size * dpi)  # once for every panel
+    for (ax, bar), name in zip(panels, components):
         if back is not None:
             _draw_backdrop(ax, back)
         values = maps[name] if maps is not None else _scatter_values(field, strain, name)
         lo, hi, map_cmap = _resolve_scale(name, values, vmin=vmin, vmax=vmax, limits=limits, cmap=cmap)
         if maps is not None:
             im = ax.imshow(maps[name], extent=extent, cmap=map_cmap, vmin=lo, vmax=hi, alpha=alpha,
-                           interpolation="nearest", aspect="auto")
+                           interpolation="nearest", aspect="auto", gid="map")
         else:  # scattered points: colour the points themselves (invalid ones included, as drawn before)
-            im = ax.scatter(pts[:, 0], pts[:, 1], c=values, s=4, cmap=map_cmap, vmin=lo, vmax=hi)
+            im = ax.scatter(pts[:, 0], pts[:, 1], c=values, s=4, cmap=map_cmap, vmin=lo, vmax=hi, gid="map")
         if outline is not None:
             _draw_region(ax, outline)
         for crack in cracks:
-            ax.plot(crack.vertices[:, 0], crack.vertices[:, 1], color="k", linewidth=1.5)
+            ax.plot(crack.vertices[:, 0], crack.vertices[:, 1], color="k", linewidth=1.5, gid="crack")
         ax.set_xlim(x0, x1)
         ax.set_ylim(y1, y0)
         panel_title, unit_label = _LABELS[name], _UNITS[name]
@@ -432,20 +427,24 @@ def field_figure(reference, field, strain=None, *, components=None, title: str |
         ax.set_title(panel_title, fontsize=10)
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
-        cb = fig.colorbar(im, cax=cax)
-        cb.formatter.set_useOffset(False)
-        cb.locator = _max_n_locator(5)  # few labels: each costs a text draw
-        cb.set_label(unit_label)
-        cb.update_ticks()
+        draw_colourbar(ax, im, bar, label=unit_label)
     if title:
         fig.suptitle(title, y=1.0 - 0.12 / fig.get_figheight(), va="top")
     return fig
 
 
+def _grey_backdrop(image, panel_px: float):
+    """:func:`dic.plots._common.backdrop` of ``image`` as ``(rgb, extent)``: the grey levels as (h, w, 3)
+    8-bit RGB (what the ``gray`` colour map makes of them), so that Agg only resamples it per panel."""
+    grey, extent = backdrop(image, panel_px)
+    grey8 = np.round(np.clip(grey, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return np.repeat(grey8[..., None], 3, axis=2), extent
+
+
 def _draw_backdrop(ax, back):
-    """The grey reference image beneath a map panel; ``back`` is :func:`dic.plots._common.backdrop`'s ``(grey, extent)``."""
-    grey, extent = back
-    ax.imshow(grey, cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest", aspect="auto", extent=extent)
+    """The grey reference image beneath a map panel; ``back`` is :func:`_grey_backdrop`'s ``(rgb, extent)``."""
+    rgb, extent = back
+    ax.imshow(rgb, interpolation="nearest", aspect="auto", extent=extent, gid="backdrop")
 
 
 def _scatter_values(field, strain, name) -> np.ndarray:
@@ -561,27 +560,22 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
                                extent)
     aspect = (y1 - y0) / max(x1 - x0, 1e-9)
     right = 0.3 + 0.6 * 10 * max(len(nm) for nm in names) / 72.0 if quantity == "status" else None  # names at 10 pt
-    fig, [(ax, cax)] = map_panels(1, ncols=1, panel_w=panel_size, aspect=aspect, suptitle=False, dpi=dpi, right=right)
+    fig, [(ax, bar)] = map_panels(1, ncols=1, panel_w=panel_size, aspect=aspect, suptitle=False, dpi=dpi, right=right)
     if img is not None:
-        _draw_backdrop(ax, backdrop(img, panel_size * dpi))
+        _draw_backdrop(ax, _grey_backdrop(img, panel_size * dpi))
     if data is not None:
-        im = ax.imshow(data, extent=extent, alpha=alpha, interpolation="nearest", aspect="auto", **kw)
+        im = ax.imshow(data, extent=extent, alpha=alpha, interpolation="nearest", aspect="auto", gid="map", **kw)
     else:
         fin = np.isfinite(vals)
-        im = ax.scatter(f.points[fin, 0], f.points[fin, 1], c=vals[fin], s=6, alpha=alpha, **kw)
+        im = ax.scatter(f.points[fin, 0], f.points[fin, 1], c=vals[fin], s=6, alpha=alpha, gid="map", **kw)
     if outline is not None:
         _draw_region(ax, outline)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y1, y0)
-    cb = fig.colorbar(im, cax=cax)
     if quantity == "status":
-        cb.set_ticks(np.arange(len(names)))
-        cb.set_ticklabels(names)
+        draw_colourbar(ax, im, bar, ticks=np.arange(len(names)), ticklabels=names)
     else:
-        cb.formatter.set_useOffset(False)
-        cb.locator = _max_n_locator(5)
-        cb.update_ticks()
-        cb.set_label(f"{label} ({unit})" if unit else label)
+        draw_colourbar(ax, im, bar, label=f"{label} ({unit})" if unit else label)
     frame = {"left": "left camera frame", "plane": "best-fit plane frame"}.get(f.frame_name, f"{f.frame_name} frame")
     title = f"state {f.index}: {label}" + (f" ({unit})" if unit else "")
     ax.set_title(title + (f", {frame}" if quantity in ("Z", "U", "V", "W") else ""), fontsize=10)

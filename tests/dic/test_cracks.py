@@ -190,7 +190,7 @@ def test_figure_cells_cut_by_a_crack_are_not_drawn_and_the_crack_is():
     drawn = np.isfinite(maps["u"])
     assert not drawn[:, 3].any() and drawn[:, [0, 1, 2, 4, 5, 6, 7]].all()
     fig = field_figure(None, field, components=["u"], cracks=crack)
-    line = fig.axes[0].lines[-1]
+    [line] = [ln for ln in fig.axes[0].lines if ln.get_gid() == "crack"]
     assert np.array_equal(line.get_xdata(), [33.0, 33.0]) and np.array_equal(line.get_ydata(), [-20.0, 100.0])
 
 

@@ -56,7 +56,7 @@ def _field3d(shape=(60, 80), step=4, W=None, U=None):
 
 def _field_image(ax):
     """The colour-mapped (non-grey) image of a map panel."""
-    ims = [im for im in ax.images if im.get_cmap().name != "gray"]
+    ims = [im for im in ax.images if im.get_gid() == "map"]
     assert len(ims) == 1
     return ims[0]
 
@@ -65,7 +65,7 @@ def test_one_signed_range_on_a_sequential_map_spanning_zero_on_a_centred_divergi
     """v from -12 to -5 px was drawn on a diverging map centred on zero: one shade of blue (issue 25)."""
     f = _grid_field((120, 160), 5, lambda x, y: 0.02 * (x - 80.0), lambda x, y: -12.0 + 7.0 * y / 120.0)
     fig = field_figure(None, f, components=["u", "v"])
-    u_im, v_im = (_field_image(ax) for ax in fig.axes[0::2])
+    u_im, v_im = (_field_image(ax) for ax in fig.axes)
     lo, hi = u_im.get_clim()  # u spans zero: diverging, symmetric
     assert u_im.get_cmap().name == DIVERGING_CMAP and lo == -hi and hi > 0
     lo, hi = v_im.get_clim()  # v one-signed: sequential over the values' own range (1st-99th percentiles)
@@ -92,17 +92,19 @@ def test_colourbars_as_tall_as_their_panels_and_no_empty_band(shape):
     figs = [field_figure(ref, f, strain(f, window=3), title="frame 1"), field3d_figure(_field3d(shape), "W", ref)]
     for fig in figs:
         fig.canvas.draw()  # positions after any aspect adjustment
-        panels, bars = fig.axes[0::2], fig.axes[1::2]
-        assert len(panels) == len(bars) >= 1
+        panels = fig.axes  # one Axes per panel, its colourbar drawn beside it in the same Axes
+        assert len(panels) >= 1
         fig_h = fig.get_figheight()
-        for ax, cax in zip(panels, bars):
-            p, c = ax.get_position(original=False), cax.get_position(original=False)
-            assert c.y0 == pytest.approx(p.y0, abs=1e-9) and c.height == pytest.approx(p.height, abs=1e-9)
+        for ax in panels:
+            [bar] = [im for im in ax.images if im.get_gid() == "colourbar"]
+            p, c = ax.get_window_extent(), bar.get_window_extent()
+            assert c.y0 == pytest.approx(p.y0, abs=1e-6) and c.height == pytest.approx(p.height, abs=1e-6)
             assert c.x0 > p.x1  # beside the panel
             # the panel keeps the image's aspect ratio (square pixels)
             x0, x1 = ax.get_xlim()
             y1, y0 = ax.get_ylim()
-            w_in, h_in = p.width * fig.get_figwidth(), p.height * fig_h
+            pos = ax.get_position(original=False)
+            w_in, h_in = pos.width * fig.get_figwidth(), pos.height * fig_h
             assert h_in / w_in == pytest.approx((y1 - y0) / (x1 - x0), rel=1e-6)
         # no empty band: the lowest panel within 0.7 in of the bottom, the highest within 0.9 in of the top
         assert min(ax.get_position().y0 for ax in panels) * fig_h < 0.7
@@ -114,18 +116,20 @@ def test_every_panel_has_axis_labels_a_title_with_unit_and_the_reference_beneath
     f = _grid_field((80, 100), 5, lambda x, y: 0.01 * x, lambda x, y: -3 - 0.02 * y)
     fig = field_figure(ref, f, strain(f, window=3), components=["u", "v", "magnitude", "exx", "Eyy"])
     units = {"u": "(px)", "v": "(px)", "magnitude": "(px)", "exx": "(1)", "Eyy": "(1)"}
-    for ax, name in zip(fig.axes[0::2], units):
+    assert len(fig.axes) == len(units)
+    for ax, name in zip(fig.axes, units):
         assert ax.get_xlabel() == "x (px)" and ax.get_ylabel() == "y (px)"
         title = ax.get_title()
         assert units[name] in title and ("displacement" in title or "strain" in title), title
-        assert ax.images[0].get_cmap().name == "gray"  # the reference image beneath the map
+        assert ax.images[0].get_gid() == "backdrop"  # the reference image beneath the map
         assert _field_image(ax).get_alpha() == pytest.approx(0.75)
     f3 = _field3d((80, 100))
     for q, unit in (("W", "(mm)"), ("Z", "(mm)"), ("exx", "(1)")):
-        ax, cax = field3d_figure(f3, q, ref).axes
+        [ax] = field3d_figure(f3, q, ref).axes
+        [bar_label] = [t.get_text() for t in ax.texts if t.get_gid() == "colourbar-label"]
         assert "(px)" in ax.get_xlabel() and "(px)" in ax.get_ylabel()
-        assert unit in ax.get_title() and unit in cax.get_ylabel()
-        assert ax.images[0].get_cmap().name == "gray"
+        assert unit in ax.get_title() and unit in bar_label
+        assert ax.images[0].get_gid() == "backdrop"
 
 
 def _speckle(size, seed=0):
@@ -164,7 +168,7 @@ def test_frozen_ticks_are_matplotlibs_own():
                      if lo - 1e-9 * (hi - lo) <= v <= hi + 1e-9 * (hi - lo) and t.get_text()]
     freeze_ticks(fig)
     fig.canvas.draw()
-    frozen = [t.get_text() for ax in fig.axes for t in ax.texts]
+    frozen = [t.get_text() for ax in fig.axes for t in ax.texts if t.get_gid() == "tick-label"]
     assert len(live) > 10 and sorted(frozen) == sorted(live)
     renderer = fig.canvas.get_renderer()
     for ax in fig.axes:
@@ -172,6 +176,58 @@ def test_frozen_ticks_are_matplotlibs_own():
         label = ax.yaxis.label if ax.yaxis.label.get_text() else None
         if label is None or not ax.texts:
             continue
-        tick_boxes = [t.get_window_extent(renderer) for t in ax.texts]
+        tick_boxes = [t.get_window_extent(renderer) for t in ax.texts if t.get_gid() == "tick-label"]
         lab_box = label.get_window_extent(renderer)
         assert not any(lab_box.overlaps(b) for b in tick_boxes)  # the axis label clears the tick labels
+
+
+def test_colourbar_ticks_are_round_values_at_their_colours():
+    """The colourbar drawn in the panel (no colourbar Axes): its tick labels are MaxNLocator's round values
+    inside the colour range, formatted without an offset, each at the height where the bar has its colour."""
+    f = _grid_field((60, 80), 4, lambda x, y: 1000.0 + 0.5 * x, lambda x, y: -2 - 0.02 * y)
+    fig = field_figure(None, f, components=["u"])
+    [ax] = fig.axes
+    im = _field_image(ax)
+    [bar] = [i for i in ax.images if i.get_gid() == "colourbar"]
+    lo, hi = im.get_clim()
+    labels = [t for t in ax.texts if t.get_gid() == "colourbar-tick-label"]
+    values = [float(t.get_text().replace("\u2212", "-")) for t in labels]
+    # no offset ("+1e3" with labels 0, 10, ...): the labels are the values themselves
+    assert 990.0 < lo < hi < 1050.0 and len(values) >= 3 and all(lo <= v <= hi for v in values)
+    steps = np.diff(values)
+    assert np.allclose(steps, steps[0]) and steps[0] > 0
+    grad = bar.get_array()
+    for t, v in zip(labels, values):
+        y = t.get_position()[1]  # axes fraction along the bar
+        assert grad[int(min(y * len(grad), len(grad) - 1)), 0] == pytest.approx(v, abs=(hi - lo) / len(grad) + 1e-12)
+    [label] = [t.get_text() for t in ax.texts if t.get_gid() == "colourbar-label"]
+    assert label == "u (px)"
+
+
+def test_saved_tick_labels_drawn_by_pillow_where_matplotlib_draws_them(tmp_path):
+    """save_map_png draws the plain tick labels with Pillow (fast): the PNG matches Matplotlib's own drawing of
+    the same figure everywhere but inside the labels, and every label has ink inside Matplotlib's box of it."""
+    from PIL import Image
+
+    from dic.plots._common import save_map_png
+
+    ref = np.random.default_rng(0).uniform(0, 255, (90, 140))
+    f = _grid_field((90, 140), 6, lambda x, y: 0.01 * x, lambda x, y: -2 - 0.02 * y)
+    fig = field_figure(ref, f, components=["u", "v"], dpi=100)
+    fast = np.asarray(Image.open(save_map_png(fig, tmp_path / "fast.png", dpi=100)).convert("L"), dtype=float)
+    # the same (now frozen: save_map_png froze its ticks) figure drawn by Matplotlib alone
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    slow = np.asarray(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert("L"), dtype=float)
+    assert fast.shape == slow.shape
+    height = fast.shape[0]
+    labels = [t for ax in fig.axes for t in ax.texts if t.get_gid() in ("tick-label", "colourbar-tick-label")]
+    assert len(labels) > 15
+    outside = np.ones(fast.shape, bool)
+    for t in labels:
+        b = t.get_window_extent(renderer)
+        r0, r1 = int(height - b.y1) - 2, int(np.ceil(height - b.y0)) + 2
+        c0, c1 = int(b.x0) - 2, int(np.ceil(b.x1)) + 2
+        outside[max(r0, 0):r1, max(c0, 0):c1] = False
+        assert fast[r0 + 2:r1 - 2, c0 + 2:c1 - 2].min() < 100, t.get_text()  # Pillow's ink inside Matplotlib's box
+    assert np.abs(fast - slow)[outside].max() < 1.0  # nothing else differs

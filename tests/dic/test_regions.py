@@ -364,7 +364,7 @@ def test_field_figure_draws_the_region_and_the_excluded_shapes(tmp_path):
     pts = grid(SHAPE, 2, roi=roi)
     field = SimpleNamespace(points=pts, u=0.01 * pts[:, 0], v=0.02 * pts[:, 1] - 1.0, valid=np.ones(len(pts), bool))
     fig = field_figure(None, field, region=roi, dpi=100)
-    for ax in fig.axes[::2]:  # the map panels (each followed by its colourbar)
+    for ax in fig.axes:  # the map panels (each with its colourbar beside it)
         outlines = [p for p in ax.patches if p.get_gid() == "region"]
         excluded = [p for p in ax.patches if p.get_gid() == "excluded"]
         assert len(outlines) == 1 and outlines[0].get_linestyle() == "-"

@@ -183,7 +183,8 @@ def test_2d_recomputed_strain_equals_a_run_with_that_window_and_type(tmp_path):
     from dic.plots.fields import field_figure
 
     fig = field_figure(read_image(IMG["ref"]), got.frames[2], got.frames[2].strain)
-    texts = [ax.get_title() for ax in fig.axes] + [ax.get_ylabel() for ax in fig.axes]
+    texts = [ax.get_title() for ax in fig.axes] + [t.get_text() for ax in fig.axes for t in ax.texts
+                                                   if t.get_gid() == "colourbar-label"]
     assert "Euler-Almansi strain exx (1)" in texts and "exx, Euler-Almansi" in texts
     from dic.plots.postprocess import history_figure
     from dic.postprocess import point_history
