@@ -216,7 +216,14 @@ def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
 
     Columns: ``point`` (the row index), ``x``, ``y`` (px) (stereo: ``X``, ``Y``, ``Z`` mm), then
     every quantity of :mod:`dic.tabular` (units in docs/exports.md); ``True``/``False`` flags,
-    empty cells for NaN. ``stem`` defaults to ``frame`` (2-D) or ``stereo``. Returns the paths.
+    empty cells for NaN. ``stem`` defaults to ``frame`` (2-D) or ``stereo``. Returns the paths
+    (the CSV files; :func:`csv_metadata_path` names the description beside them).
+
+    Beside the CSV files, ``<directory>/<stem>.csv-metadata.json`` describes them in the W3C "CSV on the
+    Web" metadata vocabulary (a table group listing the files, one schema): each column's name, its
+    description (``dc:description``: the quantity by name, e.g. "Green-Lagrange strain xx" for
+    ``exx`` — the strain's type, which a CSV cell cannot carry) and its unit (``schema:unitText``), and
+    the run's strain type in the group's description.
     A result file (path) is read one frame at a time (twice: the columns, then the files) and each
     CSV is written as its frame is read, so memory does not grow with the number of frames.
     For one field use ``field.to_dataframe().to_csv(path)``.
@@ -236,10 +243,54 @@ def write_csv(results, directory, *, stem: str | None = None) -> list[Path]:
             per_frame = [c for c in ds.coords if ds.coords[c].dims == ("frame",) and c != "frame"]
             one = ds.isel(frame=0).drop_vars(["frame", *per_frame])
             path = directory / f"{stem}_{int(index):06d}.csv"
+            df = dataframe(one)
             with atomic_output(path) as tmp:  # whole or not at all
-                dataframe(one).to_csv(tmp)
+                df.to_csv(tmp)
+            if not written:
+                columns = _csv_columns(df, one)
             written.append(path)
+        _write_csv_metadata(csv_metadata_path(directory, stem), written, columns, table.kind, table.attrs)
     return written
+
+
+def csv_metadata_path(directory, stem: str) -> Path:
+    """The CSV-on-the-Web metadata file :func:`write_csv` writes beside ``<stem>_<index>.csv``."""
+    return Path(os.fspath(directory)) / f"{_check_stem(stem)}.csv-metadata.json"
+
+
+def _csv_columns(df, ds) -> list[dict]:
+    """CSVW column descriptions of a frame's DataFrame ``df`` (index ``point`` first) from the Dataset ``ds``
+    it was made from: name, description (the variable's long name) and unit."""
+    columns = []
+    for name in [df.index.name or "point", *df.columns]:
+        col = {"name": str(name), "titles": str(name)}
+        var = ds[name] if name in ds.variables else None
+        attrs = {} if var is None else var.attrs
+        description = attrs.get("long_name") or ("the point's index in the result's point list" if name == "point"
+                                                 else None)
+        if description:
+            col["dc:description"] = str(description)
+        if attrs.get("units"):
+            col["schema:unitText"] = str(attrs["units"])
+        columns.append(col)
+    return columns
+
+
+def _write_csv_metadata(path: Path, files: list[Path], columns: list[dict], kind: str, attrs) -> None:
+    """The W3C CSVW metadata (https://www.w3.org/TR/tabular-metadata/) of the CSV ``files``."""
+    import json
+
+    from ._strain import strain_type_label
+
+    strain_type = (attrs or {}).get("strain_type")
+    what = "stereo states" if kind == "stereo" else "2-D frames"
+    description = f"Specula results, one CSV file per frame ({what})"
+    if strain_type:
+        description += f"; exx, eyy, exy are {strain_type_label(strain_type)} strains ({strain_type})"
+    meta = {"@context": "http://www.w3.org/ns/csvw", "dc:description": description,
+            "tables": [{"url": p.name} for p in files], "tableSchema": {"columns": columns}}
+    with atomic_output(path) as tmp:
+        Path(tmp).write_text(json.dumps(meta, indent=1) + "\n")
 
 
 def _grid_index(x, y):
@@ -260,8 +311,9 @@ def write_mat(results, path, *, max_bytes: int = MAT_MAX_BYTES) -> Path:
     (F x N) matrix (row k = frame ``frame(k)``; stereo ``X``, ``Y``, ``Z`` too); flags as uint8;
     ``grid_shape`` [rows cols], ``grid_row``, ``grid_col`` (1 x N, 1-based) when the points are a
     grid (``M = nan(grid_shape); M(sub2ind(grid_shape, grid_row, grid_col)) = u(k, :)``); image
-    paths per frame as cell arrays; ``units`` and ``info`` (the file's attributes: settings,
-    reference, rig as text) as structs.
+    paths per frame as cell arrays; ``units``, ``long_names`` (each quantity by name, e.g.
+    ``long_names.exx`` "Green-Lagrange strain xx": the strain's type) and ``info`` (the file's
+    attributes: settings, reference, rig as text, ``strain_type``) as structs.
 
     A v5 file is written whole, each matrix column by column (a point over every frame), so it
     cannot be streamed frame by frame: the matrices are filled one frame at a time into arrays of
@@ -291,7 +343,7 @@ def _write_mat(results, p: Path, max_bytes: int) -> Path:
             del cols
         table = _FrameTable(frames)
         _check_mat_size(table.frame_bytes(), table.n_frames, max_bytes)
-        out, units, matrices = {"frame": np.asarray(frames.indices, dtype=np.float64)}, {}, {}
+        out, units, long_names, matrices = {"frame": np.asarray(frames.indices, dtype=np.float64)}, {}, {}, {}
         for k, (index, row) in enumerate(table.rows()):
             if k == 0:  # the variables, in the order and with the units of the table (its first frame's Dataset)
                 ds = table.dataset(index, row)
@@ -307,6 +359,8 @@ def _write_mat(results, p: Path, max_bytes: int) -> Path:
                     unit = var.attrs.get("units")
                     if unit:
                         units[name] = unit
+                    if var.attrs.get("long_name"):  # e.g. exx: "Green-Lagrange strain xx"
+                        long_names[name] = var.attrs["long_name"]
                 attrs = ds.attrs
                 del ds
             for name, arr in matrices.items():
@@ -316,6 +370,7 @@ def _write_mat(results, p: Path, max_bytes: int) -> Path:
         out["grid_row"], out["grid_col"] = grid[0].astype(np.float64), grid[1].astype(np.float64)
         out["grid_shape"] = np.asarray(grid[2], dtype=np.float64)
     out["units"] = units
+    out["long_names"] = long_names
     out["info"] = {str(k): (v if isinstance(v, str) else np.asarray(v)) for k, v in attrs.items()}
     with atomic_output(p) as tmp:  # whole or not at all
         scipy.io.savemat(tmp, out, do_compression=True, oned_as="row")

@@ -179,6 +179,24 @@ def test_2d_recomputed_strain_equals_a_run_with_that_window_and_type(tmp_path):
     assert ds["exx"].attrs["long_name"] == "Euler-Almansi strain xx" and ds.attrs["strain_type"] == "euler-almansi"
     assert ds["Exx"].attrs["long_name"] == "Green-Lagrange strain xx"
     assert got.to_dataframe().attrs["strain_type"] == "euler-almansi"
+    # ... the CSV files' CSVW description and the MATLAB file's long names and info
+    import json
+
+    import scipy.io
+
+    from dic.export import csv_metadata_path, write_csv, write_mat
+
+    csvs = write_csv(tmp_path / "re.h5", tmp_path / "csv")
+    meta = json.loads(csv_metadata_path(tmp_path / "csv", "frame").read_text())
+    assert [t["url"] for t in meta["tables"]] == [p.name for p in csvs]
+    cols = {c["name"]: c for c in meta["tableSchema"]["columns"]}
+    header = csvs[0].read_text().splitlines()[0].split(",")
+    assert list(cols) == header  # every column of the files, in their order
+    assert cols["exx"]["dc:description"] == "Euler-Almansi strain xx" and cols["u"]["schema:unitText"] == "px"
+    assert cols["Exx"]["dc:description"] == "Green-Lagrange strain xx"
+    assert "Euler-Almansi strains (euler-almansi)" in meta["dc:description"]
+    mat = scipy.io.loadmat(write_mat(tmp_path / "re.h5", tmp_path / "re.mat"), simplify_cells=True)
+    assert mat["long_names"]["exx"] == "Euler-Almansi strain xx" and mat["info"]["strain_type"] == "euler-almansi"
     from dic.io import read_image
     from dic.plots.fields import field_figure
 
@@ -225,6 +243,18 @@ def test_stereo_recomputed_strain_equals_a_run_with_that_window(tmp_path):
 
     fig = field3d_figure(got.fields[2], "exx")
     assert "small (engineering) strain exx" in fig.axes[0].get_title()
+    import json
+
+    import scipy.io
+
+    from dic.export import csv_metadata_path, write_csv, write_mat
+
+    write_csv(tmp_path / "re.h5", tmp_path / "csv")
+    meta = json.loads(csv_metadata_path(tmp_path / "csv", "stereo").read_text())
+    cols = {c["name"]: c for c in meta["tableSchema"]["columns"]}
+    assert cols["exx"]["dc:description"] == "small (engineering) strain xx" and cols["W"]["schema:unitText"] == "mm"
+    mat = scipy.io.loadmat(write_mat(tmp_path / "re.h5", tmp_path / "re.mat"), simplify_cells=True)
+    assert mat["long_names"]["eyy"] == "small (engineering) strain yy" and mat["info"]["strain_type"] == "small"
     # the library function names its keywords; the command its options
     with pytest.raises(ValueError, match="strain window 99 .* at most"):
         recompute_strain(w3, tmp_path / "x.h5", window=99)
