@@ -19,7 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "target": ("dic.commands.target:target", "Calibration targets: write phase-fringe / dot / checkerboard images"),
     "calibrate": ("dic.commands.calibrate:calibrate", "Calibrate intrinsics, mirror extrinsics or a stereo rig"),
     "stereo": ("dic.commands.stereo:stereo", "Stereo-DIC: 3D shape, displacement and strain"),
-    "strain": ("dic.commands.postprocess:strain", "Recompute the strain of a 2D result file with another window"),
+    "strain": ("dic.commands.postprocess:strain", "Recompute the strain of a 2D or stereo result file with another window or type"),
     "extensometer": ("dic.commands.postprocess:extensometer", "Virtual extensometer: gauge length and strain per frame"),
     "history": ("dic.commands.postprocess:history", "A quantity at one point over the frames"),
     "profile": ("dic.commands.postprocess:profile", "A quantity along a line, per frame"),
