@@ -500,11 +500,12 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             summary.seconds = time.perf_counter() - t_start
             return summary
         carry = _carry_for(options, ref_img.shape) if custom_tracker is None else None
+        reference_masks = (lambda: _reference_masks(options, ref_img.shape, points0)) if carry is not None else None
         kind = _Track2D(ref_img=ref_img, everywhere=everywhere, points0=points0, order=order, guess=guess,
                         reference_tracker=reference_tracker, tracker_for=tracker_for,
                         release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
                         stored_state=stored_state, finish=finish, out=out, verify_threshold=verify_threshold,
-                        device=options.get("device"), carry=carry)
+                        device=options.get("device"), carry=carry, reference_masks=reference_masks)
         try:
             run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out, lock=wb.lock)
         finally:
@@ -524,13 +525,15 @@ class _Track2D:
     noun, images_noun, inputs_noun = "frame", "the image", "frames"
 
     def __init__(self, *, ref_img, everywhere, points0, order, guess, reference_tracker, tracker_for, release_reference,
-                 writer, stored_state, finish, out, verify_threshold=None, device=None, carry=None):
+                 writer, stored_state, finish, out, verify_threshold=None, device=None, carry=None,
+                 reference_masks=None):
         self.ref_img, self.everywhere, self.points0, self.order, self.guess = ref_img, everywhere, points0, order, guess
         self._reference_tracker, self._tracker_for, self._release = reference_tracker, tracker_for, release_reference
         self.writer, self.stored_state, self._finish, self.out = writer, stored_state, finish, out
         self.verify_threshold, self.device = verify_threshold, device
         self._verifier = None  # the check of composed frames (dic.sequence.verification), built at its first frame
         self._carry = carry  # a moved reference's -> its tracker's keywords of the carried region and cracks (or None)
+        self._reference_masks = reference_masks  # () -> the reference subsets' pixel masks, for the check (or None)
         self.current = _Ref(0, ref_img, reference_tracker(), everywhere)
         self.prev: Field2D | None = None  # the last frame's field (computed or read back)
 
@@ -567,8 +570,9 @@ class _Track2D:
     def accept(self, k: int, result: Field2D, image) -> Field2D:
         if self.verify_threshold is not None and result.reference_index != 0:
             if self._verifier is None:
+                masks = self._reference_masks() if self._reference_masks is not None else None
                 self._verifier = ComposedVerifier(self.ref_img, self.points0, int(result.subset), self.verify_threshold,
-                                                  device=self.device)
+                                                  device=self.device, pixel_mask=masks)
             self._verifier.apply(result, image)  # before it can anchor a reference or guess the next frame
         self.prev = result
         return result
@@ -625,6 +629,19 @@ def _carry_for(options: dict, shape):
         return kw
 
     return carry
+
+
+def _reference_masks(options: dict, shape, points0):
+    """(N, subset²) bool: the pixels the default tracker's reference subsets keep (region and cracks, as
+    :class:`dic.Tracker` masks them), or None where every pixel is kept; the check of composed frames compares
+    those pixels only (:class:`dic.sequence.verification.ComposedVerifier` ``pixel_mask``)."""
+    from ..correlation.subset_masks import tracking_pixel_masks
+    from ..cracks import as_cracks, blocked_pixels
+
+    cracks = as_cracks(options.get("cracks"))
+    blocked = (lambda pts, size: blocked_pixels(pts, size, cracks)) if cracks else None
+    return tracking_pixel_masks(points0, int(options.get("subset", 21)), shape, options.get("roi"),
+                                options.get("subset_mask", "region"), blocked)
 
 
 def _same_image(image, reference) -> bool:
