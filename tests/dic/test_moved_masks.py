@@ -284,3 +284,21 @@ def test_a_moved_reference_cuts_its_subsets_where_the_crack_has_moved(crack_sequ
     for k in (1, 2):  # against the reference image: unchanged
         a, b = got[k].field, before[k].field
         assert np.array_equal(a.params, b.params) and np.array_equal(a.status, b.status)
+
+
+def test_chunks_of_a_moved_reference_are_masked_alike(hole_sequence, tmp_path):
+    """Over the memory budget a moved reference is tracked in chunks of POIs: each chunk's subsets cut by the same
+    carried region and crack (the results bit for bit those of one tracker)."""
+    from dic.sequence.chunks import bytes_per_poi
+
+    ref, frames, region = hole_sequence
+    kw = dict(roi=region, step=6, subset=21, search="zncc", search_radius=4, reference="every:2", device="cpu",
+              strain_window=0, cracks=Crack([[60.5, -10.0], [60.5, 210.0]]))
+    whole, chunked = tmp_path / "whole.h5", tmp_path / "chunked.h5"
+    track_sequence(ref, frames[:3], whole, **kw)
+    n = len(read_results(whole).frames[1].points)
+    with pytest.warns(UserWarning, match="tracked in chunks"):
+        track_sequence(ref, frames[:3], chunked, max_memory=bytes_per_poi(1) * (n // 3 + 1), **kw)
+    a, b = read_results(whole).frames[3], read_results(chunked).frames[3]
+    assert a.reference_index == 2 and a.valid.mean() > 0.95
+    assert np.array_equal(a.params, b.params, equal_nan=True) and np.array_equal(a.status, b.status)
