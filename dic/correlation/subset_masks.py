@@ -291,18 +291,30 @@ def carry_region_mask(region_mask, points0, params, usable, *, reach: int | None
         if x_lo > x_hi or y_lo > y_hi:
             return out
     xs = np.arange(x_lo, x_hi + 1)
-    k = min(4, moved.shape[0]) if cracks else 1
+    k = min(4, moved.shape[0])
+    crack_tree = None
+    if cracks:  # the cracks sampled at most 0.5 px apart: which pixels lie near one (a k-d tree of the samples)
+        samples = []
+        for c in cracks:
+            for a, b in zip(*c.segments):
+                n_s = max(1, int(np.ceil(np.hypot(*(b - a)) / 0.5)))
+                samples.append(a + np.linspace(0.0, 1.0, n_s + 1)[:, None] * (b - a))
+        crack_tree = cKDTree(np.concatenate(samples))
     rows = max(1, 131072 // xs.size)
     for y0 in range(y_lo, y_hi + 1, rows):
         yy, xx = np.meshgrid(np.arange(y0, min(y0 + rows, y_hi + 1)), xs, indexing="ij")
         pix = np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64)
-        _, j = tree.query(pix, k=k)
-        if k == 1:
-            j = j.reshape(-1)
-        else:  # the nearest point on the pixel's side of every carried crack (else the nearest)
-            across = segments_cross(moved[j], pix[:, None, :], cracks)
-            first = np.argmax(~across, axis=1)
-            j = j[np.arange(j.shape[0]), first]
+        dist, j = tree.query(pix, k=1)
+        if crack_tree is not None:
+            # the segment from a pixel to its nearest point can cross a crack only where the crack comes within
+            # that distance of the pixel (the samples are within 0.25 px of the crack): there, the nearest point
+            # on the pixel's side of every carried crack (else the nearest)
+            dc, _ = crack_tree.query(pix, distance_upper_bound=float(dist.max()) + 1.0)
+            maybe = np.flatnonzero(dc <= dist + 0.5)
+            if maybe.size and k > 1:
+                _, jj = tree.query(pix[maybe], k=k)
+                across = segments_cross(moved[jj], pix[maybe, None, :], cracks)
+                j[maybe] = jj[np.arange(maybe.size), np.argmax(~across, axis=1)]
         X = x0[j] + np.einsum("nab,nb->na", Finv[j], pix - moved[j])
         with np.errstate(invalid="ignore"):
             Xi = round_half_away(X)

@@ -607,9 +607,9 @@ def _carry_for(options: dict, shape):
     keywords, the run's region (a mask or polygon ROI, or excluded shapes, with ``subset_mask="region"``) and
     declared cracks carried into the moved reference's frame by its measured field
     (:meth:`dic.correlation.lagrangian.MovedReference.carry_region`, :meth:`~.MovedReference.carry_cracks`), so
-    that its subsets are masked as the reference image's are (docs/dic2d.md, "Moved references")."""
-    from ..cracks import as_cracks
+    that its subsets are masked as the reference image's are (docs/dic2d.md, "Masks and cracks carried to a moved reference")."""
     from ..correlation.subset_masks import region_pixel_mask
+    from ..cracks import as_cracks
 
     region_px = None
     if options.get("roi") is not None and options.get("subset_mask", "region") == "region":

@@ -62,10 +62,12 @@ def test_a_crack_is_carried_by_the_mean_of_its_two_faces():
     u = np.where(pts[:, 0] < 30.5, T - j / 2, T + j / 2)
     params = _params_1st(u, np.full(len(pts), V))
     crack = Crack([[30.5, -10.0], [30.5, 50.0]])
-    (carried,) = carry_cracks(crack, pts, params, np.ones(len(pts), bool))
+    (carried,) = carry_cracks(crack, pts, params, np.ones(len(pts), bool), spacing=4.0)
     assert carried.vertices.shape == (16, 2)  # 60 px at the 4 px spacing
     assert np.allclose(carried.vertices[:, 0], 30.5 + T, atol=1e-12)
     assert np.allclose(carried.vertices[:, 1], np.linspace(-10, 50, 16) + V, atol=1e-12)
+    (default,) = carry_cracks(crack, pts, params, np.ones(len(pts), bool))  # 10 px at most (the POIs are 4 apart)
+    assert np.allclose(default.vertices, np.column_stack([np.full(7, 30.5 + T), np.linspace(-10, 50, 7) + V]))
     # one face only (the right face's points unusable): that face's displacement
     (one,) = carry_cracks(crack, pts, params, pts[:, 0] < 30.5)
     assert np.allclose(one.vertices[:, 0], 30.5 + T - j / 2, atol=1e-12)
