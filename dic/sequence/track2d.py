@@ -227,8 +227,12 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     make_tracker : callable(image, points) -> tracker, optional
         Builds the tracker of a reference image (``points`` None: the default grid of ``options``;
         otherwise the moved POIs or a chunk of them). Default: :class:`dic.Tracker` with
-        ``options``. With a custom one, ``options`` are only used to plan chunks: give ``points`` and
-        ``order`` (the POIs it would use) so that an over-budget run is chunked from the start.
+        ``options``. One that takes a ``carried`` keyword gets, for a moved reference with a mask or polygon
+        region or cracks, a dict of :class:`dic.Tracker` keywords (``pixel_region``, ``blocked_pixels``,
+        ``cracks``) that mask its subsets by the region and cracks carried into that frame (docs/dic2d.md,
+        "Masks and cracks carried to a moved reference"); the default and ``specula track``'s do. With a
+        custom one, ``options`` are only used to plan chunks: give ``points`` and ``order`` (the POIs it
+        would use) so that an over-budget run is chunked from the start.
     guess : "previous" | "none", optional
         Where each frame's correlation starts: ``"previous"`` (default without ``client``) from the
         previous frame's result (a chain: frame k waits for frame k-1); ``"none"`` (default, and the
@@ -499,8 +503,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             trim_memory()
             summary.seconds = time.perf_counter() - t_start
             return summary
-        carry = _carry_for(options, ref_img.shape) if custom_tracker is None else None
-        reference_masks = (lambda: _reference_masks(options, ref_img.shape, points0)) if carry is not None else None
+        carry, reference_masks = None, None
+        if custom_tracker is None or _takes_carried(custom_tracker):  # a moved reference's region and cracks
+            described = options  # the run's region and cracks: the record's with a custom tracker (the command line's)
+            if custom_tracker is not None and record is not None:
+                described = record.tracker_kwargs()
+            carry = _carry_for(described, ref_img.shape)
+            if carry is not None:
+                reference_masks = lambda: _reference_masks(described, ref_img.shape, points0)  # noqa: E731
         kind = _Track2D(ref_img=ref_img, everywhere=everywhere, points0=points0, order=order, guess=guess,
                         reference_tracker=reference_tracker, tracker_for=tracker_for,
                         release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
@@ -629,6 +639,17 @@ def _carry_for(options: dict, shape):
         return kw
 
     return carry
+
+
+def _takes_carried(make_tracker) -> bool:
+    """Whether a custom ``make_tracker`` takes the ``carried`` keyword (the Tracker keywords of a moved reference's
+    carried region and cracks, :func:`_carry_for`), as the default one and ``specula track``'s do."""
+    import inspect
+
+    try:
+        return "carried" in inspect.signature(make_tracker).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _reference_masks(options: dict, shape, points0):
