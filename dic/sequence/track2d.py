@@ -405,7 +405,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
     def tracker_for(image, points, carried=None):
         """A tracker of ``image`` at ``points`` (the moved POIs), in chunks when over the memory budget;
-        ``carried``: the default tracker's keywords of the region and cracks carried into the image (:func:`_carry`)."""
+        ``carried``: the tracker keywords of the region and cracks carried into the image (:func:`_carry_for`)."""
         build = make_tracker if carried is None else functools.partial(make_tracker, carried=carried)
         if len(points) * bytes_per_poi(order) > budget:
             return ChunkedTracker(build, image, points, order=order, chunk=budget // bytes_per_poi(order),
@@ -613,11 +613,13 @@ class _Track2D:
 
 
 def _carry_for(options: dict, shape):
-    """What the default tracker of a moved reference is cut by (None: nothing): ``carry(moved)`` -> its Tracker
-    keywords, the run's region (a mask or polygon ROI, or excluded shapes, with ``subset_mask="region"``) and
-    declared cracks carried into the moved reference's frame by its measured field
+    """What a moved reference's tracker is cut by, from the run's tracker ``options`` (None: nothing to carry):
+    ``carry(moved)`` -> its :class:`dic.Tracker` keywords (``pixel_region``, ``blocked_pixels``, ``cracks``): the
+    run's region (a mask or polygon ROI, or excluded shapes, with ``subset_mask="region"``) and declared cracks
+    carried into the moved reference's frame by its measured field
     (:meth:`dic.correlation.lagrangian.MovedReference.carry_region`, :meth:`~.MovedReference.carry_cracks`), so
-    that its subsets are masked as the reference image's are (docs/dic2d.md, "Masks and cracks carried to a moved reference")."""
+    that its subsets are masked as the reference image's are (docs/dic2d.md, "Masks and cracks carried to a
+    moved reference")."""
     from ..correlation.subset_masks import region_pixel_mask
     from ..cracks import as_cracks
 
