@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["CRACK_MARGIN_PX", "Crack", "CrackOpening", "as_cracks", "parse_crack", "cracks_settings", "blocked_pixels",
-           "segments_cross", "subset_crosses", "crack_opening"]
+           "segments_cross", "subset_crosses", "crack_opening", "carry_cracks", "CARRY_NEIGHBOURS", "CARRY_SPACING_PX"]
 
 #: how many (point, pixel, crack segment) triples one vectorised pass of blocked_pixels holds at most
 _CHUNK = 4_000_000
@@ -542,3 +542,120 @@ def crack_opening(field, crack, *, spacing: float | None = None, radius: float |
                         valid=np.isfinite(opening), crack=crack, radius=float(radius),
                         gap=float(gap))
 
+
+
+# -- a crack carried into a moved reference --------------------------------------------------------------------
+#: how many nearest POIs :func:`carry_cracks` takes on each side of a vertex (affine extrapolations averaged)
+CARRY_NEIGHBOURS = 4
+#: the least default spacing of a carried crack's resampled vertices, px (:func:`carry_cracks`)
+CARRY_SPACING_PX = 10.0
+
+
+def _vertex_normals(crack: Crack, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """The polyline resampled at most ``spacing`` px apart (its own vertices kept) and a unit normal at each vertex
+    (the segment's; at an inner vertex of the polyline the bisector of its two segments')."""
+    v = crack.vertices
+    seg = np.diff(v, axis=0)
+    length = np.hypot(seg[:, 0], seg[:, 1])
+    seg_normal = np.column_stack([-seg[:, 1], seg[:, 0]]) / length[:, None]
+    out, normals = [v[:1]], []
+    for k in range(len(seg)):
+        n_sub = max(1, int(math.ceil(length[k] / spacing)))
+        t = np.arange(1, n_sub + 1)[:, None] / n_sub
+        out.append(v[k] + t * seg[k])
+        normals.append(np.repeat(seg_normal[k][None], n_sub, axis=0))
+    pts = np.concatenate(out)
+    nrm = np.concatenate([seg_normal[:1]] + normals)
+    # the original inner vertices: the bisector of their two segments' normals
+    ends = np.cumsum([max(1, int(math.ceil(length[k] / spacing))) for k in range(len(seg))])
+    for k, idx in enumerate(ends[:-1]):
+        b = seg_normal[k] + seg_normal[k + 1]
+        nb = np.hypot(*b)
+        nrm[idx] = b / nb if nb > 1e-12 else seg_normal[k]
+    return pts, nrm
+
+
+def carry_cracks(cracks, points0, params, usable, *, spacing: float | None = None) -> tuple[Crack, ...]:
+    """Declared cracks carried from the reference image into a later frame's image by a measured field.
+
+    A moved reference (:class:`dic.correlation.lagrangian.MovedReference`) tracks from frame ``r``, where the
+    crack has moved with the specimen; its subsets must be cut where the crack is in frame ``r``. Each crack is
+    resampled at most ``spacing`` px apart (so that the carried polyline follows a non-uniform field), and each
+    vertex ``V`` is moved by **the mean of the two faces' displacements** there: on each side of the crack
+    (by the vertex's normal; a POI counts for a side only when its straight segment to the vertex's side of the
+    line crosses no crack) the :data:`CARRY_NEIGHBOURS` nearest usable POIs extrapolate their affine warps to
+    ``V`` (``d + G (V - X0)``), averaged; the two sides are averaged (one side where the other has no POI;
+    the nearest POI's where neither has). The carried crack is thus the middle of the opened gap in frame
+    ``r``: with the 1 px margin of :func:`blocked_pixels`, a subset on either face keeps its own face's pixels
+    and drops the gap and the other face for an opening below 2 px (beyond, the gap's pixels nearer the own face
+    than ``opening / 2 - 1`` px are kept). Moving each vertex with one face instead would put the crack on that
+    face, and the other face's subsets would reach into the gap.
+
+    Parameters
+    ----------
+    cracks : anything :func:`as_cracks` takes (reference px)
+    points0 : (N, 2) px, the POIs in the reference image
+    params : (N, 6|12), frame ``r``'s Lagrangian parameters at ``points0``
+    usable : (N,) bool, the points whose parameters carry the cracks (non-finite rows are left out too)
+    spacing : float, optional
+        Largest distance between the resampled vertices, px. Default: the POI spacing (the median
+        nearest-neighbour distance of ``points0``), at least :data:`CARRY_SPACING_PX` (a chord of 10 px
+        departs from a field's curve by ``|d²u/ds²| 100 / 8`` px: 0.001 px at a strain gradient of 1e-4 / px).
+
+    Returns
+    -------
+    tuple of :class:`Crack`, in frame ``r``'s px (empty without cracks).
+    """
+    from scipy.spatial import cKDTree
+
+    from kernels.checks import as_points, positive_float
+
+    cracks = as_cracks(cracks)
+    if not cracks:
+        return ()
+    pts0 = as_points(points0)
+    p = np.asarray(params, np.float64)
+    ok = np.asarray(usable, bool)
+    if p.ndim != 2 or p.shape[0] != pts0.shape[0] or p.shape[1] not in (6, 12) or ok.shape != (pts0.shape[0],):
+        raise ValueError(f"carry_cracks needs points0 (N, 2), params (N, 6|12) and usable (N,) of the same N, "
+                         f"got {pts0.shape}, {p.shape} and {ok.shape}")
+    ok = ok & np.all(np.isfinite(p), axis=1)
+    if not np.any(ok):
+        raise ValueError("no usable point to carry the cracks with")
+    if spacing is None:
+        if pts0.shape[0] > 1:
+            dist, _ = cKDTree(pts0).query(pts0, k=2)
+            spacing = max(CARRY_SPACING_PX, float(np.median(dist[:, 1])))
+        else:
+            spacing = CARRY_SPACING_PX
+    spacing = positive_float(spacing, "spacing", detail=" (px)")
+    h = p.shape[1] // 2
+    x0 = pts0[ok]
+    d = np.stack([p[ok, 0], p[ok, h]], axis=1)
+    G = np.stack([p[ok, 1:3], p[ok, h + 1:h + 3]], axis=1)
+    tree = cKDTree(x0)
+    k = min(8 * CARRY_NEIGHBOURS, x0.shape[0])
+    eps = 1e-3  # px: the vertex's side of the line, just off it
+    out = []
+    for crack in cracks:
+        verts, normals = _vertex_normals(crack, spacing)
+        _, near = tree.query(verts, k=k)
+        near = near.reshape(len(verts), k)
+        moved = np.empty_like(verts)
+        for i, (vert, nrm) in enumerate(zip(verts, normals)):
+            cand = near[i]
+            side = (x0[cand] - vert) @ nrm
+            faces = []
+            for sign in (1.0, -1.0):
+                c = cand[side * sign > 0]
+                if c.size:
+                    c = c[~segments_cross(x0[c], (vert + sign * eps * nrm)[None, :], cracks)][:CARRY_NEIGHBOURS]
+                if c.size:
+                    faces.append(np.mean(d[c] + np.einsum("nab,nb->na", G[c], vert - x0[c]), axis=0))
+            if not faces:
+                c = cand[0]
+                faces.append(d[c] + G[c] @ (vert - x0[c]))
+            moved[i] = vert + np.mean(faces, axis=0)
+        keep = np.concatenate([[True], np.hypot(*np.diff(moved, axis=0).T) > 0])  # no zero-length segment
+        out.append(Crack(moved[keep]))
+    return tuple(out)

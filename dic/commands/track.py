@@ -191,12 +191,15 @@ def track(reference, current, output, subset, step, order, search, search_method
     from dic.sequence import track_sequence
     from dic.sequence.track2d import _same_image
 
-    def make_tracker(image, points):
+    def make_tracker(image, points, carried=None):
         kwargs = record.tracker_kwargs()
         if points is not None:  # a moved reference or a chunk (dic.sequence): these POIs, not the region's grid
             region = kwargs.pop("roi", None)
             kwargs["points"] = points
-            if region is not None and _same_image(image, ref):  # a chunk of the reference: its subsets masked
+            if carried is not None:  # a moved reference: its region and cracks carried into its image
+                kwargs.pop("cracks", None)
+                kwargs.update(carried)
+            elif region is not None and _same_image(image, ref):  # a chunk of the reference: its subsets masked
                 kwargs["pixel_region"] = region
         return _make_tracker(image, device=device, **kwargs)
 

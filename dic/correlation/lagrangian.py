@@ -273,6 +273,7 @@ class MovedReference:
         h = raw.shape[1] // 2
         self.index = int(index)
         self.order = int(order)
+        self.points0 = pts0
         self.raw = raw
         self.anchors = anchors
         moved = moved_points(pts0, raw[:, 0], raw[:, h], anchors)
@@ -319,10 +320,47 @@ class MovedReference:
         same = np.all((params == self.raw) | (np.isnan(params) & np.isnan(self.raw)), axis=1)
         return fresh & same
 
+    def carry_cracks(self, cracks, *, spacing: float | None = None) -> tuple:
+        """Declared cracks (reference px) carried into this frame's image by its measured field
+        (:func:`dic.cracks.carry_cracks`: each vertex moved by the mean of the two faces' displacements, from
+        the anchors: measured points, never interpolated across a crack); a tuple of :class:`dic.Crack`."""
+        from ..cracks import carry_cracks
+
+        return carry_cracks(cracks, self.points0, self.params, self.anchors & self.usable, spacing=spacing)
+
+    def carry_region(self, region_mask, *, reach: int | None = None, cracks=()) -> np.ndarray:
+        """A region's (H, W) pixel mask of the reference image carried into this frame's image by the anchors'
+        local warps (:func:`dic.correlation.subset_masks.carry_region_mask`; ``cracks``: the carried ones)."""
+        from .subset_masks import carry_region_mask
+
+        return carry_region_mask(region_mask, self.points0, self.params, self.anchors & self.usable, reach=reach,
+                                 cracks=cracks)
+
+    def crack_blocked_pixels(self, cracks):
+        """A tracker's ``blocked_pixels`` callable ``(points, subset) -> (n, subset²) bool`` for carried ``cracks``
+        (this frame's px): :func:`dic.cracks.blocked_pixels` seen from each moved point's own sub-pixel position
+        (:attr:`points` + :attr:`offset`) rather than the whole pixel its subset sits at, so that a point within
+        half a pixel of a crack keeps its side. Points not among :attr:`points` are seen from where they are."""
+        from ..cracks import as_cracks, blocked_pixels
+
+        cracks = as_cracks(cracks)
+        exact = self.points + self.offset
+        rows: dict[tuple[float, float], int] = {}
+        for row, xy in enumerate(map(tuple, self.points.tolist())):
+            rows.setdefault(xy, row)
+
+        def blocked(points, subset):
+            pts = np.asarray(points, np.float64)
+            idx = np.array([rows.get(xy, -1) for xy in map(tuple, pts.tolist())], dtype=np.int64).reshape(-1)
+            seen = np.where((idx >= 0)[:, None], exact[np.maximum(idx, 0)], pts) if len(pts) else pts
+            return blocked_pixels(seen, subset, cracks)
+
+        return blocked
+
     def subset(self, rows: np.ndarray) -> "MovedReference":
         """The same reference at ``rows`` of its points only (a view for a camera that tracks a subset)."""
         out = object.__new__(MovedReference)
         out.index, out.order = self.index, self.order
-        for name in ("raw", "anchors", "filled", "supported", "points", "offset", "usable", "params"):
+        for name in ("points0", "raw", "anchors", "filled", "supported", "points", "offset", "usable", "params"):
             setattr(out, name, getattr(self, name)[rows])
         return out

@@ -30,7 +30,7 @@ from .points import Region, _inside_polygon, image_shape, region
 
 __all__ = ["subset_pixel_masks", "region_pixel_mask", "kept_fraction", "kept_textured_fraction", "subset_offsets",
            "SUBSET_MASKS", "check_subset_mask", "tracking_pixel_masks", "shrink_region", "REGION_MARGIN_PX",
-           "check_min_kept_fraction"]
+           "check_min_kept_fraction", "carry_region_mask"]
 
 #: the choices of ``subset_mask`` (Tracker, track_sequence, ``specula track --subset-mask``): "region" masks
 #: subsets by a mask or polygon region (the default), "none" correlates every subset pixel (before the option)
@@ -219,4 +219,109 @@ def kept_textured_fraction(reference_image, points, subset: int, masks) -> np.nd
         kept = m[start:start + 4096]
         n_kept = kept.sum(axis=1)
         out[start:start + 4096] = np.where(n_kept > 0, (tex & kept).sum(axis=1) / np.maximum(n_kept, 1), 0.0)
+    return out
+
+
+def carry_region_mask(region_mask, points0, params, usable, *, reach: int | None = None, cracks=()) -> np.ndarray:
+    """A region's pixels carried from the reference image into a later frame's image by a measured field.
+
+    A moved reference (:class:`dic.correlation.lagrangian.MovedReference`) tracks from frame ``r``; the
+    specimen (its holes and free edges) has moved with the material there, so its region is carried
+    with the displacement field measured in frame ``r``: every pixel ``x`` of frame ``r`` is mapped back
+    to the reference image through the inverse of the local affine warp of the nearest usable POI
+    (nearest by its moved position ``X0 + d(X0)``, one not across a carried crack when ``cracks`` are
+    given), ``X = X0 + (I + G)^-1 (x - X0 - d)``, and keeps the value of ``region_mask`` at the pixel
+    nearest to ``X`` (a pixel mapped outside the reference image is not kept). Second-order terms are
+    left out: within the half POI spacing of the nearest point they move ``X`` by a few thousandths of a px.
+
+    Parameters
+    ----------
+    region_mask : (H, W) array, non-zero = specimen, in the reference image (the region as given; the
+        tracker of frame ``r`` removes its 1 px rim, :data:`REGION_MARGIN_PX`, there). Frame ``r`` has
+        the same size.
+    points0 : (N, 2) px, the POIs in the reference image.
+    params : (N, 6|12), frame ``r``'s Lagrangian parameters at ``points0`` (the filled ones of a moved
+        reference, :attr:`~dic.correlation.lagrangian.MovedReference.params`).
+    usable : (N,) bool, the points whose parameters carry the region (non-finite rows are left out too).
+    reach : int, optional
+        Only the pixels within ``reach`` px (each axis) of a usable moved point are carried (the others,
+        which no subset of frame ``r`` reaches, are False); default: every pixel.
+    cracks : the declared cracks carried into frame ``r`` (:func:`dic.cracks.carry_cracks`), optional.
+
+    Returns
+    -------
+    (H, W) bool, the region in frame ``r``'s image.
+    """
+    m = np.asarray(region_mask)
+    if m.ndim != 2 or m.shape[0] < 1 or m.shape[1] < 1:
+        raise ValueError(f"region_mask must be a 2-D (H, W) array, got shape {m.shape}")
+    m = m != 0
+    pts0 = as_points(points0)
+    p = np.asarray(params, np.float64)
+    ok = np.asarray(usable, bool)
+    if p.ndim != 2 or p.shape != (pts0.shape[0], p.shape[1]) or p.shape[1] not in (6, 12) \
+            or ok.shape != (pts0.shape[0],):
+        raise ValueError(f"carry_region_mask needs points0 (N, 2), params (N, 6|12) and usable (N,) of the same N, "
+                         f"got {pts0.shape}, {p.shape} and {ok.shape}")
+    ok = ok & np.all(np.isfinite(p), axis=1)
+    if not np.any(ok):
+        raise ValueError("no usable point to carry the region with")
+    h = p.shape[1] // 2
+    d = np.stack([p[ok, 0], p[ok, h]], axis=1)
+    F = np.stack([p[ok, 1:3], p[ok, h + 1:h + 3]], axis=1) + np.eye(2)[None]  # (M, 2, 2): I + G
+    with np.errstate(all="ignore"):
+        Finv = np.linalg.inv(F)
+    x0 = pts0[ok]
+    moved = x0 + d
+    from scipy.spatial import cKDTree
+
+    from ..cracks import as_cracks, segments_cross
+
+    cracks = as_cracks(cracks)
+    tree = cKDTree(moved)
+    H, W = m.shape
+    out = np.zeros((H, W), dtype=bool)
+    if reach is None:
+        x_lo, y_lo, x_hi, y_hi = 0, 0, W - 1, H - 1
+    else:
+        lo = np.floor(moved.min(axis=0)).astype(int) - int(reach) - 1
+        hi = np.ceil(moved.max(axis=0)).astype(int) + int(reach) + 1
+        x_lo, y_lo = max(lo[0], 0), max(lo[1], 0)
+        x_hi, y_hi = min(hi[0], W - 1), min(hi[1], H - 1)
+        if x_lo > x_hi or y_lo > y_hi:
+            return out
+    xs = np.arange(x_lo, x_hi + 1)
+    k = min(4, moved.shape[0])
+    crack_tree = None
+    if cracks:  # the cracks sampled at most 0.5 px apart: which pixels lie near one (a k-d tree of the samples)
+        samples = []
+        for c in cracks:
+            for a, b in zip(*c.segments):
+                n_s = max(1, int(np.ceil(np.hypot(*(b - a)) / 0.5)))
+                samples.append(a + np.linspace(0.0, 1.0, n_s + 1)[:, None] * (b - a))
+        crack_tree = cKDTree(np.concatenate(samples))
+    rows = max(1, 131072 // xs.size)
+    for y0 in range(y_lo, y_hi + 1, rows):
+        yy, xx = np.meshgrid(np.arange(y0, min(y0 + rows, y_hi + 1)), xs, indexing="ij")
+        pix = np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64)
+        dist, j = tree.query(pix, k=1)
+        if crack_tree is not None:
+            # the segment from a pixel to its nearest point can cross a crack only where the crack comes within
+            # that distance of the pixel (the samples are within 0.25 px of the crack): there, the nearest point
+            # on the pixel's side of every carried crack (else the nearest)
+            dc, _ = crack_tree.query(pix, distance_upper_bound=float(dist.max()) + 1.0)
+            maybe = np.flatnonzero(dc <= dist + 0.5)
+            if maybe.size and k > 1:
+                _, jj = tree.query(pix[maybe], k=k)
+                across = segments_cross(moved[jj], pix[maybe, None, :], cracks)
+                j[maybe] = jj[np.arange(maybe.size), np.argmax(~across, axis=1)]
+        X = x0[j] + np.einsum("nab,nb->na", Finv[j], pix - moved[j])
+        with np.errstate(invalid="ignore"):
+            Xi = round_half_away(X)
+        inside = np.all(np.isfinite(Xi), axis=1)
+        inside &= (Xi[:, 0] >= 0) & (Xi[:, 0] <= W - 1) & (Xi[:, 1] >= 0) & (Xi[:, 1] <= H - 1)
+        kept = np.zeros(pix.shape[0], dtype=bool)
+        idx = Xi[inside].astype(np.int64)
+        kept[inside] = m[idx[:, 1], idx[:, 0]]
+        out[yy, xx] = kept.reshape(yy.shape)
     return out

@@ -10,6 +10,7 @@ the results: :mod:`dic.sequence.reference`.
 from __future__ import annotations
 
 import copy
+import functools
 import os
 import time
 import warnings
@@ -226,8 +227,12 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     make_tracker : callable(image, points) -> tracker, optional
         Builds the tracker of a reference image (``points`` None: the default grid of ``options``;
         otherwise the moved POIs or a chunk of them). Default: :class:`dic.Tracker` with
-        ``options``. With a custom one, ``options`` are only used to plan chunks: give ``points`` and
-        ``order`` (the POIs it would use) so that an over-budget run is chunked from the start.
+        ``options``. One that takes a ``carried`` keyword gets, for a moved reference with a mask or polygon
+        region or cracks, a dict of :class:`dic.Tracker` keywords (``pixel_region``, ``blocked_pixels``,
+        ``cracks``) that mask its subsets by the region and cracks carried into that frame (docs/dic2d.md,
+        "Masks and cracks carried to a moved reference"); the default and ``specula track``'s do. With a
+        custom one, ``options`` are only used to plan chunks: give ``points`` and ``order`` (the POIs it
+        would use) so that an over-budget run is chunked from the start.
     guess : "previous" | "none", optional
         Where each frame's correlation starts: ``"previous"`` (default without ``client``) from the
         previous frame's result (a chain: frame k waits for frame k-1); ``"none"`` (default, and the
@@ -348,15 +353,18 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         if make_tracker is None:
             options = {**record.tracker_kwargs(), "device": options.get("device")}
     if make_tracker is None:
-        def make_tracker(image, points, _opts=dict(options)):
+        def make_tracker(image, points, _opts=dict(options), carried=None):
             from .._track import Tracker
 
             kw = dict(_opts)
             if points is not None:
                 region = kw.pop("roi", None)
                 kw["points"] = points
-                if region is not None and _same_image(image, ref_img):  # a chunk of the reference's grid: its
-                    kw["pixel_region"] = region  # subsets masked alike (a moved reference's are not: docs/dic2d.md)
+                if carried is not None:  # a moved reference: the region and cracks carried into its frame
+                    kw.pop("cracks", None)
+                    kw.update(carried)
+                elif region is not None and _same_image(image, ref_img):  # a chunk of the reference's grid:
+                    kw["pixel_region"] = region  # its subsets masked alike
             return Tracker(image, **kw)
     if record is None:  # settings given as a dict (a custom tracker's): stored as given, compared as they are
         settings = dict(settings)
@@ -395,12 +403,14 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     order = int(tracker0.order)
     search_name = options.get("search") if custom_tracker is None else getattr(tracker0, "search", None)
 
-    def tracker_for(image, points):
-        """A tracker of ``image`` at ``points`` (the moved POIs), in chunks when over the memory budget."""
+    def tracker_for(image, points, carried=None):
+        """A tracker of ``image`` at ``points`` (the moved POIs), in chunks when over the memory budget;
+        ``carried``: the tracker keywords of the region and cracks carried into the image (:func:`_carry_for`)."""
+        build = make_tracker if carried is None else functools.partial(make_tracker, carried=carried)
         if len(points) * bytes_per_poi(order) > budget:
-            return ChunkedTracker(make_tracker, image, points, order=order, chunk=budget // bytes_per_poi(order),
+            return ChunkedTracker(build, image, points, order=order, chunk=budget // bytes_per_poi(order),
                                   search=search_name)
-        return make_tracker(image, points)
+        return build(image, points)
 
     tracker0_holder = [tracker0]  # the reference image's tracker, freed once the reference has moved on
     del tracker0
@@ -493,11 +503,19 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             trim_memory()
             summary.seconds = time.perf_counter() - t_start
             return summary
+        carry, reference_masks = None, None
+        if custom_tracker is None or _takes_carried(custom_tracker):  # a moved reference's region and cracks
+            described = options  # the run's region and cracks: the record's with a custom tracker (the command line's)
+            if custom_tracker is not None and record is not None:
+                described = record.tracker_kwargs()
+            carry = _carry_for(described, ref_img.shape)
+            if carry is not None:
+                reference_masks = lambda: _reference_masks(described, ref_img.shape, points0)  # noqa: E731
         kind = _Track2D(ref_img=ref_img, everywhere=everywhere, points0=points0, order=order, guess=guess,
                         reference_tracker=reference_tracker, tracker_for=tracker_for,
                         release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
                         stored_state=stored_state, finish=finish, out=out, verify_threshold=verify_threshold,
-                        device=options.get("device"))
+                        device=options.get("device"), carry=carry, reference_masks=reference_masks)
         try:
             run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out, lock=wb.lock)
         finally:
@@ -517,12 +535,15 @@ class _Track2D:
     noun, images_noun, inputs_noun = "frame", "the image", "frames"
 
     def __init__(self, *, ref_img, everywhere, points0, order, guess, reference_tracker, tracker_for, release_reference,
-                 writer, stored_state, finish, out, verify_threshold=None, device=None):
+                 writer, stored_state, finish, out, verify_threshold=None, device=None, carry=None,
+                 reference_masks=None):
         self.ref_img, self.everywhere, self.points0, self.order, self.guess = ref_img, everywhere, points0, order, guess
         self._reference_tracker, self._tracker_for, self._release = reference_tracker, tracker_for, release_reference
         self.writer, self.stored_state, self._finish, self.out = writer, stored_state, finish, out
         self.verify_threshold, self.device = verify_threshold, device
         self._verifier = None  # the check of composed frames (dic.sequence.verification), built at its first frame
+        self._carry = carry  # a moved reference's -> its tracker's keywords of the carried region and cracks (or None)
+        self._reference_masks = reference_masks  # () -> the reference subsets' pixel masks, for the check (or None)
         self.current = _Ref(0, ref_img, reference_tracker(), everywhere)
         self.prev: Field2D | None = None  # the last frame's field (computed or read back)
 
@@ -541,7 +562,8 @@ class _Track2D:
         self._release()  # free the previous reference's data before preparing the new one
         self.current = None
         moved.image = _host(image)  # a reference is prepared on the host (once per reference)
-        moved.tracker = self._tracker_for(moved.image, moved.moved.points)
+        carried = self._carry(moved.moved) if self._carry is not None else None
+        moved.tracker = self._tracker_for(moved.image, moved.moved.points, carried)
         self.current = moved
 
     def measure(self, k: int, image, *, final: bool = True):
@@ -558,8 +580,9 @@ class _Track2D:
     def accept(self, k: int, result: Field2D, image) -> Field2D:
         if self.verify_threshold is not None and result.reference_index != 0:
             if self._verifier is None:
+                masks = self._reference_masks() if self._reference_masks is not None else None
                 self._verifier = ComposedVerifier(self.ref_img, self.points0, int(result.subset), self.verify_threshold,
-                                                  device=self.device)
+                                                  device=self.device, pixel_mask=masks)
             self._verifier.apply(result, image)  # before it can anchor a reference or guess the next frame
         self.prev = result
         return result
@@ -587,6 +610,61 @@ class _Track2D:
             return exc
         saved = f"; frames before it are saved in {self.out}" if item.index > 1 else ""
         return ValueError(f"frame {item.index} ({os.fspath(item.path) or 'array'}): {exc}{saved}")
+
+
+def _carry_for(options: dict, shape):
+    """What a moved reference's tracker is cut by, from the run's tracker ``options`` (None: nothing to carry):
+    ``carry(moved)`` -> its :class:`dic.Tracker` keywords (``pixel_region``, ``blocked_pixels``, ``cracks``): the
+    run's region (a mask or polygon ROI, or excluded shapes, with ``subset_mask="region"``) and declared cracks
+    carried into the moved reference's frame by its measured field
+    (:meth:`dic.correlation.lagrangian.MovedReference.carry_region`, :meth:`~.MovedReference.carry_cracks`), so
+    that its subsets are masked as the reference image's are (docs/dic2d.md, "Masks and cracks carried to a
+    moved reference")."""
+    from ..correlation.subset_masks import region_pixel_mask
+    from ..cracks import as_cracks
+
+    region_px = None
+    if options.get("roi") is not None and options.get("subset_mask", "region") == "region":
+        region_px = region_pixel_mask(options["roi"], shape)
+    cracks = as_cracks(options.get("cracks"))
+    if region_px is None and not cracks:
+        return None
+    reach = int(options.get("subset", 21)) // 2 + 1  # px: the pixels a moved subset can hold
+
+    def carry(moved: MovedReference) -> dict:
+        carried_cracks = moved.carry_cracks(cracks) if cracks else ()
+        kw = {"cracks": None}
+        if region_px is not None:
+            kw["pixel_region"] = moved.carry_region(region_px, reach=reach, cracks=carried_cracks)
+        if carried_cracks:
+            kw["blocked_pixels"] = moved.crack_blocked_pixels(carried_cracks)
+        return kw
+
+    return carry
+
+
+def _takes_carried(make_tracker) -> bool:
+    """Whether a custom ``make_tracker`` takes the ``carried`` keyword (the Tracker keywords of a moved reference's
+    carried region and cracks, :func:`_carry_for`), as the default one and ``specula track``'s do."""
+    import inspect
+
+    try:
+        return "carried" in inspect.signature(make_tracker).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def _reference_masks(options: dict, shape, points0):
+    """(N, subset²) bool: the pixels the default tracker's reference subsets keep (region and cracks, as
+    :class:`dic.Tracker` masks them), or None where every pixel is kept; the check of composed frames compares
+    those pixels only (:class:`dic.sequence.verification.ComposedVerifier` ``pixel_mask``)."""
+    from ..correlation.subset_masks import tracking_pixel_masks
+    from ..cracks import as_cracks, blocked_pixels
+
+    cracks = as_cracks(options.get("cracks"))
+    blocked = (lambda pts, size: blocked_pixels(pts, size, cracks)) if cracks else None
+    return tracking_pixel_masks(points0, int(options.get("subset", 21)), shape, options.get("roi"),
+                                options.get("subset_mask", "region"), blocked)
 
 
 def _same_image(image, reference) -> bool:
