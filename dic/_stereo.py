@@ -341,6 +341,13 @@ class StereoCorrelation:
         those only; the right track (its subsets are right-image subsets) and moved references every pixel.
         Default "region"; "none": the behaviour before the option.
     min_kept_fraction : float in (0, 1], masked subsets keeping less are ``TOO_FEW_PIXELS``. Default 0.5.
+    verify_zncc : float in [-1, 1], optional
+        With a moved reference (:meth:`move_reference`): each state's composed left and right tracks are
+        checked against the reference pair (each camera's reference subset and the state's image at the
+        composed warp, :mod:`dic.correlation.stereo_verify`); a point below ``verify_zncc`` in either camera gets
+        ``StereoStatus.COMPOSED_MISMATCH`` before its strain is computed, and the state's details hold
+        ``composed_zncc_left`` / ``composed_zncc_right`` (NaN where not checked). Default None: no check
+        (:func:`dic.sequence.stereo_sequence` turns it on with a moved reference).
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int | None = None, roi=None, subset: int = 21,
@@ -349,10 +356,13 @@ class StereoCorrelation:
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool | str = False, device=None, progress=None,
                  subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
-                 strain_type: str = "green-lagrange"):
+                 strain_type: str = "green-lagrange", verify_zncc: float | None = None):
         from ._strain import check_strain_type
 
         self.strain_type = check_strain_type(strain_type)  # what exx, eyy, exy are (dic.field3d)
+        # the check of composed tracks against the reference pair (None: none; dic.correlation.stereo_verify)
+        self.verify_zncc = None if verify_zncc is None else in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
+        self._composed_check = None  # built at the first state tracked from a moved reference
         self.device = resolve_device(device)
         self._progress = _check_progress(progress)
         self.robust = check_robust(robust)
@@ -625,7 +635,8 @@ class StereoCorrelation:
         if mv is not None:  # back to the reference state (Lagrangian)
             tl = mv.compose(tl, "left", self.order)
             tr = None if tr is None else mv.compose(tr, "right", self.order)
-        f = self._field((tl, tr), index=index)
+        checked = self._check_composed(tl, tr, L, R) if mv is not None and self.verify_zncc is not None else None
+        f = self._field((tl, tr), index=index, composed=checked)
         if mv is not None:  # valid here, placed in the tracks' reference by interpolation (not valid there)
             f.reference_interpolated = f.valid & ~mv.valid
         if warn and self._tracks_judged():
@@ -633,6 +644,19 @@ class StereoCorrelation:
         self._previous = (f.details["params_left"], f.details["params_right"])
         self._previous_images = (L, R)
         return f
+
+    def _check_composed(self, tl, tr, L, R):
+        """(failed (N,) bool, zncc_left (N,), zncc_right (N,)): the composed tracks checked against the reference
+        pair (:class:`dic.correlation.stereo_verify.StereoComposedCheck`, ``verify_zncc``)."""
+        from .correlation.stereo_verify import StereoComposedCheck
+
+        if self._composed_check is None:
+            m = self.match
+            self._composed_check = StereoComposedCheck(self._left_ref, self._right_ref, self.points,
+                                                       m.points_right[self._matched], self._matched, self.subset,
+                                                       self.verify_zncc, device=self.device)
+        return self._composed_check.check(tl.params, tl.accepted, L, None if tr is None else tr.params,
+                                          None if tr is None else tr.accepted, R)
 
     def _tracks_judged(self) -> bool:
         # (a failed reference match has been reported already; the warning is about the tracks)
@@ -786,7 +810,7 @@ class StereoCorrelation:
                 "sigma_uvw_mm": sig_uvw}
 
     # -------------------------------------------------------------------------------------------
-    def _field(self, tracks, index: int) -> Field3D:
+    def _field(self, tracks, index: int, composed=None) -> Field3D:
         n = self.points.shape[0]
         k = n_params(self.order)
         m = self.match
@@ -840,6 +864,9 @@ class StereoCorrelation:
             if self._moved is not None:  # lost before the moved reference and not placed there: that state's status
                 lost = m.valid & ~self._moved.usable
                 status[lost] = self._moved.status[lost]
+            if composed is not None:  # composed tracks below verify_zncc against the reference pair (_check_composed)
+                status[(status == StereoStatus.OK) & composed[0]] = StereoStatus.COMPOSED_MISMATCH
+                details.update(composed_zncc_left=composed[1], composed_zncc_right=composed[2])
             both = left_ok & right_ok
             use_l = np.where(both[:, None], pl_cur, np.nan)
             use_r = np.where(both[:, None], pr_cur, np.nan)
