@@ -338,8 +338,9 @@ class StereoCorrelation:
         POIs to match (:func:`dic.correlation.engine.correlate`, ``report``).
     subset_mask : "region" or "none": with a mask or polygon ``roi``, the left reference's subsets keep the
         pixels inside it (:class:`dic.Tracker`'s option): the match left -> right and the left track correlate
-        those only; the right track (its subsets are right-image subsets) and moved references every pixel.
-        Default "region"; "none": the behaviour before the option.
+        those only, and the right track (with ``right_track_mask``) the pixels the region maps to in the right
+        reference image; moved references every pixel. Default "region"; "none": the behaviour before the
+        option.
     min_kept_fraction : float in (0, 1], masked subsets keeping less are ``TOO_FEW_PIXELS``. Default 0.5.
     verify_zncc : float in [-1, 1], optional
         With a moved reference (:meth:`move_reference`): each state's composed left and right tracks are
@@ -348,6 +349,11 @@ class StereoCorrelation:
         ``StereoStatus.COMPOSED_MISMATCH`` before its strain is computed, and the state's details hold
         ``composed_zncc_left`` / ``composed_zncc_right`` (NaN where not checked). Default None: no check
         (:func:`dic.sequence.stereo_sequence` turns it on with a moved reference).
+    right_track_mask : bool
+        With ``subset_mask="region"`` and a mask or polygon ``roi``: the right temporal track's subsets (at the
+        matched points, in the right reference image) keep the pixels that map into the left region through
+        each POI's stereo match (:mod:`dic.correlation.right_masks`; ``right_pixel_mask``, (M, S*S) bool or
+        None). Default True; False: every pixel (the behaviour before the option).
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int | None = None, roi=None, subset: int = 21,
@@ -356,7 +362,7 @@ class StereoCorrelation:
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool | str = False, device=None, progress=None,
                  subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
-                 strain_type: str = "green-lagrange", verify_zncc: float | None = None):
+                 strain_type: str = "green-lagrange", verify_zncc: float | None = None, right_track_mask: bool = True):
         from ._strain import check_strain_type
 
         self.strain_type = check_strain_type(strain_type)  # what exx, eyy, exy are (dic.field3d)
@@ -426,7 +432,10 @@ class StereoCorrelation:
         _warn_if_mostly_invalid(self.match.status[self.in_roi], "stereo matching (left -> right reference)")
         ok = self.match.valid
         self._matched = np.flatnonzero(ok)
-        self.right = self._correlator(right_ref, self.match.points_right[ok]) if ok.any() else None
+        # the right track's subsets keep the pixels of the left region mapped through the match (right_track_mask)
+        self.right_pixel_mask = self._right_pixel_mask(roi, ok) if right_track_mask and ok.any() else None
+        self.right = self._correlator(right_ref, self.match.points_right[ok], pixel_mask=self.right_pixel_mask) \
+            if ok.any() else None
         t0 = time.perf_counter()
         self._tri_ref = self._triangulate(self.points, self.match.points_right)
         self.timings["triangulation_s"] = time.perf_counter() - t0
@@ -442,9 +451,19 @@ class StereoCorrelation:
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
-    def _correlator(self, image: np.ndarray, points: np.ndarray) -> Correlator:
+    def _correlator(self, image: np.ndarray, points: np.ndarray, pixel_mask=None) -> Correlator:
         return Correlator(image, points, subset=self.subset, order=self.order, max_iter=self.max_iter, tol=self.tol,
-                          device=self.device)
+                          device=self.device, pixel_mask=pixel_mask,
+                          min_kept_fraction=None if pixel_mask is None else self.min_kept_fraction)
+
+    def _right_pixel_mask(self, roi, matched: np.ndarray):
+        """(M, S*S) bool or None: the right reference subsets' pixels (at the matched points) that the left
+        region maps to through the match (:func:`dic.correlation.right_masks.right_tracking_pixel_masks`)."""
+        from .correlation.right_masks import right_tracking_pixel_masks
+
+        m = self.match
+        return right_tracking_pixel_masks(roi, self.shape, self.subset_mask, self.points[matched],
+                                          m.points_right[matched], m.params[matched], self.subset)
 
     def _check_match(self, match: StereoMatch) -> StereoMatch:
         if not isinstance(match, StereoMatch):

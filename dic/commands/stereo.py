@@ -155,10 +155,13 @@ def _engine_pairs(pairs) -> list:
                    "state. Default: on with a moved reference.")
 @click.option("--verify-zncc", default=None, type=click.FloatRange(min=-1.0, max=1.0),
               help="With --verify-composed: the ZNCC below which a composed track fails (default 0.95, as 2-D).")
+@click.option("--right-track-mask/--no-right-track-mask", default=True, show_default=True,
+              help="With --subset-mask region and --mask or --roi-polygon: the right camera's temporal track "
+                   "correlates the pixels of its subsets that the region maps to through the stereo match.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode,
-           verify_composed, verify_zncc):
+           verify_composed, verify_zncc, right_track_mask):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -238,7 +241,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                                noise_sigma=noise_sigma,
                                reference=reference_strategy, subset_mask=subset_mask,
                                min_kept_fraction=min_kept_fraction, strain_type=strain_type,
-                               verify_composed=verify_composed, verify_zncc=verify_zncc)
+                               verify_composed=verify_composed, verify_zncc=verify_zncc,
+                               right_track_mask=right_track_mask)
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images

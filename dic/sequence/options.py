@@ -489,8 +489,9 @@ class StereoOptions(_Record):
     grid points, ``max_iter``, ``tol`` px, ``triangulation``, ``max_features``, ``check_warps``,
     ``noise_sigma`` grey levels, ``robust``) and the sequence's (``reference``, ``auto_valid``,
     ``auto_zncc``, ``guess``), and ``verify_composed`` / ``verify_zncc``, the check of composed tracks against
-    the reference pair (:mod:`dic.correlation.stereo_verify`; resolved as :class:`TrackOptions` does). The
-    device is not one.
+    the reference pair (:mod:`dic.correlation.stereo_verify`; resolved as :class:`TrackOptions` does), and
+    ``right_track_mask``, the right temporal track's subsets masked by the left region mapped through the
+    match (:mod:`dic.correlation.right_masks`). The device is not one.
     """
 
     subset: int = 21
@@ -521,21 +522,31 @@ class StereoOptions(_Record):
     # -- stereo26: re-verification of composed tracks against the reference pair (dic.correlation.stereo_verify)
     verify_composed: bool | None = True
     verify_zncc: float | None = None
+    # -- stereo26: the right track's subsets masked by the left region mapped through the match (dic.correlation.right_masks)
+    right_track_mask: bool = True
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
 
     CLI_NAMES: ClassVar[dict[str, str]] = {
         **_SHARED_CLI_NAMES, "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
-        "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc"}
+        "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc", "right_track_mask": "--right-track-mask"}
     KIND: ClassVar[str] = "stereo"
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5,
                                                "strain_type": "green-lagrange",
-                                               "verify_composed": False, "verify_zncc": None}
+                                               "verify_composed": False, "verify_zncc": None,
+                                               "right_track_mask": False}
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess",
                                                     "verify_composed")
     # verify_composed / verify_zncc resolved as for 2-D runs (None with the fixed reference; 0.95 by default)
     _check_verification = TrackOptions._check_verification
+
+    def _inert(self, other, name: str) -> bool:
+        """As :meth:`_Record._inert`, and ``right_track_mask`` cannot act unless a side masks its subsets (a mask
+        or polygon ROI with ``subset_mask="region"``): a file written before it resumes unless its run had one."""
+        if name == "right_track_mask":
+            return not any(isinstance(r.roi, dict) and r.subset_mask == "region" for r in (self, other))
+        return super()._inert(other, name)
 
     def __post_init__(self):
         self._check_common()
@@ -561,6 +572,7 @@ class StereoOptions(_Record):
         self._set("strain_type", _checked("strain_type", _strain_type, self.strain_type))
         self._check_sequence()
         self._check_verification()
+        self._set("right_track_mask", _checked("right_track_mask", boolean, self.right_track_mask, "right_track_mask"))
 
     def correlation_kwargs(self) -> dict:
         """The :class:`dic.StereoCorrelation` keywords of this record (no ``device``, no ``match``)."""
@@ -571,7 +583,8 @@ class StereoOptions(_Record):
               "tol": self.tol, "triangulation": self.triangulation, "max_features": self.max_features,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
               **self._subset_mask_kwargs(), "strain_type": self.strain_type,
-              "verify_zncc": self.verify_zncc if self.verify_composed else None}
+              "verify_zncc": self.verify_zncc if self.verify_composed else None,
+              "right_track_mask": self.right_track_mask}
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:

@@ -143,10 +143,13 @@ def test_settings_of_8d9f975_are_read_as_records():
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
     # 8d9f975's stereo default order was 2 (1 since issue 25): a file that did not record it holds order 2
     # (and its subsets kept every pixel: subset_mask "none", issue 26; stereo: plain IC-GN by default still;
-    # its composed tracks were not checked: verify_composed False, issue 26)
-    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2, subset_mask="none")
+    # its composed tracks were not checked: verify_composed False, and its right tracks not masked:
+    # right_track_mask False, issue 26)
+    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2, subset_mask="none",
+                                                               right_track_mask=False)
     assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", order=2,
-                                                               subset_mask="none", verify_composed=False)
+                                                               subset_mask="none", verify_composed=False,
+                                                               right_track_mask=False)
 
 
 def test_schema1_details_and_unknown_schemas():

@@ -159,9 +159,11 @@ def test_options_and_cli(lab, tmp_path):  # noqa: F811
     r = runner.invoke(main, [*base, "-o", str(tmp_path / "x.h5"), "--verify-zncc", "0.9", "--no-verify-composed"])
     assert r.exit_code == 2 and "--verify-zncc cannot act with --no-verify-composed" in r.output
     r = runner.invoke(main, [*base, "-o", str(tmp_path / "n.h5"), "--reference", "incremental",
-                             "--no-verify-composed", "-q"])
+                             "--no-verify-composed", "--no-right-track-mask", "-q"])
     assert r.exit_code == 0, r.output
     assert read_stereo(tmp_path / "n.h5").settings["verify_composed"] is False
+    assert read_stereo(tmp_path / "n.h5").settings["right_track_mask"] is False  # (tests/dic/test_stereo_masks.py)
+    assert res.settings["right_track_mask"] is True
     # a file written with the check resumes only with it (and the other way round): named in the refusal
     with pytest.raises(ValueError, match=r"--verify-composed \(verify_composed\): False in the file, True now"):
         stereo_sequence(lab["rig"], pairs, tmp_path / "n.h5", reference="incremental", step=STEP, device="cpu")
