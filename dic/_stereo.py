@@ -349,6 +349,11 @@ class StereoCorrelation:
         ``StereoStatus.COMPOSED_MISMATCH`` before its strain is computed, and the state's details hold
         ``composed_zncc_left`` / ``composed_zncc_right`` (NaN where not checked). Default None: no check
         (:func:`dic.sequence.stereo_sequence` turns it on with a moved reference).
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`: a :class:`dic.Crack`, an (M, 2) vertex array or a list of them) in
+        LEFT reference-image px (:mod:`dic.stereo_cracks`): the left subsets (match, left track) keep the pixels
+        on their POI's side only, the right track's subsets the pixels that map there through the match, and
+        no surface-strain window reaches across a crack. Moved references correlate every pixel.
     right_track_mask : bool
         With ``subset_mask="region"`` and a mask or polygon ``roi``: the right temporal track's subsets (at the
         matched points, in the right reference image) keep the pixels that map into the left region through
@@ -362,7 +367,8 @@ class StereoCorrelation:
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool | str = False, device=None, progress=None,
                  subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
-                 strain_type: str = "green-lagrange", verify_zncc: float | None = None, right_track_mask: bool = True):
+                 strain_type: str = "green-lagrange", verify_zncc: float | None = None, right_track_mask: bool = True,
+                 cracks=None):
         from ._strain import check_strain_type
 
         self.strain_type = check_strain_type(strain_type)  # what exx, eyy, exy are (dic.field3d)
@@ -417,10 +423,21 @@ class StereoCorrelation:
         t0 = time.perf_counter()
         # per-POI pixel masks of the left reference's subsets (a mask or polygon ROI, dic.correlation.subset_masks):
         # the left track and the match left -> right correlate the kept pixels of the left subsets; the right
-        # track and moved references correlate every pixel (docs/stereo.md)
+        # track the pixels they map to through the match (right_track_mask), moved references every pixel (docs/stereo.md)
         self.subset_mask = check_subset_mask(subset_mask)
         self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
-        self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask)
+        from .cracks import as_cracks
+        from .field3d import grid_neighbours
+        from .stereo_cracks import CrackCutStrain, crack_blocked_pixels
+
+        #: declared cracks (dic.stereo_cracks): subsets on their POI's side, strain windows not across
+        self.cracks = as_cracks(cracks)
+        self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask,
+                                               blocked_pixels=crack_blocked_pixels(self.cracks))
+        self._crack_strain = None
+        if self.cracks:
+            nb = grid_neighbours(self.grid_shape, self.strain_window) if self.neighbours is None else self.neighbours
+            self._crack_strain = CrackCutStrain(self.points, nb, self.cracks)
         self.left = Correlator(left_ref, self.points, subset=self.subset, order=self.order, max_iter=self.max_iter,
                                tol=self.tol, device=self.device, pixel_mask=self.pixel_mask,
                                min_kept_fraction=None if self.pixel_mask is None else self.min_kept_fraction)
@@ -433,7 +450,7 @@ class StereoCorrelation:
         ok = self.match.valid
         self._matched = np.flatnonzero(ok)
         # the right track's subsets keep the pixels of the left region mapped through the match (right_track_mask)
-        self.right_pixel_mask = self._right_pixel_mask(roi, ok) if right_track_mask and ok.any() else None
+        self.right_pixel_mask = self._right_pixel_mask(roi if right_track_mask else None, ok) if ok.any() else None
         self.right = self._correlator(right_ref, self.match.points_right[ok], pixel_mask=self.right_pixel_mask) \
             if ok.any() else None
         t0 = time.perf_counter()
@@ -463,7 +480,8 @@ class StereoCorrelation:
 
         m = self.match
         return right_tracking_pixel_masks(roi, self.shape, self.subset_mask, self.points[matched],
-                                          m.points_right[matched], m.params[matched], self.subset)
+                                          m.points_right[matched], m.params[matched], self.subset,
+                                          cracks=self.cracks)
 
     def _check_match(self, match: StereoMatch) -> StereoMatch:
         if not isinstance(match, StereoMatch):
@@ -926,6 +944,9 @@ class StereoCorrelation:
         else:
             strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center,
                                     strain_type=self.strain_type)
+        if self._crack_strain is not None:  # the windows a declared crack cuts, fitted on their own side
+            strain = self._crack_strain.apply(strain, xyz_ref_f, np.nan_to_num(uvw), valid, camera_center=camera_center,
+                                              strain_type=self.strain_type)
         self.timings["strain_s"] = time.perf_counter() - t0
         details.update(triangulation_status=tri_cur, points_left_cur=pl_cur, points_right_cur=pr_cur)
         zs = np.where(np.isfinite(m.zncc), m.zncc, np.nan)

@@ -15,6 +15,7 @@ from ._dask import dask_client, dask_options
 from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 from ._robust import robust_mode_option, robust_value
+from .track import _parse_cracks
 
 
 def _single_image(path) -> bool:
@@ -158,10 +159,13 @@ def _engine_pairs(pairs) -> list:
 @click.option("--right-track-mask/--no-right-track-mask", default=True, show_default=True,
               help="With --subset-mask region and --mask or --roi-polygon: the right camera's temporal track "
                    "correlates the pixels of its subsets that the region maps to through the stereo match.")
+@click.option("--crack", "cracks", multiple=True, metavar="x1,y1,x2,y2,...",
+              help="A declared crack: a polyline in LEFT reference-image px (repeat for several). No subset (left, or "
+                   "right through the stereo match) or surface-strain window reaches across it; stored in the file.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode,
-           verify_composed, verify_zncc, right_track_mask):
+           verify_composed, verify_zncc, right_track_mask, cracks):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -242,7 +246,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                                reference=reference_strategy, subset_mask=subset_mask,
                                min_kept_fraction=min_kept_fraction, strain_type=strain_type,
                                verify_composed=verify_composed, verify_zncc=verify_zncc,
-                               right_track_mask=right_track_mask)
+                               right_track_mask=right_track_mask, cracks=_parse_cracks(cracks))
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images

@@ -36,16 +36,23 @@ from .subset_masks import REGION_MARGIN_PX, check_subset_mask, region_pixel_mask
 __all__ = ["right_tracking_pixel_masks", "mapped_pixel_masks"]
 
 
-def mapped_pixel_masks(region_mask, right_shape, points_left, points_right, params, subset: int) -> np.ndarray:
+def mapped_pixel_masks(region_mask, right_shape, points_left, points_right, params, subset: int,
+                       cracks=None) -> np.ndarray:
     """``(M, S*S)`` bool: the right subsets' pixels that map into ``region_mask`` through the match.
 
-    ``region_mask`` (H, W) bool: the specimen's pixels in the left reference image; ``right_shape`` (H, W):
-    the right image's; ``points_left`` (M, 2) px: the POIs; ``points_right`` (M, 2) px: their matched points;
-    ``params`` (M, 6) or (M, 12): the match warps (left -> right; 1st or 2nd order); ``subset`` px (odd).
-    A point whose warp is not finite or singular keeps no pixel.
+    ``region_mask`` (H, W) bool: the specimen's pixels in the left reference image (None: every pixel);
+    ``right_shape`` (H, W): the right image's; ``points_left`` (M, 2) px: the POIs; ``points_right`` (M, 2) px:
+    their matched points; ``params`` (M, 6) or (M, 12): the match warps (left -> right; 1st or 2nd order);
+    ``subset`` px (odd); ``cracks`` (declared cracks in left reference px, :mod:`dic.cracks`), optional: a pixel
+    whose mapped left position lies across a crack from the POI (the segment between them crosses it), or
+    within :data:`dic.cracks.CRACK_MARGIN_PX` of one, is not kept either. A point whose warp is not finite or
+    singular keeps no pixel.
     """
-    mask = np.asarray(region_mask, dtype=bool)
-    if mask.ndim != 2:
+    from ..cracks import CRACK_MARGIN_PX, as_cracks, segments_cross
+
+    cracks = as_cracks(cracks)
+    mask = None if region_mask is None else np.asarray(region_mask, dtype=bool)
+    if mask is not None and mask.ndim != 2:
         raise ValueError(f"region_mask must be an (H, W) bool array, got shape {mask.shape}")
     pl, pr = as_points(points_left), as_points(points_right)
     p = np.asarray(params, dtype=np.float64)
@@ -64,7 +71,7 @@ def mapped_pixel_masks(region_mask, right_shape, points_left, points_right, para
     cl = round_half_away(pl).astype(np.float64)
     cr = round_half_away(pr).astype(np.float64)
     di, dj = subset_offsets(subset)
-    h_l, w_l = mask.shape
+    h_l, w_l = mask.shape if mask is not None else (0, 0)
     h_r, w_r = int(right_shape[0]), int(right_shape[1])
     out = np.zeros((m, subset * subset), dtype=bool)
     for start in range(0, m, 4096):  # bounded memory: 4096 x S^2 at a time
@@ -80,34 +87,51 @@ def mapped_pixel_masks(region_mask, right_shape, points_left, points_right, para
         # kept when the 4 left pixels around the mapped position are all in the region (module docstring)
         x0, y0 = np.floor(xf).astype(np.int64), np.floor(yf).astype(np.int64)
         kept = np.ones(x0.shape, dtype=bool)
-        for ox in (0, 1):
-            for oy in (0, 1):
-                xl, yl = x0 + ox, y0 + oy
-                inside_l = (xl >= 0) & (xl < w_l) & (yl >= 0) & (yl < h_l)
-                k = np.zeros(xl.shape, dtype=bool)
-                k[inside_l] = mask[yl[inside_l], xl[inside_l]]
-                kept &= k
+        for ox, oy in (((0, 0), (0, 1), (1, 0), (1, 1)) if mask is not None else ()):
+            xl, yl = x0 + ox, y0 + oy
+            inside_l = (xl >= 0) & (xl < w_l) & (yl >= 0) & (yl < h_l)
+            k = np.zeros(xl.shape, dtype=bool)
+            k[inside_l] = mask[yl[inside_l], xl[inside_l]]
+            kept &= k
         xr = cr[s, :1].astype(np.int64) + di[None, :]
         yr = cr[s, 1:].astype(np.int64) + dj[None, :]
         inside_r = (xr >= 0) & (xr < w_r) & (yr >= 0) & (yr < h_r)
+        if cracks:  # across a crack from the POI, or within the margin of one (left reference px)
+            q = np.stack([xf, yf], axis=-1)
+            kept &= ~segments_cross(pl[s, None, :], q, cracks) & ~_near(q, cracks, CRACK_MARGIN_PX)
         out[s] = kept & inside_r & usable[s][:, None]
     return out
 
 
+def _near(positions, cracks, margin: float) -> np.ndarray:
+    """``(...)`` bool: whether each position ``(..., 2)`` px lies nearer than ``margin`` px to a crack segment."""
+    from ..cracks import _all_segments
+
+    q = np.asarray(positions, np.float64)
+    out = np.zeros(q.shape[:-1], bool)
+    a, b = _all_segments(cracks)
+    for a_s, b_s in zip(a, b):
+        ab = b_s - a_s
+        t = np.clip(((q[..., 0] - a_s[0]) * ab[0] + (q[..., 1] - a_s[1]) * ab[1]) / (ab[0] ** 2 + ab[1] ** 2), 0.0, 1.0)
+        out |= np.hypot(a_s[0] + t * ab[0] - q[..., 0], a_s[1] + t * ab[1] - q[..., 1]) < margin
+    return out
+
+
 def right_tracking_pixel_masks(roi, shape, subset_mask: str, points_left, points_right, params,
-                               subset: int) -> np.ndarray | None:
+                               subset: int, cracks=None) -> np.ndarray | None:
     """The pixel masks of the right temporal track: ``(M, S*S)`` bool, or None when no pixel is masked.
 
     ``roi`` (any ROI form, in the left reference image) masks when ``subset_mask`` is ``"region"`` and it is a
     mask or a polygon (:func:`dic.correlation.subset_masks.region_pixel_mask`, shrunk by
     :data:`~dic.correlation.subset_masks.REGION_MARGIN_PX` as the left subsets' masks are); ``shape`` (H, W):
-    the images'; the matched points and their match warps as :func:`mapped_pixel_masks`. None also when every
-    pixel is kept (the unmasked kernels then run, bit for bit as without masks).
+    the images'; the matched points, their match warps and ``cracks`` (declared cracks, left reference px: masked
+    in any case) as :func:`mapped_pixel_masks`. None also when every pixel is kept (the unmasked kernels then run, bit for bit as without masks).
     """
     subset_mask = check_subset_mask(subset_mask)
     region_mask = region_pixel_mask(roi, shape) if subset_mask == "region" else None
-    if region_mask is None:
+    if region_mask is None and not cracks:
         return None
-    kept = mapped_pixel_masks(shrink_region(region_mask, REGION_MARGIN_PX), shape, points_left, points_right,
-                              params, subset)
+    if region_mask is not None:
+        region_mask = shrink_region(region_mask, REGION_MARGIN_PX)
+    kept = mapped_pixel_masks(region_mask, shape, points_left, points_right, params, subset, cracks=cracks)
     return None if kept.all() else kept
