@@ -338,9 +338,27 @@ class StereoCorrelation:
         POIs to match (:func:`dic.correlation.engine.correlate`, ``report``).
     subset_mask : "region" or "none": with a mask or polygon ``roi``, the left reference's subsets keep the
         pixels inside it (:class:`dic.Tracker`'s option): the match left -> right and the left track correlate
-        those only; the right track (its subsets are right-image subsets) and moved references every pixel.
-        Default "region"; "none": the behaviour before the option.
+        those only, and the right track (with ``right_track_mask``) the pixels the region maps to in the right
+        reference image; moved references every pixel. Default "region"; "none": the behaviour before the
+        option.
     min_kept_fraction : float in (0, 1], masked subsets keeping less are ``TOO_FEW_PIXELS``. Default 0.5.
+    verify_zncc : float in [-1, 1], optional
+        With a moved reference (:meth:`move_reference`): each state's composed left and right tracks are
+        checked against the reference pair (each camera's reference subset and the state's image at the
+        composed warp, :mod:`dic.correlation.stereo_verify`); a point below ``verify_zncc`` in either camera gets
+        ``StereoStatus.COMPOSED_MISMATCH`` before its strain is computed, and the state's details hold
+        ``composed_zncc_left`` / ``composed_zncc_right`` (NaN where not checked). Default None: no check
+        (:func:`dic.sequence.stereo_sequence` turns it on with a moved reference).
+    cracks : optional
+        Declared cracks (:mod:`dic.cracks`: a :class:`dic.Crack`, an (M, 2) vertex array or a list of them) in
+        LEFT reference-image px (:mod:`dic.stereo_cracks`): the left subsets (match, left track) keep the pixels
+        on their POI's side only, the right track's subsets the pixels that map there through the match, and
+        no surface-strain window reaches across a crack. Moved references correlate every pixel.
+    right_track_mask : bool
+        With ``subset_mask="region"`` and a mask or polygon ``roi``: the right temporal track's subsets (at the
+        matched points, in the right reference image) keep the pixels that map into the left region through
+        each POI's stereo match (:mod:`dic.correlation.right_masks`; ``right_pixel_mask``, (M, S*S) bool or
+        None). Default True; False: every pixel (the behaviour before the option).
     """
 
     def __init__(self, rig, left_ref, right_ref, *, points=None, step: int | None = None, roi=None, subset: int = 21,
@@ -349,10 +367,14 @@ class StereoCorrelation:
                  max_features: int = 20000, match: StereoMatch | None = None, check_warps: bool = True,
                  noise_sigma: float | None = None, robust: bool | str = False, device=None, progress=None,
                  subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
-                 strain_type: str = "green-lagrange"):
+                 strain_type: str = "green-lagrange", verify_zncc: float | None = None, right_track_mask: bool = True,
+                 cracks=None):
         from ._strain import check_strain_type
 
         self.strain_type = check_strain_type(strain_type)  # what exx, eyy, exy are (dic.field3d)
+        # the check of composed tracks against the reference pair (None: none; dic.correlation.stereo_verify)
+        self.verify_zncc = None if verify_zncc is None else in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
+        self._composed_check = None  # built at the first state tracked from a moved reference
         self.device = resolve_device(device)
         self._progress = _check_progress(progress)
         self.robust = check_robust(robust)
@@ -401,10 +423,21 @@ class StereoCorrelation:
         t0 = time.perf_counter()
         # per-POI pixel masks of the left reference's subsets (a mask or polygon ROI, dic.correlation.subset_masks):
         # the left track and the match left -> right correlate the kept pixels of the left subsets; the right
-        # track and moved references correlate every pixel (docs/stereo.md)
+        # track the pixels they map to through the match (right_track_mask), moved references every pixel (docs/stereo.md)
         self.subset_mask = check_subset_mask(subset_mask)
         self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
-        self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask)
+        from .cracks import as_cracks
+        from .field3d import grid_neighbours
+        from .stereo_cracks import CrackCutStrain, crack_blocked_pixels
+
+        #: declared cracks (dic.stereo_cracks): subsets on their POI's side, strain windows not across
+        self.cracks = as_cracks(cracks)
+        self.pixel_mask = tracking_pixel_masks(self.points, self.subset, self.shape, roi, self.subset_mask,
+                                               blocked_pixels=crack_blocked_pixels(self.cracks))
+        self._crack_strain = None
+        if self.cracks:
+            nb = grid_neighbours(self.grid_shape, self.strain_window) if self.neighbours is None else self.neighbours
+            self._crack_strain = CrackCutStrain(self.points, nb, self.cracks)
         self.left = Correlator(left_ref, self.points, subset=self.subset, order=self.order, max_iter=self.max_iter,
                                tol=self.tol, device=self.device, pixel_mask=self.pixel_mask,
                                min_kept_fraction=None if self.pixel_mask is None else self.min_kept_fraction)
@@ -416,7 +449,10 @@ class StereoCorrelation:
         _warn_if_mostly_invalid(self.match.status[self.in_roi], "stereo matching (left -> right reference)")
         ok = self.match.valid
         self._matched = np.flatnonzero(ok)
-        self.right = self._correlator(right_ref, self.match.points_right[ok]) if ok.any() else None
+        # the right track's subsets keep the pixels of the left region mapped through the match (right_track_mask)
+        self.right_pixel_mask = self._right_pixel_mask(roi if right_track_mask else None, ok) if ok.any() else None
+        self.right = self._correlator(right_ref, self.match.points_right[ok], pixel_mask=self.right_pixel_mask) \
+            if ok.any() else None
         t0 = time.perf_counter()
         self._tri_ref = self._triangulate(self.points, self.match.points_right)
         self.timings["triangulation_s"] = time.perf_counter() - t0
@@ -432,9 +468,20 @@ class StereoCorrelation:
         self.reference = self._field(None, index=0)
 
     # -------------------------------------------------------------------------------------------
-    def _correlator(self, image: np.ndarray, points: np.ndarray) -> Correlator:
+    def _correlator(self, image: np.ndarray, points: np.ndarray, pixel_mask=None) -> Correlator:
         return Correlator(image, points, subset=self.subset, order=self.order, max_iter=self.max_iter, tol=self.tol,
-                          device=self.device)
+                          device=self.device, pixel_mask=pixel_mask,
+                          min_kept_fraction=None if pixel_mask is None else self.min_kept_fraction)
+
+    def _right_pixel_mask(self, roi, matched: np.ndarray):
+        """(M, S*S) bool or None: the right reference subsets' pixels (at the matched points) that the left
+        region maps to through the match (:func:`dic.correlation.right_masks.right_tracking_pixel_masks`)."""
+        from .correlation.right_masks import right_tracking_pixel_masks
+
+        m = self.match
+        return right_tracking_pixel_masks(roi, self.shape, self.subset_mask, self.points[matched],
+                                          m.points_right[matched], m.params[matched], self.subset,
+                                          cracks=self.cracks)
 
     def _check_match(self, match: StereoMatch) -> StereoMatch:
         if not isinstance(match, StereoMatch):
@@ -625,7 +672,8 @@ class StereoCorrelation:
         if mv is not None:  # back to the reference state (Lagrangian)
             tl = mv.compose(tl, "left", self.order)
             tr = None if tr is None else mv.compose(tr, "right", self.order)
-        f = self._field((tl, tr), index=index)
+        checked = self._check_composed(tl, tr, L, R) if mv is not None and self.verify_zncc is not None else None
+        f = self._field((tl, tr), index=index, composed=checked)
         if mv is not None:  # valid here, placed in the tracks' reference by interpolation (not valid there)
             f.reference_interpolated = f.valid & ~mv.valid
         if warn and self._tracks_judged():
@@ -633,6 +681,19 @@ class StereoCorrelation:
         self._previous = (f.details["params_left"], f.details["params_right"])
         self._previous_images = (L, R)
         return f
+
+    def _check_composed(self, tl, tr, L, R):
+        """(failed (N,) bool, zncc_left (N,), zncc_right (N,)): the composed tracks checked against the reference
+        pair (:class:`dic.correlation.stereo_verify.StereoComposedCheck`, ``verify_zncc``)."""
+        from .correlation.stereo_verify import StereoComposedCheck
+
+        if self._composed_check is None:
+            m = self.match
+            self._composed_check = StereoComposedCheck(self._left_ref, self._right_ref, self.points,
+                                                       m.points_right[self._matched], self._matched, self.subset,
+                                                       self.verify_zncc, device=self.device)
+        return self._composed_check.check(tl.params, tl.accepted, L, None if tr is None else tr.params,
+                                          None if tr is None else tr.accepted, R)
 
     def _tracks_judged(self) -> bool:
         # (a failed reference match has been reported already; the warning is about the tracks)
@@ -786,7 +847,7 @@ class StereoCorrelation:
                 "sigma_uvw_mm": sig_uvw}
 
     # -------------------------------------------------------------------------------------------
-    def _field(self, tracks, index: int) -> Field3D:
+    def _field(self, tracks, index: int, composed=None) -> Field3D:
         n = self.points.shape[0]
         k = n_params(self.order)
         m = self.match
@@ -840,6 +901,9 @@ class StereoCorrelation:
             if self._moved is not None:  # lost before the moved reference and not placed there: that state's status
                 lost = m.valid & ~self._moved.usable
                 status[lost] = self._moved.status[lost]
+            if composed is not None:  # composed tracks below verify_zncc against the reference pair (_check_composed)
+                status[(status == StereoStatus.OK) & composed[0]] = StereoStatus.COMPOSED_MISMATCH
+                details.update(composed_zncc_left=composed[1], composed_zncc_right=composed[2])
             both = left_ok & right_ok
             use_l = np.where(both[:, None], pl_cur, np.nan)
             use_r = np.where(both[:, None], pr_cur, np.nan)
@@ -880,6 +944,9 @@ class StereoCorrelation:
         else:
             strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center,
                                     strain_type=self.strain_type)
+        if self._crack_strain is not None:  # the windows a declared crack cuts, fitted on their own side
+            strain = self._crack_strain.apply(strain, xyz_ref_f, np.nan_to_num(uvw), valid, camera_center=camera_center,
+                                              strain_type=self.strain_type)
         self.timings["strain_s"] = time.perf_counter() - t0
         details.update(triangulation_status=tri_cur, points_left_cur=pl_cur, points_right_cur=pr_cur)
         zs = np.where(np.isfinite(m.zncc), m.zncc, np.nan)

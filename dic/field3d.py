@@ -76,6 +76,8 @@ class StereoStatus(IntEnum):
     LOW_ZNCC = 8             #: a match or track has ZNCC below ``zncc_min``
     IMPLAUSIBLE_WARP = 9     #: a match or track converged to a warp its partly featureless subset cannot
     #:                          support (a specimen edge; dic.correlation.acceptance)
+    COMPOSED_MISMATCH = 10   #: with a moved reference: a composed track (left or right) fails the check against that
+    #:                          camera's reference image (``verify_zncc``; dic.correlation.stereo_verify)
 
 
 # ------------------------------------------------------------------------------------------------

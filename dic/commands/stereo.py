@@ -15,6 +15,7 @@ from ._dask import dask_client, dask_options
 from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 from ._robust import robust_mode_option, robust_value
+from .track import _parse_cracks
 
 
 def _single_image(path) -> bool:
@@ -148,9 +149,23 @@ def _engine_pairs(pairs) -> list:
               help="What the surface strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's "
                    "default), small (engineering) or Euler-Almansi; stored in the file.")
 @robust_mode_option("matches and tracks", default="off")
+@click.option("--verify-composed/--no-verify-composed", default=None,
+              help="With a moved --reference: check each state's composed left and right tracks against the reference "
+                   "pair (ZNCC of each camera's reference subset and the state's image at the composed warp); points "
+                   "below --verify-zncc in either camera are not valid (status COMPOSED_MISMATCH) and are counted per "
+                   "state. Default: on with a moved reference.")
+@click.option("--verify-zncc", default=None, type=click.FloatRange(min=-1.0, max=1.0),
+              help="With --verify-composed: the ZNCC below which a composed track fails (default 0.95, as 2-D).")
+@click.option("--right-track-mask/--no-right-track-mask", default=True, show_default=True,
+              help="With --subset-mask region and --mask or --roi-polygon: the right camera's temporal track "
+                   "correlates the pixels of its subsets that the region maps to through the stereo match.")
+@click.option("--crack", "cracks", multiple=True, metavar="x1,y1,x2,y2,...",
+              help="A declared crack: a polyline in LEFT reference-image px (repeat for several). No subset (left, or "
+                   "right through the stereo match) or surface-strain window reaches across it; stored in the file.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
-           compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode):
+           compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode,
+           verify_composed, verify_zncc, right_track_mask, cracks):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -185,6 +200,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         hint = _one_input_hint(images[0]) if len(images) == 1 else ""
         raise click.BadParameter(f"give the images as LEFT RIGHT pairs (an even number, at least 2); got {len(images)}"
                                  + hint, param_hint="IMAGES")
+    if verify_zncc is not None and verify_composed is False:
+        raise click.BadParameter("--verify-zncc cannot act with --no-verify-composed", param_hint="--verify-zncc")
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window % 2 == 0:
@@ -227,12 +244,14 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                                robust=robust_value(robust, robust_mode, default="off"),
                                noise_sigma=noise_sigma,
                                reference=reference_strategy, subset_mask=subset_mask,
-                               min_kept_fraction=min_kept_fraction, strain_type=strain_type)
+                               min_kept_fraction=min_kept_fraction, strain_type=strain_type,
+                               verify_composed=verify_composed, verify_zncc=verify_zncc,
+                               right_track_mask=right_track_mask, cracks=_parse_cracks(cracks))
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images
         raise click.ClickException(str(exc)) from None
-    options = record.correlation_kwargs()
+    options = {**record.correlation_kwargs(), "verify_composed": record.verify_composed}
     written = []  # a state finished (the callback): finished states are in the file
 
     def after(index, field, strain):
@@ -264,10 +283,16 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
             click.echo(f"ParaView: {vtk_dir / f'{output.stem}.pvd'}")
         if figure_dir is not None:
             click.echo(f"figures: {figure_dir}")
-        for index, n_valid, n, ref_index in zip(summary.indices, summary.n_valid, summary.n_points,
-                                                summary.reference_indices):
+        for index, n_valid, n, ref_index, n_mismatch in zip(summary.indices, summary.n_valid, summary.n_points,
+                                                            summary.reference_indices, summary.n_mismatch):
             ref_note = f" (reference: state {ref_index})" if ref_index else ""
+            if record.verify_composed and ref_index:
+                ref_note += f", {n_mismatch} failed the check against the reference pair"
             click.echo(f"state {index}: {n_valid}/{n} valid points in the region{ref_note}")
+        if record.verify_composed:
+            checked = sum(1 for r in summary.reference_indices if r)
+            click.echo(f"composed tracks checked against the reference pair in {checked} state(s): "
+                       f"{int(summary.n_mismatch.sum())} point(s) failed (ZNCC < {record.verify_zncc:g})")
         skipped = len(pairs) - len(summary)
         if skipped:
             click.echo(f"{skipped} state(s) were already in {output} and were skipped")

@@ -488,7 +488,11 @@ class StereoOptions(_Record):
     "plane" or ``[R_obj_left, t_obj_left]``), ``epipolar_tol_px``, ``zncc_min``, ``strain_window``
     grid points, ``max_iter``, ``tol`` px, ``triangulation``, ``max_features``, ``check_warps``,
     ``noise_sigma`` grey levels, ``robust``) and the sequence's (``reference``, ``auto_valid``,
-    ``auto_zncc``, ``guess``). The device is not one.
+    ``auto_zncc``, ``guess``), and ``verify_composed`` / ``verify_zncc``, the check of composed tracks against
+    the reference pair (:mod:`dic.correlation.stereo_verify`; resolved as :class:`TrackOptions` does), and
+    ``right_track_mask``, the right temporal track's subsets masked by the left region mapped through the
+    match (:mod:`dic.correlation.right_masks`), and ``cracks``, declared cracks in left reference px
+    (:mod:`dic.stereo_cracks`; stored as :class:`TrackOptions` stores them). The device is not one.
     """
 
     subset: int = 21
@@ -516,16 +520,37 @@ class StereoOptions(_Record):
     min_kept_fraction: float = 0.5
     # strain types by name (issue 25): what exx, eyy, exy are; stereo strain was always Green-Lagrange
     strain_type: str = "green-lagrange"
+    # -- stereo26: re-verification of composed tracks against the reference pair (dic.correlation.stereo_verify)
+    verify_composed: bool | None = True
+    verify_zncc: float | None = None
+    # -- stereo26: the right track's subsets masked by the left region mapped through the match (dic.correlation.right_masks)
+    right_track_mask: bool = True
+    # -- stereo26: declared cracks in left reference px (dic.stereo_cracks), stored as 2-D's; None: no cracks
+    cracks: Any = None
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
 
     CLI_NAMES: ClassVar[dict[str, str]] = {
-        **_SHARED_CLI_NAMES, "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min"}
+        **_SHARED_CLI_NAMES, "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
+        "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc", "right_track_mask": "--right-track-mask",
+        "cracks": "--crack"}
     KIND: ClassVar[str] = "stereo"
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5,
-                                               "strain_type": "green-lagrange"}
-    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess")
+                                               "strain_type": "green-lagrange",
+                                               "verify_composed": False, "verify_zncc": None,
+                                               "right_track_mask": False, "cracks": None}
+    SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess",
+                                                    "verify_composed")
+    # verify_composed / verify_zncc resolved as for 2-D runs (None with the fixed reference; 0.95 by default)
+    _check_verification = TrackOptions._check_verification
+
+    def _inert(self, other, name: str) -> bool:
+        """As :meth:`_Record._inert`, and ``right_track_mask`` cannot act unless a side masks its subsets (a mask
+        or polygon ROI with ``subset_mask="region"``): a file written before it resumes unless its run had one."""
+        if name == "right_track_mask":
+            return not any(isinstance(r.roi, dict) and r.subset_mask == "region" for r in (self, other))
+        return super()._inert(other, name)
 
     def __post_init__(self):
         self._check_common()
@@ -550,6 +575,9 @@ class StereoOptions(_Record):
         self._subset_mask_options()
         self._set("strain_type", _checked("strain_type", _strain_type, self.strain_type))
         self._check_sequence()
+        self._check_verification()
+        self._set("right_track_mask", _checked("right_track_mask", boolean, self.right_track_mask, "right_track_mask"))
+        self._set("cracks", _cracks(self.cracks))
 
     def correlation_kwargs(self) -> dict:
         """The :class:`dic.StereoCorrelation` keywords of this record (no ``device``, no ``match``)."""
@@ -559,7 +587,9 @@ class StereoOptions(_Record):
               "zncc_min": self.zncc_min, "strain_window": self.strain_window, "max_iter": self.max_iter,
               "tol": self.tol, "triangulation": self.triangulation, "max_features": self.max_features,
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
-              **self._subset_mask_kwargs(), "strain_type": self.strain_type}
+              **self._subset_mask_kwargs(), "strain_type": self.strain_type,
+              "verify_zncc": self.verify_zncc if self.verify_composed else None,
+              "right_track_mask": self.right_track_mask, "cracks": self.cracks}
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:

@@ -35,6 +35,7 @@ from .engine import CannotServe, SequenceSummary, run_on_dask, run_sequence
 from .options import StereoOptions
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
+from .stereo_checks import composed_mismatch_attrs, composed_mismatches
 
 __all__ = ["stereo_sequence", "read_stereo", "read_field", "StereoResults", "FORMAT_NAME", "SCHEMA_VERSION"]
 
@@ -113,7 +114,15 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         :class:`dic.StereoCorrelation` keywords (``step``, ``subset``, ``order``,
         ``frame``, ``roi``, ``points``, ``epipolar_tol_px``, ``zncc_min``, ``strain_window``,
         ``max_iter``, ``tol``, ``triangulation``, ``device``, ``strain_type``: "green-lagrange" (default),
-        "small" or "euler-almansi", recorded in the run record).
+        "small" or "euler-almansi", recorded in the run record), and ``verify_composed`` (default None: on
+        with a moved reference) / ``verify_zncc`` (default 0.95): each state tracked from a moved reference has
+        its composed left and right tracks checked against the reference pair
+        (:mod:`dic.correlation.stereo_verify`); points below ``verify_zncc`` in either camera get the status
+        ``COMPOSED_MISMATCH``, counted per state in the file (``composed_mismatch``, and per camera) and in
+        :attr:`SequenceSummary.n_mismatch`. False: no check (a file written before the option resumes only so).
+        ``right_track_mask`` (default True: the right track's subsets masked by the region mapped through the
+        match, :mod:`dic.correlation.right_masks`) and ``cracks`` (declared cracks in left reference px,
+        :mod:`dic.stereo_cracks`: no subset or strain window across them; stored in the file's settings).
 
     Returns
     -------
@@ -203,6 +212,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             attrs = {"seconds": seconds, "reference_index": int(f.reference_index)}
             if f.reference_interpolated is not None:  # the valid points whose place in the tracks' reference was interpolated
                 attrs["reference_interpolated"] = int(np.count_nonzero(f.reference_interpolated))
+            if record.verify_composed and f.reference_index != 0:  # checked against the reference pair
+                attrs.update(composed_mismatch_attrs(f, record.verify_zncc))
             writer.write_frame(k, f, path=paths, sha256=digests, attrs=attrs)
             if vtk_dir is not None:
                 from ..export import write_pvd, write_vtk
@@ -239,6 +250,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
                                     _StereoBuilder(rig, left_ref, right_ref, sc.match, device, options))
                 else:
                     kind = _Stereo(sc, writer, finish, use_previous=guess == "previous")
+                    kind.verified = bool(record.verify_composed)
                     run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out,
                                  lock=wb.lock)
             finally:
@@ -315,8 +327,10 @@ class _Stereo:
     def counts(self, result: Field3D) -> tuple[int, int]:
         return _counts(result)
 
+    verified = False  # composed tracks checked against the reference pair (verify_composed)
+
     def mismatches(self, result: Field3D) -> int:
-        return 0  # stereo tracks are not checked against the reference pair (docs/stereo.md)
+        return composed_mismatches(result) if self.verified else 0
 
     def write(self, k: int, result: Field3D, item: Loaded, seconds: float) -> None:
         self._finish(k, result, item.path, item.digest, float(seconds))

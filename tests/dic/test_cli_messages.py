@@ -102,7 +102,7 @@ def test_stereo_help_names_only_its_own_options():
 
     stereo_help = CliRunner().invoke(main, ["stereo", "--help"], terminal_width=200)
     assert stereo_help.exit_code == 0
-    own = {o for p in stereo.params for o in p.opts} | {"--help"}
+    own = {o for p in stereo.params for o in (*p.opts, *getattr(p, "secondary_opts", ()))} | {"--help"}
     text = stereo_help.output.replace("-\n  ", "-")  # an option name broken at the end of a line
     named = set(re.findall(r"(?<![\w-])--[a-z][a-z-]+[a-z]", text))
     assert named <= own, named - own

@@ -142,10 +142,14 @@ def test_settings_of_8d9f975_are_read_as_records():
     assert TrackOptions.from_settings(cli) == expected == TrackOptions.from_settings(lib)
     s_cli, s_lib = (read_stereo(DATA / f"stereo_{w}_v1.h5").settings for w in ("cli", "lib"))
     # 8d9f975's stereo default order was 2 (1 since issue 25): a file that did not record it holds order 2
-    # (and its subsets kept every pixel: subset_mask "none", issue 26; stereo: plain IC-GN by default still)
-    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2, subset_mask="none")
+    # (and its subsets kept every pixel: subset_mask "none", issue 26; stereo: plain IC-GN by default still;
+    # its composed tracks were not checked: verify_composed False, and its right tracks not masked:
+    # right_track_mask False, issue 26)
+    assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2, subset_mask="none",
+                                                               right_track_mask=False)
     assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", order=2,
-                                                               subset_mask="none")
+                                                               subset_mask="none", verify_composed=False,
+                                                               right_track_mask=False)
 
 
 def test_schema1_details_and_unknown_schemas():
@@ -250,7 +254,8 @@ def test_2d_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
 @pytest.mark.parametrize("written_by", ["cli", "lib"])
 def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path):
     # both were written with 8d9f975's default order 2 (the default is 1 since issue 25): resumed with it given
-    extra = ["--order", "2"] + (["--reference", "incremental"] if written_by == "lib" else [])
+    # (an incremental file of 8d9f975 did not check composed tracks: it resumes with the check off, ADDED_OPTIONS)
+    extra = ["--order", "2"] + (["--reference", "incremental", "--no-verify-composed"] if written_by == "lib" else [])
     for resume_with in ("cli", "lib"):
         d = tmp_path / resume_with
         d.mkdir()
@@ -262,7 +267,8 @@ def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path)
             assert r.exit_code == 0, r.output
         else:
             fields = stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu", order=2,
-                                     reference="incremental" if written_by == "lib" else "fixed")
+                                     reference="incremental" if written_by == "lib" else "fixed",
+                                     verify_composed=False if written_by == "lib" else None)
             assert list(fields.indices) == [2]  # a SequenceSummary (the engine)
         res = read_stereo(out)
         assert res.indices == [0, 1, 2] and np.array_equal(res.fields[1].xyz, x1, equal_nan=True)
@@ -270,7 +276,8 @@ def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path)
         assert np.count_nonzero(res.fields[2].valid) >= 0.5 * len(res.fields[2])
     with pytest.raises(ValueError, match=r"--zncc-min \(zncc_min\): 0\.8 in the file, 0\.9 now"):
         stereo_sequence(RIG, _pairs(3), out, step=20, zncc_min=0.9, device="cpu", order=2,
-                        reference="incremental" if written_by == "lib" else "fixed")
+                        reference="incremental" if written_by == "lib" else "fixed",
+                        verify_composed=False if written_by == "lib" else None)
 
 
 def test_stereo_library_file_resumes_with_the_cli_and_a_difference_is_refused(tmp_path):

@@ -1,0 +1,71 @@
+"""Re-verification of a stereo state's composed temporal tracks against the reference pair (issue 26).
+
+With a moved reference (``reference="incremental"``, ``"every:N"``, ``"auto"`` of
+:func:`dic.sequence.stereo_sequence`), a state's left and right track parameters are compositions of
+several correlations (:class:`dic.correlation.lagrangian.MovedReference`, one per camera): a wrong match
+that anchored a reference update is carried into every later state. :class:`StereoComposedCheck` checks
+each camera's composed warps against that camera's ORIGINAL reference image, the 2-D check
+(:mod:`dic.sequence.verification`) done per camera with the same kernel (:class:`kernels.verify.ComposedCheck`):
+
+- left: the ZNCC between the left reference subset at each POI and the state's left image at the composed
+  left warp (``params_left``, at the POIs of the reference pair);
+- right: the ZNCC between the right reference subset at each matched point (``match.points_right``) and the
+  state's right image at the composed right warp (``params_right``).
+
+A point whose accepted track scores below the threshold in either camera fails (the stereo status
+:attr:`dic.field3d.StereoStatus.COMPOSED_MISMATCH`, set by :class:`dic.StereoCorrelation`); a subset that
+leaves the image (in the reference or the state) or has no texture cannot be checked and keeps its result.
+The subsets are whole squares, as in 2-D: a subset masked to a region (``subset_mask``) is checked on all
+its pixels.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["StereoComposedCheck"]
+
+
+class StereoComposedCheck:
+    """The reference pair and its subsets held on the device once, to check composed stereo tracks.
+
+    ``left_ref``, ``right_ref`` (H, W) grey levels: the reference pair; ``points_left`` (N, 2) px: the POIs
+    in the left reference; ``points_right`` (M, 2) px: the matched points in the right reference (the rows
+    ``matched`` of the POIs); ``matched`` (M,) int: their POI indices; ``subset`` px (odd): the run's;
+    ``threshold``: the ZNCC in [-1, 1] below which a track fails; ``device``: the run's Warp device.
+    """
+
+    def __init__(self, left_ref, right_ref, points_left, points_right, matched, subset: int, threshold: float,
+                 device=None):
+        from kernels.checks import in_range
+        from kernels.verify import ComposedCheck
+
+        self.threshold = in_range(threshold, -1.0, 1.0, "verify_zncc")
+        self.matched = np.asarray(matched, dtype=np.int64)
+        self.n_points = len(points_left)
+        self._left = ComposedCheck(left_ref, points_left, subset, device=device)
+        self._right = ComposedCheck(right_ref, points_right, subset, device=device) if len(self.matched) else None
+
+    def check(self, params_left, accepted_left, image_left, params_right, accepted_right, image_right):
+        """ZNCC of each camera's composed tracks against its reference image.
+
+        ``params_left`` (N, 6 or 12), ``accepted_left`` (N,) bool: the left track at the POIs; ``params_right``
+        (M, 6 or 12), ``accepted_right`` (M,) bool: the right track at the matched points (None: no right track);
+        ``image_left``, ``image_right`` (H, W): the state's pair.
+
+        Returns ``(failed, zncc_left, zncc_right)``: (N,) bool, the POIs whose accepted track fails in either
+        camera; (N,) float32 ZNCC per camera, NaN where not checked (not accepted, or the subset leaves the
+        image or is flat), the right one at the POIs (NaN where not matched).
+        """
+        from kernels.verify import CHECKED
+
+        n = self.n_points
+        acc_l = np.asarray(accepted_left, bool)
+        z, outcome = self._left.zncc(image_left, params_left, acc_l)
+        zncc_left = np.where(outcome == CHECKED, z, np.nan).astype(np.float32)
+        zncc_right = np.full(n, np.nan, np.float32)
+        if self._right is not None and params_right is not None:
+            z, outcome = self._right.zncc(image_right, params_right, np.asarray(accepted_right, bool))
+            zncc_right[self.matched] = np.where(outcome == CHECKED, z, np.nan)
+        failed = (np.isfinite(zncc_left) & ~(zncc_left >= self.threshold)) | \
+                 (np.isfinite(zncc_right) & ~(zncc_right >= self.threshold))
+        return failed, zncc_left, zncc_right
