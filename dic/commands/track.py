@@ -92,7 +92,7 @@ def _fail(exc: Exception) -> click.ClickException:
               help="With a moved --reference: check every point of a frame correlated against a moved reference "
                    "against the reference image itself (ZNCC of its reference subset and the frame at the composed "
                    "warp); points below --verify-zncc are not valid (status COMPOSED_MISMATCH) and are counted per "
-                   "frame. Default: on, except with --scheduler/--workers (not available there yet).")
+                   "frame. Default: on (with --scheduler/--workers too).")
 @click.option("--verify-zncc", default=None, type=click.FloatRange(min=-1.0, max=1.0),
               help="With --verify-composed: the ZNCC below which a composed point fails (default 0.95: a whole-pixel "
                    "wrong match scores at most 0.92 on a 2 px speckle, a correct warp at least 0.994 at 4 grey levels "
@@ -133,10 +133,6 @@ def track(reference, current, output, subset, step, order, search, search_method
                                  "use fixed or every:N with --scheduler/--workers", param_hint="--reference")
     if verify_zncc is not None and verify_composed is False:
         raise click.BadParameter("--verify-zncc cannot act with --no-verify-composed", param_hint="--verify-zncc")
-    if check_dask(scheduler, workers):
-        if verify_composed:
-            raise click.BadParameter("not available with --scheduler/--workers", param_hint="--verify-composed")
-        verify_composed = False  # the default is on wherever the check can run; the Dask loop has none yet
     if verify_composed is None:
         verify_composed = policy.kind != "fixed"  # nothing is composed with the fixed reference
     if subset < 5 or subset % 2 == 0:

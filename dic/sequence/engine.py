@@ -302,8 +302,9 @@ def run_on_dask(client, reader, *, done: set, wb: WriteBehind, summary: Sequence
     window of 2-D and stereo sequences (:func:`dask_window` frames in flight; the oldest is collected first).
 
     ``submit(k, item) -> (future, context)`` sends frame k out (the future gives ``(result, seconds)``);
-    ``collect(k, item, context, result, seconds) -> (n_valid, n_points, reference_index)`` hands the
-    result to the writer thread; ``check_done(k, item)``: the resume check of a finished frame (under
+    ``collect(k, item, context, result, seconds) -> (n_valid, n_points, reference_index[, n_mismatch])``
+    hands the result to the writer thread (``n_mismatch``: its points that failed the check of composed
+    results, 0 when not given); ``check_done(k, item)``: the resume check of a finished frame (under
     ``wb.lock``); ``failed(item, exc)``: the error naming the frame; ``before(k, item, wait)``, optional:
     called first for every frame (2-D every:N: a new reference, whose key frame it waits for with
     ``wait(r)``, which collects the frames up to r). Cancels what is in flight on the way out and
@@ -328,9 +329,9 @@ def run_on_dask(client, reader, *, done: set, wb: WriteBehind, summary: Sequence
             wb.close(raise_error=True)
             raise failed(item, ValueError(f"the Dask cluster could not compute it ({type(exc).__name__}: {exc})")) \
                 from None
-        n_valid, n_points, reference_index = collect(k, item, context, result, seconds)
+        n_valid, n_points, reference_index, *n_mismatch = collect(k, item, context, result, seconds)
         del result
-        summary.add(k, n_valid, n_points, seconds, reference_index)
+        summary.add(k, n_valid, n_points, seconds, reference_index, *n_mismatch)
         if len(summary) % TRIM_EVERY == 0:
             trim_memory()
         bar.update(1)

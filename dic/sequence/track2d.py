@@ -254,8 +254,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         subset and the frame at the composed warp (:mod:`dic.sequence.verification`). Points below
         ``verify_zncc`` are not valid and get the status ``COMPOSED_MISMATCH``; the frame's
         ``composed_mismatch`` attribute and :attr:`SequenceSummary.n_mismatch` count them. Default None:
-        on wherever it can run (a moved reference, no ``client``: the Dask loop does not check yet, and
-        its runs record False); False: no check (the results of runs before the option; a file written
+        on wherever it can act (a moved reference; with ``client`` too, the check run in this process as the
+        frames come back: the same results as one process); False: no check (the results of runs before the option; a file written
         before it resumes only with False, its record holding no check).
     verify_zncc : float in [-1, 1], optional
         The ZNCC below which a composed point fails (default 0.95,
@@ -297,8 +297,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         guess = "previous" if client is None else "none"
     if guess not in ("previous", "none"):
         raise ValueError(f"guess must be 'previous' or 'none', got {guess!r}")
-    if verify_composed is None:  # the default: on wherever it can run
-        verify_composed = client is None and policy.kind != "fixed"
+    if verify_composed is None:  # the default: on wherever it can act (a moved reference)
+        verify_composed = policy.kind != "fixed"
     if not isinstance(verify_composed, (bool, np.bool_)):
         raise ValueError(f"verify_composed must be None, True or False, got {verify_composed!r}")
     if verify_zncc is not None:
@@ -306,9 +306,6 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
 
         verify_zncc = in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
     if client is not None:
-        if verify_composed:
-            raise ValueError("verify_composed is not available with client= (the Dask loop does not check composed "
-                             "frames yet); run without client, or without verify_composed")
         if guess != "none":
             raise ValueError("guess='previous' chains each frame to the one before it and cannot be distributed: "
                              "with client= every frame starts from guess='none' (leave guess out)")
@@ -495,7 +492,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             try:
                 _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state,
                              builder=_builder(make_tracker, budget, order, search_name), ref_img=ref_img,
-                             everywhere=everywhere, points0=points0, order=order, settings=settings, out=out)
+                             everywhere=everywhere, points0=points0, order=order, settings=settings, out=out,
+                             verify=_verify_here(ref_img, points0, verify_threshold, options.get("device")))
             finally:
                 reader.close()
                 wb.close(raise_error=False)
@@ -682,11 +680,14 @@ def _builder(make_tracker, budget, order, search):
 
 
 def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state, *, builder, ref_img, everywhere,
-                 points0, order, settings, out):
+                 points0, order, settings, out, verify=None):
     """The frames of :func:`track_sequence` correlated on a Dask cluster, written here in frame order.
 
     A window of frames is in flight at once (two per worker thread, plus one); the oldest is written
     first. ``every:N``: the frames of a block go out once the block's key frame (its reference) is known.
+    ``verify(field, image) -> int``, optional: the check of a composed frame against the reference image
+    (:func:`_verify_here`), run here as each frame comes back, before it is written or anchors a reference
+    (as the single-process loop does: identical results).
     """
     import json
     import uuid
@@ -729,11 +730,12 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
 
     def collect(k, item, ref, raw, seconds):
         lag = _lagrangian(ref, raw, points0, k)
+        n_mismatch = verify(lag, item.image) if verify is not None else 0
         wb.submit(lambda k=k, lag=lag, s=seconds, it=item: finish(k, lag, s, it))
         if policy.kind == "every" and k % policy.every == 0:
             key_states[k] = lag
         valid = np.asarray(lag.valid, bool)
-        return int(valid.sum()), int(valid.size), int(ref.index)
+        return int(valid.sum()), int(valid.size), int(ref.index), n_mismatch
 
     def reference(r: int, wait):
         """The reference frame r of the next block (its key frame's result known: waited for)."""
@@ -779,6 +781,26 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
 
     run_on_dask(client, reader, done=done, wb=wb, summary=summary, bar=bar, token=token, submit=submit,
                 collect=collect, check_done=check_done, failed=failed, before=before)
+
+
+def _verify_here(ref_img, points0, threshold, device):
+    """The check of composed frames of a Dask run, run in this process (the one that writes): a callable
+    ``(field, image) -> points that failed`` that changes ``field`` in place as :meth:`_Track2D.accept` does (a
+    :class:`dic.sequence.verification.ComposedVerifier` built at the first composed frame); None without a
+    check (``threshold`` None)."""
+    if threshold is None:
+        return None
+    holder = []
+
+    def verify(field, image) -> int:
+        if int(field.reference_index) == 0:  # correlated against the reference image: nothing composed
+            return 0
+        if not holder:
+            holder.append(ComposedVerifier(ref_img, points0, int(field.subset), threshold, device=device))
+        holder[0].apply(field, image)
+        return composed_mismatches(field)
+
+    return verify
 
 
 def _sha256_text(text: str) -> str:

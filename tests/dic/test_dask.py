@@ -13,6 +13,7 @@ distributed = pytest.importorskip("distributed")
 from dic.sequence import track_sequence  # noqa: E402
 from dic.store import read_results  # noqa: E402
 from dic.synth import speckle_pair  # noqa: E402
+from kernels.conventions import Status  # noqa: E402
 
 pytestmark = pytest.mark.dask
 
@@ -48,7 +49,7 @@ def _same(a, b, frames=None):
         fa, fb = ra.frames[k], rb.frames[k]
         for name in ("points", "u", "v", "params", "zncc", "status", "valid", "sigma_u", "sigma_v"):
             assert np.array_equal(getattr(fa, name), getattr(fb, name), equal_nan=True), (k, name)
-        for name in fa.strain:
+        for name in fa.strain or {}:
             assert np.array_equal(fa.strain[name], fb.strain[name], equal_nan=True), (k, name)
         assert fa.attrs["reference_index"] == fb.attrs["reference_index"]
     assert ra.settings == rb.settings
@@ -60,10 +61,19 @@ def test_identical_to_one_process(sequence, client, tmp_path, strategy):
     seen = []
     s = track_sequence(ref, frames, tmp_path / "d.h5", reference=strategy, step=8, device="cpu", client=client,
                        callback=lambda k, f, e: seen.append(k))
-    # (the Dask loop does not check composed results yet, so its runs record verify_composed False: the same here)
-    one = track_sequence(ref, frames, tmp_path / "one.h5", reference=strategy, step=8, device="cpu", guess="none",
-                         verify_composed=False)
+    # every:3 checks composed frames by default, on Dask as on one process
+    one = track_sequence(ref, frames, tmp_path / "one.h5", reference=strategy, step=8, device="cpu", guess="none")
     _same(tmp_path / "d.h5", tmp_path / "one.h5")
+    assert s.n_mismatch.tolist() == one.n_mismatch.tolist() == [0] * N_FRAMES
+    if strategy != "fixed":  # a clean run: the check changes nothing (bit for bit the run without it)
+        assert read_results(tmp_path / "d.h5").settings["verify_composed"] is True
+        off = tmp_path / "off.h5"
+        track_sequence(ref, frames, off, reference=strategy, step=8, device="cpu", client=client, verify_composed=False)
+        ra, rb = read_results(tmp_path / "d.h5"), read_results(off)
+        for k in ra.frames:
+            for name in ("u", "v", "params", "zncc", "status", "valid", "sigma_u", "sigma_v"):
+                assert np.array_equal(getattr(ra.frames[k], name), getattr(rb.frames[k], name), equal_nan=True)
+            assert ra.frames[k].attrs.get("composed_mismatch", 0) == 0 and "composed_mismatch" not in rb.frames[k].attrs
     assert seen == list(range(1, N_FRAMES + 1))  # written in frame order
     assert [f["index"] for f in s.frames] == list(range(1, N_FRAMES + 1))
     assert [f["reference_index"] for f in s.frames] == [f["reference_index"] for f in one.frames]
@@ -98,16 +108,70 @@ def test_scheduler_address_connected_and_closed(sequence, client, tmp_path):
 def test_resume_on_dask(sequence, client, tmp_path):
     ref, frames = sequence
     out = tmp_path / "r.h5"
-    track_sequence(ref, frames[:3], out, reference="every:2", step=8, device="cpu", guess="none",
-                   verify_composed=False)  # one process, as Dask runs (no check of composed results there yet)
+    track_sequence(ref, frames[:3], out, reference="every:2", step=8, device="cpu", guess="none")  # one process
     s = track_sequence(ref, frames, out, reference="every:2", step=8, device="cpu", client=client)
     assert s.skipped == 3 and [f["index"] for f in s.frames] == list(range(4, N_FRAMES + 1))
-    track_sequence(ref, frames, tmp_path / "one.h5", reference="every:2", step=8, device="cpu", guess="none",
-                   verify_composed=False)
+    track_sequence(ref, frames, tmp_path / "one.h5", reference="every:2", step=8, device="cpu", guess="none")
     _same(out, tmp_path / "one.h5")
     other = [frames[0], frames[0] + 1.0] + frames[2:]  # a finished frame's image changed: refused, as on one machine
     with pytest.raises(ValueError, match="frame 2"):
         track_sequence(ref, other, out, reference="every:2", step=8, device="cpu", client=client)
+
+
+def test_wrong_match_carried_by_a_reference_update_flagged_as_on_one_process(sequence, client, tmp_path):
+    """every:2: frame 2 (against the reference image, the key frame of the next block) reports a 4 x 4 block of
+    points 1 px off in u. On Dask the check of composed results flags the points of frames 3 and 4 that inherit
+    the wrong match (more than 0.75 px off the exact field), none within 0.05 px, and the file and summary are
+    those of one process with guess="none" (the check runs in the client before frame 4's result anchors the
+    next block). Without the check the error is carried (shown first)."""
+    ref, frames = sequence
+    wrong = frames[1]
+
+    def make_tracker(image, points):  # picklable (a closure): corrupts frame 2 against the reference image
+        import numpy as np
+
+        from dic._track import Tracker
+
+        tracker = Tracker(image, step=8, device="cpu") if points is None else Tracker(image, points=points,
+                                                                                     device="cpu")
+        track = tracker.track
+
+        def corrupted(current, **kw):
+            field = track(current, **kw)
+            if points is None and np.array_equal(np.asarray(current), wrong):
+                xs, ys = np.unique(field.points[:, 0]), np.unique(field.points[:, 1])
+                j = np.flatnonzero(np.isin(field.points[:, 0], xs[len(xs) // 2 - 2:len(xs) // 2 + 2])
+                                   & np.isin(field.points[:, 1], ys[len(ys) // 2 - 2:len(ys) // 2 + 2]))
+                field.u[j] += 1.0
+                field.params[j, 0] += 1.0
+            return field
+
+        tracker.track = corrupted
+        return tracker
+
+    kw = dict(reference="every:2", make_tracker=make_tracker, points=None, order=1, strain_window=0)
+
+    def errors(f, k):
+        tu, tv = truth(k)(f.points[:, 0], f.points[:, 1])
+        return np.hypot(f.u - tu, f.v - tv)
+
+    track_sequence(ref, frames, tmp_path / "plain.h5", client=client, verify_composed=False, **kw)
+    plain = read_results(tmp_path / "plain.h5")
+    for k in (3, 4):  # the problem, shown: inherited by the frames against the moved reference, valid
+        assert np.count_nonzero(plain.frames[k].valid & (errors(plain.frames[k], k) > 0.75)) >= 8
+    d = track_sequence(ref, frames, tmp_path / "d.h5", client=client, **kw)
+    one = track_sequence(ref, frames, tmp_path / "one.h5", guess="none", **kw)
+    _same(tmp_path / "d.h5", tmp_path / "one.h5")
+    assert d.n_mismatch.tolist() == one.n_mismatch.tolist()
+    res = read_results(tmp_path / "d.h5")
+    by_frame = dict(zip(d.indices.tolist(), d.n_mismatch.tolist()))
+    for k in (3, 4):
+        f = res.frames[k]
+        flagged = f.status == int(Status.COMPOSED_MISMATCH)
+        err = errors(f, k)
+        assert np.all(flagged[(f.valid | flagged) & (err > 0.75)]) and not np.any(flagged & (err < 0.05))
+        assert f.attrs["composed_mismatch"] == np.count_nonzero(flagged) == by_frame[k] >= 8
+    assert by_frame[1] == by_frame[2] == 0
 
 
 def test_worker_killed_mid_run(sequence, client, tmp_path):

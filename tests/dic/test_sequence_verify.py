@@ -164,8 +164,6 @@ def test_options_and_refusals(noisy_sequence, tmp_path):
         track_sequence(ref, frames[:1], tmp_path / "a.h5", verify_composed="yes")
     with pytest.raises(ValueError, match=r"verify_zncc must be in \[-1.0, 1.0\]"):
         track_sequence(ref, frames[:1], tmp_path / "a.h5", verify_composed=True, verify_zncc=2)
-    with pytest.raises(ValueError, match="verify_composed is not available with client="):
-        track_sequence(ref, frames[:1], tmp_path / "a.h5", verify_composed=True, client=object(), guess="none")
 
 
 def test_cli_verify_composed(noisy_sequence, tmp_path):
