@@ -243,7 +243,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         Distribute the frames over a Dask cluster (:mod:`dic.sequence.distributed`): each worker
         prepares the reference once and keeps it, the frames go to the workers, the results come
         back to this process, which writes them in frame order (resume as without a client). Results
-        are identical to a single-process run with ``guess="none"``. ``"fixed"`` and ``"every:N"``
+        are identical to a single-process run with ``guess="none"`` (a moved reference's carried region and
+        cracks, worked out here and shipped with it, and the check of composed frames included). ``"fixed"`` and ``"every:N"``
         only (every:N waits for each key frame before its block); an address is connected within 5 s.
     compression : "none" | "lzf" | "gzip" | "gzip:N", optional
         How the result file's datasets are compressed (:func:`dic.store.layout.parse_compression`;

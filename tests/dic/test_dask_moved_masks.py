@@ -12,15 +12,8 @@ import pytest
 
 distributed = pytest.importorskip("distributed")
 
-from test_moved_masks import (  # noqa: E402 - the scenes and their exact-truth figures
-    CH,
-    CX,
-    HOLE_SHAPE,
-    _crack_figures,
-    _hole_figures,
-    crack_sequence,  # noqa: F401 - a fixture
-    hole_sequence,  # noqa: F401 - a fixture
-)
+import test_moved_masks  # noqa: E402 - the scenes and their exact-truth figures
+from test_moved_masks import CH, CX, HOLE_SHAPE, _crack_figures, _hole_figures  # noqa: E402
 
 from dic import Crack  # noqa: E402
 from dic.sequence import track2d, track_sequence  # noqa: E402
@@ -28,6 +21,8 @@ from dic.sequence.distributed import CarriedMasks  # noqa: E402
 from dic.store import read_results  # noqa: E402
 
 pytestmark = pytest.mark.dask
+hole_sequence = test_moved_masks.hole_sequence  # the fixtures
+crack_sequence = test_moved_masks.crack_sequence
 
 
 @pytest.fixture(scope="module")
