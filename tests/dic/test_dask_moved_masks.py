@@ -126,3 +126,43 @@ def test_what_is_shipped_to_the_workers_pickles_small_and_gives_the_same_keyword
         assert want.any() and np.array_equal(back["blocked_pixels"](moved.points, 21), want)
         some = moved.points[::7] + 0.5  # points not among the moved ones: seen from where they are
         assert np.array_equal(back["blocked_pixels"](some, 21), carried["blocked_pixels"](some, 21))
+
+
+def test_specula_track_on_dask_carries_the_crack_as_one_process(crack_sequence, client, tmp_path):
+    """``specula track --scheduler ADDRESS --reference every:2 --crack ...`` (the command line's own tracker factory,
+    which takes ``carried``; the region and cracks described by its run record): the file is the command line's
+    library's single-process run with ``guess="none"`` and the same options bit for bit (fields, statuses, the
+    composed-check counts), and the points near the crack after the update are measured within the bound of the
+    library test."""
+    from click.testing import CliRunner
+
+    from dic.cli import main
+    from dic.io import write_image
+
+    ref, frames = crack_sequence
+    write_image(tmp_path / "ref.tif", ref.astype(np.uint8))
+    paths = []
+    for k, f in enumerate(frames, 1):
+        paths.append(str(tmp_path / f"f{k}.tif"))
+        write_image(paths[-1], f.astype(np.uint8))
+    runner = CliRunner()
+
+    def track(out, *extra):
+        args = ["track", str(tmp_path / "ref.tif"), *paths, "-o", str(out), "--step", "4", "-q", "--device", "cpu",
+                "--reference", "every:2", "--search-method", "zncc", "--search", "4", "--crack",
+                f"{CX},-20,{CX},{CH + 20}", *extra]
+        res = runner.invoke(main, args)
+        assert res.exit_code == 0, res.output
+
+    track(tmp_path / "d.h5", "--scheduler", client.scheduler.address)
+    track_sequence(str(tmp_path / "ref.tif"), paths, tmp_path / "one.h5", reference="every:2", guess="none", step=4,
+                   subset=21, order=1, search="zncc", search_radius=4, device="cpu",
+                   cracks=Crack([[CX, -20.0], [CX, CH + 20.0]]))
+    ra, rb = read_results(tmp_path / "d.h5"), read_results(tmp_path / "one.h5")
+    for k in range(1, 5):
+        fa, fb = ra.frames[k], rb.frames[k]
+        for name in ("u", "v", "params", "zncc", "status", "valid"):
+            assert np.array_equal(getattr(fa, name), getattr(fb, name), equal_nan=True), (k, name)
+        assert fa.attrs.get("composed_mismatch") == fb.attrs.get("composed_mismatch"), k
+    g = _crack_figures(tmp_path / "d.h5")[4]
+    assert g.field.reference_index == 2 and g.field.valid[g.near].all() and np.max(g.err[g.near]) < 0.025
