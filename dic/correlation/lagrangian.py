@@ -341,21 +341,7 @@ class MovedReference:
         (this frame's px): :func:`dic.cracks.blocked_pixels` seen from each moved point's own sub-pixel position
         (:attr:`points` + :attr:`offset`) rather than the whole pixel its subset sits at, so that a point within
         half a pixel of a crack keeps its side. Points not among :attr:`points` are seen from where they are."""
-        from ..cracks import as_cracks, blocked_pixels
-
-        cracks = as_cracks(cracks)
-        exact = self.points + self.offset
-        rows: dict[tuple[float, float], int] = {}
-        for row, xy in enumerate(map(tuple, self.points.tolist())):
-            rows.setdefault(xy, row)
-
-        def blocked(points, subset):
-            pts = np.asarray(points, np.float64)
-            idx = np.array([rows.get(xy, -1) for xy in map(tuple, pts.tolist())], dtype=np.int64).reshape(-1)
-            seen = np.where((idx >= 0)[:, None], exact[np.maximum(idx, 0)], pts) if len(pts) else pts
-            return blocked_pixels(seen, subset, cracks)
-
-        return blocked
+        return _BlockedFromMovedPoints(self.points, self.points + self.offset, cracks)
 
     def subset(self, rows: np.ndarray) -> "MovedReference":
         """The same reference at ``rows`` of its points only (a view for a camera that tracks a subset)."""
@@ -364,3 +350,33 @@ class MovedReference:
         for name in ("points0", "raw", "anchors", "filled", "supported", "points", "offset", "usable", "params"):
             setattr(out, name, getattr(self, name)[rows])
         return out
+
+
+class _BlockedFromMovedPoints:
+    """The ``blocked_pixels`` callable of :meth:`MovedReference.crack_blocked_pixels`: ``(points, subset) -> (n,
+    subset²) bool``, each point among ``points`` (M, 2) whole px seen from its ``exact`` (M, 2) sub-pixel position.
+    Picklable and small (the two arrays and the cracks; the look-up built where it is called): a Dask run ships it
+    to its workers (:class:`dic.sequence.distributed.CarriedMasks`)."""
+
+    def __init__(self, points: np.ndarray, exact: np.ndarray, cracks):
+        from ..cracks import as_cracks
+
+        self.points, self.exact, self.cracks = np.asarray(points, np.float64), np.asarray(exact, np.float64), \
+            as_cracks(cracks)
+        self._rows = None
+
+    def __getstate__(self):
+        return {"points": self.points, "exact": self.exact, "cracks": self.cracks, "_rows": None}
+
+    def __call__(self, points, subset):
+        from ..cracks import blocked_pixels
+
+        if self._rows is None:
+            rows: dict[tuple[float, float], int] = {}
+            for row, xy in enumerate(map(tuple, self.points.tolist())):
+                rows.setdefault(xy, row)
+            self._rows = rows
+        pts = np.asarray(points, np.float64)
+        idx = np.array([self._rows.get(xy, -1) for xy in map(tuple, pts.tolist())], dtype=np.int64).reshape(-1)
+        seen = np.where((idx >= 0)[:, None], self.exact[np.maximum(idx, 0)], pts) if len(pts) else pts
+        return blocked_pixels(seen, subset, self.cracks)

@@ -19,7 +19,8 @@ import threading
 import time
 from collections import OrderedDict
 
-__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "forget", "release", "ReferenceBuilder", "CONNECT_TIMEOUT",
+__all__ = ["LOST", "connect", "local_client", "n_workers", "track_on_worker", "held", "forget", "release", "ReferenceBuilder", "CarriedMasks",
+           "CONNECT_TIMEOUT",
            "WORKER_TIMEOUT", "worker_timeout"]
 
 CONNECT_TIMEOUT = 5.0  # seconds to reach a scheduler
@@ -200,13 +201,14 @@ def release(client, prefix: str) -> None:
         pass
 
 
-def track_on_worker(key: str, build, ref_image, points, image):
+def track_on_worker(key: str, build, ref_image, points, image, carried=None):
     """(raw field, seconds): ``image`` tracked against the reference ``key``, prepared once per worker
-    process by ``build(ref_image, points)`` and kept for the next frames."""
+    process by ``build(ref_image, points)`` (``build(ref_image, points, carried.keywords())`` with
+    ``carried``, a moved reference's :class:`CarriedMasks`) and kept for the next frames."""
     with _LOCK:  # one frame at a time per process (a worker's threads would share a tracker)
         tracker = _CACHE.get(key)
         if tracker is None:
-            tracker = build(ref_image, points)
+            tracker = build(ref_image, points) if carried is None else build(ref_image, points, carried.keywords())
             _CACHE[key] = tracker
             while len(_CACHE) > _CACHE_SIZE:
                 _CACHE.popitem(last=False)
@@ -217,9 +219,49 @@ def track_on_worker(key: str, build, ref_image, points, image):
         return raw, time.perf_counter() - t0
 
 
+class CarriedMasks:
+    """What a moved reference's tracker is cut by, as a Dask run ships it to its workers: the :class:`dic.Tracker`
+    keywords ``carried`` (``pixel_region``: the run's region carried into the moved reference's image, (H, W)
+    bool; ``blocked_pixels``: the carried cracks' callable; ``cracks``: None), built once in the client by
+    :func:`dic.sequence.track2d._carry_for` as a single-process run builds them. The region travels packed 8 px a
+    byte (``np.packbits``: an eighth of a bool image, a thirty-second of the float32 frame that goes with it), the
+    cracks' callable as the moved points, their sub-pixel positions and the carried polylines
+    (:meth:`dic.correlation.lagrangian.MovedReference.crack_blocked_pixels`). :meth:`keywords` gives back the same
+    keywords on the worker (the region bit for bit)."""
+
+    def __init__(self, carried: dict):
+        import numpy as np
+
+        kw = dict(carried)
+        region = kw.pop("pixel_region", None)
+        self.shape = None
+        self.bits = None
+        if region is not None:
+            region = np.asarray(region, dtype=bool)
+            self.shape = tuple(region.shape)
+            self.bits = np.packbits(region.ravel())
+        self.rest = kw
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the packed region (0 without one)."""
+        return 0 if self.bits is None else int(self.bits.nbytes)
+
+    def keywords(self) -> dict:
+        """The tracker keywords (a new dict; ``pixel_region`` unpacked to (H, W) bool)."""
+        import numpy as np
+
+        kw = dict(self.rest)
+        if self.bits is not None:
+            h, w = self.shape
+            kw["pixel_region"] = np.unpackbits(self.bits, count=h * w).reshape(h, w).astype(bool)
+        return kw
+
+
 class ReferenceBuilder:
-    """Builds the tracker of a reference on a worker: ``make_tracker(image, points)``, in chunks of the
-    memory budget when over it (as :func:`dic.sequence.track_sequence` does on one machine)."""
+    """Builds the tracker of a reference on a worker: ``make_tracker(image, points)`` (a moved reference's with
+    ``carried``: ``make_tracker(image, points, carried=carried)``), in chunks of the memory budget when over it
+    (as :func:`dic.sequence.track_sequence` does on one machine)."""
 
     def __init__(self, make_tracker, budget: int, order: int, search=None):
         self.make_tracker, self.budget, self.order, self.search = make_tracker, int(budget), int(order), search
@@ -229,10 +271,13 @@ class ReferenceBuilder:
 
         return n_points * bytes_per_poi(self.order) > self.budget
 
-    def __call__(self, image, points):
+    def __call__(self, image, points, carried: dict | None = None):
+        import functools
+
         from .chunks import ChunkedTracker, bytes_per_poi
 
+        make = self.make_tracker if carried is None else functools.partial(self.make_tracker, carried=carried)
         if points is not None and self.over_budget(len(points)):
-            return ChunkedTracker(self.make_tracker, image, points, order=self.order,
+            return ChunkedTracker(make, image, points, order=self.order,
                                   chunk=self.budget // bytes_per_poi(self.order), search=self.search)
-        return self.make_tracker(image, points)
+        return make(image, points)

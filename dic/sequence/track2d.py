@@ -243,7 +243,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         Distribute the frames over a Dask cluster (:mod:`dic.sequence.distributed`): each worker
         prepares the reference once and keeps it, the frames go to the workers, the results come
         back to this process, which writes them in frame order (resume as without a client). Results
-        are identical to a single-process run with ``guess="none"``. ``"fixed"`` and ``"every:N"``
+        are identical to a single-process run with ``guess="none"`` (a moved reference's carried region and
+        cracks, worked out here and shipped with it, and the check of composed frames included). ``"fixed"`` and ``"every:N"``
         only (every:N waits for each key frame before its block); an address is connected within 5 s.
     compression : "none" | "lzf" | "gzip" | "gzip:N", optional
         How the result file's datasets are compressed (:func:`dic.store.layout.parse_compression`;
@@ -486,21 +487,6 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                 return writer.read_frame(index)
 
         bar = tqdm(total=total, unit="frame", desc="track", disable=not progress)
-        reader = read_ahead(frames, _frame_loader(ref_img.shape, ref_name))
-        if client is not None:
-            tracker0_holder[0] = None  # the workers prepare the reference
-            try:
-                _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state,
-                             builder=_builder(make_tracker, budget, order, search_name), ref_img=ref_img,
-                             everywhere=everywhere, points0=points0, order=order, settings=settings, out=out,
-                             verify=_verify_here(ref_img, points0, verify_threshold, options.get("device")))
-            finally:
-                reader.close()
-                wb.close(raise_error=False)
-                bar.close()
-            trim_memory()
-            summary.seconds = time.perf_counter() - t_start
-            return summary
         carry, reference_masks = None, None
         if custom_tracker is None or _takes_carried(custom_tracker):  # a moved reference's region and cracks
             described = options  # the run's region and cracks: the record's with a custom tracker (the command line's)
@@ -509,6 +495,23 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
             carry = _carry_for(described, ref_img.shape)
             if carry is not None:
                 reference_masks = lambda: _reference_masks(described, ref_img.shape, points0)  # noqa: E731
+        reader = read_ahead(frames, _frame_loader(ref_img.shape, ref_name))
+        if client is not None:
+            tracker0_holder[0] = None  # the workers prepare the reference
+            try:
+                _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state,
+                             builder=_builder(make_tracker, budget, order, search_name), ref_img=ref_img,
+                             everywhere=everywhere, points0=points0, order=order, settings=settings, out=out,
+                             verify=_verify_here(ref_img, points0, verify_threshold, options.get("device"),
+                                                 reference_masks=reference_masks),
+                             carry=carry)
+            finally:
+                reader.close()
+                wb.close(raise_error=False)
+                bar.close()
+            trim_memory()
+            summary.seconds = time.perf_counter() - t_start
+            return summary
         kind = _Track2D(ref_img=ref_img, everywhere=everywhere, points0=points0, order=order, guess=guess,
                         reference_tracker=reference_tracker, tracker_for=tracker_for,
                         release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
@@ -680,19 +683,23 @@ def _builder(make_tracker, budget, order, search):
 
 
 def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, stored_state, *, builder, ref_img, everywhere,
-                 points0, order, settings, out, verify=None):
+                 points0, order, settings, out, verify=None, carry=None):
     """The frames of :func:`track_sequence` correlated on a Dask cluster, written here in frame order.
 
     A window of frames is in flight at once (two per worker thread, plus one); the oldest is written
     first. ``every:N``: the frames of a block go out once the block's key frame (its reference) is known.
     ``verify(field, image) -> int``, optional: the check of a composed frame against the reference image
     (:func:`_verify_here`), run here as each frame comes back, before it is written or anchors a reference
-    (as the single-process loop does: identical results).
+    (as the single-process loop does: identical results). ``carry(moved) -> dict``, optional
+    (:func:`_carry_for`): a moved reference's tracker keywords of the region and cracks carried into its
+    frame, worked out here once per reference as one process does and shipped with the reference
+    (:class:`dic.sequence.distributed.CarriedMasks`: the region packed 8 px a byte), so that the workers mask
+    its subsets alike (identical results).
     """
     import json
     import uuid
 
-    from .distributed import held, track_on_worker
+    from .distributed import CarriedMasks, held, track_on_worker
     from .engine import run_on_dask
 
     token = _sha256_text(json.dumps(settings, sort_keys=True, default=str) + _digest(ref_img))[:16] + "-" + \
@@ -711,11 +718,13 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
     images: dict[int, Any] = {}  # images of key frames (the next block's reference): bounded
     done = set(writer.done_frames())
 
-    def scattered(index: int, image, points, digest: str) -> dict:
+    def scattered(index: int, image, points, digest: str, carried: CarriedMasks | None = None) -> dict:
         return {"key": f"{token}:{index}:{digest}",
                 "image": client.submit(held, image, key=f"specula-{token}-reference-{index}", pure=False),
                 "points": None if points is None else client.submit(held, points, key=f"specula-{token}-points-{index}",
-                                                                   pure=False)}
+                                                                   pure=False),
+                "carried": None if carried is None else client.submit(held, carried, key=f"specula-{token}-carried-{index}",
+                                                                     pure=False)}
 
     over = builder.over_budget(len(points0))
     cur = _Ref(0, ref_img, None, everywhere)
@@ -752,8 +761,9 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
             if state.reference_index != cur.index or r == cur.index:
                 raise ValueError(f"frame {r} has no valid point and cannot serve as a reference") from None
             return
+        carried = CarriedMasks(carry(cur_new.moved)) if carry is not None else None  # as _Track2D.move_reference
         cur = cur_new
-        cur_data = scattered(r, images[r], cur.moved.points, _digest(images[r]))
+        cur_data = scattered(r, images[r], cur.moved.points, _digest(images[r]), carried)
         for i in [i for i in key_states if i < r]:  # key frames before the reference: not needed again
             del key_states[i]
 
@@ -777,17 +787,18 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
 
     def submit(k, item):
         return client.submit(track_on_worker, cur_data["key"], build, cur_data["image"], cur_data["points"],
-                             item.image, key=f"specula-{token}-frame-{k}", pure=False), cur
+                             item.image, cur_data["carried"], key=f"specula-{token}-frame-{k}", pure=False), cur
 
     run_on_dask(client, reader, done=done, wb=wb, summary=summary, bar=bar, token=token, submit=submit,
                 collect=collect, check_done=check_done, failed=failed, before=before)
 
 
-def _verify_here(ref_img, points0, threshold, device):
+def _verify_here(ref_img, points0, threshold, device, reference_masks=None):
     """The check of composed frames of a Dask run, run in this process (the one that writes): a callable
     ``(field, image) -> points that failed`` that changes ``field`` in place as :meth:`_Track2D.accept` does (a
-    :class:`dic.sequence.verification.ComposedVerifier` built at the first composed frame); None without a
-    check (``threshold`` None)."""
+    :class:`dic.sequence.verification.ComposedVerifier` built at the first composed frame, given the reference
+    subsets' pixel masks ``reference_masks()`` as one process gives them: masked points checked on their kept
+    pixels); None without a check (``threshold`` None)."""
     if threshold is None:
         return None
     holder = []
@@ -796,7 +807,9 @@ def _verify_here(ref_img, points0, threshold, device):
         if int(field.reference_index) == 0:  # correlated against the reference image: nothing composed
             return 0
         if not holder:
-            holder.append(ComposedVerifier(ref_img, points0, int(field.subset), threshold, device=device))
+            masks = reference_masks() if reference_masks is not None else None
+            holder.append(ComposedVerifier(ref_img, points0, int(field.subset), threshold, device=device,
+                                           pixel_mask=masks))
         holder[0].apply(field, image)
         return composed_mismatches(field)
 
