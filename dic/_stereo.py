@@ -570,6 +570,7 @@ class StereoCorrelation:
         def fallback(idx):
             return features(ctx, idx)
 
+        corr.limit_frames(eligible)  # the first pass at the POIs this track uses only (the others are skipped)
         first = corr.run_frame(frame, guess, name="current image")
         current = corr.frame_current(frame.dtype)
         return correlate(corr, current, guess, has, src, eligible=eligible, zncc_min=self.zncc_min,
