@@ -778,16 +778,24 @@ class StereoCorrelation:
         if self._jac_ref is None:
             self._jac_ref = self._triangulation_jacobian(self.points, m.points_right, self._tri_ref[0])
         R = self._frame[0]
-        jac_cur = None
-        if tracks is not None:
-            use = np.where(valid[:, None], 1.0, np.nan)
-            jac_cur = self._triangulation_jacobian(pl_cur * use, pr_cur * use, xyz_cur * use)
-        sig_xyz, sig_uvw = propagate_stereo_sigma(self._jac_ref, sig_m, jac_cur, sig_l, sig_r, rotation=R,
-                                                  rho_match=self._basis["left"].rho_uv, rho_left=rho_l, rho_right=rho_r)
-        if sig_uvw is None:
-            sig_uvw = np.full((n, 3), np.nan)
-        sig_xyz[~valid] = np.nan
-        sig_uvw[~valid] = np.nan
+        # propagated at the valid points only (the others' are NaN): each row is computed on its own, so these
+        # are bit for bit the rows of propagating every point (a grid over a region holds many invalid points)
+        rows = np.flatnonzero(valid)
+        sig_xyz = np.full((n, 3), np.nan)
+        sig_uvw = np.full((n, 3), np.nan)
+        if rows.size:
+            def at(a):
+                return None if a is None else np.asarray(a)[rows]
+
+            jac_cur = None
+            if tracks is not None:
+                jac_cur = self._triangulation_jacobian(pl_cur[rows], pr_cur[rows], xyz_cur[rows])
+            sx, su = propagate_stereo_sigma(self._jac_ref[rows], sig_m[rows], jac_cur, at(sig_l), at(sig_r),
+                                            rotation=R, rho_match=at(self._basis["left"].rho_uv), rho_left=at(rho_l),
+                                            rho_right=at(rho_r))
+            sig_xyz[rows] = sx
+            if su is not None:
+                sig_uvw[rows] = su
         return {"sigma_match_px": sig_m, "sigma_left_px": sig_l, "sigma_right_px": sig_r,
                 # per point like every details array (exports expect N rows); the same in every row
                 "noise_sigma_grey": np.tile([noise_m, noise_l, noise_r], (n, 1)), "sigma_xyz_mm": sig_xyz,
