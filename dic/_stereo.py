@@ -49,7 +49,7 @@ from kernels.icgn import check_max_iter, check_subset_order, n_params, prepare_c
 from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION
 from kernels.images import as_float32_image
 from kernels.interp import FRAME_DTYPES
-from kernels.search import phase_spectrum
+from kernels.search import phase_spectrum, phase_window
 
 from ._triangulate import TriangulationStatus, optimal_triangulation_jacobian, triangulate, undistort_points
 from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
@@ -604,7 +604,14 @@ class StereoCorrelation:
         # 3 px motion took 32 iterations on average, many hitting max_iter; within 0.5 px, 6-8)
         prior = np.zeros((n, k)) if previous is None else np.nan_to_num(previous)
         base = reference_image if previous is None or previous_image is None else previous_image
-        spectrum = self._spectra.setdefault(side, _SpectrumMemo())  # this camera's last image's, for the next state
+        # the shift of the tracked points' neighbourhood (the specimen), measured on the bounding box of their
+        # reference and previous positions + a margin (SHIFT_WINDOW_MARGIN_PX)
+        tracked = eligible & corr.ready
+        at = corr.points[tracked]
+        if previous is not None:
+            at = np.concatenate([at, at + previous[tracked][:, [0, k // 2]]])
+        window = phase_window(at, image.shape, corr.subset // 2 + SHIFT_WINDOW_MARGIN_PX)
+        spectrum = self._spectra.setdefault(side, _SpectrumMemo()).at(window)  # kept for the next state
         ctx = GuessContext(corr, reference_image, image, prior, zncc_min=self.zncc_min,
                            options={"base": base, "spectrum": spectrum, "max_features": self.max_features,
                                     "radius": max(6.0 * self.subset, 3.0 * self.step)})
@@ -617,6 +624,7 @@ class StereoCorrelation:
         def fallback(idx):
             return features(ctx, idx)
 
+        corr.limit_frames(eligible)  # the first pass at the POIs this track uses only (the others are skipped)
         first = corr.run_frame(frame, guess, name="current image")
         current = corr.frame_current(frame.dtype)
         return correlate(corr, current, guess, has, src, eligible=eligible, zncc_min=self.zncc_min,
@@ -831,16 +839,24 @@ class StereoCorrelation:
         if self._jac_ref is None:
             self._jac_ref = self._triangulation_jacobian(self.points, m.points_right, self._tri_ref[0])
         R = self._frame[0]
-        jac_cur = None
-        if tracks is not None:
-            use = np.where(valid[:, None], 1.0, np.nan)
-            jac_cur = self._triangulation_jacobian(pl_cur * use, pr_cur * use, xyz_cur * use)
-        sig_xyz, sig_uvw = propagate_stereo_sigma(self._jac_ref, sig_m, jac_cur, sig_l, sig_r, rotation=R,
-                                                  rho_match=self._basis["left"].rho_uv, rho_left=rho_l, rho_right=rho_r)
-        if sig_uvw is None:
-            sig_uvw = np.full((n, 3), np.nan)
-        sig_xyz[~valid] = np.nan
-        sig_uvw[~valid] = np.nan
+        # propagated at the valid points only (the others' are NaN): each row is computed on its own, so these
+        # are bit for bit the rows of propagating every point (a grid over a region holds many invalid points)
+        rows = np.flatnonzero(valid)
+        sig_xyz = np.full((n, 3), np.nan)
+        sig_uvw = np.full((n, 3), np.nan)
+        if rows.size:
+            def at(a):
+                return None if a is None else np.asarray(a)[rows]
+
+            jac_cur = None
+            if tracks is not None:
+                jac_cur = self._triangulation_jacobian(pl_cur[rows], pr_cur[rows], xyz_cur[rows])
+            sx, su = propagate_stereo_sigma(self._jac_ref[rows], sig_m[rows], jac_cur, at(sig_l), at(sig_r),
+                                            rotation=R, rho_match=at(self._basis["left"].rho_uv), rho_left=at(rho_l),
+                                            rho_right=at(rho_r))
+            sig_xyz[rows] = sx
+            if su is not None:
+                sig_uvw[rows] = su
         return {"sigma_match_px": sig_m, "sigma_left_px": sig_l, "sigma_right_px": sig_r,
                 # per point like every details array (exports expect N rows); the same in every row
                 "noise_sigma_grey": np.tile([noise_m, noise_l, noise_r], (n, 1)), "sigma_xyz_mm": sig_xyz,
@@ -962,18 +978,32 @@ class StereoCorrelation:
         )
 
 
+#: px beyond the tracked subsets that the global shift of a temporal track is measured on (its phase-correlation
+#: window, :func:`kernels.search.phase_window`): the specimen's shift, not the whole image's; shifts up to this
+#: keep every subset inside the window in both images (larger ones are still found while most of it overlaps)
+SHIFT_WINDOW_MARGIN_PX = 64
+
+
 class _SpectrumMemo:
     """:func:`kernels.search.phase_spectrum` that keeps the spectrum of the last image it was given, found again
     by identity: a camera's current image of one state is the base of the next state's global shift
-    (``GuessContext.options["spectrum"]``), so each image is transformed once, not twice."""
+    (``GuessContext.options["spectrum"]``), so each image is transformed once, not twice. ``window``: the
+    ``(rows, cols)`` slices of the images transformed (:meth:`at`), None: the whole image."""
 
     def __init__(self):
         self.image = None
         self.spectrum = None
+        self.window = None
+
+    def at(self, window) -> "_SpectrumMemo":
+        """Transform the part ``window`` of the next images (the kept spectrum is dropped when it changes)."""
+        if window != self.window:
+            self.window, self.image, self.spectrum = window, None, None
+        return self
 
     def __call__(self, image: np.ndarray):
         if image is not self.image:
-            self.spectrum = phase_spectrum(image)
+            self.spectrum = phase_spectrum(image if self.window is None else image[self.window])
             self.image = image
         return self.spectrum
 

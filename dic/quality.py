@@ -309,30 +309,55 @@ def propagate_stereo_sigma(jac_ref, sigma_match, jac_cur=None, sigma_left=None, 
     ``rotation`` (3, 3): the output frame's rotation from the left camera frame. Returns
     ``(sigma_xyz (N, 3), sigma_uvw (N, 3) or None)``; NaN where an input is NaN.
     """
+    # closed-form 2x2 / 3x3 products on per-entry columns (N,): bit for bit the generic contractions
+    # einsum("nik,nkl,njl->nij", J, S, J) and einsum("ik,nkl,il->ni", R, C, R) (the same products, (a * b) * c,
+    # summed from 0 over k then l; tests/dic/test_quality.py), ~10x faster on 20 k points
     def cov(j, s, rho):
         s = np.asarray(s, dtype=np.float64)
-        S = np.zeros(s.shape[:1] + (2, 2))
-        S[:, 0, 0], S[:, 1, 1] = s[:, 0] ** 2, s[:, 1] ** 2
+        n = s.shape[0]
+        S = [[s[:, 0] ** 2, np.zeros(n)], [np.zeros(n), s[:, 1] ** 2]]
         if rho is not None:
             r = np.nan_to_num(np.asarray(rho, dtype=np.float64), nan=0.0)
             if r.shape != s.shape[:1]:
                 raise ValueError(f"rho must have shape {s.shape[:1]}, got {r.shape}")
-            S[:, 0, 1] = S[:, 1, 0] = r * s[:, 0] * s[:, 1]
-        return np.einsum("nik,nkl,njl->nij", j, S, j)
+            S[0][1] = S[1][0] = r * s[:, 0] * s[:, 1]
+        J = [[np.ascontiguousarray(j[:, i, k]) for k in range(2)] for i in range(3)]
+        return [[_sum_of_products(((J[a][k] * S[k][m], J[b][m]) for k in range(2) for m in range(2)))
+                 for b in range(3)] for a in range(3)]
 
     R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
 
     def sigma(c):
-        return np.sqrt(np.einsum("ik,nkl,il->ni", R, c, R))
+        return np.sqrt(np.stack([_sum_of_products(((R[i, k] * c[k][m], R[i, m]) for k in range(3) for m in range(3)))
+                                 for i in range(3)], axis=1))
+
+    def add(*cs):  # (c_1 + c_2) + c_3 entry by entry
+        return [[_add_all([c[a][b] for c in cs]) for b in range(3)] for a in range(3)]
 
     b_ref = jac_ref[:, :, 2:]
     xyz = sigma(cov(b_ref, sigma_match, rho_match))
     if jac_cur is None:
         return xyz, None
     b_cur = jac_cur[:, :, 2:]
-    c = (cov(jac_cur[:, :, :2], sigma_left, rho_left) + cov(b_cur, sigma_right, rho_right)
-         + cov(b_cur - b_ref, sigma_match, rho_match))
+    c = add(cov(jac_cur[:, :, :2], sigma_left, rho_left), cov(b_cur, sigma_right, rho_right),
+            cov(b_cur - b_ref, sigma_match, rho_match))
     return xyz, sigma(c)
+
+
+def _sum_of_products(pairs) -> np.ndarray:
+    """``0 + x_1 * y_1 + x_2 * y_2 + ...`` in that order (what einsum's inner loop sums), per column."""
+    out = None
+    for x, y in pairs:
+        p = x * y
+        out = 0.0 + p if out is None else np.add(out, p, out=out)
+    return out
+
+
+def _add_all(columns) -> np.ndarray:
+    out = columns[0] + columns[1]
+    for c in columns[2:]:
+        out += c
+    return out
 
 
 def _correlator(ref: np.ndarray, pts: np.ndarray, subset: int, order: int, device) -> Correlator:

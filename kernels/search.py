@@ -23,7 +23,7 @@ import scipy.fft
 import warp as wp
 
 from ._device import host_copy, resolve_device
-from ._launch import launch_1d
+from ._launch import cpu_threads, launch_1d
 from .checks import as_points, non_negative_int, odd_int
 from .conventions import round_half_away
 from .images import as_float32_image
@@ -302,7 +302,42 @@ def phase_spectrum(image, name: str = "image") -> PhaseSpectrum:
     img = as_float32_image(image, name).astype(np.float64)
     img -= img.mean()  # in place: the same values as (img - mean) * window, one temporary fewer
     img *= _hann_window(img.shape)
-    return PhaseSpectrum(scipy.fft.rfft2(img), img.shape)
+    return PhaseSpectrum(scipy.fft.rfft2(img, workers=fft_workers()), img.shape)
+
+
+def fft_workers() -> int:
+    """Threads of the phase-correlation FFTs: the CPU launches' (:func:`kernels._launch.cpu_threads`). pocketfft
+    splits a 2-D transform into whole 1-D transforms per thread, so the result is bit for bit that of one thread
+    (tested)."""
+    return cpu_threads()
+
+
+def phase_window(points, shape, margin_px: int, quantum_px: int = 32) -> tuple[slice, slice] | None:
+    """The part of an (H, W) image to measure the global shift of ``points`` (N, 2) ``(x, y)`` px on: their
+    bounding box grown by ``margin_px`` px on every side (the subsets' half size and the largest shift expected
+    beyond it) and out to multiples of ``quantum_px`` (points that move a little give the same window, so a
+    kept spectrum serves again), clamped to the image, each side then grown towards a fast FFT length
+    (:func:`scipy.fft.next_fast_len`) as far as the image allows. Returns ``(rows, cols)`` slices, or None when
+    that is the whole image (or there is no finite point)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    margin = non_negative_int(margin_px, "margin_px")
+    quantum = max(1, non_negative_int(quantum_px, "quantum_px"))
+    h, w = int(shape[0]), int(shape[1])
+    if pts.shape[0] == 0:
+        return None
+    spans = []
+    for lo, hi, size in ((pts[:, 1].min(), pts[:, 1].max(), h), (pts[:, 0].min(), pts[:, 0].max(), w)):
+        a = max(0, (int(np.floor(lo)) - margin) // quantum * quantum)
+        b = min(size, -(-(int(np.ceil(hi)) + margin + 1) // quantum) * quantum)
+        fast = min(size, scipy.fft.next_fast_len(b - a, real=True))
+        grow = fast - (b - a)
+        b2 = min(size, b + grow)
+        a = max(0, a - (grow - (b2 - b)))
+        spans.append(slice(a, b2))
+    if spans[0] == slice(0, h) and spans[1] == slice(0, w):
+        return None
+    return spans[0], spans[1]
 
 
 def phase_correlation_spectra(reference: PhaseSpectrum, current: PhaseSpectrum) -> tuple[int, int, float]:
@@ -315,7 +350,7 @@ def phase_correlation_spectra(reference: PhaseSpectrum, current: PhaseSpectrum) 
     cross = current.spectrum * np.conj(reference.spectrum)
     magnitude = np.abs(cross)
     cross /= np.maximum(magnitude, 1e-12 * magnitude.max() + 1e-30)
-    corr = scipy.fft.irfft2(cross, s=reference.shape)
+    corr = scipy.fft.irfft2(cross, s=reference.shape, workers=fft_workers())
     iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
     h, w = reference.shape
     v = iy - h if iy > h // 2 else iy

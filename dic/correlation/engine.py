@@ -19,7 +19,7 @@ implausible warps) from :mod:`.acceptance`.
 from __future__ import annotations
 
 import heapq
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -104,6 +104,8 @@ class Correlator:
         self.reference_status = self.subsets.status.numpy().astype(np.int32)
         self._out = None
         self._frames = {}  # device-resident frame trackers by frame dtype (run_frame)
+        self._frame_subsets = None  # run_frame's subsets when limited to some POIs (limit_frames)
+        self._frame_active = None  # the POIs run_frame correlates when limited (limit_frames); None: all
         self._textured = None
         self._indexed = None  # buffers of run(): allocated once, on first use
         self._spacing = None
@@ -158,8 +160,33 @@ class Correlator:
             raise ValueError(f"{name} must be a NumPy array here, got {type(frame).__name__}")
         tracker = self._frames.get(dt)
         if tracker is None:
-            tracker = self._frames[dt] = FrameTracker(self.subsets, dt, max_iter=self.max_iter, tol=self.tol)
+            subsets = self.subsets if self._frame_subsets is None else self._frame_subsets
+            tracker = self._frames[dt] = FrameTracker(subsets, dt, max_iter=self.max_iter, tol=self.tol)
         return tracker.track(frame, guess=guess, name=name)
+
+    def limit_frames(self, active: np.ndarray) -> None:
+        """Let :meth:`run_frame` correlate the POIs ``active`` (N,) bool only; the others come back
+        ``NOT_COMPUTED`` after no iteration (their reference subsets stay ready for :meth:`run`).
+
+        For a caller that uses the first pass at some POIs only (the stereo tracks: the matched POIs): the
+        others cost nothing, and each active POI's result is bit for bit the one of the unrestricted launch
+        (one thread per POI). Shares the prepared per-POI tables (a status array of its own); the frame
+        trackers are built again on the next :meth:`run_frame` (not when the same POIs are given again)."""
+        active = np.asarray(active, dtype=bool)
+        if active.shape != (self.n_points,):
+            raise ValueError(f"active must be an ({self.n_points},) bool array, got shape {active.shape}")
+        same = self._frame_active is None if active.all() else (self._frame_active is not None
+                                                                 and np.array_equal(active, self._frame_active))
+        if same:  # these POIs already (a sequence: every state): the trackers and their buffers are kept
+            return
+        self._frames = {}
+        self._frame_active = self._frame_subsets = None
+        if active.all():
+            return
+        self._frame_active = active.copy()
+        status = self.reference_status.copy()
+        status[~active & (status == int(Status.CONVERGED))] = int(Status.NOT_COMPUTED)
+        self._frame_subsets = replace(self.subsets, status=wp.array(status, dtype=wp.int32, device=self.device))
 
     def frame_current(self, frame_dtype) -> CurrentImage:
         """The prepared last frame of :meth:`run_frame` for ``frame_dtype`` (a view of its tracker's buffers)."""

@@ -105,10 +105,16 @@ def textured_pixels(reference_image, *, window: int = 7, relative_threshold: flo
             raise ValueError(f"noise_sigma must be a non-negative number of grey levels, got {noise_sigma!r}")
         floor = noise_factor * float(noise_sigma)
     # local variance E[I²] - E[I]² with box filters, centred on the grey mean for precision
-    centred = image - image.mean()
+    # (in place on the checked copy and the filters' outputs: the same values as the expressions in the comments,
+    # with fewer full-image temporaries)
+    centred = image
+    centred -= image.mean()  # image - mean
     mean = cv2.boxFilter(centred, cv2.CV_64F, (window, window), borderType=cv2.BORDER_REFLECT)
-    mean_sq = cv2.boxFilter(centred * centred, cv2.CV_64F, (window, window), borderType=cv2.BORDER_REFLECT)
-    local_std = np.sqrt(np.clip(mean_sq - mean * mean, 0.0, None))
+    np.multiply(centred, centred, out=centred)
+    mean_sq = cv2.boxFilter(centred, cv2.CV_64F, (window, window), borderType=cv2.BORDER_REFLECT)
+    np.multiply(mean, mean, out=mean)
+    np.subtract(mean_sq, mean, out=mean_sq)
+    local_std = np.sqrt(np.clip(mean_sq, 0.0, None, out=mean_sq), out=mean_sq)  # sqrt(clip(mean_sq - mean², 0))
     threshold = max(relative_threshold * float(np.percentile(local_std, 95.0)), floor)
     return local_std > threshold
 

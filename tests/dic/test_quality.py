@@ -178,6 +178,34 @@ def test_stereo_propagation_against_monte_carlo():
         triangulation_jacobian(linear(m_ref), pl, pr[:2])
 
 
+def test_stereo_propagation_is_bitwise_the_generic_matrix_products():
+    """The closed-form products of propagate_stereo_sigma give bit for bit the generic contractions
+    (Cov = J S J^T, sigma = sqrt(diag(R Cov R^T)) by einsum, the implementation before them), NaN rows included."""
+    rng = np.random.default_rng(7)
+    n = 9000
+    jr, jc = rng.normal(size=(n, 3, 4)) * rng.uniform(0.01, 10.0, (n, 1, 1)), rng.normal(size=(n, 3, 4))
+    jc[rng.random(n) < 0.1] = np.nan
+    sm, sl, sr = (np.abs(rng.normal(size=(n, 2))) for _ in range(3))
+    rm, rl, rr = (rng.uniform(-1.0, 1.0, n) for _ in range(3))
+    rm[::7] = np.nan
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+
+    def cov(j, s, rho):
+        S = np.zeros((n, 2, 2))
+        S[:, 0, 0], S[:, 1, 1] = s[:, 0] ** 2, s[:, 1] ** 2
+        S[:, 0, 1] = S[:, 1, 0] = np.nan_to_num(rho, nan=0.0) * s[:, 0] * s[:, 1]
+        return np.einsum("nik,nkl,njl->nij", j, S, j)
+
+    def sigma(c):
+        return np.sqrt(np.einsum("ik,nkl,il->ni", R, c, R))
+
+    xyz = sigma(cov(jr[:, :, 2:], sm, rm))
+    uvw = sigma(cov(jc[:, :, :2], sl, rl) + cov(jc[:, :, 2:], sr, rr) + cov(jc[:, :, 2:] - jr[:, :, 2:], sm, rm))
+    got_xyz, got_uvw = propagate_stereo_sigma(jr, sm, jc, sl, sr, rotation=R, rho_match=rm, rho_left=rl, rho_right=rr)
+    assert np.array_equal(got_xyz, xyz, equal_nan=True) and np.array_equal(got_uvw, uvw, equal_nan=True)
+    assert np.isnan(got_uvw).any() and np.isfinite(got_uvw).mean() > 0.85
+
+
 def test_stereo_propagation_of_the_u_v_covariance_against_monte_carlo():
     """Correlated u-v errors (coefficient rho per point and stage) propagate through the rig: the std
     equals the scatter of simulated correlated errors, and differs from the independent-error result."""

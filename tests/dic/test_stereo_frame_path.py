@@ -114,6 +114,41 @@ def test_correlate_reports_its_stages(pair):
     assert all(a <= s <= eligible for _, a, s in seen)
 
 
+def test_frames_limited_to_some_pois_give_their_results_bit_for_bit_and_skip_the_others(pair):
+    """Correlator.limit_frames: the active POIs' first pass is bitwise the unrestricted one; the others come back
+    NOT_COMPUTED after no iteration; the same POIs again keep the tracker (its buffers), all POIs lift the limit."""
+    from kernels.conventions import Status
+
+    ref, cur = pair
+    corr = _correlator(ref, 2)
+    n, k = corr.n_points, n_params(2)
+    guess = np.zeros((n, k))
+    full = corr.run_frame(cur, guess)
+    active = np.zeros(n, dtype=bool)
+    active[::3] = True
+    corr.limit_frames(active)
+    part = corr.run_frame(cur, guess)
+    ran = active & corr.ready
+    assert np.count_nonzero(ran) > 0.25 * n
+    for name in ("params", "zncc", "iterations", "status"):
+        a, b = full[name][ran], part[name][ran]
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+    skipped = ~active & corr.ready
+    assert np.all(part["status"][skipped] == int(Status.NOT_COMPUTED)) and not part["iterations"][skipped].any()
+    assert np.all(full["iterations"][skipped] > 0)  # they cost iterations when not skipped
+    assert np.array_equal(corr.ready, corr.reference_status == int(Status.CONVERGED))  # reference subsets untouched
+    tracker = corr._frames[cur.dtype]
+    corr.limit_frames(active.copy())
+    corr.run_frame(cur, guess)
+    assert corr._frames[cur.dtype] is tracker  # the same POIs: the tracker (and its buffers) kept
+    corr.limit_frames(np.ones(n, dtype=bool))
+    again = corr.run_frame(cur, guess)
+    for name in ("params", "zncc", "iterations", "status"):
+        assert np.array_equal(full[name], again[name], equal_nan=full[name].dtype.kind == "f"), name
+    with pytest.raises(ValueError, match="active must be"):
+        corr.limit_frames(active[:-1])
+
+
 @pytest.fixture(scope="module")
 def lab():
     """Two 320x240 views of a speckled plane (as tests/dic/test_stereo_dic.py, 4 samples per pixel), moved 1 mm."""

@@ -83,6 +83,38 @@ def test_phase_correlation_from_kept_spectra():
         phase_correlation_spectra(s_ref, cur)
 
 
+def test_phase_spectra_on_several_threads_are_bitwise_one_thread(monkeypatch):
+    """The FFTs run on the CPU launch threads (SPECULA_THREADS): whole 1-D transforms per thread, the same bits."""
+    ref, cur = shifted_pair(7, -5, shape=(256, 250), seed=3)
+    monkeypatch.setenv("SPECULA_THREADS", "1")
+    one = phase_spectrum(ref), phase_spectrum(cur)
+    shift_one = phase_correlation_spectra(*one)
+    monkeypatch.setenv("SPECULA_THREADS", "2")
+    two = phase_spectrum(ref), phase_spectrum(cur)
+    assert all(np.array_equal(a.spectrum, b.spectrum) for a, b in zip(one, two))
+    assert phase_correlation_spectra(*two) == shift_one and shift_one[:2] == (7, -5)
+
+
+def test_phase_window_is_the_points_box_with_a_margin():
+    from scipy.fft import next_fast_len
+
+    from kernels.search import phase_window
+
+    pts = np.array([[532.2, 335.0], [1361.7, 864.4], [900.0, 600.0]])
+    rows, cols = phase_window(pts, (1200, 1920), 74)
+    for span, lo, hi, size in ((rows, 335.0, 864.4, 1200), (cols, 532.2, 1361.7, 1920)):
+        assert span.start <= lo - 74 and span.stop >= hi + 74 + 1 and 0 <= span.start and span.stop <= size
+        assert span.stop - span.start == next_fast_len(span.stop - span.start, real=True)  # a fast FFT length
+    assert phase_window(pts, (1200, 1920), 74) == phase_window(pts + 3.0, (1200, 1920), 74)  # small moves: same
+    assert phase_window(np.array([[10.0, 10.0], [1013.0, 1013.0]]), (1024, 1024), 74) is None  # whole image
+    assert phase_window(np.full((3, 2), np.nan), (1024, 1024), 74) is None
+    # the shift of a texture measured on its window is the shift measured on the whole image
+    ref, cur = shifted_pair(7, -5, shape=(256, 250), seed=3)
+    window = phase_window(np.array([[60.0, 70.0], [180.0, 170.0]]), ref.shape, 20)
+    assert window is not None
+    assert phase_correlation(ref[window], cur[window])[:2] == (7, -5) == phase_correlation(ref, cur)[:2]
+
+
 def test_reduce_matches_scipy(device):
     img = texture((37, 50), seed=4)
     kern = np.array([1, 4, 6, 4, 1]) / 16.0
