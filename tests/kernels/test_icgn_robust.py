@@ -271,7 +271,7 @@ def test_residual_test_flags_the_subsets_whose_texture_changed(evolving):
     assert _rms(e[ok & ~flagged]) < 0.01 and _rms(e[ok & flagged]) > 0.05
 
 
-def test_adaptive_keeps_clean_subsets_bitwise(evolving):
+def test_adaptive_is_the_default_and_keeps_clean_subsets_bitwise(evolving):
     from dic._track import Tracker, track
 
     k_frame = 10
@@ -280,13 +280,10 @@ def test_adaptive_keeps_clean_subsets_bitwise(evolving):
     truth = evolving.displacement(pts, k_frame)
     guess = _exact_guess(truth, 1)
     plain = Tracker(ref, points=pts, robust=False, device="cpu")
-    # plain IC-GN is the default (adaptive engages on most subsets of smooth anti-aliased renders: docs/dic2d.md)
     defaults = Tracker(ref, points=pts, device="cpu")
-    assert defaults.robust is False and not defaults.check_outliers
-    adaptive = Tracker(ref, points=pts, robust="adaptive", device="cpu")
-    assert adaptive.check_outliers and not plain.check_outliers  # the neighbour check comes with robust IC-GN
-    # the refinement alone (the neighbour check, on with robust IC-GN, may flag some valid POIs)
-    default = Tracker(ref, points=pts, robust="adaptive", check_outliers=False, device="cpu")
+    assert defaults.robust == "adaptive" and defaults.check_outliers and not plain.check_outliers
+    # the refinement alone (the neighbour check, on by default with robust IC-GN, may flag some valid POIs)
+    default = Tracker(ref, points=pts, check_outliers=False, device="cpu")
     for path in ("frame", "host"):  # the device-resident frame path (uint8) and the general path (float64)
         image = cur if path == "frame" else cur.astype(np.float64)
         search = None if path == "frame" else "prior"
@@ -303,7 +300,7 @@ def test_adaptive_keeps_clean_subsets_bitwise(evolving):
         e_plain = np.hypot(f_plain.u - truth[:, 0], f_plain.v - truth[:, 1])[f_plain.valid]
         e_adapt = np.hypot(f_adapt.u - truth[:, 0], f_adapt.v - truth[:, 1])[f_adapt.valid]
         assert f_adapt.valid.mean() > 0.9 and _rms(e_adapt) < 0.2 * _rms(e_plain)
-    f = track(ref, cur, points=pts, guess=guess, robust="adaptive", check_outliers=False, device="cpu")
+    f = track(ref, cur, points=pts, guess=guess, check_outliers=False, device="cpu")
     assert f.extra["robust_refined"] == refined
     with pytest.raises(ValueError, match="robust must be True or False, or 'adaptive'"):
         Tracker(ref, points=pts, robust="sometimes")
