@@ -391,8 +391,10 @@ def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
     for value in (False, True, "adaptive"):
         assert TrackOptions.from_settings(TrackOptions(robust=value).to_settings()).robust == value
         assert StereoOptions.from_settings(StereoOptions(robust=value).to_settings()).robust == value
-    # the command line: --robust keeps its meaning (on), --robust-mode chooses, the default is adaptive
-    assert [robust_value(False, None), robust_value(True, None), robust_value(False, "off"),
+    # the command line: --robust keeps its meaning (on), --robust-mode chooses; specula track's default is adaptive
+    # (specula stereo's off)
+    assert robust_value(False, None, default="off") is False
+    assert [robust_value(False, None, default="adaptive"), robust_value(True, None), robust_value(False, "off"),
             robust_value(False, "on"), robust_value(True, "on"), robust_value(False, "adaptive")] == \
         ["adaptive", True, False, True, True, "adaptive"]
     out = tmp_path / "off.h5"
