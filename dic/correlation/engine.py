@@ -47,7 +47,7 @@ __all__ = ["Correlator", "CorrelationResult", "correlate", "reliability_guided",
            "ADAPTIVE", "SOURCE_NONE", "SOURCE_FEATURES", "SOURCE_NEIGHBOUR", "SOURCE_SEARCH", "SOURCE_PREVIOUS",
            "SOURCE_GLOBAL"]
 
-#: the ``robust`` value that refines only the subsets whose plain residuals show outliers (on request)
+#: the ``robust`` value that refines only the subsets whose plain residuals show outliers (the 2-D default)
 ADAPTIVE = "adaptive"
 
 

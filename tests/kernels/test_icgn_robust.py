@@ -12,8 +12,15 @@ import pytest
 from dic.synth import evolving_sequence, speckle_pair
 from kernels.conventions import Status
 from kernels.icgn import icgn, n_params, prepare_current, prepare_reference, prepare_subsets
-from kernels.icgn_robust import (BOX_MAX, KURTOSIS_MAX, NOISE_GATE, icgn_robust, reference_noise, residual_outliers,
-                                 robust_result)
+from kernels.icgn_robust import (
+    BOX_MAX,
+    KURTOSIS_MAX,
+    NOISE_GATE,
+    icgn_robust,
+    reference_noise,
+    residual_outliers,
+    robust_result,
+)
 
 SIZE = 160
 HALF = 14  # subset half-size + margin
