@@ -145,7 +145,7 @@ class Tracker:
         test, :func:`dic.correlation.lagrangian.displacement_outliers`: false matches, often a whole
         pixel off) as NEIGHBOUR_OUTLIER, not valid. Default: on with ``robust`` True or ``"adaptive"``
         (on the evolving texture of bench/robust.py it keeps false matches from moving the result:
-        0.046 px final RMS error with it, 0.054 without), off with ``robust=False``.
+        0.048 px final RMS error with it, 0.063 without), off with ``robust=False``.
     device : None or str
     subset_mask : "region" or "none"
         ``"region"`` (default): when ``roi`` is a mask (array or image) or a polygon, each subset is

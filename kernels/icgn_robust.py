@@ -34,9 +34,12 @@ What
     (ray-traced renders), wider ones leave more bias.
 
 Adaptive use
-    :func:`residual_outliers` tells, in one pass over each subset at its plain IC-GN warp, whether its
-    residuals show outliers (their kurtosis above :data:`KURTOSIS_MAX`); ``Tracker(robust="adaptive")``,
-    the default, refines only those subsets, so that every other one keeps the plain result bit for bit.
+    :func:`residual_outliers` tells, from the residuals of each subset at its plain IC-GN warp, whether they
+    hold a compact blob of outliers (kurtosis above :data:`KURTOSIS_MAX` in a moment pass, then the largest
+    3 x 3 box sum of the residual above :data:`BOX_MAX` x its noise level in a box pass); ``Tracker(robust=
+    "adaptive")``, the 2-D default, runs it on the subsets whose plain residual exceeds the gates of
+    :data:`RMS_GATE` and :data:`NOISE_GATE` (:func:`reference_noise`) and refines only the flagged ones, so
+    that every other subset keeps the plain result bit for bit.
 
 Outputs per POI: parameters, the plain (unweighted) ZNCC at the final warp (so quality thresholds
 mean what they mean for plain IC-GN), iterations, status, the inlier fraction ``sum w / n`` and the
@@ -780,9 +783,11 @@ class ResidualOutliers:
     intensity model at the given warp; ``kurtosis`` (N,) float32: ``n sum e^4 / (sum e^2)^2`` (3 for
     Gaussian residuals, large when a few pixels carry large residuals); ``beyond`` (N,) float32: the
     fraction of the subset's pixels whose |e| exceeds :data:`CORE_A` x the MAD-scale (only with
-    ``with_scale``, else NaN); ``flagged`` (N,) bool: ``kurtosis > kurtosis_max`` (or ``beyond >
-    beyond_max`` when given) and ``rms`` above :data:`SCALE_FLOOR` x the subset's grey-level std. NaN / False
-    where not computed.
+    ``with_scale``, else NaN); ``flagged`` (N,) bool: with ``box_max`` (the default) ``box > box_max``, else
+    ``kurtosis > kurtosis_max`` (or ``beyond > beyond_max`` when given), and ``rms`` above :data:`SCALE_FLOOR` x
+    the subset's grey-level std; ``box`` (N,) float32: the box statistic, the largest |sum of e over a 3 x 3
+    box inside the subset| over 3 x ``rms`` (computed only with ``box_max``, where the kurtosis exceeds
+    ``kurtosis_max``). NaN / False where not computed.
     """
 
     rms: np.ndarray
@@ -875,8 +880,12 @@ def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, 
     ``x = f - fm`` and ``y = g - fm`` (f: reference subset, g: current image at the warp, fm: the reference
     subset mean); from them the least-squares contrast and offset ``x = a y + b`` and, exactly, the sums
     of ``e^2`` and ``e^4`` of the residual ``e = x - a y - b``: the RMS residual and the kurtosis.
-    A subset is ``flagged`` when its kurtosis exceeds ``kurtosis_max`` (a few pixels with residuals far
-    above the rest: a speckle that changed, a glint) and its RMS is above the noise-free floor
+    Where the kurtosis exceeds ``kurtosis_max`` (a few pixels with residuals far above the rest) and
+    ``box_max`` is given (the default, :data:`BOX_MAX`), a second pass computes the box statistic (the largest
+    |3 x 3 box sum of e| over 3 x the RMS: about 3 for independent pixel residuals, up to sqrt(n - 2) for one
+    compact blob) and the subset is ``flagged`` when it exceeds ``box_max``: a speckle that changed, a glint,
+    rather than the spread edge residuals of anti-aliased renders. With ``box_max=None`` the kurtosis alone
+    flags (the test before issue 26's box rule). Either way its RMS must be above the noise-free floor
     (:data:`SCALE_FLOOR` of the subset's grey-level std, as :func:`icgn_robust`'s scale).
     ``with_scale``: also the fraction of pixels beyond :data:`CORE_A` MAD-scales (a second pass with the
     histogram of |e|; the alternative statistic, for measurements); ``beyond_max``: flag a subset also when
@@ -887,8 +896,8 @@ def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, 
     subsets : ReferenceSubsets; current : CurrentImage (either layout), on the subsets' device.
     params : (N, 6|12) array or float32 ``wp.array``: the warps (normally converged plain IC-GN).
     active : (N,) bool/int array, optional: the POIs to test (default all); others come out NaN / False.
-    kurtosis_max : float > 0 (None: the kurtosis flags nothing); beyond_max : float in [0, 1] or None;
-    with_scale : bool.
+    kurtosis_max : float > 0 (None: the kurtosis flags nothing); beyond_max : float in [0, 1] or None (not with
+    ``box_max``); with_scale : bool; box_max : float > 0 or None.
 
     Returns
     -------
