@@ -2,13 +2,13 @@
 
 Run from the repository root::
 
-    .venv/bin/python -m bench.robust                      # full: clean pairs, the 60-frame evolving texture, speed
+    .venv/bin/python -m bench.robust                      # every part (about 10 min on 2 shared cores)
     .venv/bin/python -m bench.robust --parts clean --size 256
     .venv/bin/python -m bench.robust --parts evolving --frames 60 --size 512
 
 Three ``robust`` values of :class:`dic.Tracker` / :func:`dic.sequence.track_sequence` are compared:
-``False`` (plain IC-GN), ``"adaptive"`` (the default: Tukey-weighted IC-GN only for the subsets whose
-plain residuals show outliers, :func:`kernels.icgn_robust.residual_outliers`) and ``True`` (every accepted
+``False`` (plain IC-GN), ``"adaptive"`` (the 2-D default: Tukey-weighted IC-GN only for the subsets whose
+plain residuals show a compact blob of outliers, :meth:`dic.correlation.engine.Correlator.refine_robust`) and ``True`` (every accepted
 subset refined). Conditions: 8-bit Boolean speckle from :mod:`dic.synth` (mean radius 2 px, density
 0.5, blur 0.7 px) with exact ground truth, 21 px subsets, step ``--step`` (default 10 px), CPU.
 
@@ -28,6 +28,14 @@ subset refined). Conditions: 8-bit Boolean speckle from :mod:`dic.synth` (mean r
 * **renders**: stereo (``StereoCorrelation``, orders 2 and 1) on the virtual-lab renders of
   tests/dic/test_stereo_dic.py (no added noise, a rigid translation): the std of the 3-D displacement error
   per robust value (why stereo stays plain by default).
+* **renders2d**: 2-D ``Tracker.track`` of the 1024^2 left renders of ``python -m bench.stereo rates`` (states 0 and
+  1, 2 samples per pixel, 8-bit, no sensor noise; rendered into ``--cache`` once), step 8, orders 1 and 2: the
+  subsets the default (adaptive) refines, the POIs whose result differs from plain, the process CPU time per frame
+  (plain, default, default without the neighbour check).
+* **candidates**: the per-subset statistics of the adaptive test (RMS gate, noise ratio, kurtosis, box statistic)
+  on evolving pairs (frame k against k - 1 .. k - 3), the rate renders and the clean pairs, and per rule of
+  ``CANDIDATE_RULES`` the flagged fraction and, on the evolving pairs, the RMS error with robust IC-GN's result
+  where flagged (docs/dic2d.md, "Which statistic").
 * **speed**: ``Tracker.track`` of one clean frame (noise 1 GL, ``--size`` px, previous result as the
   guess), median of ``--repeats`` calls, plain against adaptive (the cost of the residual test).
 
