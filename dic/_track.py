@@ -132,21 +132,20 @@ class Tracker:
     robust : bool or "adaptive"
         Outlier-robust (Tukey-weighted) IC-GN (:mod:`kernels.icgn_robust`): subset pixels whose
         change the reference texture cannot explain (speckles that flake off or appear, dust,
-        glints) are discounted instead of biasing the displacement. ``"adaptive"``: plain
-        IC-GN, then the robust refinement only for the subsets whose final residuals show outliers
-        (:func:`kernels.icgn_robust.residual_outliers`: their kurtosis); every other subset keeps the
-        plain result bit for bit, so clean images keep plain precision. ``True``: every accepted POI
+        glints) are discounted instead of biasing the displacement. ``"adaptive"`` (default): plain
+        IC-GN, then the robust refinement only for the subsets whose final residuals show a compact blob
+        of outliers (:meth:`dic.correlation.engine.Correlator.refine_robust`: a residual above the
+        reference's pixel-scale roughness, then :func:`kernels.icgn_robust.residual_outliers`); every
+        other subset keeps the plain result bit for bit, so clean images and smooth renders keep plain
+        precision and speed (docs/dic2d.md, "Robust correlation"). ``True``: every accepted POI
         refined (costs several times the plain IC-GN time and some precision on clean images);
-        ``False`` (default): plain IC-GN only (docs/dic2d.md, "Robust correlation": adaptive is not the
-        default because its residual test engages on most subsets of smooth, low-noise, anti-aliased
-        images such as the virtual lab's renders, at 5-7 x the CPU time and some precision). The refined POIs are
-        counted in ``Field2D.info["robust_refined"]``.
+        ``False``: plain IC-GN only. The refined POIs are counted in ``Field2D.info["robust_refined"]``.
     check_outliers : bool, optional
         Flag valid POIs whose displacement disagrees with their neighbours' (the normalised median
         test, :func:`dic.correlation.lagrangian.displacement_outliers`: false matches, often a whole
         pixel off) as NEIGHBOUR_OUTLIER, not valid. Default: on with ``robust`` True or ``"adaptive"``
         (on the evolving texture of bench/robust.py it keeps false matches from moving the result:
-        0.046 px final RMS error with it, 0.054 without), off with ``robust=False``.
+        0.048 px final RMS error with it, 0.063 without), off with ``robust=False``.
     device : None or str
     subset_mask : "region" or "none"
         ``"region"`` (default): when ``roi`` is a mask (array or image) or a polygon, each subset is
@@ -176,7 +175,7 @@ class Tracker:
     def __init__(self, reference, *, points=None, step: int | None = None, roi=None, subset: int = 21,
                  order: int = 1, search: str | None = None, search_radius: int = 32, max_iter: int = 30,
                  tol: float = 1e-3, zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True,
-                 noise_sigma: float | None = None, robust: bool | str = False, check_outliers: bool | None = None,
+                 noise_sigma: float | None = None, robust: bool | str = "adaptive", check_outliers: bool | None = None,
                  device=None, subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
                  blocked_pixels=None, pixel_region=None, cracks=None):
         self.subset, self.order = check_subset_order(subset, order)
@@ -413,7 +412,7 @@ def _with_cracks(blocked, cracks):
 def track(reference, current, *, points=None, step: int | None = None, roi=None, subset: int = 21, order: int = 1,
           guess=None, search: str | None = None, search_radius: int = 32, max_iter: int = 30, tol: float = 1e-3,
           zncc_min: float = 0.8, flat_std: float | None = None, check_warps: bool = True, noise_sigma=None,
-          robust: bool | str = False, check_outliers: bool | None = None, device=None, subset_mask: str = "region",
+          robust: bool | str = "adaptive", check_outliers: bool | None = None, device=None, subset_mask: str = "region",
           min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION, blocked_pixels=None, pixel_region=None,
           cracks=None) -> Field2D:
     """Track POIs of ``reference`` into ``current`` with IC-GN: every :class:`Tracker` option, plus ``guess``

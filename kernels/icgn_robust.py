@@ -34,9 +34,12 @@ What
     (ray-traced renders), wider ones leave more bias.
 
 Adaptive use
-    :func:`residual_outliers` tells, in one pass over each subset at its plain IC-GN warp, whether its
-    residuals show outliers (their kurtosis above :data:`KURTOSIS_MAX`); ``Tracker(robust="adaptive")``,
-    the default, refines only those subsets, so that every other one keeps the plain result bit for bit.
+    :func:`residual_outliers` tells, from the residuals of each subset at its plain IC-GN warp, whether they
+    hold a compact blob of outliers (kurtosis above :data:`KURTOSIS_MAX` in a moment pass, then the largest
+    3 x 3 box sum of the residual above :data:`BOX_MAX` x its noise level in a box pass); ``Tracker(robust=
+    "adaptive")``, the 2-D default, runs it on the subsets whose plain residual exceeds the gates of
+    :data:`RMS_GATE` and :data:`NOISE_GATE` (:func:`reference_noise`) and refines only the flagged ones, so
+    that every other subset keeps the plain result bit for bit.
 
 Outputs per POI: parameters, the plain (unweighted) ZNCC at the final warp (so quality thresholds
 mean what they mean for plain IC-GN), iterations, status, the inlier fraction ``sum w / n`` and the
@@ -107,6 +110,10 @@ HIST_BINS = wp.constant(27)
 HIST_PER_OCTAVE = wp.constant(3.0)
 HIST_TOP = wp.constant(8.0)
 vechist = wp.types.vector(length=27, dtype=wp.float32)
+#: the box pass of :func:`residual_outliers` walks the subset in strips of this many box centres (two rows of
+#: horizontal 3-sums of this length are kept on the stack)
+BOX_STRIP = 32
+vecstrip = wp.types.vector(length=BOX_STRIP, dtype=wp.float32)
 vec5d = wp.types.vector(length=5, dtype=wp.float64)
 #: the residual scale never drops below this fraction of the reference subset's grey-level std
 #: (noise-free images: keeps interpolation residuals from being called outliers)
@@ -547,16 +554,53 @@ def _make_robust_kernel(order: int):
                 cnt += hist[i] * wp.log2(hi / t) * HIST_PER_OCTAVE
         return cnt
 
+    @wp.func
+    def max_box_sum(fgrad: wp.array(dtype=wp.vec3), width: int, coef: wp.array(dtype=wp.vec4), pitch: int,
+                    cx0: int, cy0: int, r: int, dl: wp.vec2, p: Any, fm: float, a: float, b: float):
+        """The largest |sum of e over a 3 x 3 box| of the subset's residual ``e = (f - fm) - a (g - fm) - b``
+        (every box inside the subset: centres within r - 1 of the centre), one pass over the warped subset
+        per strip of :data:`BOX_STRIP` box centres (two rows of horizontal 3-sums kept per strip)."""
+        best = float(0.0)
+        n_centres = 2 * r - 1
+        n_strips = (n_centres + BOX_STRIP - 1) // BOX_STRIP
+        for s in range(n_strips):
+            c0 = -r + 1 + s * BOX_STRIP
+            c1 = wp.min(c0 + BOX_STRIP - 1, r - 1)
+            h1 = vecstrip()  # the previous row's horizontal 3-sums, by centre column - c0
+            h2 = vecstrip()  # the row before that
+            for j in range(-r, r + 1):
+                dy = float(j) + dl[1]
+                row = (cy0 + j) * width + cx0
+                em = float(0.0)
+                e0 = float(0.0)
+                for i in range(c0 - 1, c1 + 2):
+                    dx = float(i) + dl[0]
+                    uu, vv = warp_uv(p, dx, dy)
+                    e = (fgrad[row + i][0] - fm) - a * (warped_value(coef, pitch, cx0 + i, cy0 + j, uu, vv) - fm) - b
+                    if i >= c0 + 1:
+                        k = i - 1 - c0
+                        h = em + e0 + e
+                        if j >= -r + 2:
+                            best = wp.max(best, wp.abs(h2[k] + h1[k] + h))
+                        h2[k] = h1[k]
+                        h1[k] = h
+                    em = e0
+                    e0 = e
+        return best
+
     def statistics_kernel(
         offset: int, sub: SubsetTable, cur: CurrentCoefficients, active: wp.array(dtype=wp.int32),
-        params: wp.array2d(dtype=float), kurtosis_max: float, beyond_max: float, with_scale: int, rms_out: wp.array(dtype=float),
-        kurtosis_out: wp.array(dtype=float), beyond_out: wp.array(dtype=float), flagged: wp.array(dtype=wp.int32),
+        params: wp.array2d(dtype=float), kurtosis_max: float, beyond_max: float, with_scale: int, box_max: float,
+        rms_out: wp.array(dtype=float),
+        kurtosis_out: wp.array(dtype=float), beyond_out: wp.array(dtype=float), box_out: wp.array(dtype=float),
+        flagged: wp.array(dtype=wp.int32),
     ):
         n = wp.tid() + offset
         r = sub.r
         rms = float(wp.nan)
         kurt = float(wp.nan)
         beyond = float(wp.nan)
+        box = float(wp.nan)
         flag = int(0)
         if active[n] != 0 and sub.status[n] == ST_CONVERGED:
             p = vecp()
@@ -640,11 +684,19 @@ def _make_robust_kernel(order: int):
                                 float(b), 0.0, top, 0.0)
                             mad = wp.max(MAD_TO_SIGMA * hist_median(hist, float(nd), top), scale_floor * fstd)
                             beyond = hist_beyond(hist, float(sm[6]), top, core_a * mad) / float(npx)
-                        if (kurt > kurtosis_max or beyond > beyond_max) and rms > scale_floor * fstd:
+                        noise_free = rms <= scale_floor * fstd
+                        if box_max < wp.inf and not noise_free and kurt > kurtosis_max:
+                            box = max_box_sum(sub.fgrad, sub.width, cur.coef, cur.pitch, ctr[0], ctr[1], r, dl, p, fm,
+                                              float(a), float(b)) / (3.0 * rms)
+                        if box_max < wp.inf:
+                            if box > box_max and not noise_free:
+                                flag = 1
+                        elif (kurt > kurtosis_max or beyond > beyond_max) and not noise_free:
                             flag = 1
         rms_out[n] = rms
         kurtosis_out[n] = kurt
         beyond_out[n] = beyond
+        box_out[n] = box
         flagged[n] = flag
 
     name = "_icgn_robust_1st" if order == 1 else "_icgn_robust_2nd"
@@ -731,15 +783,18 @@ class ResidualOutliers:
     intensity model at the given warp; ``kurtosis`` (N,) float32: ``n sum e^4 / (sum e^2)^2`` (3 for
     Gaussian residuals, large when a few pixels carry large residuals); ``beyond`` (N,) float32: the
     fraction of the subset's pixels whose |e| exceeds :data:`CORE_A` x the MAD-scale (only with
-    ``with_scale``, else NaN); ``flagged`` (N,) bool: ``kurtosis > kurtosis_max`` (or ``beyond >
-    beyond_max`` when given) and ``rms`` above :data:`SCALE_FLOOR` x the subset's grey-level std. NaN / False
-    where not computed.
+    ``with_scale``, else NaN); ``flagged`` (N,) bool: with ``box_max`` (the default) ``box > box_max``, else
+    ``kurtosis > kurtosis_max`` (or ``beyond > beyond_max`` when given), and ``rms`` above :data:`SCALE_FLOOR` x
+    the subset's grey-level std; ``box`` (N,) float32: the box statistic, the largest |sum of e over a 3 x 3
+    box inside the subset| over 3 x ``rms`` (computed only with ``box_max``, where the kurtosis exceeds
+    ``kurtosis_max``). NaN / False where not computed.
     """
 
     rms: np.ndarray
     kurtosis: np.ndarray
     beyond: np.ndarray
     flagged: np.ndarray
+    box: np.ndarray
 
 
 #: the kurtosis n sum e^4 / (sum e^2)^2 of a subset's final residuals above which adaptive robust IC-GN
@@ -753,19 +808,84 @@ KURTOSIS_MAX = 4.0
 #: speckle raises a subset's residual to a good part of its contrast, image noise of a few grey levels does not
 #: (a rule per subset, so that a POI's result does not depend on which other POIs are tracked with it)
 RMS_GATE = 0.05
+#: the box statistic (:func:`residual_outliers`): the largest |sum of the residual over a 3 x 3 box| of the
+#: subset over 3 x its RMS residual (about 3 to 3.5 for independent pixel noise, whatever its distribution
+#: far in the tails; up to sqrt(n - 2), 21 for a 21 px subset, when one compact blob carries the residual).
+#: A changed speckle is such a blob; the edge residuals of smooth anti-aliased renders are not. Above BOX_MAX
+#: adaptive robust IC-GN refines the subset. Measured (bench/robust.py, docs/dic2d.md "Robust correlation"): on
+#: the 2 spp virtual-lab renders of bench/stereo.py rates the 99th percentile is 5.3, 0.3-0.4 % exceed 6; on the
+#: evolving texture (2 % of the speckles replaced per frame) the median is 13 and the subsets below 6 carry
+#: no measurable bias
+BOX_MAX = 6.0
+
+
+#: adaptive robust IC-GN tests only the subsets whose plain RMS residual (from the ZNCC, as for RMS_GATE) exceeds
+#: NOISE_GATE x sqrt(2) x the reference subset's fine-scale roughness (:func:`reference_noise`: Immerkaer's noise
+#: estimate over the subset, which also counts the texture's own pixel-scale detail): the residual a pair of images
+#: with that much pixel-scale noise would leave (1 for pure white noise). A changed speckle leaves more (median 3-5 on
+#: the evolving texture, 2 % of the speckles replaced per frame); the anti-aliased edge residuals of smooth renders and
+#: the noise of clean speckle images less (virtual-lab renders of bench/stereo.py rates: 0.47 median, 0.68 at the
+#: 90th percentile; clean speckle at 4 GL: 0.74 / 0.81). Measured: docs/dic2d.md "Robust correlation"
+NOISE_GATE = 0.8
+#: Immerkaer's noise estimate: sigma = sqrt(pi / 2) / 6 x mean |I * M| with M the 3 x 3 mask below
+_IMMERKAER = np.sqrt(np.pi / 2.0) / 6.0
+
+
+def reference_noise(image, centres, subset: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-subset fine-scale roughness and grey-level std of a reference image (host, numpy).
+
+    ``image`` (H, W) grey; ``centres`` (N, 2) integer subset centres ``(x, y)`` (subsets inside the image; others
+    are clipped to it); ``subset`` odd (px). Returns ``(sigma, std)``, each (N,) float64 grey levels: ``sigma``
+    is Immerkaer's noise estimate (J. Immerkaer, "Fast noise variance estimation", CVIU 64, 1996) over the
+    subset's pixels, ``sqrt(pi / 2) / 6 x mean |I * M|`` with ``M = [[1, -2, 1], [-2, 4, -2], [1, -2, 1]]`` (edge
+    pixels replicated); it equals the noise std on white noise and adds the texture's own pixel-scale detail.
+    ``std``: the population std of the subset's pixels.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2:
+        raise ValueError(f"image must be a 2-D grey image, got shape {img.shape}")
+    c = np.asarray(centres)
+    if c.ndim != 2 or c.shape[1] != 2:
+        raise ValueError(f"centres must be an (N, 2) array of (x, y), got shape {c.shape}")
+    if not isinstance(subset, (int, np.integer)) or subset < 3 or subset % 2 == 0:
+        raise ValueError(f"subset must be an odd integer >= 3, got {subset!r}")
+    pad = np.pad(img, 1, mode="edge")
+    lap = (pad[:-2, :-2] + pad[:-2, 2:] + pad[2:, :-2] + pad[2:, 2:]
+           - 2.0 * (pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:]) + 4.0 * img)
+
+    def window_mean(a):
+        ii = np.zeros((a.shape[0] + 1, a.shape[1] + 1))
+        ii[1:, 1:] = a.cumsum(0).cumsum(1)
+        r = subset // 2
+        h, w = a.shape
+        x0 = np.clip(c[:, 0].astype(np.int64) - r, 0, w)
+        x1 = np.clip(c[:, 0].astype(np.int64) + r + 1, 0, w)
+        y0 = np.clip(c[:, 1].astype(np.int64) - r, 0, h)
+        y1 = np.clip(c[:, 1].astype(np.int64) + r + 1, 0, h)
+        area = np.maximum((x1 - x0) * (y1 - y0), 1)
+        return (ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]) / area
+
+    sigma = _IMMERKAER * window_mean(np.abs(lap))
+    mean = window_mean(img)
+    std = np.sqrt(np.maximum(window_mean(img * img) - mean * mean, 0.0))
+    return sigma, std
 
 
 def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, active=None, *,
                       kurtosis_max: float = KURTOSIS_MAX, beyond_max: float | None = None,
-                      with_scale: bool = False) -> ResidualOutliers:
+                      with_scale: bool = False, box_max: float | None = BOX_MAX) -> ResidualOutliers:
     """Whether the residuals of each subset at its warp show outliers (the test of adaptive robust IC-GN).
 
     One pass over each warped subset accumulates the float64 moments ``sum x^i y^j`` (i + j <= 4) of
     ``x = f - fm`` and ``y = g - fm`` (f: reference subset, g: current image at the warp, fm: the reference
     subset mean); from them the least-squares contrast and offset ``x = a y + b`` and, exactly, the sums
     of ``e^2`` and ``e^4`` of the residual ``e = x - a y - b``: the RMS residual and the kurtosis.
-    A subset is ``flagged`` when its kurtosis exceeds ``kurtosis_max`` (a few pixels with residuals far
-    above the rest: a speckle that changed, a glint) and its RMS is above the noise-free floor
+    Where the kurtosis exceeds ``kurtosis_max`` (a few pixels with residuals far above the rest) and
+    ``box_max`` is given (the default, :data:`BOX_MAX`), a second pass computes the box statistic (the largest
+    |3 x 3 box sum of e| over 3 x the RMS: about 3 for independent pixel residuals, up to sqrt(n - 2) for one
+    compact blob) and the subset is ``flagged`` when it exceeds ``box_max``: a speckle that changed, a glint,
+    rather than the spread edge residuals of anti-aliased renders. With ``box_max=None`` the kurtosis alone
+    flags (the test before issue 26's box rule). Either way its RMS must be above the noise-free floor
     (:data:`SCALE_FLOOR` of the subset's grey-level std, as :func:`icgn_robust`'s scale).
     ``with_scale``: also the fraction of pixels beyond :data:`CORE_A` MAD-scales (a second pass with the
     histogram of |e|; the alternative statistic, for measurements); ``beyond_max``: flag a subset also when
@@ -776,8 +896,8 @@ def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, 
     subsets : ReferenceSubsets; current : CurrentImage (either layout), on the subsets' device.
     params : (N, 6|12) array or float32 ``wp.array``: the warps (normally converged plain IC-GN).
     active : (N,) bool/int array, optional: the POIs to test (default all); others come out NaN / False.
-    kurtosis_max : float > 0 (None: the kurtosis flags nothing); beyond_max : float in [0, 1] or None;
-    with_scale : bool.
+    kurtosis_max : float > 0 (None: the kurtosis flags nothing); beyond_max : float in [0, 1] or None (not with
+    ``box_max``); with_scale : bool; box_max : float > 0 or None.
 
     Returns
     -------
@@ -801,6 +921,9 @@ def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, 
     else:
         beyond_max = in_range(beyond_max, 0.0, 1.0, "beyond_max")
         with_scale = True
+    if box_max is not None and beyond_max != float(np.inf):
+        raise ValueError("give beyond_max (the MAD-fraction rule) or box_max (the box rule), not both")
+    box_max = float(np.inf) if box_max is None else positive_float(box_max, "box_max")
     n = subsets.n_points
     k = n_params(subsets.order)
     g = _as_guess(params, n, k, device)
@@ -808,11 +931,14 @@ def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, 
     rms = wp.empty(n, dtype=wp.float32, device=device)
     kurt = wp.empty(n, dtype=wp.float32, device=device)
     beyond = wp.empty(n, dtype=wp.float32, device=device)
+    box = wp.empty(n, dtype=wp.float32, device=device)
     flagged = wp.empty(n, dtype=wp.int32, device=device)
     launch_1d(_residual_outliers[subsets.order], n,
               [0, subsets.table, current.coefficients(), act, g, float(kurtosis_max), float(beyond_max), int(bool(with_scale)),
-               rms, kurt, beyond, flagged], device, offset_index=0, min_chunk=64)
-    return ResidualOutliers(host_copy(rms), host_copy(kurt), host_copy(beyond), host_copy(flagged) != 0)
+               float(box_max), rms, kurt, beyond, box, flagged], device,
+              offset_index=0, min_chunk=64)
+    return ResidualOutliers(host_copy(rms), host_copy(kurt), host_copy(beyond), host_copy(flagged) != 0,
+                            host_copy(box))
 
 
 def _as_active(active, n: int, device: str) -> wp.array:
@@ -829,5 +955,5 @@ def _as_active(active, n: int, device: str) -> wp.array:
     return wp.array((a != 0).astype(np.int32), dtype=wp.int32, device=device)
 
 
-__all__ = ["TUKEY_C", "CORE_A", "SCALE_FLOOR", "KURTOSIS_MAX", "RMS_GATE", "RobustResult", "ResidualOutliers", "icgn_robust",
+__all__ = ["TUKEY_C", "CORE_A", "SCALE_FLOOR", "KURTOSIS_MAX", "RMS_GATE", "BOX_MAX", "NOISE_GATE", "reference_noise", "RobustResult", "ResidualOutliers", "icgn_robust",
            "residual_outliers", "robust_result"]

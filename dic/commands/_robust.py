@@ -1,9 +1,9 @@
 """The ``--robust`` / ``--robust-mode`` options of ``specula track`` and ``specula stereo``.
 
 ``--robust`` keeps its meaning (every accepted point refined by Tukey-weighted IC-GN); ``--robust-mode``
-chooses among ``off`` (plain IC-GN; the default of ``specula track`` and ``specula stereo``), ``on`` (the same as
-``--robust``) and ``adaptive`` (robust IC-GN only for the subsets whose plain residuals show outliers,
-:mod:`kernels.icgn_robust`; not the default: docs/dic2d.md, "Why adaptive is not the default").
+chooses among ``off`` (plain IC-GN; the default of ``specula stereo``), ``on`` (the same as ``--robust``) and
+``adaptive`` (robust IC-GN only for the subsets whose plain residuals show a compact blob of outliers,
+:mod:`kernels.icgn_robust`; the default of ``specula track``: docs/dic2d.md, "Robust correlation").
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def robust_mode_option(what: str, default: str = "off"):
     return click.option(
         "--robust-mode", default=None, type=click.Choice(sorted(ROBUST_MODES)),
         help=f"Outlier-robust IC-GN of {what} (default: {default}): 'adaptive' refines with Tukey-weighted IC-GN only "
-             "the subsets whose plain residuals show outliers (their kurtosis: a changed speckle, a glint) and keeps the "
+             "the subsets whose plain residuals show a compact blob of outliers (a changed speckle, a glint) and keeps the "
              "plain result of every other subset exactly; 'on' (= --robust) refines every point; 'off': plain IC-GN.")
 
 

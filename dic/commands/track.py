@@ -101,7 +101,7 @@ def _fail(exc: Exception) -> click.ClickException:
               type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
               help="What the strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's and DICe's "
                    "default, and stereo's), small (engineering) or Euler-Almansi; stored in the file.")
-@robust_mode_option("the subsets", default="off")
+@robust_mode_option("the subsets", default="adaptive")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, subset_mask,
@@ -164,7 +164,7 @@ def track(reference, current, output, subset, step, order, search, search_method
     # the run record: the options the library's track_sequence takes (an option left out is the library's default)
     given = {"max_iter": max_iter, "tol": tol, "search_radius": search}
     record = _record(subset=subset, step=step, order=order, search=search_method if search else None,
-                     noise_sigma=noise_sigma, robust=robust_value(robust, robust_mode, default="off"), roi=region,
+                     noise_sigma=noise_sigma, robust=robust_value(robust, robust_mode, default="adaptive"), roi=region,
                      strain_window=strain_window,
                      scale_mm_per_px=scale, subset_mask=subset_mask, min_kept_fraction=min_kept_fraction, cracks=cracks,
                      verify_composed=verify_composed, verify_zncc=verify_zncc, strain_type=strain_type,

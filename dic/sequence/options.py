@@ -333,7 +333,7 @@ class TrackOptions(_Record):
     flat_std: float | None = None
     check_warps: bool = True
     noise_sigma: float | None = None
-    robust: bool | str = False
+    robust: bool | str = "adaptive"
     check_outliers: bool | None = None
     strain_window: int = 5
     reference: str = "fixed"

@@ -65,15 +65,15 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
     # every option, with the values dic.Tracker and track_sequence use by default
     assert settings == {"options_schema": 2, "subset": 21, "step": 10, "order": 1, "points": None, "roi": None,
                         "search": None, "search_radius": None, "max_iter": 30, "tol": 1e-3, "zncc_min": 0.8,
-                        "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": False,
-                        "check_outliers": False, "strain_window": 5, "reference": "fixed", "auto_valid": None,
+                        "flat_std": None, "check_warps": True, "noise_sigma": None, "robust": "adaptive",
+                        "check_outliers": True, "strain_window": 5, "reference": "fixed", "auto_valid": None,
                         "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None, "subset_mask": "region",
                         "min_kept_fraction": 0.5, "cracks": None, "verify_composed": None, "verify_zncc": None,
                         "strain_type": "green-lagrange"}
     from dic.postprocess import SCALE_KEY
 
     assert SCALE_KEY in settings  # where post-processing reads the scale
-    explicit = TrackOptions(subset=21, step=10, max_iter=30, tol=0.001, check_outliers=False, robust=False)
+    explicit = TrackOptions(subset=21, step=10, max_iter=30, tol=0.001, check_outliers=True, robust="adaptive")
     assert explicit == rec and not rec.differences(explicit)
     assert TrackOptions.from_settings(settings) == rec
     # derived defaults: robust IC-GN (on or adaptive) checks outliers; auto thresholds only with reference="auto"
@@ -161,7 +161,7 @@ def test_schema1_details_and_unknown_schemas():
                         verify_composed=False, robust=False).resume_check(old) is None
     assert "--step (step): 8 in the file, 9 now" in TrackOptions(step=9, reference="auto", robust=False).resume_check(old)
     assert ("--robust/--robust-mode (robust): False in the file, 'adaptive' now"
-            in TrackOptions(step=8, reference="auto", auto_valid=0.9, robust="adaptive").resume_check(old))
+            in TrackOptions(step=8, reference="auto", auto_valid=0.9).resume_check(old))
     # old stereo files hold the POIs themselves; the record holds their digest
     pts = np.array([[30.0, 30.0], [50.0, 30.0], [30.0, 50.0]])
     assert StereoOptions(points=pts, order=2).resume_check({"points": pts.tolist()}) is None
@@ -376,9 +376,9 @@ def test_schema2_file_without_later_options_still_resumes(record, name, shape):
 
 
 def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
-    """``robust`` takes ``"adaptive"`` (issue 26; the default stays False): a file that stores ``robust: false`` (every
+    """``robust`` became ``"adaptive"`` by default (issue 26): a file that stores ``robust: false`` (every
     schema-2 file before it, and schema-1 files, which wrote it only when on) reads as off, resumes with
-    ``--robust-mode off`` / ``robust=False``, and a resume with ``"adaptive"`` is refused naming the option."""
+    ``--robust-mode off`` / ``robust=False``, and a resume with the new default is refused naming the option."""
     import json
 
     from dic.commands._robust import robust_value
@@ -398,11 +398,12 @@ def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
     for value in (False, True, "adaptive"):
         assert TrackOptions.from_settings(TrackOptions(robust=value).to_settings()).robust == value
         assert StereoOptions.from_settings(StereoOptions(robust=value).to_settings()).robust == value
-    # the command line: --robust keeps its meaning (on), --robust-mode chooses; specula track's default is off
-    # (plain IC-GN: adaptive engages on most subsets of smooth anti-aliased renders, docs/dic2d.md)
-    assert [robust_value(False, None, default="off"), robust_value(True, None), robust_value(False, "off"),
+    # the command line: --robust keeps its meaning (on), --robust-mode chooses; specula track's default is adaptive
+    # (specula stereo's off)
+    assert robust_value(False, None, default="off") is False
+    assert [robust_value(False, None, default="adaptive"), robust_value(True, None), robust_value(False, "off"),
             robust_value(False, "on"), robust_value(True, "on"), robust_value(False, "adaptive")] == \
-        [False, True, False, True, True, "adaptive"]
+        ["adaptive", True, False, True, True, "adaptive"]
     out = tmp_path / "off.h5"
     r = _track_cli(out, ["f1"], "--robust-mode", "off")
     assert r.exit_code == 0, r.output
@@ -413,9 +414,6 @@ def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
     assert r.exit_code == 2 and "--robust-mode" in r.output
     default = tmp_path / "default.h5"
     assert _track_cli(default, ["f1"]).exit_code == 0
-    assert read_results(default).settings["robust"] is False  # the default: plain IC-GN
-    adaptive = tmp_path / "adaptive.h5"
-    assert _track_cli(adaptive, ["f1"], "--robust-mode", "adaptive").exit_code == 0
-    res = read_results(adaptive)
+    res = read_results(default)
     assert res.settings["robust"] == "adaptive" and res.settings["check_outliers"] is True
     assert "robust_refined" in res.frames[1].attrs  # the points refined by robust IC-GN, counted per frame

@@ -12,7 +12,15 @@ import pytest
 from dic.synth import evolving_sequence, speckle_pair
 from kernels.conventions import Status
 from kernels.icgn import icgn, n_params, prepare_current, prepare_reference, prepare_subsets
-from kernels.icgn_robust import KURTOSIS_MAX, icgn_robust, residual_outliers, robust_result
+from kernels.icgn_robust import (
+    BOX_MAX,
+    KURTOSIS_MAX,
+    NOISE_GATE,
+    icgn_robust,
+    reference_noise,
+    residual_outliers,
+    robust_result,
+)
 
 SIZE = 160
 HALF = 14  # subset half-size + margin
@@ -227,7 +235,7 @@ def test_residual_statistics_are_those_of_the_subset_residuals():
     pts = np.array([(40.0, 40.0), (50.0, 50.0), (60.0, 44.0), (30.0, 60.0)])
     sub = prepare_subsets(prepare_reference(ref, device="cpu"), pts, subset=21, order=1)
     params = np.array([[3.0, 0, 0, -2.0, 0, 0]] * 4)
-    stats = residual_outliers(sub, prepare_current(cur, device="cpu"), params, with_scale=True)
+    stats = residual_outliers(sub, prepare_current(cur, device="cpu"), params, with_scale=True, box_max=BOX_MAX)
     for i, (x, y) in enumerate(pts.astype(int)):
         f = ref[y - 10:y + 11, x - 10:x + 11].astype(np.float64)
         g = cur[y - 12:y + 9, x - 7:x + 14].astype(np.float64)  # (x + 3, y - 2)
@@ -240,10 +248,16 @@ def test_residual_statistics_are_those_of_the_subset_residuals():
         s = 1.4826 * np.median(np.abs(e))
         lo, hi = np.mean(np.abs(e) > 3 * s * 2 ** (1 / 3)), np.mean(np.abs(e) > 3 * s / 2 ** (1 / 3))
         assert lo - 1e-3 <= stats.beyond[i] <= hi + 1e-3
+        if i < 2:  # the box statistic: the largest |3 x 3 box sum of e| over 3 x the RMS (subsets with the blob)
+            E = e.reshape(21, 21)
+            boxes = sum(E[dy:dy + 19, dx:dx + 19] for dy in range(3) for dx in range(3))
+            np.testing.assert_allclose(stats.box[i], np.abs(boxes).max() / (3 * np.sqrt(np.sum(e**2) / (e.size - 2))),
+                                       rtol=1e-3)
     # the blob (in reference coordinates x 47-49, y 46-49) is in the subsets of the first two POIs: their
-    # kurtosis is far above a Gaussian's 3, the others' is not
+    # kurtosis is far above a Gaussian's 3, the others' is not (and their box statistic is not computed)
     assert stats.flagged.tolist() == [True, True, False, False]
     assert np.all(stats.kurtosis[[2, 3]] < 4.0) and np.all(stats.kurtosis[[0, 1]] > 2 * KURTOSIS_MAX)
+    assert np.all(stats.box[[0, 1]] > 2 * BOX_MAX) and np.all(np.isnan(stats.box[[2, 3]]))
     # inactive POIs are left out
     some = residual_outliers(sub, prepare_current(cur, device="cpu"), params, np.array([0, 1, 0, 1]))
     assert np.isnan(some.kurtosis[0]) and not some.flagged[0] and some.flagged[1] and not some.flagged[3]
@@ -271,7 +285,7 @@ def test_residual_test_flags_the_subsets_whose_texture_changed(evolving):
     assert _rms(e[ok & ~flagged]) < 0.01 and _rms(e[ok & flagged]) > 0.05
 
 
-def test_adaptive_keeps_clean_subsets_bitwise(evolving):
+def test_adaptive_is_the_default_and_keeps_clean_subsets_bitwise(evolving):
     from dic._track import Tracker, track
 
     k_frame = 10
@@ -280,13 +294,10 @@ def test_adaptive_keeps_clean_subsets_bitwise(evolving):
     truth = evolving.displacement(pts, k_frame)
     guess = _exact_guess(truth, 1)
     plain = Tracker(ref, points=pts, robust=False, device="cpu")
-    # plain IC-GN is the default (adaptive engages on most subsets of smooth anti-aliased renders: docs/dic2d.md)
     defaults = Tracker(ref, points=pts, device="cpu")
-    assert defaults.robust is False and not defaults.check_outliers
-    adaptive = Tracker(ref, points=pts, robust="adaptive", device="cpu")
-    assert adaptive.check_outliers and not plain.check_outliers  # the neighbour check comes with robust IC-GN
-    # the refinement alone (the neighbour check, on with robust IC-GN, may flag some valid POIs)
-    default = Tracker(ref, points=pts, robust="adaptive", check_outliers=False, device="cpu")
+    assert defaults.robust == "adaptive" and defaults.check_outliers and not plain.check_outliers
+    # the refinement alone (the neighbour check, on by default with robust IC-GN, may flag some valid POIs)
+    default = Tracker(ref, points=pts, check_outliers=False, device="cpu")
     for path in ("frame", "host"):  # the device-resident frame path (uint8) and the general path (float64)
         image = cur if path == "frame" else cur.astype(np.float64)
         search = None if path == "frame" else "prior"
@@ -303,7 +314,7 @@ def test_adaptive_keeps_clean_subsets_bitwise(evolving):
         e_plain = np.hypot(f_plain.u - truth[:, 0], f_plain.v - truth[:, 1])[f_plain.valid]
         e_adapt = np.hypot(f_adapt.u - truth[:, 0], f_adapt.v - truth[:, 1])[f_adapt.valid]
         assert f_adapt.valid.mean() > 0.9 and _rms(e_adapt) < 0.2 * _rms(e_plain)
-    f = track(ref, cur, points=pts, guess=guess, robust="adaptive", check_outliers=False, device="cpu")
+    f = track(ref, cur, points=pts, guess=guess, check_outliers=False, device="cpu")
     assert f.extra["robust_refined"] == refined
     with pytest.raises(ValueError, match="robust must be True or False, or 'adaptive'"):
         Tracker(ref, points=pts, robust="sometimes")
@@ -325,3 +336,114 @@ def test_adaptive_leaves_clean_images_at_plain_precision(order):
         out[robust] = (np.std(err), f)
     assert out["adaptive"][1].extra["robust_refined"] <= 0.05 * out["adaptive"][1].n_points
     assert out["adaptive"][0] <= 1.05 * out[False][0]
+
+
+@pytest.mark.parametrize("noise", [0.5, 4.0])
+@pytest.mark.parametrize("order", [1, 2])
+def test_adaptive_default_keeps_plain_precision_from_low_to_high_noise(noise, order):
+    # clean speckle pairs at both ends of the 0.5-4 GL range (issue 26 target: std within 5 % of plain IC-GN);
+    # measured (bench/robust.py, 512^2): no subset refined at any of 0.5, 1, 2, 4 GL
+    from dic._track import Tracker
+
+    field = lambda x, y: (0.3 + 0.005 * (x - 80), -0.2 + 0.004 * (y - 80) + 0.0 * x)  # noqa: E731
+    ref, cur = speckle_pair((160, 160), field, noise_sigma=noise, seed=17)
+    out = {}
+    for robust in (False, "adaptive"):
+        f = Tracker(ref, step=6, order=order, robust=robust, check_outliers=False, device="cpu").track(cur, guess=(0.3, -0.2))
+        u, v = field(f.points[:, 0], f.points[:, 1])
+        out[robust] = (np.std(np.concatenate([(f.u - u)[f.valid], (f.v - v)[f.valid]])), f)
+    assert out["adaptive"][1].extra["robust_refined"] <= 0.01 * out["adaptive"][1].n_points
+    assert out["adaptive"][0] <= 1.05 * out[False][0]
+
+
+def test_reference_noise_is_the_noise_of_white_noise_and_the_subset_std():
+    # Immerkaer's estimator is unbiased on white noise: a flat image plus Gaussian noise of known std
+    rng = np.random.default_rng(5)
+    img = 100.0 + 3.0 * rng.standard_normal((120, 140))
+    centres = np.array([(x, y) for y in range(15, 106, 10) for x in range(15, 126, 10)])
+    sigma, std = reference_noise(img, centres, 21)
+    # unbiased over the 120 subsets; each from 441 correlated pixels scatters by a few % (measured sd 4 %)
+    assert abs(np.mean(sigma) / 3.0 - 1) < 0.02 and np.all(np.abs(sigma / 3.0 - 1) < 0.2)
+    for k, (x, y) in enumerate(centres):
+        np.testing.assert_allclose(std[k], img[y - 10:y + 11, x - 10:x + 11].std(), rtol=1e-9)
+    with pytest.raises(ValueError, match="odd integer"):
+        reference_noise(img, centres, 20)
+
+
+def _lab_render_pair(size=256, samples=2):
+    """A speckled plane seen obliquely by a 16 mm / 7.4 um camera at 1 m (the camera and the pattern of
+    bench/stereo.py rates, 1.7 px speckles), translated by (0.4, -0.25, 1.5) mm: 8-bit, anti-aliased with
+    ``samples`` per pixel, no sensor noise."""
+    from dataclasses import replace
+
+    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+    from dic.synth import make_speckle
+
+    cam = LabCamera.from_lens(name="cam", size=(size, size), focal_length_mm=16.0, f_number=float("inf"),
+                              focus_distance_mm=1000.0, position=(-150.0, 0.0, 0.0), look_at_point=(0.0, 0.0, 1000.0),
+                              exposure_dn=200.0, bit_depth=8)
+    speckle = make_speckle(region=(-5, -5, 155, 155), radius=0.8, density=0.5, bits=None, seed=3)
+    plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(150.0, 150.0),
+                                speckle=speckle)
+    images = []
+    for k in range(2):
+        t_local = plane.R_world_surface.T @ (k * np.array([0.4, -0.25, 1.5]))
+        disp = Displacement(np.broadcast_to(t_local, (2, 2, 3)).copy(), (0.0, 0.0), (150.0, 150.0))
+        images.append(render(Scene(cameras=[cam], planes=[replace(plane, displacement=disp)]), 0, samples=samples,
+                             seed=100 * k))
+    return images
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_adaptive_leaves_smooth_renders_alone(order):
+    # the images where the kurtosis test alone engaged on most subsets (issue 26): anti-aliased renders without
+    # sensor noise, whose edge residuals are heavy-tailed (kurtosis about 5) but spread, not one compact blob
+    from dic._track import Tracker
+
+    ref, cur = _lab_render_pair()
+    plain = Tracker(ref, step=8, order=order, robust=False, check_outliers=False, device="cpu").track(cur)
+    tracker = Tracker(ref, step=8, order=order, check_outliers=False, device="cpu")  # robust: the default
+    adaptive = tracker.track(cur)
+    assert tracker.robust == "adaptive" and plain.valid.mean() > 0.9
+    # measured: 0 of 900 refined (1024^2 renders of bench/stereo.py rates: 0 of 15 876), the result plain's bit for bit
+    assert adaptive.extra["robust_refined"] <= 0.01 * adaptive.n_points
+    same = np.all(adaptive.params == plain.params, axis=1) | np.all(np.isnan(plain.params), axis=1)
+    assert np.count_nonzero(~same) <= adaptive.extra["robust_refined"]
+    # what the new gates spare: the kurtosis rule alone flags most of the valid subsets here (measured 0.91)
+    ok = plain.valid
+    kurtosis_only = residual_outliers(tracker.correlator.subsets, prepare_current(cur, device="cpu"),
+                                      plain.params.astype(np.float32), ok, box_max=None).flagged
+    assert kurtosis_only[ok].mean() > 0.5
+    # the noise gate: the residual over sqrt(2) x the reference's roughness stays below NOISE_GATE on most subsets
+    sigma, std = reference_noise(ref, tracker.correlator.subsets.table.centres.numpy(), 21)
+    rms = std * np.sqrt(np.clip(1 - plain.zncc**2, 0, None) * 441 / 439)
+    assert np.mean((rms / (np.sqrt(2) * sigma))[ok] > NOISE_GATE) < 0.05
+
+
+def test_default_sequence_on_an_evolving_texture_meets_the_target(tmp_path):
+    # issue 26: an evolving texture (2 % of the speckles replaced per frame) tracked with --reference auto and the
+    # defaults ends at <= 0.05 px RMS against the exact Lagrangian truth (512^2, 60 frames, 30 %: 0.048 px, docs/dic2d.md);
+    # here 160^2, 30 frames, 15 % stretch (measured: defaults 0.021 px, plain IC-GN 0.37 px). The composed-result check
+    # is off: against frame 0 the replaced speckles fail it by design (docs/dic2d.md, "Robust correlation")
+    from dic.sequence import track_sequence
+    from dic.store import ResultReader
+
+    n = 30
+    seq = evolving_sequence((SIZE, SIZE), n, stretch_final=0.15, fade_fraction=0.02, noise_sigma=1.0, seed=11)
+    frames = [seq[k] for k in range(n)]
+    cx = seq.centre[0]
+    hx = ((SIZE - 1) / 2 - 12) / 1.15
+    roi = (int(np.ceil(cx - hx)), 12, int(np.floor(cx + hx)), SIZE - 13)
+    rms = {}
+    for name, options in (("defaults", {}), ("plain", {"robust": False})):
+        out = tmp_path / f"{name}.h5"
+        track_sequence(frames[0], frames[1:], out, reference="auto", roi=roi, device="cpu", verify_composed=False,
+                       **options)
+        with ResultReader(out) as reader:
+            assert reader.settings["robust"] == ("adaptive" if name == "defaults" else False)
+            fr = reader.read_frame(n - 1)
+            truth = seq.displacement(np.asarray(fr.points, np.float64), n - 1)
+            valid = np.asarray(fr.valid, bool)
+            assert valid.mean() > 0.85
+            rms[name] = _rms(np.hypot(np.asarray(fr.u) - truth[:, 0], np.asarray(fr.v) - truth[:, 1])[valid])
+    assert rms["defaults"] <= 0.05 and rms["plain"] > 0.2
