@@ -61,9 +61,10 @@ def save_figure(fig, path, *, dpi: float) -> Path:
 
 def save_map_png(fig, path, *, dpi: float) -> Path:
     """Save a map figure as a compact PNG: its ticks frozen (:func:`freeze_ticks`; the figure is
-    changed), drawn once by Agg at ``dpi``, stored as 8-bit RGB (no alpha channel, white
-    background) with zlib level 3 (level 6 is 9 % smaller but twice as slow: 0.08 against 0.04 s CPU
-    for the 1.3 MP figure below). Other suffixes go to :func:`save_figure`.
+    changed), drawn once by Agg at ``dpi`` with its plain tick labels drawn by Pillow instead
+    (:data:`RASTER_TEXT_GIDS`), stored as 8-bit RGB (no alpha channel, white background) with zlib
+    level 1 (the 1.3 MP figure below: 382 KB in 0.045 s of CPU; level 3 is 361 KB in 0.064 s, level 6
+    9 % smaller again at twice the time). Other suffixes go to :func:`save_figure`.
 
     Returns the path. A 1 MP frame's 5-panel figure (:func:`dic.plots.fields.field_figure`) stays under
     500 KB this way (bench/figures.py).
@@ -77,12 +78,14 @@ def save_map_png(fig, path, *, dpi: float) -> Path:
 
     p.parent.mkdir(parents=True, exist_ok=True)
     fig.set_dpi(dpi)
-    freeze_ticks(fig)
-    # the plain tick labels are drawn into the raster by Pillow: Matplotlib's Text.draw costs about 1 ms
-    # a label, a 5-panel map has about 100 of them, Pillow's text is about 20x cheaper
-    raster = [t for ax in fig.axes for t in ax.texts if _rasterisable(t)]
-    anchors = [t.get_transform().transform(t.get_position()) for t in raster]
+    # the plain tick labels are drawn into the raster by Pillow: Matplotlib's Text costs about 1 ms a
+    # label to build and draw, a 5-panel map has about 100 of them, Pillow's text is about 20x cheaper
+    labels: list = []
+    freeze_ticks(fig, raster_labels=labels)
+    raster = [t for ax in fig.axes for t in ax.texts if _rasterisable(t)]  # e.g. the colourbars' tick labels
     for t in raster:
+        x, y = t.get_transform().transform(t.get_position())
+        labels.append((x, y, t.get_text(), t.get_ha(), t.get_va(), t.get_fontsize(), t.get_color()))
         t.set_visible(False)
     try:
         canvas = fig.canvas
@@ -92,8 +95,8 @@ def save_map_png(fig, path, *, dpi: float) -> Path:
     finally:
         for t in raster:
             t.set_visible(True)
-    _draw_texts(image, raster, anchors, dpi=dpi)
-    image.save(p, format="PNG", compress_level=3)
+    _draw_texts(image, labels, fontfile=_font_file(), dpi=dpi)
+    image.save(p, format="PNG", compress_level=1)
     return p
 
 
@@ -106,12 +109,32 @@ _PIL_HORIZONTAL = {"left": "l", "center": "m", "right": "r"}
 _PIL_VERTICAL = {"top": "t", "bottom": "d", "center": "m", "center_baseline": "m", "baseline": "s"}
 
 
+def _plain(s: str) -> bool:
+    """A one-line label without mathtext."""
+    return bool(s) and "\n" not in s and "$" not in s
+
+
 def _rasterisable(text) -> bool:
-    """Whether ``text`` is a plain, upright, one-line label that Pillow can draw as Matplotlib would."""
-    s = text.get_text()
-    return (text.get_gid() in RASTER_TEXT_GIDS and text.get_visible() and bool(s) and "\n" not in s
-            and "$" not in s and text.get_rotation() == 0 and text.get_ha() in _PIL_HORIZONTAL
-            and text.get_va() in _PIL_VERTICAL)
+    """Whether ``text`` is a plain, upright, one-line label in the default font that Pillow can draw as
+    Matplotlib would."""
+    return (text.get_gid() in RASTER_TEXT_GIDS and text.get_visible() and _plain(text.get_text())
+            and text.get_rotation() == 0 and text.get_ha() in _PIL_HORIZONTAL and text.get_va() in _PIL_VERTICAL
+            and text.get_fontproperties().get_family() == _default_family())
+
+
+def _default_family():
+    import matplotlib as mpl
+    from matplotlib.font_manager import FontProperties
+
+    return FontProperties(family=mpl.rcParams["font.family"]).get_family()
+
+
+def _font_file() -> str:
+    """The file of Matplotlib's default font (what its texts are drawn in)."""
+    import matplotlib as mpl
+    from matplotlib.font_manager import FontProperties, findfont
+
+    return findfont(FontProperties(family=mpl.rcParams["font.family"]))
 
 
 def _pil_font(path: str, size_px: int):
@@ -126,32 +149,37 @@ def _pil_font(path: str, size_px: int):
 _FONTS: dict = {}
 
 
-def _draw_texts(image, texts, anchors, *, dpi: float) -> None:
-    """Draw Matplotlib ``texts`` (plain labels, :func:`_rasterisable`) into the Pillow ``image`` at their
-    display ``anchors`` (px from the bottom left), in Matplotlib's own font file, size and colour."""
-    if not texts:
+def _draw_texts(image, labels, *, fontfile: str, dpi: float) -> None:
+    """Draw ``labels`` ``(x, y, text, ha, va, fontsize, colour)`` (display px from the bottom left,
+    Matplotlib's alignment names, points, a Matplotlib colour) into the Pillow ``image`` in the font
+    file ``fontfile``, as Matplotlib would draw them."""
+    if not labels:
         return
     from matplotlib.colors import to_rgb
-    from matplotlib.font_manager import findfont
     from PIL import ImageDraw
 
     draw = ImageDraw.Draw(image)
     height = image.height
-    for t, (x, y) in zip(texts, anchors):
-        font = _pil_font(findfont(t.get_fontproperties()), max(1, int(round(t.get_fontsize() * dpi / 72.0))))
-        colour = tuple(int(round(255 * c)) for c in to_rgb(t.get_color()))
-        draw.text((float(x), height - float(y)), t.get_text(), fill=colour, font=font,
-                  anchor=_PIL_HORIZONTAL[t.get_ha()] + _PIL_VERTICAL[t.get_va()])
+    for x, y, text, ha, va, size, colour in labels:
+        font = _pil_font(fontfile, max(1, int(round(size * dpi / 72.0))))
+        rgb = tuple(int(round(255 * c)) for c in to_rgb(colour))
+        draw.text((float(x), height - float(y)), text, fill=rgb, font=font, anchor=_PIL_HORIZONTAL[ha] + _PIL_VERTICAL[va])
 
 
-def freeze_ticks(fig) -> None:
+def freeze_ticks(fig, *, raster_labels: list | None = None) -> None:
     """Replace the live ticks of every axes of ``fig`` by fixed tick marks and labels, for a figure
     that is only saved (never zoomed or panned).
 
     The positions and texts are Matplotlib's own (each axis's locator and formatter at the current
-    view limits), drawn as one line of tick markers and plain texts per axis; the axis label is
-    placed beyond the tick labels. Matplotlib's tick objects cost more to build and draw than the
-    rest of a map figure: freezing them about halves the time of a 5-panel map (bench/figures.py).
+    view limits), drawn as one line of tick markers and plain texts per axis (gid ``"tick-label"``); the
+    axis label is placed beyond the tick labels. Ticks are taken on the side of the axis label (the map
+    figures keep Matplotlib's default sides; asking Matplotlib for the ticks' side would build the tick
+    objects this avoids). Matplotlib's tick objects cost more to build and draw than the rest of a map
+    figure: freezing them about halves the time of a 5-panel map (bench/figures.py).
+
+    ``raster_labels``: a list to receive the tick labels as ``(x, y, text, ha, va, fontsize, colour)``
+    (display px from the bottom left, as :func:`save_map_png` draws them with Pillow) instead of Text
+    artists in the figure.
     """
     import matplotlib as mpl
     from matplotlib.markers import TICKDOWN, TICKLEFT, TICKRIGHT, TICKUP
@@ -165,7 +193,7 @@ def freeze_ticks(fig) -> None:
         box = ax.get_position()
         w_in, h_in = box.width * fig.get_figwidth(), box.height * fig.get_figheight()
         for axis, name in ((ax.xaxis, "x"), (ax.yaxis, "y")):
-            side = axis.get_ticks_position()
+            side = axis.get_label_position()
             if not axis.get_visible() or side not in markers:
                 continue
             lo, hi = sorted(axis.get_view_interval())
@@ -186,11 +214,15 @@ def freeze_ticks(fig) -> None:
                     color="k", transform=base, clip_on=False, scalex=False, scaley=False)
             for v, lab in zip(locs, labels):
                 if name == "x":
-                    ax.text(v, edge, lab, transform=text_t, fontsize=fontsize, ha="center",
-                            va="top" if sign < 0 else "bottom", clip_on=False, gid="tick-label")
+                    at, ha, va = (v, edge), "center", "top" if sign < 0 else "bottom"
                 else:
-                    ax.text(edge, v, lab, transform=text_t, fontsize=fontsize, va="center_baseline",
-                            ha="right" if sign < 0 else "left", clip_on=False, gid="tick-label")
+                    at, ha, va = (edge, v), "right" if sign < 0 else "left", "center_baseline"
+                if raster_labels is not None and _plain(lab):
+                    x, y = text_t.transform(at)
+                    raster_labels.append((x, y, lab, ha, va, fontsize, "k"))
+                else:
+                    ax.text(*at, lab, transform=text_t, fontsize=fontsize, ha=ha, va=va, clip_on=False,
+                            gid="tick-label")
             # the axis label beyond the tick labels (their size estimated from the font size)
             if name == "x":
                 off_in = (length + pad + 1.2 * fontsize + 3.0) / 72.0

@@ -206,23 +206,25 @@ def test_colourbar_ticks_are_round_values_at_their_colours():
 
 def test_saved_tick_labels_drawn_by_pillow_where_matplotlib_draws_them(tmp_path):
     """save_map_png draws the plain tick labels with Pillow (fast): the PNG matches Matplotlib's own drawing of
-    the same figure everywhere but inside the labels, and every label has ink inside Matplotlib's box of it."""
+    the same figure (ticks frozen as Text artists) everywhere but inside the labels, and every label has ink
+    inside Matplotlib's box of it."""
     from PIL import Image
 
-    from dic.plots._common import save_map_png
+    from dic.plots._common import freeze_ticks, save_map_png
 
     ref = np.random.default_rng(0).uniform(0, 255, (90, 140))
     f = _grid_field((90, 140), 6, lambda x, y: 0.01 * x, lambda x, y: -2 - 0.02 * y)
-    fig = field_figure(ref, f, components=["u", "v"], dpi=100)
-    fast = np.asarray(Image.open(save_map_png(fig, tmp_path / "fast.png", dpi=100)).convert("L"), dtype=float)
-    # the same (now frozen: save_map_png froze its ticks) figure drawn by Matplotlib alone
+    fast = np.asarray(Image.open(save_map_png(field_figure(ref, f, components=["u", "v"], dpi=100),
+                                              tmp_path / "fast.png", dpi=100)).convert("L"), dtype=float)
+    fig = field_figure(ref, f, components=["u", "v"], dpi=100)  # the same figure, drawn by Matplotlib alone
+    freeze_ticks(fig)
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     slow = np.asarray(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).convert("L"), dtype=float)
     assert fast.shape == slow.shape
     height = fast.shape[0]
     labels = [t for ax in fig.axes for t in ax.texts if t.get_gid() in ("tick-label", "colourbar-tick-label")]
-    assert len(labels) > 15
+    assert len(labels) > 15 and {t.get_gid() for t in labels} == {"tick-label", "colourbar-tick-label"}
     outside = np.ones(fast.shape, bool)
     for t in labels:
         b = t.get_window_extent(renderer)
