@@ -277,7 +277,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
         for f in fields:
             if f.index % figure_every == 0:
                 write_figures(f, first_left.image, figure_dir, prefix=f"state_{f.index:06d}_", limits=limits,
-                              region=region)
+                              region=region, cracks=_parse_cracks(cracks))
     if not quiet:
         if vtk_dir is not None and (vtk_dir / f"{output.stem}.pvd").exists():
             click.echo(f"ParaView: {vtk_dir / f'{output.stem}.pvd'}")

@@ -472,14 +472,21 @@ def _check_field3d(f):
     return f
 
 
-def _map(f, values: np.ndarray):
-    """Values on the POI grid (masked where not finite) and the image extent of the grid cells."""
+def _map(f, values: np.ndarray, cracks=()):
+    """Values on the POI grid (masked where not finite, and in the cells a declared crack enters) and the
+    image extent of the grid cells."""
+    from ..gridinterp import _cut_cells
+
     ny, nx = f.grid_shape
     g = np.asarray(values, dtype=np.float64).reshape(ny, nx)
     pts = f.points.reshape(ny, nx, 2)
     dx = (pts[0, -1, 0] - pts[0, 0, 0]) / max(nx - 1, 1) if nx > 1 else 1.0
     dy = (pts[-1, 0, 1] - pts[0, 0, 1]) / max(ny - 1, 1) if ny > 1 else 1.0
     extent = (pts[0, 0, 0] - dx / 2, pts[0, -1, 0] + dx / 2, pts[-1, 0, 1] + dy / 2, pts[0, 0, 1] - dy / 2)
+    # a node's cell is the cell of the grid shifted by half a step, one node larger each way (as 2-D)
+    cut = _cut_cells((extent[0], extent[3]), (dx, dy), (ny + 1, nx + 1), cracks)
+    if cut is not None:
+        g = np.where(cut, np.nan, g)
     return np.ma.masked_invalid(g), extent
 
 
@@ -495,7 +502,7 @@ def _status_colours(n: int):
 
 def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None = None, vmax: float | None = None,
                    cmap: str | None = None, alpha: float = 0.75, panel_size: float = 5.0, dpi: float = 110,
-                   region=None):
+                   region=None, cracks=None):
     """One quantity of a Field3D as a Matplotlib Figure, over the left reference image when given.
 
     Parameters
@@ -514,6 +521,8 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
     dpi : resolution the figure is drawn at
     region : the run's region of interest in the left reference image (a Region, the JSON form a
         result file stores, a box, a polygon or an (H, W) mask): outline solid, excluded shapes dashed
+    cracks : declared cracks in left reference px (:mod:`dic.cracks`, as ``stereo_sequence(cracks=)``):
+        the grid cells they enter are not drawn, and each crack is drawn as a black line
 
     Only points with status OK are coloured (the status map shows every point). The map is drawn
     where the points are in the left reference image: axes x, y in left-image px; the colourbar,
@@ -533,6 +542,9 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
         raise ValueError(f"panel_size must be positive (inches), got {panel_size!r}")
     label, unit, q_cmap = FIGURE_QUANTITIES[quantity]
     outline = None if region is None else _region_parts(region)
+    from ..cracks import as_cracks
+
+    cracks = as_cracks(cracks)
     if quantity in ("exx", "eyy", "exy"):  # the field's strain type (Green-Lagrange unless chosen otherwise)
         from .._strain import strain_type_label
 
@@ -555,7 +567,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
         kw = {"cmap": cmap or use, "vmin": lo, "vmax": hi}
     data = extent = None
     if f.grid_shape is not None:
-        data, extent = _map(f, vals)
+        data, extent = _map(f, vals, cracks)
     x0, x1, y0, y1 = _view_box(img, pts if data is None else pts[np.isfinite(vals)] if np.isfinite(vals).any() else pts,
                                extent)
     aspect = (y1 - y0) / max(x1 - x0, 1e-9)
@@ -570,6 +582,8 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
         im = ax.scatter(f.points[fin, 0], f.points[fin, 1], c=vals[fin], s=6, alpha=alpha, gid="map", **kw)
     if outline is not None:
         _draw_region(ax, outline)
+    for crack in cracks:
+        ax.plot(crack.vertices[:, 0], crack.vertices[:, 1], color="k", linewidth=1.5, gid="crack")
     ax.set_xlim(x0, x1)
     ax.set_ylim(y1, y0)
     if quantity == "status":
@@ -585,7 +599,7 @@ def field3d_figure(field, quantity: str = "W", image=None, *, vmin: float | None
 
 
 def write_figures(field, image, directory, *, quantities=None, prefix: str = "", dpi: int = 100,
-                  alpha: float = 0.75, limits: dict | None = None, region=None) -> list[Path]:
+                  alpha: float = 0.75, limits: dict | None = None, region=None, cracks=None) -> list[Path]:
     """PNG maps of a Field3D over the left reference image; returns the written paths.
 
     Parameters
@@ -600,6 +614,7 @@ def write_figures(field, image, directory, *, quantities=None, prefix: str = "",
     limits : ``{quantity: (vmin, vmax)}``, fixed colour limits (e.g. :func:`sequence_limits` over
         every state of a sequence); the others are per figure.
     region : the run's region of interest (:func:`field3d_figure`), drawn on every map.
+    cracks : declared cracks in left reference px (:func:`field3d_figure`), drawn on every map.
 
     Each PNG is :func:`field3d_figure` stored as 8-bit RGB (:func:`dic.plots._common.save_map_png`):
     only points with status OK are coloured; colour limits are the 1st-99th percentiles (symmetric
@@ -625,6 +640,6 @@ def write_figures(field, image, directory, *, quantities=None, prefix: str = "",
     written = []
     for q in quantities:
         lo, hi = (limits or {}).get(q, (None, None))
-        fig = field3d_figure(f, q, img, vmin=lo, vmax=hi, alpha=alpha, dpi=dpi, region=region)
+        fig = field3d_figure(f, q, img, vmin=lo, vmax=hi, alpha=alpha, dpi=dpi, region=region, cracks=cracks)
         written.append(save_map_png(fig, directory / f"{prefix}{q}.png", dpi=dpi))
     return written

@@ -225,7 +225,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             if figure_dir is not None and k % figure_every == 0:
                 from ..plots import fields as plots
 
-                plots.write_figures(f, left_ref, figure_dir, prefix=f"state_{k:06d}_", region=record.region)
+                plots.write_figures(f, left_ref, figure_dir, prefix=f"state_{k:06d}_", region=record.region,
+                                    cracks=record.cracks)
             if callback:
                 callback(k, f, None)
 

@@ -233,3 +233,24 @@ def test_saved_tick_labels_drawn_by_pillow_where_matplotlib_draws_them(tmp_path)
         outside[max(r0, 0):r1, max(c0, 0):c1] = False
         assert fast[r0 + 2:r1 - 2, c0 + 2:c1 - 2].min() < 100, t.get_text()  # Pillow's ink inside Matplotlib's box
     assert np.abs(fast - slow)[outside].max() < 1.0  # nothing else differs
+
+
+def test_stereo_maps_cut_at_a_declared_crack_and_draw_it(tmp_path):
+    """Stereo maps take the run's cracks (left reference px) as the 2-D maps do: the grid cells a crack enters
+    are not drawn and the crack is drawn; a crack stored as vertex lists (the file's form) draws the same."""
+    f3 = _field3d((60, 80), step=4)  # nodes x = 8, 12, ..., 68; cells 4 px wide centred on them
+    crack = [[30.0, -5.0], [30.0, 70.0]]  # inside the cells of the node column x = 28 (26..30) and x = 32 (30..34)
+    [ax] = field3d_figure(f3, "W", cracks=[crack]).axes
+    grid = np.ma.filled(_field_image(ax).get_array().astype(float), np.nan)
+    xs = np.arange(8, 72, 4.0)
+    cut_cols = np.flatnonzero(np.abs(xs - 30.0) <= 2.0)
+    assert cut_cols.tolist() == [5, 6] and np.isnan(grid[:, cut_cols]).all()
+    others = np.setdiff1d(np.arange(len(xs)), cut_cols)
+    assert np.isfinite(grid[:, others]).mean() > 0.9  # only the match failures besides the cut
+    [line] = [ln for ln in ax.lines if ln.get_gid() == "crack"]
+    assert np.array_equal(line.get_xdata(), [30.0, 30.0])
+    plain = field3d_figure(f3, "W").axes[0]
+    assert not [ln for ln in plain.lines if ln.get_gid() == "crack"]
+    assert np.isfinite(np.ma.filled(_field_image(plain).get_array().astype(float), np.nan)[:, cut_cols]).any()
+    paths = write_figures(f3, np.full((60, 80), 128.0), tmp_path, quantities=["W"], cracks=[crack])
+    assert paths[0].stat().st_size > 1000
