@@ -426,6 +426,9 @@ class StereoCorrelation:
         # track the pixels they map to through the match (right_track_mask), moved references every pixel (docs/stereo.md)
         self.subset_mask = check_subset_mask(subset_mask)
         self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
+        #: the region that masks the subsets (left reference px; None: none) and whether the right track's are masked
+        #: too: a moved reference's subsets are masked by them carried into its images (:meth:`_moved_pixel_masks`)
+        self._mask_roi, self._right_track_mask = (roi if self.subset_mask == "region" else None), bool(right_track_mask)
         from .cracks import as_cracks
         from .field3d import grid_neighbours
         from .stereo_cracks import CrackCutStrain, crack_blocked_pixels
@@ -792,9 +795,48 @@ class StereoCorrelation:
         self._moved = None  # the previous moved reference's data are freed before the new ones are prepared
         self._moved = planned.prepare(self, L, R)
 
-    def _correlators_at(self, left_image, right_image, points_left, points_right):
-        return (self._correlator(left_image, points_left),
-                self._correlator(right_image, points_right) if points_right.shape[0] else None)
+    def _correlators_at(self, left_image, right_image, points_left, points_right, masks=(None, None)):
+        return (self._correlator(left_image, points_left, pixel_mask=masks[0]),
+                self._correlator(right_image, points_right, pixel_mask=masks[1]) if points_right.shape[0] else None)
+
+    def _moved_pixel_masks(self, moved_left, moved_right):
+        """The pixel masks ``(left (N, S*S), right (M, S*S))`` (each bool or None: every pixel) of a moved
+        reference's subsets: the region and the declared cracks of the reference pair carried into the state's images
+        by that state's measured tracks (docs/stereo.md, "Masks and cracks carried to a moved reference").
+
+        Left (``moved_left``, every POI): as a 2-D moved reference (:func:`dic.sequence.track2d._carry_for`): the
+        region's pixels carried into the left image by the left track's field
+        (:meth:`dic.correlation.lagrangian.MovedReference.carry_region`), the cracks carried likewise
+        (:meth:`~dic.correlation.lagrangian.MovedReference.carry_cracks`) and each subset cut at them
+        (:meth:`~dic.correlation.lagrangian.MovedReference.crack_blocked_pixels`). Right (``moved_right``, the
+        matched POIs): the rule of the reference pair's right masks (:func:`dic.correlation.right_masks
+        .mapped_pixel_masks`: a right subset pixel is kept when the left region holds it and no crack separates
+        it from the POI) with each POI's reference match composed with its right track's warp in the state: the
+        right subset pixel of the state is mapped back through both into the left reference image. None, None
+        without region and cracks (the unmasked kernels: results bit for bit as before)."""
+        from .correlation.right_masks import mapped_pixel_masks
+        from .correlation.subset_masks import REGION_MARGIN_PX, region_pixel_mask, shrink_region
+
+        region_px = region_pixel_mask(self._mask_roi, self.shape) if self._mask_roi is not None else None
+        if region_px is None and not self.cracks:
+            return None, None
+        carried = moved_left.carry_cracks(self.cracks) if self.cracks else ()
+        pixel_region = None if region_px is None else moved_left.carry_region(region_px, reach=self.subset // 2 + 1,
+                                                                               cracks=carried)
+        blocked = moved_left.crack_blocked_pixels(carried) if carried else None
+        left = tracking_pixel_masks(moved_left.points, self.subset, self.shape, pixel_region, "region",
+                                    blocked_pixels=blocked)
+        right_region = region_px if self._right_track_mask else None
+        if moved_right.points.shape[0] == 0 or (right_region is None and not self.cracks):
+            return left, None
+        if right_region is not None:
+            right_region = shrink_region(right_region, REGION_MARGIN_PX)
+        matched = self._matched
+        kept = mapped_pixel_masks(right_region, self.shape, self.points[matched], moved_right.points,
+                                  _match_then_track(self.match.params[matched], moved_right.params, self.points[matched],
+                                                    self.match.points_right[matched]),
+                                  self.subset, cracks=self.cracks)
+        return left, (None if kept.all() else kept)
 
     def _tri_points(self, pl: np.ndarray, pr: np.ndarray) -> np.ndarray:
         return self._triangulate(pl, pr)[0]
@@ -1076,7 +1118,8 @@ class _TrackReference:
     def prepare(self, sc: "StereoCorrelation", L: np.ndarray, R: np.ndarray) -> "_TrackReference":
         """The reference subsets of both cameras in the state's images ``L``, ``R`` (at the moved points)."""
         self.left_image, self.right_image = L, R
-        self.left, self.right = sc._correlators_at(L, R, self.moved_left.points, self.moved_right.points)
+        masks = sc._moved_pixel_masks(self.moved_left, self.moved_right)  # the region and cracks carried there
+        self.left, self.right = sc._correlators_at(L, R, self.moved_left.points, self.moved_right.points, masks)
         return self
 
     def _moved(self, side: str):
@@ -1110,6 +1153,31 @@ class _TrackReference:
         if self.sigma_right is not None:
             sig_r = np.hypot(sig_r, self.sigma_right)
         return sig_l, sig_r
+
+
+def _match_then_track(match_params: np.ndarray, track_params: np.ndarray, points_left: np.ndarray,
+                      points_right: np.ndarray) -> np.ndarray:
+    """(M, 6): the affine warps from the left reference image to a state's right image, per matched POI: the
+    reference match ``match_params`` (M, 6|12; left -> right at the rounded POIs ``points_left`` (M, 2) px) followed
+    by the right track's Lagrangian warp ``track_params`` (M, 6|12; right reference -> state, at the rounded
+    matched points ``points_right`` (M, 2) px), in the layout of :data:`kernels.conventions.PARAMS_1ST` about the
+    rounded POI. Second-order terms are left out, as :func:`dic.correlation.right_masks.mapped_pixel_masks` does.
+    A left pixel ``c_l + d`` goes to ``x = c_l + d + t_m + G_m d`` in the right reference, then to
+    ``x + t_r + G_r (x - c_r)``: translation ``t_m + t_r + G_r (c_l + t_m - c_r)``, gradient
+    ``(I + G_r)(I + G_m) - I``. NaN where either is unknown."""
+    from kernels.conventions import round_half_away
+
+    pm, pt = np.asarray(match_params, np.float64), np.asarray(track_params, np.float64)
+    hm, ht = pm.shape[1] // 2, pt.shape[1] // 2
+    tm = np.stack([pm[:, 0], pm[:, hm]], axis=1)
+    tr = np.stack([pt[:, 0], pt[:, ht]], axis=1)
+    gm = np.stack([pm[:, 1:3], pm[:, hm + 1:hm + 3]], axis=1)  # (M, 2, 2): rows (u, v), columns (x, y)
+    gr = np.stack([pt[:, 1:3], pt[:, ht + 1:ht + 3]], axis=1)
+    cl, cr = round_half_away(points_left).astype(np.float64), round_half_away(points_right).astype(np.float64)
+    t = tm + tr + np.einsum("mij,mj->mi", gr, cl + tm - cr)
+    eye = np.eye(2)[None]
+    g = np.einsum("mij,mjk->mik", eye + gr, eye + gm) - eye
+    return np.stack([t[:, 0], g[:, 0, 0], g[:, 0, 1], t[:, 1], g[:, 1, 0], g[:, 1, 1]], axis=1)
 
 
 def _fill_sigma(points: np.ndarray, sigma: np.ndarray, valid: np.ndarray, usable: np.ndarray) -> np.ndarray:
