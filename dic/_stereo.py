@@ -339,8 +339,8 @@ class StereoCorrelation:
     subset_mask : "region" or "none": with a mask or polygon ``roi``, the left reference's subsets keep the
         pixels inside it (:class:`dic.Tracker`'s option): the match left -> right and the left track correlate
         those only, and the right track (with ``right_track_mask``) the pixels the region maps to in the right
-        reference image; moved references every pixel. Default "region"; "none": the behaviour before the
-        option.
+        reference image; a moved reference the region carried into its images (:meth:`_moved_pixel_masks`).
+        Default "region"; "none": the behaviour before the option.
     min_kept_fraction : float in (0, 1], masked subsets keeping less are ``TOO_FEW_PIXELS``. Default 0.5.
     verify_zncc : float in [-1, 1], optional
         With a moved reference (:meth:`move_reference`): each state's composed left and right tracks are
@@ -353,7 +353,8 @@ class StereoCorrelation:
         Declared cracks (:mod:`dic.cracks`: a :class:`dic.Crack`, an (M, 2) vertex array or a list of them) in
         LEFT reference-image px (:mod:`dic.stereo_cracks`): the left subsets (match, left track) keep the pixels
         on their POI's side only, the right track's subsets the pixels that map there through the match, and
-        no surface-strain window reaches across a crack. Moved references correlate every pixel.
+        no surface-strain window reaches across a crack. A moved reference cuts its subsets at the cracks carried
+        into its images (:meth:`_moved_pixel_masks`).
     right_track_mask : bool
         With ``subset_mask="region"`` and a mask or polygon ``roi``: the right temporal track's subsets (at the
         matched points, in the right reference image) keep the pixels that map into the left region through
@@ -423,7 +424,8 @@ class StereoCorrelation:
         t0 = time.perf_counter()
         # per-POI pixel masks of the left reference's subsets (a mask or polygon ROI, dic.correlation.subset_masks):
         # the left track and the match left -> right correlate the kept pixels of the left subsets; the right
-        # track the pixels they map to through the match (right_track_mask), moved references every pixel (docs/stereo.md)
+        # track the pixels they map to through the match (right_track_mask), moved references the region carried
+        # into their images (_moved_pixel_masks; docs/stereo.md)
         self.subset_mask = check_subset_mask(subset_mask)
         self.min_kept_fraction = check_min_kept_fraction(min_kept_fraction)
         #: the region that masks the subsets (left reference px; None: none) and whether the right track's are masked
