@@ -1179,7 +1179,9 @@ def _match_then_track(match_params: np.ndarray, track_params: np.ndarray, points
     t = tm + tr + np.einsum("mij,mj->mi", gr, cl + tm - cr)
     eye = np.eye(2)[None]
     g = np.einsum("mij,mjk->mik", eye + gr, eye + gm) - eye
-    return np.stack([t[:, 0], g[:, 0, 0], g[:, 0, 1], t[:, 1], g[:, 1, 0], g[:, 1, 1]], axis=1)
+    out = np.stack([t[:, 0], g[:, 0, 0], g[:, 0, 1], t[:, 1], g[:, 1, 0], g[:, 1, 1]], axis=1)
+    out[~(np.all(np.isfinite(pm), axis=1) & np.all(np.isfinite(pt), axis=1))] = np.nan
+    return out
 
 
 def _fill_sigma(points: np.ndarray, sigma: np.ndarray, valid: np.ndarray, usable: np.ndarray) -> np.ndarray:

@@ -12,7 +12,9 @@ The cracks are polylines in LEFT reference-image px (:mod:`dic.cracks`, its cros
 * the surface strain: a point's fit window leaves out the neighbours whose straight segment from the point
   (left reference px) crosses a crack (:class:`CrackCutStrain`).
 
-Moved references (``reference="incremental"``, ...) correlate every pixel of their subsets, as with masks.
+A moved reference (``reference="incremental"``, ...) cuts its subsets at the cracks carried into its images by
+the state's measured tracks (:meth:`dic.StereoCorrelation._moved_pixel_masks`; docs/stereo.md, "Masks and cracks
+carried to a moved reference").
 """
 from __future__ import annotations
 

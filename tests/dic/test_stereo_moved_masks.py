@@ -178,3 +178,36 @@ def test_a_crack_keeps_its_jump_after_the_reference_moves(crack_seq, tmp_path, m
     before = _run(lab, tmp_path, "before", cracks=[lab["crack"]], verify_composed=False)
     for k in (3, 4):  # the problem, shown
         assert np.max(jump_error(before, k)) > 0.05, (k, jump_error(before, k))
+
+
+def test_the_right_warp_is_the_match_then_the_track():
+    """The composed warp of the right masks (left reference -> a state's right image) sends left subset pixels where
+    applying the match and then the right track does (two 1st-order warps about their rounded centres, applied
+    one after the other here; 2nd-order rows: their 1st-order part)."""
+    from dic._stereo import _match_then_track
+
+    rng = np.random.default_rng(4)
+    m = 5
+    pl, pr = rng.uniform(30, 200, (m, 2)), rng.uniform(30, 200, (m, 2))
+    match = np.concatenate([rng.normal(0, 8, (m, 1)), rng.normal(0, 0.05, (m, 2)),
+                            rng.normal(0, 8, (m, 1)), rng.normal(0, 0.05, (m, 2))], axis=1)
+    track = np.zeros((m, 12))
+    track[:, [0, 6]] = rng.normal(0, 5, (m, 2))
+    track[:, [1, 2, 7, 8]] = rng.normal(0, 0.03, (m, 4))
+    track[:, [3, 4, 5, 9, 10, 11]] = rng.normal(0, 0.01, (m, 6))  # (second-order terms: left out)
+    w = _match_then_track(match, track, pl, pr)
+    assert w.shape == (m, 6)
+    cl, cr = np.floor(pl + 0.5), np.floor(pr + 0.5)  # (positive: half away from zero)
+    d = rng.uniform(-10, 10, (m, 2))
+    x = cl + d + match[:, [0, 3]] + np.stack([match[:, 1] * d[:, 0] + match[:, 2] * d[:, 1],
+                                              match[:, 4] * d[:, 0] + match[:, 5] * d[:, 1]], axis=1)
+    e = x - cr
+    y = x + track[:, [0, 6]] + np.stack([track[:, 1] * e[:, 0] + track[:, 2] * e[:, 1],
+                                         track[:, 7] * e[:, 0] + track[:, 8] * e[:, 1]], axis=1)
+    composed = cl + d + w[:, [0, 3]] + np.stack([w[:, 1] * d[:, 0] + w[:, 2] * d[:, 1],
+                                                 w[:, 4] * d[:, 0] + w[:, 5] * d[:, 1]], axis=1)
+    np.testing.assert_allclose(composed, y, atol=1e-9)
+    unknown = track.copy()
+    unknown[0, 0] = np.nan
+    out = _match_then_track(match, unknown, pl, pr)
+    assert np.all(np.isnan(out[0])) and np.all(np.isfinite(out[1:]))  # (a point whose warp is unknown keeps no pixel)
