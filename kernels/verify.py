@@ -20,6 +20,8 @@ grey-level variation in either; a point not asked for).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -34,13 +36,36 @@ from .interp import PaddedImage, bspline3_weights_fast, bspline_coefficients, ro
 # the IC-GN family's options (FMA contraction, -march=native on the CPU): the same interpolation, about as fast
 wp.set_module_options(icgn_module_options("_composed_zncc"))
 
-__all__ = ["ComposedCheck", "CHECKED", "OUTSIDE", "FLAT", "SKIPPED"]
+__all__ = ["ComposedCheck", "composed_threshold", "check_verify_spread", "CHECKED", "OUTSIDE", "FLAT", "SKIPPED",
+           "MIN_SPREAD_POINTS", "VERIFY_SPREAD"]
 
 #: outcome codes of :meth:`ComposedCheck.zncc`
 CHECKED = 0   #: the ZNCC was computed
 OUTSIDE = 1   #: the reference subset or its warped copy leaves the image: no ZNCC (NaN)
 FLAT = 2      #: no grey-level variation in the reference subset or in its warped copy: no ZNCC (NaN)
 SKIPPED = 3   #: not asked for (``check`` False): no ZNCC (NaN)
+
+#: the fewest checked points of a frame whose ZNCCs can lower the threshold (:func:`composed_threshold`)
+MIN_SPREAD_POINTS = 20
+#: the default robust standard deviations below a frame's median composed ZNCC at which a point fails when that
+#: is below ``verify_zncc`` (``verify_spread``), by measurement (docs/dic2d.md, "Re-verification of composed results")
+VERIFY_SPREAD = 4.0
+
+
+def check_verify_spread(spread):
+    """``verify_spread`` validated: a finite number >= 0 (float), or ``"off"`` / None (None: the threshold
+    ``verify_zncc`` alone, the rule before the option)."""
+    if spread is None or (isinstance(spread, str) and spread == "off"):
+        return None
+    if isinstance(spread, bool) or not isinstance(spread, (int, float, np.integer, np.floating)) or \
+            not math.isfinite(float(spread)) or float(spread) < 0:
+        raise ValueError(f"verify_spread must be a finite number >= 0 (robust standard deviations) or 'off', "
+                         f"got {spread!r}")
+    return float(spread)
+
+
+#: the MAD of a normal distribution times this is its standard deviation
+_MAD_TO_STD = 1.4826
 
 _CHECKED = wp.constant(CHECKED)
 _OUTSIDE = wp.constant(OUTSIDE)
@@ -205,3 +230,40 @@ class ComposedCheck:
         out = bspline_coefficients(frame, device=self.device, out=self._coef)
         self._coef = out.data
         return out
+
+
+def composed_threshold(zncc, checked, threshold: float, spread: float | None) -> float:
+    """The ZNCC below which a checked point of one frame fails the check of composed warps.
+
+    ``min(threshold, median - spread * 1.4826 * MAD)`` of the ZNCCs of the frame's checked points (the frame's
+    typical value less ``spread`` robust standard deviations): ``threshold`` (``verify_zncc``) on a texture that
+    still matches the reference image, where the correct points score close to 1 with a small spread (results
+    as with ``threshold`` alone), and lower on a texture that has changed since the reference image (an evolving
+    speckle), where every correct point has lost correlation with it and a fixed threshold would refuse them
+    all; a point far below the frame's own distribution still fails. ``spread`` None, or fewer than
+    :data:`MIN_SPREAD_POINTS` checked points: ``threshold``.
+
+    Parameters
+    ----------
+    zncc : (N,) float
+        The points' ZNCC (:meth:`ComposedCheck.zncc`; NaN where none).
+    checked : (N,) bool
+        The points whose ZNCC counts (checked and reported valid).
+    threshold : float in [-1, 1]
+    spread : float >= 0 or None
+        Robust standard deviations below the median.
+
+    Returns
+    -------
+    float
+    """
+    threshold = float(threshold)
+    if spread is None:
+        return threshold
+    z = np.asarray(zncc, np.float64)[np.asarray(checked, bool)]
+    z = z[np.isfinite(z)]
+    if z.size < MIN_SPREAD_POINTS:
+        return threshold
+    median = float(np.median(z))
+    scale = _MAD_TO_STD * float(np.median(np.abs(z - median)))
+    return min(threshold, median - float(spread) * scale)
