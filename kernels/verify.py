@@ -36,8 +36,8 @@ from .interp import PaddedImage, bspline3_weights_fast, bspline_coefficients, ro
 # the IC-GN family's options (FMA contraction, -march=native on the CPU): the same interpolation, about as fast
 wp.set_module_options(icgn_module_options("_composed_zncc"))
 
-__all__ = ["ComposedCheck", "composed_threshold", "check_verify_spread", "CHECKED", "OUTSIDE", "FLAT", "SKIPPED",
-           "MIN_SPREAD_POINTS", "VERIFY_SPREAD"]
+__all__ = ["ComposedCheck", "composed_threshold", "composed_failures", "check_verify_spread", "CHECKED", "OUTSIDE", "FLAT", "SKIPPED",
+           "MIN_SPREAD_POINTS", "VERIFY_SPREAD", "PEAK_PROBES", "PEAK_MARGIN"]
 
 #: outcome codes of :meth:`ComposedCheck.zncc`
 CHECKED = 0   #: the ZNCC was computed
@@ -63,6 +63,11 @@ def check_verify_spread(spread):
                          f"got {spread!r}")
     return float(spread)
 
+
+#: the peak test of :func:`composed_failures`: the probes (du, dv) px around a point's composed warp, and the margin
+#: (times 1 - the frame's median ZNCC) by which a probe must beat the composed warp for the point to fail
+PEAK_PROBES = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
+PEAK_MARGIN = 0.2
 
 #: the MAD of a normal distribution times this is its standard deviation
 _MAD_TO_STD = 1.4826
@@ -218,6 +223,11 @@ class ComposedCheck:
                    self.subset // 2, self._zncc, self._outcome], self.device, offset_index=0, min_chunk=64)
         return host_copy(self._zncc), host_copy(self._outcome)
 
+    def coefficients(self, frame) -> PaddedImage:
+        """The B-spline coefficients of ``frame`` (as :meth:`zncc` takes it) in the buffer of this check: pass them
+        to several :meth:`zncc` calls on one frame to prefilter it once (valid until the next frame's)."""
+        return self._coefficients(frame)
+
     def _coefficients(self, frame) -> PaddedImage:
         if isinstance(frame, PaddedImage):
             if frame.kind != "bspline" or tuple(frame.shape) != tuple(self.shape) or frame.device != self.device:
@@ -267,3 +277,59 @@ def composed_threshold(zncc, checked, threshold: float, spread: float | None) ->
     median = float(np.median(z))
     scale = _MAD_TO_STD * float(np.median(np.abs(z - median)))
     return min(threshold, median - float(spread) * scale)
+
+
+def composed_failures(zncc, checked, threshold: float, spread: float | None, probe=None) -> tuple[np.ndarray, float]:
+    """The checked points of one frame that fail the check of composed warps, and the frame's threshold.
+
+    A point fails when its ZNCC is below the frame's threshold (:func:`composed_threshold`). Where that threshold
+    is below ``threshold`` (the texture has changed since the reference image), a point between the two also
+    fails when its composed warp is not where the ZNCC against the reference image peaks: ``probe`` gives the
+    ZNCC at the warp moved by each of :data:`PEAK_PROBES` (1 px along x and y), and a point fails when one of
+    them beats its own ZNCC by more than ``PEAK_MARGIN * (1 - median)`` (the frame's median ZNCC). A correct warp
+    sits on the peak of what is left of the reference texture; a warp 1 px off does not, however decorrelated
+    the texture. Where the frame's threshold is ``threshold`` (a texture that still matches the reference image)
+    nothing is probed and the result is that of ``threshold`` alone.
+
+    Parameters
+    ----------
+    zncc : (N,) float
+        The points' ZNCC at their composed warps (NaN where none).
+    checked : (N,) bool
+        The points judged (checked and reported valid).
+    threshold : float in [-1, 1]
+        ``verify_zncc``.
+    spread : float >= 0 or None
+        ``verify_spread`` (None: ``threshold`` alone, no probe).
+    probe : callable(du, dv, which) -> (N,) float, optional
+        The ZNCC of the points ``which`` ((N,) bool) at their composed warps moved by (du, dv) px (NaN where none
+        or not asked); None: no peak test.
+
+    Returns
+    -------
+    failed : (N,) bool
+    limit : float, the frame's threshold
+    """
+    checked = np.asarray(checked, bool)
+    limit = composed_threshold(zncc, checked, threshold, spread)
+    failed = checked & ~(zncc >= limit)
+    if probe is None or not limit < float(threshold):
+        return failed, limit
+    candidates = checked & ~failed & ~(zncc >= float(threshold))
+    if np.any(candidates):
+        z = np.asarray(zncc, np.float64)
+        judged = z[checked & np.isfinite(z)]
+        margin = PEAK_MARGIN * (1.0 - float(np.median(judged)))
+        best = np.full(z.shape, -np.inf)
+        for du, dv in PEAK_PROBES:
+            best = np.fmax(best, np.asarray(probe(du, dv, candidates), np.float64))
+        failed = failed | (candidates & (best > z + margin))
+    return failed, limit
+
+
+def shifted_params(params, du: float, dv: float) -> np.ndarray:
+    """``params`` (N, 6 or 12) with u and v moved by (du, dv) px (a copy, float64)."""
+    q = np.array(params, dtype=np.float64, copy=True)
+    q[:, 0] += du
+    q[:, q.shape[1] // 2] += dv
+    return q

@@ -63,20 +63,32 @@ class StereoComposedCheck:
         camera; (N,) float32 ZNCC per camera, NaN where not checked (not accepted, or the subset leaves the
         image or is flat), the right one at the POIs (NaN where not matched).
         """
-        from kernels.verify import CHECKED, composed_threshold
-
         n = self.n_points
-        acc_l = np.asarray(accepted_left, bool)
-        z, outcome = self._left.zncc(image_left, params_left, acc_l)
-        zncc_left = np.where(outcome == CHECKED, z, np.nan).astype(np.float32)
+        failed = np.zeros(n, bool)
+        zncc_left, fail_l, limit_l = self._camera(self._left, image_left, params_left, accepted_left)
+        failed |= fail_l
         zncc_right = np.full(n, np.nan, np.float32)
-        limit_right = None
+        limit_r = None
         if self._right is not None and params_right is not None:
-            z, outcome = self._right.zncc(image_right, params_right, np.asarray(accepted_right, bool))
-            zncc_right[self.matched] = np.where(outcome == CHECKED, z, np.nan)
-            limit_right = composed_threshold(zncc_right, np.isfinite(zncc_right), self.threshold, self.spread)
-        limit_left = composed_threshold(zncc_left, np.isfinite(zncc_left), self.threshold, self.spread)
-        self.last_thresholds = (limit_left, limit_right)
-        failed = (np.isfinite(zncc_left) & ~(zncc_left >= limit_left)) | \
-                 (np.isfinite(zncc_right) & ~(zncc_right >= (self.threshold if limit_right is None else limit_right)))
+            z, fail_r, limit_r = self._camera(self._right, image_right, params_right, accepted_right)
+            zncc_right[self.matched] = z
+            failed[self.matched] |= fail_r
+        self.last_thresholds = (limit_l, limit_r)
         return failed, zncc_left, zncc_right
+
+    def _camera(self, check, image, params, accepted):
+        """One camera's check: (ZNCC (float32, NaN where not checked), failed (bool), the threshold), per point of
+        ``check`` (:func:`kernels.verify.composed_failures`, the 2-D rule with its peak test)."""
+        from kernels.verify import CHECKED, composed_failures, shifted_params
+
+        accepted = np.asarray(accepted, bool)
+        frame = check.coefficients(image)  # prefiltered once for the check and its probes
+        z, outcome = check.zncc(frame, params, accepted)
+        zncc = np.where(outcome == CHECKED, z, np.nan).astype(np.float32)
+
+        def probe(du, dv, which):
+            zp, oc = check.zncc(frame, shifted_params(params, du, dv), which)
+            return np.where(oc == CHECKED, zp, np.nan)
+
+        failed, limit = composed_failures(zncc, np.isfinite(zncc), self.threshold, self.spread, probe)
+        return zncc, failed, limit

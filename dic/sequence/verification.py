@@ -82,20 +82,30 @@ class ComposedVerifier:
         correlated against the reference image (``reference_index`` 0) is left alone: (0, 0)."""
         if int(field.reference_index) == 0:
             return 0, 0
-        from kernels.verify import CHECKED, composed_threshold
+        from kernels.verify import CHECKED, composed_failures, shifted_params
 
         valid = np.asarray(field.valid, bool)
         params = field.params
         if params is None:  # translation only (a custom tracker's result)
             params = np.zeros((len(field.u), 6))
             params[:, 0], params[:, 3] = field.u, field.v
-        ask = valid if self._masked is None else valid & ~self._masked.flags
-        zncc, outcome = self._check.zncc(_on_device(image, self._check.device), params, ask)
-        if self._masked is not None and np.any(valid & self._masked.flags):
-            self._masked.fill(image, params, valid, zncc, outcome)
+        frame = self._check.coefficients(_on_device(image, self._check.device))  # prefiltered once per frame
+
+        def zncc_at(p, which):
+            ask = which if self._masked is None else which & ~self._masked.flags
+            z, outcome = self._check.zncc(frame, p, ask)
+            if self._masked is not None and np.any(which & self._masked.flags):
+                self._masked.fill(image, p, which, z, outcome)
+            return z, outcome
+
+        zncc, outcome = zncc_at(params, valid)
         checked = outcome == CHECKED
-        self.last_threshold = composed_threshold(zncc, checked & valid, self.threshold, self.spread)
-        failed = checked & valid & ~(zncc >= self.last_threshold)
+
+        def probe(du, dv, which):  # the peak test (kernels.verify.composed_failures)
+            z, oc = zncc_at(shifted_params(params, du, dv), which)
+            return np.where(oc == CHECKED, z, np.nan)
+
+        failed, self.last_threshold = composed_failures(zncc, checked & valid, self.threshold, self.spread, probe)
         if np.any(failed):
             field.valid = valid & ~failed
             status = np.asarray(field.status, np.int32).copy()
