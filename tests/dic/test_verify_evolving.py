@@ -133,3 +133,63 @@ def test_a_wrong_match_in_an_evolving_texture_is_still_flagged(evolving, tmp_pat
     res, _ = _wrong_match_run(evolving, tmp_path / "nopeak.h5")
     flagged, wrong, _ = _judged(seq, res.frames[8], 8)
     assert wrong.sum() >= 8 and np.count_nonzero(flagged & wrong) < 0.5 * wrong.sum()
+
+
+def test_verify_spread_option_record_and_refusals():
+    """verify_spread: recorded (4 by default with the check, null without it), "off" kept, bad values refused naming
+    the option; a file written before the option (no verify_spread, the check on) reads as "off" and resumes only
+    with it; the frame's threshold itself (kernels.verify.composed_threshold)."""
+    from dic.sequence import StereoOptions, TrackOptions
+    from dic.sequence.options import OptionError
+    from kernels.verify import MIN_SPREAD_POINTS, composed_threshold
+
+    assert TrackOptions(reference="auto").verify_spread == 4.0
+    assert TrackOptions(reference="auto", verify_spread="off").verify_spread == "off"
+    assert TrackOptions(reference="auto", verify_spread=2).verify_spread == 2.0
+    assert TrackOptions(reference="auto", verify_composed=False, verify_spread=2).verify_spread is None
+    assert TrackOptions().verify_spread is None  # fixed reference: nothing composed
+    assert StereoOptions(reference="incremental").verify_spread == 4.0
+    for bad in (-1.0, float("nan"), "on", True):
+        with pytest.raises(OptionError, match="verify_spread"):
+            TrackOptions(reference="auto", verify_spread=bad)
+    old = TrackOptions(reference="auto").to_settings()
+    del old["verify_spread"]
+    assert TrackOptions.from_settings(old).verify_spread == "off"
+    assert TrackOptions(reference="auto", verify_spread="off").resume_check(old) is None
+    assert "--verify-spread" in TrackOptions(reference="auto").resume_check(old)
+
+    z = np.r_[np.full(30, 0.99, np.float32), 0.5]
+    assert composed_threshold(z, np.ones(31, bool), 0.95, 4.0) == 0.95  # MAD 0: the threshold
+    z = np.linspace(0.5, 0.9, 41)  # median 0.7, MAD 0.1
+    assert composed_threshold(z, np.ones(41, bool), 0.95, 1.0) == pytest.approx(0.7 - 1.4826 * 0.1)
+    assert composed_threshold(z, np.ones(41, bool), 0.95, None) == 0.95
+    few = np.zeros(41, bool)
+    few[:MIN_SPREAD_POINTS - 1] = True
+    assert composed_threshold(z, few, 0.95, 1.0) == 0.95
+
+
+def test_cli_verify_spread(evolving, tmp_path):
+    from click.testing import CliRunner
+
+    from dic.cli import main
+    from kernels.images import write_image
+
+    _, frames, _ = evolving
+    paths = []
+    for k in range(3):
+        p = tmp_path / f"f{k}.png"
+        write_image(p, np.clip(np.rint(frames[k]), 0, 255).astype(np.uint8))
+        paths.append(str(p))
+    runner = CliRunner()
+    common = ["--step", "16", "--reference", "incremental", "--device", "cpu", "--strain-window", "0", "-q"]
+    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "a.h5"), *common, "--verify-spread", "3"])
+    assert r.exit_code == 0, r.output
+    assert read_results(tmp_path / "a.h5").settings["verify_spread"] == 3.0
+    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "b.h5"), *common, "--verify-spread", "off"])
+    assert r.exit_code == 0, r.output
+    assert read_results(tmp_path / "b.h5").settings["verify_spread"] == "off"
+    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "c.h5"), *common, "--verify-spread", "-2"])
+    assert r.exit_code != 0 and "--verify-spread" in r.output and "'-2'" in r.output
+    r = runner.invoke(main, ["track", *paths, "-o", str(tmp_path / "d.h5"), *common, "--verify-spread", "3",
+                             "--no-verify-composed"])
+    assert r.exit_code != 0 and "--verify-spread cannot act with --no-verify-composed" in r.output
