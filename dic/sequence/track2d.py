@@ -267,7 +267,9 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         Each composed frame's threshold is ``min(verify_zncc, median - verify_spread * 1.4826 * MAD)`` of its
         checked points' ZNCCs (:func:`kernels.verify.composed_threshold`): ``verify_zncc`` where the texture still
         matches the reference image, lower where it has changed since (an evolving speckle, whose correct points
-        all lose correlation with the reference image). Default None: 4
+        all lose correlation with the reference image); there a point between that and ``verify_zncc`` also
+        fails when its composed warp is off the ZNCC's peak by the probes 1 px away
+        (:func:`kernels.verify.composed_failures`). Default None: 4
         (:data:`kernels.verify.VERIFY_SPREAD`, by measurement, docs/dic2d.md); ``"off"``: ``verify_zncc`` alone
         (the rule before the option, that a file written before it resumes with).
     options

@@ -23,7 +23,10 @@ few frames. The threshold of a frame is therefore ``min(verify_zncc, median - ve
 of its checked points' ZNCCs (:func:`kernels.verify.composed_threshold`; ``verify_spread`` default
 :data:`VERIFY_SPREAD`): ``verify_zncc`` wherever the texture still matches the reference (correct points close
 to 1 with a small spread: the results of the fixed threshold), and the frame's typical value less
-``verify_spread`` robust standard deviations where it does not. Measured on the evolving texture of
+``verify_spread`` robust standard deviations where it does not; there a point between the two also fails when
+the ZNCC at its composed warp moved by 1 px along x or y beats its own (the peak test of
+:func:`kernels.verify.composed_failures`: a wrong match is off the peak of what is left of the reference
+texture, however decorrelated). Measured on the evolving texture of
 docs/dic2d.md (512², 2 % of the speckles replaced per frame, 60 frames), see "Re-verification of composed
 results" there for what it keeps and what it still catches.
 """
