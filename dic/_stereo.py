@@ -50,6 +50,7 @@ from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION
 from kernels.images import as_float32_image
 from kernels.interp import FRAME_DTYPES
 from kernels.search import phase_spectrum, phase_window
+from kernels.verify import VERIFY_SPREAD, check_verify_spread
 
 from ._triangulate import TriangulationStatus, optimal_triangulation_jacobian, triangulate, undistort_points
 from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
@@ -349,6 +350,11 @@ class StereoCorrelation:
         ``StereoStatus.COMPOSED_MISMATCH`` before its strain is computed, and the state's details hold
         ``composed_zncc_left`` / ``composed_zncc_right`` (NaN where not checked). Default None: no check
         (:func:`dic.sequence.stereo_sequence` turns it on with a moved reference).
+    verify_spread : float >= 0, "off" or None
+        With ``verify_zncc``: each state's threshold, per camera, is ``min(verify_zncc, median - verify_spread *
+        1.4826 * MAD)`` of that camera's checked ZNCCs (:func:`kernels.verify.composed_threshold`, the 2-D rule:
+        lower only where the texture has changed since the reference pair). Default 4
+        (:data:`kernels.verify.VERIFY_SPREAD`); "off" or None: ``verify_zncc`` alone (the rule before the option).
     cracks : optional
         Declared cracks (:mod:`dic.cracks`: a :class:`dic.Crack`, an (M, 2) vertex array or a list of them) in
         LEFT reference-image px (:mod:`dic.stereo_cracks`): the left subsets (match, left track) keep the pixels
@@ -369,12 +375,13 @@ class StereoCorrelation:
                  noise_sigma: float | None = None, robust: bool | str = False, device=None, progress=None,
                  subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
                  strain_type: str = "green-lagrange", verify_zncc: float | None = None, right_track_mask: bool = True,
-                 cracks=None):
+                 cracks=None, verify_spread: float | str | None = VERIFY_SPREAD):
         from ._strain import check_strain_type
 
         self.strain_type = check_strain_type(strain_type)  # what exx, eyy, exy are (dic.field3d)
         # the check of composed tracks against the reference pair (None: none; dic.correlation.stereo_verify)
         self.verify_zncc = None if verify_zncc is None else in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
+        self.verify_spread = check_verify_spread(verify_spread)  # None: verify_zncc alone (kernels.verify)
         self._composed_check = None  # built at the first state tracked from a moved reference
         self.device = resolve_device(device)
         self._progress = _check_progress(progress)
@@ -704,7 +711,7 @@ class StereoCorrelation:
             m = self.match
             self._composed_check = StereoComposedCheck(self._left_ref, self._right_ref, self.points,
                                                        m.points_right[self._matched], self._matched, self.subset,
-                                                       self.verify_zncc, device=self.device)
+                                                       self.verify_zncc, device=self.device, spread=self.verify_spread)
         return self._composed_check.check(tl.params, tl.accepted, L, None if tr is None else tr.params,
                                           None if tr is None else tr.accepted, R)
 

@@ -20,6 +20,8 @@ grey-level variation in either; a point not asked for).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -34,13 +36,41 @@ from .interp import PaddedImage, bspline3_weights_fast, bspline_coefficients, ro
 # the IC-GN family's options (FMA contraction, -march=native on the CPU): the same interpolation, about as fast
 wp.set_module_options(icgn_module_options("_composed_zncc"))
 
-__all__ = ["ComposedCheck", "CHECKED", "OUTSIDE", "FLAT", "SKIPPED"]
+__all__ = ["ComposedCheck", "composed_threshold", "composed_failures", "check_verify_spread", "CHECKED", "OUTSIDE", "FLAT", "SKIPPED",
+           "MIN_SPREAD_POINTS", "VERIFY_SPREAD", "PEAK_PROBES", "PEAK_MARGIN"]
 
 #: outcome codes of :meth:`ComposedCheck.zncc`
 CHECKED = 0   #: the ZNCC was computed
 OUTSIDE = 1   #: the reference subset or its warped copy leaves the image: no ZNCC (NaN)
 FLAT = 2      #: no grey-level variation in the reference subset or in its warped copy: no ZNCC (NaN)
 SKIPPED = 3   #: not asked for (``check`` False): no ZNCC (NaN)
+
+#: the fewest checked points of a frame whose ZNCCs can lower the threshold (:func:`composed_threshold`)
+MIN_SPREAD_POINTS = 20
+#: the default robust standard deviations below a frame's median composed ZNCC at which a point fails when that
+#: is below ``verify_zncc`` (``verify_spread``), by measurement (docs/dic2d.md, "Re-verification of composed results")
+VERIFY_SPREAD = 4.0
+
+
+def check_verify_spread(spread):
+    """``verify_spread`` validated: a finite number >= 0 (float), or ``"off"`` / None (None: the threshold
+    ``verify_zncc`` alone, the rule before the option)."""
+    if spread is None or (isinstance(spread, str) and spread == "off"):
+        return None
+    if isinstance(spread, bool) or not isinstance(spread, (int, float, np.integer, np.floating)) or \
+            not math.isfinite(float(spread)) or float(spread) < 0:
+        raise ValueError(f"verify_spread must be a finite number >= 0 (robust standard deviations) or 'off', "
+                         f"got {spread!r}")
+    return float(spread)
+
+
+#: the peak test of :func:`composed_failures`: the probes (du, dv) px around a point's composed warp, and the margin
+#: (times 1 - the frame's median ZNCC) by which a probe must beat the composed warp for the point to fail
+PEAK_PROBES = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
+PEAK_MARGIN = 0.2
+
+#: the MAD of a normal distribution times this is its standard deviation
+_MAD_TO_STD = 1.4826
 
 _CHECKED = wp.constant(CHECKED)
 _OUTSIDE = wp.constant(OUTSIDE)
@@ -193,6 +223,11 @@ class ComposedCheck:
                    self.subset // 2, self._zncc, self._outcome], self.device, offset_index=0, min_chunk=64)
         return host_copy(self._zncc), host_copy(self._outcome)
 
+    def coefficients(self, frame) -> PaddedImage:
+        """The B-spline coefficients of ``frame`` (as :meth:`zncc` takes it) in the buffer of this check: pass them
+        to several :meth:`zncc` calls on one frame to prefilter it once (valid until the next frame's)."""
+        return self._coefficients(frame)
+
     def _coefficients(self, frame) -> PaddedImage:
         if isinstance(frame, PaddedImage):
             if frame.kind != "bspline" or tuple(frame.shape) != tuple(self.shape) or frame.device != self.device:
@@ -205,3 +240,96 @@ class ComposedCheck:
         out = bspline_coefficients(frame, device=self.device, out=self._coef)
         self._coef = out.data
         return out
+
+
+def composed_threshold(zncc, checked, threshold: float, spread: float | None) -> float:
+    """The ZNCC below which a checked point of one frame fails the check of composed warps.
+
+    ``min(threshold, median - spread * 1.4826 * MAD)`` of the ZNCCs of the frame's checked points (the frame's
+    typical value less ``spread`` robust standard deviations): ``threshold`` (``verify_zncc``) on a texture that
+    still matches the reference image, where the correct points score close to 1 with a small spread (results
+    as with ``threshold`` alone), and lower on a texture that has changed since the reference image (an evolving
+    speckle), where every correct point has lost correlation with it and a fixed threshold would refuse them
+    all; a point far below the frame's own distribution still fails. ``spread`` None, or fewer than
+    :data:`MIN_SPREAD_POINTS` checked points: ``threshold``.
+
+    Parameters
+    ----------
+    zncc : (N,) float
+        The points' ZNCC (:meth:`ComposedCheck.zncc`; NaN where none).
+    checked : (N,) bool
+        The points whose ZNCC counts (checked and reported valid).
+    threshold : float in [-1, 1]
+    spread : float >= 0 or None
+        Robust standard deviations below the median.
+
+    Returns
+    -------
+    float
+    """
+    threshold = float(threshold)
+    if spread is None:
+        return threshold
+    z = np.asarray(zncc, np.float64)[np.asarray(checked, bool)]
+    z = z[np.isfinite(z)]
+    if z.size < MIN_SPREAD_POINTS:
+        return threshold
+    median = float(np.median(z))
+    scale = _MAD_TO_STD * float(np.median(np.abs(z - median)))
+    return min(threshold, median - float(spread) * scale)
+
+
+def composed_failures(zncc, checked, threshold: float, spread: float | None, probe=None) -> tuple[np.ndarray, float]:
+    """The checked points of one frame that fail the check of composed warps, and the frame's threshold.
+
+    A point fails when its ZNCC is below the frame's threshold (:func:`composed_threshold`). Where that threshold
+    is below ``threshold`` (the texture has changed since the reference image), a point between the two also
+    fails when its composed warp is not where the ZNCC against the reference image peaks: ``probe`` gives the
+    ZNCC at the warp moved by each of :data:`PEAK_PROBES` (1 px along x and y), and a point fails when one of
+    them beats its own ZNCC by more than ``PEAK_MARGIN * (1 - median)`` (the frame's median ZNCC). A correct warp
+    sits on the peak of what is left of the reference texture; a warp 1 px off does not, however decorrelated
+    the texture. Where the frame's threshold is ``threshold`` (a texture that still matches the reference image)
+    nothing is probed and the result is that of ``threshold`` alone.
+
+    Parameters
+    ----------
+    zncc : (N,) float
+        The points' ZNCC at their composed warps (NaN where none).
+    checked : (N,) bool
+        The points judged (checked and reported valid).
+    threshold : float in [-1, 1]
+        ``verify_zncc``.
+    spread : float >= 0 or None
+        ``verify_spread`` (None: ``threshold`` alone, no probe).
+    probe : callable(du, dv, which) -> (N,) float, optional
+        The ZNCC of the points ``which`` ((N,) bool) at their composed warps moved by (du, dv) px (NaN where none
+        or not asked); None: no peak test.
+
+    Returns
+    -------
+    failed : (N,) bool
+    limit : float, the frame's threshold
+    """
+    checked = np.asarray(checked, bool)
+    limit = composed_threshold(zncc, checked, threshold, spread)
+    failed = checked & ~(zncc >= limit)
+    if probe is None or not limit < float(threshold):
+        return failed, limit
+    candidates = checked & ~failed & ~(zncc >= float(threshold))
+    if np.any(candidates):
+        z = np.asarray(zncc, np.float64)
+        judged = z[checked & np.isfinite(z)]
+        margin = PEAK_MARGIN * (1.0 - float(np.median(judged)))
+        best = np.full(z.shape, -np.inf)
+        for du, dv in PEAK_PROBES:
+            best = np.fmax(best, np.asarray(probe(du, dv, candidates), np.float64))
+        failed = failed | (candidates & (best > z + margin))
+    return failed, limit
+
+
+def shifted_params(params, du: float, dv: float) -> np.ndarray:
+    """``params`` (N, 6 or 12) with u and v moved by (du, dv) px (a copy, float64)."""
+    q = np.array(params, dtype=np.float64, copy=True)
+    q[:, 0] += du
+    q[:, q.shape[1] // 2] += dv
+    return q

@@ -15,6 +15,7 @@ from ._dask import dask_client, dask_options
 from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 from ._robust import robust_mode_option, robust_value
+from ._verify import parse_verify_spread
 from .track import _parse_cracks
 
 
@@ -162,10 +163,14 @@ def _engine_pairs(pairs) -> list:
 @click.option("--crack", "cracks", multiple=True, metavar="x1,y1,x2,y2,...",
               help="A declared crack: a polyline in LEFT reference-image px (repeat for several). No subset (left, or "
                    "right through the stereo match) or surface-strain window reaches across it; stored in the file.")
+@click.option("--verify-spread", default=None, metavar="K|off",
+              help="With --verify-composed: each camera's threshold of a state is the lower of --verify-zncc and its "
+                   "checked tracks' median ZNCC less K robust standard deviations (1.4826 MAD), as 2-D; 'off': "
+                   "--verify-zncc alone. Default 4.")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode,
-           verify_composed, verify_zncc, right_track_mask, cracks):
+           verify_composed, verify_zncc, right_track_mask, cracks, verify_spread):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -202,6 +207,9 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                                  + hint, param_hint="IMAGES")
     if verify_zncc is not None and verify_composed is False:
         raise click.BadParameter("--verify-zncc cannot act with --no-verify-composed", param_hint="--verify-zncc")
+    if verify_spread is not None and verify_composed is False:
+        raise click.BadParameter("--verify-spread cannot act with --no-verify-composed", param_hint="--verify-spread")
+    verify_spread = parse_verify_spread(verify_spread)
     if subset < 5 or subset % 2 == 0:
         raise click.BadParameter(f"the subset must be an odd number of px >= 5, got {subset}", param_hint="--subset")
     if strain_window % 2 == 0:
@@ -246,7 +254,8 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                                reference=reference_strategy, subset_mask=subset_mask,
                                min_kept_fraction=min_kept_fraction, strain_type=strain_type,
                                verify_composed=verify_composed, verify_zncc=verify_zncc,
-                               right_track_mask=right_track_mask, cracks=_parse_cracks(cracks))
+                               right_track_mask=right_track_mask, cracks=_parse_cracks(cracks),
+                               verify_spread=verify_spread)
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images

@@ -15,6 +15,7 @@ from ._dask import dask_client, dask_options
 from ._interrupt import report_interrupt
 from ._region import parse_region, region_options
 from ._robust import robust_mode_option, robust_value
+from ._verify import parse_verify_spread
 
 
 def _fail(exc: Exception) -> click.ClickException:
@@ -101,11 +102,15 @@ def _fail(exc: Exception) -> click.ClickException:
               type=click.Choice(["green-lagrange", "small", "euler-almansi"], case_sensitive=False),
               help="What the strain exx, eyy, exy is: Green-Lagrange (zero for rigid motions; VIC-3D's and DICe's "
                    "default, and stereo's), small (engineering) or Euler-Almansi; stored in the file.")
+@click.option("--verify-spread", default=None, metavar="K|off",
+              help="With --verify-composed: a frame's threshold is the lower of --verify-zncc and its checked points' "
+                   "median ZNCC less K robust standard deviations (1.4826 MAD), so that a texture that changes during "
+                   "the test (an evolving speckle) keeps its correct points; 'off': --verify-zncc alone. Default 4.")
 @robust_mode_option("the subsets", default="adaptive")
 def track(reference, current, output, subset, step, order, search, search_method, max_iter, tol, strain_window,
           scale, noise_sigma, robust, roi, roi_polygon, mask, exclude, device, figure_dir, figure_limits, figure_every, vtk_dir,
           reference_strategy, max_memory, scheduler, workers, compression, overwrite, quiet, subset_mask,
-          min_kept_fraction, cracks, verify_composed, verify_zncc, strain_type, robust_mode):
+          min_kept_fraction, cracks, verify_composed, verify_zncc, strain_type, verify_spread, robust_mode):
     """Track REFERENCE into each CURRENT image (TIFF, PNG or BMP; grey levels).
 
     Each argument may also be a folder (its images in natural order), a quoted glob pattern
@@ -133,6 +138,9 @@ def track(reference, current, output, subset, step, order, search, search_method
                                  "use fixed or every:N with --scheduler/--workers", param_hint="--reference")
     if verify_zncc is not None and verify_composed is False:
         raise click.BadParameter("--verify-zncc cannot act with --no-verify-composed", param_hint="--verify-zncc")
+    if verify_spread is not None and verify_composed is False:
+        raise click.BadParameter("--verify-spread cannot act with --no-verify-composed", param_hint="--verify-spread")
+    verify_spread = parse_verify_spread(verify_spread)
     if verify_composed is None:
         verify_composed = policy.kind != "fixed"  # nothing is composed with the fixed reference
     if subset < 5 or subset % 2 == 0:
@@ -168,7 +176,7 @@ def track(reference, current, output, subset, step, order, search, search_method
                      strain_window=strain_window,
                      scale_mm_per_px=scale, subset_mask=subset_mask, min_kept_fraction=min_kept_fraction, cracks=cracks,
                      verify_composed=verify_composed, verify_zncc=verify_zncc, strain_type=strain_type,
-                     **{k: v for k, v in given.items() if v is not None})
+                     verify_spread=verify_spread, **{k: v for k, v in given.items() if v is not None})
     try:  # the POIs, planned without preparing them (a run over --max-memory prepares them in chunks)
         from dic.correlation.points import grid
 
@@ -207,7 +215,8 @@ def track(reference, current, output, subset, step, order, search, search_method
                 vtk_dir=vtk_dir, figure_dir=figure_dir if figure_limits == "frame" else None, figure_every=figure_every,
                 settings=record, make_tracker=make_tracker, points=planned, order=order,
                 max_memory=budget, search=search_method if search else None, client=client, compression=compression,
-                verify_composed=verify_composed, verify_zncc=verify_zncc, strain_type=strain_type, device=device)
+                verify_composed=verify_composed, verify_zncc=verify_zncc, strain_type=strain_type, device=device,
+                verify_spread=verify_spread)
     except ValueError as exc:
         raise _fail(exc) from None
     if figure_dir is not None and figure_limits == "sequence":

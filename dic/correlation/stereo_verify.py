@@ -12,7 +12,9 @@ each camera's composed warps against that camera's ORIGINAL reference image, the
 - right: the ZNCC between the right reference subset at each matched point (``match.points_right``) and the
   state's right image at the composed right warp (``params_right``).
 
-A point whose accepted track scores below the threshold in either camera fails (the stereo status
+A point whose accepted track scores below the threshold in either camera fails (each camera's threshold of a
+state: ``min(verify_zncc, median - spread * 1.4826 * MAD)`` of that camera's checked ZNCCs, the 2-D rule of
+:func:`kernels.verify.composed_threshold`; ``spread`` None: ``verify_zncc`` alone) (the stereo status
 :attr:`dic.field3d.StereoStatus.COMPOSED_MISMATCH`, set by :class:`dic.StereoCorrelation`); a subset that
 leaves the image (in the reference or the state) or has no texture cannot be checked and keeps its result.
 The subsets are whole squares, as in 2-D: a subset masked to a region (``subset_mask``) is checked on all
@@ -31,15 +33,20 @@ class StereoComposedCheck:
     ``left_ref``, ``right_ref`` (H, W) grey levels: the reference pair; ``points_left`` (N, 2) px: the POIs
     in the left reference; ``points_right`` (M, 2) px: the matched points in the right reference (the rows
     ``matched`` of the POIs); ``matched`` (M,) int: their POI indices; ``subset`` px (odd): the run's;
-    ``threshold``: the ZNCC in [-1, 1] below which a track fails; ``device``: the run's Warp device.
+    ``threshold``: the ZNCC in [-1, 1] below which a track fails (``verify_zncc``); ``spread``: robust standard
+    deviations below each camera's median ZNCC of a state that can lower it (``verify_spread``; None: the threshold
+    alone); ``device``: the run's Warp device. ``last_thresholds``: (left, right) thresholds of the last state
+    checked (None before any; right None without a right track).
     """
 
     def __init__(self, left_ref, right_ref, points_left, points_right, matched, subset: int, threshold: float,
-                 device=None):
+                 device=None, spread: float | None = None):
         from kernels.checks import in_range
-        from kernels.verify import ComposedCheck
+        from kernels.verify import ComposedCheck, check_verify_spread
 
         self.threshold = in_range(threshold, -1.0, 1.0, "verify_zncc")
+        self.spread = check_verify_spread(spread)
+        self.last_thresholds: tuple | None = None
         self.matched = np.asarray(matched, dtype=np.int64)
         self.n_points = len(points_left)
         self._left = ComposedCheck(left_ref, points_left, subset, device=device)
@@ -56,16 +63,32 @@ class StereoComposedCheck:
         camera; (N,) float32 ZNCC per camera, NaN where not checked (not accepted, or the subset leaves the
         image or is flat), the right one at the POIs (NaN where not matched).
         """
-        from kernels.verify import CHECKED
-
         n = self.n_points
-        acc_l = np.asarray(accepted_left, bool)
-        z, outcome = self._left.zncc(image_left, params_left, acc_l)
-        zncc_left = np.where(outcome == CHECKED, z, np.nan).astype(np.float32)
+        failed = np.zeros(n, bool)
+        zncc_left, fail_l, limit_l = self._camera(self._left, image_left, params_left, accepted_left)
+        failed |= fail_l
         zncc_right = np.full(n, np.nan, np.float32)
+        limit_r = None
         if self._right is not None and params_right is not None:
-            z, outcome = self._right.zncc(image_right, params_right, np.asarray(accepted_right, bool))
-            zncc_right[self.matched] = np.where(outcome == CHECKED, z, np.nan)
-        failed = (np.isfinite(zncc_left) & ~(zncc_left >= self.threshold)) | \
-                 (np.isfinite(zncc_right) & ~(zncc_right >= self.threshold))
+            z, fail_r, limit_r = self._camera(self._right, image_right, params_right, accepted_right)
+            zncc_right[self.matched] = z
+            failed[self.matched] |= fail_r
+        self.last_thresholds = (limit_l, limit_r)
         return failed, zncc_left, zncc_right
+
+    def _camera(self, check, image, params, accepted):
+        """One camera's check: (ZNCC (float32, NaN where not checked), failed (bool), the threshold), per point of
+        ``check`` (:func:`kernels.verify.composed_failures`, the 2-D rule with its peak test)."""
+        from kernels.verify import CHECKED, composed_failures, shifted_params
+
+        accepted = np.asarray(accepted, bool)
+        frame = check.coefficients(image)  # prefiltered once for the check and its probes
+        z, outcome = check.zncc(frame, params, accepted)
+        zncc = np.where(outcome == CHECKED, z, np.nan).astype(np.float32)
+
+        def probe(du, dv, which):
+            zp, oc = check.zncc(frame, shifted_params(params, du, dv), which)
+            return np.where(oc == CHECKED, zp, np.nan)
+
+        failed, limit = composed_failures(zncc, np.isfinite(zncc), self.threshold, self.spread, probe)
+        return zncc, failed, limit

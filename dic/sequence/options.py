@@ -34,7 +34,7 @@ from kernels.checks import boolean, in_range, non_negative_int, odd_int, positiv
 
 from ..correlation.subset_masks import check_min_kept_fraction, check_subset_mask
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
-from .verification import VERIFY_ZNCC
+from .verification import VERIFY_SPREAD, VERIFY_ZNCC, check_verify_spread
 
 __all__ = ["OPTIONS_SCHEMA", "OptionError", "TrackOptions", "StereoOptions"]
 
@@ -351,6 +351,9 @@ class TrackOptions(_Record):
     verify_zncc: float | None = None
     # strain types by name (issue 25): what exx, eyy, exy are; files before it computed small strain
     strain_type: str = "green-lagrange"
+    # -- verifyrel: the composed check's threshold lowered to each frame's median ZNCC less verify_spread robust
+    # standard deviations (kernels.verify.composed_threshold); "off": verify_zncc alone, the rule before it
+    verify_spread: float | str | None = None
     #: the POIs given (None when read from a file: it holds their digest only)
     points_array: Any = field(default=None, compare=False, repr=False)
     #: the checked region (None when read from a file: it holds its JSON form)
@@ -361,14 +364,15 @@ class TrackOptions(_Record):
     CLI_NAMES: ClassVar[dict[str, str]] = {
         **_SHARED_CLI_NAMES, "search": "--search-method", "search_radius": "--search", "max_iter": "--max-iter",
         "tol": "--tol", "scale_mm_per_px": "--scale", "cracks": "--crack", "verify_composed": "--verify-composed",
-        "verify_zncc": "--verify-zncc"}
+        "verify_zncc": "--verify-zncc", "verify_spread": "--verify-spread"}
     KIND: ClassVar[str] = "2-D"
     # (strain_type: 2-D exx was the small strain before the option)
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5, "cracks": None,
-                                               "verify_composed": False, "verify_zncc": None, "strain_type": "small"}
+                                               "verify_composed": False, "verify_zncc": None, "strain_type": "small",
+                                               "verify_spread": "off"}
     #: the keywords of :func:`dic.sequence.track_sequence` itself (not the tracker's)
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("strain_window", "reference", "auto_valid", "auto_zncc", "guess",
-                                                    "verify_composed", "verify_zncc", "strain_type")
+                                                    "verify_composed", "verify_zncc", "strain_type", "verify_spread")
 
     def __post_init__(self):
         self._check_common()
@@ -428,6 +432,15 @@ class TrackOptions(_Record):
             self._set("verify_zncc", None)
         elif self.verify_zncc is None:
             self._set("verify_zncc", VERIFY_ZNCC)
+        # verify_spread: robust standard deviations (float), "off" (verify_zncc alone), None where the check does
+        # not run; VERIFY_SPREAD when not given
+        if not self.verify_composed:
+            self._set("verify_spread", None)
+        elif self.verify_spread is None:
+            self._set("verify_spread", VERIFY_SPREAD)
+        else:
+            spread = _checked("verify_spread", check_verify_spread, self.verify_spread)
+            self._set("verify_spread", "off" if spread is None else spread)
 
     def tracker_kwargs(self) -> dict:
         """The :class:`dic.Tracker` keywords of this record (no ``device``): the POIs as given, the
@@ -527,6 +540,8 @@ class StereoOptions(_Record):
     right_track_mask: bool = True
     # -- stereo26: declared cracks in left reference px (dic.stereo_cracks), stored as 2-D's; None: no cracks
     cracks: Any = None
+    # -- verifyrel: the composed check's threshold lowered per state and camera (as TrackOptions.verify_spread)
+    verify_spread: float | str | None = None
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
@@ -534,12 +549,12 @@ class StereoOptions(_Record):
     CLI_NAMES: ClassVar[dict[str, str]] = {
         **_SHARED_CLI_NAMES, "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
         "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc", "right_track_mask": "--right-track-mask",
-        "cracks": "--crack"}
+        "cracks": "--crack", "verify_spread": "--verify-spread"}
     KIND: ClassVar[str] = "stereo"
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5,
                                                "strain_type": "green-lagrange",
                                                "verify_composed": False, "verify_zncc": None,
-                                               "right_track_mask": False, "cracks": None}
+                                               "right_track_mask": False, "cracks": None, "verify_spread": "off"}
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess",
                                                     "verify_composed")
     # verify_composed / verify_zncc resolved as for 2-D runs (None with the fixed reference; 0.95 by default)
@@ -589,6 +604,7 @@ class StereoOptions(_Record):
               "check_warps": self.check_warps, "noise_sigma": self.noise_sigma, "robust": self.robust,
               **self._subset_mask_kwargs(), "strain_type": self.strain_type,
               "verify_zncc": self.verify_zncc if self.verify_composed else None,
+              "verify_spread": self.verify_spread if self.verify_composed else None,
               "right_track_mask": self.right_track_mask, "cracks": self.cracks}
         if self.points_array is not None:
             kw["points"] = self.points_array

@@ -120,6 +120,9 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         (:mod:`dic.correlation.stereo_verify`); points below ``verify_zncc`` in either camera get the status
         ``COMPOSED_MISMATCH``, counted per state in the file (``composed_mismatch``, and per camera) and in
         :attr:`SequenceSummary.n_mismatch`. False: no check (a file written before the option resumes only so).
+        ``verify_spread`` (default 4; "off": ``verify_zncc`` alone): each camera's threshold of a state lowered to
+        its median ZNCC less that many robust standard deviations, with the peak test, as 2-D
+        (:func:`kernels.verify.composed_failures`).
         ``right_track_mask`` (default True: the right track's subsets masked by the region mapped through the
         match, :mod:`dic.correlation.right_masks`) and ``cracks`` (declared cracks in left reference px,
         :mod:`dic.stereo_cracks`: no subset or strain window across them; stored in the file's settings).

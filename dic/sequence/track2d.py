@@ -35,7 +35,7 @@ from .engine import CannotServe, SequenceSummary, run_sequence
 from .options import TrackOptions
 from .pipeline import Loaded, WriteBehind, load_image, read_ahead, trim_memory
 from .reference import AUTO_VALID, AUTO_ZNCC, parse_reference
-from .verification import VERIFY_ZNCC, ComposedVerifier, composed_mismatches
+from .verification import VERIFY_SPREAD, VERIFY_ZNCC, ComposedVerifier, check_verify_spread, composed_mismatches
 
 __all__ = ["track_sequence", "SequenceSummary"]
 
@@ -175,7 +175,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                    auto_zncc: float = AUTO_ZNCC, settings: dict | None = None,
                    make_tracker: Callable | None = None, max_memory: int | None = None, guess: str | None = None,
                    client=None, compression=None, verify_composed: bool | None = None, verify_zncc: float | None = None,
-                   strain_type: str = "green-lagrange", **options) -> SequenceSummary:
+                   strain_type: str = "green-lagrange", verify_spread: float | str | None = None,
+                   **options) -> SequenceSummary:
     """2-D DIC of an image sequence against a reference image, written frame by frame to an HDF5 file.
 
     Parameters
@@ -262,6 +263,15 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         The ZNCC below which a composed point fails (default 0.95,
         :data:`dic.sequence.verification.VERIFY_ZNCC`: a whole-pixel wrong match scores at most 0.92 on a
         2 px speckle, a correct composed warp at least 0.994 at 4 grey levels of noise; docs/dic2d.md).
+    verify_spread : float >= 0 or "off", optional
+        Each composed frame's threshold is ``min(verify_zncc, median - verify_spread * 1.4826 * MAD)`` of its
+        checked points' ZNCCs (:func:`kernels.verify.composed_threshold`): ``verify_zncc`` where the texture still
+        matches the reference image, lower where it has changed since (an evolving speckle, whose correct points
+        all lose correlation with the reference image); there a point between that and ``verify_zncc`` also
+        fails when its composed warp is off the ZNCC's peak by the probes 1 px away
+        (:func:`kernels.verify.composed_failures`). Default None: 4
+        (:data:`kernels.verify.VERIFY_SPREAD`, by measurement, docs/dic2d.md); ``"off"``: ``verify_zncc`` alone
+        (the rule before the option, that a file written before it resumes with).
     options
         :class:`dic.Tracker` keywords (``step``, ``subset``, ``order``, ``roi``, ``points``,
         ``search``, ``search_radius``, ``max_iter``, ``tol``, ``zncc_min``, ``flat_std``, ``check_warps``,
@@ -306,6 +316,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         from kernels.checks import in_range
 
         verify_zncc = in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
+    if verify_spread is not None:
+        verify_spread = "off" if check_verify_spread(verify_spread) is None else check_verify_spread(verify_spread)
     if client is not None:
         if guess != "none":
             raise ValueError("guess='previous' chains each frame to the one before it and cannot be distributed: "
@@ -346,7 +358,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
     if record is not None:
         record = replace(record, strain_window=strain_window, reference=policy.text, auto_valid=policy.auto_valid,
                          auto_zncc=policy.auto_zncc, guess=guess, verify_composed=bool(verify_composed),
-                         verify_zncc=verify_zncc, strain_type=strain_type)
+                         verify_zncc=verify_zncc, strain_type=strain_type, verify_spread=verify_spread)
         settings = record.to_settings()
         if make_tracker is None:
             options = {**record.tracker_kwargs(), "device": options.get("device")}
@@ -375,10 +387,13 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
         if verify_composed:
             settings["verify_composed"] = True
             settings["verify_zncc"] = verify_zncc if verify_zncc is not None else VERIFY_ZNCC
-    # the ZNCC below which a composed point fails (None: no check; dic.sequence.verification)
-    verify_threshold = None
+            settings["verify_spread"] = verify_spread if verify_spread is not None else VERIFY_SPREAD
+    # the ZNCC below which a composed point fails (None: no check; dic.sequence.verification), and the robust
+    # standard deviations below each frame's median ZNCC that can lower it (None: the threshold alone)
+    verify_threshold = verify_rule = None
     if verify_composed:
         verify_threshold = record.verify_zncc if record is not None else settings["verify_zncc"]
+        verify_rule = check_verify_spread(record.verify_spread if record is not None else settings["verify_spread"])
 
     budget = default_max_memory() if max_memory is None else positive_int(max_memory, "max_memory", detail=" (bytes)")
     # the POIs, known without preparing them (a custom tracker's only when options give points and order)
@@ -503,7 +518,7 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                              builder=_builder(make_tracker, budget, order, search_name), ref_img=ref_img,
                              everywhere=everywhere, points0=points0, order=order, settings=settings, out=out,
                              verify=_verify_here(ref_img, points0, verify_threshold, options.get("device"),
-                                                 reference_masks=reference_masks),
+                                                 reference_masks=reference_masks, spread=verify_rule),
                              carry=carry)
             finally:
                 reader.close()
@@ -516,7 +531,8 @@ def track_sequence(reference_image, frames, out, *, reference: str = "fixed", mo
                         reference_tracker=reference_tracker, tracker_for=tracker_for,
                         release_reference=lambda: tracker0_holder.__setitem__(0, None), writer=writer,
                         stored_state=stored_state, finish=finish, out=out, verify_threshold=verify_threshold,
-                        device=options.get("device"), carry=carry, reference_masks=reference_masks)
+                        device=options.get("device"), carry=carry, reference_masks=reference_masks,
+                        verify_spread=verify_rule)
         try:
             run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out, lock=wb.lock)
         finally:
@@ -537,11 +553,12 @@ class _Track2D:
 
     def __init__(self, *, ref_img, everywhere, points0, order, guess, reference_tracker, tracker_for, release_reference,
                  writer, stored_state, finish, out, verify_threshold=None, device=None, carry=None,
-                 reference_masks=None):
+                 reference_masks=None, verify_spread=None):
         self.ref_img, self.everywhere, self.points0, self.order, self.guess = ref_img, everywhere, points0, order, guess
         self._reference_tracker, self._tracker_for, self._release = reference_tracker, tracker_for, release_reference
         self.writer, self.stored_state, self._finish, self.out = writer, stored_state, finish, out
         self.verify_threshold, self.device = verify_threshold, device
+        self.verify_spread = verify_spread  # robust standard deviations that can lower the threshold (None: fixed)
         self._verifier = None  # the check of composed frames (dic.sequence.verification), built at its first frame
         self._carry = carry  # a moved reference's -> its tracker's keywords of the carried region and cracks (or None)
         self._reference_masks = reference_masks  # () -> the reference subsets' pixel masks, for the check (or None)
@@ -583,7 +600,7 @@ class _Track2D:
             if self._verifier is None:
                 masks = self._reference_masks() if self._reference_masks is not None else None
                 self._verifier = ComposedVerifier(self.ref_img, self.points0, int(result.subset), self.verify_threshold,
-                                                  device=self.device, pixel_mask=masks)
+                                                  device=self.device, pixel_mask=masks, spread=self.verify_spread)
             self._verifier.apply(result, image)  # before it can anchor a reference or guess the next frame
         self.prev = result
         return result
@@ -793,12 +810,12 @@ def _run_on_dask(client, reader, policy, writer, wb, summary, bar, finish, store
                 collect=collect, check_done=check_done, failed=failed, before=before)
 
 
-def _verify_here(ref_img, points0, threshold, device, reference_masks=None):
+def _verify_here(ref_img, points0, threshold, device, reference_masks=None, spread=None):
     """The check of composed frames of a Dask run, run in this process (the one that writes): a callable
     ``(field, image) -> points that failed`` that changes ``field`` in place as :meth:`_Track2D.accept` does (a
     :class:`dic.sequence.verification.ComposedVerifier` built at the first composed frame, given the reference
     subsets' pixel masks ``reference_masks()`` as one process gives them: masked points checked on their kept
-    pixels); None without a check (``threshold`` None)."""
+    pixels, and the threshold lowered per frame by ``spread`` as there); None without a check (``threshold`` None)."""
     if threshold is None:
         return None
     holder = []
@@ -809,7 +826,7 @@ def _verify_here(ref_img, points0, threshold, device, reference_masks=None):
         if not holder:
             masks = reference_masks() if reference_masks is not None else None
             holder.append(ComposedVerifier(ref_img, points0, int(field.subset), threshold, device=device,
-                                           pixel_mask=masks))
+                                           pixel_mask=masks, spread=spread))
         holder[0].apply(field, image)
         return composed_mismatches(field)
 

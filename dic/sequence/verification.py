@@ -16,14 +16,28 @@ The threshold defaults to :data:`VERIFY_ZNCC` (0.95), chosen by measurement (doc
 "Re-verification of composed results"; speckle of radius 2 px, blur 0.7, subset 21, 8-bit): a correct composed
 warp scored at least 0.9993 at 1 grey level of noise and 0.9942 at 4, a warp 1 px off at most 0.921, 0.5 px off
 at most 0.980. The run's ``zncc_min`` (0.8) would pass a whole-pixel wrong match (median 0.86).
+
+On a texture that changes during the test (an evolving speckle: paint that flakes, glints) every correct point
+loses correlation with the reference image as the sequence goes on, and a fixed 0.95 refuses them all within a
+few frames. The threshold of a frame is therefore ``min(verify_zncc, median - verify_spread * 1.4826 * MAD)``
+of its checked points' ZNCCs (:func:`kernels.verify.composed_threshold`; ``verify_spread`` default
+:data:`VERIFY_SPREAD`): ``verify_zncc`` wherever the texture still matches the reference (correct points close
+to 1 with a small spread: the results of the fixed threshold), and the frame's typical value less
+``verify_spread`` robust standard deviations where it does not; there a point between the two also fails when
+the ZNCC at its composed warp moved by 1 px along x or y beats its own (the peak test of
+:func:`kernels.verify.composed_failures`: a wrong match is off the peak of what is left of the reference
+texture, however decorrelated). Measured on the evolving texture of
+docs/dic2d.md (512², 2 % of the speckles replaced per frame, 60 frames), see "Re-verification of composed
+results" there for what it keeps and what it still catches.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from kernels.conventions import Status
+from kernels.verify import VERIFY_SPREAD, check_verify_spread
 
-__all__ = ["ComposedVerifier", "composed_mismatches", "VERIFY_ZNCC"]
+__all__ = ["ComposedVerifier", "composed_mismatches", "VERIFY_ZNCC", "VERIFY_SPREAD", "check_verify_spread"]
 
 #: the default ZNCC below which a composed point fails (``verify_zncc``), by measurement (module docstring)
 VERIFY_ZNCC = 0.95
@@ -38,15 +52,20 @@ class ComposedVerifier:
     """The check of composed 2-D results: the reference image and the POIs held on the device once.
 
     ``reference`` (H, W) grey levels: the original reference image; ``points`` (N, 2) px: the POIs;
-    ``subset`` px (odd): the run's; ``threshold``: the ZNCC in [-1, 1] below which a point fails;
-    ``device``: the run's Warp device (None: the default).
+    ``subset`` px (odd): the run's; ``threshold``: the ZNCC in [-1, 1] below which a point fails (``verify_zncc``);
+    ``spread``: robust standard deviations below each frame's median ZNCC (``verify_spread``;
+    :func:`kernels.verify.composed_threshold`), None: ``threshold`` alone; ``device``: the run's Warp device
+    (None: the default). ``last_threshold``: the threshold of the last frame checked (None before any).
     """
 
-    def __init__(self, reference, points, subset: int, threshold: float, device=None, pixel_mask=None):
+    def __init__(self, reference, points, subset: int, threshold: float, device=None, pixel_mask=None,
+                 spread: float | None = None):
         from kernels.checks import in_range
         from kernels.verify import ComposedCheck
 
         self.threshold = in_range(threshold, -1.0, 1.0, "verify_zncc")
+        self.spread = check_verify_spread(spread)
+        self.last_threshold: float | None = None
         self._check = ComposedCheck(reference, points, subset, device=device)
         # ``pixel_mask`` (N, subset²) bool, optional: the pixels each reference subset keeps (holes, edges, cracks:
         # dic.correlation.subset_masks); the masked points are checked on their kept pixels (_masked_zncc)
@@ -66,19 +85,30 @@ class ComposedVerifier:
         correlated against the reference image (``reference_index`` 0) is left alone: (0, 0)."""
         if int(field.reference_index) == 0:
             return 0, 0
-        from kernels.verify import CHECKED
+        from kernels.verify import CHECKED, composed_failures, shifted_params
 
         valid = np.asarray(field.valid, bool)
         params = field.params
         if params is None:  # translation only (a custom tracker's result)
             params = np.zeros((len(field.u), 6))
             params[:, 0], params[:, 3] = field.u, field.v
-        ask = valid if self._masked is None else valid & ~self._masked.flags
-        zncc, outcome = self._check.zncc(_on_device(image, self._check.device), params, ask)
-        if self._masked is not None and np.any(valid & self._masked.flags):
-            self._masked.fill(image, params, valid, zncc, outcome)
+        frame = self._check.coefficients(_on_device(image, self._check.device))  # prefiltered once per frame
+
+        def zncc_at(p, which):
+            ask = which if self._masked is None else which & ~self._masked.flags
+            z, outcome = self._check.zncc(frame, p, ask)
+            if self._masked is not None and np.any(which & self._masked.flags):
+                self._masked.fill(image, p, which, z, outcome)
+            return z, outcome
+
+        zncc, outcome = zncc_at(params, valid)
         checked = outcome == CHECKED
-        failed = checked & valid & ~(zncc >= self.threshold)
+
+        def probe(du, dv, which):  # the peak test (kernels.verify.composed_failures)
+            z, oc = zncc_at(shifted_params(params, du, dv), which)
+            return np.where(oc == CHECKED, z, np.nan)
+
+        failed, self.last_threshold = composed_failures(zncc, checked & valid, self.threshold, self.spread, probe)
         if np.any(failed):
             field.valid = valid & ~failed
             status = np.asarray(field.status, np.int32).copy()

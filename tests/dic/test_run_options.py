@@ -69,7 +69,7 @@ def test_every_default_is_written_and_an_explicit_default_is_the_default():
                         "check_outliers": True, "strain_window": 5, "reference": "fixed", "auto_valid": None,
                         "auto_zncc": None, "guess": "previous", "scale_mm_per_px": None, "subset_mask": "region",
                         "min_kept_fraction": 0.5, "cracks": None, "verify_composed": None, "verify_zncc": None,
-                        "strain_type": "green-lagrange"}
+                        "strain_type": "green-lagrange", "verify_spread": None}
     from dic.postprocess import SCALE_KEY
 
     assert SCALE_KEY in settings  # where post-processing reads the scale
