@@ -711,7 +711,10 @@ class StereoCorrelation:
             m = self.match
             self._composed_check = StereoComposedCheck(self._left_ref, self._right_ref, self.points,
                                                        m.points_right[self._matched], self._matched, self.subset,
-                                                       self.verify_zncc, device=self.device, spread=self.verify_spread)
+                                                       self.verify_zncc, device=self.device, spread=self.verify_spread,
+                                                       # the reference pair's subsets checked on their kept pixels
+                                                       pixel_mask_left=self.pixel_mask,
+                                                       pixel_mask_right=self.right_pixel_mask)
         return self._composed_check.check(tl.params, tl.accepted, L, None if tr is None else tr.params,
                                           None if tr is None else tr.accepted, R)
 

@@ -17,8 +17,8 @@ state: ``min(verify_zncc, median - spread * 1.4826 * MAD)`` of that camera's che
 :func:`kernels.verify.composed_threshold`; ``spread`` None: ``verify_zncc`` alone) (the stereo status
 :attr:`dic.field3d.StereoStatus.COMPOSED_MISMATCH`, set by :class:`dic.StereoCorrelation`); a subset that
 leaves the image (in the reference or the state) or has no texture cannot be checked and keeps its result.
-The subsets are whole squares, as in 2-D: a subset masked to a region (``subset_mask``) is checked on all
-its pixels.
+A subset masked to a region or cut by a crack (the tracks' pixel masks) is checked on its kept pixels, as in 2-D
+(:class:`dic.correlation.masked_check.MaskedComposedCheck`).
 """
 from __future__ import annotations
 
@@ -35,14 +35,19 @@ class StereoComposedCheck:
     ``matched`` of the POIs); ``matched`` (M,) int: their POI indices; ``subset`` px (odd): the run's;
     ``threshold``: the ZNCC in [-1, 1] below which a track fails (``verify_zncc``); ``spread``: robust standard
     deviations below each camera's median ZNCC of a state that can lower it (``verify_spread``; None: the threshold
-    alone); ``device``: the run's Warp device. ``last_thresholds``: (left, right) thresholds of the last state
-    checked (None before any; right None without a right track).
+    alone); ``device``: the run's Warp device. ``pixel_mask_left`` (N, subset²) and ``pixel_mask_right``
+    (M, subset²) bool, optional: the pixels each camera's reference subsets keep (the tracks' masks: a region,
+    a free edge, a crack); those points are checked on their kept pixels
+    (:class:`dic.correlation.masked_check.MaskedComposedCheck`), as in 2-D. ``last_thresholds``: (left, right)
+    thresholds of the last state checked (None before any; right None without a right track).
     """
 
     def __init__(self, left_ref, right_ref, points_left, points_right, matched, subset: int, threshold: float,
-                 device=None, spread: float | None = None):
+                 device=None, spread: float | None = None, pixel_mask_left=None, pixel_mask_right=None):
         from kernels.checks import in_range
         from kernels.verify import ComposedCheck, check_verify_spread
+
+        from .masked_check import MaskedComposedCheck, masked_rows
 
         self.threshold = in_range(threshold, -1.0, 1.0, "verify_zncc")
         self.spread = check_verify_spread(spread)
@@ -51,6 +56,13 @@ class StereoComposedCheck:
         self.n_points = len(points_left)
         self._left = ComposedCheck(left_ref, points_left, subset, device=device)
         self._right = ComposedCheck(right_ref, points_right, subset, device=device) if len(self.matched) else None
+
+        def masked(ref, points, mask):
+            found = masked_rows(mask, len(points), subset)
+            return None if found is None else MaskedComposedCheck(ref, points, int(subset), *found)
+
+        self._masked_left = masked(left_ref, points_left, pixel_mask_left)
+        self._masked_right = masked(right_ref, points_right, pixel_mask_right) if self._right is not None else None
 
     def check(self, params_left, accepted_left, image_left, params_right, accepted_right, image_right):
         """ZNCC of each camera's composed tracks against its reference image.
@@ -65,29 +77,40 @@ class StereoComposedCheck:
         """
         n = self.n_points
         failed = np.zeros(n, bool)
-        zncc_left, fail_l, limit_l = self._camera(self._left, image_left, params_left, accepted_left)
+        zncc_left, fail_l, limit_l = self._camera(self._left, self._masked_left, image_left, params_left,
+                                                  accepted_left)
         failed |= fail_l
         zncc_right = np.full(n, np.nan, np.float32)
         limit_r = None
         if self._right is not None and params_right is not None:
-            z, fail_r, limit_r = self._camera(self._right, image_right, params_right, accepted_right)
+            z, fail_r, limit_r = self._camera(self._right, self._masked_right, image_right, params_right,
+                                              accepted_right)
             zncc_right[self.matched] = z
             failed[self.matched] |= fail_r
         self.last_thresholds = (limit_l, limit_r)
         return failed, zncc_left, zncc_right
 
-    def _camera(self, check, image, params, accepted):
+    def _camera(self, check, masked, image, params, accepted):
         """One camera's check: (ZNCC (float32, NaN where not checked), failed (bool), the threshold), per point of
-        ``check`` (:func:`kernels.verify.composed_failures`, the 2-D rule with its peak test)."""
+        ``check`` (:func:`kernels.verify.composed_failures`, the 2-D rule with its peak test); the points of
+        ``masked`` (a MaskedComposedCheck or None) on their kept pixels."""
         from kernels.verify import CHECKED, composed_failures, shifted_params
 
         accepted = np.asarray(accepted, bool)
         frame = check.coefficients(image)  # prefiltered once for the check and its probes
-        z, outcome = check.zncc(frame, params, accepted)
+
+        def zncc_at(p, which):
+            ask = which if masked is None else which & ~masked.flags
+            z, oc = check.zncc(frame, p, ask)
+            if masked is not None and np.any(which & masked.flags):
+                masked.fill(image, p, which, z, oc)
+            return z, oc
+
+        z, outcome = zncc_at(params, accepted)
         zncc = np.where(outcome == CHECKED, z, np.nan).astype(np.float32)
 
         def probe(du, dv, which):
-            zp, oc = check.zncc(frame, shifted_params(params, du, dv), which)
+            zp, oc = zncc_at(shifted_params(params, du, dv), which)
             return np.where(oc == CHECKED, zp, np.nan)
 
         failed, limit = composed_failures(zncc, np.isfinite(zncc), self.threshold, self.spread, probe)

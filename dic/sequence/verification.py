@@ -37,6 +37,8 @@ import numpy as np
 from kernels.conventions import Status
 from kernels.verify import VERIFY_SPREAD, check_verify_spread
 
+from ..correlation.masked_check import MaskedComposedCheck, masked_rows
+
 __all__ = ["ComposedVerifier", "composed_mismatches", "VERIFY_ZNCC", "VERIFY_SPREAD", "check_verify_spread"]
 
 #: the default ZNCC below which a composed point fails (``verify_zncc``), by measurement (module docstring)
@@ -69,15 +71,8 @@ class ComposedVerifier:
         self._check = ComposedCheck(reference, points, subset, device=device)
         # ``pixel_mask`` (N, subset²) bool, optional: the pixels each reference subset keeps (holes, edges, cracks:
         # dic.correlation.subset_masks); the masked points are checked on their kept pixels (_masked_zncc)
-        self._masked = None
-        if pixel_mask is not None:
-            m = np.asarray(pixel_mask, bool)
-            if m.shape != (self._check.n_points, int(subset) ** 2):
-                raise ValueError(f"pixel_mask must be (N, subset**2) = {(self._check.n_points, int(subset) ** 2)}, "
-                                 f"got {m.shape}")
-            rows = np.flatnonzero(~m.all(axis=1))
-            if rows.size:
-                self._masked = _MaskedCheck(reference, points, int(subset), rows, m[rows])
+        found = masked_rows(pixel_mask, self._check.n_points, subset)
+        self._masked = None if found is None else MaskedComposedCheck(reference, points, int(subset), *found)
 
     def apply(self, field, image) -> tuple[int, int]:
         """Check the valid points of ``field`` (a frame's composed :class:`dic.field2d.Field2D`, changed in
@@ -135,71 +130,3 @@ def _on_device(image, device):
     import warp as wp
 
     return wp.from_torch(as_float32_tensor(image, str(device), "frame"))
-
-
-class _MaskedCheck:
-    """The check of the points whose reference subsets keep part of their pixels (a hole, an edge, a crack), on
-    the host: the ZNCC between the kept pixels of the reference subset (whole pixels around the POI rounded half
-    away from zero) and the frame at the composed warp of those pixels (the warp of :mod:`kernels.verify`; the
-    frame's cubic B-spline through ``scipy.ndimage.map_coordinates``). A whole-subset ZNCC there would compare
-    what lies beyond the specimen (a background that does not move with it, the other face of a crack) and fail
-    correct points. ``rows`` (M,): those points; ``kept`` (M, subset²) bool: their masks."""
-
-    def __init__(self, reference, points, subset: int, rows: np.ndarray, kept: np.ndarray):
-        from kernels.conventions import round_half_away
-
-        from ..correlation.subset_masks import subset_offsets
-
-        ref = np.asarray(reference, np.float64)
-        self.shape = ref.shape
-        self.rows, self.kept = rows, kept
-        self.flags = np.zeros(np.asarray(points).shape[0], bool)
-        self.flags[rows] = True
-        di, dj = subset_offsets(subset)
-        self.dx, self.dy = di.astype(np.float64), dj.astype(np.float64)
-        self.centres = round_half_away(np.asarray(points, np.float64)[rows])
-        xs = self.centres[:, :1].astype(np.int64) + di[None]
-        ys = self.centres[:, 1:].astype(np.int64) + dj[None]
-        h, w = ref.shape
-        self.inside = np.all((xs >= 0) & (xs < w) & (ys >= 0) & (ys < h), axis=1)
-        self.f = np.where(self.inside[:, None], ref[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)], np.nan)
-
-    def fill(self, image, params, valid, zncc, outcome) -> None:
-        """Write the masked points' ZNCC and outcome into ``zncc``, ``outcome`` (N,), for the ``valid`` ones."""
-        from scipy.ndimage import map_coordinates
-
-        from kernels.verify import CHECKED, FLAT, OUTSIDE
-
-        p = np.asarray(params, np.float64)
-        sel = valid[self.rows] & np.all(np.isfinite(p[self.rows]), axis=1)
-        if not np.any(sel):
-            return
-        rows, kept, c = self.rows[sel], self.kept[sel], self.centres[sel]
-        q = p[rows]
-        h = q.shape[1] // 2
-        dx, dy = self.dx[None], self.dy[None]
-        xw = c[:, :1] + dx + q[:, :1] + q[:, 1:2] * dx + q[:, 2:3] * dy
-        yw = c[:, 1:] + dy + q[:, h:h + 1] + q[:, h + 1:h + 2] * dx + q[:, h + 2:h + 3] * dy
-        if h == 6:
-            xw = xw + 0.5 * q[:, 3:4] * dx ** 2 + q[:, 4:5] * dx * dy + 0.5 * q[:, 5:6] * dy ** 2
-            yw = yw + 0.5 * q[:, 9:10] * dx ** 2 + q[:, 10:11] * dx * dy + 0.5 * q[:, 11:12] * dy ** 2
-        H, W = self.shape
-        frame = image.detach().cpu().numpy() if hasattr(image, "detach") else image
-        frame = np.asarray(frame, np.float64)
-        out_x = np.where(kept, (xw < 0) | (xw > W - 1), False).any(axis=1)
-        out_y = np.where(kept, (yw < 0) | (yw > H - 1), False).any(axis=1)
-        outside = ~self.inside[sel] | out_x | out_y
-        g = map_coordinates(frame, [yw.ravel(), xw.ravel()], order=3, mode="mirror").reshape(xw.shape)
-        f = self.f[sel]
-        n = kept.sum(axis=1)
-        with np.errstate(all="ignore"):
-            fm = np.where(kept, f, 0.0).sum(axis=1) / n
-            gm = np.where(kept, g, 0.0).sum(axis=1) / n
-            fc = np.where(kept, f - fm[:, None], 0.0)
-            gc = np.where(kept, g - gm[:, None], 0.0)
-            sff, sgg, sfg = (fc * fc).sum(axis=1), (gc * gc).sum(axis=1), (fc * gc).sum(axis=1)
-            value = sfg / np.sqrt(sff * sgg)
-        flat = ~outside & ((sff <= 0) | (sgg <= 0) | (n == 0))
-        done = ~outside & ~flat
-        zncc[rows] = np.where(done, value, np.nan).astype(zncc.dtype)
-        outcome[rows] = np.where(outside, OUTSIDE, np.where(flat, FLAT, CHECKED)).astype(outcome.dtype)
