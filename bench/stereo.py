@@ -299,8 +299,9 @@ def bench_rate(device, step, subset, states, cache, samples):
     from dic.correlation.points import grid_points
 
     points = grid_points(pairs[0][0].shape, step, subset, None)[0]
+    # plain IC-GN, as the stereo tracks (2-D defaults to adaptive robust IC-GN and its neighbour check since issue 26)
     tracker = Tracker(pairs[0][0], points=points, subset=subset, order=2, max_iter=50, tol=1e-3, search=None,
-                      device=device)
+                      device=device, robust=False)
     prev = tracker.track(pairs[1][0])  # warm (buffers allocated)
 
     def frame_2d(k, guess):
