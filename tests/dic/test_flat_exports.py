@@ -33,7 +33,7 @@ def eager_mat(res, path):
     from dic.export import _grid_index
 
     ds = res.to_xarray()
-    out, units = {"frame": ds["frame"].values.astype(np.float64)}, {}
+    out, units, long_names = {"frame": ds["frame"].values.astype(np.float64)}, {}, {}
     for name in list(ds.coords) + list(ds.data_vars):
         if name in ("frame", "point"):
             continue
@@ -45,11 +45,14 @@ def eager_mat(res, path):
         out[name] = arr
         if ds[name].attrs.get("units"):
             units[name] = ds[name].attrs["units"]
+        if ds[name].attrs.get("long_name"):
+            long_names[name] = ds[name].attrs["long_name"]
     grid = _grid_index(ds["x"].values, ds["y"].values)
     if grid is not None:
         out["grid_row"], out["grid_col"] = grid[0].astype(np.float64), grid[1].astype(np.float64)
         out["grid_shape"] = np.asarray(grid[2], dtype=np.float64)
     out["units"] = units
+    out["long_names"] = long_names
     out["info"] = {str(k): (v if isinstance(v, str) else np.asarray(v)) for k, v in ds.attrs.items()}
     scipy.io.savemat(path, out, do_compression=True, oned_as="row")
 
