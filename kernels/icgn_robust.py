@@ -743,16 +743,7 @@ def icgn_robust(subsets: ReferenceSubsets, current: CurrentImage, guess, active=
     -------
     RobustResult on the device.
     """
-    if not isinstance(subsets, ReferenceSubsets):
-        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
-    if not isinstance(current, CurrentImage):
-        raise ValueError(f"current must be a CurrentImage from prepare_current(), got {type(current).__name__}")
-    device = subsets.device
-    if current.device != device:
-        raise ValueError(f"current is on {current.device} but the subsets are on {device}")
-    h, w = subsets.reference.shape
-    if current.shape != (h, w):
-        raise ValueError(f"current image has shape {current.shape} but the reference has shape {(h, w)}")
+    device = _check_subsets_current(subsets, current)
     max_iter = check_max_iter(max_iter)
     tol = positive_float(tol, "tol", detail=" of pixels")
     min_inliers = in_range(min_inliers, 0.0, 1.0, "min_inliers")
@@ -903,16 +894,7 @@ def residual_outliers(subsets: ReferenceSubsets, current: CurrentImage, params, 
     -------
     ResidualOutliers (host arrays).
     """
-    if not isinstance(subsets, ReferenceSubsets):
-        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
-    if not isinstance(current, CurrentImage):
-        raise ValueError(f"current must be a CurrentImage from prepare_current(), got {type(current).__name__}")
-    device = subsets.device
-    if current.device != device:
-        raise ValueError(f"current is on {current.device} but the subsets are on {device}")
-    if current.shape != subsets.reference.shape:
-        raise ValueError(f"current image has shape {current.shape} but the reference has shape "
-                         f"{subsets.reference.shape}")
+    device = _check_subsets_current(subsets, current)
     kurtosis_max = float(np.inf) if kurtosis_max is None else positive_float(kurtosis_max, "kurtosis_max")
     if not isinstance(with_scale, (bool, np.bool_)):
         raise ValueError(f"with_scale must be True or False, got {with_scale!r}")
@@ -957,3 +939,19 @@ def _as_active(active, n: int, device: str) -> wp.array:
 
 __all__ = ["TUKEY_C", "CORE_A", "SCALE_FLOOR", "KURTOSIS_MAX", "RMS_GATE", "BOX_MAX", "NOISE_GATE", "reference_noise", "RobustResult", "ResidualOutliers", "icgn_robust",
            "residual_outliers", "robust_result"]
+
+
+def _check_subsets_current(subsets, current):
+    """The device of ``subsets`` (:func:`kernels.icgn.prepare_subsets`) once ``current``
+    (:func:`kernels.icgn.prepare_current`) is checked to be on it with the reference's shape."""
+    if not isinstance(subsets, ReferenceSubsets):
+        raise ValueError(f"subsets must be a ReferenceSubsets from prepare_subsets(), got {type(subsets).__name__}")
+    if not isinstance(current, CurrentImage):
+        raise ValueError(f"current must be a CurrentImage from prepare_current(), got {type(current).__name__}")
+    device = subsets.device
+    if current.device != device:
+        raise ValueError(f"current is on {current.device} but the subsets are on {device}")
+    if current.shape != subsets.reference.shape:
+        raise ValueError(f"current image has shape {current.shape} but the reference has shape "
+                         f"{subsets.reference.shape}")
+    return device
