@@ -832,10 +832,7 @@ class StereoCorrelation:
         region_px = region_pixel_mask(self._mask_roi, self.shape) if self._mask_roi is not None else None
         if region_px is None and not self.cracks:
             return None, None
-        carried = moved_left.carry_cracks(self.cracks) if self.cracks else ()
-        pixel_region = None if region_px is None else moved_left.carry_region(region_px, reach=self.subset // 2 + 1,
-                                                                               cracks=carried)
-        blocked = moved_left.crack_blocked_pixels(carried) if carried else None
+        pixel_region, blocked = moved_left.carry_cut(region_px, self.cracks, self.subset)
         left = tracking_pixel_masks(moved_left.points, self.subset, self.shape, pixel_region, "region",
                                     blocked_pixels=blocked)
         right_region = region_px if self._right_track_mask else None

@@ -343,6 +343,17 @@ class MovedReference:
         half a pixel of a crack keeps its side. Points not among :attr:`points` are seen from where they are."""
         return _BlockedFromMovedPoints(self.points, self.points + self.offset, cracks)
 
+    def carry_cut(self, region_mask, cracks, subset: int):
+        """What cuts this reference's subsets, carried from the reference image: ``(pixel_region, blocked_pixels)``,
+        the region's (H, W) pixel mask (:meth:`carry_region`, reaching ``subset // 2 + 1`` px beyond the points,
+        with the carried cracks) or None without ``region_mask``, and the :meth:`crack_blocked_pixels` callable of
+        the carried ``cracks`` (:meth:`carry_cracks`) or None without cracks. What a 2-D moved reference
+        (:func:`dic.sequence.track2d`) and a stereo one's left camera (:class:`dic.StereoCorrelation`) are masked by."""
+        carried = self.carry_cracks(cracks) if cracks else ()
+        pixel_region = None if region_mask is None else self.carry_region(region_mask, reach=int(subset) // 2 + 1,
+                                                                         cracks=carried)
+        return pixel_region, (self.crack_blocked_pixels(carried) if carried else None)
+
     def subset(self, rows: np.ndarray) -> "MovedReference":
         """The same reference at ``rows`` of its points only (a view for a camera that tracks a subset)."""
         out = object.__new__(MovedReference)

@@ -647,15 +647,15 @@ def _carry_for(options: dict, shape):
     cracks = as_cracks(options.get("cracks"))
     if region_px is None and not cracks:
         return None
-    reach = int(options.get("subset", 21)) // 2 + 1  # px: the pixels a moved subset can hold
+    subset = int(options.get("subset", 21))
 
     def carry(moved: MovedReference) -> dict:
-        carried_cracks = moved.carry_cracks(cracks) if cracks else ()
+        pixel_region, blocked = moved.carry_cut(region_px, cracks, subset)
         kw = {"cracks": None}
-        if region_px is not None:
-            kw["pixel_region"] = moved.carry_region(region_px, reach=reach, cracks=carried_cracks)
-        if carried_cracks:
-            kw["blocked_pixels"] = moved.crack_blocked_pixels(carried_cracks)
+        if pixel_region is not None:
+            kw["pixel_region"] = pixel_region
+        if blocked is not None:
+            kw["blocked_pixels"] = blocked
         return kw
 
     return carry
