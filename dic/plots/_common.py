@@ -82,7 +82,8 @@ def save_map_png(fig, path, *, dpi: float) -> Path:
     # label to build and draw, a 5-panel map has about 100 of them, Pillow's text is about 20x cheaper
     labels: list = []
     freeze_ticks(fig, raster_labels=labels)
-    raster = [t for ax in fig.axes for t in ax.texts if _rasterisable(t)]  # e.g. the colourbars' tick labels
+    family = _default_family()
+    raster = [t for ax in fig.axes for t in ax.texts if _rasterisable(t, family)]  # e.g. the colourbars' tick labels
     for t in raster:
         x, y = t.get_transform().transform(t.get_position())
         labels.append((x, y, t.get_text(), t.get_ha(), t.get_va(), t.get_fontsize(), t.get_color()))
@@ -114,12 +115,12 @@ def _plain(s: str) -> bool:
     return bool(s) and "\n" not in s and "$" not in s
 
 
-def _rasterisable(text) -> bool:
-    """Whether ``text`` is a plain, upright, one-line label in the default font that Pillow can draw as
-    Matplotlib would."""
+def _rasterisable(text, family) -> bool:
+    """Whether ``text`` is a plain, upright, one-line label in the font ``family`` (Matplotlib's default,
+    :func:`_default_family`, worked out once per figure) that Pillow can draw as Matplotlib would."""
     return (text.get_gid() in RASTER_TEXT_GIDS and text.get_visible() and _plain(text.get_text())
             and text.get_rotation() == 0 and text.get_ha() in _PIL_HORIZONTAL and text.get_va() in _PIL_VERTICAL
-            and text.get_fontproperties().get_family() == _default_family())
+            and text.get_fontproperties().get_family() == family)
 
 
 def _default_family():
