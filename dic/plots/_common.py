@@ -97,7 +97,10 @@ def save_map_png(fig, path, *, dpi: float) -> Path:
         for t in raster:
             t.set_visible(True)
     _draw_texts(image, labels, fontfile=_font_file(), dpi=dpi)
-    image.save(p, format="PNG", compress_level=1)
+    from kernels._atomic import atomic_output
+
+    with atomic_output(p) as tmp:  # whole or not at all, as save_figure
+        image.save(tmp, format="PNG", compress_level=1)
     return p
 
 
