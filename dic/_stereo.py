@@ -453,6 +453,8 @@ class StereoCorrelation:
         self.left = Correlator(left_ref, self.points, subset=self.subset, order=self.order, max_iter=self.max_iter,
                                tol=self.tol, device=self.device, pixel_mask=self.pixel_mask,
                                min_kept_fraction=None if self.pixel_mask is None else self.min_kept_fraction)
+        if self.check_warps:  # the warp check of the match needs it: computed meanwhile, on another thread
+            self.left.prefetch_textured_fraction()
         self.timings["reference_prepare_s"] = time.perf_counter() - t0
         self._ideal_left, _ = undistort_points(rig.left, self.points, device=self.device, margin_px=np.inf)
         self.match = self._match() if match is None else self._check_match(match)
@@ -465,6 +467,8 @@ class StereoCorrelation:
         self.right_pixel_mask = self._right_pixel_mask(roi if right_track_mask else None, ok) if ok.any() else None
         self.right = self._correlator(right_ref, self.match.points_right[ok], pixel_mask=self.right_pixel_mask) \
             if ok.any() else None
+        if self.right is not None and self.check_warps:  # for the first state's right track
+            self.right.prefetch_textured_fraction()
         t0 = time.perf_counter()
         self._tri_ref = self._triangulate(self.points, self.match.points_right)
         self.timings["triangulation_s"] = time.perf_counter() - t0

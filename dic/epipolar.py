@@ -136,15 +136,15 @@ def epipolar_search(rig, left: np.ndarray, right: np.ndarray, points: np.ndarray
         delta = np.array([cx - points[i, 0], cy - points[i, 1]]) @ A.T
         best_s, best_c = -1.0, None
         for c0 in range(0, cand.shape[0], 2048):
-            c = cand[c0:c0 + 2048]
-            pos = (c + delta)[:, None, :] + shaped[None, :, :]      # (M, S², 2)
-            mx = pos[..., 0].astype(np.float32)
-            my = pos[..., 1].astype(np.float32)
+            c = cand[c0:c0 + 2048] + delta
+            # the subset's sample positions at each candidate (M, S²), x and y apart (float64 sums, then float32)
+            mx = np.add.outer(c[:, 0], shaped[:, 0]).astype(np.float32)
+            my = np.add.outer(c[:, 1], shaped[:, 1]).astype(np.float32)
             patches = cv2.remap(right, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
             z = _zncc_rows(patches, template)
             j = int(np.argmax(z))
             if z[j] > best_s:
-                best_s, best_c = float(z[j]), c[j]
+                best_s, best_c = float(z[j]), cand[c0 + j]
         if best_c is not None and best_s >= min_score:
             out[i] = best_c
             score[i] = best_s

@@ -20,6 +20,7 @@ import warnings
 
 import numpy as np
 
+from kernels._launch import cpu_threads
 from kernels.conventions import Status
 
 __all__ = ["GOOD", "accepted_mask", "second_opinion_candidates", "flag_implausible", "stage_status", "status_counts",
@@ -52,7 +53,8 @@ def second_opinion_candidates(points: np.ndarray, zncc: np.ndarray, accepted: np
     if acc.size < 3:
         return empty
     kk = min(9, acc.size)
-    d, j = cKDTree(points[acc]).query(points[acc], k=kk, distance_upper_bound=2.0 * radius)
+    # the queries split over the CPU threads: each point's answer is the one-thread answer
+    d, j = cKDTree(points[acc]).query(points[acc], k=kk, distance_upper_bound=2.0 * radius, workers=cpu_threads())
     have = np.isfinite(d[:, 1:])
     nb = np.where(have, acc[np.minimum(j[:, 1:], acc.size - 1)], -1)
     z_nb = np.where(have, zncc[np.maximum(nb, 0)], np.nan)

@@ -50,6 +50,18 @@ __all__ = ["Correlator", "CorrelationResult", "correlate", "reliability_guided",
 #: the ``robust`` value that refines only the subsets whose plain residuals show outliers (the 2-D default)
 ADAPTIVE = "adaptive"
 
+_HOST_POOL = None
+
+
+def _host_pool():
+    """One background thread for host work started ahead of its use (:meth:`Correlator.prefetch_textured_fraction`)."""
+    global _HOST_POOL
+    if _HOST_POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _HOST_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="specula-host")
+    return _HOST_POOL
+
 
 #: adaptive robust IC-GN leaves alone the subsets of which less than this fraction carries texture
 #: (:meth:`Correlator.textured_fraction`; the ``partial_below`` of
@@ -117,6 +129,7 @@ class Correlator:
         self._frame_subsets = None  # run_frame's subsets when limited to some POIs (limit_frames)
         self._frame_active = None  # the POIs run_frame correlates when limited (limit_frames); None: all
         self._textured = None
+        self._textured_future = None  # prefetch_textured_fraction's computation, until it is read
         self._indexed = None  # buffers of run(): allocated once, on first use
         self._spacing = None
         self._rg = None  # device state of the reliability-guided waves (per neighbour radius)
@@ -139,15 +152,25 @@ class Correlator:
         """(N,) fraction of each reference subset's pixels that carry texture (computed once); with a
         ``pixel_mask``, the fraction of its kept pixels (the pixels it is correlated on)."""
         if self._textured is None:
-            if self.pixel_mask is None:
-                from .plausibility import textured_fraction
-
-                self._textured = textured_fraction(self.image, self.points, self.subset)
-            else:
-                from .subset_masks import kept_textured_fraction
-
-                self._textured = kept_textured_fraction(self.image, self.points, self.subset, self.pixel_mask)
+            future, self._textured_future = self._textured_future, None
+            self._textured = future.result() if future is not None else self._compute_textured()
         return self._textured
+
+    def prefetch_textured_fraction(self) -> None:
+        """Start :meth:`textured_fraction` on a background thread, to overlap it with the work that comes before it
+        is needed (the stereo match, the first state); :meth:`textured_fraction` then waits for it. The same values:
+        host work (NumPy, OpenCV) on this correlator's reference image, which nothing changes."""
+        if self._textured is None and self._textured_future is None:
+            self._textured_future = _host_pool().submit(self._compute_textured)
+
+    def _compute_textured(self) -> np.ndarray:
+        if self.pixel_mask is None:
+            from .plausibility import textured_fraction
+
+            return textured_fraction(self.image, self.points, self.subset)
+        from .subset_masks import kept_textured_fraction
+
+        return kept_textured_fraction(self.image, self.points, self.subset, self.pixel_mask)
 
     def run_all(self, current, guess: np.ndarray) -> dict:
         """IC-GN of every POI from ``guess`` (N, k); returns host arrays (copies) of the results.

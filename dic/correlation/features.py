@@ -10,6 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from kernels._device import as_float32_image
+from kernels._launch import cpu_threads
+
+from .order_stats import percentile
 
 __all__ = ["feature_matches", "affine_guess", "affine_fit"]
 
@@ -19,10 +22,13 @@ def _image(img, name: str) -> np.ndarray:
 
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:
-    lo, hi = np.percentile(image, [0.5, 99.5])
+    """The image's 0.5-99.5 % grey range stretched to 0-255 (float64 arithmetic, in place on one temporary)."""
+    lo, hi = percentile(image, [0.5, 99.5])  # np.percentile's values (float64), faster on large images
     if not hi > lo:
         hi = lo + 1.0
-    return np.clip((image - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+    scaled = np.subtract(image, lo, dtype=np.float64)
+    scaled *= 255.0 / (hi - lo)
+    return np.clip(scaled, 0, 255, out=scaled).astype(np.uint8)
 
 
 def _sift_matches(a: np.ndarray, b: np.ndarray, scale: int, max_features: int, ratio: float):
@@ -105,7 +111,12 @@ def affine_guess(points, src, dst, *, k: int = 16, radius: float = 120.0, min_ma
     h = radius / 6.0 if cell is None else float(cell)
     if h > 0 and n > 1:
         key = np.floor(P / h).astype(np.int64)
-        cells, inverse = np.unique(key, axis=0, return_inverse=True)
+        # the cells in np.unique(key, axis=0)'s order (rows sorted lexicographically) from one int64 key per POI:
+        # the same cells and inverse, without sorting rows as structured values
+        low = key.min(axis=0)
+        span = int(key[:, 1].max() - low[1]) + 1
+        linear, inverse = np.unique((key[:, 0] - low[0]) * span + (key[:, 1] - low[1]), return_inverse=True)
+        cells = np.column_stack([linear // span + low[0], linear % span + low[1]])
         inverse = inverse.ravel()
         if cells.shape[0] < n:
             centres = (cells + 0.5) * h
@@ -120,7 +131,7 @@ def affine_guess(points, src, dst, *, k: int = 16, radius: float = 120.0, min_ma
     tree = cKDTree(S)
     for c0 in range(0, n, 65536):          # chunks bound the memory of the (n, k) work arrays
         sl = slice(c0, min(n, c0 + 65536))
-        dist, idx = tree.query(P[sl], k=kk, distance_upper_bound=radius)
+        dist, idx = tree.query(P[sl], k=kk, distance_upper_bound=radius, workers=cpu_threads())
         dist = dist.reshape(-1, kk)
         idx = idx.reshape(-1, kk)
         have = np.isfinite(dist)

@@ -20,7 +20,10 @@ import numbers
 
 import numpy as np
 
+from kernels._launch import cpu_threads
 from kernels.conventions import round_half_away
+
+from .order_stats import percentile
 
 __all__ = ["textured_pixels", "textured_fraction", "implausible_warps"]
 
@@ -115,7 +118,8 @@ def textured_pixels(reference_image, *, window: int = 7, relative_threshold: flo
     np.multiply(mean, mean, out=mean)
     np.subtract(mean_sq, mean, out=mean_sq)
     local_std = np.sqrt(np.clip(mean_sq, 0.0, None, out=mean_sq), out=mean_sq)  # sqrt(clip(mean_sq - mean², 0))
-    threshold = max(relative_threshold * float(np.percentile(local_std, 95.0)), floor)
+    # np.percentile's value, found without partitioning the whole image (dic.correlation.order_stats)
+    threshold = max(relative_threshold * float(percentile(local_std, 95.0)), floor)
     return local_std > threshold
 
 
@@ -287,7 +291,7 @@ def implausible_warps(points, params, order: int, accepted, textured_fraction, *
     idx = np.flatnonzero(judged)
     src = np.flatnonzero(vouch)
     k = min(int(neighbours), src.size)
-    _, nn = cKDTree(pts[src]).query(pts[idx], k=k)
+    _, nn = cKDTree(pts[src]).query(pts[idx], k=k, workers=cpu_threads())
     nn = src[nn.reshape(idx.size, k)]  # (M, k) indices into the points
     first = _first_order(p, order)  # (N, 6): u, ux, uy, v, vx, vy
     value, gradient = _quadratic_prediction(pts[idx], pts[nn], first[nn].reshape(idx.size, k, 2, 3).swapaxes(2, 3))
