@@ -375,10 +375,16 @@ class StereoCorrelation:
                  noise_sigma: float | None = None, robust: bool | str = False, device=None, progress=None,
                  subset_mask: str = "region", min_kept_fraction: float = DEFAULT_MIN_KEPT_FRACTION,
                  strain_type: str = "green-lagrange", verify_zncc: float | None = None, right_track_mask: bool = True,
-                 cracks=None, verify_spread: float | str | None = VERIFY_SPREAD):
+                 cracks=None, verify_spread: float | str | None = VERIFY_SPREAD,
+                 motion_prediction: str = "velocity"):
         from ._strain import check_strain_type
 
         self.strain_type = check_strain_type(strain_type)  # what exx, eyy, exy are (dic.field3d)
+        if motion_prediction not in MOTION_PREDICTIONS:
+            raise ValueError(f"motion_prediction must be one of {MOTION_PREDICTIONS}, got {motion_prediction!r}")
+        #: the temporal tracks' start from the previous state: "velocity" (constant-velocity extrapolation from
+        #: the two states before, where the global shift agrees) or "none" (the previous state + the global shift)
+        self.motion_prediction = motion_prediction
         # the check of composed tracks against the reference pair (None: none; dic.correlation.stereo_verify)
         self.verify_zncc = None if verify_zncc is None else in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
         self.verify_spread = check_verify_spread(verify_spread)  # None: verify_zncc alone (kernels.verify)
@@ -474,6 +480,7 @@ class StereoCorrelation:
         self.timings["triangulation_s"] = time.perf_counter() - t0
         self._frame = self._choose_frame(frame)
         self._previous = None          # (params_left (N, k), params_right (N, k)) of the last state
+        self._before = None            # the same of the state before it (a chain of states: motion_prediction)
         self._previous_images = (None, None)
         self._jac_ref = None           # d(X_ref)/d(image points), for the uncertainty (dic.quality)
         self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
@@ -604,13 +611,18 @@ class StereoCorrelation:
     # -------------------------------------------------------------------------------------------
     def _track(self, corr: Correlator, image: np.ndarray, previous: np.ndarray | None, eligible: np.ndarray,
                reference_image: np.ndarray, previous_image: np.ndarray | None, frame: np.ndarray | None = None,
-               *, side: str):
+               *, side: str, predicted: np.ndarray | None = None):
         """One temporal track: the first pass over every POI on the device frame path
         (:meth:`Correlator.run_frame`: the correlator's :class:`kernels.frames.FrameTracker`, buffers allocated
         once per reference, ``frame`` (the image as given: 8/16-bit or float32; default ``image``) converted in
         the prefilter), then propagation, the ``"features"`` fallback and the second opinion
         (:func:`dic.correlation.engine.correlate`) for the POIs it did not accept, on the same prepared frame.
-        Bitwise the results of the host path (``prepare_current`` + indexed IC-GN) from the same guesses."""
+        Bitwise the results of the host path (``prepare_current`` + indexed IC-GN) from the same guesses.
+
+        ``predicted``: (N, k) the previous state's parameters extrapolated at constant velocity (``motion_prediction``;
+        NaN rows: none); the first pass starts from them instead of ``previous`` + the global shift when that shift
+        agrees with the predicted motion (:func:`_prediction_agrees`; a sudden jump does not), rows without a
+        prediction from ``previous`` + the shift."""
         k = n_params(self.order)
         n = corr.points.shape[0]
         frame = image if frame is None else frame
@@ -632,6 +644,11 @@ class StereoCorrelation:
                            options={"base": base, "spectrum": spectrum, "max_features": self.max_features,
                                     "radius": max(6.0 * self.subset, 3.0 * self.step)})
         guess, has = get_guess("shift")(ctx)
+        if predicted is not None and previous is not None:
+            shift = guess[tracked][:, [0, k // 2]] - prior[tracked][:, [0, k // 2]]
+            if _prediction_agrees(predicted[tracked][:, [0, k // 2]] - prior[tracked][:, [0, k // 2]], shift):
+                rows = np.all(np.isfinite(predicted), axis=1)
+                guess[rows] = predicted[rows]
         src = SOURCE_NONE if previous is None else SOURCE_PREVIOUS
         if ctx.cache["shift_applied"] and previous is None:
             src = SOURCE_GLOBAL
@@ -664,6 +681,10 @@ class StereoCorrelation:
                              f"{self.shape[1]}x{self.shape[0]} px")
         prev = self._previous if use_previous else None
         prev_images = self._previous_images if prev is not None else (None, None)
+        # constant velocity: previous + (previous - the one before), where both are known (Lagrangian parameters)
+        before = self._before if prev is not None and self.motion_prediction == "velocity" else None
+        pred = None if before is None else tuple(_extrapolated(p, b) for p, b in zip(prev, before))
+        pred_l = pred_r = None
         matched = self._matched
         mv = self._moved
         if mv is None:  # the reference pair
@@ -671,6 +692,8 @@ class StereoCorrelation:
             eligible_l, eligible_r = self.match.valid, np.ones(matched.size, dtype=bool)
             guess_l = None if prev is None else prev[0]
             guess_r = None if prev is None else prev[1][matched]
+            if pred is not None:
+                pred_l, pred_r = pred[0], pred[1][matched]
         else:  # a later state's pair (move_reference): the points it can track, from their positions there
             corr_l, corr_r, ref_l, ref_r = mv.left, mv.right, mv.left_image, mv.right_image
             eligible_l, eligible_r = self.match.valid & mv.usable, mv.usable[matched]
@@ -683,13 +706,20 @@ class StereoCorrelation:
                 fresh_l, fresh_r = mv.unmeasured(prev[0], "left"), mv.unmeasured(prev[1][matched], "right")
                 guess_l[fresh_l] = np.nan
                 guess_r[fresh_r] = np.nan
+                if pred is not None:
+                    pred_l = mv.relative(pred[0], "left", self.order)
+                    pred_r = mv.relative(pred[1][matched], "right", self.order)
+                    pred_l[fresh_l] = np.nan
+                    pred_r[fresh_r] = np.nan
         self.timings = {}
         t0 = time.perf_counter()
-        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0], frame_l, side="left")
+        tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0], frame_l, side="left",
+                         predicted=pred_l)
         self.timings["track_left_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if corr_r is not None:
-            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1], frame_r, side="right")
+            tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1], frame_r, side="right",
+                             predicted=pred_r)
         else:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0
@@ -702,6 +732,7 @@ class StereoCorrelation:
             f.reference_interpolated = f.valid & ~mv.valid
         if warn and self._tracks_judged():
             _warn_if_mostly_invalid(f.status[self.in_roi], f"stereo tracking of state {index}")
+        self._before = prev  # None when this state did not start from a previous one: no velocity for the next
         self._previous = (f.details["params_left"], f.details["params_right"])
         self._previous_images = (L, R)
         return f
@@ -731,21 +762,32 @@ class StereoCorrelation:
         if self._tracks_judged():
             _warn_if_mostly_invalid(field.status[self.in_roi], f"stereo tracking of state {field.index}")
 
-    def set_previous(self, params_left, params_right, images=None) -> None:
+    def set_previous(self, params_left, params_right, images=None, before=None) -> None:
         """Set the initial guess of the next :meth:`measure`: parameters (N, 6|12) of the left and right tracks.
 
         E.g. ``field.details["params_left"]``, ``field.details["params_right"]`` of the previous
         state read back from a result file. NaN rows (points that failed) start from zero.
         ``images``: that state's ``(left, right)`` images, optional (their global shift to the next
-        images is added to the guess).
+        images is added to the guess). ``before``: optional ``(params_left, params_right)`` of the state before
+        it, for ``motion_prediction="velocity"`` (a sequence resumed after state k gives state k - 1's, so that
+        state k + 1 starts as it would have in one run).
         """
         k = n_params(self.order)
         n = self.points.shape[0]
-        pl = np.asarray(params_left, dtype=np.float64)
-        pr = np.asarray(params_right, dtype=np.float64)
-        if pl.shape != (n, k) or pr.shape != (n, k):
-            raise ValueError(f"previous parameters must both have shape {(n, k)}, got {pl.shape} and {pr.shape}")
-        self._previous = (pl, pr)
+
+        def checked(params_left, params_right, what):
+            pl = np.asarray(params_left, dtype=np.float64)
+            pr = np.asarray(params_right, dtype=np.float64)
+            if pl.shape != (n, k) or pr.shape != (n, k):
+                raise ValueError(f"{what} parameters must both have shape {(n, k)}, got {pl.shape} and {pr.shape}")
+            return pl, pr
+
+        previous = checked(params_left, params_right, "previous")
+        if before is not None:
+            if not isinstance(before, (tuple, list)) or len(before) != 2:
+                raise ValueError("before must be a (params_left, params_right) pair")
+            before = checked(before[0], before[1], "before")
+        self._previous, self._before = previous, before
         self._previous_images = (None, None) if images is None else _check_pair(images[0], images[1], "previous")
 
     @property
@@ -756,11 +798,11 @@ class StereoCorrelation:
     def saved_previous(self):
         """The previous state the next :meth:`measure` starts from, as an opaque value for :meth:`restore_previous`
         (a sequence that measures a state twice, from two references, starts both from the same one)."""
-        return self._previous, self._previous_images
+        return self._previous, self._previous_images, self._before
 
     def restore_previous(self, saved) -> None:
         """Start the next :meth:`measure` from a previous state kept by :meth:`saved_previous`."""
-        self._previous, self._previous_images = saved
+        self._previous, self._previous_images, self._before = saved
 
     @property
     def trackable(self) -> np.ndarray:
@@ -1193,6 +1235,30 @@ def _match_then_track(match_params: np.ndarray, track_params: np.ndarray, points
     out = np.stack([t[:, 0], g[:, 0, 0], g[:, 0, 1], t[:, 1], g[:, 1, 0], g[:, 1, 1]], axis=1)
     out[~(np.all(np.isfinite(pm), axis=1) & np.all(np.isfinite(pt), axis=1))] = np.nan
     return out
+
+
+#: the temporal tracks' initial guess from the states before (StereoCorrelation(motion_prediction=...))
+MOTION_PREDICTIONS = ("velocity", "none")
+
+#: px: the predicted motion is used when its median differs from the measured global shift by at most this much
+#: per axis (the shift is an integer: a smooth motion lands within 1 px of it; a jump or a stop by more does not)
+PREDICTION_SHIFT_TOL_PX = 1.0
+
+
+def _extrapolated(previous: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """(N, k) ``previous + (previous - before)``: every parameter at constant velocity; NaN where either is NaN."""
+    return previous + (previous - before)
+
+
+def _prediction_agrees(predicted_motion: np.ndarray, shift: np.ndarray) -> bool:
+    """Whether the predicted motion since the previous state ``(M, 2)`` px (NaN rows: none) agrees with the global
+    shift measured between the previous image and this one ``(M, 2)`` px (the same value in every row): the
+    medians within :data:`PREDICTION_SHIFT_TOL_PX` on both axes, over the rows that have both."""
+    rows = np.all(np.isfinite(predicted_motion), axis=1) & np.all(np.isfinite(shift), axis=1)
+    if not np.any(rows):
+        return False
+    gap = np.median(predicted_motion[rows], axis=0) - np.median(shift[rows], axis=0)
+    return bool(np.all(np.abs(gap) <= PREDICTION_SHIFT_TOL_PX))
 
 
 def _fill_sigma(points: np.ndarray, sigma: np.ndarray, valid: np.ndarray, usable: np.ndarray) -> np.ndarray:

@@ -167,10 +167,15 @@ def _engine_pairs(pairs) -> list:
               help="With --verify-composed: each camera's threshold of a state is the lower of --verify-zncc and its "
                    "checked tracks' median ZNCC less K robust standard deviations (1.4826 MAD), as 2-D; 'off': "
                    "--verify-zncc alone. Default 4.")
+@click.option("--motion-prediction", type=click.Choice(["velocity", "none"]), default=None,
+              help="How each state's temporal tracks start: 'velocity' extrapolates the two states before at constant "
+                   "velocity (fewer IC-GN iterations on smooth motion; a jump that the global shift sees falls back to "
+                   "the previous state); 'none': the previous state plus the global shift. Default: 'velocity' for a "
+                   "new file; a resumed file keeps its own (files written before this option: 'none').")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode,
-           verify_composed, verify_zncc, right_track_mask, cracks, verify_spread):
+           verify_composed, verify_zncc, right_track_mask, cracks, verify_spread, motion_prediction):
     """Stereo DIC of image pairs: IMAGES are LEFT RIGHT [LEFT RIGHT ...] (TIFF, PNG or BMP).
 
     The left and right sequences can also be given as two inputs, IMAGES = LEFT_SEQUENCE
@@ -255,7 +260,7 @@ def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, or
                                min_kept_fraction=min_kept_fraction, strain_type=strain_type,
                                verify_composed=verify_composed, verify_zncc=verify_zncc,
                                right_track_mask=right_track_mask, cracks=_parse_cracks(cracks),
-                               verify_spread=verify_spread)
+                               verify_spread=verify_spread, motion_prediction=motion_prediction)
     except OptionError as exc:
         raise click.BadParameter(str(exc), param_hint=StereoOptions.CLI_NAMES.get(exc.option, exc.option)) from None
     except ValueError as exc:  # the region does not fit the images

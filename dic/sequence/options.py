@@ -505,7 +505,10 @@ class StereoOptions(_Record):
     the reference pair (:mod:`dic.correlation.stereo_verify`; resolved as :class:`TrackOptions` does), and
     ``right_track_mask``, the right temporal track's subsets masked by the left region mapped through the
     match (:mod:`dic.correlation.right_masks`), and ``cracks``, declared cracks in left reference px
-    (:mod:`dic.stereo_cracks`; stored as :class:`TrackOptions` stores them). The device is not one.
+    (:mod:`dic.stereo_cracks`; stored as :class:`TrackOptions` stores them), and ``motion_prediction``, the
+    temporal tracks' start from the states before ("velocity"; "none", the files written before it; None: not chosen,
+    resolved by :func:`dic.sequence.stereo_sequence`: "velocity" for a new file, a resumed file's own). The device
+    is not one.
     """
 
     subset: int = 21
@@ -542,6 +545,10 @@ class StereoOptions(_Record):
     cracks: Any = None
     # -- verifyrel: the composed check's threshold lowered per state and camera (as TrackOptions.verify_spread)
     verify_spread: float | str | None = None
+    # -- the temporal tracks' start: "velocity" (the two states before, extrapolated) or "none" (the previous state);
+    # None: not chosen, which stereo_sequence resolves (a new file "velocity", a resumed file the value it was written
+    # with) before the record is stored
+    motion_prediction: str | None = None
     points_array: Any = field(default=None, compare=False, repr=False)
     region: Any = field(default=None, compare=False, repr=False)
     unrecorded: frozenset = field(default=frozenset(), compare=False, repr=False)
@@ -549,12 +556,13 @@ class StereoOptions(_Record):
     CLI_NAMES: ClassVar[dict[str, str]] = {
         **_SHARED_CLI_NAMES, "frame": "--frame", "epipolar_tol_px": "--epipolar-tol", "zncc_min": "--zncc-min",
         "verify_composed": "--verify-composed", "verify_zncc": "--verify-zncc", "right_track_mask": "--right-track-mask",
-        "cracks": "--crack", "verify_spread": "--verify-spread"}
+        "cracks": "--crack", "verify_spread": "--verify-spread", "motion_prediction": "--motion-prediction"}
     KIND: ClassVar[str] = "stereo"
     ADDED_OPTIONS: ClassVar[dict[str, Any]] = {"subset_mask": "none", "min_kept_fraction": 0.5,
                                                "strain_type": "green-lagrange",
                                                "verify_composed": False, "verify_zncc": None,
-                                               "right_track_mask": False, "cracks": None, "verify_spread": "off"}
+                                               "right_track_mask": False, "cracks": None, "verify_spread": "off",
+                                               "motion_prediction": "none"}
     SEQUENCE_KEYWORDS: ClassVar[tuple[str, ...]] = ("reference", "auto_valid", "auto_zncc", "guess",
                                                     "verify_composed")
     # verify_composed / verify_zncc resolved as for 2-D runs (None with the fixed reference; 0.95 by default)
@@ -565,6 +573,8 @@ class StereoOptions(_Record):
         or polygon ROI with ``subset_mask="region"``): a file written before it resumes unless its run had one."""
         if name == "right_track_mask":
             return not any(isinstance(r.roi, dict) and r.subset_mask == "region" for r in (self, other))
+        if name == "motion_prediction":  # not chosen on one side: that side takes the other's (a resumed file's)
+            return self.motion_prediction is None or other.motion_prediction is None
         return super()._inert(other, name)
 
     def __post_init__(self):
@@ -593,6 +603,11 @@ class StereoOptions(_Record):
         self._check_verification()
         self._set("right_track_mask", _checked("right_track_mask", boolean, self.right_track_mask, "right_track_mask"))
         self._set("cracks", _cracks(self.cracks))
+        from .._stereo import MOTION_PREDICTIONS
+
+        if self.motion_prediction is not None and self.motion_prediction not in MOTION_PREDICTIONS:
+            raise OptionError("motion_prediction", f"motion_prediction must be one of {', '.join(MOTION_PREDICTIONS)}, "
+                                                   f"got {self.motion_prediction!r}")
 
     def correlation_kwargs(self) -> dict:
         """The :class:`dic.StereoCorrelation` keywords of this record (no ``device``, no ``match``)."""
@@ -606,6 +621,8 @@ class StereoOptions(_Record):
               "verify_zncc": self.verify_zncc if self.verify_composed else None,
               "verify_spread": self.verify_spread if self.verify_composed else None,
               "right_track_mask": self.right_track_mask, "cracks": self.cracks}
+        if self.motion_prediction is not None:  # None: StereoCorrelation's default, or the resumed file's
+            kw["motion_prediction"] = self.motion_prediction
         if self.points_array is not None:
             kw["points"] = self.points_array
         else:

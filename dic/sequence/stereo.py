@@ -126,6 +126,10 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         ``right_track_mask`` (default True: the right track's subsets masked by the region mapped through the
         match, :mod:`dic.correlation.right_masks`) and ``cracks`` (declared cracks in left reference px,
         :mod:`dic.stereo_cracks`: no subset or strain window across them; stored in the file's settings).
+        ``motion_prediction`` ("velocity" or "none"; default: "velocity" for a new file, a resumed file's own, "none"
+        for files written before the option): how each state's temporal tracks start, with ``guess="previous"``:
+        "velocity" extrapolates the two states before at constant velocity where the global shift between the
+        images agrees with it (:class:`dic.StereoCorrelation`), "none" starts from the previous state + that shift.
 
     Returns
     -------
@@ -181,6 +185,8 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         from .distributed import connect
 
         client = connect(client)
+    if options.get("motion_prediction") is None:  # not chosen: a resumed file keeps its own, a new one "velocity"
+        options["motion_prediction"] = _stored_motion_prediction(out, mode) or "velocity"
     # the run record (dic.sequence.options): every option that affects the results, validated once (a mask file is
     # read once), stored with its defaults and compared on resume whichever writer (library or CLI) made the file
     record = StereoOptions.from_keywords({**options, "reference": policy.text, "auto_valid": policy.auto_valid,
@@ -273,6 +279,26 @@ def _counts(field: Field3D) -> tuple[int, int]:
     return int(np.count_nonzero(np.asarray(field.valid, bool) & computed)), int(np.count_nonzero(computed))
 
 
+def _stored_motion_prediction(out: Path, mode: str) -> str | None:
+    """The ``motion_prediction`` of the stereo run in an existing result file that this call would resume ("none" for
+    a file written before the option), or None (no such file, ``mode="overwrite"``, or not a readable stereo file:
+    the writer says what is wrong with it)."""
+    if mode == "overwrite" or not out.is_file():
+        return None
+    try:
+        import json
+
+        import h5py
+
+        with h5py.File(out, "r") as f:
+            settings = json.loads(f["settings"].attrs.get("json", "{}"))
+    except Exception:  # noqa: BLE001 - not ours to judge here: ResultWriter refuses it with its own message
+        return None
+    if not isinstance(settings, dict) or not settings:
+        return None
+    return settings.get("motion_prediction") or StereoOptions.ADDED_OPTIONS["motion_prediction"]
+
+
 class _Stereo:
     """The stereo kind of :func:`dic.sequence.engine.run_sequence`: a :class:`dic.StereoCorrelation`
     whose temporal tracks follow the reference pair or a later state's (its public sequence protocol:
@@ -325,8 +351,12 @@ class _Stereo:
 
     def resume(self, k: int, image, *, next_done: bool) -> None:
         if not next_done:  # the next state starts from this one's parameters (and its images' global shift)
-            params_left, params_right = self.writer.frame_arrays(k, ("params_left", "params_right"))
-            self.sc.set_previous(params_left, params_right, images=image)
+            names = ("params_left", "params_right")
+            params_left, params_right = self.writer.frame_arrays(k, names)
+            # motion_prediction="velocity": and the state's before it, as in one run (where state k started from
+            # state k - 1's parameters, that is from state 2 on: state 1 starts from the reference pair's zero)
+            before = self.writer.frame_arrays(k - 1, names) if k >= 2 and self.use_previous else None
+            self.sc.set_previous(params_left, params_right, images=image, before=before)
 
     def counts(self, result: Field3D) -> tuple[int, int]:
         return _counts(result)

@@ -144,12 +144,12 @@ def test_settings_of_8d9f975_are_read_as_records():
     # 8d9f975's stereo default order was 2 (1 since issue 25): a file that did not record it holds order 2
     # (and its subsets kept every pixel: subset_mask "none", issue 26; stereo: plain IC-GN by default still;
     # its composed tracks were not checked: verify_composed False, and its right tracks not masked:
-    # right_track_mask False, issue 26)
+    # right_track_mask False, issue 26; its tracks started from the previous state: motion_prediction "none")
     assert StereoOptions.from_settings(s_cli) == StereoOptions(step=20, order=2, subset_mask="none",
-                                                               right_track_mask=False)
+                                                               right_track_mask=False, motion_prediction="none")
     assert StereoOptions.from_settings(s_lib) == StereoOptions(step=20, reference="incremental", order=2,
                                                                subset_mask="none", verify_composed=False,
-                                                               right_track_mask=False)
+                                                               right_track_mask=False, motion_prediction="none")
 
 
 def test_schema1_details_and_unknown_schemas():
@@ -283,7 +283,8 @@ def test_stereo_files_of_8d9f975_resume_with_either_writer(written_by, tmp_path)
 def test_stereo_library_file_resumes_with_the_cli_and_a_difference_is_refused(tmp_path):
     out = tmp_path / "s.h5"
     stereo_sequence(RIG, _pairs(2), out, step=20, device="cpu", max_iter=50, order=1)  # explicit defaults
-    assert read_stereo(out).settings == StereoOptions(step=20).to_settings()
+    # a new file records the motion prediction it was written with (not chosen: "velocity")
+    assert read_stereo(out).settings == StereoOptions(step=20, motion_prediction="velocity").to_settings()
     r = _stereo_cli(out, 3)
     assert r.exit_code == 0, r.output
     assert read_stereo(out).indices == [0, 1, 2]
