@@ -219,6 +219,9 @@ RATE_SIZE = (1024, 1024)
 E2E_SIZE = (1920, 1200)
 
 
+_LEFT_R_CAM_WORLD = {}  # image size -> the left camera's R_cam_world of the last _lab_pairs scene
+
+
 def _lab_pairs(size, states, plane_mm, cache, samples, tag):
     """A toed-in 16 mm / 7.4 um stereo pair (baseline 300 mm, 1 m) of a speckled plane translated per state.
 
@@ -253,6 +256,7 @@ def _lab_pairs(size, states, plane_mm, cache, samples, tag):
         pairs.append(tuple(pair))
         files.append(tuple(names))
     rig = _rig(cams)
+    _LEFT_R_CAM_WORLD[size] = cams[0].R_cam_world  # the exact displacements in the left camera frame (e2e accuracy)
     corners = np.array([[0.0, 0.0], [w_mm, 0.0], [0.0, h_mm], [w_mm, h_mm]])
     world = plane.to_world(corners)
     xyz = world @ cams[0].R_cam_world.T + cams[0].t_cam_world
@@ -371,25 +375,39 @@ def bench_rate(device, step, subset, states, cache, samples):
             "load_before": load_before, "load_after": _load()}
 
 
-def bench_end_to_end(device, step, states, cache, samples):
-    """``stereo_sequence`` over ``states`` 1920x1200 pairs (PNG files) with a ``step`` px grid over the specimen."""
+def bench_end_to_end(device, step, states, cache, samples, motion_prediction=None):
+    """``stereo_sequence`` over ``states`` 1920x1200 pairs (PNG files) with a ``step`` px grid over the specimen, and
+    per state the RMS of the 3-D displacement error of the valid points (mm, left camera frame) against the exact
+    translation. ``motion_prediction``: given to ``stereo_sequence`` when not None (its default otherwise)."""
     import tempfile
 
     from dic.sequence import stereo_sequence
 
     rig, _, files, box = _lab_pairs(E2E_SIZE, states, (400.0, 250.0), cache, samples, "e2e")
+    kw = {} if motion_prediction is None else {"motion_prediction": motion_prediction}
     load_before = _load()
     with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "e2e.h5")
         t0, c0 = time.perf_counter(), time.process_time()
-        fields = stereo_sequence(rig, files, os.path.join(tmp, "e2e.h5"), step=step, roi=box, mode="overwrite",
-                                 device=device)
+        fields = stereo_sequence(rig, files, out, step=step, roi=box, mode="overwrite", device=device, **kw)
         seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
-    if isinstance(fields, list):  # a checkout before the sequence summary (8d9f975 and earlier)
-        valid, n_points = [int(np.count_nonzero(f.valid)) for f in fields], int(len(fields[0].points))
-    else:  # a SequenceSummary: points computed in the region and valid per state
-        valid, n_points = [int(v) for v in fields.n_valid], int(fields.n_points[0])
+        if isinstance(fields, list):  # a checkout before the sequence summary (8d9f975 and earlier)
+            valid, n_points = [int(np.count_nonzero(f.valid)) for f in fields], int(len(fields[0].points))
+        else:  # a SequenceSummary: points computed in the region and valid per state
+            from dic.store import read_stereo
+
+            valid, n_points = [int(v) for v in fields.n_valid], int(fields.n_points[0])
+            back = read_stereo(out)
+            fields = [back.fields[k] for k in back.indices]
+        R = _LEFT_R_CAM_WORLD[E2E_SIZE]
+        error = []
+        for k, f in enumerate(fields):
+            ok = np.asarray(f.valid, dtype=bool)
+            true = R @ (k * TRANSLATION_PER_STATE_MM)
+            error.append(float(np.sqrt(np.mean(np.sum((f.uvw[ok] - true) ** 2, axis=1)))) if ok.any() else None)
     return {"seconds": seconds, "cpu_seconds": cpu_seconds, "states": states, "roi": list(box), "n_points": n_points,
-            "n_valid": valid, "load_before": load_before, "load_after": _load()}
+            "n_valid": valid, "uvw_error_rms_mm": error, "motion_prediction": motion_prediction,
+            "load_before": load_before, "load_after": _load()}
 
 
 def main_rates(argv=None):
@@ -402,6 +420,8 @@ def main_rates(argv=None):
     parser.add_argument("--samples", type=int, default=2, help="render samples per pixel")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--cache", default=os.path.join(RESULTS, "..", ".cache"), help="rendered images")
+    parser.add_argument("--motion-prediction", default=None, choices=("velocity", "none"),
+                        help="e2e: stereo_sequence's motion_prediction (default: its default)")
     parser.add_argument("--label", default="after", help="a name for this run (before/after)")
     parser.add_argument("--out", default=None, help="results JSON (default bench/results/stereo_<what>_<label>.json)")
     args = parser.parse_args(argv)
@@ -425,11 +445,13 @@ def main_rates(argv=None):
               f"{r['match_seconds']:.2f} s = {r['match_ratio_to_2d']:.3f} x); load {r['load_before']} -> {r['load_after']}")
     else:
         info["parameters"]["image_size"] = list(E2E_SIZE)
-        info["result"] = bench_end_to_end(args.device, args.step, args.states or 6, args.cache, args.samples)
+        info["result"] = bench_end_to_end(args.device, args.step, args.states or 6, args.cache, args.samples,
+                                          args.motion_prediction)
         r = info["result"]
         print(f"{args.label}: {r['states']} pairs, {r['n_points']} POIs, end to end {r['seconds']:.1f} s "
-              f"(CPU {r['cpu_seconds']:.1f} s); "
-              f"valid {r['n_valid']}; load {r['load_before']} -> {r['load_after']}")
+              f"(CPU {r['cpu_seconds']:.1f} s); valid {r['n_valid']}; 3-D error RMS (mm) "
+              f"{[None if e is None else round(e, 4) for e in r['uvw_error_rms_mm']]}; "
+              f"load {r['load_before']} -> {r['load_after']}")
     path = args.out or os.path.join(RESULTS, f"stereo_{args.what}_{args.label}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as fh:

@@ -39,12 +39,15 @@ def accepted_mask(status: np.ndarray, zncc: np.ndarray, zncc_min: float) -> np.n
 
 
 def second_opinion_candidates(points: np.ndarray, zncc: np.ndarray, accepted: np.ndarray, radius: float,
-                              zncc_drop: float) -> tuple[np.ndarray, np.ndarray]:
+                              zncc_drop: float, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Accepted POIs whose ZNCC is more than ``zncc_drop`` below their neighbours' median, and a donor each.
 
     Neighbours: up to 8 accepted POIs within ``2 radius`` px; a POI needs at least 3 of them.
     Returns ``(idx (m,), donor (m,))``: the suspect POIs and, for each, the neighbour with the best
     ZNCC, whose parameters (extrapolated) seed the retry.
+    ``cache``: optional dict kept with ``points`` (a correlator's): the neighbours found for one set of accepted
+    POIs are reused while the next call has the same set (a sequence's states usually do; the same answers as a
+    new search, which a k-d tree of the same points gives bit for bit).
     """
     from scipy.spatial import cKDTree
 
@@ -53,8 +56,15 @@ def second_opinion_candidates(points: np.ndarray, zncc: np.ndarray, accepted: np
     if acc.size < 3:
         return empty
     kk = min(9, acc.size)
-    # the queries split over the CPU threads: each point's answer is the one-thread answer
-    d, j = cKDTree(points[acc]).query(points[acc], k=kk, distance_upper_bound=2.0 * radius, workers=cpu_threads())
+    kept = None if cache is None else cache.get("second_opinion_neighbours")
+    if kept is not None and kept[0] == radius and np.array_equal(kept[1], acc):
+        d, j = kept[2], kept[3]
+    else:
+        # the queries split over the CPU threads: each point's answer is the one-thread answer
+        d, j = cKDTree(points[acc]).query(points[acc], k=kk, distance_upper_bound=2.0 * radius,
+                                          workers=cpu_threads())
+        if cache is not None:
+            cache["second_opinion_neighbours"] = (radius, acc, d, j)
     have = np.isfinite(d[:, 1:])
     nb = np.where(have, acc[np.minimum(j[:, 1:], acc.size - 1)], -1)
     z_nb = np.where(have, zncc[np.maximum(nb, 0)], np.nan)

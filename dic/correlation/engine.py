@@ -580,7 +580,7 @@ def correlate(corr: Correlator, current, guess: np.ndarray, has_guess: np.ndarra
             attempts[seeds[ok]] = np.minimum(attempts[seeds[ok]], max_attempts - 1)  # neighbours may still retry
         tell("fallback")
     if second_opinion:
-        idx, best = second_opinion_candidates(corr.points, zncc, accepted, radius, zncc_drop)
+        idx, best = second_opinion_candidates(corr.points, zncc, accepted, radius, zncc_drop, cache=corr.cache)
         if idx.size:
             g = extrapolate(params[best], corr.points[idx] - corr.points[best], corr.order)
             batch(idx, g, SOURCE_NEIGHBOUR)  # replaces a result only by an accepted one with a higher ZNCC

@@ -201,3 +201,36 @@ def test_second_opinion_row_median_is_numpys_nanmedian_bit_for_bit():
     counts = np.count_nonzero(~np.isnan(values), axis=1)
     assert {1, 2, 7, 8} <= set(counts.tolist())  # odd and even counts
     assert np.array_equal(_row_nanmedian(values), np.nanmedian(values, axis=1))
+
+
+def test_second_opinion_neighbours_kept_for_the_same_accepted_points():
+    """second_opinion_candidates(cache=): a call with the accepted points of the call before reuses its neighbours
+    and gives what a new search gives; other accepted points are searched again (and replace the kept ones)."""
+    from dic.correlation.acceptance import second_opinion_candidates
+
+    rng = np.random.default_rng(5)
+    x, y = np.meshgrid(np.arange(0.0, 200.0, 5.0), np.arange(0.0, 150.0, 5.0))
+    points = np.column_stack([x.ravel(), y.ravel()])
+    zncc = 0.99 - 0.01 * rng.random(len(points))
+    zncc[rng.choice(len(points), 40, replace=False)] = 0.85  # suspects among good neighbours
+    accepted = rng.random(len(points)) < 0.9
+    cache = {}
+    fresh = second_opinion_candidates(points, zncc, accepted, 7.5, 0.05)
+    first = second_opinion_candidates(points, zncc, accepted, 7.5, 0.05, cache=cache)
+    kept = cache["second_opinion_neighbours"]
+    again = second_opinion_candidates(points, zncc, accepted.copy(), 7.5, 0.05, cache=cache)
+    assert cache["second_opinion_neighbours"] is kept  # reused, not searched again
+    assert fresh[0].size > 10
+    for a, b in ((fresh, first), (fresh, again)):
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+    other = accepted.copy()
+    other[np.flatnonzero(other)[:25]] = False
+    changed = second_opinion_candidates(points, zncc, other, 7.5, 0.05, cache=cache)
+    assert cache["second_opinion_neighbours"] is not kept
+    expected = second_opinion_candidates(points, zncc, other, 7.5, 0.05)
+    np.testing.assert_array_equal(changed[0], expected[0])
+    np.testing.assert_array_equal(changed[1], expected[1])
+    # another radius: searched again
+    second_opinion_candidates(points, zncc, other, 10.0, 0.05, cache=cache)
+    assert cache["second_opinion_neighbours"][0] == 10.0
