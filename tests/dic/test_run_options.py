@@ -418,3 +418,27 @@ def test_a_stored_robust_false_means_off_and_the_cli_robust_options(tmp_path):
     res = read_results(default)
     assert res.settings["robust"] == "adaptive" and res.settings["check_outliers"] is True
     assert "robust_refined" in res.frames[1].attrs  # the points refined by robust IC-GN, counted per frame
+
+
+def test_stereo_motion_prediction_is_recorded_and_kept_on_resume(tmp_path):
+    """--motion-prediction: recorded; a resume that does not give it keeps the file's (library and CLI alike), one
+    that gives another value is refused; a new file gets "velocity"."""
+    out = tmp_path / "m.h5"
+    r = _stereo_cli(out, 2, "--motion-prediction", "none")
+    assert r.exit_code == 0, r.output
+    assert read_stereo(out).settings["motion_prediction"] == "none"
+    stereo_sequence(RIG, _pairs(3), out, step=20, device="cpu")  # the library, not given: the file's own
+    back = read_stereo(out)
+    assert back.indices == [0, 1, 2] and back.settings["motion_prediction"] == "none"
+    r = _stereo_cli(out, 3, "--motion-prediction", "velocity")
+    text = " ".join(r.output.split())
+    assert r.exit_code == 1 and "--motion-prediction (motion_prediction): 'none' in the file, 'velocity' now" in text
+    fresh = tmp_path / "v.h5"
+    r = _stereo_cli(fresh, 2)
+    assert r.exit_code == 0, r.output
+    assert read_stereo(fresh).settings["motion_prediction"] == "velocity"  # a new file: the default
+    r = _stereo_cli(fresh, 3)  # the CLI, not given: the file's own
+    assert r.exit_code == 0, r.output
+    assert read_stereo(fresh).indices == [0, 1, 2]
+    r = _stereo_cli(tmp_path / "bad.h5", 2, "--motion-prediction", "linear")
+    assert r.exit_code == 2 and "linear" in r.output
