@@ -53,7 +53,13 @@ from kernels.search import phase_spectrum, phase_window
 from kernels.verify import VERIFY_SPREAD, check_verify_spread
 
 from ._triangulate import TriangulationStatus, optimal_triangulation_jacobian, triangulate, undistort_points
-from .correlation.acceptance import MOSTLY_INVALID_FRACTION, stage_status, status_counts, warn_if_mostly_invalid
+from .correlation.acceptance import (
+    MOSTLY_INVALID_FRACTION,
+    accepted_mask,
+    stage_status,
+    status_counts,
+    warn_if_mostly_invalid,
+)
 from .correlation.engine import (
     SOURCE_FEATURES,
     SOURCE_GLOBAL,
@@ -355,6 +361,12 @@ class StereoCorrelation:
         1.4826 * MAD)`` of that camera's checked ZNCCs (:func:`kernels.verify.composed_threshold`, the 2-D rule:
         lower only where the texture has changed since the reference pair). Default 4
         (:data:`kernels.verify.VERIFY_SPREAD`); "off" or None: ``verify_zncc`` alone (the rule before the option).
+    motion_prediction : "velocity" (default) or "none"
+        How :meth:`measure` starts the temporal tracks of a state that follows two measured ones (a chain of
+        ``use_previous`` states): "velocity" extrapolates them at constant velocity and keeps that start when its
+        first IC-GN pass accepts at least :data:`PREDICTION_MIN_ACCEPTED` of the points the previous state had
+        (else, a jump, it starts again from the previous state + the global shift); "none": the previous state +
+        the global shift (the behaviour before the option).
     cracks : optional
         Declared cracks (:mod:`dic.cracks`: a :class:`dic.Crack`, an (M, 2) vertex array or a list of them) in
         LEFT reference-image px (:mod:`dic.stereo_cracks`): the left subsets (match, left track) keep the pixels
@@ -383,7 +395,7 @@ class StereoCorrelation:
         if motion_prediction not in MOTION_PREDICTIONS:
             raise ValueError(f"motion_prediction must be one of {MOTION_PREDICTIONS}, got {motion_prediction!r}")
         #: the temporal tracks' start from the previous state: "velocity" (constant-velocity extrapolation from
-        #: the two states before, where the global shift agrees) or "none" (the previous state + the global shift)
+        #: the two states before, kept when its first pass holds) or "none" (the previous state + the global shift)
         self.motion_prediction = motion_prediction
         # the check of composed tracks against the reference pair (None: none; dic.correlation.stereo_verify)
         self.verify_zncc = None if verify_zncc is None else in_range(verify_zncc, -1.0, 1.0, "verify_zncc")
@@ -620,9 +632,10 @@ class StereoCorrelation:
         Bitwise the results of the host path (``prepare_current`` + indexed IC-GN) from the same guesses.
 
         ``predicted``: (N, k) the previous state's parameters extrapolated at constant velocity (``motion_prediction``;
-        NaN rows: none); the first pass starts from them instead of ``previous`` + the global shift when that shift
-        agrees with the predicted motion (:func:`_prediction_agrees`; a sudden jump does not), rows without a
-        prediction from ``previous`` + the shift."""
+        NaN rows: none). The first pass starts from them (rows without one from ``previous`` moved by the median
+        predicted step) and is kept when it accepts at least :data:`PREDICTION_MIN_ACCEPTED` of the points the
+        previous state had; otherwise (a jump, a sudden stop) it runs again from ``previous`` + the global shift,
+        as without a prediction. The global shift is not measured when the prediction holds."""
         k = n_params(self.order)
         n = corr.points.shape[0]
         frame = image if frame is None else frame
@@ -632,9 +645,9 @@ class StereoCorrelation:
         # 3 px motion took 32 iterations on average, many hitting max_iter; within 0.5 px, 6-8)
         prior = np.zeros((n, k)) if previous is None else np.nan_to_num(previous)
         base = reference_image if previous is None or previous_image is None else previous_image
+        tracked = eligible & corr.ready
         # the shift of the tracked points' neighbourhood (the specimen), measured on the bounding box of their
         # reference and previous positions + a margin (SHIFT_WINDOW_MARGIN_PX)
-        tracked = eligible & corr.ready
         at = corr.points[tracked]
         if previous is not None:
             at = np.concatenate([at, at + previous[tracked][:, [0, k // 2]]])
@@ -643,22 +656,30 @@ class StereoCorrelation:
         ctx = GuessContext(corr, reference_image, image, prior, zncc_min=self.zncc_min,
                            options={"base": base, "spectrum": spectrum, "max_features": self.max_features,
                                     "radius": max(6.0 * self.subset, 3.0 * self.step)})
-        guess, has = get_guess("shift")(ctx)
-        if predicted is not None and previous is not None:
-            shift = guess[tracked][:, [0, k // 2]] - prior[tracked][:, [0, k // 2]]
-            if _prediction_agrees(predicted[tracked][:, [0, k // 2]] - prior[tracked][:, [0, k // 2]], shift):
-                rows = np.all(np.isfinite(predicted), axis=1)
-                guess[rows] = predicted[rows]
-        src = SOURCE_NONE if previous is None else SOURCE_PREVIOUS
-        if ctx.cache["shift_applied"] and previous is None:
-            src = SOURCE_GLOBAL
         features = get_guess("features")  # fallback for POIs that fail: computed once per image, when needed
 
         def fallback(idx):
             return features(ctx, idx)
 
         corr.limit_frames(eligible)  # the first pass at the POIs this track uses only (the others are skipped)
-        first = corr.run_frame(frame, guess, name="current image")
+        first = None
+        if predicted is not None and previous is not None:
+            guess = _predicted_start(prior, predicted, tracked, k)
+            if guess is not None:
+                first = corr.run_frame(frame, guess, name="current image")
+                had = tracked & np.all(np.isfinite(previous), axis=1)  # the points the previous state had
+                kept = accepted_mask(first["status"], first["zncc"], self.zncc_min) & had
+                if np.count_nonzero(kept) < PREDICTION_MIN_ACCEPTED * np.count_nonzero(had):
+                    first = None  # the motion changed: start again from the previous state + the global shift
+            if first is not None:
+                has = np.ones(n, dtype=bool)
+                src = SOURCE_PREVIOUS
+        if first is None:
+            guess, has = get_guess("shift")(ctx)
+            src = SOURCE_NONE if previous is None else SOURCE_PREVIOUS
+            if ctx.cache["shift_applied"] and previous is None:
+                src = SOURCE_GLOBAL
+            first = corr.run_frame(frame, guess, name="current image")
         current = corr.frame_current(frame.dtype)
         return correlate(corr, current, guess, has, src, eligible=eligible, zncc_min=self.zncc_min,
                          radius=self.radius, fallback=fallback, max_seeds=max(64, n),
@@ -1240,9 +1261,9 @@ def _match_then_track(match_params: np.ndarray, track_params: np.ndarray, points
 #: the temporal tracks' initial guess from the states before (StereoCorrelation(motion_prediction=...))
 MOTION_PREDICTIONS = ("velocity", "none")
 
-#: px: the predicted motion is used when its median differs from the measured global shift by at most this much
-#: per axis (the shift is an integer: a smooth motion lands within 1 px of it; a jump or a stop by more does not)
-PREDICTION_SHIFT_TOL_PX = 1.0
+#: the constant-velocity start is kept when its first pass accepts at least this fraction of the points the
+#: previous state had (smooth motion: all but a few; a jump or a sudden stop of more than a few pixels: few)
+PREDICTION_MIN_ACCEPTED = 0.95
 
 
 def _extrapolated(previous: np.ndarray, before: np.ndarray) -> np.ndarray:
@@ -1250,15 +1271,20 @@ def _extrapolated(previous: np.ndarray, before: np.ndarray) -> np.ndarray:
     return previous + (previous - before)
 
 
-def _prediction_agrees(predicted_motion: np.ndarray, shift: np.ndarray) -> bool:
-    """Whether the predicted motion since the previous state ``(M, 2)`` px (NaN rows: none) agrees with the global
-    shift measured between the previous image and this one ``(M, 2)`` px (the same value in every row): the
-    medians within :data:`PREDICTION_SHIFT_TOL_PX` on both axes, over the rows that have both."""
-    rows = np.all(np.isfinite(predicted_motion), axis=1) & np.all(np.isfinite(shift), axis=1)
-    if not np.any(rows):
-        return False
-    gap = np.median(predicted_motion[rows], axis=0) - np.median(shift[rows], axis=0)
-    return bool(np.all(np.abs(gap) <= PREDICTION_SHIFT_TOL_PX))
+def _predicted_start(prior: np.ndarray, predicted: np.ndarray, tracked: np.ndarray, k: int) -> np.ndarray | None:
+    """(N, k) the first pass's start from a constant-velocity prediction: ``predicted`` where it is finite, elsewhere
+    ``prior`` (the previous parameters, 0 where none) moved by the median predicted ``u, v`` step of the tracked
+    points; None when no tracked point has a prediction."""
+    rows = np.all(np.isfinite(predicted), axis=1)
+    steps = (predicted - prior)[rows & tracked][:, [0, k // 2]]
+    if steps.shape[0] == 0:
+        return None
+    guess = prior.copy()
+    step = np.median(steps, axis=0)
+    guess[:, 0] += step[0]
+    guess[:, k // 2] += step[1]
+    guess[rows] = predicted[rows]
+    return guess
 
 
 def _fill_sigma(points: np.ndarray, sigma: np.ndarray, valid: np.ndarray, usable: np.ndarray) -> np.ndarray:

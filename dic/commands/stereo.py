@@ -169,9 +169,10 @@ def _engine_pairs(pairs) -> list:
                    "--verify-zncc alone. Default 4.")
 @click.option("--motion-prediction", type=click.Choice(["velocity", "none"]), default=None,
               help="How each state's temporal tracks start: 'velocity' extrapolates the two states before at constant "
-                   "velocity (fewer IC-GN iterations on smooth motion; a jump that the global shift sees falls back to "
-                   "the previous state); 'none': the previous state plus the global shift. Default: 'velocity' for a "
-                   "new file; a resumed file keeps its own (files written before this option: 'none').")
+                   "velocity (fewer IC-GN iterations on smooth motion; when that start accepts under 95 % of the "
+                   "points the state before had - a jump - it starts again from the previous state plus the global "
+                   "shift); 'none': the previous state plus the global shift. Default: 'velocity' for a new file; a "
+                   "resumed file keeps its own (files written before this option: 'none').")
 def stereo(rig_path, images, left_inputs, right_inputs, output, step, subset, order, roi, roi_polygon, mask, exclude, frame, epipolar_tol, zncc_min,
            strain_window, noise_sigma, robust, device, vtk_dir, figure_dir, figure_limits, figure_every, reference_strategy, scheduler, workers,
            compression, overwrite, allow_empty, quiet, subset_mask, min_kept_fraction, strain_type, robust_mode,
