@@ -83,11 +83,9 @@ def _images(scenes, cache, samples):
 
 
 def _rig(cams):
-    from calibration.stereo import StereoRig
+    from dic.lab import stereo_rig
 
-    left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    return StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    return stereo_rig(*cams)
 
 
 def _warm_up(rig, images, device):

@@ -43,8 +43,7 @@ def render_pairs(path: str) -> None:
     """The reference pair and the moved pair of the scene, and the rig, saved to ``path`` (.npz)."""
     from dataclasses import replace
 
-    from calibration.stereo import StereoRig
-    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
     from dic.synth import make_speckle
 
     cams = [LabCamera.from_lens(name=name, size=SIZE, focal_length_mm=12.0, f_number=float("inf"),
@@ -60,8 +59,7 @@ def render_pairs(path: str) -> None:
     pairs = [tuple(render(Scene(cameras=cams, planes=[p]), i, samples=4, seed=7 + i) for i in range(2))
              for p in (plane, moved)]
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    rig = stereo_rig(left, right)
     rig.save(path + ".rig.json")
     np.savez(path, l0=pairs[0][0], r0=pairs[0][1], l1=pairs[1][0], r1=pairs[1][1])
 

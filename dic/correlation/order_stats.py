@@ -56,6 +56,8 @@ def percentile(values, q):
     Arrays of another dtype, small arrays and arrays holding NaN or infinities go to ``np.percentile`` itself.
     """
     a = np.asarray(values)
+    if a.dtype.kind not in "biuf" or a.size == 0:
+        raise ValueError(f"values must be a non-empty array of real numbers, got dtype {a.dtype} and size {a.size}")
     if a.dtype not in (np.float32, np.float64) or a.size <= 4 * _SAMPLE:
         return np.percentile(a, q)
     flat = a.reshape(-1)

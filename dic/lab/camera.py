@@ -257,3 +257,19 @@ class LabCamera:
     def project(self, points_world) -> np.ndarray:
         """Distorted pixel positions (N, 2) of world points (N, 3); raises for points behind the camera."""
         return self.camera.project(self.world_to_camera(points_world))
+
+
+def stereo_rig(left: LabCamera, right: LabCamera):
+    """The exact calibration of two lab cameras as a :class:`calibration.stereo.StereoRig`: their camera models and
+    the right camera's pose in the left camera frame, ``R_right_left = R_right_world R_left_world^T``,
+    ``t_right_left = t_right_world - R_right_left t_left_world`` (mm): the rig a perfect calibration of the two
+    would give, for measuring with images rendered from them."""
+    from calibration.stereo import StereoRig
+
+    for name, cam in (("left", left), ("right", right)):
+        if not isinstance(cam, LabCamera):
+            raise ValueError(f"{name} must be a dic.lab.LabCamera, got {type(cam).__name__}")
+    if left is right:
+        raise ValueError("left and right must be two cameras, got the same LabCamera twice")
+    R = right.R_cam_world @ left.R_cam_world.T
+    return StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)

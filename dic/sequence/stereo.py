@@ -29,7 +29,7 @@ import numpy as np
 
 from .._stereo import StereoCorrelation, as_rig
 from ..field3d import Field3D, StereoStatus
-from ..store import SCHEMA_VERSION, ResultWriter, StereoResults, image_digest, read_field, read_stereo
+from ..store import SCHEMA_VERSION, ResultReader, ResultWriter, StereoResults, image_digest, read_field, read_stereo
 from ..store import STEREO_FORMAT_NAME as FORMAT_NAME
 from .engine import CannotServe, SequenceSummary, run_on_dask, run_sequence
 from .options import StereoOptions
@@ -287,12 +287,8 @@ def _stored_motion_prediction(out: Path, mode: str) -> str | None:
     if mode == "overwrite" or not out.is_file():
         return None
     try:
-        import json
-
-        import h5py
-
-        with h5py.File(out, "r") as f:
-            settings = json.loads(f["settings"].attrs.get("json", "{}"))
+        with ResultReader(out, kind="stereo") as reader:
+            settings = reader.settings
     except Exception:  # noqa: BLE001 - not ours to judge here: ResultWriter refuses it with its own message
         return None
     if not isinstance(settings, dict) or not settings:

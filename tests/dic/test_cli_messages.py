@@ -120,9 +120,8 @@ def _stereo_scene(tmp_path):
     """A rig file and one left/right pair of the stereo sequence tests' lab scene (a speckled plane; no motion)."""
     from test_stereo_sequence import _cameras
 
-    from calibration.stereo import StereoRig
     from dic.io import write_image
-    from dic.lab import Scene, SpecklePlane, render
+    from dic.lab import Scene, SpecklePlane, render, stereo_rig
     from dic.synth import make_speckle
 
     cams = _cameras()
@@ -130,8 +129,7 @@ def _stereo_scene(tmp_path):
     plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(300.0, 250.0), speckle=speckle)
     scene = Scene(cameras=cams, planes=[plane])
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world).save(tmp_path / "rig.json")
+    stereo_rig(left, right).save(tmp_path / "rig.json")
     return [str(write_image(tmp_path / f"{side}.png", render(scene, i, samples=4, seed=i)))
             for i, side in enumerate(("L", "R"))]
 

@@ -348,8 +348,7 @@ def stereo_lab():
     """A 320 x 240 px stereo rig looking at a speckled plane, in 4 states (rigid translations)."""
     from dataclasses import replace
 
-    from calibration.stereo import StereoRig
-    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
     from dic.synth import make_speckle
 
     cams = [LabCamera.from_lens(name=name, size=(320, 240), focal_length_mm=12.0, f_number=float("inf"),
@@ -365,8 +364,7 @@ def stereo_lab():
                                                      (300.0, 250.0)))
         states.append(tuple(render(Scene(cameras=cams, planes=[p]), i, samples=4, seed=10 * k + i) for i in range(2)))
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    return StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world), states
+    return stereo_rig(left, right), states
 
 
 def test_stereo_identical_to_one_process(stereo_lab, client, tmp_path):

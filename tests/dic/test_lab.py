@@ -412,3 +412,24 @@ def test_look_at_rejects_degenerate_input():
         look_at((0, 0, 0), (0, 0, 0))
     with pytest.raises(ValueError, match="parallel"):
         look_at((0, 0, 0), (0, 10, 0), up=(0, -1, 0))
+
+
+def test_stereo_rig_of_two_lab_cameras_maps_left_camera_points_to_right_camera_points():
+    """dic.lab.stereo_rig: x_right = R_right_left x_left + t_right_left for world points seen by both cameras (each
+    camera's own pose gives x_left and x_right), and the cameras' models; bad inputs refused."""
+    from dic.lab import stereo_rig
+
+    left = LabCamera.from_lens(name="left", size=(320, 240), focal_length_mm=12.0, f_number=float("inf"),
+                               focus_distance_mm=1000.0, position=(-150.0, 10.0, 0.0), look_at_point=(0.0, 0.0, 1000.0))
+    right = LabCamera.from_lens(name="right", size=(320, 240), focal_length_mm=16.0, f_number=float("inf"),
+                                focus_distance_mm=1000.0, position=(200.0, -5.0, 30.0), look_at_point=(10.0, 0.0, 990.0))
+    rig = stereo_rig(left, right)
+    world = np.random.default_rng(4).uniform([-100, -80, 900], [100, 80, 1100], size=(20, 3))
+    x_left = world @ left.R_cam_world.T + left.t_cam_world
+    x_right = world @ right.R_cam_world.T + right.t_cam_world
+    np.testing.assert_allclose(x_left @ rig.R_right_left.T + rig.t_right_left, x_right, atol=1e-9)
+    assert rig.left is left.camera and rig.right is right.camera
+    with pytest.raises(ValueError, match="right must be a dic.lab.LabCamera"):
+        stereo_rig(left, right.camera)
+    with pytest.raises(ValueError, match="two cameras"):
+        stereo_rig(left, left)

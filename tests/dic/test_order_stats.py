@@ -47,3 +47,10 @@ def test_percentile_hands_other_inputs_to_numpy():
     assert np.isnan(percentile(with_nan, 95.0))
     with pytest.raises(ValueError):
         percentile(rng.random(200_000), 101.0)
+
+
+def test_percentile_refuses_what_is_not_numbers():
+    with pytest.raises(ValueError, match="non-empty array of real numbers"):
+        percentile(np.array(["a", "b"]), 50.0)
+    with pytest.raises(ValueError, match="non-empty array of real numbers"):
+        percentile(np.zeros(0), 50.0)

@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from calibration.stereo import StereoRig
 from dic._stereo import StereoCorrelation
-from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
 from dic.synth import make_speckle
 
 T_WORLD = np.array([0.0, 0.5, 0.0])  # mm, the right-hand plate's slide
@@ -41,8 +40,7 @@ def jump_lab():
     ref = tuple(render(Scene(cameras=cams, planes=[fixed, sliding]), i, samples=16, seed=i) for i in range(2))
     cur = tuple(render(Scene(cameras=cams, planes=[fixed, slid]), i, samples=16, seed=10 + i) for i in range(2))
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    rig = stereo_rig(left, right)
     crack = left.project(np.array([[0.0, -125.0, 1000.0], [0.0, 125.0, 1000.0]]))  # the line x = 0, left px
     return {"rig": rig, "ref": ref, "cur": cur, "crack": crack, "left": left}
 

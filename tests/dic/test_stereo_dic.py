@@ -22,7 +22,7 @@ from calibration.stereo import StereoRig
 from dic._stereo import StereoCorrelation, stereo
 from dic._triangulate import TriangulationStatus
 from dic.field3d import StereoStatus
-from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
 from dic.synth import make_speckle
 
 W_PX, H_PX = 320, 240
@@ -53,8 +53,7 @@ def lab():
         scene = Scene(cameras=cams, planes=[p])
         states.append(tuple(render(scene, i, samples=16, seed=10 * k + i) for i in range(2)))
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    rig = stereo_rig(left, right)
     normal = left.R_cam_world @ plane.R_world_surface[:, 2]
     centre = left.R_cam_world @ plane.to_world(np.array([[150.0, 125.0]]))[0] + left.t_cam_world
     return {"rig": rig, "states": states, "plane": (normal, centre), "R_left_world": left.R_cam_world}
@@ -494,8 +493,7 @@ def test_specimen_edge_on_dark_background_is_flagged():
     scene = Scene(cameras=cams, planes=[plate])
     l0, r0 = (render(scene, i, samples=16, seed=i) for i in range(2))
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    rig = stereo_rig(left, right)
     normal = left.R_cam_world @ plate.R_world_surface[:, 2]
     centre = left.R_cam_world @ plate.to_world(np.array([[60.0, 125.0]]))[0] + left.t_cam_world
     across = left.R_cam_world @ plate.R_world_surface[:, 0]

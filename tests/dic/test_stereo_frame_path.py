@@ -154,8 +154,7 @@ def lab():
     """Two 320x240 views of a speckled plane (as tests/dic/test_stereo_dic.py, 4 samples per pixel), moved 1 mm."""
     from dataclasses import replace
 
-    from calibration.stereo import StereoRig
-    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+    from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
     from dic.synth import make_speckle
 
     cams = [LabCamera.from_lens(name=name, size=(320, 240), focal_length_mm=12.0, f_number=float("inf"),
@@ -171,8 +170,7 @@ def lab():
     states = [tuple(render(Scene(cameras=cams, planes=[p]), i, samples=4, seed=10 * k + i) for i in range(2))
               for k, p in enumerate((plane, moved))]
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    return StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world), states
+    return stereo_rig(left, right), states
 
 
 def test_reference_match_reports_progress(lab):

@@ -14,10 +14,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calibration.stereo import StereoRig
 from dic._stereo import StereoCorrelation
 from dic.correlation.right_masks import mapped_pixel_masks
-from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
 from dic.synth import make_speckle
 
 PLATE_MM = (120.0, 250.0)
@@ -42,8 +41,7 @@ def edge_lab():
     ref = tuple(render(Scene(cameras=cams, planes=[plate, background]), i, samples=16, seed=i) for i in range(2))
     cur = tuple(render(Scene(cameras=cams, planes=[moved, background]), i, samples=16, seed=10 + i) for i in range(2))
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    rig = stereo_rig(left, right)
     outline = left.project(plate.to_world(np.array([[0, 0], [w, 0], [w, h], [0, h]], float), deformed=False))
     return {"rig": rig, "ref": ref, "cur": cur, "outline": outline, "left": left, "right": right}
 

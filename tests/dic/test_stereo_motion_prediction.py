@@ -10,10 +10,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_stereo_sequence import _cameras
 
-from calibration.stereo import StereoRig
 from dic._stereo import StereoCorrelation, _predicted_start
-from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.lab import Displacement, Scene, SpecklePlane, render, stereo_rig
 from dic.synth import make_speckle
 
 STEP_MM = np.array([0.8, -0.5, 1.5])  # world translation per state, states 0..4
@@ -23,10 +23,7 @@ N_STATES = 6
 
 @pytest.fixture(scope="module")
 def lab():
-    cams = [LabCamera.from_lens(name=name, size=(320, 240), focal_length_mm=12.0, f_number=float("inf"),
-                                focus_distance_mm=1000.0, position=(x, 0.0, 0.0), look_at_point=(0.0, 0.0, 1000.0),
-                                exposure_dn=200.0, bit_depth=8)
-            for name, x in (("left", -150.0), ("right", 150.0))]
+    cams = _cameras()  # the stereo sequence tests' two 320x240 px cameras
     speckle = make_speckle(region=(-5, -5, 305, 255), radius=1.2, density=0.5, bits=None, seed=3)
     plane = SpecklePlane.facing(center=(0.0, 0.0, 1000.0), normal=(0.0, 0.0, -1.0), size=(300.0, 250.0),
                                 speckle=speckle)
@@ -37,10 +34,7 @@ def lab():
         disp = Displacement(np.broadcast_to(t_local, (2, 2, 3)).copy(), (0.0, 0.0), (300.0, 250.0))
         scene = Scene(cameras=cams, planes=[replace(plane, displacement=disp)])
         pairs.append(tuple(render(scene, i, samples=16, seed=10 * k + i) for i in range(2)))
-    left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
-    return {"rig": rig, "pairs": pairs}
+    return {"rig": stereo_rig(*cams), "pairs": pairs}
 
 
 def _run(lab, prediction, monkeypatch):

@@ -19,9 +19,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calibration.stereo import StereoRig
 from dic._stereo import StereoCorrelation
-from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
 from dic.sequence import stereo_sequence
 from dic.synth import make_speckle
 
@@ -40,8 +39,7 @@ def _cameras():
 
 
 def _rig(left, right):
-    R = right.R_cam_world @ left.R_cam_world.T
-    return StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    return stereo_rig(left, right)
 
 
 def _translated(plane, t_world, size):

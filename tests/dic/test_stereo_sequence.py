@@ -16,8 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calibration.stereo import StereoRig
-from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render
+from dic.lab import Displacement, LabCamera, Scene, SpecklePlane, render, stereo_rig
 from dic.synth import make_speckle
 
 W_PX, H_PX = 320, 240
@@ -49,8 +48,7 @@ def lab():
         scene = Scene(cameras=cams, planes=[moved])
         states.append(tuple(render(scene, i, samples=16, seed=10 * k + i) for i in range(2)))
     left, right = cams
-    R = right.R_cam_world @ left.R_cam_world.T
-    rig = StereoRig(left.camera, right.camera, R, right.t_cam_world - R @ left.t_cam_world)
+    rig = stereo_rig(left, right)
     return {"rig": rig, "states": states, "plane": plane, "left": left, "t_local": t_local}
 
 
