@@ -362,8 +362,9 @@ class StereoCorrelation:
         lower only where the texture has changed since the reference pair). Default 4
         (:data:`kernels.verify.VERIFY_SPREAD`); "off" or None: ``verify_zncc`` alone (the rule before the option).
     motion_prediction : "velocity" (default) or "none"
-        How :meth:`measure` starts the temporal tracks of a state that follows two measured ones (a chain of
-        ``use_previous`` states): "velocity" extrapolates them at constant velocity and keeps that start when its
+        How :meth:`measure` starts the temporal tracks of a state that follows another in a chain of ``use_previous``
+        states (the reference pair, whose parameters are zero, is the state before the first one measured):
+        "velocity" extrapolates them at constant velocity and keeps that start when its
         first IC-GN pass accepts at least :data:`PREDICTION_MIN_ACCEPTED` of the points the previous state had
         (else, a jump, it starts again from the previous state + the global shift); "none": the previous state +
         the global shift (the behaviour before the option).
@@ -753,7 +754,9 @@ class StereoCorrelation:
             f.reference_interpolated = f.valid & ~mv.valid
         if warn and self._tracks_judged():
             _warn_if_mostly_invalid(f.status[self.in_roi], f"stereo tracking of state {index}")
-        self._before = prev  # None when this state did not start from a previous one: no velocity for the next
+        # the state before the next one: this state's start. A state measured from the reference pair (no previous
+        # state: zero, the first of a chain) has the reference pair's parameters before it, as stored for state 0
+        self._before = prev if prev is not None else self._reference_params()
         self._previous = (f.details["params_left"], f.details["params_right"])
         self._previous_images = (L, R)
         return f
@@ -782,6 +785,12 @@ class StereoCorrelation:
         """The warning :meth:`measure` gives when a state's tracks leave (almost) every point invalid."""
         if self._tracks_judged():
             _warn_if_mostly_invalid(field.status[self.in_roi], f"stereo tracking of state {field.index}")
+
+    def _reference_params(self) -> tuple[np.ndarray, np.ndarray]:
+        """(params_left (N, k), params_right (N, k)) of the reference pair's state: zero at the matched points, NaN
+        elsewhere (its ``details``, state 0 of a result file)."""
+        zero = np.where(self.match.valid[:, None], 0.0, np.nan) * np.ones((1, n_params(self.order)))
+        return zero, zero.copy()
 
     def set_previous(self, params_left, params_right, images=None, before=None) -> None:
         """Set the initial guess of the next :meth:`measure`: parameters (N, 6|12) of the left and right tracks.
@@ -998,8 +1007,7 @@ class StereoCorrelation:
             pl_cur, pr_cur = self.points.copy(), m.points_right.copy()
             details.update(track_left_status=np.where(m.valid, int(Status.CONVERGED), int(Status.NOT_COMPUTED)).astype(np.int32),
                            track_right_status=np.where(m.valid, int(Status.CONVERGED), int(Status.NOT_COMPUTED)).astype(np.int32),
-                           params_left=np.where(m.valid[:, None], 0.0, np.nan) * np.ones((n, k)),
-                           params_right=np.where(m.valid[:, None], 0.0, np.nan) * np.ones((n, k)))
+                           **dict(zip(("params_left", "params_right"), self._reference_params())))
         else:
             tl, tr = tracks
             matched = self._matched

@@ -42,6 +42,7 @@ from .icgn import (
     IcgnResult,
     ReferenceSubsets,
     SubsetTable,
+    check_layout,
     check_max_iter,
     icgn_point_1st,
     icgn_point_2nd,
@@ -49,6 +50,11 @@ from .icgn import (
 )
 from .images import is_torch_tensor
 from .interp import FRAME_DTYPES, PAD, bspline_frames
+
+#: the coefficient layout of :class:`FrameTracker` per device kind (``layout=None``): on the CPU the coefficients are
+#: read in place (``"plain"``: no expansion pass, a quarter of the memory; the kernels' time is the same, docs/dic2d.md,
+#: "Two coefficient layouts"); on CUDA the row-expanded copy until ``bench/gpu.py`` has measured both
+FRAME_LAYOUT = {"cpu": "plain", "cuda": "rows4"}
 
 # the IC-GN modules' options: the per-POI bodies compile here too and must give the same bits
 wp.set_module_options(icgn_module_options("_icgn_frames_2nd"))
@@ -265,6 +271,11 @@ class FrameTracker:
         The first frame's guess (default zeros); :meth:`reset` sets it again.
     packed : None or bool
         Results through one packed buffer (default: on CUDA, where it saves transfers).
+    layout : None, "rows4" or "plain"
+        How IC-GN reads the coefficients (:data:`kernels.icgn.LAYOUTS`): ``"rows4"`` the row-expanded copy (an
+        expansion pass per frame, 4x the memory), ``"plain"`` the coefficients in place through a ``wp.vec4`` view
+        with a 4-byte stride (:func:`kernels.interp.rows4_view`'s layout). The same compiled kernels read either,
+        so the results are the same bits. Default :data:`FRAME_LAYOUT` of the device.
 
     Every buffer is allocated here; :meth:`track`, :meth:`track_device`, :meth:`track_torch` and
     :meth:`track_batch` allocate no Warp memory. Frames: NumPy arrays, ``wp.array`` or torch tensors
@@ -274,7 +285,8 @@ class FrameTracker:
     """
 
     def __init__(self, subsets: ReferenceSubsets, frame_dtype=np.float32, *, max_iter: int = 30, tol: float = 1e-3,
-                 zncc_min: float = 0.8, batch: int = 1, guess=None, packed: bool | None = None):
+                 zncc_min: float = 0.8, batch: int = 1, guess=None, packed: bool | None = None,
+                 layout: str | None = None):
         _check_subsets(subsets)
         try:
             dt = np.dtype(frame_dtype)
@@ -303,8 +315,16 @@ class FrameTracker:
         self._raw = wp.empty((b, h, w), dtype=wdt, device=dev)
         self._stage = wp.empty((b, h, w), dtype=wdt, device="cpu", pinned=True) if self._cuda else self._raw
         self._stage_np = self._stage.numpy()
-        self._coef = wp.empty((b, h + 2 * PAD, w + 2 * PAD), dtype=wp.float32, device=dev)
-        self._rows4 = wp.empty((b, self._length), dtype=wp.vec4, device=dev)
+        self.layout = check_layout(FRAME_LAYOUT["cpu" if dev.startswith("cpu") else "cuda"] if layout is None else layout)
+        # the coefficients one float into a buffer of 4 more: the "plain" view below starts one float before them
+        self._coef_buffer = wp.empty(b * self._length + 4, dtype=wp.float32, device=dev)
+        self._coef = wp.array(ptr=self._coef_buffer.ptr + 4, shape=(b, h + 2 * PAD, w + 2 * PAD), dtype=wp.float32,
+                              device=dev, copy=False)
+        if self.layout == "rows4":
+            self._rows4 = wp.empty((b, self._length), dtype=wp.vec4, device=dev)
+        else:  # entry [f, k] = coefficients k - 1 .. k + 2 of frame f (rows4_view's layout), inside the buffer
+            self._rows4 = wp.array(ptr=self._coef_buffer.ptr, shape=(b, self._length), strides=(4 * self._length, 4),
+                                   dtype=wp.vec4, device=dev, copy=False)
         self._bad = wp.zeros(b, dtype=wp.int32, device=dev)
         self._guess = wp.zeros((1, n, k), dtype=wp.float32, device=dev)
         self._guess2d = self._guess[0]
@@ -417,7 +437,7 @@ class FrameTracker:
                     wp.copy(self._raw, self._stage, dest_offset=i * size, src_offset=i * size, count=size)
             src = self._raw
         self._bad.zero_()
-        bspline_frames(src, f, self._coef, self._rows4, self._bad)
+        bspline_frames(src, f, self._coef, self._expanded, self._bad)
         self._launch_frame(f)
         self.frames_tracked += f
         return f
@@ -504,7 +524,14 @@ class FrameTracker:
         same frame, e.g. :func:`kernels.icgn_robust.icgn_robust`."""
         if isinstance(slot, bool) or not isinstance(slot, (int, np.integer)) or not 0 <= int(slot) < self.batch:
             raise ValueError(f"slot must be a frame slot in [0, {self.batch}), got {slot!r}")
-        return CurrentImage(self._rows4[int(slot)], self.frame_shape, self.device)
+        if self.layout == "rows4":
+            return CurrentImage(self._rows4[int(slot)], self.frame_shape, self.device)
+        return CurrentImage(None, self.frame_shape, self.device, plain=self._rows4[int(slot)])
+
+    @property
+    def _expanded(self) -> wp.array | None:
+        """The row-expanded buffer the prefilter fills (None: the "plain" layout reads the coefficients in place)."""
+        return self._rows4 if self.layout == "rows4" else None
 
     def capture_graph(self):
         """Capture one frame's device work as a CUDA graph (``wp.Graph``): the prefilter of :attr:`frame_buffer`
@@ -522,7 +549,7 @@ class FrameTracker:
         wp.synchronize_device(self.device)
         with wp.ScopedCapture(device=self.device) as capture:
             self._bad.zero_()
-            bspline_frames(self._raw, 1, self._coef, self._rows4, self._bad)
+            bspline_frames(self._raw, 1, self._coef, self._expanded, self._bad)
             self._launch_frame(1)
         return capture.graph
 

@@ -1019,8 +1019,8 @@ class ReferenceSubsets:
 #: both compile to 4 scalar loads per stencil row). Both give the same bits.
 LAYOUTS = ("rows4", "plain")
 
-#: default layout per device kind: "rows4" on both (the frames x POIs launch and the tiled prototype
-#: read only it); on CUDA it is kept until ``bench/gpu.py`` (kernel section, ``layout``) has
+#: default layout of prepare_current per device kind: "rows4" on both (icgn_batch and the tiled prototype
+#: read only it; kernels.frames.FrameTracker has its own, FRAME_LAYOUT: "plain" on the CPU); on CUDA it is kept until ``bench/gpu.py`` (kernel section, ``layout``) has
 #: measured both on a GPU; on the CPU both run in the same time (docs/dic2d.md, "Kernels that fit
 #: the GPU": the same binary) and "plain" saves the expansion pass
 DEFAULT_LAYOUT = {"cpu": "rows4", "cuda": "rows4"}

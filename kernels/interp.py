@@ -646,12 +646,13 @@ def bspline_coefficients(image, device=None, out: wp.array | None = None) -> Pad
 FRAME_DTYPES = {np.dtype(np.uint8): wp.uint8, np.dtype(np.uint16): wp.uint16, np.dtype(np.float32): wp.float32}
 
 
-def bspline_frames(frames: wp.array, n_frames: int, coef: wp.array, rows4: wp.array, bad: wp.array) -> None:
+def bspline_frames(frames: wp.array, n_frames: int, coef: wp.array, rows4: wp.array | None, bad: wp.array) -> None:
     """B-spline coefficients of the first ``n_frames`` frames of a stack, in IC-GN's row-expanded layout.
 
     The buffers are the caller's, allocated once (:class:`kernels.frames.FrameTracker`); nothing is
     allocated here. ``frames`` (F, H, W) uint8/uint16/float32 on the device (read as they are: grey
-    levels keep their scale); ``coef`` (F, H + 4, W + 4) float32; ``rows4`` (F, (H + 4) (W + 4)) vec4;
+    levels keep their scale); ``coef`` (F, H + 4, W + 4) float32; ``rows4`` (F, (H + 4) (W + 4)) vec4, or
+    None: no expansion (IC-GN reads ``coef`` in place, the ``"plain"`` layout of :func:`rows4_view`);
     ``bad`` (F,) int32 zeroed by the caller, set to 1 for a frame holding a non-finite pixel. Each
     frame's coefficients equal :func:`bspline_coefficients` and :func:`expand_rows4` of the frame as
     float32 bit for bit (the same segmented filter, built from the same wp.funcs).
@@ -659,8 +660,9 @@ def bspline_frames(frames: wp.array, n_frames: int, coef: wp.array, rows4: wp.ar
     if frames.dtype not in FRAME_DTYPES.values() or frames.ndim != 3:
         raise ValueError(f"frames must be a 3-D uint8/uint16/float32 wp.array, got ndim={frames.ndim}, dtype={frames.dtype}")
     f, h, w = frames.shape
-    if not 1 <= n_frames <= min(f, coef.shape[0], rows4.shape[0], bad.shape[0]):
-        raise ValueError(f"n_frames must be in [1, {min(f, coef.shape[0], rows4.shape[0], bad.shape[0])}], got {n_frames}")
+    most = min(f, coef.shape[0], bad.shape[0], f if rows4 is None else rows4.shape[0])
+    if not 1 <= n_frames <= most:
+        raise ValueError(f"n_frames must be in [1, {most}], got {n_frames}")
     if h < 4 or w < 4 or coef.shape[1:] != (h + 2 * PAD, w + 2 * PAD):
         raise ValueError(f"coef must be (F, {h + 2 * PAD}, {w + 2 * PAD}) for frames of {h}x{w} (>= 4x4), got {coef.shape}")
     device = str(frames.device)
@@ -680,6 +682,8 @@ def bspline_frames(frames: wp.array, n_frames: int, coef: wp.array, rows4: wp.ar
                   device, offset_index=0, min_chunk=256)
     launch_1d(_prefilter_cols_frames, n_frames * pitch * nseg_c, [0, coef, h, pitch, nseg_c, entries], device,
               offset_index=0, min_chunk=64)
+    if rows4 is None:
+        return
     flat = coef.reshape((coef.shape[0], n))
     launch_1d(_expand_rows4_frames, n_frames * n, [0, flat, rows4, pitch, n], device, offset_index=0,
               min_chunk=1 << 16)

@@ -80,5 +80,5 @@ def icgn_counted(gathered: ReferenceSubsets, current: CurrentImage, guess: wp.ar
     max_iter = check_max_iter(max_iter)
     tol = positive_float(tol, "tol", detail=" of pixels")
     kernel = _icgn_counted_1st if gathered.order == 1 else _icgn_counted_2nd
-    launch_1d(kernel, n, [0, ctl, counts, gathered.table, current.coefficients("rows4"), guess, int(max_iter),
+    launch_1d(kernel, n, [0, ctl, counts, gathered.table, current.coefficients(), guess, int(max_iter),
                           float(tol), out.outputs], dev, offset_index=0, min_chunk=64)

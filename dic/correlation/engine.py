@@ -866,7 +866,7 @@ def _rg_device_loop(corr: Correlator, st: _RgState, cur: CurrentImage, zncc_min:
     if not graph:
         wp.capture_while(st.cond, body)
         return
-    key = (cur.rows4.ptr, cur.pitch, cur.shape, float(zncc_min), corr.max_iter, corr.tol, last)
+    key = ((cur.rows4 if cur.rows4 is not None else cur.plain).ptr, cur.pitch, cur.shape, float(zncc_min), corr.max_iter, corr.tol, last)
     if st.graph is None or st.graph[0] != key:
         import kernels.propagation as prop
         import kernels.rg_device as rgd

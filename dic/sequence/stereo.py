@@ -128,8 +128,9 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
         :mod:`dic.stereo_cracks`: no subset or strain window across them; stored in the file's settings).
         ``motion_prediction`` ("velocity" or "none"; default: "velocity" for a new file, a resumed file's own, "none"
         for files written before the option): how each state's temporal tracks start, with ``guess="previous"``:
-        "velocity" extrapolates the two states before at constant velocity (a start that accepts under 95 % of
-        the points the state before had runs again from the previous state + the global shift;
+        "velocity" extrapolates the two states before (the first: the reference pair, zero) at constant velocity (a
+        start that accepts under 95 % of the points the state before had runs again from the previous state + the
+        global shift;
         :class:`dic.StereoCorrelation`), "none" starts from the previous state + that shift.
 
     Returns
@@ -350,9 +351,9 @@ class _Stereo:
         if not next_done:  # the next state starts from this one's parameters (and its images' global shift)
             names = ("params_left", "params_right")
             params_left, params_right = self.writer.frame_arrays(k, names)
-            # motion_prediction="velocity": and the state's before it, as in one run (where state k started from
-            # state k - 1's parameters, that is from state 2 on: state 1 starts from the reference pair's zero)
-            before = self.writer.frame_arrays(k - 1, names) if k >= 2 and self.use_previous else None
+            # motion_prediction="velocity": and the state's before it, as in one run (state k started from state
+            # k - 1's parameters; state 1 from the reference pair's, state 0's zero)
+            before = self.writer.frame_arrays(k - 1, names) if k >= 1 and self.use_previous else None
             self.sc.set_previous(params_left, params_right, images=image, before=before)
 
     def counts(self, result: Field3D) -> tuple[int, int]:

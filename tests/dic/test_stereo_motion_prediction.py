@@ -77,9 +77,15 @@ def _uv(p):
 def test_constant_velocity_starts_next_to_the_result_and_takes_fewer_iterations(lab, monkeypatch):
     fields_v, states_v = _run(lab, "velocity", monkeypatch)
     fields_n, states_n = _run(lab, "none", monkeypatch)
-    for state in (1, 2):  # no two states before: no prediction
-        assert all(t["predicted"] is None for t in states_v[state - 1])
-    for state in (3, 4):  # constant velocity: the prediction is (almost) the result
+    # state 1 starts from the reference pair (no state before it): no prediction
+    assert all(t["predicted"] is None for t in states_v[0])
+    # state 2: the reference pair's zero is the state before state 1, so the prediction is twice state 1's result
+    for t in states_v[1]:
+        rows = np.all(np.isfinite(t["predicted"]), axis=1)
+        assert np.count_nonzero(rows) > 100
+        np.testing.assert_array_equal(t["predicted"][rows], 2.0 * t["previous"][rows])
+        np.testing.assert_array_equal(rows & t["eligible"], np.all(np.isfinite(t["previous"]), axis=1) & t["eligible"])
+    for state in (2, 3, 4):  # constant velocity: the prediction is (almost) the result
         for t_v, t_n in zip(states_v[state - 1], states_n[state - 1]):
             r = t_v["result"]
             ok = r.accepted

@@ -290,3 +290,32 @@ def test_graph_capture_is_cuda_only_and_results_view_the_last_frame(sequence, po
     assert ft.frame_buffer.shape == SHAPE and ft.frame_buffer.dtype == wdt
     for name in got:
         assert np.array_equal(getattr(ft.results, name).numpy(), got[name], equal_nan=True)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_both_layouts_give_the_same_bits(sequence, points, order):
+    """The "plain" layout (the CPU default: coefficients read in place through a vec4 view with a 4-byte stride, no
+    expansion pass) and the row-expanded copy run the same compiled kernels: every result the same bits, batched
+    launches and the host-path current of the last frame (FrameTracker.current) included."""
+    bits, ref, frames = sequence
+    subsets = _tracker(ref, points, order).correlator.subsets
+    dtype = np.uint8 if bits == 8 else np.uint16
+    plain = FrameTracker(subsets, dtype, zncc_min=ZNCC_MIN, layout="plain", batch=2)
+    rows4 = FrameTracker(subsets, dtype, zncc_min=ZNCC_MIN, layout="rows4", batch=2)
+    assert FrameTracker(subsets, dtype).layout == "plain"  # the CPU default
+    assert plain.layout == "plain" and plain._expanded is None and rows4._expanded is not None
+    for fr in frames[:3]:
+        a, b = plain.track(_as(fr, dtype)), rows4.track(_as(fr, dtype))
+        for key in ("params", "zncc", "iterations", "status"):
+            assert np.array_equal(a[key], b[key], equal_nan=True), key
+        cur_a, cur_b = plain.current(), rows4.current()
+        assert cur_a.layout == "plain" and cur_b.layout == "rows4"
+        ia, ib = icgn(subsets, cur_a).numpy(), icgn(subsets, cur_b).numpy()
+        for key in ("params", "zncc", "iterations", "status"):
+            assert np.array_equal(ia[key], ib[key], equal_nan=True), key
+    both = [_as(fr, dtype) for fr in frames[3:5]]
+    for ra, rb in zip(plain.track_batch(both), rows4.track_batch(both)):
+        for key in ("params", "zncc", "iterations", "status"):
+            assert np.array_equal(ra[key], rb[key], equal_nan=True), key
+    with pytest.raises(ValueError, match="layout must be one of"):
+        FrameTracker(subsets, dtype, layout="expanded")
