@@ -36,6 +36,7 @@ centre of the top-left pixel; 3-D in mm in the left camera frame (or a chosen ob
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, replace
 
@@ -100,6 +101,41 @@ __all__ = [
 
 def _image(img, name: str) -> np.ndarray:
     return as_float32_image(img, name)
+
+
+#: raw frame dtypes a state's images stay in until a float copy is needed (the frame path converts in its prefilter)
+_RAW_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
+
+
+def _raw_or_float(img, name: str) -> np.ndarray:
+    """A 2-D 8/16-bit NumPy image as it is (integers: nothing to check), anything else as the float32 image of
+    :func:`_image` (checked). A state's images are converted to float only where a step needs them
+    (:class:`_FloatImages`)."""
+    if type(img) is np.ndarray and img.dtype in _RAW_DTYPES and img.ndim == 2 and img.size:
+        return img
+    return _image(img, name)
+
+
+class _FloatImages:
+    """Float32 copies of a state's images, made when first needed and kept by identity (the same object each time:
+    a camera's current image is the next state's base, whose phase spectrum is kept by identity, _SpectrumMemo)."""
+
+    def __init__(self):
+        self._made: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, img: np.ndarray) -> np.ndarray:
+        if img.dtype == np.float32:
+            return img
+        made = self._made.get(id(img))
+        if made is None or made[0] is not img:
+            made = (img, as_float32_image(img))
+            self._made[id(img)] = made
+        return made[1]
+
+    def made(self, img: np.ndarray) -> np.ndarray:
+        """``img``'s float copy if one was made, else ``img``."""
+        made = self._made.get(id(img))
+        return made[1] if made is not None and made[0] is img else img
 
 
 def check_rig_images(rig, shape: tuple[int, int]) -> None:
@@ -469,9 +505,12 @@ class StereoCorrelation:
         if self.cracks:
             nb = grid_neighbours(self.grid_shape, self.strain_window) if self.neighbours is None else self.neighbours
             self._crack_strain = CrackCutStrain(self.points, nb, self.cracks)
+        # the grid's points outside the region are never correlated: not prepared (a region is often a small part of
+        # the image; the prepared subsets are the same bits)
         self.left = Correlator(left_ref, self.points, subset=self.subset, order=self.order, max_iter=self.max_iter,
                                tol=self.tol, device=self.device, pixel_mask=self.pixel_mask,
-                               min_kept_fraction=None if self.pixel_mask is None else self.min_kept_fraction)
+                               min_kept_fraction=None if self.pixel_mask is None else self.min_kept_fraction,
+                               active=None if self.pixel_mask is not None else self.in_roi)
         if self.check_warps:  # the warp check of the match needs it: computed meanwhile, on another thread
             self.left.prefetch_textured_fraction()
         self.timings["reference_prepare_s"] = time.perf_counter() - t0
@@ -499,15 +538,30 @@ class StereoCorrelation:
         self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
         self._moved: _TrackReference | None = None  # the temporal tracks' reference when not the reference pair
         self._strain_plan: SurfaceStrainPlan | None = None  # grid strain: the reference positions' part, once
+        self._deferred: dict = {}      # id(field) -> (field, _Deferred): states measured with complete=False
+        self._completing = threading.RLock()  # one complete() at a time (the strain plan, the sigma bases)
         #: "left"/"right": the phase-correlation spectrum of the camera's last image (the next state's base)
         self._spectra: dict[str, _SpectrumMemo] = {}
-        self.reference = self._field(None, index=0)
+        # the reference pair's state; its strain and uncertainty are computed when it is first read (reference), or
+        # on a sequence's writer thread (reference_field(complete=False), then complete())
+        self._reference = self._field(None, index=0, defer=True)
+
+    @property
+    def reference(self) -> Field3D:
+        """The reference pair's state (:class:`Field3D`, index 0: the match, zero displacement, the shape)."""
+        return self.complete(self._reference)
+
+    def reference_field(self, complete: bool = True) -> Field3D:
+        """The reference pair's state; ``complete=False``: possibly still without its strain and uncertainty
+        (:meth:`complete` fills them, e.g. on a sequence's writer thread while the first state tracks)."""
+        return self.complete(self._reference) if complete else self._reference
 
     # -------------------------------------------------------------------------------------------
-    def _correlator(self, image: np.ndarray, points: np.ndarray, pixel_mask=None) -> Correlator:
+    def _correlator(self, image: np.ndarray, points: np.ndarray, pixel_mask=None, active=None) -> Correlator:
         return Correlator(image, points, subset=self.subset, order=self.order, max_iter=self.max_iter, tol=self.tol,
                           device=self.device, pixel_mask=pixel_mask,
-                          min_kept_fraction=None if pixel_mask is None else self.min_kept_fraction)
+                          min_kept_fraction=None if pixel_mask is None else self.min_kept_fraction,
+                          active=None if pixel_mask is not None else active)
 
     def _right_pixel_mask(self, roi, matched: np.ndarray):
         """(M, S*S) bool or None: the right reference subsets' pixels (at the matched points) that the left
@@ -624,7 +678,7 @@ class StereoCorrelation:
     # -------------------------------------------------------------------------------------------
     def _track(self, corr: Correlator, image: np.ndarray, previous: np.ndarray | None, eligible: np.ndarray,
                reference_image: np.ndarray, previous_image: np.ndarray | None, frame: np.ndarray | None = None,
-               *, side: str, predicted: np.ndarray | None = None):
+               *, side: str, predicted: np.ndarray | None = None, floats: _FloatImages | None = None):
         """One temporal track: the first pass over every POI on the device frame path
         (:meth:`Correlator.run_frame`: the correlator's :class:`kernels.frames.FrameTracker`, buffers allocated
         once per reference, ``frame`` (the image as given: 8/16-bit or float32; default ``image``) converted in
@@ -636,10 +690,14 @@ class StereoCorrelation:
         NaN rows: none). The first pass starts from them (rows without one from ``previous`` moved by the median
         predicted step) and is kept when it accepts at least :data:`PREDICTION_MIN_ACCEPTED` of the points the
         previous state had; otherwise (a jump, a sudden stop) it runs again from ``previous`` + the global shift,
-        as without a prediction. The global shift is not measured when the prediction holds."""
+        as without a prediction. The global shift is not measured when the prediction holds.
+
+        ``image`` and ``previous_image`` may be raw 8/16-bit images: ``floats`` makes their float copies where the
+        global shift or the features need them (default: a converter of this call's own)."""
         k = n_params(self.order)
         n = corr.points.shape[0]
         frame = image if frame is None else frame
+        floats = _FloatImages() if floats is None else floats
         # initial guess: the previous state's parameters (or zero) plus the global integer shift
         # between the previous image (or the reference) and this one, by phase correlation. 2nd-order
         # IC-GN converges slowly from 2-3 px away on fine speckle (measured on the 5 MP benchmark: a
@@ -654,13 +712,21 @@ class StereoCorrelation:
             at = np.concatenate([at, at + previous[tracked][:, [0, k // 2]]])
         window = phase_window(at, image.shape, corr.subset // 2 + SHIFT_WINDOW_MARGIN_PX)
         spectrum = self._spectra.setdefault(side, _SpectrumMemo()).at(window)  # kept for the next state
-        ctx = GuessContext(corr, reference_image, image, prior, zncc_min=self.zncc_min,
-                           options={"base": base, "spectrum": spectrum, "max_features": self.max_features,
-                                    "radius": max(6.0 * self.subset, 3.0 * self.step)})
+        made = []
+
+        def context() -> GuessContext:
+            """The guesses' context (the images as float32), made when the shift or the features are needed."""
+            if not made:
+                made.append(GuessContext(corr, reference_image, floats(image), prior, zncc_min=self.zncc_min,
+                                         options={"base": floats(base), "spectrum": spectrum,
+                                                  "max_features": self.max_features,
+                                                  "radius": max(6.0 * self.subset, 3.0 * self.step)}))
+            return made[0]
+
         features = get_guess("features")  # fallback for POIs that fail: computed once per image, when needed
 
         def fallback(idx):
-            return features(ctx, idx)
+            return features(context(), idx)
 
         corr.limit_frames(eligible)  # the first pass at the POIs this track uses only (the others are skipped)
         first = None
@@ -676,6 +742,7 @@ class StereoCorrelation:
                 has = np.ones(n, dtype=bool)
                 src = SOURCE_PREVIOUS
         if first is None:
+            ctx = context()
             guess, has = get_guess("shift")(ctx)
             src = SOURCE_NONE if previous is None else SOURCE_PREVIOUS
             if ctx.cache["shift_applied"] and previous is None:
@@ -687,16 +754,27 @@ class StereoCorrelation:
                          min_fallback=max(16, int(0.01 * n)), check_warps=self.check_warps, robust=self.robust,
                          first=first)
 
-    def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True, warn: bool = True) -> Field3D:
+    def measure(self, left_cur, right_cur, *, index: int = 1, use_previous: bool = True, warn: bool = True,
+                complete: bool = True) -> Field3D:
         """Track a current pair from the reference pair and return its :class:`Field3D`.
 
         ``use_previous``: start IC-GN from the parameters of the last measured state (a sequence's
         previous frame); otherwise from zero displacement. POIs that fail are retried from SIFT
         feature matches and from converged neighbours. ``warn=False``: no warning when the tracks
         leave (almost) every point invalid (a caller that may track the state again from another
-        reference calls :meth:`warn_if_mostly_invalid` for the result it keeps).
+        reference calls :meth:`warn_if_mostly_invalid` for the result it keeps). ``complete=False``: the
+        state's strain and uncertainty are left to :meth:`complete` (NaN until then; everything else, the
+        statuses and the next state's start included, is there), so that a sequence computes them on its
+        writer thread while the next state tracks (:func:`dic.sequence.stereo_sequence`).
         """
-        L, R = _check_pair(left_cur, right_cur, "current")
+        # 8/16-bit images stay as they are (the frame path converts them in its prefilter); float copies are made
+        # where a step needs them (the global shift, the features, the composed check): floats
+        L, R = _raw_or_float(left_cur, "left current image"), _raw_or_float(right_cur, "right current image")
+        if L.shape != R.shape:
+            raise ValueError(f"the left and right current images differ in size: {L.shape[1]}x{L.shape[0]} and "
+                             f"{R.shape[1]}x{R.shape[0]} px (W x H); stereo DIC needs the two cameras' images at their "
+                             "calibrated size")
+        floats = _FloatImages()
         frame_l, frame_r = _frame(left_cur, L), _frame(right_cur, R)
         if L.shape != self.shape:
             raise ValueError(f"the current images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
@@ -736,20 +814,21 @@ class StereoCorrelation:
         self.timings = {}
         t0 = time.perf_counter()
         tl = self._track(corr_l, L, guess_l, eligible_l, ref_l, prev_images[0], frame_l, side="left",
-                         predicted=pred_l)
+                         predicted=pred_l, floats=floats)
         self.timings["track_left_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if corr_r is not None:
             tr = self._track(corr_r, R, guess_r, eligible_r, ref_r, prev_images[1], frame_r, side="right",
-                             predicted=pred_r)
+                             predicted=pred_r, floats=floats)
         else:
             tr = None
         self.timings["track_right_s"] = time.perf_counter() - t0
         if mv is not None:  # back to the reference state (Lagrangian)
             tl = mv.compose(tl, "left", self.order)
             tr = None if tr is None else mv.compose(tr, "right", self.order)
-        checked = self._check_composed(tl, tr, L, R) if mv is not None and self.verify_zncc is not None else None
-        f = self._field((tl, tr), index=index, composed=checked)
+        checked = (self._check_composed(tl, tr, floats(L), floats(R)) if mv is not None and self.verify_zncc is not None
+                   else None)
+        f = self._field((tl, tr), index=index, composed=checked, defer=not complete)
         if mv is not None:  # valid here, placed in the tracks' reference by interpolation (not valid there)
             f.reference_interpolated = f.valid & ~mv.valid
         if warn and self._tracks_judged():
@@ -758,7 +837,8 @@ class StereoCorrelation:
         # state: zero, the first of a chain) has the reference pair's parameters before it, as stored for state 0
         self._before = prev if prev is not None else self._reference_params()
         self._previous = (f.details["params_left"], f.details["params_right"])
-        self._previous_images = (L, R)
+        # the next state's base images: the float copies made here (their spectra are kept by identity), else raw
+        self._previous_images = (floats.made(L), floats.made(R))
         return f
 
     def _check_composed(self, tl, tr, L, R):
@@ -838,7 +918,7 @@ class StereoCorrelation:
     def trackable(self) -> np.ndarray:
         """(N,) bool: the points the temporal tracks' reference can track: valid in the reference pair, or, after
         :meth:`move_reference`, valid in that state or placed there by local interpolation."""
-        return self.reference.valid if self._moved is None else self._moved.usable
+        return self._reference.valid if self._moved is None else self._moved.usable
 
     @property
     def reference_index(self) -> int:
@@ -879,12 +959,14 @@ class StereoCorrelation:
         if L.shape != self.shape:
             raise ValueError(f"the new reference images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
                              f"{self.shape[1]}x{self.shape[0]} px")
+        self.complete(state)  # a state measured with complete=False: its uncertainty is carried to the new reference
         planned = _TrackReference.plan(self, state)  # a state that cannot serve is refused with the tracks unchanged
         self._moved = None  # the previous moved reference's data are freed before the new ones are prepared
         self._moved = planned.prepare(self, L, R)
 
-    def _correlators_at(self, left_image, right_image, points_left, points_right, masks=(None, None)):
-        return (self._correlator(left_image, points_left, pixel_mask=masks[0]),
+    def _correlators_at(self, left_image, right_image, points_left, points_right, masks=(None, None),
+                        active_left=None):
+        return (self._correlator(left_image, points_left, pixel_mask=masks[0], active=active_left),
                 self._correlator(right_image, points_right, pixel_mask=masks[1]) if points_right.shape[0] else None)
 
     def _moved_pixel_masks(self, moved_left, moved_right):
@@ -935,10 +1017,11 @@ class StereoCorrelation:
         return triangulation_jacobian(self._tri_points, pl, pr)
 
     def _sigmas(self, tracks, pl_cur: np.ndarray, pr_cur: np.ndarray, valid: np.ndarray,
-                xyz_cur: np.ndarray) -> dict[str, np.ndarray]:
+                xyz_cur: np.ndarray, mv) -> dict[str, np.ndarray]:
         """Per-point std of the match and both tracks (N, 2) px, the noise (N, 3) behind them, and
         their propagation to the reference positions and displacements (N, 3) mm in the output frame.
-        ``xyz_cur`` (N, 3) mm, left camera frame: the triangulation of ``pl_cur``, ``pr_cur``."""
+        ``xyz_cur`` (N, 3) mm, left camera frame: the triangulation of ``pl_cur``, ``pr_cur``; ``mv``: the
+        tracks' moved reference when they were measured (None: the reference pair)."""
         n = self.points.shape[0]
         m = self.match
         for side, corr in (("left", self.left), ("right", self.right)):
@@ -952,7 +1035,6 @@ class StereoCorrelation:
         noise_l = noise_r = np.nan
         if tracks is not None:
             tl, tr = tracks
-            mv = self._moved
             basis = self._basis if mv is None else mv.basis()
             sig_l, noise_l, _ = displacement_sigma(basis["left"], tl.zncc, tl.accepted, self.noise_sigma)
             rho_l = basis["left"].rho_uv
@@ -990,7 +1072,9 @@ class StereoCorrelation:
                 "sigma_uvw_mm": sig_uvw}
 
     # -------------------------------------------------------------------------------------------
-    def _field(self, tracks, index: int, composed=None) -> Field3D:
+    def _field(self, tracks, index: int, composed=None, defer: bool = False) -> Field3D:
+        """The state's Field3D from its tracks (None: the reference pair). ``defer``: its strain and uncertainty
+        left to :meth:`complete` (placeholders until then)."""
         n = self.points.shape[0]
         k = n_params(self.order)
         m = self.match
@@ -1071,28 +1155,43 @@ class StereoCorrelation:
         uvw[~valid] = np.nan
         # reference positions are kept wherever the reference match and its triangulation are good
         xyz_ref_f[~(m.valid & (tri_ref == TriangulationStatus.OK))] = np.nan
-        t0 = time.perf_counter()
-        details.update(self._sigmas(tracks, pl_cur, pr_cur, valid, xyz_cur))
-        self.timings["uncertainty_s"] = time.perf_counter() - t0
         camera_center = t  # the left camera centre (origin of the left frame) in the output frame
-        t0 = time.perf_counter()
-        if self.grid_shape is not None:
-            # the reference positions' part of the fits worked out once and kept while the valid points stay
-            # the same (SurfaceStrainPlan: bit for bit surface_strain_grid)
-            if self._strain_plan is None or not np.array_equal(self._strain_plan.X, xyz_ref_f, equal_nan=True):
-                self._strain_plan = SurfaceStrainPlan(xyz_ref_f, self.grid_shape, self.strain_window,
-                                                      camera_center=camera_center, strain_type=self.strain_type)
-            strain = self._strain_plan(np.nan_to_num(uvw), valid)
+        mv = self._moved if tracks is not None else None  # the tracks' reference now (it may move before `later` runs)
+        timings = self.timings
+
+        def later():
+            """The state's uncertainty and strain: what it reads was fixed above (and the plans kept on self)."""
+            t0 = time.perf_counter()
+            sig = self._sigmas(tracks, pl_cur, pr_cur, valid, xyz_cur, mv)
+            timings["uncertainty_s"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            if self.grid_shape is not None:
+                # the reference positions' part of the fits worked out once and kept while the valid points stay
+                # the same (SurfaceStrainPlan: bit for bit surface_strain_grid)
+                if self._strain_plan is None or not np.array_equal(self._strain_plan.X, xyz_ref_f, equal_nan=True):
+                    self._strain_plan = SurfaceStrainPlan(xyz_ref_f, self.grid_shape, self.strain_window,
+                                                          camera_center=camera_center, strain_type=self.strain_type)
+                strain = self._strain_plan(np.nan_to_num(uvw), valid)
+            else:
+                strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours,
+                                        camera_center=camera_center, strain_type=self.strain_type)
+            if self._crack_strain is not None:  # the windows a declared crack cuts, fitted on their own side
+                strain = self._crack_strain.apply(strain, xyz_ref_f, np.nan_to_num(uvw), valid,
+                                                  camera_center=camera_center, strain_type=self.strain_type)
+            timings["strain_s"] = time.perf_counter() - t0
+            return sig, strain
+
+        if defer:  # placeholders, in the order of the complete field's details (filled by complete())
+            sig = dict.fromkeys(SIGMA_DETAILS)
+            strain = {name: np.full(n, np.nan) for name in ("exx", "eyy", "exy")}
+            strain.update(normal=np.full((n, 3), np.nan), strain_valid=np.zeros(n, dtype=bool))
         else:
-            strain = surface_strain(xyz_ref_f, np.nan_to_num(uvw), valid, self.neighbours, camera_center=camera_center,
-                                    strain_type=self.strain_type)
-        if self._crack_strain is not None:  # the windows a declared crack cuts, fitted on their own side
-            strain = self._crack_strain.apply(strain, xyz_ref_f, np.nan_to_num(uvw), valid, camera_center=camera_center,
-                                              strain_type=self.strain_type)
-        self.timings["strain_s"] = time.perf_counter() - t0
+            with self._completing:  # (a deferred state's completion may be running on another thread)
+                sig, strain = later()
+        details.update(sig)
         details.update(triangulation_status=tri_cur, points_left_cur=pl_cur, points_right_cur=pr_cur)
         zs = np.where(np.isfinite(m.zncc), m.zncc, np.nan)
-        return Field3D(
+        f = Field3D(
             points=self.points, grid_shape=self.grid_shape,
             X=xyz_ref_f[:, 0], Y=xyz_ref_f[:, 1], Z=xyz_ref_f[:, 2], U=uvw[:, 0], V=uvw[:, 1], W=uvw[:, 2],
             exx=strain["exx"], eyy=strain["eyy"], exy=strain["exy"], normal=strain["normal"],
@@ -1102,6 +1201,48 @@ class StereoCorrelation:
             index=int(index), details=details, reference_index=self.reference_index if tracks is not None else 0,
             strain_type=self.strain_type,
         )
+        if defer:
+            self._deferred[id(f)] = (f, _Deferred(later))
+        return f
+
+    def complete(self, field: Field3D) -> Field3D:
+        """Compute the strain and the uncertainty of a state measured with ``measure(..., complete=False)`` into
+        ``field`` (its ``exx``, ``eyy``, ``exy``, ``normal``, ``strain_valid`` and the ``sigma_*`` and
+        ``noise_sigma_grey`` details); returns it. Nothing to do for a complete field. Safe from any thread: one
+        completion runs at a time (they share the strain plan), each once; the result is bit for bit that of
+        ``measure(...)`` (the moved reference is the one the state was measured from)."""
+        entry = self._deferred.get(id(field))
+        if entry is None or entry[0] is not field:
+            return field
+        with self._completing:
+            if self._deferred.get(id(field)) is entry:
+                sig, strain = entry[1].later()
+                field.details.update(sig)
+                field.exx, field.eyy, field.exy = strain["exx"], strain["eyy"], strain["exy"]
+                field.normal, field.strain_valid = strain["normal"], strain["strain_valid"]
+                del self._deferred[id(field)]
+        return field
+
+    def discard(self, field: Field3D) -> None:
+        """Forget the pending strain and uncertainty of a state measured with ``complete=False`` that is not kept
+        (e.g. measured again from another reference)."""
+        with self._completing:
+            entry = self._deferred.get(id(field))
+            if entry is not None and entry[0] is field:
+                del self._deferred[id(field)]
+
+
+#: the details of a state's uncertainty (StereoCorrelation._sigmas), in their order
+SIGMA_DETAILS = ("sigma_match_px", "sigma_left_px", "sigma_right_px", "noise_sigma_grey", "sigma_xyz_mm",
+                 "sigma_uvw_mm")
+
+
+@dataclass
+class _Deferred:
+    """A state's strain and uncertainty still to compute (StereoCorrelation.complete): ``later()`` -> (sigma
+    details, strain dict)."""
+
+    later: object
 
 
 #: px beyond the tracked subsets that the global shift of a temporal track is measured on (its phase-correlation
@@ -1203,7 +1344,9 @@ class _TrackReference:
         """The reference subsets of both cameras in the state's images ``L``, ``R`` (at the moved points)."""
         self.left_image, self.right_image = L, R
         masks = sc._moved_pixel_masks(self.moved_left, self.moved_right)  # the region and cracks carried there
-        self.left, self.right = sc._correlators_at(L, R, self.moved_left.points, self.moved_right.points, masks)
+        # the left subsets of the points this reference tracks only (matched and usable: the left track's eligible)
+        self.left, self.right = sc._correlators_at(L, R, self.moved_left.points, self.moved_right.points, masks,
+                                                   active_left=sc.match.valid & self.usable)
         return self
 
     def _moved(self, side: str):

@@ -38,6 +38,7 @@ _POOL: ThreadPoolExecutor | None = None
 #: _prepare_subsets_1st    128     once per reference; the module's block size
 #: _prepare_subsets_2nd    128     idem (255 registers and a 3480-byte stack: 8 warps)
 #: _reference_gradients    128     40 registers: 48 warps per SM at 128 or 256
+#: _reference_gradients_window 128 the same over a window of the image (prepare_reference(window=))
 #: _prefilter_rows         256, 6  capped at 40 registers (56 uncapped), no spill: 48 warps
 #:                                 instead of 32 for a latency-bound recursive filter
 #:                                 (capping at 32, (256, 8), spills 32 bytes)
@@ -64,6 +65,7 @@ CUDA_LAUNCH = {
     "_prepare_subsets_1st": (128, 0),
     "_prepare_subsets_2nd": (128, 0),
     "_reference_gradients": (128, 0),
+    "_reference_gradients_window": (128, 0),
     "_prefilter_rows": (256, 6),
     "_prefilter_cols": (256, 8),
     "_prefilter_entries_rows": (256, 0),

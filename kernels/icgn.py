@@ -494,6 +494,18 @@ def _reference_gradients(offset: int, image: wp.array2d(dtype=float), coef: wp.a
     fgrad[k] = wp.vec3(image[y, x], vg[1], vg[2])
 
 
+@wp.kernel(launch_bounds=cuda_launch_bounds("_reference_gradients_window"))
+def _reference_gradients_window(offset: int, image: wp.array2d(dtype=float), coef: wp.array(dtype=float), pitch: int,
+                                width: int, x0: int, y0: int, window_width: int, fgrad: wp.array(dtype=wp.vec3)):
+    """:func:`_reference_gradients` over the pixels of a window (x0, y0, window_width columns) only."""
+    t = wp.tid() + offset
+    dy = t // window_width
+    y = y0 + dy
+    x = x0 + (t - dy * window_width)
+    vg = bspline3_value_grad(coef, pitch, float(x), float(y))
+    fgrad[y * width + x] = wp.vec3(image[y, x], vg[1], vg[2])
+
+
 @wp.func
 def mono_exponents(k: int):
     """(power of xi, power of eta, coefficient) of the k-th term of (1, xi, eta, xi^2/2, xi*eta, eta^2/2)."""
@@ -1130,23 +1142,52 @@ def check_subset_order(subset, order) -> tuple[int, int]:
     return int(subset), int(order)
 
 
-def prepare_reference(image, device=None) -> ReferenceImage:
+def prepare_reference(image, device=None, window=None) -> ReferenceImage:
     """Precompute the reference image's values and B-spline gradients (once per reference).
 
     Parameters
     ----------
     image : array-like (H, W) grey image (any real dtype; grey levels kept on their scale), H, W >= 4.
     device : None or str
+    window : (x0, y0, x1, y1) int, optional
+        Compute ``fgrad`` at the pixels ``x0 <= x <= x1``, ``y0 <= y <= y1`` only (clipped to the image), zero
+        elsewhere: for subsets known to lie inside it (:func:`subsets_window`); the values there are the same bits.
     """
     device = resolve_device(device)
     arr = as_float32_image(image, "reference")
     coef = bspline_coefficients(arr, device=device)
     h, w = arr.shape
     img_wp = wp.array(arr, dtype=wp.float32, device=device)
-    fgrad = wp.empty(h * w, dtype=wp.vec3, device=device)
-    launch_1d(_reference_gradients, h * w, [0, img_wp, coef.flat, coef.pitch, w, fgrad], device, offset_index=0,
-              min_chunk=1 << 15)
+    if window is None:
+        fgrad = wp.empty(h * w, dtype=wp.vec3, device=device)
+        launch_1d(_reference_gradients, h * w, [0, img_wp, coef.flat, coef.pitch, w, fgrad], device, offset_index=0,
+                  min_chunk=1 << 15)
+    else:
+        x0, y0, x1, y1 = (int(v) for v in window)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
+        fgrad = wp.zeros(h * w, dtype=wp.vec3, device=device)
+        if x1 >= x0 and y1 >= y0:
+            ww = x1 - x0 + 1
+            launch_1d(_reference_gradients_window, ww * (y1 - y0 + 1),
+                      [0, img_wp, coef.flat, coef.pitch, w, x0, y0, ww, fgrad], device, offset_index=0,
+                      min_chunk=1 << 15)
     return ReferenceImage(fgrad, (h, w), float(arr.max() - arr.min()), device)
+
+
+def subsets_window(points, subset: int, active=None) -> tuple[int, int, int, int] | None:
+    """``(x0, y0, x1, y1)``: the pixels the subsets of the (``active``) POIs ``points`` (N, 2) px read in the reference
+    (their integer centres ``round(x)``, ``round(y)`` +- ``subset // 2``); None when there is none."""
+    pts = np.asarray(points, dtype=np.float64)
+    if active is not None:
+        pts = pts[np.asarray(active, dtype=bool)]
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if pts.shape[0] == 0:
+        return None
+    r = int(subset) // 2
+    # the kernels' centres are rounded half away from zero; one pixel more either way covers any rounding
+    lo = np.floor(pts.min(axis=0)).astype(int) - r - 1
+    hi = np.ceil(pts.max(axis=0)).astype(int) + r + 1
+    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
 
 def prepare_current(image, device=None, out: CurrentImage | None = None, layout: str | None = None) -> CurrentImage:
@@ -1205,7 +1246,7 @@ def _reusable(out: CurrentImage | None, device: str, shape) -> wp.array | None:
 
 
 def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: int = 1,
-                    flat_std: float | None = None) -> ReferenceSubsets:
+                    flat_std: float | None = None, active=None) -> ReferenceSubsets:
     """Precompute the per-POI reference quantities of IC-GN (Pan et al. 2013, doi:10.1007/s11340-012-9640-x).
 
     Parameters
@@ -1219,6 +1260,10 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
     flat_std : float, optional
         A subset whose grey-level standard deviation is <= this is ``FLAT_SUBSET``.
         Default: 1e-3 of the reference image's grey-level range.
+    active : (N,) bool, optional
+        Prepare these POIs only; the others get status ``NOT_COMPUTED`` (never tracked) and zero tables. The
+        prepared rows are bit for bit those of preparing every POI (each POI's row depends on it alone). E.g.
+        a grid over the whole image of which a region is correlated.
 
     Returns
     -------
@@ -1237,6 +1282,12 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
         raise ValueError(f"flat_std must be a finite non-negative grey level, got {flat_std!r}")
     device = reference.device
     n = pts.shape[0]
+    if active is not None:
+        act = np.asarray(active)
+        if act.dtype != bool or act.shape != (n,):
+            raise ValueError(f"active must be an ({n},) bool array (the POIs to prepare), got {act.dtype} {act.shape}")
+        if not act.all():
+            return _prepare_active(reference, pts, act, subset, order, float(flat_std))
     centres = wp.empty(n, dtype=wp.vec2i, device=device)
     deltas = wp.empty(n, dtype=wp.vec2, device=device)
     refdata = wp.zeros((n, refdata_width(order)), dtype=wp.float32, device=device)
@@ -1245,6 +1296,23 @@ def prepare_subsets(reference: ReferenceImage, points, subset: int = 21, order: 
     subsets = ReferenceSubsets(reference, pts, subset, order, centres, deltas, refdata, status, float(flat_std))
     launch_1d(_prepare_subsets[order], n, [0, pts_wp, subsets.table], device, offset_index=0, min_chunk=64)
     return subsets
+
+
+def _prepare_active(reference: ReferenceImage, pts: np.ndarray, active: np.ndarray, subset: int, order: int,
+                    flat_std: float) -> ReferenceSubsets:
+    """:func:`prepare_subsets` of the ``active`` POIs, scattered into tables of every POI (the others NOT_COMPUTED)."""
+    device = reference.device
+    n = pts.shape[0]
+    idx = np.flatnonzero(active)
+    full = ReferenceSubsets(reference, pts, subset, order, wp.zeros(n, dtype=wp.vec2i, device=device),
+                            wp.zeros(n, dtype=wp.vec2, device=device),
+                            wp.zeros((n, refdata_width(order)), dtype=wp.float32, device=device),
+                            wp.full(n, int(ST_NOT_COMPUTED), dtype=wp.int32, device=device), flat_std)
+    if idx.size:
+        part = prepare_subsets(reference, pts[idx], subset=subset, order=order, flat_std=flat_std)
+        launch_1d(_scatter_subsets, int(idx.size), [0, wp.array(idx.astype(np.int32), dtype=wp.int32, device=device),
+                                                    part.table, full.table], device, offset_index=0, min_chunk=1024)
+    return full
 
 
 def _as_guess(guess, n: int, k: int, device: str) -> wp.array:
@@ -1366,6 +1434,12 @@ def copy_subset_row(src: SubsetTable, n: int, dst: SubsetTable, t: int):
 def _gather_subsets(offset: int, idx: wp.array(dtype=wp.int32), src: SubsetTable, dst: SubsetTable):
     t = wp.tid() + offset
     copy_subset_row(src, idx[t], dst, t)
+
+
+@wp.kernel
+def _scatter_subsets(offset: int, idx: wp.array(dtype=wp.int32), src: SubsetTable, dst: SubsetTable):
+    t = wp.tid() + offset
+    copy_subset_row(src, t, dst, idx[t])
 
 
 def subset_buffers(subsets: ReferenceSubsets, capacity: int | None = None) -> ReferenceSubsets:

@@ -38,6 +38,7 @@ from kernels.icgn import (
     prepare_subsets,
     subset_buffers,
     subset_rows,
+    subsets_window,
 )
 
 from .acceptance import GOOD, accepted_mask, flag_implausible, second_opinion_candidates
@@ -104,19 +105,25 @@ class Correlator:
         (:mod:`kernels.icgn_masked`); None: every pixel.
     min_kept_fraction : float in (0, 1], optional - with ``pixel_mask``, the fraction of its pixels a subset
         must keep (else TOO_FEW_PIXELS; default :data:`kernels.icgn_masked.DEFAULT_MIN_KEPT_FRACTION`).
+    active : (N,) bool, optional - the POIs that may be correlated (e.g. a grid's points in the region); the
+        others are not prepared (status NOT_COMPUTED, never ready: :func:`kernels.icgn.prepare_subsets`), the
+        prepared ones bit for bit as without it. Without a ``pixel_mask`` only (masked subsets prepare every POI).
     """
 
     def __init__(self, reference: np.ndarray, points: np.ndarray, *, subset: int, order: int, max_iter: int,
                  tol: float, device: str, flat_std: float | None = None, pixel_mask: np.ndarray | None = None,
-                 min_kept_fraction: float | None = None):
+                 min_kept_fraction: float | None = None, active: np.ndarray | None = None):
         self.image = reference
         self.points = points
         self.subset, self.order, self.device = subset, order, device
         self.max_iter, self.tol, self.flat_std = max_iter, tol, flat_std
         self.pixel_mask = None if pixel_mask is None else np.asarray(pixel_mask, dtype=bool)
-        self.reference = prepare_reference(reference, device=device)
+        # with active POIs (a region of a grid over the image), the reference gradients where their subsets lie only
+        window = None if active is None or pixel_mask is not None else subsets_window(points, subset, active)
+        self.reference = prepare_reference(reference, device=device, window=window)
         if self.pixel_mask is None:
-            self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std)
+            self.subsets = prepare_subsets(self.reference, points, subset=subset, order=order, flat_std=flat_std,
+                                           active=active)
         else:
             from kernels.icgn_masked import DEFAULT_MIN_KEPT_FRACTION, prepare_subsets_masked
 
@@ -128,6 +135,8 @@ class Correlator:
         self._frames = {}  # device-resident frame trackers by frame dtype (run_frame)
         self._frame_subsets = None  # run_frame's subsets when limited to some POIs (limit_frames)
         self._frame_active = None  # the POIs run_frame correlates when limited (limit_frames); None: all
+        self._frame_index = None  # limited: the POIs its launch covers (ready and active), in order
+        self._frame_status = None  # limited: the statuses of the others (reference status, NOT_COMPUTED if not active)
         self._textured = None
         self._textured_future = None  # prefetch_textured_fraction's computation, until it is read
         self._indexed = None  # buffers of run(): allocated once, on first use
@@ -192,6 +201,25 @@ class Correlator:
         dt = np.dtype(frame.dtype) if isinstance(frame, np.ndarray) else None
         if dt is None:
             raise ValueError(f"{name} must be a NumPy array here, got {type(frame).__name__}")
+        idx = self._frame_index
+        if idx is not None:  # limited (limit_frames): the launch over the POIs it correlates only
+            g = np.asarray(guess, dtype=np.float64)
+            if g.shape != (self.n_points, n_params(self.order)):
+                raise ValueError(f"guess must have shape {(self.n_points, n_params(self.order))} (one row of "
+                                 f"parameters per POI), got {g.shape}")
+            if not np.all(np.isfinite(g)):
+                raise ValueError("guess contains NaN or infinite values; give a finite guess")
+            # what a launch over every POI returns at one it skips: the guess (float32), no ZNCC, no iteration
+            out = {"params": g.astype(np.float32), "zncc": np.full(self.n_points, np.nan, dtype=np.float32),
+                   "iterations": np.zeros(self.n_points, dtype=np.int32), "status": self._frame_status.copy()}
+            tracker = self._frames.get(dt)
+            if tracker is None:
+                tracker = self._frames[dt] = FrameTracker(self._frame_subsets, dt, max_iter=self.max_iter,
+                                                          tol=self.tol)
+            r = tracker.track(frame, guess=g[idx], name=name)
+            for key in out:
+                out[key][idx] = r[key]
+            return out
         tracker = self._frames.get(dt)
         if tracker is None:
             subsets = self.subsets if self._frame_subsets is None else self._frame_subsets
@@ -204,7 +232,10 @@ class Correlator:
 
         For a caller that uses the first pass at some POIs only (the stereo tracks: the matched POIs): the
         others cost nothing, and each active POI's result is bit for bit the one of the unrestricted launch
-        (one thread per POI). Shares the prepared per-POI tables (a status array of its own); the frame
+        (one thread per POI). The rows of the POIs it correlates (active and ready) are gathered once
+        (:func:`kernels.icgn.gather_subsets`) and the launch covers those only, so a region of a grid over the
+        whole image spreads its work evenly over the threads; the others come back as the unrestricted launch
+        returns them (their guess, no ZNCC, no iteration, NOT_COMPUTED or their reference status). The frame
         trackers are built again on the next :meth:`run_frame` (not when the same POIs are given again)."""
         active = np.asarray(active, dtype=bool)
         if active.shape != (self.n_points,):
@@ -214,13 +245,23 @@ class Correlator:
         if same:  # these POIs already (a sequence: every state): the trackers and their buffers are kept
             return
         self._frames = {}
-        self._frame_active = self._frame_subsets = None
+        self._frame_active = self._frame_subsets = self._frame_index = self._frame_status = None
         if active.all():
             return
         self._frame_active = active.copy()
         status = self.reference_status.copy()
         status[~active & (status == int(Status.CONVERGED))] = int(Status.NOT_COMPUTED)
-        self._frame_subsets = replace(self.subsets, status=wp.array(status, dtype=wp.int32, device=self.device))
+        idx = np.flatnonzero(status == int(Status.CONVERGED))
+        if idx.size:
+            # the launch over the correlated POIs only (their rows gathered once: a grid over an image of which a
+            # region is correlated would otherwise spread its work unevenly over the threads' chunks)
+            self._frame_index, self._frame_status = idx, status
+            self._frame_subsets = gather_subsets(self.subsets, wp.array(idx.astype(np.int32), dtype=wp.int32,
+                                                                        device=self.device),
+                                                 int(idx.size), subset_buffers(self.subsets, int(idx.size)),
+                                                 points=self.points[idx])
+        else:  # none: a launch that correlates nothing but still prepares the frame (frame_current)
+            self._frame_subsets = replace(self.subsets, status=wp.array(status, dtype=wp.int32, device=self.device))
 
     def frame_current(self, frame_dtype) -> CurrentImage:
         """The prepared last frame of :meth:`run_frame` for ``frame_dtype`` (a view of its tracker's buffers)."""

@@ -86,7 +86,8 @@ def feature_matches(image_a, image_b, *, max_features: int = 20000, ratio: float
 
 
 def affine_guess(points, src, dst, *, k: int = 16, radius: float = 120.0, min_matches: int = 6,
-                 inlier_px: float = 2.0, iterations: int = 4, cell: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 inlier_px: float = 2.0, iterations: int = 4, cell: float | None = None,
+                 active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-POI affine guess ``(u, ux, uy, v, vx, vy)`` from point correspondences ``src -> dst``.
 
     For each POI the displacement ``dst - src`` of its ``k`` nearest correspondences within
@@ -97,6 +98,10 @@ def affine_guess(points, src, dst, *, k: int = 16, radius: float = 120.0, min_ma
     the cell's centre, and carried to the POIs inside it through its own affine map (the
     correspondences are ~30 px apart in practice, so a denser evaluation adds nothing but time).
 
+    ``active`` (N,) bool, optional: the POIs that need a guess (the others get none, NaN); the guesses of those
+    are bit for bit the ones computed for every POI (each cell's fit is its own; whether cells are used at all is
+    decided on all ``points``). E.g. a grid over the whole image of which a region is correlated.
+
     Returns ``params`` (N, 6) float64 (PARAMS_1ST order, NaN where no guess) and ``ok`` (N,) bool.
     """
     from scipy.spatial import cKDTree
@@ -106,6 +111,12 @@ def affine_guess(points, src, dst, *, k: int = 16, radius: float = 120.0, min_ma
     D = np.asarray(dst, dtype=np.float64).reshape(-1, 2)
     n = P.shape[0]
     params = np.full((n, 6), np.nan)
+    if active is not None:
+        active = np.asarray(active)
+        if active.dtype != bool or active.shape != (n,):
+            raise ValueError(f"active must be an ({n},) bool array, got {active.dtype} {active.shape}")
+        if active.all():
+            active = None
     if S.shape[0] < min_matches or n == 0:
         return params, np.zeros(n, dtype=bool)
     h = radius / 6.0 if cell is None else float(cell)
@@ -120,13 +131,30 @@ def affine_guess(points, src, dst, *, k: int = 16, radius: float = 120.0, min_ma
         inverse = inverse.ravel()
         if cells.shape[0] < n:
             centres = (cells + 0.5) * h
-            p_cells, ok_cells = affine_guess(centres, S, D, k=k, radius=radius, min_matches=min_matches,
-                                             inlier_px=inlier_px, iterations=iterations, cell=0.0)
+            # the cells of the active POIs only (each cell's fit is computed on its own row)
+            needed = None if active is None else np.unique(inverse[active])
+            p_cells, ok_cells = affine_guess(centres if needed is None else centres[needed], S, D, k=k, radius=radius,
+                                             min_matches=min_matches, inlier_px=inlier_px, iterations=iterations,
+                                             cell=0.0)
+            if needed is not None:  # back to every cell (the others: no guess)
+                p_all, ok_all = np.full((cells.shape[0], 6), np.nan), np.zeros(cells.shape[0], dtype=bool)
+                p_all[needed], ok_all[needed] = p_cells, ok_cells
+                p_cells, ok_cells = p_all, ok_all
             d = P - centres[inverse]
             out = p_cells[inverse].copy()
             out[:, 0] += out[:, 1] * d[:, 0] + out[:, 2] * d[:, 1]
             out[:, 3] += out[:, 4] * d[:, 0] + out[:, 5] * d[:, 1]
-            return out, ok_cells[inverse].copy()
+            ok = ok_cells[inverse].copy()
+            if active is not None:  # (an inactive POI in an active POI's cell: none either)
+                out[~active], ok[~active] = np.nan, False
+            return out, ok
+    if active is not None:  # each POI's own fit, at the active ones
+        rows = np.flatnonzero(active)
+        p_rows, ok_rows = affine_guess(P[rows], S, D, k=k, radius=radius, min_matches=min_matches, inlier_px=inlier_px,
+                                       iterations=iterations, cell=0.0)
+        ok = np.zeros(n, dtype=bool)
+        params[rows], ok[rows] = p_rows, ok_rows
+        return params, ok
     kk = int(min(k, S.shape[0]))
     tree = cKDTree(S)
     for c0 in range(0, n, 65536):          # chunks bound the memory of the (n, k) work arrays

@@ -31,6 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from kernels.conventions import Status
 from kernels.search import (
     phase_correlation,
     phase_correlation_spectra,
@@ -237,7 +238,9 @@ def _features(ctx: GuessContext, idx: np.ndarray):
             pa, pb = pa[mask], pb[mask]
         ctx.cache["n_features"] = int(pa.shape[0])
         radius = ctx.options.get("radius", 6.0 * c.subset)
-        ctx.cache["features"] = affine_guess(c.points, pa, pb, radius=radius)
+        # guesses where a POI can be correlated: not at the points a Correlator was told not to prepare (active=)
+        prepared = c.reference_status != int(Status.NOT_COMPUTED)
+        ctx.cache["features"] = affine_guess(c.points, pa, pb, radius=radius, active=prepared)
     p6, ok = ctx.cache["features"]
     g = np.zeros((idx.size, n_params(ctx.order)))
     g[ok[idx]] = embed_first_order(p6[idx][ok[idx]], ctx.order)

@@ -21,6 +21,7 @@ settings resumes after the last one (the reference match is read back, not recom
 from __future__ import annotations
 
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -150,6 +151,7 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
     from kernels.checks import positive_int
 
     t_start = time.perf_counter()
+    _import_ahead()
     policy = parse_reference(reference, auto_valid=auto_valid, auto_zncc=auto_zncc)
     figure_every = positive_int(figure_every, "figure_every")
     if callback is not None and not callable(callback):
@@ -241,22 +243,23 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
             if callback:
                 callback(k, f, None)
 
-        if 0 not in done:
-            seconds = float(time.perf_counter() - t0)
-            finish(0, sc.reference, (lp, rp), ref_digests, seconds)
-            summary.add(0, *_counts(sc.reference), seconds, 0)
-        else:
-            summary.skipped += 1
-        # the later states: the next pairs are read on a thread ahead, the finished ones written on one behind
-        wb = WriteBehind(depth=2)
+        seconds0 = float(time.perf_counter() - t0)
 
         def load(k, pair) -> Loaded:
             (L, lpath), (R, rpath) = _load(pair[0], f"left image of pair {k}"), _load(pair[1], f"right image of pair {k}")
             return Loaded(k, (L, R), (lpath, rpath), (image_digest(L), image_digest(R)))
 
+        # the later states: the next pairs are read on a thread ahead, the finished ones written on one behind
+        wb = WriteBehind(depth=2)
         reader = read_ahead(pairs[1:], load, first=1)
         with tqdm(total=len(pairs), initial=1, unit="pair", desc="stereo", disable=not progress) as bar:
             try:
+                if 0 not in done:  # written on the writer thread, its strain and uncertainty computed there first
+                    state0 = sc.reference_field(complete=False)
+                    wb.submit(lambda: finish(0, sc.complete(state0), (lp, rp), ref_digests, seconds0))
+                    summary.add(0, *_counts(state0), seconds0, 0)
+                else:
+                    summary.skipped += 1
                 if client is not None:
                     _stereo_on_dask(client, reader, writer, wb, done, summary, bar, finish,
                                     _StereoBuilder(rig, left_ref, right_ref, sc.match, device, options))
@@ -265,12 +268,33 @@ def stereo_sequence(rig, pairs: Sequence, out, *, reference: str = "fixed", mode
                     kind.verified = bool(record.verify_composed)
                     run_sequence(kind, reader, policy, done=done, wb=wb, summary=summary, bar=bar, out=out,
                                  lock=wb.lock)
+                wb.close(raise_error=True)  # (state 0 when no later pair was given)
             finally:
                 reader.close()
                 wb.close(raise_error=False)
         trim_memory()
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+def _import_ahead() -> None:
+    """Import the SciPy parts a stereo run needs later (k-d trees of the match and the acceptance, the strain's box
+    filters; 0.2-0.45 s on first import) on a background thread, while this one reads the reference pair and runs
+    the kernels and SIFT, which release the GIL. Python's import locks make an import the run reaches first wait
+    for this one."""
+    import sys
+
+    if "scipy.spatial" in sys.modules and "scipy.ndimage" in sys.modules:
+        return
+
+    def work():
+        try:
+            import scipy.ndimage  # noqa: F401
+            import scipy.spatial  # noqa: F401
+        except Exception:  # noqa: BLE001 - the run imports them itself and reports what fails
+            pass
+
+    threading.Thread(target=work, name="specula-imports", daemon=True).start()
 
 
 def _counts(field: Field3D) -> tuple[int, int]:
@@ -307,6 +331,7 @@ class _Stereo:
     def __init__(self, sc: StereoCorrelation, writer, finish, *, use_previous: bool):
         self.sc, self.writer, self._finish, self.use_previous = sc, writer, finish, use_previous
         self._saved = None  # the previous state a state measured twice (auto) starts from both times
+        self._tried = None  # the first result of a state measured twice (auto), until it is kept or measured again
 
     @property
     def reference_index(self) -> int:
@@ -324,20 +349,25 @@ class _Stereo:
         if self._saved is not None:  # measured once already, from another reference: from the same previous state
             self.sc.restore_previous(self._saved)
             self._saved = None
+            if self._tried is not None:  # that result is not kept
+                self.sc.discard(self._tried)
         if not final:
             self._saved = self.sc.saved_previous()
         L, R = image
-        return self.sc.measure(L, R, index=k, warn=final, use_previous=self.use_previous)
+        # the state's strain and uncertainty are computed on the writer thread (write), while the next state tracks
+        result = self.sc.measure(L, R, index=k, warn=final, use_previous=self.use_previous, complete=False)
+        self._tried = result if not final else None
+        return result
 
     def kept(self, result: Field3D) -> None:
-        self._saved = None
+        self._saved = self._tried = None
         self.sc.warn_if_mostly_invalid(result)
 
     def quality(self, result: Field3D) -> tuple[float, float]:
         return _quality(result, self.sc.trackable)
 
     def accept(self, k: int, result: Field3D, image) -> Field3D:
-        self._saved = None
+        self._saved = self._tried = None
         return result
 
     def stored_state(self, r: int) -> Field3D:
@@ -365,7 +395,8 @@ class _Stereo:
         return composed_mismatches(result) if self.verified else 0
 
     def write(self, k: int, result: Field3D, item: Loaded, seconds: float) -> None:
-        self._finish(k, result, item.path, item.digest, float(seconds))
+        # (writer thread) the strain and uncertainty measure() left, then the file, side outputs and callback
+        self._finish(k, self.sc.complete(result), item.path, item.digest, float(seconds))
 
     def failed(self, item: Loaded, exc: BaseException) -> BaseException:
         if exc is item.error:  # a pair that could not be read: its message names it

@@ -98,6 +98,24 @@ def test_affine_guess_recovers_local_affine_map(rng):
     assert not ok[0] and np.all(np.isnan(params[0]))
 
 
+@pytest.mark.parametrize("grid_step", [5.0, 40.0])  # POIs denser than the fit cells (20 px), then sparser
+def test_affine_guess_at_active_points_only(rng, grid_step):
+    """``active``: the guesses of the active POIs are bit for bit those computed for every POI (the cells of the
+    active POIs fitted only; whether cells are used is decided on all POIs), the others get none."""
+    src = rng.uniform(0, 1000, (3000, 2))
+    dst = src * 1.01 + np.array([12.0, -7.0]) + rng.normal(0, 0.3, src.shape)
+    ys, xs = np.mgrid[0:1000:grid_step, 0:1000:grid_step]
+    pois = np.c_[xs.ravel(), ys.ravel()] + 0.5
+    active = (pois[:, 0] > 300) & (pois[:, 0] < 620) & (pois[:, 1] < 450)
+    every, ok_every = affine_guess(pois, src, dst, radius=120.0)
+    some, ok_some = affine_guess(pois, src, dst, radius=120.0, active=active)
+    assert np.count_nonzero(ok_every[active]) > 0.9 * np.count_nonzero(active)
+    assert np.array_equal(some[active], every[active], equal_nan=True)
+    assert np.array_equal(ok_some, ok_every & active) and np.all(np.isnan(some[~active]))
+    with pytest.raises(ValueError, match="active must be"):
+        affine_guess(pois, src, dst, active=active[1:])
+
+
 def test_grid_points_and_roi():
     pts, shape, in_roi = grid_points((100, 160), 10, 21)
     assert shape == (8, 14) and pts.shape == (112, 2) and in_roi.all()

@@ -431,3 +431,50 @@ def test_no_state_is_held_once_written(lab, tmp_path, reference):
     del s
     gc.collect()
     assert all(r() is None for r in refs.values())  # once the call returns, none (the summary holds numbers only)
+
+
+def test_deferred_strain_and_uncertainty_equal_the_complete_states(lab):
+    """measure(complete=False) leaves a state's strain and uncertainty to complete() (stereo_sequence runs it on its
+    writer thread while the next state tracks): completed on another thread, after the tracks' reference moved on
+    (move_reference completes the state it moves to), last state first, every array and detail equals measure()'s
+    bit for bit, in the same order; a state that is not kept is discarded."""
+    import threading
+
+    from dic._stereo import SIGMA_DETAILS, StereoCorrelation
+
+    rig, states = lab["rig"], lab["states"]
+    a = StereoCorrelation(rig, *states[0], step=STEP, device="cpu")
+    b = StereoCorrelation(rig, *states[0], step=STEP, device="cpu", match=a.match)
+    full, pending = [], []
+    for k in range(1, N_STATES):
+        fa = a.measure(*states[k], index=k)
+        fb = b.measure(*states[k], index=k, complete=False)
+        assert np.all(np.isnan(fb.exx)) and not fb.strain_valid.any()
+        assert all(fb.details[name] is None for name in SIGMA_DETAILS)
+        assert np.array_equal(fb.status, fa.status) and np.array_equal(fb.uvw, fa.uvw, equal_nan=True)
+        full.append(fa)
+        pending.append(fb)
+        if k == 1:  # the tracks move to state 1 while its strain and uncertainty are pending
+            a.move_reference(*states[1], fa)
+            b.move_reference(*states[1], fb)
+            assert np.count_nonzero(np.isfinite(fb.exx)) > 0  # completed by move_reference
+    worker = threading.Thread(target=lambda: [b.complete(f) for f in reversed(pending)])
+    worker.start()
+    worker.join()
+    for fa, fb in zip(full, pending):
+        assert list(fa.details) == list(fb.details)
+        xa, xb = fa.arrays(), fb.arrays()
+        assert list(xa) == list(xb)
+        for name in xa:
+            assert np.array_equal(xa[name], xb[name], equal_nan=xa[name].dtype.kind == "f"), (fa.index, name)
+        assert np.count_nonzero(fb.strain_valid) > 0.5 * np.count_nonzero(fb.valid)
+        assert b.complete(fb) is fb  # nothing left to do
+    dropped = b.measure(*states[2], index=2, complete=False)
+    b.discard(dropped)
+    b.complete(dropped)
+    assert np.all(np.isnan(dropped.exx)) and all(entry[0] is not dropped for entry in b._deferred.values())
+    # the reference state too: completed when first read (reference), or by complete() (a sequence's writer thread)
+    pending0 = b.reference_field(complete=False)
+    assert np.all(np.isnan(pending0.exx)) and b.reference is pending0 and not b._deferred
+    xa, xb = a.reference.arrays(), pending0.arrays()
+    assert list(xa) == list(xb) and all(np.array_equal(xa[k], xb[k], equal_nan=xa[k].dtype.kind == "f") for k in xa)

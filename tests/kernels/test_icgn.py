@@ -342,3 +342,62 @@ def test_bad_input(device):
         icgn(subs, img, max_iter=0)
     with pytest.raises(ValueError, match="tol"):
         icgn(subs, img, tol=-1.0)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_prepare_subsets_of_active_points_only(order):
+    """``active``: the active POIs' tables are bit for bit those of preparing every POI (so are their IC-GN
+    results), the others NOT_COMPUTED with zero tables and never tracked; a wrong mask is refused."""
+    from dic.synth import speckle_pair
+
+    ref, cur = speckle_pair((96, 120), (0.4, -0.3), seed=5)
+    ys, xs = np.mgrid[4:92:6, 4:116:6]  # a grid over the whole image: some subsets leave it
+    pts = np.c_[xs.ravel() + 0.25, ys.ravel()].astype(np.float64)
+    active = (pts[:, 0] > 30) & (pts[:, 0] < 90) & (pts[:, 1] > 20)
+    reference = prepare_reference(ref, device="cpu")
+    every = prepare_subsets(reference, pts, subset=15, order=order)
+    some = prepare_subsets(reference, pts, subset=15, order=order, active=active)
+    for name in ("centres", "deltas", "refdata", "status"):
+        a, b = getattr(every, name).numpy(), getattr(some, name).numpy()
+        assert np.array_equal(a[active], b[active]), name
+        assert not np.any(b[~active] if name != "status" else b[~active] != int(Status.NOT_COMPUTED)), name
+    assert np.count_nonzero(every.status.numpy()[active] == int(Status.CONVERGED)) > 50
+    current = prepare_current(cur, device="cpu")
+    ra, rb = icgn(every, current).numpy(), icgn(some, current).numpy()
+    for key in ("params", "zncc", "iterations", "status"):
+        assert np.array_equal(ra[key][active], rb[key][active], equal_nan=True), key
+    assert np.all(rb["status"][~active] == int(Status.NOT_COMPUTED)) and np.all(rb["iterations"][~active] == 0)
+    with pytest.raises(ValueError, match="active must be"):
+        prepare_subsets(reference, pts, subset=15, order=order, active=active[:-1])
+    with pytest.raises(ValueError, match="active must be"):
+        prepare_subsets(reference, pts, subset=15, order=order, active=active.astype(int))
+
+
+def test_reference_gradients_of_a_window_are_the_same_bits():
+    """``prepare_reference(window=)``: the values and gradients inside the window are those of the whole image bit for
+    bit, zero outside; subsets_window covers every pixel of the given subsets (so their IC-GN is unchanged)."""
+    from dic.synth import speckle_pair
+    from kernels.icgn import subsets_window
+
+    ref, cur = speckle_pair((90, 130), (0.3, 0.2), seed=9)
+    whole = prepare_reference(ref, device="cpu").fgrad.numpy().reshape(90, 130, 3)
+    part = prepare_reference(ref, device="cpu", window=(20, 15, 97, 70)).fgrad.numpy().reshape(90, 130, 3)
+    assert np.array_equal(part[15:71, 20:98], whole[15:71, 20:98])
+    inside = np.zeros((90, 130), dtype=bool)
+    inside[15:71, 20:98] = True
+    assert not np.any(part[~inside])
+    clipped = prepare_reference(ref, device="cpu", window=(-5, -5, 200, 200)).fgrad.numpy()
+    assert np.array_equal(clipped, whole.reshape(-1, 3))
+    pts = np.array([[30.5, 22.4], [60.0, 50.0], [95.49, 60.51], [np.nan, np.nan]])
+    active = np.array([True, True, True, False])
+    x0, y0, x1, y1 = subsets_window(pts, 11, active)
+    centres = np.floor(pts[:3] + 0.5)
+    assert x0 <= centres[:, 0].min() - 5 and y0 <= centres[:, 1].min() - 5
+    assert x1 >= centres[:, 0].max() + 5 and y1 >= centres[:, 1].max() + 5
+    assert subsets_window(pts, 11, np.zeros(4, dtype=bool)) is None
+    sub_w = prepare_subsets(prepare_reference(ref, device="cpu", window=(x0, y0, x1, y1)), pts[:3], subset=11)
+    sub = prepare_subsets(prepare_reference(ref, device="cpu"), pts[:3], subset=11)
+    current = prepare_current(cur, device="cpu")
+    a, b = icgn(sub, current).numpy(), icgn(sub_w, current).numpy()
+    for key in ("params", "zncc", "iterations", "status"):
+        assert np.array_equal(a[key], b[key], equal_nan=True), key

@@ -34,7 +34,9 @@ BOUNDS = {
     "_prepare_subsets_1st": (177, 0),  # one kernel for both orders: 255, 7232; 183 before issue 23 (named columns)
     "_prepare_subsets_2nd": (255, 3472),  # 12x12 float64 Cholesky in run-time loops (1256 B unrolled); 3480 B before issue 23
     "_reference_gradients": (40, 0),
+    "_reference_gradients_window": (40, 0),  # prepare_reference(window=) (issue 23, measured)
     "_gather_subsets": (32, 0),  # indexed IC-GN's gather (kernels.icgn, issue 16 search on the device)
+    "_scatter_subsets": (32, 0),  # prepare_subsets(active=): the prepared rows into every POI's (issue 23, measured)
     "_expand_rows4": (30, 0),
     "_interp_kernel": (64, 0),
     "_prefilter_rows": (40, 0),  # whole lines: 32, 0; segments: 56 uncapped, 40 with bounds (256, 6)
