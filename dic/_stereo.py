@@ -166,9 +166,11 @@ def _frame(given, checked: np.ndarray) -> np.ndarray:
     return checked
 
 
-def _check_pair(left, right, what: str) -> tuple[np.ndarray, np.ndarray]:
-    L = _image(left, f"left {what} image")
-    R = _image(right, f"right {what} image")
+def _check_pair(left, right, what: str, convert=_image) -> tuple[np.ndarray, np.ndarray]:
+    """The two images of a pair, checked (``convert``: :func:`_image`, float32; :func:`_raw_or_float`, 8/16-bit
+    images as they are) and of one size."""
+    L = convert(left, f"left {what} image")
+    R = convert(right, f"right {what} image")
     if L.shape != R.shape:
         raise ValueError(f"the left and right {what} images differ in size: {L.shape[1]}x{L.shape[0]} and "
                          f"{R.shape[1]}x{R.shape[0]} px (W x H); stereo DIC needs the two cameras' images at their "
@@ -538,7 +540,7 @@ class StereoCorrelation:
         self._basis = {}               # "left"/"right": diag H^-1 and df of the reference subsets, read once
         self._moved: _TrackReference | None = None  # the temporal tracks' reference when not the reference pair
         self._strain_plan: SurfaceStrainPlan | None = None  # grid strain: the reference positions' part, once
-        self._deferred: dict = {}      # id(field) -> (field, _Deferred): states measured with complete=False
+        self._deferred: dict = {}      # id(field) -> (field, later()): states measured with complete=False
         self._completing = threading.RLock()  # one complete() at a time (the strain plan, the sigma bases)
         #: "left"/"right": the phase-correlation spectrum of the camera's last image (the next state's base)
         self._spectra: dict[str, _SpectrumMemo] = {}
@@ -769,11 +771,7 @@ class StereoCorrelation:
         """
         # 8/16-bit images stay as they are (the frame path converts them in its prefilter); float copies are made
         # where a step needs them (the global shift, the features, the composed check): floats
-        L, R = _raw_or_float(left_cur, "left current image"), _raw_or_float(right_cur, "right current image")
-        if L.shape != R.shape:
-            raise ValueError(f"the left and right current images differ in size: {L.shape[1]}x{L.shape[0]} and "
-                             f"{R.shape[1]}x{R.shape[0]} px (W x H); stereo DIC needs the two cameras' images at their "
-                             "calibrated size")
+        L, R = _check_pair(left_cur, right_cur, "current", convert=_raw_or_float)
         floats = _FloatImages()
         frame_l, frame_r = _frame(left_cur, L), _frame(right_cur, R)
         if L.shape != self.shape:
@@ -959,7 +957,8 @@ class StereoCorrelation:
         if L.shape != self.shape:
             raise ValueError(f"the new reference images are {L.shape[1]}x{L.shape[0]} px but the reference images are "
                              f"{self.shape[1]}x{self.shape[0]} px")
-        self.complete(state)  # a state measured with complete=False: its uncertainty is carried to the new reference
+        if isinstance(state, Field3D):  # (anything else is refused by plan, below)
+            self.complete(state)  # a state measured with complete=False: its uncertainty is carried to the new reference
         planned = _TrackReference.plan(self, state)  # a state that cannot serve is refused with the tracks unchanged
         self._moved = None  # the previous moved reference's data are freed before the new ones are prepared
         self._moved = planned.prepare(self, L, R)
@@ -1202,7 +1201,7 @@ class StereoCorrelation:
             strain_type=self.strain_type,
         )
         if defer:
-            self._deferred[id(f)] = (f, _Deferred(later))
+            self._deferred[id(f)] = (f, later)
         return f
 
     def complete(self, field: Field3D) -> Field3D:
@@ -1211,12 +1210,13 @@ class StereoCorrelation:
         ``noise_sigma_grey`` details); returns it. Nothing to do for a complete field. Safe from any thread: one
         completion runs at a time (they share the strain plan), each once; the result is bit for bit that of
         ``measure(...)`` (the moved reference is the one the state was measured from)."""
+        _check_field(field)
         entry = self._deferred.get(id(field))
         if entry is None or entry[0] is not field:
             return field
         with self._completing:
             if self._deferred.get(id(field)) is entry:
-                sig, strain = entry[1].later()
+                sig, strain = entry[1]()
                 field.details.update(sig)
                 field.exx, field.eyy, field.exy = strain["exx"], strain["eyy"], strain["exy"]
                 field.normal, field.strain_valid = strain["normal"], strain["strain_valid"]
@@ -1226,6 +1226,7 @@ class StereoCorrelation:
     def discard(self, field: Field3D) -> None:
         """Forget the pending strain and uncertainty of a state measured with ``complete=False`` that is not kept
         (e.g. measured again from another reference)."""
+        _check_field(field)
         with self._completing:
             entry = self._deferred.get(id(field))
             if entry is not None and entry[0] is field:
@@ -1237,12 +1238,10 @@ SIGMA_DETAILS = ("sigma_match_px", "sigma_left_px", "sigma_right_px", "noise_sig
                  "sigma_uvw_mm")
 
 
-@dataclass
-class _Deferred:
-    """A state's strain and uncertainty still to compute (StereoCorrelation.complete): ``later()`` -> (sigma
-    details, strain dict)."""
-
-    later: object
+def _check_field(field) -> None:
+    if not isinstance(field, Field3D):
+        raise ValueError(f"field must be a Field3D (a state measured by this StereoCorrelation), got "
+                         f"{type(field).__name__}")
 
 
 #: px beyond the tracked subsets that the global shift of a temporal track is measured on (its phase-correlation

@@ -1154,6 +1154,13 @@ def prepare_reference(image, device=None, window=None) -> ReferenceImage:
         elsewhere: for subsets known to lie inside it (:func:`subsets_window`); the values there are the same bits.
     """
     device = resolve_device(device)
+    if window is not None:
+        try:
+            x0, y0, x1, y1 = (int(v) for v in window)
+            if any(int(v) != v for v in window):
+                raise TypeError
+        except (TypeError, ValueError):
+            raise ValueError(f"window must be 4 integers (x0, y0, x1, y1) px, got {window!r}") from None
     arr = as_float32_image(image, "reference")
     coef = bspline_coefficients(arr, device=device)
     h, w = arr.shape
@@ -1163,7 +1170,6 @@ def prepare_reference(image, device=None, window=None) -> ReferenceImage:
         launch_1d(_reference_gradients, h * w, [0, img_wp, coef.flat, coef.pitch, w, fgrad], device, offset_index=0,
                   min_chunk=1 << 15)
     else:
-        x0, y0, x1, y1 = (int(v) for v in window)
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
         fgrad = wp.zeros(h * w, dtype=wp.vec3, device=device)
         if x1 >= x0 and y1 >= y0:
@@ -1177,13 +1183,16 @@ def prepare_reference(image, device=None, window=None) -> ReferenceImage:
 def subsets_window(points, subset: int, active=None) -> tuple[int, int, int, int] | None:
     """``(x0, y0, x1, y1)``: the pixels the subsets of the (``active``) POIs ``points`` (N, 2) px read in the reference
     (their integer centres ``round(x)``, ``round(y)`` +- ``subset // 2``); None when there is none."""
-    pts = np.asarray(points, dtype=np.float64)
+    pts = as_points(points, finite=False, allow_empty=True)
+    r = odd_int(subset, "subset", detail=" (e.g. 21)") // 2
     if active is not None:
-        pts = pts[np.asarray(active, dtype=bool)]
+        act = np.asarray(active)
+        if act.dtype != bool or act.shape != (pts.shape[0],):
+            raise ValueError(f"active must be an ({pts.shape[0]},) bool array (one per POI), got {act.dtype} {act.shape}")
+        pts = pts[act]
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if pts.shape[0] == 0:
         return None
-    r = int(subset) // 2
     # the kernels' centres are rounded half away from zero; one pixel more either way covers any rounding
     lo = np.floor(pts.min(axis=0)).astype(int) - r - 1
     hi = np.ceil(pts.max(axis=0)).astype(int) + r + 1

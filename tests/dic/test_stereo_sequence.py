@@ -478,3 +478,6 @@ def test_deferred_strain_and_uncertainty_equal_the_complete_states(lab):
     assert np.all(np.isnan(pending0.exx)) and b.reference is pending0 and not b._deferred
     xa, xb = a.reference.arrays(), pending0.arrays()
     assert list(xa) == list(xb) and all(np.array_equal(xa[k], xb[k], equal_nan=xa[k].dtype.kind == "f") for k in xa)
+    for call in (b.complete, b.discard):
+        with pytest.raises(ValueError, match="field must be a Field3D"):
+            call(None)

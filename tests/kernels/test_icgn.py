@@ -395,6 +395,13 @@ def test_reference_gradients_of_a_window_are_the_same_bits():
     assert x0 <= centres[:, 0].min() - 5 and y0 <= centres[:, 1].min() - 5
     assert x1 >= centres[:, 0].max() + 5 and y1 >= centres[:, 1].max() + 5
     assert subsets_window(pts, 11, np.zeros(4, dtype=bool)) is None
+    with pytest.raises(ValueError, match="active must be"):
+        subsets_window(pts, 11, active[:3])
+    with pytest.raises(ValueError, match="subset must be an odd integer"):
+        subsets_window(pts, 10, active)
+    for bad in ((1, 2, 3), (0, 0, 10.5, 10), "abcd"):
+        with pytest.raises(ValueError, match="window must be 4 integers"):
+            prepare_reference(ref, device="cpu", window=bad)
     sub_w = prepare_subsets(prepare_reference(ref, device="cpu", window=(x0, y0, x1, y1)), pts[:3], subset=11)
     sub = prepare_subsets(prepare_reference(ref, device="cpu"), pts[:3], subset=11)
     current = prepare_current(cur, device="cpu")
